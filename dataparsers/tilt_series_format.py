@@ -1,0 +1,236 @@
+"""The ``tilt_series.json`` directory: what a tilt series is on disk, read and written.
+
+A directory holds ``tilt_series.json``::
+
+    {"projections": "projections.npy",   # (N, H, W) float array
+     "angles_deg": "angles.txt",         # N tilt angles in degrees, one per line
+     "pixel_size_A": 0.25,
+     "tilt_axis": "y",                   # optional, "y" (default) or "x"
+     "truth": "atoms_true.xyz",          # optional, the true atoms
+     "origin_A": [35.0, 35.0, 35.0]}     # optional, the tilt centre in the truth file's frame
+
+Paths are relative to the directory.  Reading validates everything and raises
+:class:`TiltSeriesError` with a one-line message naming the file and the problem.  This module
+does not import nerfstudio.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from gaussian_atoms_method.geometry import TILT_AXES
+
+MANIFEST = "tilt_series.json"
+
+
+class TiltSeriesError(ValueError):
+    """A tilt series cannot be used as given; the message names the file or option."""
+
+
+@dataclass
+class TiltSeries:
+    """A validated tilt series.
+
+    Attributes
+    ----------
+    projections : (N, H, W) float32 array
+        Line integrals of the potential (any units; negative values allowed).
+    angles_deg : (N,) float64 array
+    pixel_size_A : float
+    tilt_axis : {"y", "x"}
+    origin_A : (3,) float64 array
+        Position of the tilt centre in the output (truth) frame, Å.
+    truth_path : Path or None
+    source : Path or None
+        Where it was read from.
+    """
+
+    projections: np.ndarray
+    angles_deg: np.ndarray
+    pixel_size_A: float
+    tilt_axis: str = "y"
+    origin_A: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    truth_path: Path | None = None
+    source: Path | None = None
+
+    def __post_init__(self) -> None:
+        where = str(self.source) if self.source is not None else "tilt series"
+        proj = np.asarray(self.projections)
+        if proj.ndim != 3:
+            raise TiltSeriesError(f"{where}: projections must be a 3D array (N, H, W), got shape {proj.shape}")
+        if not np.issubdtype(proj.dtype, np.number) or np.iscomplexobj(proj):
+            raise TiltSeriesError(f"{where}: projections must be real numbers, got dtype {proj.dtype}")
+        if min(proj.shape) == 0:
+            raise TiltSeriesError(f"{where}: projections are empty, shape {proj.shape}")
+        n_bad = int(np.size(proj) - np.count_nonzero(np.isfinite(proj)))
+        if n_bad:
+            raise TiltSeriesError(f"{where}: projections hold {n_bad} NaN/Inf value(s)")
+        self.projections = proj.astype(np.float32, copy=False)
+        angles = np.asarray(self.angles_deg, dtype=np.float64).reshape(-1)
+        if len(angles) != proj.shape[0]:
+            raise TiltSeriesError(f"{where}: {len(angles)} tilt angles for {proj.shape[0]} projections")
+        if not np.all(np.isfinite(angles)):
+            raise TiltSeriesError(f"{where}: tilt angles hold NaN/Inf")
+        uniq, counts = np.unique(angles, return_counts=True)
+        if np.any(counts > 1):
+            raise TiltSeriesError(f"{where}: duplicate tilt angle(s) {uniq[counts > 1].tolist()} deg")
+        self.angles_deg = angles
+        if not (np.isfinite(self.pixel_size_A) and self.pixel_size_A > 0):
+            raise TiltSeriesError(f"{where}: pixel_size_A must be a positive number of Å, got {self.pixel_size_A}")
+        self.pixel_size_A = float(self.pixel_size_A)
+        if self.tilt_axis not in TILT_AXES:
+            raise TiltSeriesError(f"{where}: tilt_axis must be one of {list(TILT_AXES)}, got {self.tilt_axis!r}")
+        origin = np.asarray(self.origin_A, dtype=np.float64).reshape(-1)
+        if origin.shape != (3,) or not np.all(np.isfinite(origin)):
+            raise TiltSeriesError(f"{where}: origin_A must be three finite numbers (Å), got {self.origin_A!r}")
+        self.origin_A = origin
+
+    @property
+    def n_views(self) -> int:
+        return self.projections.shape[0]
+
+    @property
+    def image_shape(self) -> tuple[int, int]:
+        return self.projections.shape[1], self.projections.shape[2]
+
+
+def _load_array(path: Path, what: str) -> np.ndarray:
+    if not path.is_file():
+        raise TiltSeriesError(f"{path}: {what} file not found")
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".npy":
+            return np.load(path, allow_pickle=False)
+        if suffix == ".npz":
+            with np.load(path, allow_pickle=False) as z:
+                if len(z.files) != 1:
+                    raise TiltSeriesError(f"{path}: expected one array in the .npz, found {z.files}")
+                return z[z.files[0]]
+        if suffix in (".txt", ".tlt", ".rawtlt", ".csv", ".dat"):
+            return np.loadtxt(path, delimiter="," if suffix == ".csv" else None, ndmin=1)
+    except TiltSeriesError:
+        raise
+    except Exception as exc:
+        raise TiltSeriesError(f"{path}: could not read {what} ({type(exc).__name__}: {exc})") from exc
+    raise TiltSeriesError(f"{path}: unsupported {what} file type {suffix!r}; expected .npy, .npz or text")
+
+
+def load_tilt_series(
+    data: str | Path,
+    projections: str | Path | None = None,
+    angles_deg: str | Path | None = None,
+    pixel_size_A: float | None = None,
+    tilt_axis: str | None = None,
+    truth: str | Path | None = None,
+) -> TiltSeries:
+    """Read a tilt series from a directory with ``tilt_series.json`` and/or explicit options.
+
+    Options given here override the manifest's entries; relative paths are taken relative to
+    ``data`` (a directory, or the manifest file itself).
+    """
+    data = Path(data)
+    if data.is_file() and data.suffix == ".json":
+        manifest_path, root = data, data.parent
+    else:
+        manifest_path, root = data / MANIFEST, data
+    if not root.exists():
+        raise TiltSeriesError(f"{root}: data directory not found")
+    manifest: dict = {}
+    if manifest_path.is_file():
+        try:
+            manifest = json.loads(manifest_path.read_text())
+        except json.JSONDecodeError as exc:
+            raise TiltSeriesError(f"{manifest_path}: not valid JSON ({exc})") from exc
+        if not isinstance(manifest, dict):
+            raise TiltSeriesError(f"{manifest_path}: expected a JSON object")
+        known = {"projections", "angles_deg", "pixel_size_A", "tilt_axis", "truth", "origin_A", "description", "simulation"}
+        unknown = set(manifest) - known
+        if unknown:
+            raise TiltSeriesError(f"{manifest_path}: unknown key(s) {sorted(unknown)}; expected some of {sorted(known)}")
+    elif projections is None:
+        raise TiltSeriesError(f"{manifest_path}: not found, and no projections option given")
+    where = manifest_path if manifest_path.is_file() else root
+
+    def pick(option, key):
+        return option if option is not None else manifest.get(key)
+
+    proj_name, angles_name, px = pick(projections, "projections"), pick(angles_deg, "angles_deg"), pick(pixel_size_A, "pixel_size_A")
+    for value, key in ((proj_name, "projections"), (angles_name, "angles_deg"), (px, "pixel_size_A")):
+        if value is None:
+            raise TiltSeriesError(f"{where}: '{key}' is missing (give it in {MANIFEST} or as an option)")
+    try:
+        px = float(px)
+    except (TypeError, ValueError):
+        raise TiltSeriesError(f"{where}: pixel_size_A must be a number of Å, got {px!r}") from None
+    proj_path, angles_path = root / proj_name, root / angles_name
+    proj = _load_array(proj_path, "projections")
+    if proj.ndim != 3:
+        raise TiltSeriesError(f"{proj_path}: projections must be a 3D array (N, H, W), got shape {proj.shape}")
+    angles = _load_array(angles_path, "tilt angles")
+    if angles.ndim != 1:
+        raise TiltSeriesError(f"{angles_path}: expected N single-axis tilt angles (one column), got shape {angles.shape}")
+    if len(angles) != proj.shape[0]:
+        raise TiltSeriesError(f"{angles_path}: {len(angles)} tilt angles for {proj.shape[0]} projections in {proj_path.name}")
+    truth_name = pick(truth, "truth")
+    truth_path = root / truth_name if truth_name is not None else None
+    if truth_path is not None and not truth_path.is_file():
+        raise TiltSeriesError(f"{truth_path}: truth file not found")
+    try:
+        return TiltSeries(
+            projections=proj,
+            angles_deg=angles,
+            pixel_size_A=px,
+            tilt_axis=pick(tilt_axis, "tilt_axis") or "y",
+            origin_A=manifest.get("origin_A", [0.0, 0.0, 0.0]),
+            truth_path=truth_path,
+            source=proj_path,
+        )
+    except TiltSeriesError as exc:
+        # Name the file the problem most likely lives in.
+        msg = str(exc).split(": ", 1)[-1]
+        culprit = angles_path if "angle" in msg else (where if ("pixel" in msg or "axis" in msg or "origin" in msg) else proj_path)
+        raise TiltSeriesError(f"{culprit}: {msg}") from None
+
+
+def write_tilt_series(
+    out_dir: str | Path,
+    projections: np.ndarray,
+    angles_deg: np.ndarray,
+    pixel_size_A: float,
+    truth=None,
+    origin_A=(0.0, 0.0, 0.0),
+    tilt_axis: str = "y",
+    extra: dict | None = None,
+) -> Path:
+    """Write a ``tilt_series.json`` directory; ``truth`` is an AtomSet in its own frame.
+
+    The manifest is written last, so a directory with a manifest is complete.
+    """
+    from gaussian_atoms_method.atoms import write_atoms
+
+    series = TiltSeries(projections, angles_deg, pixel_size_A, tilt_axis, np.asarray(origin_A, dtype=float))
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / MANIFEST).unlink(missing_ok=True)
+    np.save(out / "projections.npy", series.projections)
+    np.savetxt(out / "angles.txt", series.angles_deg, fmt="%.6f")
+    manifest = {
+        "projections": "projections.npy",
+        "angles_deg": "angles.txt",
+        "pixel_size_A": series.pixel_size_A,
+        "tilt_axis": series.tilt_axis,
+        "origin_A": series.origin_A.tolist(),
+    }
+    if truth is not None:
+        write_atoms(truth, out / "atoms_true.xyz")
+        manifest["truth"] = "atoms_true.xyz"
+    if extra:
+        manifest.update(extra)
+    tmp = out / (MANIFEST + ".tmp")
+    tmp.write_text(json.dumps(manifest, indent=2) + "\n")
+    tmp.replace(out / MANIFEST)
+    return out

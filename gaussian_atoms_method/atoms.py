@@ -1,0 +1,196 @@
+"""Atom sets in Å and their files.
+
+An :class:`AtomSet` holds what the method solves for: positions in Å, a width (Gaussian
+sigma, Å) and an amplitude per atom, and optionally a species.  It reads and writes extended
+XYZ (through ASE, so every ASE reader works as input), CSV, and the ``type x y z`` text format
+used by the AET community's ground-truth files.  Writes are atomic: a file either holds a
+complete result or does not exist.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+
+class AtomFileError(ValueError):
+    """A file of atoms could not be read: names the file and the problem."""
+
+
+@dataclass
+class AtomSet:
+    """Atoms with positions in Å.
+
+    Attributes
+    ----------
+    positions : (N, 3) float array, Å
+    sigmas : (N,) float array, Å, or None
+        Gaussian width of each atom's potential (as reconstructed, including blur).
+    amplitudes : (N,) float array or None
+        3D peak of each Gaussian, in units of the input projections per Å.
+    species : (N,) array of str, or None
+    """
+
+    positions: np.ndarray
+    sigmas: np.ndarray | None = None
+    amplitudes: np.ndarray | None = None
+    species: np.ndarray | None = None
+    info: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.positions = np.asarray(self.positions, dtype=np.float64).reshape(-1, 3)
+        n = len(self.positions)
+        for name in ("sigmas", "amplitudes"):
+            value = getattr(self, name)
+            if value is not None:
+                value = np.asarray(value, dtype=np.float64).reshape(-1)
+                if len(value) != n:
+                    raise ValueError(f"{name} has {len(value)} entries for {n} atoms")
+                setattr(self, name, value)
+        if self.species is not None:
+            self.species = np.asarray(self.species, dtype=str).reshape(-1)
+            if len(self.species) != n:
+                raise ValueError(f"species has {len(self.species)} entries for {n} atoms")
+
+    def __len__(self) -> int:
+        return len(self.positions)
+
+    @property
+    def masses(self) -> np.ndarray | None:
+        """Integrated potential of each Gaussian, ``amplitude (2 pi sigma^2)^(3/2)``."""
+        if self.sigmas is None or self.amplitudes is None:
+            return None
+        return self.amplitudes * (2.0 * np.pi * self.sigmas**2) ** 1.5
+
+    def shifted(self, offset_A) -> "AtomSet":
+        """A copy with every position moved by ``offset_A`` (3,)."""
+        return AtomSet(self.positions + np.asarray(offset_A, dtype=np.float64), self.sigmas, self.amplitudes, self.species, dict(self.info))
+
+    # ------------------------------------------------------------------ ASE
+    def to_ase(self):
+        """An :class:`ase.Atoms`; sigma and amplitude become per-atom arrays."""
+        import ase
+
+        symbols = list(self.species) if self.species is not None else ["X"] * len(self)
+        atoms = ase.Atoms(symbols=symbols, positions=self.positions, pbc=False)
+        if self.sigmas is not None:
+            atoms.new_array("sigma_A", self.sigmas)
+        if self.amplitudes is not None:
+            atoms.new_array("amplitude", self.amplitudes)
+        return atoms
+
+    @classmethod
+    def from_ase(cls, atoms) -> "AtomSet":
+        arrays = atoms.arrays
+        species = np.array(atoms.get_chemical_symbols())
+        return cls(
+            positions=atoms.get_positions(),
+            sigmas=arrays.get("sigma_A"),
+            amplitudes=arrays.get("amplitude"),
+            species=species,
+        )
+
+
+def _atomic_write(path: Path, write) -> None:
+    """Write through a temporary file in the same folder, then rename: never half a file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=path.suffix)
+    os.close(fd)
+    try:
+        write(Path(tmp))
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_atoms(atoms: AtomSet, path: str | Path) -> Path:
+    """Write atoms to ``.xyz``/``.extxyz`` (extended XYZ) or ``.csv``, chosen by suffix."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix in (".xyz", ".extxyz"):
+        import ase.io
+
+        _atomic_write(path, lambda p: ase.io.write(p, atoms.to_ase(), format="extxyz"))
+    elif suffix == ".csv":
+        _atomic_write(path, lambda p: _write_csv(atoms, p))
+    else:
+        raise ValueError(f"{path}: unknown atom file type {suffix!r}; expected .xyz, .extxyz or .csv")
+    return path
+
+
+def _write_csv(atoms: AtomSet, path: Path) -> None:
+    n = len(atoms)
+    columns = {
+        "species": atoms.species if atoms.species is not None else np.full(n, "X"),
+        "x_A": atoms.positions[:, 0],
+        "y_A": atoms.positions[:, 1],
+        "z_A": atoms.positions[:, 2],
+        "sigma_A": atoms.sigmas if atoms.sigmas is not None else np.full(n, np.nan),
+        "amplitude": atoms.amplitudes if atoms.amplitudes is not None else np.full(n, np.nan),
+    }
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(columns.keys())
+        for i in range(n):
+            writer.writerow([columns["species"][i]] + [repr(float(columns[k][i])) for k in list(columns)[1:]])
+
+
+def read_atoms(path: str | Path) -> AtomSet:
+    """Read atoms from extended XYZ / any ASE format, our CSV, or ``type x y z`` text.
+
+    Text files whose comment lines start with ``%`` or ``#`` and whose rows are
+    ``type x y z`` (the AET ground-truth format) are read as such.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise AtomFileError(f"{path}: atom file not found")
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".csv":
+            return _read_csv(path)
+        if suffix == ".txt":
+            return _read_type_xyz_text(path)
+        import ase.io
+
+        return AtomSet.from_ase(ase.io.read(path))
+    except AtomFileError:
+        raise
+    except Exception as exc:  # ASE and numpy raise many types; name the file
+        raise AtomFileError(f"{path}: could not read atoms ({type(exc).__name__}: {exc})") from exc
+
+
+def _read_csv(path: Path) -> AtomSet:
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    if not rows:
+        return AtomSet(np.zeros((0, 3)))
+    missing = {"x_A", "y_A", "z_A"} - set(rows[0])
+    if missing:
+        raise AtomFileError(f"{path}: CSV lacks column(s) {sorted(missing)}; expected x_A, y_A, z_A")
+    pos = np.array([[float(r["x_A"]), float(r["y_A"]), float(r["z_A"])] for r in rows])
+    sig = np.array([float(r.get("sigma_A", "nan")) for r in rows])
+    amp = np.array([float(r.get("amplitude", "nan")) for r in rows])
+    species = np.array([r.get("species", "X") for r in rows])
+    return AtomSet(pos, None if np.isnan(sig).all() else sig, None if np.isnan(amp).all() else amp, species)
+
+
+def _read_type_xyz_text(path: Path) -> AtomSet:
+    rows = []
+    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+        line = line.strip()
+        if not line or line[0] in "%#":
+            continue
+        parts = line.split()
+        if len(parts) != 4:
+            raise AtomFileError(f"{path}:{lineno}: expected 'type x y z', got {line!r}")
+        rows.append(parts)
+    species = np.array([r[0] for r in rows])
+    pos = np.array([[float(v) for v in r[1:]] for r in rows]).reshape(-1, 3)
+    return AtomSet(pos, species=species)

@@ -1,0 +1,65 @@
+"""The ``gaussian-atoms`` method as nerfstudio sees it: trainer, pipeline and optimiser settings.
+
+Learning rates are in normalised units (the detector's longer side is 1); the means' rate
+decays tenfold over the run so that atoms settle to pm precision.
+"""
+
+from __future__ import annotations
+
+from nerfstudio.configs.base_config import ViewerConfig
+from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanager, FullImageDatamanagerConfig
+from nerfstudio.engine.optimizers import AdamOptimizerConfig
+from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
+from nerfstudio.engine.trainer import TrainerConfig
+from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
+from nerfstudio.plugins.types import MethodSpecification
+
+from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
+from dataparsers.tilt_series_dataset import TiltSeriesDataset
+
+from .model import GaussianAtomsModelConfig
+
+MAX_ITERATIONS = 3000
+
+
+class TiltSeriesDatamanager(FullImageDatamanager[TiltSeriesDataset]):
+    """nerfstudio's full-image datamanager serving float projections from memory."""
+
+
+def gaussian_atoms_trainer_config(max_iterations: int = MAX_ITERATIONS) -> TrainerConfig:
+    """The default configuration of ``ns-train gaussian-atoms``."""
+    return TrainerConfig(
+        method_name="gaussian-atoms",
+        steps_per_eval_image=500,
+        steps_per_eval_batch=0,
+        steps_per_save=1000,
+        steps_per_eval_all_images=100000,
+        max_num_iterations=max_iterations,
+        mixed_precision=False,
+        pipeline=VanillaPipelineConfig(
+            datamanager=FullImageDatamanagerConfig(
+                _target=TiltSeriesDatamanager,
+                dataparser=TiltSeriesDataParserConfig(),
+                # "gpu" means "on the training device"; "cpu" pins memory, which needs CUDA.
+                cache_images="gpu",
+                cache_images_type="float32",
+            ),
+            model=GaussianAtomsModelConfig(),
+        ),
+        optimizers={
+            "means": {
+                "optimizer": AdamOptimizerConfig(lr=1e-3, eps=1e-15),
+                "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=max_iterations),
+            },
+            "log_sigmas": {"optimizer": AdamOptimizerConfig(lr=5e-3, eps=1e-15), "scheduler": None},
+            "log_amplitudes": {"optimizer": AdamOptimizerConfig(lr=2e-2, eps=1e-15), "scheduler": None},
+        },
+        viewer=ViewerConfig(num_rays_per_chunk=1 << 15),
+        vis="viewer",
+    )
+
+
+gaussian_atoms_method = MethodSpecification(
+    config=gaussian_atoms_trainer_config(),
+    description="Atomic electron tomography: one isotropic 3D Gaussian per atom, fitted to a tilt series.",
+)

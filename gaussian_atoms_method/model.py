@@ -1,0 +1,318 @@
+"""``GaussianAtomsModel``: splatfacto with the tomographic projector in place of the rasteriser.
+
+One isotropic Gaussian per atom.  Parameters (normalised units, see :mod:`.units`):
+
+* ``means`` (N, 3): positions;
+* ``log_sigmas`` (N, 1): one width per Gaussian, ``sigma = exp(log_sigma)``;
+* ``log_amplitudes`` (N, 1): the 3D peak, ``q = exp(log_amplitude)``.  The exponential keeps it
+  positive and makes Adam's steps relative, so faint and bright atoms learn at the same pace.
+
+The loss is the L1 distance between predicted and measured projections (no SSIM, no LPIPS,
+no spherical harmonics, no background, no alpha).  Densification, pruning and the cluster merge
+run as training callbacks registered here; the final atoms are written to the run directory.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Literal, Tuple, Type
+
+import numpy as np
+import torch
+from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig
+from nerfstudio.utils.rich_utils import CONSOLE
+from torch.nn import Parameter
+
+from .atoms import AtomSet, read_atoms, write_atoms
+from .merge import cluster_labels, merged_values
+from .metrics import score_atoms
+from .projector import gaussian_mass, project_gaussians
+from .remap import apply_remap, duplicate_remap, keep_remap
+from .units import DATA_RANGE, Normalisation
+
+PARAM_NAMES = ("means", "log_sigmas", "log_amplitudes")
+
+
+@dataclass
+class GaussianAtomsModelConfig(SplatfactoModelConfig):
+    """Gaussian atoms: isotropic 3D Gaussians fitted to a tilt series."""
+
+    _target: Type = field(default_factory=lambda: GaussianAtomsModel)
+    num_random: int = 10000
+    """Number of Gaussians at random positions to start from."""
+    init_sigma_A: float = 0.7
+    """Initial width of every Gaussian, Å."""
+    init_extent: float = 0.8
+    """Side of the cube (normalised units, the detector's longer side is 1) that the random
+    Gaussians start in."""
+    min_sigma_A: float = 0.15
+    """Floor on the width, Å: no atom (after probe blur) is narrower; keeps the fit finite."""
+    warmup_length: int = 200
+    """Steps before the first densify / prune / merge."""
+    refine_every: int = 100
+    """Steps between densify / prune / merge."""
+    stop_split_at: int = 2500
+    """No more duplication after this step (pruning and merging continue)."""
+    densify_grad_thresh: float = 0.005
+    """Duplicate Gaussians whose mean positional-gradient norm (normalised units) exceeds this."""
+    max_gaussians: int = 200000
+    """Never hold more Gaussians than this."""
+    prune_mass_fraction: float = 0.25
+    """Prune Gaussians whose integrated mass is below this fraction of a typical atom's
+    (the median mass of the heavier half)."""
+    cluster_merge: bool = True
+    """Merge Gaussians closer than merge_threshold_A (the minimum-distance prior)."""
+    merge_threshold_A: float = 0.7
+    """Gaussians closer than this (Å) merge into one."""
+    merge_amplitude: Literal["mass", "mean"] = "mass"
+    """Amplitude of a merged Gaussian: conserve the summed mass, or the mean amplitude (paper)."""
+    projector: Literal["torch"] = "torch"
+    """Projection backend: the pure-torch separable projector (CPU and CUDA)."""
+    seed: int = 0
+    """Seed of the random initialisation and duplications."""
+
+
+class GaussianAtomsModel(SplatfactoModel):
+    """Splatfacto subclass whose renderer is the tomographic line-integral projector."""
+
+    config: GaussianAtomsModelConfig
+
+    # ------------------------------------------------------------------ set-up
+    def populate_modules(self) -> None:
+        # Deliberately not splatfacto's: that builds LPIPS (downloads weights), SH colours,
+        # opacities and gsplat's alpha-compositing strategy, none of which apply here.
+        cfg = self.config
+        metadata = self.kwargs.get("metadata", {}) or {}
+        self.normalisation: Normalisation = metadata.get("normalisation") or Normalisation(1.0, 1.0)
+        truth = metadata.get("truth_path")
+        self.truth_path: Path | None = Path(truth) if truth is not None else None
+        self.generator = torch.Generator().manual_seed(cfg.seed)
+        n = cfg.num_random
+        means = (torch.rand(n, 3, generator=self.generator) - 0.5) * cfg.init_extent
+        sigma0 = cfg.init_sigma_A * self.normalisation.length_scale
+        log_sigmas = torch.full((n, 1), math.log(sigma0))
+        # Start each Gaussian as a faint fraction of an atom-sized peak of the data range.
+        peak0 = 0.05 * DATA_RANGE
+        log_amps = torch.full((n, 1), math.log(peak0 / (sigma0 * math.sqrt(2 * math.pi))))
+        self.gauss_params = torch.nn.ParameterDict(
+            {"means": Parameter(means), "log_sigmas": Parameter(log_sigmas), "log_amplitudes": Parameter(log_amps)}
+        )
+        self.step = 0
+        self.optimizers: Dict[str, torch.optim.Optimizer] = {}
+        self._optimizers_obj = None
+        self._grad_accum = torch.zeros(n)
+        self._grad_count = 0
+        self.crop_box = None
+        self.background_color = torch.zeros(3)
+
+    # ------------------------------------------------------------------ parameters
+    @property
+    def means(self) -> torch.Tensor:
+        return self.gauss_params["means"]
+
+    @property
+    def sigmas(self) -> torch.Tensor:
+        floor = self.config.min_sigma_A * self.normalisation.length_scale
+        return torch.exp(self.gauss_params["log_sigmas"]).squeeze(-1).clamp_min(floor)
+
+    @property
+    def amplitudes(self) -> torch.Tensor:
+        return torch.exp(self.gauss_params["log_amplitudes"]).squeeze(-1)
+
+    @property
+    def num_points(self) -> int:
+        return self.means.shape[0]
+
+    def load_state_dict(self, state_dict, **kwargs):  # type: ignore[override]
+        # Resize the parameters to the checkpoint's number of Gaussians before loading.
+        n = state_dict["gauss_params.means"].shape[0]
+        for name, param in self.gauss_params.items():
+            self.gauss_params[name] = Parameter(torch.zeros((n,) + tuple(param.shape[1:]), device=param.device))
+        self._grad_accum = torch.zeros(n)
+        return torch.nn.Module.load_state_dict(self, state_dict, **kwargs)
+
+    def get_gaussian_param_groups(self) -> Dict[str, List[Parameter]]:
+        return {name: [self.gauss_params[name]] for name in PARAM_NAMES}
+
+    def get_param_groups(self) -> Dict[str, List[Parameter]]:
+        return self.get_gaussian_param_groups()
+
+    # ------------------------------------------------------------------ rendering
+    def get_outputs(self, camera: Cameras) -> Dict[str, torch.Tensor]:
+        """Project the Gaussians for one orthographic camera.
+
+        Returns ``projection`` (H, W, 1) in normalised data units and ``rgb`` (H, W, 3), the
+        same scaled to [0, 1] for the viewer.
+        """
+        if camera.shape[0] != 1:
+            raise ValueError("GaussianAtomsModel renders one camera at a time")
+        c2w = camera.camera_to_worlds[0].to(self.means.dtype)
+        rows_dir, cols_dir, t = -c2w[:, 1], c2w[:, 0], c2w[:, 3]
+        h, w = int(camera.height.item()), int(camera.width.item())
+        dev, dt = self.means.device, self.means.dtype
+        row_coords = (torch.arange(h, device=dev, dtype=dt) + 0.5 - camera.cy[0, 0].to(dt)) / camera.fy[0, 0].to(dt)
+        col_coords = (torch.arange(w, device=dev, dtype=dt) + 0.5 - camera.cx[0, 0].to(dt)) / camera.fx[0, 0].to(dt)
+        axes = torch.stack([rows_dir, cols_dir])[None]
+        image = project_gaussians(self.means - t, self.sigmas, self.amplitudes, axes, row_coords, col_coords)[0]
+        projection = image[..., None]
+        rgb = (projection / DATA_RANGE).clamp(0.0, 1.0).expand(h, w, 3)
+        return {"projection": projection, "rgb": rgb}
+
+    # ------------------------------------------------------------------ losses and metrics
+    def get_metrics_dict(self, outputs, batch) -> Dict[str, torch.Tensor]:
+        gt = batch["image"].to(outputs["projection"])
+        return {"l1": torch.abs(outputs["projection"] - gt).mean().detach(), "gaussian_count": torch.tensor(float(self.num_points))}
+
+    def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
+        gt = batch["image"].to(outputs["projection"])
+        return {"main_loss": torch.abs(outputs["projection"] - gt).mean()}
+
+    def get_image_metrics_and_images(self, outputs, batch) -> Tuple[Dict[str, float], Dict[str, torch.Tensor]]:
+        gt = batch["image"].to(outputs["projection"])
+        pred = outputs["projection"]
+        mse = torch.mean((pred - gt) ** 2)
+        metrics = {
+            "l1": float(torch.abs(pred - gt).mean()),
+            "psnr": float(10 * torch.log10(DATA_RANGE**2 / mse.clamp_min(1e-12))),
+            "gaussian_count": float(self.num_points),
+        }
+        both = torch.cat([gt, pred], dim=1) / DATA_RANGE
+        return metrics, {"img": both.clamp(0, 1).expand(-1, -1, 3)}
+
+    # ------------------------------------------------------------------ training callbacks
+    def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
+        attrs = training_callback_attributes
+        cbs = [
+            TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], self.step_cb, args=[attrs.optimizers]),
+            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.refine_after_step),
+        ]
+        trainer = attrs.trainer
+        if trainer is not None:
+            last = trainer._start_step + trainer.config.max_num_iterations - 1
+            cbs.append(
+                TrainingCallback(
+                    [TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self._write_results_at, args=[last, trainer.base_dir]
+                )
+            )
+        return cbs
+
+    def step_cb(self, optimizers, step: int) -> None:
+        self.step = step
+        self._optimizers_obj = optimizers
+        self.optimizers = optimizers.optimizers
+
+    @torch.no_grad()
+    def refine_after_step(self, step: int) -> None:
+        """Accumulate positional gradients; every refine_every steps densify, prune, merge."""
+        grad = self.gauss_params["means"].grad
+        if grad is not None:
+            self._grad_accum += grad.norm(dim=-1).detach().cpu()
+            self._grad_count += 1
+        cfg = self.config
+        if step < cfg.warmup_length or step % cfg.refine_every != 0:
+            return
+        if step < cfg.stop_split_at:
+            self.densify()
+        self.prune()
+        if cfg.cluster_merge:
+            self.merge()
+        self._grad_accum = torch.zeros(self.num_points)
+        self._grad_count = 0
+
+    def _remap(self, src, dst, n_out, new_values=None) -> None:
+        dev = self.means.device
+        lists = getattr(self._optimizers_obj, "parameters", None)
+        apply_remap(self.gauss_params, self.optimizers, src.to(dev), dst.to(dev), n_out, new_values, lists)
+
+    def densify(self) -> int:
+        """Duplicate Gaussians with a high mean positional gradient; each copy takes half the mass."""
+        if self._grad_count == 0:
+            return 0
+        mean_grad = self._grad_accum / self._grad_count
+        idx = torch.nonzero(mean_grad > self.config.densify_grad_thresh).flatten()
+        room = self.config.max_gaussians - self.num_points
+        if room <= 0 or len(idx) == 0:
+            return 0
+        idx = idx[torch.argsort(mean_grad[idx], descending=True)[:room]]
+        n = self.num_points
+        self._remap(*duplicate_remap(n, idx))
+        # Halve both amplitudes and move the pair apart by one sigma in a random direction.
+        dev = self.means.device
+        both = torch.cat([idx, torch.arange(n, n + len(idx))]).to(dev)
+        self.gauss_params["log_amplitudes"].data[both] -= math.log(2.0)
+        direction = torch.randn(len(idx), 3, generator=self.generator).to(dev)
+        direction = direction / direction.norm(dim=-1, keepdim=True)
+        offset = 0.5 * direction * self.sigmas[idx.to(dev), None]
+        self.gauss_params["means"].data[idx.to(dev)] += offset
+        self.gauss_params["means"].data[n:] -= offset
+        return len(idx)
+
+    def typical_atom_mass(self) -> float:
+        """Median integrated mass of the heavier half of the Gaussians (a typical atom's)."""
+        mass = gaussian_mass(self.sigmas, self.amplitudes)
+        heavy = mass[mass >= mass.median()]
+        return float(heavy.median())
+
+    def prune(self) -> int:
+        """Remove Gaussians too faint to be an atom, or outside the reconstruction volume."""
+        mass = gaussian_mass(self.sigmas, self.amplitudes)
+        keep = mass >= self.config.prune_mass_fraction * self.typical_atom_mass()
+        keep &= (self.means.abs() <= 0.5).all(dim=-1)
+        removed = int((~keep).sum())
+        if removed:
+            self._remap(*keep_remap(keep.cpu()))
+        return removed
+
+    def merge(self) -> int:
+        """Replace every cluster of Gaussians closer than merge_threshold_A by one."""
+        thr = self.config.merge_threshold_A * self.normalisation.length_scale
+        labels, n_clusters = cluster_labels(self.means.detach().cpu().numpy(), thr)
+        n = self.num_points
+        if n_clusters == n:
+            return 0
+        labels_t = torch.as_tensor(labels, device=self.means.device)
+        means, sigmas, amps = merged_values(self.means, self.sigmas, self.amplitudes, labels_t, n_clusters, self.config.merge_amplitude)
+        new_values = {"means": means, "log_sigmas": torch.log(sigmas)[:, None], "log_amplitudes": torch.log(amps)[:, None]}
+        self._remap(torch.arange(n), labels_t.cpu(), n_clusters, new_values)
+        return n - n_clusters
+
+    # ------------------------------------------------------------------ results
+    @torch.no_grad()
+    def atoms(self) -> AtomSet:
+        """The current Gaussians as atoms in Å, in the frame of the input's truth file."""
+        norm = self.normalisation
+        return AtomSet(
+            positions=norm.positions_to_A(self.means.detach().cpu().double().numpy()),
+            sigmas=norm.sigmas_to_A(self.sigmas.detach().cpu().double().numpy()),
+            amplitudes=norm.amplitudes_to_physical(self.amplitudes.detach().cpu().double().numpy()),
+        )
+
+    @torch.no_grad()
+    def finalize(self) -> None:
+        """Last prune and merge so the result holds one Gaussian per atom."""
+        self.prune()
+        if self.config.cluster_merge:
+            self.merge()
+
+    def _write_results_at(self, last_step: int, run_dir: Path, step: int) -> None:
+        if step == last_step:
+            self.write_results(Path(run_dir))
+
+    def write_results(self, run_dir: Path) -> dict | None:
+        """Write ``atoms.xyz``, ``atoms.csv`` and, with a truth file, ``evaluation.json``."""
+        self.finalize()
+        atoms = self.atoms()
+        write_atoms(atoms, run_dir / "atoms.xyz")
+        write_atoms(atoms, run_dir / "atoms.csv")
+        CONSOLE.print(f"[bold]gaussian-atoms[/bold]: wrote {len(atoms)} atoms to {run_dir / 'atoms.xyz'}")
+        if self.truth_path is None:
+            return None
+        scores = score_atoms(atoms.positions, read_atoms(self.truth_path).positions)
+        (run_dir / "evaluation.json").write_text(json.dumps(scores, indent=2) + "\n")
+        CONSOLE.print(f"[bold]gaussian-atoms[/bold]: against {self.truth_path}: {json.dumps(scores)}")
+        return scores
