@@ -4,7 +4,8 @@ Each projection becomes a ``CameraType.ORTHOPHOTO`` camera whose pose is the til
 nerfstudio cameras look along their -z axis with x to the right and y up; our detector rows
 run downwards, so the camera-to-world rotation has columns ``(cols, -rows, beam)`` of the
 detector orientation (see :mod:`gaussian_atoms_method.geometry`).  ``fx = fy`` is the number of
-pixels per normalised length and ``(cx, cy)`` the detector centre, so pixel ``(i, j)`` lies at
+pixels per normalised length and ``(cx, cy)`` the point the tilt centre projects to, in
+nerfstudio's pixel-corner coordinates (``centre_px + 0.5``), so pixel ``(i, j)`` lies at
 detector coordinates ``((i + 0.5 - cy) / fy, (j + 0.5 - cx) / fx)``.
 """
 
@@ -40,8 +41,8 @@ def cameras_from_tilt_series(series: TiltSeries, norm: Normalisation) -> Cameras
         camera_to_worlds=c2w,
         fx=pixels_per_unit,
         fy=pixels_per_unit,
-        cx=w / 2.0,
-        cy=h / 2.0,
+        cx=float(series.centre_px[1]) + 0.5,
+        cy=float(series.centre_px[0]) + 0.5,
         width=w,
         height=h,
         camera_type=CameraType.ORTHOPHOTO,

@@ -7,7 +7,9 @@ A directory holds ``tilt_series.json``::
      "pixel_size_A": 0.25,
      "tilt_axis": "y",                   # optional, "y" (default) or "x"
      "truth": "atoms_true.xyz",          # optional, the true atoms
-     "origin_A": [35.0, 35.0, 35.0]}     # optional, the tilt centre in the truth file's frame
+     "origin_A": [35.0, 35.0, 35.0],     # optional, the tilt centre in the truth file's frame
+     "centre_px": [63.5, 63.5]}          # optional, detector pixel (row, col) of the tilt
+                                         # centre; default the middle, (H-1)/2, (W-1)/2
 
 Paths are relative to the directory.  Reading validates everything and raises
 :class:`TiltSeriesError` with a one-line message naming the file and the problem.  This module
@@ -47,6 +49,9 @@ class TiltSeries:
     truth_path : Path or None
     source : Path or None
         Where it was read from.
+    centre_px : (2,) float64 array or None
+        Detector (row, column) pixel index onto which the tilt centre projects; None means the
+        middle of the detector.
     """
 
     projections: np.ndarray
@@ -56,6 +61,7 @@ class TiltSeries:
     origin_A: np.ndarray = field(default_factory=lambda: np.zeros(3))
     truth_path: Path | None = None
     source: Path | None = None
+    centre_px: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         where = str(self.source) if self.source is not None else "tilt series"
@@ -88,6 +94,12 @@ class TiltSeries:
         if origin.shape != (3,) or not np.all(np.isfinite(origin)):
             raise TiltSeriesError(f"{where}: origin_A must be three finite numbers (Å), got {self.origin_A!r}")
         self.origin_A = origin
+        if self.centre_px is None:
+            self.centre_px = (np.array(proj.shape[1:], dtype=np.float64) - 1) / 2.0
+        centre = np.asarray(self.centre_px, dtype=np.float64).reshape(-1)
+        if centre.shape != (2,) or not np.all(np.isfinite(centre)):
+            raise TiltSeriesError(f"{where}: centre_px must be two finite pixel indices (row, col), got {self.centre_px!r}")
+        self.centre_px = centre
 
     @property
     def n_views(self) -> int:
@@ -147,7 +159,7 @@ def load_tilt_series(
             raise TiltSeriesError(f"{manifest_path}: not valid JSON ({exc})") from exc
         if not isinstance(manifest, dict):
             raise TiltSeriesError(f"{manifest_path}: expected a JSON object")
-        known = {"projections", "angles_deg", "pixel_size_A", "tilt_axis", "truth", "origin_A", "description", "simulation"}
+        known = {"projections", "angles_deg", "pixel_size_A", "tilt_axis", "truth", "origin_A", "centre_px", "description", "simulation"}
         unknown = set(manifest) - known
         if unknown:
             raise TiltSeriesError(f"{manifest_path}: unknown key(s) {sorted(unknown)}; expected some of {sorted(known)}")
@@ -188,11 +200,12 @@ def load_tilt_series(
             origin_A=manifest.get("origin_A", [0.0, 0.0, 0.0]),
             truth_path=truth_path,
             source=proj_path,
+            centre_px=manifest.get("centre_px"),
         )
     except TiltSeriesError as exc:
         # Name the file the problem most likely lives in.
         msg = str(exc).split(": ", 1)[-1]
-        culprit = angles_path if "angle" in msg else (where if ("pixel" in msg or "axis" in msg or "origin" in msg) else proj_path)
+        culprit = angles_path if "angle" in msg else (where if any(k in msg for k in ("pixel", "axis", "origin", "centre")) else proj_path)
         raise TiltSeriesError(f"{culprit}: {msg}") from None
 
 
@@ -205,6 +218,7 @@ def write_tilt_series(
     origin_A=(0.0, 0.0, 0.0),
     tilt_axis: str = "y",
     extra: dict | None = None,
+    centre_px=None,
 ) -> Path:
     """Write a ``tilt_series.json`` directory; ``truth`` is an AtomSet in its own frame.
 
@@ -212,7 +226,7 @@ def write_tilt_series(
     """
     from gaussian_atoms_method.atoms import write_atoms
 
-    series = TiltSeries(projections, angles_deg, pixel_size_A, tilt_axis, np.asarray(origin_A, dtype=float))
+    series = TiltSeries(projections, angles_deg, pixel_size_A, tilt_axis, np.asarray(origin_A, dtype=float), centre_px=centre_px)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / MANIFEST).unlink(missing_ok=True)
@@ -224,6 +238,7 @@ def write_tilt_series(
         "pixel_size_A": series.pixel_size_A,
         "tilt_axis": series.tilt_axis,
         "origin_A": series.origin_A.tolist(),
+        "centre_px": series.centre_px.tolist(),
     }
     if truth is not None:
         write_atoms(truth, out / "atoms_true.xyz")

@@ -6,9 +6,12 @@ The convention (also written down in README.md)
 * World coordinates ``(x, y, z)`` in Å.  At zero tilt the detector rows run along ``x``, the
   columns along ``y`` and the beam along ``z``; a volume array is indexed ``vol[x, y, z]`` and
   its zero-tilt projection is ``vol.sum(axis=2)``.
-* The origin is the tilt (rotation) centre, which projects onto the detector centre: pixel
-  ``(i, j)`` sits at row coordinate ``(i - (H - 1) / 2) * pixel_size`` and column coordinate
-  ``(j - (W - 1) / 2) * pixel_size``.
+* The origin is the tilt (rotation) centre.  It projects onto the detector point
+  ``centre_px = (ci, cj)`` (in pixel indices), by default the middle of the detector,
+  ``((H - 1) / 2, (W - 1) / 2)``: pixel ``(i, j)`` sits at row coordinate ``(i - ci) * pixel_size``
+  and column coordinate ``(j - cj) * pixel_size``.  FFT-based packages (RESIRE, GENFIRE) rotate
+  about pixel ``n // 2`` instead, half a pixel off for even sizes; their tilt series say so with
+  ``centre_px``.
 * ``tilt_axis="y"`` (the default) tilts about the ``y`` axis (along the detector columns); a
   positive angle theta projects ``x cos(theta) - z sin(theta)`` onto the detector rows.  This is
   ``scipy.ndimage.rotate(vol, +theta, axes=(0, 2), reshape=False).sum(axis=2)``, the RESIRE /
@@ -58,15 +61,18 @@ def detector_axes_from_tilts(angles_deg: np.ndarray, tilt_axis: str = "y") -> np
     return np.stack([rows, cols, beam], axis=1)
 
 
-def pixel_centres(n_pixels: int, pixel_size: float) -> np.ndarray:
-    """Coordinates of the pixel centres along one detector axis, centred on the tilt axis.
+def pixel_centres(n_pixels: int, pixel_size: float, centre_index: float | None = None) -> np.ndarray:
+    """Coordinates of the pixel centres along one detector axis, relative to the tilt axis.
 
-    Returns an ``(n_pixels,)`` array ``(i - (n_pixels - 1) / 2) * pixel_size``.
+    Returns an ``(n_pixels,)`` array ``(i - centre_index) * pixel_size``; the tilt axis is at
+    ``centre_index``, by default the middle ``(n_pixels - 1) / 2``.
     """
-    return (np.arange(n_pixels, dtype=np.float64) - (n_pixels - 1) / 2.0) * pixel_size
+    if centre_index is None:
+        centre_index = (n_pixels - 1) / 2.0
+    return (np.arange(n_pixels, dtype=np.float64) - centre_index) * pixel_size
 
 
-def project_volume(volume: np.ndarray, angle_deg: float, tilt_axis: str = "y", order: int = 1) -> np.ndarray:
+def project_volume(volume: np.ndarray, angle_deg: float, tilt_axis: str = "y", order: int = 1, centre=None) -> np.ndarray:
     """Project a voxel volume at one tilt: rotate with scipy, then sum along the beam.
 
     An independent path to the Gaussian projector (interpolation instead of analytic
@@ -81,6 +87,9 @@ def project_volume(volume: np.ndarray, angle_deg: float, tilt_axis: str = "y", o
     tilt_axis : {"y", "x"}
     order : int
         Spline order of the rotation.
+    centre : float or (3,) floats, optional
+        Voxel index of the rotation centre; by default the middle ``(n - 1) / 2`` of each axis,
+        which is what ``scipy.ndimage.rotate(volume, angle_deg, axes, reshape=False)`` does.
 
     Returns
     -------
@@ -90,6 +99,14 @@ def project_volume(volume: np.ndarray, angle_deg: float, tilt_axis: str = "y", o
 
     if tilt_axis not in TILT_AXES:
         raise ValueError(f"tilt_axis must be one of {TILT_AXES}, got {tilt_axis!r}")
-    axes = (0, 2) if tilt_axis == "y" else (1, 2)
-    rotated = ndimage.rotate(volume, angle_deg, axes=axes, reshape=False, order=order, mode="constant")
+    volume = np.asarray(volume)
+    if centre is None:
+        centre = (np.array(volume.shape, dtype=np.float64) - 1) / 2.0
+    centre = np.broadcast_to(np.asarray(centre, dtype=np.float64), (3,))
+    a, b = (0, 2) if tilt_axis == "y" else (1, 2)
+    theta = np.deg2rad(angle_deg)
+    # Output voxel o samples the input at M (o - centre) + centre, as scipy.ndimage.rotate.
+    m = np.eye(3)
+    m[a, a], m[a, b], m[b, a], m[b, b] = np.cos(theta), np.sin(theta), -np.sin(theta), np.cos(theta)
+    rotated = ndimage.affine_transform(volume, m, offset=centre - m @ centre, order=order, mode="constant")
     return rotated.sum(axis=2)

@@ -1,0 +1,33 @@
+# Two commands set everything up on a fresh machine: `make demo` and `make test`.
+# Each creates .venv when missing and installs what is needed (a no-op when up to date).
+
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+DEMO_DATA := data/demo
+DEMO_RUN := outputs/demo/gaussian-atoms/demo
+
+.PHONY: install demo test clean
+
+install: $(STAMP)
+
+$(STAMP): pyproject.toml constraints.txt
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -c constraints.txt -e ".[test]"
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/gaussian-atoms simulate --output $(DEMO_DATA) --element Au --radius-A 11 --tilts limited --noise-std 20
+	rm -rf outputs/demo
+	$(BIN)/ns-train gaussian-atoms --machine.device-type cpu --vis tensorboard \
+		--output-dir outputs --experiment-name demo --timestamp demo \
+		tilt-series --data $(DEMO_DATA)
+	$(BIN)/gaussian-atoms evaluate --pred $(DEMO_RUN)/atoms.xyz --truth $(DEMO_DATA)/atoms_true.xyz
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+clean:
+	rm -rf outputs $(DEMO_DATA)
