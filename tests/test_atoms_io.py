@@ -1,0 +1,72 @@
+"""Atom files: extended XYZ (readable by ASE), CSV and the AET 'type x y z' text."""
+
+import ase.io
+import numpy as np
+import pytest
+
+from gaussian_atoms_method.atoms import AtomFileError, AtomSet, read_atoms, write_atoms
+
+
+def _atoms():
+    rng = np.random.default_rng(3)
+    return AtomSet(rng.normal(size=(7, 3)) * 10, sigmas=rng.uniform(0.5, 0.8, 7), amplitudes=rng.uniform(1, 9, 7), species=["Au"] * 3 + ["Pt"] * 4)
+
+
+@pytest.mark.parametrize("suffix", [".xyz", ".extxyz", ".csv"])
+def test_round_trip(tmp_path, suffix):
+    a = _atoms()
+    path = write_atoms(a, tmp_path / f"atoms{suffix}")
+    b = read_atoms(path)
+    # ASE's extended XYZ keeps 8 decimals: 1e-8 Å, far below any physical precision.
+    np.testing.assert_allclose(b.positions, a.positions, rtol=0, atol=1e-7)
+    np.testing.assert_allclose(b.sigmas, a.sigmas, rtol=1e-7)
+    np.testing.assert_allclose(b.amplitudes, a.amplitudes, rtol=1e-7)
+    assert list(b.species) == list(a.species)
+
+
+def test_xyz_is_plain_ase(tmp_path):
+    a = _atoms()
+    write_atoms(a, tmp_path / "atoms.xyz")
+    atoms = ase.io.read(tmp_path / "atoms.xyz")
+    np.testing.assert_allclose(atoms.get_positions(), a.positions, rtol=0, atol=1e-7)
+    np.testing.assert_allclose(atoms.arrays["sigma_A"], a.sigmas, rtol=1e-7)
+
+
+def test_type_xyz_text(tmp_path):
+    p = tmp_path / "gt.txt"
+    p.write_text("% 2\n% comment\n1  0.5 1.5 -2.0\n2  3 4 5\n")
+    a = read_atoms(p)
+    np.testing.assert_array_equal(a.positions, [[0.5, 1.5, -2.0], [3, 4, 5]])
+    assert list(a.species) == ["1", "2"]
+
+
+def test_peer_ground_truth_reads(shared_data):
+    a = read_atoms(shared_data / "asi208" / "aSi_208atoms_GT.txt")
+    assert len(a) == 208
+
+
+def test_errors_name_the_file(tmp_path):
+    with pytest.raises(AtomFileError, match="missing.xyz.*not found"):
+        read_atoms(tmp_path / "missing.xyz")
+    bad = tmp_path / "bad.txt"
+    bad.write_text("1 2 3\n")
+    with pytest.raises(AtomFileError, match="bad.txt:1"):
+        read_atoms(bad)
+    with pytest.raises(ValueError, match="unknown atom file type"):
+        write_atoms(_atoms(), tmp_path / "atoms.pdbx")
+    with pytest.raises(ValueError, match="sigmas has 2 entries for 3 atoms"):
+        AtomSet(np.zeros((3, 3)), sigmas=[1.0, 2.0])
+
+
+def test_write_is_atomic(tmp_path, monkeypatch):
+    """A failing write leaves no file that looks complete."""
+    import gaussian_atoms_method.atoms as mod
+
+    def boom(atoms, path):
+        path.write_text("species,x_A\nAu,")
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(mod, "_write_csv", boom)
+    with pytest.raises(RuntimeError):
+        write_atoms(_atoms(), tmp_path / "atoms.csv")
+    assert list(tmp_path.iterdir()) == []

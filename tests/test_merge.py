@@ -1,0 +1,93 @@
+"""Cluster merge and remaps: exact clusters, conserved mass, consistent optimiser state."""
+
+import numpy as np
+import torch
+
+from gaussian_atoms_method.merge import cluster_labels, merged_values
+from gaussian_atoms_method.projector import gaussian_mass
+from gaussian_atoms_method.remap import apply_remap, duplicate_remap, keep_remap
+
+
+def test_clusters_follow_chains_and_threshold():
+    # 0-1-2 form a chain of 0.2 steps (0 and 2 are 0.4 apart: linked through 1); 3 is alone.
+    pos = np.array([[0, 0, 0], [0.2, 0, 0], [0.4, 0, 0], [5, 5, 5]], float)
+    labels, n = cluster_labels(pos, 0.25)
+    assert n == 2 and labels[0] == labels[1] == labels[2] != labels[3]
+    labels, n = cluster_labels(pos, 0.19)
+    assert n == 4
+
+
+def test_clusters_many_points_exact():
+    """Compare with brute-force connected components on random points."""
+    rng = np.random.default_rng(0)
+    pos = rng.uniform(0, 5, size=(300, 3))
+    labels, n = cluster_labels(pos, 0.4)
+    d = np.linalg.norm(pos[:, None] - pos[None], axis=-1) <= 0.4
+    # Brute-force transitive closure.
+    reach = d.copy()
+    for _ in range(300):
+        new = (reach.astype(int) @ d.astype(int)) > 0
+        if (new == reach).all():
+            break
+        reach = new
+    same = labels[:, None] == labels[None]
+    assert (same == reach).all()
+
+
+def test_merge_conserves_mass_or_averages():
+    means = torch.tensor([[0.0, 0, 0], [0.2, 0, 0], [3.0, 0, 0]])
+    sigmas = torch.tensor([0.5, 0.7, 0.6])
+    amps = torch.tensor([2.0, 1.0, 4.0])
+    labels = torch.tensor([0, 0, 1])
+    m, s, a = merged_values(means, sigmas, amps, labels, 2, "mass")
+    torch.testing.assert_close(m[0], torch.tensor([0.1, 0.0, 0.0]))
+    torch.testing.assert_close(s, torch.tensor([0.6, 0.6]))
+    torch.testing.assert_close(gaussian_mass(s, a)[0], gaussian_mass(sigmas[:2], amps[:2]).sum())
+    torch.testing.assert_close(a[1], amps[2])
+    _, _, a_mean = merged_values(means, sigmas, amps, labels, 2, "mean")
+    torch.testing.assert_close(a_mean, torch.tensor([1.5, 4.0]))
+
+
+def _params_and_adam(n=5):
+    torch.manual_seed(0)
+    params = torch.nn.ParameterDict({"means": torch.nn.Parameter(torch.randn(n, 3)), "log_sigmas": torch.nn.Parameter(torch.randn(n, 1))})
+    opts = {k: torch.optim.Adam([p], lr=0.1) for k, p in params.items()}
+    loss = sum((p**2).sum() for p in params.values())
+    loss.backward()
+    for o in opts.values():
+        o.step()
+    return params, opts
+
+
+def test_remap_keeps_optimizer_state_consistent():
+    params, opts = _params_and_adam()
+    old_means = params["means"].data.clone()
+    old_state = {k: v.clone() for k, v in opts["means"].state[params["means"]].items() if v.dim() > 0}
+    keep = torch.tensor([True, False, True, True, False])
+    lists = {"means": [params["means"]]}
+    apply_remap(params, opts, *keep_remap(keep), param_lists=lists)
+    new = params["means"]
+    assert new.shape == (3, 3) and lists["means"][0] is new
+    torch.testing.assert_close(new.data, old_means[keep])
+    state = opts["means"].state[new]
+    for k, v in old_state.items():
+        torch.testing.assert_close(state[k], v[keep])
+    assert opts["means"].param_groups[0]["params"][0] is new
+    # The optimiser still steps the new parameter.
+    new.grad = torch.ones_like(new)
+    before = new.data.clone()
+    opts["means"].step()
+    assert not torch.equal(before, new.data)
+
+
+def test_duplicate_and_merge_remap_average_state():
+    params, opts = _params_and_adam(4)
+    sq = opts["means"].state[params["means"]]["exp_avg_sq"].clone()
+    apply_remap(params, opts, *duplicate_remap(4, torch.tensor([1, 3])))
+    assert params["means"].shape == (6, 3)
+    torch.testing.assert_close(opts["means"].state[params["means"]]["exp_avg_sq"][4:], sq[[1, 3]])
+    # Merge rows 0 and 1 into one: moments become their mean.
+    sq = opts["means"].state[params["means"]]["exp_avg_sq"].clone()
+    labels = torch.tensor([0, 0, 1, 2, 3, 4])
+    apply_remap(params, opts, torch.arange(6), labels, 5)
+    torch.testing.assert_close(opts["means"].state[params["means"]]["exp_avg_sq"][0], sq[:2].mean(0))

@@ -1,0 +1,80 @@
+"""The quick simulator and the paper's normalisation."""
+
+import numpy as np
+import pytest
+import torch
+
+from gaussian_atoms_method.atoms import AtomSet
+from gaussian_atoms_method.geometry import detector_axes_from_tilts, pixel_centres
+from gaussian_atoms_method.projector import project_gaussians
+from gaussian_atoms_method.simulate import (
+    MASS_PER_Z,
+    gaussian_potential_parameters,
+    parse_tilts,
+    simulate_gaussian_tilt_series,
+    spherical_particle,
+)
+from gaussian_atoms_method.units import DATA_RANGE, Normalisation
+
+
+def test_tilt_schemes():
+    assert len(parse_tilts("full")) == 181 and parse_tilts("full")[0] == -90
+    limited = parse_tilts("limited")
+    assert len(limited) == 47 and limited[0] == -70 and limited[-1] == 68
+    np.testing.assert_array_equal(parse_tilts("-10:5:10"), [-10, -5, 0, 5, 10])
+    np.testing.assert_array_equal(parse_tilts("1,2.5"), [1, 2.5])
+    with pytest.raises(ValueError, match="tilts"):
+        parse_tilts("sideways")
+    with pytest.raises(ValueError, match="empty"):
+        parse_tilts("10:1:0")
+
+
+def test_spherical_particle_is_fcc_and_centred():
+    p = spherical_particle("Au", 8.0)
+    d = np.linalg.norm(p.positions[:, None] - p.positions[None], axis=-1)
+    np.fill_diagonal(d, np.inf)
+    assert d.min() == pytest.approx(4.08 / np.sqrt(2), abs=0.01)  # Au fcc nearest neighbour
+    assert np.linalg.norm(p.positions, axis=1).max() <= 8.0
+    assert set(p.species) == {"Au"}
+
+
+def test_simulated_mass_and_noise():
+    atoms = AtomSet(np.array([[0.0, 0.0, 0.0], [2.0, -1.0, 1.0]]), species=["Au", "Pt"])
+    sim = simulate_gaussian_tilt_series(atoms, np.array([0.0, 30.0]), pixel_size_A=0.2, detector_pixels=80, noise_std=0.0)
+    # Blur and projection conserve the integrated potential: MASS_PER_Z x Z per atom.
+    expected = MASS_PER_Z * (79 + 78)
+    np.testing.assert_allclose(sim.projections.sum(axis=(1, 2)) * 0.2**2, expected, rtol=1e-4)
+    noisy = simulate_gaussian_tilt_series(atoms, np.array([0.0, 30.0]), pixel_size_A=0.2, detector_pixels=80, noise_std=5.0)
+    resid = noisy.projections - sim.projections
+    assert resid.std() == pytest.approx(5.0, rel=0.03)  # 12,800 samples: 1% standard error
+    assert noisy.peak_to_noise == pytest.approx(sim.projections.max() / 5.0, rel=1e-5)
+
+
+def test_normalisation_round_trip_and_amplitude_units():
+    """A Gaussian fitted in normalised units reproduces the physical projection when converted."""
+    rng = np.random.default_rng(0)
+    proj = rng.uniform(0, 37.0, size=(3, 40, 50))
+    norm = Normalisation.for_tilt_series(proj, pixel_size_A=0.3, origin_A=(1.0, 2.0, 3.0))
+    assert norm.length_scale == pytest.approx(1 / (50 * 0.3))
+    assert norm.data_scale * np.abs(proj).max() == pytest.approx(DATA_RANGE)
+    pos = rng.normal(size=(4, 3))
+    np.testing.assert_allclose(norm.positions_to_A(norm.positions_from_A(pos)), pos)
+    # One Gaussian in normalised units, projected, then scaled back to input units ...
+    sig_n, amp_n = 0.02, 500.0
+    axes = torch.tensor(detector_axes_from_tilts([20.0]))
+    c_n = torch.tensor(pixel_centres(50, 0.3 * norm.length_scale))
+    img_n = project_gaussians(torch.zeros(1, 3, dtype=torch.float64), torch.tensor([sig_n], dtype=torch.float64), torch.tensor([amp_n], dtype=torch.float64), axes, c_n, c_n)
+    # ... equals the same Gaussian converted to Å and physical amplitude, projected in Å.
+    c_A = torch.tensor(pixel_centres(50, 0.3))
+    sig_A = float(norm.sigmas_to_A(sig_n))
+    amp = float(norm.amplitudes_to_physical(amp_n))
+    img_A = project_gaussians(torch.zeros(1, 3, dtype=torch.float64), torch.tensor([sig_A], dtype=torch.float64), torch.tensor([amp], dtype=torch.float64), axes, c_A, c_A)
+    torch.testing.assert_close(img_n / norm.data_scale, img_A)
+    with pytest.raises(ValueError, match="all zero"):
+        Normalisation.for_tilt_series(np.zeros((2, 3, 3)), 0.25)
+
+
+def test_potential_parameters_scale_with_z():
+    s, a = gaussian_potential_parameters(["Fe", "Pt"], 0.4)
+    mass = a * (2 * np.pi * s**2) ** 1.5
+    np.testing.assert_allclose(mass, MASS_PER_Z * np.array([26, 78]))

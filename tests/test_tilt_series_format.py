@@ -1,0 +1,87 @@
+"""Reading and validating tilt-series directories: good input round-trips, bad input is named."""
+
+import json
+
+import numpy as np
+import pytest
+
+from dataparsers.tilt_series_format import TiltSeriesError, load_tilt_series, write_tilt_series
+from gaussian_atoms_method.atoms import AtomSet
+
+
+def _write(tmp_path, n=5, shape=(8, 9)):
+    rng = np.random.default_rng(0)
+    proj = rng.normal(size=(n,) + shape).astype(np.float32)  # negative values must survive
+    angles = np.linspace(-60, 60, n)
+    truth = AtomSet(np.array([[1.0, 2.0, 3.0]]), species=["Au"])
+    write_tilt_series(tmp_path, proj, angles, 0.25, truth=truth, origin_A=(1.0, 2.0, 3.0))
+    return proj, angles
+
+
+def test_round_trip_keeps_floats_unquantised(tmp_path):
+    proj, angles = _write(tmp_path)
+    series = load_tilt_series(tmp_path)
+    np.testing.assert_array_equal(series.projections, proj)
+    np.testing.assert_allclose(series.angles_deg, angles, atol=1e-6)
+    assert series.pixel_size_A == 0.25 and series.tilt_axis == "y"
+    assert series.projections.min() < 0
+    np.testing.assert_array_equal(series.origin_A, [1.0, 2.0, 3.0])
+    np.testing.assert_array_equal(series.centre_px, [3.5, 4.0])
+    assert series.truth_path == tmp_path / "atoms_true.xyz"
+
+
+def test_options_override_manifest(tmp_path):
+    _write(tmp_path)
+    series = load_tilt_series(tmp_path, pixel_size_A=0.5, tilt_axis="x")
+    assert series.pixel_size_A == 0.5 and series.tilt_axis == "x"
+
+
+def test_options_without_manifest(tmp_path):
+    np.save(tmp_path / "p.npy", np.ones((3, 4, 4)))
+    np.savetxt(tmp_path / "a.txt", [-10.0, 0.0, 10.0])
+    series = load_tilt_series(tmp_path, projections="p.npy", angles_deg="a.txt", pixel_size_A=0.3)
+    assert series.n_views == 3
+
+
+def _edit_manifest(tmp_path, **changes):
+    m = json.loads((tmp_path / "tilt_series.json").read_text())
+    m.update(changes)
+    (tmp_path / "tilt_series.json").write_text(json.dumps(m))
+
+
+@pytest.mark.parametrize(
+    "break_it, file_name, words",
+    [
+        (lambda d: np.savetxt(d / "angles.txt", np.arange(4.0)), "angles.txt", "4 tilt angles for 5 projections"),
+        (lambda d: np.save(d / "projections.npy", np.full((5, 8, 9), np.nan, np.float32)), "projections.npy", "NaN/Inf"),
+        (lambda d: np.save(d / "projections.npy", np.ones((5, 8), np.float32)), "projections.npy", "3D array"),
+        (lambda d: _edit_manifest(d, pixel_size_A=0), "tilt_series.json", "positive"),
+        (lambda d: _edit_manifest(d, pixel_size_A=-0.1), "tilt_series.json", "positive"),
+        (lambda d: (d / "projections.npy").unlink(), "projections.npy", "not found"),
+        (lambda d: np.savetxt(d / "angles.txt", [0.0, 1.0, 1.0, 2.0, 3.0]), "angles.txt", "duplicate tilt angle"),
+        (lambda d: _edit_manifest(d, tilt_axis="z"), "tilt_series.json", "tilt_axis"),
+        (lambda d: _edit_manifest(d, truth="missing.xyz"), "missing.xyz", "not found"),
+        (lambda d: _edit_manifest(d, colour="red"), "tilt_series.json", "unknown key"),
+        (lambda d: (d / "tilt_series.json").write_text("{not json"), "tilt_series.json", "not valid JSON"),
+    ],
+)
+def test_bad_input_names_file_and_problem(tmp_path, break_it, file_name, words):
+    _write(tmp_path)
+    break_it(tmp_path)
+    with pytest.raises(TiltSeriesError) as info:
+        load_tilt_series(tmp_path)
+    message = str(info.value)
+    assert "\n" not in message
+    assert file_name in message and words in message, message
+
+
+def test_missing_directory(tmp_path):
+    with pytest.raises(TiltSeriesError, match="not found"):
+        load_tilt_series(tmp_path / "nowhere")
+
+
+def test_manifest_written_last(tmp_path):
+    """A directory with a manifest is complete: writing fails before the manifest appears."""
+    with pytest.raises(TiltSeriesError):
+        write_tilt_series(tmp_path, np.ones((2, 3, 3)), [0.0, 0.0], 0.25)
+    assert not (tmp_path / "tilt_series.json").exists()
