@@ -15,11 +15,12 @@ install: $(STAMP)
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -c constraints.txt -e ".[test]"
+	$(BIN)/python -m pip install --quiet -c constraints.txt -e ".[test,sim]"
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/gaussian-atoms simulate --output $(DEMO_DATA) --element Au --radius-A 11 --tilts limited --noise-std 20
+	$(BIN)/gaussian-atoms simulate --output $(DEMO_DATA) --particle sphere --element Au --radius-A 11 \
+		--potential gaussian --tilts limited --noise-std 20
 	rm -rf outputs/demo
 	$(BIN)/ns-train gaussian-atoms --machine.device-type cpu --vis tensorboard \
 		--output-dir outputs --experiment-name demo --timestamp demo \

@@ -10,33 +10,37 @@ import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Optional, Union
+from typing import Annotated, Literal, Union
 
 import tyro
 
 
 @dataclass
 class Simulate:
-    """Simulate a tilt series of a small particle with the Gaussian forward model."""
+    """Simulate a tilt series with known atoms and write a tilt_series.json directory."""
 
-    output: Path = Path("data/demo")
+    output: Path = Path("data/sim")
     """Directory to write (tilt_series.json, projections.npy, angles.txt, atoms_true.xyz)."""
+    particle: str = "au"
+    """au, fept, apd, hea, sphere (an fcc sphere of --element, --radius-A) or a structure file."""
+    scale: float = 1.0
+    """Linear size factor (atom count ~ scale^3) for small versions of the named particles."""
     element: str = "Au"
-    """Element of the fcc sphere (ignored with --structure)."""
+    """Element of the fcc sphere (--particle sphere)."""
     radius_A: float = 10.0
-    """Radius of the fcc sphere, Å."""
-    structure: Optional[Path] = None
-    """Any structure file ASE can read, instead of the fcc sphere."""
+    """Radius of the fcc sphere, Å (--particle sphere)."""
+    potential: Literal["lobato", "gaussian"] = "lobato"
+    """abTEM Lobato projected potential (independent physics), or the quick Gaussian model."""
     tilts: str = "limited"
-    """Tilt scheme: full, limited, sampled, wedge, 'start:step:stop' or a comma list (deg)."""
+    """Tilt scheme: full (-90:1:90), limited (-70:3:68), sampled, wedge, 'start:step:stop' or a comma list (deg)."""
     pixel_size_A: float = 0.25
     atom_sigma_A: float = 0.35
-    """Width of each atom's Gaussian potential, Å."""
+    """Width of each atom of the Gaussian potential, Å (--potential gaussian)."""
     blur_sigma_A: float = 0.5
     """Gaussian probe blur, Å."""
-    noise_std: float = 20.0
-    """Standard deviation of the additive Gaussian noise (projection units)."""
-    tilt_axis: str = "y"
+    noise_std: float = 50.0
+    """Standard deviation of the additive Gaussian noise, projection units (V·Å for Lobato)."""
+    tilt_axis: Literal["x", "y"] = "y"
     seed: int = 0
 
     def main(self) -> None:
@@ -44,19 +48,19 @@ class Simulate:
 
         from dataparsers.tilt_series_format import write_tilt_series
 
-        from .atoms import read_atoms
-        from .simulate import parse_tilts, simulate_gaussian_tilt_series, spherical_particle
+        from .particles import make_particle
+        from .simulate import parse_tilts, simulate_tilt_series, spherical_particle
 
-        if self.structure is not None:
-            particle = read_atoms(self.structure)
-        else:
+        if self.particle == "sphere":
             particle = spherical_particle(self.element, self.radius_A)
-        # The tilt centre is the particle's centroid; the truth keeps its own frame.
+        else:
+            particle = make_particle(self.particle, self.scale, self.seed)
+        # The tilt centre is the particle's centroid; the truth keeps the particle's own frame.
         origin = particle.positions.mean(axis=0)
-        centred = particle.shifted(-origin)
-        sim = simulate_gaussian_tilt_series(
-            centred,
+        sim = simulate_tilt_series(
+            particle.shifted(-origin),
             parse_tilts(self.tilts),
+            potential=self.potential,
             pixel_size_A=self.pixel_size_A,
             atom_sigma_A=self.atom_sigma_A,
             blur_sigma_A=self.blur_sigma_A,
@@ -73,12 +77,22 @@ class Simulate:
             truth=truth,
             origin_A=origin,
             tilt_axis=self.tilt_axis,
-            extra={"simulation": {"potential": "gaussian", "noise_std": self.noise_std, "peak_to_noise": sim.peak_to_noise, "blur_sigma_A": self.blur_sigma_A}},
+            extra={
+                "simulation": {
+                    "particle": self.particle,
+                    "scale": self.scale,
+                    "potential": self.potential,
+                    "noise_std": self.noise_std,
+                    "peak_to_noise": sim.peak_to_noise,
+                    "blur_sigma_A": self.blur_sigma_A,
+                    "seed": self.seed,
+                }
+            },
         )
         n, h, w = sim.projections.shape
         print(
             f"wrote {self.output}: {len(truth)} atoms, {n} tilts ({np.min(sim.angles_deg):g}..{np.max(sim.angles_deg):g} deg), "
-            f"{h}x{w} px at {self.pixel_size_A} Å, peak-to-noise {sim.peak_to_noise:.1f}"
+            f"{h}x{w} px at {self.pixel_size_A} Å, {self.potential} potential, noise {self.noise_std:g}, peak-to-noise {sim.peak_to_noise:.1f}"
         )
 
 

@@ -24,7 +24,7 @@ def test_ns_train_lists_method_and_dataparser():
 
 def test_simulate_train_evaluate(tmp_path):
     data = tmp_path / "data"
-    sim = _run(BIN / "gaussian-atoms", "simulate", "--output", data, "--radius-A", "6", "--tilts", "-70:5:70", "--noise-std", "20")
+    sim = _run(BIN / "gaussian-atoms", "simulate", "--output", data, "--particle", "sphere", "--potential", "gaussian", "--radius-A", "6", "--tilts", "-70:5:70", "--noise-std", "20")
     assert sim.returncode == 0, sim.stderr
     train = _run(
         BIN / "ns-train", "gaussian-atoms", "--machine.device-type", "cpu", "--vis", "tensorboard",

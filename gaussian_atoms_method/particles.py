@@ -1,0 +1,129 @@
+"""Test particles for the accuracy harness, built with ASE / numpy, positions in Å.
+
+* ``au``: the paper's 6,679-atom fcc gold particle (bundled, see ``data/README.md``);
+* ``fept``: an FePt sphere of several L1_0-ordered grains with random orientations (grain
+  boundaries), about 8,000 atoms;
+* ``apd``: amorphous Pd, about 16,000 atoms: a dense random packing relaxed until no two atoms
+  are closer than 2.5 Å (near the 2.75 Å Pd-Pd bond), not a lattice;
+* ``hea``: an amorphous Ni-Pd-Pt high-entropy alloy on the same kind of packing (equal parts);
+* anything ASE can read.
+
+``scale`` shrinks a particle linearly (atom count ~ scale^3) for quick tests: ``au`` is cut to
+a sphere of ``scale`` times its radius about its centre, the others are built smaller.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .atoms import AtomSet, read_atoms
+
+DATA_DIR = Path(__file__).parent / "data"
+PARTICLES = ("au", "fept", "apd", "hea")
+
+
+def make_particle(name_or_path: str, scale: float = 1.0, seed: int = 0) -> AtomSet:
+    """A named test particle, or atoms read from a structure file; centred on its centroid."""
+    if not (0 < scale <= 1.0):
+        raise ValueError(f"scale must be in (0, 1], got {scale}")
+    rng = np.random.default_rng(seed)
+    if name_or_path == "au":
+        atoms = _cut_sphere(read_atoms(DATA_DIR / "Au_NP.xyz"), scale)
+    elif name_or_path == "fept":
+        atoms = polycrystal_l10(radius_A=29.7 * scale, n_grains=max(1, round(6 * scale**3)) if scale < 1 else 6, rng=rng)
+    elif name_or_path == "apd":
+        atoms = amorphous_packing(n_atoms=int(round(16000 * scale**3)), species=("Pd",), min_distance_A=2.5, rng=rng)
+    elif name_or_path == "hea":
+        atoms = amorphous_packing(n_atoms=int(round(16000 * scale**3)), species=("Ni", "Pd", "Pt"), min_distance_A=2.4, rng=rng)
+    else:
+        path = Path(name_or_path)
+        if not path.is_file():
+            raise ValueError(f"particle {name_or_path!r}: expected one of {PARTICLES} or a structure file that exists")
+        atoms = _cut_sphere(read_atoms(path), scale)
+    return atoms.shifted(-atoms.positions.mean(axis=0))
+
+
+def _cut_sphere(atoms: AtomSet, scale: float) -> AtomSet:
+    if scale >= 1.0:
+        return atoms
+    centre = atoms.positions.mean(axis=0)
+    r = np.linalg.norm(atoms.positions - centre, axis=1)
+    keep = r <= scale * r.max()
+    return AtomSet(atoms.positions[keep], species=None if atoms.species is None else atoms.species[keep])
+
+
+def _random_rotation(rng: np.random.Generator) -> np.ndarray:
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q = q * np.sign(np.diag(r))
+    return q if np.linalg.det(q) > 0 else -q
+
+
+def polycrystal_l10(radius_A: float, n_grains: int, rng: np.random.Generator, a_A: float = 3.85, c_A: float = 3.71, min_distance_A: float = 2.2) -> AtomSet:
+    """A sphere of L1_0 FePt grains (Voronoi cells of random seeds, random orientations).
+
+    Atoms from neighbouring grains closer than ``min_distance_A`` are thinned so that grain
+    boundaries stay physical.
+    """
+    # L1_0: Fe at (0,0,0),(1/2,1/2,0); Pt at (1/2,0,1/2),(0,1/2,1/2) in an a x a x c cell.
+    basis = np.array([[0, 0, 0], [0.5, 0.5, 0], [0.5, 0, 0.5], [0, 0.5, 0.5]]) * [a_A, a_A, c_A]
+    kinds = np.array(["Fe", "Fe", "Pt", "Pt"])
+    n = int(np.ceil(2 * radius_A * np.sqrt(3) / min(a_A, c_A))) + 2
+    idx = np.arange(-n, n + 1)
+    cells = np.stack(np.meshgrid(idx, idx, idx, indexing="ij"), -1).reshape(-1, 3) * [a_A, a_A, c_A]
+    lattice = (cells[:, None, :] + basis[None]).reshape(-1, 3)
+    lattice_kinds = np.tile(kinds, len(cells))
+    seeds = rng.uniform(-radius_A, radius_A, size=(n_grains, 3)) * 0.7
+    pos, spe = [], []
+    for g in range(n_grains):
+        p = lattice @ _random_rotation(rng).T + rng.uniform(0, a_A, 3)
+        inside = np.linalg.norm(p, axis=1) <= radius_A
+        owner = np.argmin(np.linalg.norm(p[:, None, :] - seeds[None], axis=-1), axis=1) if n_grains > 1 else np.zeros(len(p), int)
+        keep = inside & (owner == g)
+        pos.append(p[keep])
+        spe.append(lattice_kinds[keep])
+    pos, spe = np.concatenate(pos), np.concatenate(spe)
+    pos, spe = _thin(pos, spe, min_distance_A)
+    return AtomSet(pos, species=spe)
+
+
+def _thin(pos: np.ndarray, species: np.ndarray, min_distance_A: float) -> tuple[np.ndarray, np.ndarray]:
+    """Drop one atom of every pair closer than ``min_distance_A`` until none is left."""
+    keep = np.ones(len(pos), bool)
+    pairs = cKDTree(pos).query_pairs(min_distance_A, output_type="ndarray")
+    for i, j in pairs:  # grain-boundary pairs only: a few hundred at most
+        if keep[i] and keep[j]:
+            keep[j] = False
+    return pos[keep], species[keep]
+
+
+def amorphous_packing(n_atoms: int, species: tuple[str, ...], min_distance_A: float, rng: np.random.Generator, number_density_per_A3: float = 0.066) -> AtomSet:
+    """A dense random packing in a sphere: random points pushed apart to a minimum distance.
+
+    Starts from uniform random points at the metallic-glass number density and repeatedly
+    moves every pair closer than ``min_distance_A`` apart along their axis (vectorised, k-d
+    tree) until no pair is closer than 0.98 of it.  Species are assigned at random in equal parts.
+    """
+    if n_atoms < 1:
+        raise ValueError("n_atoms must be at least 1")
+    radius = (3 * n_atoms / (4 * np.pi * number_density_per_A3)) ** (1 / 3)
+    u = rng.normal(size=(n_atoms, 3))
+    pos = u / np.linalg.norm(u, axis=1, keepdims=True) * radius * rng.uniform(0, 1, (n_atoms, 1)) ** (1 / 3)
+    for _ in range(500):
+        pairs = cKDTree(pos).query_pairs(min_distance_A, output_type="ndarray")
+        if len(pairs) == 0:
+            break
+        d = pos[pairs[:, 1]] - pos[pairs[:, 0]]
+        dist = np.linalg.norm(d, axis=1, keepdims=True).clip(1e-6)
+        push = 0.5 * (min_distance_A * 1.02 - dist) * d / dist
+        move = np.zeros_like(pos)
+        np.add.at(move, pairs[:, 0], -push)
+        np.add.at(move, pairs[:, 1], push)
+        pos += move
+        # Keep the particle spherical: pull escapees back to the surface.
+        r = np.linalg.norm(pos, axis=1, keepdims=True)
+        pos = np.where(r > radius, pos * radius / r, pos)
+    spe = np.array(species)[rng.permutation(n_atoms) % len(species)]
+    return AtomSet(pos, species=spe)
