@@ -1,0 +1,107 @@
+"""Atom tracing in a voxel volume, as the paper did for its baselines.
+
+1. Candidates: local maxima of the volume (3x3x3 neighbourhood).
+2. Intensity threshold chosen on the data: Otsu's threshold of the candidates' peak values
+   (noise maxima and atom maxima form two populations), optionally scaled.
+3. Minimum distance: candidates taken in order of intensity, each kept only if it lies more
+   than ``min_distance_A`` (2.0 Å) from every atom already kept.
+4. Sub-voxel refinement: a parabola through the logarithm of each peak and its two neighbours
+   along each axis (exact for a Gaussian peak; a plain parabola where a value is not
+   positive), so baselines are not handicapped by the grid (rounding alone costs about 12 pm
+   RMSD at 0.25 Å voxels).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+from scipy.spatial import cKDTree
+
+
+def local_maxima(volume: np.ndarray) -> np.ndarray:
+    """(M, 3) integer indices of the voxels that are maxima of their 3x3x3 neighbourhood (and > 0),
+    excluding the border voxels (no neighbours for the sub-voxel fit)."""
+    peaks = (volume == ndimage.maximum_filter(volume, size=3, mode="nearest")) & (volume > 0)
+    peaks[[0, -1], :, :] = peaks[:, [0, -1], :] = peaks[:, :, [0, -1]] = False
+    return np.argwhere(peaks)
+
+
+def otsu_threshold(values: np.ndarray) -> float:
+    """Otsu's threshold of a 1D sample (scikit-image)."""
+    from skimage.filters import threshold_otsu
+
+    values = np.asarray(values, dtype=np.float64)
+    if len(values) < 2 or np.ptp(values) == 0:
+        return float(values.min()) if len(values) else 0.0
+    return float(threshold_otsu(values))
+
+
+def suppress_within(positions: np.ndarray, order: np.ndarray, min_distance: float) -> np.ndarray:
+    """Indices kept when visiting ``positions`` in ``order`` and dropping any point within
+    ``min_distance`` (inclusive) of one already kept."""
+    tree = cKDTree(positions)
+    neighbours = tree.query_ball_point(positions, min_distance)
+    suppressed = np.zeros(len(positions), dtype=bool)
+    kept = []
+    for i in order:
+        if suppressed[i]:
+            continue
+        kept.append(i)
+        suppressed[neighbours[i]] = True
+    return np.asarray(kept, dtype=np.int64)
+
+
+def subvoxel_refine(volume: np.ndarray, peaks: np.ndarray) -> np.ndarray:
+    """(M, 3) fractional indices: per axis, the vertex of a parabola through the logarithms of
+    each peak and its two neighbours (exact for Gaussian peaks), or through the values
+    themselves where one of them is not positive."""
+    peaks = np.asarray(peaks, dtype=np.int64)
+    out = peaks.astype(np.float64)
+    f0 = volume[tuple(peaks.T)]
+    for axis in range(3):
+        step = np.zeros(3, dtype=np.int64)
+        step[axis] = 1
+        fm = volume[tuple((peaks - step).T)]
+        fp = volume[tuple((peaks + step).T)]
+        positive = (fm > 0) & (fp > 0) & (f0 > 0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lm, l0, lp = np.log(np.where(positive, fm, 1)), np.log(np.where(positive, f0, 1)), np.log(np.where(positive, fp, 1))
+        fm, f0_axis, fp = np.where(positive, lm, fm), np.where(positive, l0, f0), np.where(positive, lp, fp)
+        curvature = fm - 2 * f0_axis + fp
+        with np.errstate(divide="ignore", invalid="ignore"):
+            delta = np.where(curvature < 0, 0.5 * (fm - fp) / curvature, 0.0)
+        out[:, axis] += np.clip(delta, -0.5, 0.5)
+    return out
+
+
+def trace_atoms(volume: np.ndarray, spacing_A: float, min_distance_A: float = 2.0, threshold_scale: float = 1.0, threshold: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Trace atoms in a volume.
+
+    Parameters
+    ----------
+    volume : (X, Y, Z) array
+    spacing_A : float
+        Voxel size, Å.
+    min_distance_A : float
+        Kept atoms are more than this far apart, Å.
+    threshold_scale : float
+        Multiplies the Otsu threshold of the peak values.
+    threshold : float, optional
+        An explicit intensity threshold instead of Otsu's.
+
+    Returns
+    -------
+    indices : (M, 3) float array of fractional voxel indices of the atoms
+    intensities : (M,) peak values
+    """
+    volume = np.asarray(volume, dtype=np.float64)
+    peaks = local_maxima(volume)
+    if len(peaks) == 0:
+        return np.zeros((0, 3)), np.zeros(0)
+    values = volume[tuple(peaks.T)]
+    thr = threshold if threshold is not None else threshold_scale * otsu_threshold(values)
+    strong = values >= thr
+    peaks, values = peaks[strong], values[strong]
+    order = np.argsort(-values, kind="stable")
+    keep = suppress_within(peaks * spacing_A, order, min_distance_A)
+    return subvoxel_refine(volume, peaks[keep]), values[keep]
