@@ -8,8 +8,10 @@ A directory holds ``tilt_series.json``::
      "tilt_axis": "y",                   # optional, "y" (default) or "x"
      "truth": "atoms_true.xyz",          # optional, the true atoms
      "origin_A": [35.0, 35.0, 35.0],     # optional, the tilt centre in the truth file's frame
-     "centre_px": [63.5, 63.5]}          # optional, detector pixel (row, col) of the tilt
+     "centre_px": [63.5, 63.5],          # optional, detector pixel (row, col) of the tilt
                                          # centre; default the middle, (H-1)/2, (W-1)/2
+     "volume": "potential_volume.npy"}   # optional, the true potential (n, n, n) blurred like
+                                         # the data, voxel i at (i - (n-1)/2) * volume_voxel_size_A
 
 Paths are relative to the directory.  Reading validates everything and raises
 :class:`TiltSeriesError` with a one-line message naming the file and the problem.  This module
@@ -159,7 +161,7 @@ def load_tilt_series(
             raise TiltSeriesError(f"{manifest_path}: not valid JSON ({exc})") from exc
         if not isinstance(manifest, dict):
             raise TiltSeriesError(f"{manifest_path}: expected a JSON object")
-        known = {"projections", "angles_deg", "pixel_size_A", "tilt_axis", "truth", "origin_A", "centre_px", "description", "simulation"}
+        known = {"projections", "angles_deg", "pixel_size_A", "tilt_axis", "truth", "origin_A", "centre_px", "volume", "volume_voxel_size_A", "description", "simulation"}
         unknown = set(manifest) - known
         if unknown:
             raise TiltSeriesError(f"{manifest_path}: unknown key(s) {sorted(unknown)}; expected some of {sorted(known)}")

@@ -1,7 +1,8 @@
 """``gaussian-atoms <verb>``: one tyro CLI whose verbs call the physics core.
 
-Verbs: ``simulate`` (write a tilt-series directory with known atoms) and ``evaluate`` (score
-predicted atoms against the truth).  Training is ``ns-train gaussian-atoms``.
+Verbs: ``simulate`` (write a tilt-series directory with known atoms), ``evaluate`` (score
+predicted atoms against the truth) and ``baseline`` (FBP/SART + atom tracing).  Training is
+``ns-train gaussian-atoms``.
 """
 
 from __future__ import annotations
@@ -10,7 +11,7 @@ import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Literal, Union
+from typing import Annotated, Literal, Optional, Union
 
 import tyro
 
@@ -42,6 +43,8 @@ class Simulate:
     """Standard deviation of the additive Gaussian noise, projection units (V·Å for Lobato)."""
     tilt_axis: Literal["x", "y"] = "y"
     seed: int = 0
+    save_volume: bool = True
+    """Also write the true potential volume, blurred like the data (for the SSIM metric)."""
 
     def main(self) -> None:
         import numpy as np
@@ -90,34 +93,168 @@ class Simulate:
             },
         )
         n, h, w = sim.projections.shape
+        if self.save_volume:
+            volume = true_volume(sim.truth, self.potential, self.pixel_size_A, h, self.atom_sigma_A, self.blur_sigma_A)
+            np.save(self.output / "potential_volume.npy", volume)
+            add_to_manifest(self.output, volume="potential_volume.npy", volume_voxel_size_A=self.pixel_size_A)
         print(
             f"wrote {self.output}: {len(truth)} atoms, {n} tilts ({np.min(sim.angles_deg):g}..{np.max(sim.angles_deg):g} deg), "
             f"{h}x{w} px at {self.pixel_size_A} Å, {self.potential} potential, noise {self.noise_std:g}, peak-to-noise {sim.peak_to_noise:.1f}"
         )
 
 
+def true_volume(truth, potential: str, voxel_size_A: float, voxels: int, atom_sigma_A: float, blur_sigma_A: float):
+    """The true potential on a voxels^3 grid about the tilt centre, blurred like the data."""
+    import numpy as np
+
+    from .metrics import voxelise_gaussians
+    from .simulate import gaussian_potential_parameters, lobato_potential_volume
+
+    if potential == "lobato":
+        return lobato_potential_volume(truth, voxel_size_A, voxels, blur_sigma_A)
+    # Gaussian model: blurring a Gaussian atom gives a Gaussian of the combined width and mass.
+    sigmas, amplitudes = gaussian_potential_parameters(truth.species, atom_sigma_A)
+    wide = np.hypot(sigmas, blur_sigma_A)
+    amplitudes = amplitudes * (sigmas / wide) ** 3
+    return voxelise_gaussians(truth.positions, wide, amplitudes, voxel_size_A, (voxels,) * 3).astype(np.float32)
+
+
+def add_to_manifest(directory: Path, **entries) -> None:
+    """Add entries to a tilt_series.json, atomically."""
+    manifest = directory / "tilt_series.json"
+    data = json.loads(manifest.read_text())
+    data.update(entries)
+    tmp = manifest.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(data, indent=2) + "\n")
+    tmp.replace(manifest)
+
+
+def _reference(data: Path | None):
+    """(truth AtomSet, reference volume or None, voxel size, origin) from a tilt-series directory."""
+    import numpy as np
+
+    from dataparsers.tilt_series_format import MANIFEST, load_tilt_series
+
+    from .atoms import read_atoms
+
+    series = load_tilt_series(data)
+    if series.truth_path is None:
+        raise ValueError(f"{data / MANIFEST}: names no 'truth' file to score against")
+    manifest = json.loads((data / MANIFEST).read_text())
+    volume = None
+    if "volume" in manifest:
+        volume = np.load(data / manifest["volume"])
+    return series, read_atoms(series.truth_path), volume, manifest.get("volume_voxel_size_A")
+
+
 @dataclass
 class Evaluate:
-    """Score predicted atoms against the truth (JSON to stdout)."""
+    """Score predicted atoms against the truth (JSON to stdout, summary to stderr)."""
 
     pred: Path
     """Predicted atoms (xyz/extxyz/csv or any ASE format)."""
-    truth: Path
-    """True atoms."""
+    truth: Optional[Path] = None
+    """True atoms; or give --data."""
+    data: Optional[Path] = None
+    """A tilt-series directory: its truth file, and its potential volume for SSIM."""
     radius_A: float = 0.75
     """A true atom is found if a predicted atom lies within this distance (Å)."""
+    mean_shift: bool = False
+    """Align first by an iterated global mean shift (the Miao group's scoring)."""
+    output: Optional[Path] = None
+    """Also write the JSON here."""
 
     def main(self) -> None:
         from .atoms import read_atoms
-        from .metrics import score_atoms
+        from .evaluation import evaluate_atoms, summary_line
 
-        scores = score_atoms(read_atoms(self.pred).positions, read_atoms(self.truth).positions, self.radius_A)
-        print(json.dumps(scores, indent=2))
+        if (self.truth is None) == (self.data is None):
+            raise ValueError("give exactly one of --truth and --data")
+        pred = read_atoms(self.pred)
+        volume = voxel = None
+        origin = (0.0, 0.0, 0.0)
+        if self.data is not None:
+            series, truth, volume, voxel = _reference(self.data)
+            origin = series.origin_A
+        else:
+            truth = read_atoms(self.truth)
+        if volume is not None and (pred.sigmas is None or pred.amplitudes is None):
+            volume = None  # atoms without widths (a traced baseline): no volume to compare
+        scores = evaluate_atoms(pred, truth, self.radius_A, self.mean_shift, volume, voxel, origin)
+        text = json.dumps(scores, indent=2)
+        if self.output is not None:
+            self.output.write_text(text + "\n")
+        print(text)
+        print(summary_line(scores, str(self.pred)), file=sys.stderr)
+
+
+@dataclass
+class Baseline:
+    """Reconstruct a voxel volume (FBP or SART), trace atoms in it, write and score them."""
+
+    data: Path
+    """Tilt-series directory."""
+    output: Path
+    """Directory for atoms.xyz, atoms.csv, volume.npy and evaluation.json."""
+    method: Literal["fbp", "sart"] = "sart"
+    sart_iterations: int = 1
+    min_distance_A: float = 2.0
+    """Traced atoms are more than this far apart (the paper: 2.0 Å)."""
+    threshold_scale: float = 1.0
+    """Multiplies the Otsu threshold of the peak intensities."""
+    save_volume: bool = False
+    """Also write the reconstructed volume (volume.npy)."""
+
+    def main(self) -> None:
+        import time
+
+        import numpy as np
+
+        from dataparsers.tilt_series_format import load_tilt_series
+
+        from .atoms import AtomSet, write_atoms
+        from .baselines import reconstruct
+        from .evaluation import evaluate_atoms, summary_line
+        from .tracing import trace_atoms
+
+        series = load_tilt_series(self.data)
+        start = time.perf_counter()
+        vol = reconstruct(series.projections, series.angles_deg, series.pixel_size_A, self.method, series.tilt_axis, series.centre_px, self.sart_iterations)
+        idx, values = trace_atoms(vol.data, vol.spacing_A, self.min_distance_A, self.threshold_scale)
+        seconds = time.perf_counter() - start
+        atoms = AtomSet(vol.index_to_A(idx) + series.origin_A)
+        self.output.mkdir(parents=True, exist_ok=True)
+        write_atoms(atoms, self.output / "atoms.xyz")
+        write_atoms(atoms, self.output / "atoms.csv")
+        if self.save_volume:
+            np.save(self.output / "volume.npy", vol.data.astype(np.float32))
+        if series.truth_path is None:
+            print(f"{self.method}: {len(atoms)} atoms traced in {seconds:.1f} s")
+            return
+        _, truth, reference, voxel = _reference(self.data)
+        pred_volume = None
+        if reference is not None:
+            pred_volume = resample_to_reference(vol, reference.shape, voxel)
+        scores = evaluate_atoms(atoms, truth, reference_volume=reference, voxel_size_A=voxel, pred_volume=pred_volume)
+        scores["seconds"] = seconds
+        (self.output / "evaluation.json").write_text(json.dumps(scores, indent=2) + "\n")
+        print(summary_line(scores, f"{self.method} ({seconds:.1f} s)"))
+
+
+def resample_to_reference(vol, shape, voxel_size_A):
+    """A baseline volume interpolated onto the reference grid (voxel i at (i - (n-1)/2) * size)."""
+    import numpy as np
+    from scipy import ndimage
+
+    axes = [(np.arange(n) - (n - 1) / 2) * voxel_size_A / vol.spacing_A + vol.origin_index[a] for a, n in enumerate(shape)]
+    grid = np.meshgrid(*axes, indexing="ij")
+    return ndimage.map_coordinates(vol.data, grid, order=1, mode="constant")
 
 
 Commands = Union[
     Annotated[Simulate, tyro.conf.subcommand("simulate")],
     Annotated[Evaluate, tyro.conf.subcommand("evaluate")],
+    Annotated[Baseline, tyro.conf.subcommand("baseline")],
 ]
 
 

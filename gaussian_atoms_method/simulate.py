@@ -140,6 +140,31 @@ def project_lobato_potential(atoms: AtomSet, angles_deg, pixel_size_A: float, de
     return out
 
 
+def lobato_potential_volume(atoms: AtomSet, voxel_size_A: float, voxels: int, blur_sigma_A: float = 0.5) -> np.ndarray:
+    """The true 3D potential (V) on a cube of ``voxels``^3, blurred like the data, for SSIM.
+
+    Voxel ``(i, j, k)`` is centred at ``((i, j, k) - (voxels - 1) / 2) * voxel_size_A`` about the
+    tilt centre (the convention of the projections).  abTEM integrates the Lobato potential
+    over slices one voxel thick (``projection="finite"``); dividing by the thickness gives the
+    mean potential of each voxel-thick slab, sampled at the voxel centres in x and y.  Then a
+    3D Gaussian blur of ``blur_sigma_A``: the probe blur the projections received.
+    """
+    import abtem
+    import ase
+
+    abtem.config.set({"device": "cpu", "progress_bar": False})
+    side = voxels * voxel_size_A
+    # x, y: abTEM samples grid point i at i * size; z: slab k spans [k, k + 1) * size.
+    shift = np.array([(voxels - 1) / 2, (voxels - 1) / 2, voxels / 2]) * voxel_size_A
+    cell = ase.Atoms(list(atoms.species), positions=atoms.positions + shift, cell=[side] * 3, pbc=True)
+    potential = abtem.Potential(cell, gpts=(voxels, voxels), slice_thickness=voxel_size_A, parametrization="lobato", projection="finite")
+    slabs = potential.build().compute().array  # (z, x, y) in V·Å
+    volume = np.moveaxis(slabs, 0, -1).astype(np.float64) / voxel_size_A
+    if blur_sigma_A > 0:
+        volume = ndimage.gaussian_filter(volume, blur_sigma_A / voxel_size_A, mode="constant")
+    return volume.astype(np.float32)
+
+
 def blur_and_noise(clean: np.ndarray, pixel_size_A: float, blur_sigma_A: float, noise_std: float, seed: int) -> np.ndarray:
     """Gaussian probe blur of each projection, then additive Gaussian noise (float64)."""
     if blur_sigma_A > 0:

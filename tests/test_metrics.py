@@ -46,3 +46,49 @@ def test_empty_sets():
     assert s["tpr"] == 0.0 and np.isnan(s["rmsd_pm"]) and np.isnan(s["precision"])
     with pytest.raises(ValueError):
         match_atoms(truth, truth, radius_A=0.0)
+
+
+def test_voxelise_gaussians_mass_and_position():
+    from gaussian_atoms_method.metrics import voxelise_gaussians
+
+    pos = np.array([[0.3, -0.6, 1.1], [-1.5, 1.0, -0.4]])
+    sig = np.array([0.5, 0.7])
+    amp = np.array([2.0, 1.0])
+    vol = voxelise_gaussians(pos, sig, amp, 0.1, (100, 100, 100), radius_sigmas=6.0)
+    # Riemann sum of well-sampled Gaussians cut at 6 sigma: the integrated mass to 1e-6.
+    mass = (amp * (2 * np.pi * sig**2) ** 1.5).sum()
+    assert vol.sum() * 0.1**3 == pytest.approx(mass, rel=1e-6)
+    # The value at a voxel equals the direct evaluation.
+    i, j, k = 33, 24, 40
+    r = (np.array([i, j, k]) - 49.5) * 0.1
+    direct = (amp * np.exp(-((r - pos) ** 2).sum(1) / (2 * sig**2))).sum()
+    assert vol[i, j, k] == pytest.approx(direct, rel=1e-9)
+
+
+def test_volume_ssim_reports_its_reference():
+    from gaussian_atoms_method.metrics import volume_ssim, voxelise_gaussians
+
+    pos = np.array([[0.0, 0.0, 0.0], [1.5, 0.0, 0.0]])
+    ref = voxelise_gaussians(pos, np.array([0.5, 0.5]), np.ones(2), 0.25, (24, 24, 24))
+    assert volume_ssim(ref, ref)["ssim"] == pytest.approx(1.0)
+    moved = voxelise_gaussians(pos + 0.5, np.array([0.5, 0.5]), np.ones(2), 0.25, (24, 24, 24))
+    out = volume_ssim(moved, ref)
+    assert out["ssim"] < 0.9 and out["ssim_data_range"] == pytest.approx(ref.max() - ref.min())
+    with pytest.raises(ValueError, match="shape"):
+        volume_ssim(ref[:-1], ref)
+
+
+def test_mean_shift_variant_removes_a_global_offset():
+    rng = np.random.default_rng(2)
+    truth = rng.uniform(0, 20, size=(100, 3))
+    pred = truth + [0.3, -0.2, 0.1] + rng.normal(0, 0.02, (100, 3))
+    plain = score_atoms(pred, truth)
+    shifted = score_atoms(pred, truth, mean_shift=True)
+    assert plain["rmsd_pm"] > 35 and shifted["rmsd_pm"] < 4.5  # 2 pm per axis -> ~3.5 pm
+    np.testing.assert_allclose(shifted["shift_A"], [-0.3, 0.2, -0.1], atol=0.01)
+
+
+def test_species_accuracy():
+    truth = np.array([[0.0, 0, 0], [3.0, 0, 0], [6.0, 0, 0]])
+    s = score_atoms(truth, truth, pred_species=["Fe", "Pt", "Pt"], true_species=["Fe", "Pt", "Fe"])
+    assert s["species_accuracy"] == pytest.approx(2 / 3)

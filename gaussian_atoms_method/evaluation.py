@@ -1,0 +1,63 @@
+"""One scoring entry point for every method: atoms against the truth, and the volume SSIM."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .atoms import AtomSet
+from .metrics import score_atoms, volume_ssim, voxelise_gaussians
+
+
+def evaluate_atoms(
+    pred: AtomSet,
+    truth: AtomSet,
+    radius_A: float = 0.75,
+    mean_shift: bool = False,
+    reference_volume: np.ndarray | None = None,
+    voxel_size_A: float | None = None,
+    origin_A=(0.0, 0.0, 0.0),
+    pred_volume: np.ndarray | None = None,
+) -> dict:
+    """Scores of predicted atoms (and of a volume) against the truth.
+
+    Parameters
+    ----------
+    pred, truth : AtomSet (positions in the same frame, Å)
+    radius_A, mean_shift : see :func:`.metrics.score_atoms`
+    reference_volume : (n, n, n) array, optional
+        The true potential blurred like the data, voxel ``i`` centred at
+        ``(i - (n - 1) / 2) * voxel_size_A + origin_A``.  With it, ``ssim`` is reported: of
+        ``pred_volume`` if given (a voxel method's reconstruction on the same grid), else of
+        the predicted Gaussians voxelised on that grid.
+    """
+    species_known = pred.species is not None and truth.species is not None and not np.all(pred.species == "X")
+    scores = score_atoms(
+        pred.positions,
+        truth.positions,
+        radius_A,
+        mean_shift,
+        pred.species if species_known else None,
+        truth.species if species_known else None,
+    )
+    if reference_volume is not None:
+        if pred_volume is None:
+            if pred.sigmas is None or pred.amplitudes is None:
+                raise ValueError("SSIM needs the predicted atoms' sigma_A and amplitude, or a predicted volume")
+            pred_volume = voxelise_gaussians(pred.positions - np.asarray(origin_A), pred.sigmas, pred.amplitudes, voxel_size_A, reference_volume.shape)
+        scores.update(volume_ssim(pred_volume, reference_volume))
+    return scores
+
+
+def summary_line(scores: dict, label: str = "") -> str:
+    """One line: TPR, false positives per atom, RMSD (and SSIM)."""
+    parts = [
+        f"TPR {scores['tpr']:.4f}",
+        f"FP/atom {scores['fp_per_true_atom']:.4f}",
+        f"RMSD {scores['rmsd_pm']:.1f} pm",
+        f"{scores['n_pred']} predicted / {scores['n_true']} true",
+    ]
+    if "ssim" in scores:
+        parts.append(f"SSIM {scores['ssim']:.3f} (range {scores['ssim_data_range']:.3g})")
+    if "species_accuracy" in scores:
+        parts.append(f"species {scores['species_accuracy']:.3f}")
+    return (f"{label}: " if label else "") + ", ".join(parts)
