@@ -1,0 +1,180 @@
+"""The paper's accuracy table: particles x tilt schemes x noise levels x methods.
+
+For each particle and tilt scheme the clean Lobato projections are simulated once; each noise
+level adds its own Gaussian noise.  Every method reads the same tilt-series directory and is
+scored by the same code (:mod:`.evaluation`).  Finished runs are skipped, so an interrupted
+benchmark resumes.  Results: ``results.csv``, ``results.md`` and PNG figures.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+FIELDS = ["particle", "atoms", "tilts", "noise_std", "peak_to_noise", "method", "tpr", "fp_per_true_atom", "rmsd_pm", "ssim", "n_pred", "seconds"]
+
+
+@dataclass
+class AccuracyBenchmark:
+    output: Path
+    particles: tuple[str, ...] = ("au",)
+    tilts: tuple[str, ...] = ("full", "limited")
+    noise: tuple[float, ...] = (50.0, 200.0, 500.0)
+    methods: tuple[str, ...] = ("fbp", "sart", "ours")
+    scale: float = 1.0
+    iterations: int = 3000
+    sart_iterations: int = 1
+    pixel_size_A: float = 0.25
+    blur_sigma_A: float = 0.5
+    seed: int = 0
+    device: str = "cpu"
+
+    # ------------------------------------------------------------------ data
+    def dataset(self, particle: str, tilts: str, noise: float) -> Path:
+        """The tilt-series directory for one cell of the table (simulated once, then reused)."""
+        from dataparsers.tilt_series_format import write_tilt_series
+
+        from .cli import add_to_manifest, true_volume
+        from .particles import make_particle
+        from .simulate import blur_and_noise, parse_tilts, simulate_tilt_series
+
+        out = self.output / "data" / f"{particle}-{tilts}-noise{noise:g}"
+        if (out / "tilt_series.json").is_file() and "volume" in json.loads((out / "tilt_series.json").read_text()):
+            return out
+        clean_path = self.output / "data" / f"{particle}-{tilts}-clean.npz"
+        atoms = make_particle(particle, self.scale, self.seed)
+        angles = parse_tilts(tilts)
+        if clean_path.is_file():
+            clean = np.load(clean_path)["projections"]
+        else:
+            # Blurred, noise-free projections, computed once per particle and tilt scheme.
+            clean = simulate_tilt_series(atoms, angles, "lobato", self.pixel_size_A, blur_sigma_A=self.blur_sigma_A, noise_std=0.0).projections
+            clean_path.parent.mkdir(parents=True, exist_ok=True)
+            np.savez(clean_path, projections=clean)
+        noisy = blur_and_noise(clean.astype(np.float64), self.pixel_size_A, 0.0, noise, self.seed + int(noise))
+        write_tilt_series(
+            out,
+            noisy.astype(np.float32),
+            angles,
+            self.pixel_size_A,
+            truth=atoms,
+            extra={"simulation": {"particle": particle, "scale": self.scale, "potential": "lobato", "noise_std": noise, "peak_to_noise": float(clean.max() / noise), "blur_sigma_A": self.blur_sigma_A}},
+        )
+        volume_path = self.output / "data" / f"{particle}-volume.npy"
+        if not volume_path.is_file():
+            np.save(volume_path, true_volume(atoms, "lobato", self.pixel_size_A, clean.shape[1], 0.35, self.blur_sigma_A))
+        (out / "potential_volume.npy").unlink(missing_ok=True)
+        (out / "potential_volume.npy").symlink_to(volume_path.resolve())
+        add_to_manifest(out, volume="potential_volume.npy", volume_voxel_size_A=self.pixel_size_A)
+        return out
+
+    # ------------------------------------------------------------------ methods
+    def run_method(self, method: str, data: Path) -> dict:
+        run_dir = self.output / "runs" / data.name / method
+        result = run_dir / "evaluation.json"
+        if result.is_file():
+            return json.loads(result.read_text())
+        run_dir.mkdir(parents=True, exist_ok=True)
+        if method in ("fbp", "sart"):
+            from .cli import Baseline
+
+            Baseline(data=data, output=run_dir, method=method, sart_iterations=self.sart_iterations).main()
+        elif method == "ours":
+            self._run_ours(data, run_dir)
+        else:
+            raise ValueError(f"unknown method {method!r}; expected fbp, sart or ours")
+        return json.loads(result.read_text())
+
+    def _run_ours(self, data: Path, run_dir: Path) -> None:
+        from .atoms import read_atoms
+        from .cli import _reference
+        from .evaluation import evaluate_atoms
+
+        bin_dir = Path(sys.executable).parent
+        start = time.perf_counter()
+        cmd = [
+            str(bin_dir / "ns-train"), "gaussian-atoms", "--machine.device-type", self.device, "--vis", "tensorboard",
+            "--output-dir", str(run_dir), "--experiment-name", "ours", "--timestamp", "run",
+            "--max-num-iterations", str(self.iterations), "tilt-series", "--data", str(data),
+        ]  # fmt: skip
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        seconds = time.perf_counter() - start
+        if proc.returncode != 0:
+            raise RuntimeError(f"ns-train failed on {data}:\n{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}")
+        atoms = read_atoms(run_dir / "ours" / "gaussian-atoms" / "run" / "atoms.xyz")
+        series, truth, volume, voxel = _reference(data)
+        scores = evaluate_atoms(atoms, truth, reference_volume=volume, voxel_size_A=voxel, origin_A=series.origin_A)
+        scores["seconds"] = seconds  # includes about 15 s of nerfstudio start-up
+        (run_dir / "evaluation.json").write_text(json.dumps(scores, indent=2) + "\n")
+
+    # ------------------------------------------------------------------ table
+    def run(self) -> list[dict]:
+        rows = []
+        for particle in self.particles:
+            for tilts in self.tilts:
+                for noise in self.noise:
+                    data = self.dataset(particle, tilts, noise)
+                    sim = json.loads((data / "tilt_series.json").read_text())["simulation"]
+                    for method in self.methods:
+                        s = self.run_method(method, data)
+                        row = {
+                            "particle": particle, "atoms": s["n_true"], "tilts": tilts, "noise_std": noise,
+                            "peak_to_noise": round(sim["peak_to_noise"], 1), "method": method,
+                            "tpr": s["tpr"], "fp_per_true_atom": s["fp_per_true_atom"], "rmsd_pm": s["rmsd_pm"],
+                            "ssim": s.get("ssim", float("nan")), "n_pred": s["n_pred"], "seconds": s.get("seconds", float("nan")),
+                        }  # fmt: skip
+                        rows.append(row)
+                        print(f"{particle} {tilts} noise {noise:g} {method}: TPR {row['tpr']:.4f} FP {row['fp_per_true_atom']:.4f} RMSD {row['rmsd_pm']:.1f} pm SSIM {row['ssim']:.3f} {row['seconds']:.0f} s", flush=True)
+                        self.write(rows)
+        return rows
+
+    def write(self, rows: list[dict]) -> None:
+        self.output.mkdir(parents=True, exist_ok=True)
+        with open(self.output / "results.csv", "w", newline="") as f:
+            writer = csv.DictWriter(f, FIELDS)
+            writer.writeheader()
+            writer.writerows(rows)
+        (self.output / "results.md").write_text(markdown_table(rows))
+        plot(rows, self.output)
+
+
+def markdown_table(rows: list[dict]) -> str:
+    head = "| particle | atoms | tilts | noise | PNR | method | TPR | FP/atom | RMSD (pm) | SSIM | predicted | time (s) |\n"
+    head += "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |\n"
+    body = "".join(
+        f"| {r['particle']} | {r['atoms']} | {r['tilts']} | {r['noise_std']:g} | {r['peak_to_noise']} | {r['method']} | "
+        f"{r['tpr']:.4f} | {r['fp_per_true_atom']:.4f} | {r['rmsd_pm']:.1f} | {r['ssim']:.3f} | {r['n_pred']} | {r['seconds']:.0f} |\n"
+        for r in rows
+    )
+    return head + body
+
+
+def plot(rows: list[dict], output: Path) -> None:
+    """TPR, false positives per atom and RMSD against noise, one panel row per particle/tilts."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    groups = sorted({(r["particle"], r["tilts"]) for r in rows})
+    fig, axes = plt.subplots(len(groups), 3, figsize=(12, 3.2 * len(groups)), squeeze=False)
+    for g, (particle, tilts) in enumerate(groups):
+        for method in sorted({r["method"] for r in rows}):
+            sel = sorted((r for r in rows if (r["particle"], r["tilts"], r["method"]) == (particle, tilts, method)), key=lambda r: r["noise_std"])
+            noise = [r["noise_std"] for r in sel]
+            for k, key in enumerate(("tpr", "fp_per_true_atom", "rmsd_pm")):
+                axes[g, k].plot(noise, [r[key] for r in sel], "o-", label=method)
+        for k, label in enumerate(("TPR", "false positives per atom", "RMSD (pm)")):
+            axes[g, k].set_title(f"{particle}, {tilts}: {label}")
+            axes[g, k].set_xlabel("noise std (V·Å)")
+        axes[g, 0].legend()
+    fig.tight_layout()
+    fig.savefig(output / "accuracy_vs_noise.png", dpi=100)
+    plt.close(fig)
