@@ -38,6 +38,12 @@ class Volume:
         """(M, 3) fractional voxel indices -> (M, 3) positions in Å about the tilt centre."""
         return (np.asarray(index, dtype=np.float64) - self.origin_index) * self.spacing_A
 
+    def resample(self, shape, voxel_size_A: float) -> np.ndarray:
+        """Values on a centred grid of ``shape`` (voxel ``i`` at ``(i - (n - 1) / 2) * voxel_size_A``
+        about the tilt centre), by trilinear interpolation; zero outside this volume."""
+        axes = [(np.arange(n) - (n - 1) / 2) * voxel_size_A / self.spacing_A + self.origin_index[a] for a, n in enumerate(shape)]
+        return ndimage.map_coordinates(self.data, np.meshgrid(*axes, indexing="ij"), order=1, mode="constant")
+
 
 def _centred_sinograms(projections: np.ndarray, centre_index: float, axis: int) -> tuple[np.ndarray, int]:
     """Sinograms ``(S, L, N)`` for each slice along ``axis`` of the detector (1 rows, 2 cols),

@@ -31,6 +31,7 @@ class AccuracyBenchmark:
     scale: float = 1.0
     iterations: int = 3000
     sart_iterations: int = 1
+    inr_steps: int = 1500
     pixel_size_A: float = 0.25
     blur_sigma_A: float = 0.5
     seed: int = 0
@@ -82,14 +83,14 @@ class AccuracyBenchmark:
         if result.is_file():
             return json.loads(result.read_text())
         run_dir.mkdir(parents=True, exist_ok=True)
-        if method in ("fbp", "sart"):
+        if method in ("fbp", "sart", "inr"):
             from .cli import Baseline
 
-            Baseline(data=data, output=run_dir, method=method, sart_iterations=self.sart_iterations).main()
+            Baseline(data=data, output=run_dir, method=method, sart_iterations=self.sart_iterations, inr_steps=self.inr_steps, device=self.device).main()
         elif method == "ours":
             self._run_ours(data, run_dir)
         else:
-            raise ValueError(f"unknown method {method!r}; expected fbp, sart or ours")
+            raise ValueError(f"unknown method {method!r}; expected fbp, sart, inr or ours")
         return json.loads(result.read_text())
 
     def _run_ours(self, data: Path, run_dir: Path) -> None:

@@ -190,14 +190,18 @@ class Evaluate:
 
 @dataclass
 class Baseline:
-    """Reconstruct a voxel volume (FBP or SART), trace atoms in it, write and score them."""
+    """Reconstruct a voxel volume (FBP, SART or an INR), trace atoms in it, write and score them."""
 
     data: Path
     """Tilt-series directory."""
     output: Path
     """Directory for atoms.xyz, atoms.csv, volume.npy and evaluation.json."""
-    method: Literal["fbp", "sart"] = "sart"
+    method: Literal["fbp", "sart", "inr"] = "sart"
     sart_iterations: int = 1
+    inr_steps: int = 1500
+    """Training steps of the INR (a batch of rays of one view each)."""
+    device: Literal["cpu", "cuda"] = "cpu"
+    """Where the INR trains."""
     min_distance_A: float = 2.0
     """Traced atoms are more than this far apart (the paper: 2.0 Å)."""
     threshold_scale: float = 1.0
@@ -219,7 +223,12 @@ class Baseline:
 
         series = load_tilt_series(self.data)
         start = time.perf_counter()
-        vol = reconstruct(series.projections, series.angles_deg, series.pixel_size_A, self.method, series.tilt_axis, series.centre_px, self.sart_iterations)
+        if self.method == "inr":
+            from .inr import fit_inr
+
+            vol = fit_inr(series.projections, series.angles_deg, series.pixel_size_A, series.tilt_axis, series.centre_px, self.inr_steps, device=self.device)
+        else:
+            vol = reconstruct(series.projections, series.angles_deg, series.pixel_size_A, self.method, series.tilt_axis, series.centre_px, self.sart_iterations)
         idx, values = trace_atoms(vol.data, vol.spacing_A, self.min_distance_A, self.threshold_scale)
         seconds = time.perf_counter() - start
         atoms = AtomSet(vol.index_to_A(idx) + series.origin_A)
@@ -234,21 +243,11 @@ class Baseline:
         _, truth, reference, voxel = _reference(self.data)
         pred_volume = None
         if reference is not None:
-            pred_volume = resample_to_reference(vol, reference.shape, voxel)
+            pred_volume = vol.resample(reference.shape, voxel)
         scores = evaluate_atoms(atoms, truth, reference_volume=reference, voxel_size_A=voxel, pred_volume=pred_volume)
         scores["seconds"] = seconds
         (self.output / "evaluation.json").write_text(json.dumps(scores, indent=2) + "\n")
         print(summary_line(scores, f"{self.method} ({seconds:.1f} s)"))
-
-
-def resample_to_reference(vol, shape, voxel_size_A):
-    """A baseline volume interpolated onto the reference grid (voxel i at (i - (n-1)/2) * size)."""
-    import numpy as np
-    from scipy import ndimage
-
-    axes = [(np.arange(n) - (n - 1) / 2) * voxel_size_A / vol.spacing_A + vol.origin_index[a] for a, n in enumerate(shape)]
-    grid = np.meshgrid(*axes, indexing="ij")
-    return ndimage.map_coordinates(vol.data, grid, order=1, mode="constant")
 
 
 @dataclass
