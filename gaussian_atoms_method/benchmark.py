@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-FIELDS = ["particle", "atoms", "tilts", "noise_std", "peak_to_noise", "method", "tpr", "fp_per_true_atom", "rmsd_pm", "ssim", "n_pred", "seconds"]
+FIELDS = ["particle", "atoms", "tilts", "noise_std", "peak_to_noise", "method", "tpr", "fp_per_true_atom", "rmsd_pm", "ssim", "n_pred", "seconds", "machine"]
 
 
 @dataclass
@@ -130,6 +130,7 @@ class AccuracyBenchmark:
                             "peak_to_noise": round(sim["peak_to_noise"], 1), "method": method,
                             "tpr": s["tpr"], "fp_per_true_atom": s["fp_per_true_atom"], "rmsd_pm": s["rmsd_pm"],
                             "ssim": s.get("ssim", float("nan")), "n_pred": s["n_pred"], "seconds": s.get("seconds", float("nan")),
+                            "machine": s.get("machine", "this machine's CPU"),
                         }  # fmt: skip
                         rows.append(row)
                         print(f"{particle} {tilts} noise {noise:g} {method}: TPR {row['tpr']:.4f} FP {row['fp_per_true_atom']:.4f} RMSD {row['rmsd_pm']:.1f} pm SSIM {row['ssim']:.3f} {row['seconds']:.0f} s", flush=True)
@@ -147,11 +148,11 @@ class AccuracyBenchmark:
 
 
 def markdown_table(rows: list[dict]) -> str:
-    head = "| particle | atoms | tilts | noise | PNR | method | TPR | FP/atom | RMSD (pm) | SSIM | predicted | time (s) |\n"
-    head += "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |\n"
+    head = "| particle | atoms | tilts | noise | PNR | method | TPR | FP/atom | RMSD (pm) | SSIM | predicted | time (s) | where |\n"
+    head += "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |\n"
     body = "".join(
         f"| {r['particle']} | {r['atoms']} | {r['tilts']} | {r['noise_std']:g} | {r['peak_to_noise']} | {r['method']} | "
-        f"{r['tpr']:.4f} | {r['fp_per_true_atom']:.4f} | {r['rmsd_pm']:.1f} | {r['ssim']:.3f} | {r['n_pred']} | {r['seconds']:.0f} |\n"
+        f"{r['tpr']:.4f} | {r['fp_per_true_atom']:.4f} | {r['rmsd_pm']:.1f} | {r['ssim']:.3f} | {r['n_pred']} | {r['seconds']:.0f} | {r['machine']} |\n"
         for r in rows
     )
     return head + body

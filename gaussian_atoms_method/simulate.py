@@ -136,7 +136,7 @@ def project_lobato_potential(atoms: AtomSet, angles_deg, pixel_size_A: float, de
         local = local + [centre, centre, depth / 2]
         cell = ase.Atoms(symbols, positions=local, cell=[side, side, depth], pbc=True)
         potential = abtem.Potential(cell, gpts=(detector_pixels, detector_pixels), parametrization="lobato", projection="infinite", slice_thickness=depth)
-        out[k] = potential.build().compute().array.sum(axis=0)
+        out[k] = potential.build().compute(progress_bar=False).array.sum(axis=0)
     return out
 
 
@@ -158,7 +158,7 @@ def lobato_potential_volume(atoms: AtomSet, voxel_size_A: float, voxels: int, bl
     shift = np.array([(voxels - 1) / 2, (voxels - 1) / 2, voxels / 2]) * voxel_size_A
     cell = ase.Atoms(list(atoms.species), positions=atoms.positions + shift, cell=[side] * 3, pbc=True)
     potential = abtem.Potential(cell, gpts=(voxels, voxels), slice_thickness=voxel_size_A, parametrization="lobato", projection="finite")
-    slabs = potential.build().compute().array  # (z, x, y) in V·Å
+    slabs = potential.build().compute(progress_bar=False).array  # (z, x, y) in V·Å
     volume = np.moveaxis(slabs, 0, -1).astype(np.float64) / voxel_size_A
     if blur_sigma_A > 0:
         volume = ndimage.gaussian_filter(volume, blur_sigma_A / voxel_size_A, mode="constant")
