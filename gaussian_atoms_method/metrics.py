@@ -176,17 +176,26 @@ def voxelise_gaussians(
     amp = np.asarray(amplitudes, dtype=np.float64)
     out = torch.zeros(int(np.prod(shape)), dtype=torch.float64)
     strides = torch.tensor([shape[1] * shape[2], shape[2], 1])
-    half = int(np.ceil(radius_sigmas * sig.max())) if len(sig) else 0
-    offsets = torch.arange(-half, half + 1)
-    for start in range(0, len(centres), 256):  # a chunk of atoms at a time bounds the memory
-        c = torch.from_numpy(centres[start : start + 256])
-        s = torch.from_numpy(sig[start : start + 256])[:, None]
+    # Widths can differ by orders of magnitude (a stray wide Gaussian): visit atoms from narrow
+    # to wide, each chunk with the window of its widest member, sized to ~2e7 voxel values.
+    order = np.argsort(sig)
+    start = 0
+    while start < len(order):
+        half = min(int(np.ceil(radius_sigmas * sig[order[start]])), max(shape))
+        m = max(1, int(2e7 // (2 * half + 1) ** 3))
+        chunk = order[start : start + m]
+        half = min(int(np.ceil(radius_sigmas * sig[chunk].max())), max(shape))
+        chunk = chunk[: max(1, int(2e7 // (2 * half + 1) ** 3))]
+        start += len(chunk)
+        offsets = torch.arange(-half, half + 1)
+        c = torch.from_numpy(centres[chunk])
+        s = torch.from_numpy(sig[chunk])[:, None]
         base = torch.round(c).long()
         idx = base[:, :, None] + offsets  # (m, 3, w)
         g = torch.exp(-((idx - c[:, :, None]) ** 2) / (2 * s[:, :, None] ** 2))  # separable factors
         valid = [(idx[:, a] >= 0) & (idx[:, a] < shape[a]) for a in range(3)]
         g = [torch.where(valid[a], g[:, a], 0.0) for a in range(3)]
-        vals = torch.from_numpy(amp[start : start + 256])[:, None, None, None] * g[0][:, :, None, None] * g[1][:, None, :, None] * g[2][:, None, None, :]
+        vals = torch.from_numpy(amp[chunk])[:, None, None, None] * g[0][:, :, None, None] * g[1][:, None, :, None] * g[2][:, None, None, :]
         flat = (
             idx[:, 0].clamp(0, shape[0] - 1)[:, :, None, None] * strides[0]
             + idx[:, 1].clamp(0, shape[1] - 1)[:, None, :, None] * strides[1]
