@@ -7,9 +7,8 @@ and the mean width.  Its amplitude is either the mean amplitude (the paper) or t
 conserves the cluster's integrated mass (``amplitude_rule="mass"``, the default: merging two
 half-atoms gives one whole atom, so the fit does not have to regrow the lost half).
 
-Everything here is expressed as a *remap*: ``(src, dst)`` index pairs that say new Gaussian
-``dst[k]`` averages old Gaussian ``src[k]``.  Pruning, duplication and merging are all remaps,
-and the same remap is applied to the optimiser's moment estimates so they stay consistent.
+The merge is applied to the parameters and the optimiser's state as a remap
+(:func:`.remap.merge_remap`).
 """
 
 from __future__ import annotations
@@ -54,13 +53,6 @@ def scatter_mean(values: torch.Tensor, src: torch.Tensor, dst: torch.Tensor, n_o
     counts = torch.zeros(n_out, dtype=values.dtype, device=values.device)
     counts.index_add_(0, dst, torch.ones_like(dst, dtype=values.dtype))
     return out / counts.clamp_min(1).view((-1,) + (1,) * (values.dim() - 1))
-
-
-def merge_remap(labels: np.ndarray, n_clusters: int, device=None) -> tuple[torch.Tensor, torch.Tensor, int]:
-    """The remap ``(src, dst, n_out)`` that merges every cluster into one Gaussian."""
-    src = torch.arange(len(labels), device=device)
-    dst = torch.as_tensor(labels, device=device)
-    return src, dst, n_clusters
 
 
 def merged_values(

@@ -32,7 +32,7 @@ from .atoms import AtomSet, read_atoms, write_atoms
 from .merge import cluster_labels, merged_values
 from .metrics import score_atoms
 from .projector import gaussian_mass, project_gaussians
-from .remap import apply_remap, duplicate_remap, keep_remap
+from .remap import apply_remap, duplicate_remap, keep_remap, merge_remap
 from .units import DATA_RANGE, Normalisation
 
 PARAM_NAMES = ("means", "log_sigmas", "log_amplitudes")
@@ -290,7 +290,7 @@ class GaussianAtomsModel(SplatfactoModel):
         labels_t = torch.as_tensor(labels, device=self.means.device)
         means, sigmas, amps = merged_values(self.means, self.sigmas, self.amplitudes, labels_t, n_clusters, self.config.merge_amplitude)
         new_values = {"means": means, "log_sigmas": torch.log(sigmas)[:, None], "log_amplitudes": torch.log(amps)[:, None]}
-        self._remap(torch.arange(n), labels_t.cpu(), n_clusters, new_values)
+        self._remap(*merge_remap(labels_t.cpu(), n_clusters), new_values)
         return n - n_clusters
 
     # ------------------------------------------------------------------ results

@@ -69,3 +69,8 @@ def duplicate_remap(n: int, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tens
     """Remap that keeps all ``n`` Gaussians and appends copies of those in ``idx``."""
     src = torch.cat([torch.arange(n, device=idx.device), idx])
     return src, torch.arange(len(src), device=idx.device), len(src)
+
+
+def merge_remap(labels: torch.Tensor, n_clusters: int) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """Remap that merges every cluster (``labels``: cluster of each Gaussian) into one Gaussian."""
+    return torch.arange(len(labels), device=labels.device), labels, n_clusters
