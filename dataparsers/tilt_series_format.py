@@ -247,7 +247,20 @@ def write_tilt_series(
         manifest["truth"] = "atoms_true.xyz"
     if extra:
         manifest.update(extra)
-    tmp = out / (MANIFEST + ".tmp")
-    tmp.write_text(json.dumps(manifest, indent=2) + "\n")
-    tmp.replace(out / MANIFEST)
+    _write_manifest(out, manifest)
     return out
+
+
+def _write_manifest(directory: Path, manifest: dict) -> None:
+    """Write tilt_series.json through a temporary file: readers never see half a manifest."""
+    tmp = directory / (MANIFEST + ".tmp")
+    tmp.write_text(json.dumps(manifest, indent=2) + "\n")
+    tmp.replace(directory / MANIFEST)
+
+
+def update_manifest(directory: str | Path, **entries) -> None:
+    """Add or replace entries of an existing tilt_series.json, atomically."""
+    directory = Path(directory)
+    manifest = json.loads((directory / MANIFEST).read_text())
+    manifest.update(entries)
+    _write_manifest(directory, manifest)

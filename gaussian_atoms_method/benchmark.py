@@ -40,11 +40,10 @@ class AccuracyBenchmark:
     # ------------------------------------------------------------------ data
     def dataset(self, particle: str, tilts: str, noise: float) -> Path:
         """The tilt-series directory for one cell of the table (simulated once, then reused)."""
-        from dataparsers.tilt_series_format import write_tilt_series
+        from dataparsers.tilt_series_format import update_manifest, write_tilt_series
 
-        from .cli import add_to_manifest, true_volume
         from .particles import make_particle
-        from .simulate import blur_and_noise, parse_tilts, simulate_tilt_series
+        from .simulate import blur_and_noise, parse_tilts, simulate_tilt_series, true_potential_volume
 
         out = self.output / "data" / f"{particle}-{tilts}-noise{noise:g}"
         if (out / "tilt_series.json").is_file() and "volume" in json.loads((out / "tilt_series.json").read_text()):
@@ -70,10 +69,10 @@ class AccuracyBenchmark:
         )
         volume_path = self.output / "data" / f"{particle}-volume.npy"
         if not volume_path.is_file():
-            np.save(volume_path, true_volume(atoms, "lobato", self.pixel_size_A, clean.shape[1], 0.35, self.blur_sigma_A))
+            np.save(volume_path, true_potential_volume(atoms, "lobato", self.pixel_size_A, clean.shape[1], 0.35, self.blur_sigma_A))
         (out / "potential_volume.npy").unlink(missing_ok=True)
         (out / "potential_volume.npy").symlink_to(volume_path.resolve())
-        add_to_manifest(out, volume="potential_volume.npy", volume_voxel_size_A=self.pixel_size_A)
+        update_manifest(out, volume="potential_volume.npy", volume_voxel_size_A=self.pixel_size_A)
         return out
 
     # ------------------------------------------------------------------ methods
@@ -95,8 +94,7 @@ class AccuracyBenchmark:
 
     def _run_ours(self, data: Path, run_dir: Path) -> None:
         from .atoms import read_atoms
-        from .cli import _reference
-        from .evaluation import evaluate_atoms
+        from .evaluation import evaluate_atoms, load_reference
 
         bin_dir = Path(sys.executable).parent
         start = time.perf_counter()
@@ -110,7 +108,7 @@ class AccuracyBenchmark:
         if proc.returncode != 0:
             raise RuntimeError(f"ns-train failed on {data}:\n{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}")
         atoms = read_atoms(run_dir / "ours" / "gaussian-atoms" / "run" / "atoms.xyz")
-        series, truth, volume, voxel = _reference(data)
+        series, truth, volume, voxel = load_reference(data)
         scores = evaluate_atoms(atoms, truth, reference_volume=volume, voxel_size_A=voxel, origin_A=series.origin_A)
         scores["seconds"] = seconds  # includes about 15 s of nerfstudio start-up
         (run_dir / "evaluation.json").write_text(json.dumps(scores, indent=2) + "\n")

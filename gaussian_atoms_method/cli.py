@@ -49,10 +49,10 @@ class Simulate:
     def main(self) -> None:
         import numpy as np
 
-        from dataparsers.tilt_series_format import write_tilt_series
+        from dataparsers.tilt_series_format import update_manifest, write_tilt_series
 
         from .particles import make_particle
-        from .simulate import parse_tilts, simulate_tilt_series, spherical_particle
+        from .simulate import parse_tilts, simulate_tilt_series, spherical_particle, true_potential_volume
 
         if self.particle == "sphere":
             particle = spherical_particle(self.element, self.radius_A)
@@ -94,57 +94,13 @@ class Simulate:
         )
         n, h, w = sim.projections.shape
         if self.save_volume:
-            volume = true_volume(sim.truth, self.potential, self.pixel_size_A, h, self.atom_sigma_A, self.blur_sigma_A)
+            volume = true_potential_volume(sim.truth, self.potential, self.pixel_size_A, h, self.atom_sigma_A, self.blur_sigma_A)
             np.save(self.output / "potential_volume.npy", volume)
-            add_to_manifest(self.output, volume="potential_volume.npy", volume_voxel_size_A=self.pixel_size_A)
+            update_manifest(self.output, volume="potential_volume.npy", volume_voxel_size_A=self.pixel_size_A)
         print(
             f"wrote {self.output}: {len(truth)} atoms, {n} tilts ({np.min(sim.angles_deg):g}..{np.max(sim.angles_deg):g} deg), "
             f"{h}x{w} px at {self.pixel_size_A} Å, {self.potential} potential, noise {self.noise_std:g}, peak-to-noise {sim.peak_to_noise:.1f}"
         )
-
-
-def true_volume(truth, potential: str, voxel_size_A: float, voxels: int, atom_sigma_A: float, blur_sigma_A: float):
-    """The true potential on a voxels^3 grid about the tilt centre, blurred like the data."""
-    import numpy as np
-
-    from .metrics import voxelise_gaussians
-    from .simulate import gaussian_potential_parameters, lobato_potential_volume
-
-    if potential == "lobato":
-        return lobato_potential_volume(truth, voxel_size_A, voxels, blur_sigma_A)
-    # Gaussian model: blurring a Gaussian atom gives a Gaussian of the combined width and mass.
-    sigmas, amplitudes = gaussian_potential_parameters(truth.species, atom_sigma_A)
-    wide = np.hypot(sigmas, blur_sigma_A)
-    amplitudes = amplitudes * (sigmas / wide) ** 3
-    return voxelise_gaussians(truth.positions, wide, amplitudes, voxel_size_A, (voxels,) * 3).astype(np.float32)
-
-
-def add_to_manifest(directory: Path, **entries) -> None:
-    """Add entries to a tilt_series.json, atomically."""
-    manifest = directory / "tilt_series.json"
-    data = json.loads(manifest.read_text())
-    data.update(entries)
-    tmp = manifest.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(data, indent=2) + "\n")
-    tmp.replace(manifest)
-
-
-def _reference(data: Path | None):
-    """(truth AtomSet, reference volume or None, voxel size, origin) from a tilt-series directory."""
-    import numpy as np
-
-    from dataparsers.tilt_series_format import MANIFEST, load_tilt_series
-
-    from .atoms import read_atoms
-
-    series = load_tilt_series(data)
-    if series.truth_path is None:
-        raise ValueError(f"{data / MANIFEST}: names no 'truth' file to score against")
-    manifest = json.loads((data / MANIFEST).read_text())
-    volume = None
-    if "volume" in manifest:
-        volume = np.load(data / manifest["volume"])
-    return series, read_atoms(series.truth_path), volume, manifest.get("volume_voxel_size_A")
 
 
 @dataclass
@@ -166,7 +122,7 @@ class Evaluate:
 
     def main(self) -> None:
         from .atoms import read_atoms
-        from .evaluation import evaluate_atoms, summary_line
+        from .evaluation import evaluate_atoms, load_reference, summary_line
 
         if (self.truth is None) == (self.data is None):
             raise ValueError("give exactly one of --truth and --data")
@@ -174,7 +130,7 @@ class Evaluate:
         volume = voxel = None
         origin = (0.0, 0.0, 0.0)
         if self.data is not None:
-            series, truth, volume, voxel = _reference(self.data)
+            series, truth, volume, voxel = load_reference(self.data)
             origin = series.origin_A
         else:
             truth = read_atoms(self.truth)
@@ -218,7 +174,7 @@ class Baseline:
 
         from .atoms import AtomSet, write_atoms
         from .baselines import reconstruct
-        from .evaluation import evaluate_atoms, summary_line
+        from .evaluation import evaluate_atoms, load_reference, summary_line
         from .tracing import trace_atoms
 
         series = load_tilt_series(self.data)
@@ -240,7 +196,7 @@ class Baseline:
         if series.truth_path is None:
             print(f"{self.method}: {len(atoms)} atoms traced in {seconds:.1f} s")
             return
-        _, truth, reference, voxel = _reference(self.data)
+        _, truth, reference, voxel = load_reference(self.data, series)
         pred_volume = None
         if reference is not None:
             pred_volume = vol.resample(reference.shape, voxel)

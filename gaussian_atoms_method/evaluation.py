@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 
 from .atoms import AtomSet
@@ -61,3 +64,23 @@ def summary_line(scores: dict, label: str = "") -> str:
     if "species_accuracy" in scores:
         parts.append(f"species {scores['species_accuracy']:.3f}")
     return (f"{label}: " if label else "") + ", ".join(parts)
+
+
+def load_reference(data: Path, series=None):
+    """What a tilt-series directory holds for scoring.
+
+    Returns ``(series, truth AtomSet, reference volume or None, its voxel size or None)``;
+    pass ``series`` when it is already loaded, so the projections are not read twice.
+    """
+    from dataparsers.tilt_series_format import MANIFEST, load_tilt_series
+
+    from .atoms import read_atoms
+
+    data = Path(data)
+    if series is None:
+        series = load_tilt_series(data)
+    if series.truth_path is None:
+        raise ValueError(f"{data / MANIFEST}: names no 'truth' file to score against")
+    manifest = json.loads((data / MANIFEST).read_text())
+    volume = np.load(data / manifest["volume"]) if "volume" in manifest else None
+    return series, read_atoms(series.truth_path), volume, manifest.get("volume_voxel_size_A")

@@ -238,7 +238,7 @@ def simulate_tilt_series(
     else:
         raise ValueError(f"potential must be 'lobato' or 'gaussian', got {potential!r}")
     blurred = blur_and_noise(clean, pixel_size_A, blur_sigma_A, 0.0, seed)
-    noisy = blur_and_noise(clean, pixel_size_A, blur_sigma_A, noise_std, seed)
+    noisy = blur_and_noise(blurred, pixel_size_A, 0.0, noise_std, seed)
     return SimulatedTiltSeries(
         projections=noisy.astype(np.float32),
         angles_deg=np.asarray(angles_deg, dtype=np.float64),
@@ -253,3 +253,16 @@ def simulate_gaussian_tilt_series(atoms: AtomSet, angles_deg: np.ndarray, **kwar
     """:func:`simulate_tilt_series` with the quick Gaussian potential (demo default noise 20)."""
     kwargs.setdefault("noise_std", 20.0)
     return simulate_tilt_series(atoms, angles_deg, potential="gaussian", **kwargs)
+
+
+def true_potential_volume(truth: AtomSet, potential: str, voxel_size_A: float, voxels: int, atom_sigma_A: float = 0.35, blur_sigma_A: float = 0.5) -> np.ndarray:
+    """The true potential on a ``voxels``^3 grid about the tilt centre, blurred like the data (float32)."""
+    from .metrics import voxelise_gaussians
+
+    if potential == "lobato":
+        return lobato_potential_volume(truth, voxel_size_A, voxels, blur_sigma_A)
+    # Gaussian model: blurring a Gaussian atom gives a Gaussian of the combined width and mass.
+    sigmas, amplitudes = gaussian_potential_parameters(truth.species, atom_sigma_A)
+    wide = np.hypot(sigmas, blur_sigma_A)
+    amplitudes = amplitudes * (sigmas / wide) ** 3
+    return voxelise_gaussians(truth.positions, wide, amplitudes, voxel_size_A, (voxels,) * 3).astype(np.float32)
