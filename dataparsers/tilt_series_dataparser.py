@@ -89,6 +89,7 @@ class TiltSeriesDataParser(DataParser):
                 "normalisation": norm,
                 "pixel_size_A": series.pixel_size_A,
                 "truth_path": series.truth_path,
+                "tilt_series": series,
             },
         )
 

@@ -29,9 +29,10 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch.nn import Parameter
 
 from .atoms import AtomSet, read_atoms, write_atoms
+from .initialise import backprojection_candidates
 from .merge import cluster_labels, merged_values
 from .metrics import score_atoms
-from .projector import gaussian_mass, project_gaussians
+from .projector import gaussian_mass, project_gaussians, project_gaussians_tiled
 from .remap import apply_remap, duplicate_remap, keep_remap, merge_remap
 from .units import DATA_RANGE, Normalisation
 
@@ -43,8 +44,12 @@ class GaussianAtomsModelConfig(SplatfactoModelConfig):
     """Gaussian atoms: isotropic 3D Gaussians fitted to a tilt series."""
 
     _target: Type = field(default_factory=lambda: GaussianAtomsModel)
+    init: Literal["backprojection", "random"] = "backprojection"
+    """Where the Gaussians start: at the strongest local maxima of a smoothed filtered
+    back-projection (see :mod:`gaussian_atoms_method.initialise`), or at random positions (the
+    paper).  Back-projection needs single-axis tilts; otherwise random is used."""
     num_random: int = 10000
-    """Number of Gaussians at random positions to start from."""
+    """Number of Gaussians to start from (at most this many back-projection candidates)."""
     init_sigma_A: float = 0.7
     """Initial width of every Gaussian, Å."""
     init_extent: float = 0.8
@@ -70,12 +75,16 @@ class GaussianAtomsModelConfig(SplatfactoModelConfig):
     (the mass-weighted median mass)."""
     cluster_merge: bool = True
     """Merge Gaussians closer than merge_threshold_A (the minimum-distance prior)."""
+    merge_every: int = 100
+    """Steps between cluster merges (after the warm-up)."""
     merge_threshold_A: float = 0.7
     """Gaussians closer than this (Å) merge into one."""
     merge_amplitude: Literal["mass", "mean"] = "mass"
     """Amplitude of a merged Gaussian: conserve the summed mass, or the mean amplitude (paper)."""
-    projector: Literal["torch"] = "torch"
-    """Projection backend: the pure-torch separable projector (CPU and CUDA)."""
+    projector: Literal["tiled", "dense"] = "tiled"
+    """Projection backend, both pure torch (CPU and CUDA): ``tiled`` evaluates each Gaussian only
+    on the detector tiles it reaches (about 4x faster on the Au particle's 280x280 views on CPU);
+    ``dense`` is the exact full-image product it is tested against."""
     seed: int = 0
     """Seed of the random initialisation and duplications."""
 
@@ -95,13 +104,11 @@ class GaussianAtomsModel(SplatfactoModel):
         truth = metadata.get("truth_path")
         self.truth_path: Path | None = Path(truth) if truth is not None else None
         self.generator = torch.Generator().manual_seed(cfg.seed)
-        n = cfg.num_random
-        means = (torch.rand(n, 3, generator=self.generator) - 0.5) * cfg.init_extent
+        means = self._initial_means(metadata.get("tilt_series"))
+        n = means.shape[0]
         sigma0 = cfg.init_sigma_A * self.normalisation.length_scale
         log_sigmas = torch.full((n, 1), math.log(sigma0))
-        # Start each Gaussian as a faint fraction of an atom-sized peak of the data range.
-        peak0 = 0.05 * DATA_RANGE
-        log_amps = torch.full((n, 1), math.log(peak0 / (sigma0 * math.sqrt(2 * math.pi))))
+        log_amps = torch.full((n, 1), math.log(self._initial_amplitude(metadata, n, sigma0)))
         self.gauss_params = torch.nn.ParameterDict(
             {"means": Parameter(means), "log_sigmas": Parameter(log_sigmas), "log_amplitudes": Parameter(log_amps)}
         )
@@ -112,6 +119,33 @@ class GaussianAtomsModel(SplatfactoModel):
         self._grad_count = 0
         self.crop_box = None
         self.background_color = torch.zeros(3)
+
+    def _initial_means(self, series) -> torch.Tensor:
+        """(n, 3) starting positions in normalised units."""
+        cfg = self.config
+        if cfg.init == "backprojection" and series is not None:
+            positions_A = backprojection_candidates(
+                series.projections, series.angles_deg, series.pixel_size_A, series.tilt_axis, series.centre_px, cfg.num_random
+            )
+            if len(positions_A):
+                CONSOLE.print(f"gaussian-atoms: {len(positions_A)} Gaussians start at back-projection maxima")
+                return torch.as_tensor(positions_A * self.normalisation.length_scale, dtype=torch.float32)
+        return (torch.rand(cfg.num_random, 3, generator=self.generator) - 0.5) * cfg.init_extent
+
+    @staticmethod
+    def _initial_amplitude(metadata: dict, n: int, sigma: float) -> float:
+        """3D peak (normalised units) that shares the measured mass equally among ``n`` Gaussians
+        of width ``sigma``: every Gaussian starts atom-like in total, and the fit sorts them."""
+        projections = metadata.get("projections")
+        pixel_size_A = metadata.get("pixel_size_A")
+        norm = metadata.get("normalisation")
+        if projections is None or pixel_size_A is None or norm is None:
+            # No data to size them by: a faint fraction of an atom-sized projected peak.
+            return 0.05 * DATA_RANGE / (sigma * math.sqrt(2 * math.pi))
+        pixel_area = (pixel_size_A * norm.length_scale) ** 2
+        mass = float(projections.double().sum(dim=(-2, -1)).mean().clamp_min(0.0)) * pixel_area
+        mass_each = max(mass, 1e-12) / max(n, 1)
+        return mass_each / (2 * math.pi * sigma**2) ** 1.5
 
     # ------------------------------------------------------------------ parameters
     @property
@@ -161,7 +195,8 @@ class GaussianAtomsModel(SplatfactoModel):
         row_coords = (torch.arange(h, device=dev, dtype=dt) + 0.5 - camera.cy[0, 0].to(dt)) / camera.fy[0, 0].to(dt)
         col_coords = (torch.arange(w, device=dev, dtype=dt) + 0.5 - camera.cx[0, 0].to(dt)) / camera.fx[0, 0].to(dt)
         axes = torch.stack([rows_dir, cols_dir])[None]
-        image = project_gaussians(self.means - t, self.sigmas, self.amplitudes, axes, row_coords, col_coords)[0]
+        project = project_gaussians_tiled if self.config.projector == "tiled" else project_gaussians
+        image = project(self.means - t, self.sigmas, self.amplitudes, axes, row_coords, col_coords)[0]
         projection = image[..., None]
         rgb = (projection / DATA_RANGE).clamp(0.0, 1.0).expand(h, w, 3)
         return {"projection": projection, "rgb": rgb}
@@ -194,6 +229,8 @@ class GaussianAtomsModel(SplatfactoModel):
             TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], self.step_cb, args=[attrs.optimizers]),
             TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.refine_after_step),
         ]
+        if self.config.cluster_merge:
+            cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.merge_after_step))
         trainer = attrs.trainer
         if trainer is not None:
             last = trainer._start_step + trainer.config.max_num_iterations - 1
@@ -225,15 +262,24 @@ class GaussianAtomsModel(SplatfactoModel):
         if step < cfg.stop_split_at:
             self.densify()
         self.prune()
-        if cfg.cluster_merge:
-            self.merge()
         self._grad_accum = torch.zeros(self.num_points, 3)
         self._grad_count = 0
+
+    @torch.no_grad()
+    def merge_after_step(self, step: int) -> None:
+        """The minimum-distance prior as its own callback: every ``merge_every`` steps after the
+        warm-up, merge the clusters of Gaussians closer than ``merge_threshold_A``."""
+        cfg = self.config
+        if step >= cfg.warmup_length and step % cfg.merge_every == 0:
+            self.merge()
 
     def _remap(self, src, dst, n_out, new_values=None) -> None:
         dev = self.means.device
         lists = getattr(self._optimizers_obj, "parameters", None)
         apply_remap(self.gauss_params, self.optimizers, src.to(dev), dst.to(dev), n_out, new_values, lists)
+        # The accumulated gradients follow their Gaussians (merged ones sum their pulls).
+        accum = torch.zeros(n_out, 3)
+        self._grad_accum = accum.index_add_(0, dst.cpu(), self._grad_accum[src.cpu()])
 
     def densify(self) -> int:
         """Duplicate Gaussians with a high mean positional gradient; each copy takes half the mass."""

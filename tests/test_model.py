@@ -57,7 +57,8 @@ def test_width_is_learned(tmp_path):
     cams = outputs.cameras
     true_sigma = 0.02
     with torch.no_grad():
-        log_a = model.gauss_params["log_amplitudes"].clone()
+        # Start with 1.4x the width and half the peak (1.37x the mass).
+        log_a = torch.full_like(model.gauss_params["log_amplitudes"], math.log(1500.0))
         model.gauss_params["log_sigmas"].fill_(math.log(true_sigma))
         model.gauss_params["log_amplitudes"].fill_(math.log(3000.0))
         target = [model.get_outputs(cams[v : v + 1])["projection"].detach() for v in range(4)]
