@@ -92,7 +92,8 @@ class AccuracyBenchmark:
             raise ValueError(f"unknown method {method!r}; expected fbp, sart, inr or ours")
         return json.loads(result.read_text())
 
-    def _run_ours(self, data: Path, run_dir: Path) -> None:
+    def _run_ours(self, data: Path, run_dir: Path, extra_args: tuple[str, ...] = ()) -> None:
+        """``ns-train gaussian-atoms`` on ``data`` (``extra_args``: trainer/model flags), scored."""
         from .atoms import read_atoms
         from .evaluation import evaluate_atoms, load_reference
 
@@ -101,7 +102,7 @@ class AccuracyBenchmark:
         cmd = [
             str(bin_dir / "ns-train"), "gaussian-atoms", "--machine.device-type", self.device, "--vis", "tensorboard",
             "--output-dir", str(run_dir), "--experiment-name", "ours", "--timestamp", "run",
-            "--max-num-iterations", str(self.iterations), "tilt-series", "--data", str(data),
+            "--max-num-iterations", str(self.iterations), *extra_args, "tilt-series", "--data", str(data),
         ]  # fmt: skip
         proc = subprocess.run(cmd, capture_output=True, text=True)
         seconds = time.perf_counter() - start

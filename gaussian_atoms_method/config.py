@@ -53,6 +53,8 @@ def gaussian_atoms_trainer_config(max_iterations: int = MAX_ITERATIONS) -> Train
             },
             "log_sigmas": {"optimizer": AdamOptimizerConfig(lr=5e-3, eps=1e-15), "scheduler": None},
             "log_amplitudes": {"optimizer": AdamOptimizerConfig(lr=2e-2, eps=1e-15), "scheduler": None},
+            # Only with --pipeline.model.isotropic False (the ablation).
+            "quats": {"optimizer": AdamOptimizerConfig(lr=1e-3, eps=1e-15), "scheduler": None},
         },
         viewer=ViewerConfig(num_rays_per_chunk=1 << 15),
         vis="viewer",

@@ -3,7 +3,9 @@
 One isotropic Gaussian per atom.  Parameters (normalised units, see :mod:`.units`):
 
 * ``means`` (N, 3): positions;
-* ``log_sigmas`` (N, 1): one width per Gaussian, ``sigma = exp(log_sigma)``;
+* ``log_sigmas`` (N, 1): one width per Gaussian, ``sigma = exp(log_sigma)`` (the isotropy
+  prior); with ``isotropic=False`` (the ablation) three widths (N, 3) and a rotation ``quats``
+  (N, 4), projected exactly by :func:`.projector.project_anisotropic_gaussians`;
 * ``log_amplitudes`` (N, 1): the 3D peak, ``q = exp(log_amplitude)``.  The exponential keeps it
   positive and makes Adam's steps relative, so faint and bright atoms learn at the same pace.
 
@@ -32,11 +34,16 @@ from .atoms import AtomSet, read_atoms, write_atoms
 from .initialise import backprojection_candidates
 from .merge import cluster_labels, merged_values
 from .metrics import score_atoms
-from .projector import gaussian_mass, project_gaussians, project_gaussians_tiled
+from .projector import (
+    covariances_from_scales_quats,
+    gaussian_mass,
+    project_anisotropic_gaussians,
+    project_gaussians,
+    project_gaussians_tiled,
+)
 from .remap import apply_remap, duplicate_remap, keep_remap, merge_remap
 from .units import DATA_RANGE, Normalisation
 
-PARAM_NAMES = ("means", "log_sigmas", "log_amplitudes")
 
 
 @dataclass
@@ -73,6 +80,8 @@ class GaussianAtomsModelConfig(SplatfactoModelConfig):
     prune_mass_fraction: float = 0.25
     """Prune Gaussians whose integrated mass is below this fraction of a typical atom's
     (the mass-weighted median mass)."""
+    isotropic: bool = True
+    """One width per Gaussian (the isotropy prior).  False: three widths and a rotation each."""
     cluster_merge: bool = True
     """Merge Gaussians closer than merge_threshold_A (the minimum-distance prior)."""
     merge_every: int = 100
@@ -107,11 +116,14 @@ class GaussianAtomsModel(SplatfactoModel):
         means = self._initial_means(metadata.get("tilt_series"))
         n = means.shape[0]
         sigma0 = cfg.init_sigma_A * self.normalisation.length_scale
-        log_sigmas = torch.full((n, 1), math.log(sigma0))
+        log_sigmas = torch.full((n, 1 if cfg.isotropic else 3), math.log(sigma0))
         log_amps = torch.full((n, 1), math.log(self._initial_amplitude(metadata, n, sigma0)))
-        self.gauss_params = torch.nn.ParameterDict(
-            {"means": Parameter(means), "log_sigmas": Parameter(log_sigmas), "log_amplitudes": Parameter(log_amps)}
-        )
+        params = {"means": Parameter(means), "log_sigmas": Parameter(log_sigmas), "log_amplitudes": Parameter(log_amps)}
+        if not cfg.isotropic:
+            # Near-identity rotations; exactly identity would start every ellipsoid axis-aligned.
+            quats = torch.tensor([1.0, 0.0, 0.0, 0.0]) + 0.1 * torch.randn(n, 4, generator=self.generator)
+            params["quats"] = Parameter(quats)
+        self.gauss_params = torch.nn.ParameterDict(params)
         self.step = 0
         self.optimizers: Dict[str, torch.optim.Optimizer] = {}
         self._optimizers_obj = None
@@ -154,8 +166,12 @@ class GaussianAtomsModel(SplatfactoModel):
 
     @property
     def sigmas(self) -> torch.Tensor:
-        floor = self.config.min_sigma_A * self.normalisation.length_scale
-        return torch.exp(self.gauss_params["log_sigmas"]).squeeze(-1).clamp_min(floor)
+        """(N,) widths; without isotropy the geometric mean of the three (same volume, same mass)."""
+        return torch.exp(self._log_scales().mean(dim=-1))
+
+    def _log_scales(self) -> torch.Tensor:
+        floor = math.log(self.config.min_sigma_A * self.normalisation.length_scale)
+        return self.gauss_params["log_sigmas"].clamp_min(floor)
 
     @property
     def amplitudes(self) -> torch.Tensor:
@@ -174,7 +190,7 @@ class GaussianAtomsModel(SplatfactoModel):
         return torch.nn.Module.load_state_dict(self, state_dict, **kwargs)
 
     def get_gaussian_param_groups(self) -> Dict[str, List[Parameter]]:
-        return {name: [self.gauss_params[name]] for name in PARAM_NAMES}
+        return {name: [param] for name, param in self.gauss_params.items()}
 
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
         return self.get_gaussian_param_groups()
@@ -195,8 +211,12 @@ class GaussianAtomsModel(SplatfactoModel):
         row_coords = (torch.arange(h, device=dev, dtype=dt) + 0.5 - camera.cy[0, 0].to(dt)) / camera.fy[0, 0].to(dt)
         col_coords = (torch.arange(w, device=dev, dtype=dt) + 0.5 - camera.cx[0, 0].to(dt)) / camera.fx[0, 0].to(dt)
         axes = torch.stack([rows_dir, cols_dir])[None]
-        project = project_gaussians_tiled if self.config.projector == "tiled" else project_gaussians
-        image = project(self.means - t, self.sigmas, self.amplitudes, axes, row_coords, col_coords)[0]
+        if self.config.isotropic:
+            project = project_gaussians_tiled if self.config.projector == "tiled" else project_gaussians
+            image = project(self.means - t, self.sigmas, self.amplitudes, axes, row_coords, col_coords)[0]
+        else:
+            cov = covariances_from_scales_quats(self._log_scales(), self.gauss_params["quats"])
+            image = project_anisotropic_gaussians(self.means - t, cov, self.amplitudes, axes, row_coords, col_coords)[0]
         projection = image[..., None]
         rgb = (projection / DATA_RANGE).clamp(0.0, 1.0).expand(h, w, 3)
         return {"projection": projection, "rgb": rgb}
@@ -335,7 +355,10 @@ class GaussianAtomsModel(SplatfactoModel):
             return 0
         labels_t = torch.as_tensor(labels, device=self.means.device)
         means, sigmas, amps = merged_values(self.means, self.sigmas, self.amplitudes, labels_t, n_clusters, self.config.merge_amplitude)
-        new_values = {"means": means, "log_sigmas": torch.log(sigmas)[:, None], "log_amplitudes": torch.log(amps)[:, None]}
+        new_values = {"means": means, "log_amplitudes": torch.log(amps)[:, None]}
+        if self.config.isotropic:
+            new_values["log_sigmas"] = torch.log(sigmas)[:, None]
+        # Without isotropy the three log-widths (and rotations) take their cluster's mean.
         self._remap(*merge_remap(labels_t.cpu(), n_clusters), new_values)
         return n - n_clusters
 
