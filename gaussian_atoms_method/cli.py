@@ -217,6 +217,9 @@ class BenchmarkAccuracy:
     methods: tuple[str, ...] = ("fbp", "sart", "ours")
     quick: bool = False
     """Small particles (scale 0.35, hundreds of atoms) and fewer iterations: minutes on a CPU."""
+    scale: Optional[float] = None
+    """Particle size relative to the paper's (atom count ~ scale^3); overrides --quick's 0.35.
+    Use a separate --output per scale: the data directories are named by particle, tilts and noise."""
     iterations: int = 3000
     """Training iterations of our method."""
     device: Literal["cpu", "cuda"] = "cpu"
@@ -224,13 +227,16 @@ class BenchmarkAccuracy:
     def main(self) -> None:
         from .benchmark import AccuracyBenchmark
 
+        scale = self.scale if self.scale is not None else (0.35 if self.quick else 1.0)
+        if not scale > 0:
+            raise ValueError(f"--scale must be positive, got {self.scale}")
         bench = AccuracyBenchmark(
             output=self.output,
             particles=self.particles,
             tilts=self.tilts,
             noise=self.noise,
             methods=self.methods,
-            scale=0.35 if self.quick else 1.0,
+            scale=scale,
             iterations=min(self.iterations, 1500) if self.quick else self.iterations,
             device=self.device,
         )
