@@ -176,3 +176,26 @@ def read_angles(path: str | Path, variable: str | None = None) -> np.ndarray:
     if not (angles.ndim == 1 or (angles.ndim == 2 and angles.shape[1] == 3)):
         raise TiltSeriesError(f"{path}: expected N tilt angles or N x 3 Euler angles, got shape {angles.shape}")
     return angles
+
+
+def single_axis_from_euler(euler_deg: np.ndarray, where: str | Path = "tilt angles", convention: str = "resire") -> np.ndarray:
+    """Tilt angles (degrees, about our ``y`` axis) from ``(N, 3)`` Euler angles ``(phi, theta, psi)``.
+
+    In the ZYZ convention shared by GENFIRE and RESIRE a single-axis tilt series has
+    ``phi = psi = 0`` and ``theta`` the tilt; with the array axes read as (rows, cols) = (x, y)
+    the peer's projections follow our convention exactly at ``tilt_axis="y"`` and the rotation
+    centre ``n // 2`` (tests/test_convention.py).  General three-angle orientations are not
+    supported yet: they are refused with a clear message rather than silently misread.
+    """
+    euler = np.asarray(euler_deg, dtype=np.float64)
+    if convention not in ("resire", "genfire"):
+        raise TiltSeriesError(f"{where}: unknown Euler convention {convention!r}; expected 'resire' or 'genfire' (ZYZ)")
+    if euler.ndim != 2 or euler.shape[1] != 3:
+        raise TiltSeriesError(f"{where}: expected N x 3 Euler angles (phi, theta, psi) in degrees, got shape {euler.shape}")
+    off_axis = np.abs(euler[:, [0, 2]]).max() if len(euler) else 0.0
+    if off_axis > 1e-6:
+        raise TiltSeriesError(
+            f"{where}: Euler angles with phi or psi != 0 (up to {off_axis:g} deg) describe a multi-axis "
+            "series; only single-axis tilts (phi = psi = 0) are supported"
+        )
+    return euler[:, 1].copy()

@@ -94,21 +94,9 @@ class AccuracyBenchmark:
 
     def _run_ours(self, data: Path, run_dir: Path, extra_args: tuple[str, ...] = ()) -> None:
         """``ns-train gaussian-atoms`` on ``data`` (``extra_args``: trainer/model flags), scored."""
-        from .atoms import read_atoms
         from .evaluation import evaluate_atoms, load_reference
 
-        bin_dir = Path(sys.executable).parent
-        start = time.perf_counter()
-        cmd = [
-            str(bin_dir / "ns-train"), "gaussian-atoms", "--machine.device-type", self.device, "--vis", "tensorboard",
-            "--output-dir", str(run_dir), "--experiment-name", "ours", "--timestamp", "run",
-            "--max-num-iterations", str(self.iterations), *extra_args, "tilt-series", "--data", str(data),
-        ]  # fmt: skip
-        proc = subprocess.run(cmd, capture_output=True, text=True)
-        seconds = time.perf_counter() - start
-        if proc.returncode != 0:
-            raise RuntimeError(f"ns-train failed on {data}:\n{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}")
-        atoms = read_atoms(run_dir / "ours" / "gaussian-atoms" / "run" / "atoms.xyz")
+        atoms, seconds = train_ours(data, run_dir, self.iterations, self.device, extra_args)
         series, truth, volume, voxel = load_reference(data)
         scores = evaluate_atoms(atoms, truth, reference_volume=volume, voxel_size_A=voxel, origin_A=series.origin_A)
         scores["seconds"] = seconds  # includes about 15 s of nerfstudio start-up
@@ -144,6 +132,28 @@ class AccuracyBenchmark:
             writer.writerows(rows)
         (self.output / "results.md").write_text(markdown_table(rows))
         plot(rows, self.output)
+
+
+def train_ours(data: Path, run_dir: Path, iterations: int = 3000, device: str = "cpu", extra_args: tuple[str, ...] = ()):
+    """Run ``ns-train gaussian-atoms`` on a tilt-series directory in a subprocess.
+
+    Returns the predicted :class:`~.atoms.AtomSet` (read from the run's ``atoms.xyz``) and the
+    wall time in seconds, nerfstudio's start-up included.
+    """
+    from .atoms import read_atoms
+
+    bin_dir = Path(sys.executable).parent
+    start = time.perf_counter()
+    cmd = [
+        str(bin_dir / "ns-train"), "gaussian-atoms", "--machine.device-type", device, "--vis", "tensorboard",
+        "--output-dir", str(run_dir), "--experiment-name", "ours", "--timestamp", "run",
+        "--max-num-iterations", str(iterations), *extra_args, "tilt-series", "--data", str(data),
+    ]  # fmt: skip
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    seconds = time.perf_counter() - start
+    if proc.returncode != 0:
+        raise RuntimeError(f"ns-train failed on {data}:\n{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}")
+    return read_atoms(run_dir / "ours" / "gaussian-atoms" / "run" / "atoms.xyz"), seconds
 
 
 def markdown_table(rows: list[dict]) -> str:

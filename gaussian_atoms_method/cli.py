@@ -244,11 +244,30 @@ class BenchmarkAccuracy:
         print(f"wrote {self.output / 'results.md'}, results.csv and accuracy_vs_noise.png")
 
 
+@dataclass
+class BenchmarkPeer:
+    """The aSi-208 peer benchmark: reconstruct the peer's three doses, score as the peer did."""
+
+    data: Path = Path("../shared/data/asi208")
+    """The peer's folder (Si_Angle.mat, the three dose .mat files, aSi_208atoms_GT.txt)."""
+    output: Path = Path("outputs/benchmark-peer")
+    doses: tuple[Literal["1.6e5", "1.6e4", "8e3"], ...] = ("1.6e5", "1.6e4", "8e3")
+    iterations: int = 3000
+    device: Literal["cpu", "cuda"] = "cpu"
+
+    def main(self) -> None:
+        from .peer_benchmark import PeerBenchmark
+
+        PeerBenchmark(self.data, self.output, self.doses, self.iterations, self.device).run()
+        print(f"wrote {self.output / 'results.md'} and results.csv")
+
+
 Commands = Union[
     Annotated[Simulate, tyro.conf.subcommand("simulate")],
     Annotated[Evaluate, tyro.conf.subcommand("evaluate")],
     Annotated[Baseline, tyro.conf.subcommand("baseline")],
     Annotated[BenchmarkAccuracy, tyro.conf.subcommand("benchmark-accuracy")],
+    Annotated[BenchmarkPeer, tyro.conf.subcommand("benchmark-peer")],
 ]
 
 
@@ -261,7 +280,7 @@ def entrypoint(argv: list[str] | None = None) -> None:
     command = tyro.cli(Commands, args=argv)
     try:
         command.main()
-    except (TiltSeriesError, AtomFileError, ValueError) as exc:
+    except (TiltSeriesError, AtomFileError, ValueError, FileNotFoundError) as exc:
         print(f"gaussian-atoms: error: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
 
