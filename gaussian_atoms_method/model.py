@@ -64,6 +64,11 @@ class GaussianAtomsModelConfig(SplatfactoModelConfig):
     Gaussians start in."""
     min_sigma_A: float = 0.15
     """Floor on the width, Å: no atom (after probe blur) is narrower; keeps the fit finite."""
+    max_atom_sigma_A: float = 1.5
+    """Gaussians wider than this (Å) are not atoms (an atom blurred by a 0.5 Å probe is about
+    0.6 Å wide): they are pruned and left out of the typical atom mass."""
+    max_sigma_A: float = 5.0
+    """Ceiling on the width, Å: far wider than any atom; keeps a runaway Gaussian finite."""
     warmup_length: int = 200
     """Steps before the first densify / prune / merge."""
     refine_every: int = 100
@@ -117,7 +122,11 @@ class GaussianAtomsModel(SplatfactoModel):
         n = means.shape[0]
         sigma0 = cfg.init_sigma_A * self.normalisation.length_scale
         log_sigmas = torch.full((n, 1 if cfg.isotropic else 3), math.log(sigma0))
-        log_amps = torch.full((n, 1), math.log(self._initial_amplitude(metadata, n, sigma0)))
+        amp0 = self._initial_amplitude(metadata, n, sigma0)
+        log_amps = torch.full((n, 1), math.log(amp0))
+        # Every Gaussian's mass stays below 1000x the whole measured mass (see clamp_parameters).
+        floor_sigma = cfg.min_sigma_A * self.normalisation.length_scale
+        self._max_log_amplitude = math.log(1000.0 * max(n, 1) * amp0 * (sigma0 / floor_sigma) ** 3)
         params = {"means": Parameter(means), "log_sigmas": Parameter(log_sigmas), "log_amplitudes": Parameter(log_amps)}
         if not cfg.isotropic:
             # Near-identity rotations; exactly identity would start every ellipsoid axis-aligned.
@@ -228,7 +237,25 @@ class GaussianAtomsModel(SplatfactoModel):
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
         gt = batch["image"].to(outputs["projection"])
-        return {"main_loss": torch.abs(outputs["projection"] - gt).mean()}
+        loss = torch.abs(outputs["projection"] - gt).mean()
+        # Parameters are checked too: the tiled projector skips a Gaussian whose centre is NaN
+        # (its window is empty), which would otherwise go unnoticed.
+        if not torch.isfinite(loss) or not all(bool(torch.isfinite(p).all()) for p in self.gauss_params.values()):
+            raise FloatingPointError(self._divergence_message(loss, gt))
+        return {"main_loss": loss}
+
+    def _divergence_message(self, loss: torch.Tensor, gt: torch.Tensor) -> str:
+        """Name the step and the cause of a non-finite loss (training stops instead of going on
+        with NaN)."""
+        bad = {name: int((~torch.isfinite(p)).any(dim=-1).sum()) for name, p in self.gauss_params.items()}
+        bad = {k: v for k, v in bad.items() if v}
+        if bad:
+            cause = ", ".join(f"{v} Gaussian(s) with non-finite {k}" for k, v in bad.items())
+        elif not torch.isfinite(gt).all():
+            cause = "the measured projection holds NaN/Inf"
+        else:
+            cause = "the projection overflowed (amplitudes too large for float32?)"
+        return f"gaussian-atoms: step {self.step}: the loss is {float(loss)} and training cannot go on; cause: {cause}. Lower the learning rates or check the input."
 
     def get_image_metrics_and_images(self, outputs, batch) -> Tuple[Dict[str, float], Dict[str, torch.Tensor]]:
         gt = batch["image"].to(outputs["projection"])
@@ -268,7 +295,9 @@ class GaussianAtomsModel(SplatfactoModel):
 
     @torch.no_grad()
     def refine_after_step(self, step: int) -> None:
-        """Accumulate positional gradients; every refine_every steps densify, prune, merge."""
+        """Keep the parameters in their physical range; accumulate positional gradients; every
+        refine_every steps densify and prune."""
+        self.clamp_parameters()
         grad = self.gauss_params["means"].grad
         if grad is not None:
             # Sum the gradient vectors, not their norms: with an L1 loss the per-step gradient of a
@@ -292,6 +321,16 @@ class GaussianAtomsModel(SplatfactoModel):
         cfg = self.config
         if step >= cfg.warmup_length and step % cfg.merge_every == 0:
             self.merge()
+
+    @torch.no_grad()
+    def clamp_parameters(self) -> None:
+        """Widths within [min_sigma_A, max_sigma_A]; amplitudes below a mass of 1000 times all
+        the measured signal; positions within twice the volume.  Far outside what an atom can
+        be, these bounds only stop a runaway Gaussian from overflowing float32."""
+        ls = self.normalisation.length_scale
+        self.gauss_params["log_sigmas"].data.clamp_(math.log(self.config.min_sigma_A * ls), math.log(self.config.max_sigma_A * ls))
+        self.gauss_params["log_amplitudes"].data.clamp_(max=self._max_log_amplitude)
+        self.gauss_params["means"].data.clamp_(-1.0, 1.0)
 
     def _remap(self, src, dst, n_out, new_values=None) -> None:
         dev = self.means.device
@@ -330,16 +369,22 @@ class GaussianAtomsModel(SplatfactoModel):
 
         Half of the total mass sits in Gaussians at least this heavy.  Faint leftovers may
         outnumber the atoms but carry little of the mass, so unlike a plain median this stays
-        on the atoms.
+        on the atoms.  Only atom-like widths (<= max_atom_sigma_A) count: on the aSi-208 data
+        a Gaussian of 10 Å width grew to absorb the projections' constant background, held
+        most of the mass, and the prune then removed every atom.
         """
-        mass, _ = torch.sort(gaussian_mass(self.sigmas, self.amplitudes).flatten())
+        atom_like = self.sigmas <= self.config.max_atom_sigma_A * self.normalisation.length_scale
+        if not bool(atom_like.any()):
+            return 0.0
+        mass, _ = torch.sort(gaussian_mass(self.sigmas, self.amplitudes)[atom_like].flatten())
         cumulative = torch.cumsum(mass, 0)
         return float(mass[torch.searchsorted(cumulative, 0.5 * cumulative[-1]).clamp_max(len(mass) - 1)])
 
     def prune(self) -> int:
-        """Remove Gaussians too faint to be an atom, or outside the reconstruction volume."""
+        """Remove Gaussians too faint or too wide to be an atom, or outside the reconstruction volume."""
         mass = gaussian_mass(self.sigmas, self.amplitudes)
         keep = mass >= self.config.prune_mass_fraction * self.typical_atom_mass()
+        keep &= self.sigmas <= self.config.max_atom_sigma_A * self.normalisation.length_scale
         keep &= (self.means.abs() <= 0.5).all(dim=-1)
         removed = int((~keep).sum())
         if removed:

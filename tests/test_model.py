@@ -108,3 +108,66 @@ def test_anisotropic_switch_renders_the_same_spheres(tmp_path):
     assert torch.all(aniso.gauss_params["log_sigmas"].grad.abs().sum(0) > 0)
     assert float(aniso.gauss_params["quats"].grad.abs().sum()) > 0
     assert set(aniso.get_param_groups()) == {"means", "log_sigmas", "log_amplitudes", "quats"}
+
+
+def _train(model, cams, targets, steps, refine=True):
+    """A minimal training loop with the model's own callbacks (what the trainer does)."""
+    from nerfstudio.engine.optimizers import Optimizers
+
+    from gaussian_atoms_method.config import gaussian_atoms_trainer_config
+
+    optimizers = Optimizers(gaussian_atoms_trainer_config().optimizers, model.get_param_groups())
+    for step in range(steps):
+        model.step_cb(optimizers, step)
+        optimizers.zero_grad_all()
+        v = step % len(targets)
+        loss = model.get_loss_dict(model.get_outputs(cams[v : v + 1]), {"image": targets[v]})["main_loss"]
+        loss.backward()
+        optimizers.optimizer_step_all()
+        if refine:
+            model.refine_after_step(step)
+            model.merge_after_step(step)
+    return model
+
+
+def test_same_seed_same_atoms(tmp_path):
+    """Deterministic on CPU: the same data and seed give bit-identical Gaussians, through
+    densification, pruning and merging; another seed does not."""
+    _series(tmp_path)
+    cfg = dict(num_random=300, init="random", warmup_length=4, refine_every=4, merge_every=4, stop_split_at=12, densify_grad_thresh=0.01)
+    runs = []
+    for seed in (3, 3, 4):
+        model, outputs = _model(tmp_path, seed=seed, **cfg)
+        targets = [outputs.metadata["projections"][v][..., None] for v in range(4)]
+        runs.append(_train(model, outputs.cameras, targets, steps=16).atoms())
+    assert len(runs[0]) == len(runs[1])
+    np.testing.assert_array_equal(runs[0].positions, runs[1].positions)
+    np.testing.assert_array_equal(runs[0].amplitudes, runs[1].amplitudes)
+    assert len(runs[0]) != len(runs[2]) or not np.array_equal(runs[0].positions, runs[2].positions)
+
+
+def test_divergence_stops_with_the_step_and_cause(tmp_path):
+    """A non-finite parameter stops training with a message naming the step and the cause."""
+    _series(tmp_path)
+    model, outputs = _model(tmp_path, num_random=5, init="random")
+    model.step = 17
+    with torch.no_grad():
+        model.gauss_params["means"][2, 0] = float("nan")
+    target = outputs.metadata["projections"][0][..., None]
+    with pytest.raises(FloatingPointError, match=r"step 17: the loss is .* cause: 1 Gaussian\(s\) with non-finite means"):
+        model.get_loss_dict(model.get_outputs(outputs.cameras[0:1]), {"image": target})
+
+
+def test_parameters_are_kept_in_range(tmp_path):
+    """Widths stay within [min_sigma_A, max_sigma_A] and amplitudes finite whatever the optimiser does."""
+    _series(tmp_path)
+    model, _ = _model(tmp_path, num_random=3, init="random", min_sigma_A=0.2, max_sigma_A=4.0)
+    with torch.no_grad():
+        model.gauss_params["log_sigmas"][0] = 50.0
+        model.gauss_params["log_sigmas"][1] = -50.0
+        model.gauss_params["log_amplitudes"][2] = 1e4
+        model.gauss_params["means"][2] = 1e6
+    model.refine_after_step(1)
+    sig_A = model.atoms().sigmas
+    assert sig_A[0] == pytest.approx(4.0, rel=1e-5) and sig_A[1] == pytest.approx(0.2, rel=1e-5)
+    assert torch.isfinite(model.amplitudes).all() and float(model.means.abs().max()) <= 1.0
