@@ -79,10 +79,11 @@ class TiltSeriesDataParser(DataParser):
         series = load_tilt_series(c.data, c.projections, c.angles_deg, c.pixel_size_A, c.tilt_axis, c.truth)
         norm = Normalisation.for_tilt_series(series.projections, series.pixel_size_A, series.origin_A)
         projections = torch.from_numpy(series.projections * np.float32(norm.data_scale))
+        cameras = cameras_from_tilt_series(series, norm)
         # Tomography has no held-out views: every split serves all projections.
         return DataparserOutputs(
             image_filenames=[Path(f"{series.source}#{i}") for i in range(series.n_views)],
-            cameras=cameras_from_tilt_series(series, norm),
+            cameras=cameras,
             scene_box=SceneBox(aabb=torch.tensor([[-0.5, -0.5, -0.5], [0.5, 0.5, 0.5]])),
             metadata={
                 "projections": projections,
@@ -90,6 +91,8 @@ class TiltSeriesDataParser(DataParser):
                 "pixel_size_A": series.pixel_size_A,
                 "truth_path": series.truth_path,
                 "tilt_series": series,
+                # Lets the model recognise a training view (per-view background and alignment).
+                "view_c2w": cameras.camera_to_worlds.clone(),
             },
         )
 

@@ -55,6 +55,14 @@ def gaussian_atoms_trainer_config(max_iterations: int = MAX_ITERATIONS) -> Train
             "log_amplitudes": {"optimizer": AdamOptimizerConfig(lr=2e-2, eps=1e-15), "scheduler": None},
             # Only with --pipeline.model.isotropic False (the ablation).
             "quats": {"optimizer": AdamOptimizerConfig(lr=1e-3, eps=1e-15), "scheduler": None},
+            # Only with --pipeline.model.background constant|plane (projection units, normalised).
+            "background": {"optimizer": AdamOptimizerConfig(lr=1e-1, eps=1e-15), "scheduler": None},
+            # Only with --pipeline.model.refine-alignment True (normalised lengths; 1e-4 ~ 0.007 Å
+            # per step on the Au particle's 70 Å detector).
+            "view_shifts": {
+                "optimizer": AdamOptimizerConfig(lr=1e-4, eps=1e-15),
+                "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-5, max_steps=max_iterations),
+            },
         },
         viewer=ViewerConfig(num_rays_per_chunk=1 << 15),
         vis="viewer",

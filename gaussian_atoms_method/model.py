@@ -99,6 +99,13 @@ class GaussianAtomsModelConfig(SplatfactoModelConfig):
     """Projection backend, both pure torch (CPU and CUDA): ``tiled`` evaluates each Gaussian only
     on the detector tiles it reaches (about 4x faster on the Au particle's 280x280 views on CPU);
     ``dense`` is the exact full-image product it is tested against."""
+    background: Literal["none", "constant", "plane"] = "none"
+    """A smooth per-projection background learned with the atoms (carbon support, contamination,
+    a detector offset): a constant, or a plane over the detector, per view."""
+    refine_alignment: bool = False
+    """Learn a per-projection in-plane shift with the atoms (residual misalignment of the tilt
+    series).  Shifts are taken relative to their mean over the views (an overall shift of
+    every view is the same as moving the particle)."""
     seed: int = 0
     """Seed of the random initialisation and duplications."""
 
@@ -133,6 +140,16 @@ class GaussianAtomsModel(SplatfactoModel):
             quats = torch.tensor([1.0, 0.0, 0.0, 0.0]) + 0.1 * torch.randn(n, 4, generator=self.generator)
             params["quats"] = Parameter(quats)
         self.gauss_params = torch.nn.ParameterDict(params)
+        # Per-view parameters (not per-Gaussian: untouched by densify / prune / merge).
+        view_c2w = metadata.get("view_c2w")
+        self.register_buffer("view_c2w", view_c2w.float() if view_c2w is not None else torch.zeros(0, 3, 4), persistent=False)
+        n_views = self.view_c2w.shape[0]
+        view_params = {}
+        if cfg.background != "none":
+            view_params["background"] = Parameter(torch.zeros(n_views, 1 if cfg.background == "constant" else 3))
+        if cfg.refine_alignment:
+            view_params["view_shifts"] = Parameter(torch.zeros(n_views, 2))
+        self.view_params = torch.nn.ParameterDict(view_params)
         self.step = 0
         self.optimizers: Dict[str, torch.optim.Optimizer] = {}
         self._optimizers_obj = None
@@ -202,7 +219,16 @@ class GaussianAtomsModel(SplatfactoModel):
         return {name: [param] for name, param in self.gauss_params.items()}
 
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
-        return self.get_gaussian_param_groups()
+        return self.get_gaussian_param_groups() | {name: [param] for name, param in self.view_params.items()}
+
+    def view_index(self, camera: Cameras) -> int | None:
+        """Index of the training view this camera is (by its pose), or None for another view."""
+        if self.view_c2w.shape[0] == 0:
+            return None
+        c2w = camera.camera_to_worlds[0].to(self.view_c2w)
+        dist = (self.view_c2w - c2w).abs().flatten(1).max(dim=1).values
+        best = int(torch.argmin(dist))
+        return best if float(dist[best]) < 1e-5 else None
 
     # ------------------------------------------------------------------ rendering
     def get_outputs(self, camera: Cameras) -> Dict[str, torch.Tensor]:
@@ -220,12 +246,23 @@ class GaussianAtomsModel(SplatfactoModel):
         row_coords = (torch.arange(h, device=dev, dtype=dt) + 0.5 - camera.cy[0, 0].to(dt)) / camera.fy[0, 0].to(dt)
         col_coords = (torch.arange(w, device=dev, dtype=dt) + 0.5 - camera.cx[0, 0].to(dt)) / camera.fx[0, 0].to(dt)
         axes = torch.stack([rows_dir, cols_dir])[None]
+        view = self.view_index(camera) if len(self.view_params) else None
+        if view is not None and "view_shifts" in self.view_params:
+            # The view's content sits shifted by s: evaluate the ideal projection at x - s.
+            shifts = self.view_params["view_shifts"]
+            s = (shifts[view] - shifts.mean(dim=0)).to(dt)
+            row_coords, col_coords = row_coords - s[0], col_coords - s[1]
         if self.config.isotropic:
             project = project_gaussians_tiled if self.config.projector == "tiled" else project_gaussians
             image = project(self.means - t, self.sigmas, self.amplitudes, axes, row_coords, col_coords)[0]
         else:
             cov = covariances_from_scales_quats(self._log_scales(), self.gauss_params["quats"])
             image = project_anisotropic_gaussians(self.means - t, cov, self.amplitudes, axes, row_coords, col_coords)[0]
+        if view is not None and "background" in self.view_params:
+            c = self.view_params["background"][view].to(dt)
+            image = image + c[0]
+            if len(c) == 3:  # plane over the detector, in normalised coordinates
+                image = image + c[1] * row_coords[:, None] + c[2] * col_coords[None, :]
         projection = image[..., None]
         rgb = (projection / DATA_RANGE).clamp(0.0, 1.0).expand(h, w, 3)
         return {"projection": projection, "rgb": rgb}

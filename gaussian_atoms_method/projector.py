@@ -86,7 +86,7 @@ def _uniform_spacing(coords: torch.Tensor, what: str) -> float:
         raise ValueError(f"{what} must be a non-empty 1D tensor, got shape {tuple(coords.shape)}")
     if len(coords) == 1:
         return 1.0
-    step = coords[1:] - coords[:-1]
+    step = (coords[1:] - coords[:-1]).detach()
     d = float(step[0])
     if d == 0 or not torch.allclose(step, step[0].expand_as(step), rtol=1e-4, atol=0.0):
         raise ValueError(f"{what} must be evenly spaced pixel centres for the tiled projector")
