@@ -176,7 +176,7 @@ def test_parameters_are_kept_in_range(tmp_path):
 def test_view_shifts_and_background_are_recovered(tmp_path):
     """Per-view in-plane shifts (up to 1 Å) and a constant background per view are learned
     back from simulated data when the atoms are known: shifts to 0.05 Å,
-    backgrounds to 2% of their size (L1, 600 steps: a fifth of a 0.25 Å pixel is sub-pixel
+    backgrounds to 1% of the projection peak (they are 5-20% of it) (L1, 600 steps: a fifth of a 0.25 Å pixel is sub-pixel
     registration, what alignment needs for pm atoms)."""
     from gaussian_atoms_method.simulate import simulate_gaussian_tilt_series, spherical_particle
     from scipy import ndimage
@@ -210,4 +210,4 @@ def test_view_shifts_and_background_are_recovered(tmp_path):
     learned_A = (s - s.mean(0)) / norm.length_scale
     assert np.abs(learned_A - shifts_A).max() < 0.05
     learned_bg = model.view_params["background"].detach().double().numpy()[:, 0] / norm.data_scale
-    np.testing.assert_allclose(learned_bg, backgrounds, rtol=0.02)
+    np.testing.assert_allclose(learned_bg, backgrounds, rtol=0, atol=0.01 * sim.projections.max())
