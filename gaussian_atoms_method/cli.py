@@ -262,12 +262,35 @@ class BenchmarkPeer:
         print(f"wrote {self.output / 'results.md'} and results.csv")
 
 
+@dataclass
+class Stress:
+    """Numerical stress cases: float32 vs float64 projections and gradients (sigma 0.05-20 px,
+    amplitudes 1e-3-1e3), atoms on and beyond the edge, coincident atoms, all-zero projections,
+    SNR below 1, 100k atoms.  Exit status 1 if any case fails."""
+
+    quick: bool = False
+    """Leave out the slow cases (training at SNR < 1, 100k atoms)."""
+
+    def main(self) -> None:
+        from .stress import run_stress
+
+        cases = run_stress(include_slow=not self.quick)
+        print("| case | result | detail |\n| --- | --- | --- |")
+        for name, ok, detail in cases:
+            print(f"| {name} | {'pass' if ok else 'FAIL'} | {detail} |")
+        failed = [name for name, ok, _ in cases if not ok]
+        if failed:
+            print(f"gaussian-atoms stress: {len(failed)} case(s) failed: {', '.join(failed)}", file=sys.stderr)
+            raise SystemExit(1)
+
+
 Commands = Union[
     Annotated[Simulate, tyro.conf.subcommand("simulate")],
     Annotated[Evaluate, tyro.conf.subcommand("evaluate")],
     Annotated[Baseline, tyro.conf.subcommand("baseline")],
     Annotated[BenchmarkAccuracy, tyro.conf.subcommand("benchmark-accuracy")],
     Annotated[BenchmarkPeer, tyro.conf.subcommand("benchmark-peer")],
+    Annotated[Stress, tyro.conf.subcommand("stress")],
 ]
 
 

@@ -12,6 +12,7 @@ from gaussian_atoms_method.atoms import AtomSet
 from gaussian_atoms_method.geometry import detector_axes_from_tilts, pixel_centres
 from gaussian_atoms_method.model import GaussianAtomsModelConfig
 from gaussian_atoms_method.projector import project_gaussians
+from gaussian_atoms_method.training import train_views
 
 
 def _series(tmp_path, tilt_axis="y", centre_px=None, shape=(30, 36)):
@@ -110,26 +111,6 @@ def test_anisotropic_switch_renders_the_same_spheres(tmp_path):
     assert set(aniso.get_param_groups()) == {"means", "log_sigmas", "log_amplitudes", "quats"}
 
 
-def _train(model, cams, targets, steps, refine=True):
-    """A minimal training loop with the model's own callbacks (what the trainer does)."""
-    from nerfstudio.engine.optimizers import Optimizers
-
-    from gaussian_atoms_method.config import gaussian_atoms_trainer_config
-
-    optimizers = Optimizers(gaussian_atoms_trainer_config().optimizers, model.get_param_groups())
-    for step in range(steps):
-        model.step_cb(optimizers, step)
-        optimizers.zero_grad_all()
-        v = step % len(targets)
-        loss = model.get_loss_dict(model.get_outputs(cams[v : v + 1]), {"image": targets[v]})["main_loss"]
-        loss.backward()
-        optimizers.optimizer_step_all()
-        if refine:
-            model.refine_after_step(step)
-            model.merge_after_step(step)
-    return model
-
-
 def test_same_seed_same_atoms(tmp_path):
     """Deterministic on CPU: the same data and seed give bit-identical Gaussians, through
     densification, pruning and merging; another seed does not."""
@@ -139,7 +120,8 @@ def test_same_seed_same_atoms(tmp_path):
     for seed in (3, 3, 4):
         model, outputs = _model(tmp_path, seed=seed, **cfg)
         targets = [outputs.metadata["projections"][v][..., None] for v in range(4)]
-        runs.append(_train(model, outputs.cameras, targets, steps=16).atoms())
+        train_views(model, outputs.cameras, targets, steps=16)
+        runs.append(model.atoms())
     assert len(runs[0]) == len(runs[1])
     np.testing.assert_array_equal(runs[0].positions, runs[1].positions)
     np.testing.assert_array_equal(runs[0].amplitudes, runs[1].amplitudes)
