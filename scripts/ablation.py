@@ -25,10 +25,12 @@ from gaussian_atoms_method.metrics import match_atoms
 from gaussian_atoms_method.projector import gaussian_mass
 
 CONFIGS = {
-    "full priors": (True, True),
-    "no isotropy": (False, True),
-    "no merge": (True, False),
-    "neither": (False, False),
+    "full priors": (True, True, "mass"),
+    "no isotropy": (False, True, "mass"),
+    "no merge": (True, False, "mass"),
+    "neither": (False, False, "mass"),
+    # The paper's merged amplitude (mean of the members') instead of the summed mass.
+    "full priors, mean-amplitude merge": (True, True, "mean"),
 }
 
 
@@ -57,11 +59,11 @@ def main() -> None:
     data = bench.dataset("fept", args.tilts, args.noise)
     truth = read_atoms(data / "atoms_true.xyz")
     rows = []
-    for name, (isotropic, merge) in CONFIGS.items():
-        run_dir = args.output / "runs" / f"{args.init}-{name.replace(' ', '-')}"
+    for name, (isotropic, merge, amplitude) in CONFIGS.items():
+        run_dir = args.output / "runs" / f"{args.init}-{name.replace(' ', '-').replace(',', '')}"
         if not (run_dir / "evaluation.json").is_file():
             run_dir.mkdir(parents=True, exist_ok=True)
-            bench._run_ours(data, run_dir, ("--pipeline.model.isotropic", str(isotropic), "--pipeline.model.cluster-merge", str(merge), "--pipeline.model.init", args.init))
+            bench._run_ours(data, run_dir, ("--pipeline.model.isotropic", str(isotropic), "--pipeline.model.cluster-merge", str(merge), "--pipeline.model.init", args.init, "--pipeline.model.merge-amplitude", amplitude))
         scores = json.loads((run_dir / "evaluation.json").read_text())
         pred = read_atoms(run_dir / "ours" / "gaussian-atoms" / "run" / "atoms.xyz")
         mass = gaussian_mass(pred.sigmas, pred.amplitudes)
