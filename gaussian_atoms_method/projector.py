@@ -216,6 +216,13 @@ def project_gaussians_tiled(
     )
     if len(used) == 0:
         return means.new_zeros(n_views, h, w)
+    return _separable_tiles(u, v, sigmas, amplitudes, used, index, rows_px, cols_px, grid, tile, row_coords, col_coords, dr, dc, h, w)
+
+
+def _separable_tiles(u, v, sigmas, amplitudes, used, index, rows_px, cols_px, grid, tile, row_coords, col_coords, dr, dc, h, w):
+    """Evaluate isotropic Gaussians on the listed tiles (see :func:`tile_pairs`) and assemble."""
+    n_views, n = u.shape
+    dt = u.dtype
     per_view = lambda x: x[None, :].expand(n_views, n)
     U, Vc = _pad_gather(u, index), _pad_gather(v, index)  # (T, K)
     P = _pad_gather(per_view(projected_peak(sigmas, amplitudes)), index)
@@ -226,6 +233,87 @@ def project_gaussians_tiled(
     g_rows = torch.exp(-((row_c[:, :, None] - U[:, None, :]) ** 2) * S[:, None, :]) * P[:, None, :]  # (T, tile, K)
     g_cols = torch.exp(-((col_c[:, None, :] - Vc[:, :, None]) ** 2) * S[:, :, None])  # (T, K, tile)
     return _assemble(torch.bmm(g_rows, g_cols), used, n_views, grid, tile, h, w)
+
+
+def gsplat_tile_pairs(u_px, v_px, radius_px, height: int, width: int, tile: int):
+    """:func:`tile_pairs` computed by stock gsplat (CUDA only): its orthographic projection of
+    means and covariances gives each Gaussian's pixel position and radius, its tile
+    intersection the sorted (tile, Gaussian) list.  gsplat's radius is 3 standard deviations of
+    the covariance it is given, so it is given the covariance of ``radius_px / 3`` to cut the
+    windows where ours are cut.  Same returns as :func:`tile_pairs`."""
+    from gsplat.cuda._wrapper import fully_fused_projection, isect_offset_encode, isect_tiles
+
+    n_views, n = u_px.shape
+    dev = u_px.device
+    tiles_r, tiles_c = -(-height // tile), -(-width // tile)
+    # One camera per view looking at points already in pixel units: world (col, row, depth=1).
+    pts = torch.stack([v_px + 0.5, u_px + 0.5, torch.ones_like(u_px)], dim=-1)  # (V, N, 3), gsplat pixel centres at +0.5
+    radius = radius_px.expand(n_views, n)
+    means2d_all, radii_all = [], []
+    for view in range(n_views):  # gsplat projects all Gaussians into all cameras: one view at a time
+        covars = torch.zeros(n, 6, device=dev, dtype=torch.float32)
+        var = (radius[view] / 3.0) ** 2
+        covars[:, 0], covars[:, 3], covars[:, 5] = var, var, var
+        radii, means2d, _, _, _ = fully_fused_projection(
+            pts[view].float().contiguous(), covars, None, None,
+            torch.eye(4, device=dev)[None], torch.eye(3, device=dev)[None], width, height,
+            eps2d=0.0, near_plane=1e-3, camera_model="ortho",
+        )  # fmt: skip
+        radii = radii if radii.dim() == 2 else radii.amax(-1)  # newer gsplat returns (C, N, 2)
+        means2d_all.append(means2d)
+        radii_all.append(radii)
+    means2d, radii = torch.cat(means2d_all), torch.cat(radii_all)
+    depths = torch.ones_like(means2d[..., 0])
+    _, isect_ids, flatten_ids = isect_tiles(means2d, radii, depths, tile, tiles_c, tiles_r, sort=True)
+    offsets = isect_offset_encode(isect_ids, n_views, tiles_c, tiles_r).flatten().long()
+    total = len(flatten_ids)
+    counts = torch.diff(torch.cat([offsets, torch.tensor([total], device=dev)]))
+    used = torch.nonzero(counts > 0).flatten()
+    empty = torch.zeros(0, dtype=torch.long, device=dev)
+    if len(used) == 0:
+        return empty, empty.reshape(0, 1), empty.reshape(0, tile), empty.reshape(0, tile), (tiles_r, tiles_c)
+    per_tile = counts[used]
+    starts = offsets[used]
+    slot = torch.arange(total, device=dev) - torch.repeat_interleave(starts, per_tile)
+    row_of_pair = torch.repeat_interleave(torch.arange(len(used), device=dev), per_tile)
+    index = torch.full((len(used), int(per_tile.max())), n_views * n, device=dev, dtype=torch.long)
+    index[row_of_pair, slot] = flatten_ids.long()
+    offsets_t = torch.arange(tile, device=dev)
+    rows_px = ((used // tiles_c) % tiles_r)[:, None] * tile + offsets_t
+    cols_px = (used % tiles_c)[:, None] * tile + offsets_t
+    return used, index, rows_px, cols_px, (tiles_r, tiles_c)
+
+
+def project_gaussians_gsplat(
+    means: torch.Tensor,
+    sigmas: torch.Tensor,
+    amplitudes: torch.Tensor,
+    detector_axes: torch.Tensor,
+    row_coords: torch.Tensor,
+    col_coords: torch.Tensor,
+    tile: int = 16,
+    cutoff_sigmas: float = 5.5,
+) -> torch.Tensor:
+    """:func:`project_gaussians_tiled` with the tile lists made by stock gsplat 1.4.0 on CUDA
+    (:func:`gsplat_tile_pairs`).  gsplat's rasteriser alpha-composites, the wrong physics for a
+    line integral, so the accumulation stays additive and in torch; gradients flow through the
+    torch part (gsplat only decides which tiles each Gaussian reaches)."""
+    n = _check_shapes(means, {"sigmas": (sigmas, ()), "amplitudes": (amplitudes, ())})
+    if means.device.type != "cuda":
+        raise ValueError("the gsplat projector needs a CUDA device; use projector 'tiled' on CPU")
+    dr, dc = _uniform_spacing(row_coords, "row_coords"), _uniform_spacing(col_coords, "col_coords")
+    n_views, h, w = detector_axes.shape[0], len(row_coords), len(col_coords)
+    dt = means.dtype
+    if n == 0:
+        return means.new_zeros(n_views, h, w)
+    u = torch.einsum("vc,nc->vn", detector_axes[:, 0, :].to(dt), means)
+    v = torch.einsum("vc,nc->vn", detector_axes[:, 1, :].to(dt), means)
+    with torch.no_grad():
+        radius = (cutoff_sigmas * sigmas.detach() / min(abs(dr), abs(dc)))[None, :]
+        used, index, rows_px, cols_px, grid = gsplat_tile_pairs((u - row_coords[0]) / dr, (v - col_coords[0]) / dc, radius, h, w, tile)
+    if len(used) == 0:
+        return means.new_zeros(n_views, h, w)
+    return _separable_tiles(u, v, sigmas, amplitudes, used, index, rows_px, cols_px, grid, tile, row_coords, col_coords, dr, dc, h, w)
 
 
 def covariances_from_scales_quats(log_scales: torch.Tensor, quats: torch.Tensor) -> torch.Tensor:
