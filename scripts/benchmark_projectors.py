@@ -1,4 +1,4 @@
-"""Projectors on a GPU: agreement with the float64 reference and speed (forward + backward).
+"""Projectors on a GPU (or the CPU): agreement with the float64 reference and speed (forward + backward).
 
 Scenes like the Au particle's: Gaussians of 0.6 Å in a 56 Å cube seen on 280 x 280 pixels of
 0.25 Å.  For each projector (dense matmul, tiled, gsplat-tiled) and each scene size: the largest
@@ -6,7 +6,8 @@ difference from the float64 dense projection (fraction of the image peak) and th
 forward + backward pass for 1 view and for all 47 views in one batch (median of 20 after 3
 warm-ups, CUDA-synchronised), and the peak GPU memory.  TF32 stays off (it costs 0.6%).
 
-    python3 scripts/gpu_projectors.py [--sizes 1000 7000 17000 50000 100000] [--output DIR]
+    python3 scripts/benchmark_projectors.py [--sizes 1000 7000 17000 50000 100000] [--output DIR]
+    python3 scripts/benchmark_projectors.py --device cpu --sizes 1000 7000 17000 --views 1 --repeats 5
 """
 
 from __future__ import annotations
@@ -40,16 +41,22 @@ def scene(n: int, device: str, dtype=torch.float32, pixels: int = 280, pixel_A: 
     return means, sigmas, amps, axes, coords
 
 
-def time_pass(project, params, axes, coords, views: int) -> float:
+def _sync(device: str) -> None:
+    if device == "cuda":
+        torch.cuda.synchronize()
+
+
+def time_pass(project, params, axes, coords, views: int, repeats: int = 20) -> float:
     times = []
-    for i in range(23):
+    device = params[0].device.type
+    for i in range(repeats + 3):
         for p in params:
             p.grad = None
-        torch.cuda.synchronize()
+        _sync(device)
         start = time.perf_counter()
         img = project(*params, axes[:views], coords, coords)
         img.abs().mean().backward()
-        torch.cuda.synchronize()
+        _sync(device)
         if i >= 3:
             times.append(time.perf_counter() - start)
     return statistics.median(times)
@@ -60,10 +67,15 @@ def main() -> None:
     parser.add_argument("--sizes", type=int, nargs="+", default=[1000, 7000, 17000, 50000, 100000])
     parser.add_argument("--projectors", nargs="+", default=list(PROJECTORS))
     parser.add_argument("--output", type=Path, default=Path("outputs/gpu-projectors"))
+    parser.add_argument("--device", default="cuda", choices=["cuda", "cpu"])
+    parser.add_argument("--views", type=int, nargs="+", default=[1, 47])
+    parser.add_argument("--repeats", type=int, default=20)
     args = parser.parse_args()
     torch.backends.cuda.matmul.allow_tf32 = False
     torch.backends.cudnn.allow_tf32 = False
-    dev = "cuda"
+    dev = args.device
+    if dev == "cpu":
+        args.projectors = [p for p in args.projectors if p != "gsplat"]
     rows = []
     for n in args.sizes:
         ref_scene = scene(n, dev, torch.float64)
@@ -78,22 +90,26 @@ def main() -> None:
                     img = project(*params, axes[:4], coords, coords).double()
                 err = float((img - reference).abs().max() / reference.abs().max())
             row = {"gaussians": n, "projector": name, "max_error_of_peak": err}
-            for views in (1, 47):
+            for views in args.views:
                 if name == "dense" and n * views > 2_000_000:
                     row[f"ms_{views}_views"] = float("nan")  # (47, 280, N) matrices: too much memory
                     continue
-                torch.cuda.reset_peak_memory_stats()
-                row[f"ms_{views}_views"] = 1e3 * time_pass(project, params, axes, coords, views)
-                row[f"peak_GB_{views}_views"] = torch.cuda.max_memory_allocated() / 1e9
+                if dev == "cuda":
+                    torch.cuda.reset_peak_memory_stats()
+                row[f"ms_{views}_views"] = 1e3 * time_pass(project, params, axes, coords, views, args.repeats)
+                if dev == "cuda":
+                    row[f"peak_GB_{views}_views"] = torch.cuda.max_memory_allocated() / 1e9
             rows.append(row)
             print(json.dumps(row), flush=True)
     args.output.mkdir(parents=True, exist_ok=True)
-    (args.output / "gpu_projectors.json").write_text(json.dumps({"device": torch.cuda.get_device_name(), "rows": rows}, indent=2))
-    lines = [f"{torch.cuda.get_device_name()}, torch {torch.__version__}, float32, TF32 off, forward + backward, median of 20", "",
-             "| Gaussians | projector | max error / peak | 1 view (ms) | 47 views (ms) | peak memory, 47 views (GB) |", "| --- | --- | --- | --- | --- | --- |"]
+    name = torch.cuda.get_device_name() if dev == "cuda" else f"CPU, {torch.get_num_threads()} threads"
+    (args.output / f"projectors_{dev}.json").write_text(json.dumps({"device": name, "rows": rows}, indent=2))
+    head = "| Gaussians | projector | max error / peak | " + " | ".join(f"{v} view(s) (ms)" for v in args.views) + " |"
+    lines = [f"{name}, torch {torch.__version__}, float32, TF32 off, forward + backward, median of {args.repeats}", "", head, "|" + " --- |" * (3 + len(args.views))]
     for r in rows:
-        lines.append(f"| {r['gaussians']:,} | {r['projector']} | {r['max_error_of_peak']:.1e} | {r['ms_1_views']:.2f} | {r['ms_47_views']:.2f} | {r.get('peak_GB_47_views', float('nan')):.2f} |")
-    (args.output / "gpu_projectors.md").write_text("\n".join(lines) + "\n")
+        times = " | ".join(f"{r.get(f'ms_{v}_views', float('nan')):.2f}" for v in args.views)
+        lines.append(f"| {r['gaussians']:,} | {r['projector']} | {r['max_error_of_peak']:.1e} | {times} |")
+    (args.output / f"projectors_{dev}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
 
