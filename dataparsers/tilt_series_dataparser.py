@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal, Optional, Type
+from typing import Literal, Optional, Tuple, Type
 
 import numpy as np
 import torch
@@ -57,15 +57,28 @@ class TiltSeriesDataParserConfig(DataParserConfig):
     data: Path = Path("data/tilt_series")
     """Directory holding tilt_series.json (or the manifest file itself)."""
     projections: Optional[Path] = None
-    """(N, H, W) projection array (.npy/.npz), relative to data; overrides the manifest."""
+    """Projection stack (.npy/.npz, .tif, .mrc/.st/.ali, .emd/.h5, .mat), relative to data;
+    overrides the manifest."""
     angles_deg: Optional[Path] = None
-    """N tilt angles in degrees (text or .npy), relative to data; overrides the manifest."""
+    """Tilt angles in degrees (text, IMOD .tlt/.rawtlt, .npy, .mat; N values or N x 3 Euler),
+    relative to data; overrides the manifest."""
     pixel_size_A: Optional[float] = None
     """Pixel size in Å; overrides the manifest."""
     tilt_axis: Optional[Literal["x", "y"]] = None
     """World axis of the tilt (README: convention); overrides the manifest."""
     truth: Optional[Path] = None
     """True atoms (any ASE-readable file) for scoring; overrides the manifest."""
+    dataset: Optional[str] = None
+    """Variable (.mat, .npz) or dataset / EMD group (.h5, .emd) holding the projections, when the
+    file holds several."""
+    tilt_index_axis: Optional[int] = None
+    """Array axis of the tilt index (default: the format's convention; last for MATLAB)."""
+    angles_variable: Optional[str] = None
+    """Variable of a .mat angle file that holds the angles, when it holds several."""
+    euler_convention: Optional[Literal["resire", "genfire"]] = None
+    """Convention of N x 3 Euler angles (ZYZ; single-axis tilts only). Default resire."""
+    centre_px: Optional[Tuple[float, float]] = None
+    """Detector (row, col) of the tilt axis; default the middle. RESIRE/GENFIRE data: (n//2, n//2)."""
 
 
 @dataclass
@@ -76,7 +89,10 @@ class TiltSeriesDataParser(DataParser):
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
         c = self.config
-        series = load_tilt_series(c.data, c.projections, c.angles_deg, c.pixel_size_A, c.tilt_axis, c.truth)
+        series = load_tilt_series(
+            c.data, c.projections, c.angles_deg, c.pixel_size_A, c.tilt_axis, c.truth,
+            c.dataset, c.tilt_index_axis, c.angles_variable, c.euler_convention, c.centre_px,
+        )  # fmt: skip
         norm = Normalisation.for_tilt_series(series.projections, series.pixel_size_A, series.origin_A)
         projections = torch.from_numpy(series.projections * np.float32(norm.data_scale))
         cameras = cameras_from_tilt_series(series, norm)

@@ -112,27 +112,6 @@ class TiltSeries:
         return self.projections.shape[1], self.projections.shape[2]
 
 
-def _load_array(path: Path, what: str) -> np.ndarray:
-    if not path.is_file():
-        raise TiltSeriesError(f"{path}: {what} file not found")
-    suffix = path.suffix.lower()
-    try:
-        if suffix == ".npy":
-            return np.load(path, allow_pickle=False)
-        if suffix == ".npz":
-            with np.load(path, allow_pickle=False) as z:
-                if len(z.files) != 1:
-                    raise TiltSeriesError(f"{path}: expected one array in the .npz, found {z.files}")
-                return z[z.files[0]]
-        if suffix in (".txt", ".tlt", ".rawtlt", ".csv", ".dat"):
-            return np.loadtxt(path, delimiter="," if suffix == ".csv" else None, ndmin=1)
-    except TiltSeriesError:
-        raise
-    except Exception as exc:
-        raise TiltSeriesError(f"{path}: could not read {what} ({type(exc).__name__}: {exc})") from exc
-    raise TiltSeriesError(f"{path}: unsupported {what} file type {suffix!r}; expected .npy, .npz or text")
-
-
 def load_tilt_series(
     data: str | Path,
     projections: str | Path | None = None,
@@ -140,12 +119,25 @@ def load_tilt_series(
     pixel_size_A: float | None = None,
     tilt_axis: str | None = None,
     truth: str | Path | None = None,
+    dataset: str | None = None,
+    tilt_index_axis: int | None = None,
+    angles_variable: str | None = None,
+    euler_convention: str | None = None,
+    centre_px=None,
 ) -> TiltSeries:
     """Read a tilt series from a directory with ``tilt_series.json`` and/or explicit options.
 
     Options given here override the manifest's entries; relative paths are taken relative to
-    ``data`` (a directory, or the manifest file itself).
+    ``data`` (a directory, or the manifest file itself).  Projections and angles go through
+    :mod:`dataparsers.readers` (numpy, TIFF, MRC, EMD/HDF5, MATLAB; text, IMOD .tlt, .mat
+    angles).  ``dataset`` names the variable or dataset inside a file that holds several,
+    ``tilt_index_axis`` the array axis of the tilt index, ``angles_variable`` the variable of
+    a .mat angle file; N x 3 Euler angles are read in ``euler_convention`` (ZYZ, "resire" or
+    "genfire"; single-axis only).  Without a pixel size, an MRC header's is used; without an
+    angle file, an EMD file's angle dimension.
     """
+    from .readers import read_angles, read_stack, single_axis_from_euler
+
     data = Path(data)
     if data.is_file() and data.suffix == ".json":
         manifest_path, root = data, data.parent
@@ -161,7 +153,10 @@ def load_tilt_series(
             raise TiltSeriesError(f"{manifest_path}: not valid JSON ({exc})") from exc
         if not isinstance(manifest, dict):
             raise TiltSeriesError(f"{manifest_path}: expected a JSON object")
-        known = {"projections", "angles_deg", "pixel_size_A", "tilt_axis", "truth", "origin_A", "centre_px", "volume", "volume_voxel_size_A", "description", "simulation"}
+        known = {
+            "projections", "angles_deg", "pixel_size_A", "tilt_axis", "truth", "origin_A", "centre_px", "volume",
+            "volume_voxel_size_A", "description", "simulation", "dataset", "tilt_index_axis", "angles_variable", "euler_convention",
+        }  # fmt: skip
         unknown = set(manifest) - known
         if unknown:
             raise TiltSeriesError(f"{manifest_path}: unknown key(s) {sorted(unknown)}; expected some of {sorted(known)}")
@@ -173,20 +168,30 @@ def load_tilt_series(
         return option if option is not None else manifest.get(key)
 
     proj_name, angles_name, px = pick(projections, "projections"), pick(angles_deg, "angles_deg"), pick(pixel_size_A, "pixel_size_A")
-    for value, key in ((proj_name, "projections"), (angles_name, "angles_deg"), (px, "pixel_size_A")):
-        if value is None:
-            raise TiltSeriesError(f"{where}: '{key}' is missing (give it in {MANIFEST} or as an option)")
+    if proj_name is None:
+        raise TiltSeriesError(f"{where}: 'projections' is missing (give it in {MANIFEST} or as an option)")
+    proj_path = root / proj_name
+    stack = read_stack(proj_path, pick(dataset, "dataset"), pick(tilt_index_axis, "tilt_index_axis"))
+    proj = stack.projections
+    if px is None:
+        px = stack.pixel_size_A
+    if px is None:
+        raise TiltSeriesError(f"{where}: 'pixel_size_A' is missing (give it in {MANIFEST} or as an option; {proj_path.name} has none in its header)")
     try:
         px = float(px)
     except (TypeError, ValueError):
         raise TiltSeriesError(f"{where}: pixel_size_A must be a number of Å, got {px!r}") from None
-    proj_path, angles_path = root / proj_name, root / angles_name
-    proj = _load_array(proj_path, "projections")
-    if proj.ndim != 3:
-        raise TiltSeriesError(f"{proj_path}: projections must be a 3D array (N, H, W), got shape {proj.shape}")
-    angles = _load_array(angles_path, "tilt angles")
+    if angles_name is not None:
+        angles_path = root / angles_name
+        angles = read_angles(angles_path, pick(angles_variable, "angles_variable"))
+        if angles.ndim == 2 and angles.shape[1] == 3:
+            angles = single_axis_from_euler(angles, angles_path, pick(euler_convention, "euler_convention") or "resire")
+    elif stack.angles_deg is not None:
+        angles_path, angles = proj_path, stack.angles_deg
+    else:
+        raise TiltSeriesError(f"{where}: 'angles_deg' is missing (give it in {MANIFEST} or as an option)")
     if angles.ndim != 1:
-        raise TiltSeriesError(f"{angles_path}: expected N single-axis tilt angles (one column), got shape {angles.shape}")
+        raise TiltSeriesError(f"{angles_path}: expected N single-axis tilt angles (one column) or N x 3 Euler angles, got shape {angles.shape}")
     if len(angles) != proj.shape[0]:
         raise TiltSeriesError(f"{angles_path}: {len(angles)} tilt angles for {proj.shape[0]} projections in {proj_path.name}")
     truth_name = pick(truth, "truth")
@@ -202,7 +207,7 @@ def load_tilt_series(
             origin_A=manifest.get("origin_A", [0.0, 0.0, 0.0]),
             truth_path=truth_path,
             source=proj_path,
-            centre_px=manifest.get("centre_px"),
+            centre_px=centre_px if centre_px is not None else manifest.get("centre_px"),
         )
     except TiltSeriesError as exc:
         # Name the file the problem most likely lives in.

@@ -95,3 +95,39 @@ def test_errors_name_file(tmp_path):
     (tmp_path / "a.txt").write_text("1 2\n3 4\n")
     with pytest.raises(TiltSeriesError, match="a.txt: expected N tilt angles or N x 3 Euler"):
         read_angles(tmp_path / "a.txt")
+
+
+def test_dataparser_reads_matlab_stack_and_euler_angles(tmp_path):
+    """A RESIRE-style .mat stack (H, W, N) and N x 3 Euler angles load through the manifest
+    and the dataparser options: tilt index moved first, theta taken, centre as given."""
+    import scipy.io
+
+    from dataparsers.tilt_series_format import TiltSeriesError, load_tilt_series
+
+    stack = np.random.default_rng(0).uniform(size=(12, 10, 4))
+    euler = np.array([[0, -30, 0], [0, -10, 0], [0, 10, 0], [0, 30, 0]], dtype=float)
+    scipy.io.savemat(tmp_path / "projs.mat", {"Projs": stack})
+    scipy.io.savemat(tmp_path / "angles.mat", {"angles": euler})
+    series = load_tilt_series(tmp_path, "projs.mat", "angles.mat", 0.5, centre_px=(6, 5))
+    np.testing.assert_allclose(series.projections, np.moveaxis(stack, 2, 0).astype(np.float32))
+    np.testing.assert_array_equal(series.angles_deg, [-30, -10, 10, 30])
+    np.testing.assert_array_equal(series.centre_px, [6, 5])
+    scipy.io.savemat(tmp_path / "bad.mat", {"angles": euler + [[0, 0, 5]] * 4})
+    with pytest.raises(TiltSeriesError, match=r"bad\.mat: Euler angles with phi or psi != 0"):
+        load_tilt_series(tmp_path, "projs.mat", "bad.mat", 0.5)
+
+
+def test_mrc_pixel_size_and_imod_tlt(tmp_path):
+    """An MRC stack with its pixel size in the header and an IMOD .tlt file need no pixel size option."""
+    import mrcfile
+
+    from dataparsers.tilt_series_format import load_tilt_series
+
+    data = np.random.default_rng(1).uniform(size=(3, 8, 9)).astype(np.float32)
+    with mrcfile.new(tmp_path / "tilt.mrc") as mrc:
+        mrc.set_data(data)
+        mrc.voxel_size = 0.42
+    (tmp_path / "tilt.tlt").write_text("-20.0\n0.0\n20.0\n")
+    series = load_tilt_series(tmp_path, "tilt.mrc", "tilt.tlt")
+    assert series.pixel_size_A == pytest.approx(0.42, rel=1e-6)
+    np.testing.assert_allclose(series.projections, data)
