@@ -263,6 +263,29 @@ class BenchmarkPeer:
 
 
 @dataclass
+class Benchmark:
+    """Time to accuracy: our method scored during training against FBP and SART + tracing on
+    the same data; CSV, Markdown and a PNG of error against wall time."""
+
+    data: Path
+    """A tilt-series directory with a truth file (e.g. from simulate or benchmark-accuracy)."""
+    output: Path = Path("outputs/benchmark")
+    iterations: int = 3000
+    snapshot_every: int = 100
+    """Score our atoms every this many training steps."""
+    device: Literal["cpu", "cuda"] = "cpu"
+    baselines: tuple[Literal["fbp", "sart"], ...] = ("fbp", "sart")
+
+    def main(self) -> None:
+        from .time_to_accuracy import TimeToAccuracy
+
+        if self.snapshot_every <= 0:
+            raise ValueError(f"--snapshot-every must be positive, got {self.snapshot_every}")
+        TimeToAccuracy(self.data, self.output, self.iterations, self.snapshot_every, self.device, self.baselines).run()
+        print(f"wrote {self.output / 'time_to_accuracy.md'}, .csv and .png")
+
+
+@dataclass
 class Stress:
     """Numerical stress cases: float32 vs float64 projections and gradients (sigma 0.05-20 px,
     amplitudes 1e-3-1e3), atoms on and beyond the edge, coincident atoms, all-zero projections,
@@ -288,6 +311,7 @@ Commands = Union[
     Annotated[Simulate, tyro.conf.subcommand("simulate")],
     Annotated[Evaluate, tyro.conf.subcommand("evaluate")],
     Annotated[Baseline, tyro.conf.subcommand("baseline")],
+    Annotated[Benchmark, tyro.conf.subcommand("benchmark")],
     Annotated[BenchmarkAccuracy, tyro.conf.subcommand("benchmark-accuracy")],
     Annotated[BenchmarkPeer, tyro.conf.subcommand("benchmark-peer")],
     Annotated[Stress, tyro.conf.subcommand("stress")],

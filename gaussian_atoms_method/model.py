@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Literal, Tuple, Type
@@ -113,6 +114,9 @@ class GaussianAtomsModelConfig(SplatfactoModelConfig):
     """Learn a per-projection in-plane shift with the atoms (residual misalignment of the tilt
     series).  Shifts are taken relative to their mean over the views (an overall shift of
     every view is the same as moving the particle)."""
+    snapshot_every: int = 0
+    """Every this many steps (0: never) write the current atoms to ``snapshots/`` in the run
+    directory with the wall-clock time, for time-to-accuracy benchmarks."""
     seed: int = 0
     """Seed of the random initialisation and duplications."""
 
@@ -339,6 +343,14 @@ class GaussianAtomsModel(SplatfactoModel):
                     [TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self._write_results_at, args=[last, trainer.base_dir]
                 )
             )
+            if self.config.snapshot_every > 0:
+                cbs.append(
+                    TrainingCallback(
+                        [TrainingCallbackLocation.AFTER_TRAIN_ITERATION],
+                        self._snapshot_after_step,
+                        args=[Path(trainer.base_dir) / "snapshots"],
+                    )
+                )
         return cbs
 
     def step_cb(self, optimizers, step: int) -> None:
@@ -477,6 +489,21 @@ class GaussianAtomsModel(SplatfactoModel):
         if self.config.cluster_merge:
             self.merge()
         self.prune()
+
+    def _snapshot_after_step(self, directory: Path, step: int) -> None:
+        # Steps count from 0: after step k*N-1, k*N steps are done (the last is the final result).
+        if (step + 1) % self.config.snapshot_every == 0:
+            self.write_snapshot(directory, step + 1)
+
+    @torch.no_grad()
+    def write_snapshot(self, directory: Path, step: int) -> None:
+        """The atoms as they stand after ``step`` steps (after that step's prune and merge) and
+        the wall-clock time: ``step-NNNNNN.csv`` and a line ``step,unix_time,gaussians,peak_gpu_bytes`` in ``times.csv``."""
+        directory.mkdir(parents=True, exist_ok=True)
+        write_atoms(self.atoms(), directory / f"step-{step:06d}.csv")
+        gpu = torch.cuda.max_memory_allocated() if self.means.is_cuda else 0
+        with open(directory / "times.csv", "a") as f:
+            f.write(f"{step},{time.time():.3f},{self.num_points},{gpu}\n")
 
     def _write_results_at(self, last_step: int, run_dir: Path, step: int) -> None:
         if step == last_step:

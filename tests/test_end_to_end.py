@@ -65,3 +65,25 @@ def test_ns_train_bad_data_names_file(tmp_path):
     train = _run(BIN / "ns-train", "gaussian-atoms", "--machine.device-type", "cpu", "--vis", "tensorboard", "--output-dir", tmp_path / "out", "tilt-series", "--data", tmp_path)
     assert train.returncode != 0
     assert "p.npy: projections file not found" in train.stdout + train.stderr
+
+
+def test_time_to_accuracy_benchmark(tmp_path):
+    """`gaussian-atoms benchmark`: snapshots during training are scored next to FBP and SART;
+    times increase, the last snapshot is the final result, files are written."""
+    import csv
+
+    data = tmp_path / "data"
+    sim = _run(BIN / "gaussian-atoms", "simulate", "--output", data, "--particle", "sphere", "--potential", "gaussian", "--radius-A", "5", "--tilts", "-70:10:70", "--noise-std", "20")
+    assert sim.returncode == 0, sim.stderr
+    out = tmp_path / "bench"
+    bench = _run(BIN / "gaussian-atoms", "benchmark", "--data", data, "--output", out, "--iterations", "400", "--snapshot-every", "100")
+    assert bench.returncode == 0, bench.stdout[-3000:] + bench.stderr[-3000:]
+    rows = list(csv.DictReader(open(out / "time_to_accuracy.csv")))
+    assert [r["method"] for r in rows[:2]] == ["fbp", "sart"]
+    ours = [r for r in rows if r["method"] == "ours"]
+    assert [int(r["step"]) for r in ours] == [100, 200, 300, 400]
+    seconds = [float(r["seconds"]) for r in ours]
+    assert all(b > a for a, b in zip(seconds, seconds[1:])) and seconds[0] > 0
+    # Model-physics data at peak-to-noise ~70: by the end every atom is found, none invented.
+    assert float(ours[-1]["tpr"]) == 1.0 and float(ours[-1]["fp_per_true_atom"]) == 0.0
+    assert (out / "time_to_accuracy.png").stat().st_size > 0 and (out / "time_to_accuracy.md").is_file()
