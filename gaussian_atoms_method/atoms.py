@@ -111,17 +111,27 @@ def _atomic_write(path: Path, write) -> None:
 
 
 def write_atoms(atoms: AtomSet, path: str | Path) -> Path:
-    """Write atoms to ``.xyz``/``.extxyz`` (extended XYZ) or ``.csv``, chosen by suffix."""
+    """Write atoms to ``.xyz``/``.extxyz`` (extended XYZ) or ``.csv``, chosen by suffix, or
+    ``.cif`` (species and positions; a cubic cell 10 Å wider than the atoms, positions shifted
+    by half the cell on each axis, since a cell cannot hold negative coordinates)."""
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix in (".xyz", ".extxyz"):
         import ase.io
 
         _atomic_write(path, lambda p: ase.io.write(p, atoms.to_ase(), format="extxyz"))
+    elif suffix == ".cif":
+        import ase.io
+
+        crystal = atoms.to_ase()
+        side = 2 * float(np.abs(atoms.positions).max(initial=0.0)) + 10.0
+        crystal.set_cell([side, side, side])
+        crystal.translate([side / 2] * 3)
+        _atomic_write(path, lambda p: ase.io.write(p, crystal, format="cif"))
     elif suffix == ".csv":
         _atomic_write(path, lambda p: _write_csv(atoms, p))
     else:
-        raise ValueError(f"{path}: unknown atom file type {suffix!r}; expected .xyz, .extxyz or .csv")
+        raise ValueError(f"{path}: unknown atom file type {suffix!r}; expected .xyz, .extxyz, .csv or .cif")
     return path
 
 

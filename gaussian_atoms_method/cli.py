@@ -286,6 +286,36 @@ class Benchmark:
 
 
 @dataclass
+class Export:
+    """Write a finished run's atoms as .xyz/.extxyz (with sigma_A, amplitude), .csv or .cif,
+    optionally with species assigned by clustering the atoms' integrated masses."""
+
+    load_config: Path
+    """The run's config.yml (its directory holds the atoms.xyz written at the end of training)."""
+    output: Path
+    species: Optional[str] = None
+    """Comma-separated elements, e.g. Fe,Pt: heavier element = larger integrated mass."""
+
+    def main(self) -> None:
+        from .atoms import read_atoms, write_atoms
+        from .species import classify_species
+
+        if not self.load_config.is_file():
+            raise FileNotFoundError(f"{self.load_config}: run config not found")
+        source = self.load_config.parent / "atoms.xyz"
+        if not source.is_file():
+            raise FileNotFoundError(f"{source}: not found; the run writes it when training finishes")
+        atoms = read_atoms(source)
+        if self.species:
+            if atoms.masses is None:
+                raise ValueError(f"{source}: has no sigma_A/amplitude columns to classify species by")
+            atoms.species, report = classify_species(atoms.masses, [e.strip() for e in self.species.split(",") if e.strip()])
+            print(json.dumps({"species": report}))
+        write_atoms(atoms, self.output)
+        print(f"wrote {len(atoms)} atoms to {self.output}")
+
+
+@dataclass
 class Stress:
     """Numerical stress cases: float32 vs float64 projections and gradients (sigma 0.05-20 px,
     amplitudes 1e-3-1e3), atoms on and beyond the edge, coincident atoms, all-zero projections,
@@ -315,6 +345,7 @@ Commands = Union[
     Annotated[BenchmarkAccuracy, tyro.conf.subcommand("benchmark-accuracy")],
     Annotated[BenchmarkPeer, tyro.conf.subcommand("benchmark-peer")],
     Annotated[Stress, tyro.conf.subcommand("stress")],
+    Annotated[Export, tyro.conf.subcommand("export")],
 ]
 
 

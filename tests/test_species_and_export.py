@@ -1,0 +1,59 @@
+"""Species from masses, and the export verb's formats read back by ASE."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import ase.io
+import numpy as np
+import pytest
+
+from gaussian_atoms_method.atoms import AtomSet, write_atoms
+from gaussian_atoms_method.species import classify_species, kmeans_1d
+
+
+def test_classify_two_species_by_mass():
+    """Fe and Pt masses a factor 3 apart with 15% log-normal scatter: the two means are 7.3
+    standard deviations apart, so only atoms beyond 3.7 sigma (about 0.02%, here 2 of 500 with
+    this seed) fall on the wrong side; heavier mass -> Pt whatever order the elements are given
+    in; separation d' above 5."""
+    rng = np.random.default_rng(0)
+    truth = np.array(["Fe"] * 300 + ["Pt"] * 200)
+    masses = np.where(truth == "Pt", 3.0, 1.0) * np.exp(rng.normal(scale=0.15, size=len(truth)))
+    for elements in (["Fe", "Pt"], ["Pt", "Fe"]):
+        species, report = classify_species(masses, elements)
+        assert np.mean(species == truth) >= 0.995
+        assert abs(report["counts"]["Pt"] - 200) <= 3
+        assert report["separation"]["Fe/Pt"] > 5
+    with pytest.raises(ValueError, match="unknown element 'Xx'"):
+        classify_species(masses, ["Fe", "Xx"])
+
+
+def test_kmeans_orders_clusters_by_mean():
+    labels = kmeans_1d(np.array([5.0, 5.1, 0.0, 0.1, 9.9, 10.0]), 3)
+    np.testing.assert_array_equal(labels, [1, 1, 0, 0, 2, 2])
+
+
+def test_export_round_trips_through_ase(tmp_path):
+    run = tmp_path / "run"
+    atoms = AtomSet(np.array([[0.0, 1.0, 2.0], [2.5, -1.0, 0.5], [-2.0, 0.0, 1.0]]), sigmas=[0.6, 0.6, 0.7], amplitudes=[10.0, 31.0, 29.0])
+    write_atoms(atoms, run / "atoms.xyz")
+    (run / "config.yml").write_text("method_name: gaussian-atoms\n")
+    exe = Path(sys.executable).parent / "gaussian-atoms"
+    for suffix in (".extxyz", ".csv", ".cif"):
+        out = tmp_path / f"out{suffix}"
+        proc = subprocess.run([exe, "export", "--load-config", run / "config.yml", "--output", out, "--species", "Fe,Pt"], capture_output=True, text=True)
+        assert proc.returncode == 0, proc.stderr
+        if suffix != ".csv":
+            back = ase.io.read(out)
+            # A CIF cell cannot hold negative coordinates: shifted by half the cell, as documented.
+            shift = back.cell.lengths() / 2 if suffix == ".cif" else 0.0
+            np.testing.assert_allclose(back.get_positions() - shift, atoms.positions, atol=1e-4)
+            assert back.get_chemical_symbols() == ["Fe", "Pt", "Pt"]
+        if suffix == ".extxyz":
+            np.testing.assert_allclose(back.arrays["sigma_A"], atoms.sigmas)
+            np.testing.assert_allclose(back.arrays["amplitude"], atoms.amplitudes)
+    assert json.loads(proc.stdout.splitlines()[0])["species"]["counts"] == {"Fe": 1, "Pt": 2}
+    missing = subprocess.run([exe, "export", "--load-config", tmp_path / "none" / "config.yml", "--output", tmp_path / "x.xyz"], capture_output=True, text=True)
+    assert missing.returncode == 2 and "config.yml: run config not found" in missing.stderr
