@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 import ase.io
+import numpy as np
 import pytest
 
 BIN = Path(sys.executable).parent
@@ -52,6 +53,15 @@ def test_simulate_train_evaluate(tmp_path):
     assert scores["rmsd_pm"] < 5.0
     # Widths come out near the true 0.61 Å (0.35 Å atom, 0.5 Å blur) in Å, not normalised units.
     assert 0.45 < atoms.arrays["sigma_A"].mean() < 0.8
+    # The checkpoint loads back as ns-viewer / ns-eval load it (torch >= 2.6 weights_only
+    # loading included), holding the atoms that were written.
+    load = _run(sys.executable, "-c", (
+        "import sys, numpy as np; from pathlib import Path; from nerfstudio.utils.eval_utils import eval_setup; "
+        "_, pipe, _, step = eval_setup(Path(sys.argv[1]), test_mode='inference'); "
+        "np.save(sys.argv[2], pipe.model.atoms().positions); print(step)"
+    ), run / "config.yml", tmp_path / "loaded.npy", cwd=Path.cwd())  # fmt: skip
+    assert load.returncode == 0, load.stderr[-3000:]
+    np.testing.assert_allclose(np.load(tmp_path / "loaded.npy"), atoms.get_positions(), atol=1e-4)
 
 
 def test_cli_errors_are_one_line(tmp_path):
