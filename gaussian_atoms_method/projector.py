@@ -154,15 +154,22 @@ def tile_pairs(u_px, v_px, radius_r_px, radius_c_px, height: int, width: int, ti
     order = torch.argsort(tile_id, stable=True)
     tile_id, pair_src = tile_id[order], pair_src[order]
     used, per_tile = torch.unique_consecutive(tile_id, return_counts=True)
-    starts = torch.cumsum(per_tile, 0) - per_tile
-    slot = torch.arange(len(tile_id), device=dev) - torch.repeat_interleave(starts, per_tile)
+    return _tile_lists(used, per_tile, torch.cumsum(per_tile, 0) - per_tile, pair_src, n_views * n, (tiles_r, tiles_c), tile)
+
+
+def _tile_lists(used, per_tile, starts, pair_src, sentinel: int, grid, tile: int):
+    """Padded per-tile index lists from pairs sorted by tile: tile ``used[t]`` holds
+    ``pair_src[starts[t] : starts[t] + per_tile[t]]``."""
+    dev = used.device
+    tiles_r, tiles_c = grid
+    slot = torch.arange(len(pair_src), device=dev) - torch.repeat_interleave(starts, per_tile)
     row_of_pair = torch.repeat_interleave(torch.arange(len(used), device=dev), per_tile)
-    index = torch.full((len(used), int(per_tile.max())), n_views * n, device=dev, dtype=torch.long)
+    index = torch.full((len(used), int(per_tile.max())), sentinel, device=dev, dtype=torch.long)
     index[row_of_pair, slot] = pair_src
     offsets = torch.arange(tile, device=dev)
     rows_px = ((used // tiles_c) % tiles_r)[:, None] * tile + offsets
     cols_px = (used % tiles_c)[:, None] * tile + offsets
-    return used, index, rows_px, cols_px, (tiles_r, tiles_c)
+    return used, index, rows_px, cols_px, grid
 
 
 def _assemble(blocks: torch.Tensor, used: torch.Tensor, n_views: int, grid, tile: int, height: int, width: int) -> torch.Tensor:
@@ -189,9 +196,11 @@ def project_gaussians_tiled(
     col_coords: torch.Tensor,
     tile: int = 32,
     cutoff_sigmas: float = 5.5,
+    pairing=None,
 ) -> torch.Tensor:
     """The same projections as :func:`project_gaussians`, evaluating each Gaussian only on the
-    detector tiles within ``cutoff_sigmas`` of its centre.
+    detector tiles within ``cutoff_sigmas`` of its centre (``pairing``: the function listing
+    (Gaussian, tile) pairs, :func:`tile_pairs` by default).
 
     A dense product costs ``N * H * W`` multiply-adds per view although an atom covers a few
     hundred pixels.  Here the detector is cut into ``tile x tile`` squares; every (Gaussian,
@@ -211,7 +220,7 @@ def project_gaussians_tiled(
     u = torch.einsum("vc,nc->vn", detector_axes[:, 0, :].to(dt), means)  # (V, N) along rows
     v = torch.einsum("vc,nc->vn", detector_axes[:, 1, :].to(dt), means)  # (V, N) along columns
     radius = (cutoff_sigmas * sigmas.detach())[None, :]
-    used, index, rows_px, cols_px, grid = tile_pairs(
+    used, index, rows_px, cols_px, grid = (pairing or tile_pairs)(
         (u.detach() - row_coords[0]) / dr, (v.detach() - col_coords[0]) / dc, radius / abs(dr), radius / abs(dc), h, w, tile
     )
     if len(used) == 0:
@@ -235,7 +244,8 @@ def _separable_tiles(u, v, sigmas, amplitudes, used, index, rows_px, cols_px, gr
     return _assemble(torch.bmm(g_rows, g_cols), used, n_views, grid, tile, h, w)
 
 
-def gsplat_tile_pairs(u_px, v_px, radius_px, height: int, width: int, tile: int):
+@torch.no_grad()
+def gsplat_tile_pairs(u_px, v_px, radius_r_px, radius_c_px, height: int, width: int, tile: int):
     """:func:`tile_pairs` computed by stock gsplat (CUDA only): its orthographic projection of
     means and covariances gives each Gaussian's pixel position and radius, its tile
     intersection the sorted (tile, Gaussian) list.  gsplat's radius is 3 standard deviations of
@@ -248,7 +258,7 @@ def gsplat_tile_pairs(u_px, v_px, radius_px, height: int, width: int, tile: int)
     tiles_r, tiles_c = -(-height // tile), -(-width // tile)
     # One camera per view looking at points already in pixel units: world (col, row, depth=1).
     pts = torch.stack([v_px + 0.5, u_px + 0.5, torch.ones_like(u_px)], dim=-1)  # (V, N, 3), gsplat pixel centres at +0.5
-    radius = radius_px.expand(n_views, n)
+    radius = torch.maximum(radius_r_px, radius_c_px).expand(n_views, n)
     means2d_all, radii_all = [], []
     for view in range(n_views):  # gsplat projects all Gaussians into all cameras: one view at a time
         covars = torch.zeros(n, 6, device=dev, dtype=torch.float32)
@@ -272,16 +282,7 @@ def gsplat_tile_pairs(u_px, v_px, radius_px, height: int, width: int, tile: int)
     empty = torch.zeros(0, dtype=torch.long, device=dev)
     if len(used) == 0:
         return empty, empty.reshape(0, 1), empty.reshape(0, tile), empty.reshape(0, tile), (tiles_r, tiles_c)
-    per_tile = counts[used]
-    starts = offsets[used]
-    slot = torch.arange(total, device=dev) - torch.repeat_interleave(starts, per_tile)
-    row_of_pair = torch.repeat_interleave(torch.arange(len(used), device=dev), per_tile)
-    index = torch.full((len(used), int(per_tile.max())), n_views * n, device=dev, dtype=torch.long)
-    index[row_of_pair, slot] = flatten_ids.long()
-    offsets_t = torch.arange(tile, device=dev)
-    rows_px = ((used // tiles_c) % tiles_r)[:, None] * tile + offsets_t
-    cols_px = (used % tiles_c)[:, None] * tile + offsets_t
-    return used, index, rows_px, cols_px, (tiles_r, tiles_c)
+    return _tile_lists(used, counts[used], offsets[used], flatten_ids.long(), n_views * n, (tiles_r, tiles_c), tile)
 
 
 def project_gaussians_gsplat(
@@ -298,22 +299,9 @@ def project_gaussians_gsplat(
     (:func:`gsplat_tile_pairs`).  gsplat's rasteriser alpha-composites, the wrong physics for a
     line integral, so the accumulation stays additive and in torch; gradients flow through the
     torch part (gsplat only decides which tiles each Gaussian reaches)."""
-    n = _check_shapes(means, {"sigmas": (sigmas, ()), "amplitudes": (amplitudes, ())})
     if means.device.type != "cuda":
         raise ValueError("the gsplat projector needs a CUDA device; use projector 'tiled' on CPU")
-    dr, dc = _uniform_spacing(row_coords, "row_coords"), _uniform_spacing(col_coords, "col_coords")
-    n_views, h, w = detector_axes.shape[0], len(row_coords), len(col_coords)
-    dt = means.dtype
-    if n == 0:
-        return means.new_zeros(n_views, h, w)
-    u = torch.einsum("vc,nc->vn", detector_axes[:, 0, :].to(dt), means)
-    v = torch.einsum("vc,nc->vn", detector_axes[:, 1, :].to(dt), means)
-    with torch.no_grad():
-        radius = (cutoff_sigmas * sigmas.detach() / min(abs(dr), abs(dc)))[None, :]
-        used, index, rows_px, cols_px, grid = gsplat_tile_pairs((u - row_coords[0]) / dr, (v - col_coords[0]) / dc, radius, h, w, tile)
-    if len(used) == 0:
-        return means.new_zeros(n_views, h, w)
-    return _separable_tiles(u, v, sigmas, amplitudes, used, index, rows_px, cols_px, grid, tile, row_coords, col_coords, dr, dc, h, w)
+    return project_gaussians_tiled(means, sigmas, amplitudes, detector_axes, row_coords, col_coords, tile, cutoff_sigmas, gsplat_tile_pairs)
 
 
 def covariances_from_scales_quats(log_scales: torch.Tensor, quats: torch.Tensor) -> torch.Tensor:
