@@ -54,12 +54,14 @@ def main() -> None:
     parser.add_argument("--tilts", default="limited")
     parser.add_argument("--init", default="random", choices=["random", "backprojection"])
     parser.add_argument("--iterations", type=int, default=3000)
+    parser.add_argument("--configs", nargs="+", default=list(CONFIGS), choices=list(CONFIGS), metavar="NAME", help=f"any of {list(CONFIGS)}")
     args = parser.parse_args()
     bench = AccuracyBenchmark(output=args.output, particles=("fept",), scale=args.scale, iterations=args.iterations)
     data = bench.dataset("fept", args.tilts, args.noise)
     truth = read_atoms(data / "atoms_true.xyz")
     rows = []
-    for name, (isotropic, merge, amplitude) in CONFIGS.items():
+    for name in args.configs:
+        isotropic, merge, amplitude = CONFIGS[name]
         run_dir = args.output / "runs" / f"{args.init}-{name.replace(' ', '-').replace(',', '')}"
         if not (run_dir / "evaluation.json").is_file():
             run_dir.mkdir(parents=True, exist_ok=True)
