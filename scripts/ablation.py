@@ -22,7 +22,6 @@ from scipy.spatial import cKDTree
 from gaussian_atoms_method.atoms import read_atoms
 from gaussian_atoms_method.benchmark import AccuracyBenchmark
 from gaussian_atoms_method.metrics import match_atoms
-from gaussian_atoms_method.projector import gaussian_mass
 
 CONFIGS = {
     "full priors": (True, True, "mass"),
@@ -68,7 +67,7 @@ def main() -> None:
             bench._run_ours(data, run_dir, ("--pipeline.model.isotropic", str(isotropic), "--pipeline.model.cluster-merge", str(merge), "--pipeline.model.init", args.init, "--pipeline.model.merge-amplitude", amplitude))
         scores = json.loads((run_dir / "evaluation.json").read_text())
         pred = read_atoms(run_dir / "ours" / "gaussian-atoms" / "run" / "atoms.xyz")
-        mass = gaussian_mass(pred.sigmas, pred.amplitudes)
+        mass = pred.masses
         near = cKDTree(pred.positions).query_ball_point(truth.positions, 0.75, return_length=True)
         pi, ti = match_atoms(pred.positions, truth.positions, 0.75)
         row = {
