@@ -1,13 +1,15 @@
 """``gaussian-atoms <verb>``: one tyro CLI whose verbs call the physics core.
 
 Verbs: ``simulate`` (write a tilt-series directory with known atoms), ``evaluate`` (score
-predicted atoms against the truth) and ``baseline`` (FBP/SART + atom tracing).  Training is
+predicted atoms against the truth), ``baseline`` (FBP/SART + atom tracing), the benchmarks,
+``stress``, ``export`` and ``sweep``.  Training is
 ``ns-train gaussian-atoms``.
 """
 
 from __future__ import annotations
 
 import json
+import shlex
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -340,6 +342,48 @@ class Stress:
             raise SystemExit(1)
 
 
+@dataclass
+class Sweep:
+    """Run ns-train gaussian-atoms over a grid of tyro overrides and tabulate settings against
+    metrics and wall time (sweep.csv, sweep.md).  The grid follows ``--``: each ns-train option
+    with its values; every combination is one run.  Finished runs are skipped, so an
+    interrupted sweep resumes.  Example: ``gaussian-atoms sweep --data data/sim --jobs 2 --
+    --pipeline.model.merge-threshold-A 0.2 0.3 0.5 --pipeline.model.merge-every 50 100``."""
+
+    data: Path
+    """Tilt-series directory (with a truth file the runs are scored)."""
+    output: Path = Path("outputs/sweep")
+    iterations: int = 3000
+    jobs: int = 1
+    """Runs at a time (local backend); the machine's threads are shared between them."""
+    device: Literal["cpu", "cuda"] = "cpu"
+    backend: Literal["local", "ray"] = "local"
+    """local processes, or a Ray cluster (pip install 'gaussian-atoms[ray]')."""
+    ray_address: Optional[str] = None
+    """Address of an existing Ray cluster (default: start a local one)."""
+    grid: tyro.conf.Suppress[tuple[str, ...]] = ()
+
+    def main(self) -> None:
+        from .sweep import Sweep as SweepRunner
+
+        rows = SweepRunner(self.data, self.output, self.grid, (), self.iterations, self.jobs, self.device, self.backend, self.ray_address).run()
+        failed = [r for r in rows if r.get("status") != "ok"]
+        if failed:
+            print(f"gaussian-atoms sweep: {len(failed)} of {len(rows)} runs failed (see sweep.md)", file=sys.stderr)
+            raise SystemExit(1)
+
+
+def split_grid(tokens: list[str]) -> tuple[str, ...]:
+    """``--a 1 2 --b 3`` -> ``("--a 1 2", "--b 3")`` (checked by :func:`.sweep.parse_grid`)."""
+    entries: list[list[str]] = []
+    for token in tokens:
+        if token.startswith("--") or not entries:
+            entries.append([token])
+        else:
+            entries[-1].append(token)
+    return tuple(" ".join(shlex.quote(t) for t in entry) for entry in entries)
+
+
 Commands = Union[
     Annotated[Simulate, tyro.conf.subcommand("simulate")],
     Annotated[Evaluate, tyro.conf.subcommand("evaluate")],
@@ -349,6 +393,7 @@ Commands = Union[
     Annotated[BenchmarkPeer, tyro.conf.subcommand("benchmark-peer")],
     Annotated[Stress, tyro.conf.subcommand("stress")],
     Annotated[Export, tyro.conf.subcommand("export")],
+    Annotated[Sweep, tyro.conf.subcommand("sweep")],
 ]
 
 
@@ -358,7 +403,15 @@ def entrypoint(argv: list[str] | None = None) -> None:
 
     from .atoms import AtomFileError
 
+    argv = list(sys.argv[1:] if argv is None else argv)
+    grid: tuple[str, ...] = ()
+    if argv[:1] == ["sweep"] and "--" in argv:
+        # The sweep's grid is ns-train's own options, passed through after "--".
+        cut = argv.index("--")
+        argv, grid = argv[:cut], split_grid(argv[cut + 1 :])
     command = tyro.cli(Commands, args=argv)
+    if isinstance(command, Sweep):
+        command.grid = grid
     try:
         command.main()
     except (TiltSeriesError, AtomFileError, ValueError, FileNotFoundError) as exc:

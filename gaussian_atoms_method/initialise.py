@@ -18,12 +18,22 @@ Measured recall (a candidate within 1.2 Å of every true atom, 10,000 candidates
 Lobato potentials): 1.000 at noise 50, 0.9998 at noise 200, 0.994 at noise 500; the ramp
 filter without smoothing reaches 0.83 and 0.46 at noise 200 and 500.  Surplus candidates are
 noise: the fit drives their mass down and the prune removes them.
+
+4. In mixed particles a light atom beside a heavy one is often only a shoulder of the heavy
+   atom's smoothed peak, not a maximum.  Maxima of the negative Laplacian of Gaussian (same
+   0.5 Å scale, which sharpens shoulders into peaks) that lie more than ``min_distance_A``
+   from every smoothed-peak candidate fill the remaining room under ``max_count``.  Measured
+   on the half-size HEA particle (limited tilts), Ni recall within 1.2 Å: 0.880 -> 0.997 at
+   noise 50 and 0.846 -> 0.988 at noise 200 (Pd, Pt 0.985-1.000 -> 1.000).  On its own the
+   Laplacian is noisier (Au noise 500: 0.979 against 0.994), so it only adds to the smoothed
+   peaks, which keep priority: on Au they already fill the 10,000 and nothing changes.
 """
 
 from __future__ import annotations
 
 import numpy as np
 from scipy import ndimage
+from scipy.spatial import cKDTree
 
 from .baselines import reconstruct
 from .tracing import local_maxima, suppress_within
@@ -38,6 +48,7 @@ def backprojection_candidates(
     max_count: int = 10000,
     smoothing_A: float = 0.5,
     min_distance_A: float = 1.5,
+    shoulders: bool = True,
 ) -> np.ndarray:
     """Candidate atom positions, strongest first.
 
@@ -58,6 +69,9 @@ def backprojection_candidates(
         Standard deviation of the Gaussian smoothing of the reconstruction, Å.
     min_distance_A : float
         Candidates lie more than this far apart, Å.
+    shoulders : bool
+        Fill the room left under ``max_count`` with Laplacian-of-Gaussian maxima away from
+        the smoothed peaks (step 4 above).
 
     Returns
     -------
@@ -67,11 +81,22 @@ def backprojection_candidates(
     if max_count <= 0:
         return np.zeros((0, 3))
     volume = reconstruct(projections, angles_deg, pixel_size_A, "fbp", tilt_axis, centre_px, filter_name="hann")
-    data = ndimage.gaussian_filter(volume.data, smoothing_A / volume.spacing_A) if smoothing_A > 0 else volume.data
+    sigma_vox = smoothing_A / volume.spacing_A
+    data = ndimage.gaussian_filter(volume.data, sigma_vox) if smoothing_A > 0 else volume.data
+    positions = _separated_maxima(data, volume.spacing_A, min_distance_A)[:max_count]
+    if shoulders and smoothing_A > 0 and len(positions) < max_count:
+        extra = _separated_maxima(-ndimage.gaussian_laplace(volume.data, sigma_vox), volume.spacing_A, min_distance_A)
+        if len(positions) and len(extra):
+            distance, _ = cKDTree(positions * volume.spacing_A).query(extra * volume.spacing_A)
+            extra = extra[distance > min_distance_A]
+        positions = np.concatenate([positions, extra])[:max_count]
+    return volume.index_to_A(positions) if len(positions) else np.zeros((0, 3))
+
+
+def _separated_maxima(data: np.ndarray, spacing_A: float, min_distance_A: float) -> np.ndarray:
+    """(M, 3) voxel indices of local maxima of ``data``, strongest first, ``min_distance_A`` apart."""
     peaks = local_maxima(data)
     if len(peaks) == 0:
         return np.zeros((0, 3))
-    values = data[tuple(peaks.T)]
-    order = np.argsort(-values, kind="stable")
-    keep = suppress_within(peaks * volume.spacing_A, order, min_distance_A)[:max_count]
-    return volume.index_to_A(peaks[keep])
+    order = np.argsort(-data[tuple(peaks.T)], kind="stable")
+    return peaks[suppress_within(peaks * spacing_A, order, min_distance_A)].astype(np.float64)
