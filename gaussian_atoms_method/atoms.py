@@ -34,6 +34,9 @@ class AtomSet:
     amplitudes : (N,) float array or None
         3D peak of each Gaussian, in units of the input projections per Å.
     species : (N,) array of str, or None
+    position_std_A : (N, 3) float array, Å, or None
+        Estimated standard deviation of each position along x, y, z
+        (:mod:`gaussian_atoms_method.uncertainty`).
     """
 
     positions: np.ndarray
@@ -41,6 +44,7 @@ class AtomSet:
     amplitudes: np.ndarray | None = None
     species: np.ndarray | None = None
     info: dict = field(default_factory=dict)
+    position_std_A: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.positions = np.asarray(self.positions, dtype=np.float64).reshape(-1, 3)
@@ -52,6 +56,10 @@ class AtomSet:
                 if len(value) != n:
                     raise ValueError(f"{name} has {len(value)} entries for {n} atoms")
                 setattr(self, name, value)
+        if self.position_std_A is not None:
+            self.position_std_A = np.asarray(self.position_std_A, dtype=np.float64).reshape(-1, 3)
+            if len(self.position_std_A) != n:
+                raise ValueError(f"position_std_A has {len(self.position_std_A)} rows for {n} atoms")
         if self.species is not None:
             self.species = np.asarray(self.species, dtype=str).reshape(-1)
             if len(self.species) != n:
@@ -69,7 +77,7 @@ class AtomSet:
 
     def shifted(self, offset_A) -> "AtomSet":
         """A copy with every position moved by ``offset_A`` (3,)."""
-        return AtomSet(self.positions + np.asarray(offset_A, dtype=np.float64), self.sigmas, self.amplitudes, self.species, dict(self.info))
+        return AtomSet(self.positions + np.asarray(offset_A, dtype=np.float64), self.sigmas, self.amplitudes, self.species, dict(self.info), self.position_std_A)
 
     # ------------------------------------------------------------------ ASE
     def to_ase(self):
@@ -82,6 +90,8 @@ class AtomSet:
             atoms.new_array("sigma_A", self.sigmas)
         if self.amplitudes is not None:
             atoms.new_array("amplitude", self.amplitudes)
+        if self.position_std_A is not None:
+            atoms.new_array("position_std_A", self.position_std_A)
         return atoms
 
     @classmethod
@@ -93,6 +103,7 @@ class AtomSet:
             sigmas=arrays.get("sigma_A"),
             amplitudes=arrays.get("amplitude"),
             species=species,
+            position_std_A=arrays.get("position_std_A"),
         )
 
 
@@ -145,6 +156,9 @@ def _write_csv(atoms: AtomSet, path: Path) -> None:
         "sigma_A": atoms.sigmas if atoms.sigmas is not None else np.full(n, np.nan),
         "amplitude": atoms.amplitudes if atoms.amplitudes is not None else np.full(n, np.nan),
     }
+    if atoms.position_std_A is not None:
+        for k, axis in enumerate("xyz"):
+            columns[f"std_{axis}_A"] = atoms.position_std_A[:, k]
     with open(path, "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(columns.keys())
@@ -188,7 +202,8 @@ def _read_csv(path: Path) -> AtomSet:
     sig = np.array([float(r.get("sigma_A", "nan")) for r in rows])
     amp = np.array([float(r.get("amplitude", "nan")) for r in rows])
     species = np.array([r.get("species", "X") for r in rows])
-    return AtomSet(pos, None if np.isnan(sig).all() else sig, None if np.isnan(amp).all() else amp, species)
+    std = np.array([[float(r[f"std_{a}_A"]) for a in "xyz"] for r in rows]) if "std_x_A" in rows[0] else None
+    return AtomSet(pos, None if np.isnan(sig).all() else sig, None if np.isnan(amp).all() else amp, species, position_std_A=std)
 
 
 def _read_type_xyz_text(path: Path) -> AtomSet:

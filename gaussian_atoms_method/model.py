@@ -44,6 +44,7 @@ from .projector import (
     project_gaussians_tiled,
 )
 from .remap import apply_remap, duplicate_remap, keep_remap, merge_remap
+from .uncertainty import position_std_A, robust_noise_std
 from .units import DATA_RANGE, Normalisation
 
 
@@ -509,10 +510,38 @@ class GaussianAtomsModel(SplatfactoModel):
         if step == last_step:
             self.write_results(Path(run_dir))
 
+    @torch.no_grad()
+    def position_std_A(self, atoms: AtomSet) -> tuple[np.ndarray, float] | None:
+        """Each atom's position precision (N, 3) in Å and the pixel noise it assumes (input
+        units), from the residuals of the training views (:mod:`.uncertainty`); None without
+        the tilt series (a model built outside the dataparser)."""
+        metadata = self.kwargs.get("metadata", {}) or {}
+        series, projections = metadata.get("tilt_series"), metadata.get("projections")
+        if series is None or projections is None or len(atoms) == 0:
+            return None
+        from dataparsers.tilt_series_dataparser import cameras_from_tilt_series
+
+        cameras = cameras_from_tilt_series(series, self.normalisation).to(self.means.device)
+        residuals = [
+            (self.get_outputs(cameras[i : i + 1])["projection"][..., 0].cpu() - projections[i]).numpy() for i in range(len(cameras))
+        ]
+        noise = robust_noise_std(np.stack(residuals)) / self.normalisation.data_scale
+        c2w = cameras.camera_to_worlds.cpu().double().numpy()
+        axes = np.stack([-c2w[:, :, 1], c2w[:, :, 0]], axis=1)  # detector rows, columns (as get_outputs)
+        return position_std_A(atoms.sigmas, atoms.amplitudes, axes, series.pixel_size_A, noise, self.config.loss), noise
+
     def write_results(self, run_dir: Path) -> dict | None:
-        """Write ``atoms.xyz``, ``atoms.csv`` and, with a truth file, ``evaluation.json``."""
+        """Write ``atoms.xyz``, ``atoms.csv`` (with each atom's position precision) and, with a
+        truth file, ``evaluation.json``."""
         self.finalize()
         atoms = self.atoms()
+        precision = self.position_std_A(atoms)
+        if precision is not None:
+            atoms.position_std_A, noise = precision
+            CONSOLE.print(
+                f"gaussian-atoms: residual noise {noise:.4g} (input units); median position precision "
+                + ", ".join(f"{a} {v * 100:.1f} pm" for a, v in zip("xyz", np.median(atoms.position_std_A, axis=0)))
+            )
         write_atoms(atoms, run_dir / "atoms.xyz")
         write_atoms(atoms, run_dir / "atoms.csv")
         CONSOLE.print(f"[bold]gaussian-atoms[/bold]: wrote {len(atoms)} atoms to {run_dir / 'atoms.xyz'}")
