@@ -22,7 +22,7 @@ import json
 import os
 import re
 import shlex
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -134,48 +134,65 @@ class Sweep:
         print(f"gaussian-atoms sweep: {len(self.settings)} settings, {len(self.settings) - len(todo)} already finished, {len(todo)} to run")
         threads = max(1, (os.cpu_count() or 1) // min(self.jobs, max(len(todo), 1)))
         calls = [(str(self.data), str(run_dir), self._args(settings), self.iterations, self.device, threads) for _, settings, run_dir in todo]
-        outcomes = self._run_ray(calls) if self.backend == "ray" else self._run_local(calls)
-        for (index, settings, run_dir), outcome in zip(todo, outcomes):
+
+        def finish(k: int, outcome) -> None:
+            # Recorded as each run ends, so an interruption loses only the runs in flight.
+            index, settings, run_dir = todo[k]
             if isinstance(outcome, BaseException):
                 # One failed setting does not stop the sweep; the table says why it failed.
                 print(f"gaussian-atoms sweep: {run_dir.name} failed: {str(outcome)[-500:]}")
-                rows[index] = {"settings": settings, "status": f"failed: {str(outcome).splitlines()[0][:120] if str(outcome) else type(outcome).__name__}"}
-                continue
+                first_line = str(outcome).splitlines()[0][:120] if str(outcome) else type(outcome).__name__
+                rows[index] = {"settings": settings, "status": f"failed: {first_line}"}
+                return
             row = {"settings": settings, "base_args": list(self.base_args), "iterations": self.iterations, "status": "ok", **outcome}
             run_dir.mkdir(parents=True, exist_ok=True)
             tmp = run_dir / "result.json.tmp"
             tmp.write_text(json.dumps(row, indent=2) + "\n")
             tmp.replace(run_dir / "result.json")  # complete or absent: resume trusts it
             rows[index] = row
+            print(f"gaussian-atoms sweep: finished {run_dir.name}")
+
+        if self.backend == "ray":
+            self._run_ray(calls, finish)
+        else:
+            self._run_local(calls, finish)
         self.write(rows)
         return rows
 
-    def _run_local(self, calls) -> list:
+    def _run_local(self, calls, finish) -> None:
         def call(c):
             try:
                 return self.runner(*c)
             except Exception as exc:  # reported per run
                 return exc
 
-        with ThreadPoolExecutor(max_workers=self.jobs) as pool:
-            return list(pool.map(call, calls))
+        pool = ThreadPoolExecutor(max_workers=self.jobs)
+        try:
+            futures = {pool.submit(call, c): k for k, c in enumerate(calls)}
+            for future in as_completed(futures):
+                finish(futures[future], future.result())
+        finally:
+            # On an interruption, start nothing more (runs in flight get the signal too).
+            pool.shutdown(wait=True, cancel_futures=True)
 
-    def _run_ray(self, calls) -> list:
+    def _run_ray(self, calls, finish) -> None:
         try:
             import ray
         except ImportError as exc:
             raise SweepError("--backend ray: Ray is not installed (pip install 'gaussian-atoms[ray]')") from exc
+        if not calls:
+            return
         if not ray.is_initialized():
             ray.init(address=self.ray_address, include_dashboard=False, log_to_driver=False)
-        remote = ray.remote(num_cpus=calls[0][5] if calls else 1)(self.runner)
-        refs = [remote.remote(*c) for c in calls]
-        outcomes = []
-        for ref in refs:
+        remote = ray.remote(num_cpus=calls[0][5])(self.runner)
+        pending = {remote.remote(*c): k for k, c in enumerate(calls)}
+        while pending:
+            done, _ = ray.wait(list(pending), num_returns=1)
+            k = pending.pop(done[0])
             try:
-                outcomes.append(ray.get(ref))
-            except Exception as exc:
-                outcomes.append(exc)
-        return outcomes
+                finish(k, ray.get(done[0]))
+            except Exception as exc:  # the run raised on its worker
+                finish(k, exc)
 
     def write(self, rows: list[dict]) -> None:
         options = [option for option, _ in parse_grid(self.grid)]

@@ -53,6 +53,20 @@ def test_sweep_resumes_and_reports_failures(tmp_path):
     calls.clear()
     Sweep(data, tmp_path / "sweep", ("--x 1 2 bad 3",), runner=fake_runner).run()
     assert sorted(a[-1] for a in calls) == ["3", "bad"]
+    # Interrupted mid-sweep (Ctrl-C while the third of four runs trains): the runs that
+    # finished before are kept and not repeated.
+    calls.clear()
+
+    def interrupted(data, run_dir, args, iterations, device, threads):
+        if args[-1] == "6":
+            raise KeyboardInterrupt
+        return fake_runner(data, run_dir, args, iterations, device, threads)
+
+    with pytest.raises(KeyboardInterrupt):
+        Sweep(data, tmp_path / "sweep", ("--x 4 5 6 7",), runner=interrupted).run()
+    calls.clear()
+    Sweep(data, tmp_path / "sweep", ("--x 4 5 6 7",), runner=fake_runner).run()
+    assert sorted(a[-1] for a in calls) == ["6", "7"]
     # Different shared settings are a different run, not a finished one.
     calls.clear()
     Sweep(data, tmp_path / "sweep", ("--x 1",), iterations=10, runner=fake_runner).run()
