@@ -12,6 +12,8 @@ from typing import Dict, Literal
 import torch
 from nerfstudio.data.datasets.base_dataset import InputDataset
 
+from gaussian_atoms_method.units import DATA_RANGE
+
 
 class TiltSeriesDataset(InputDataset):
     """Projections of a tilt series, normalised to the paper's [0, 256] scale."""
@@ -34,3 +36,10 @@ class TiltSeriesDataset(InputDataset):
         if image_type != "float32":
             raise ValueError("tilt series are served as float32 only; set cache_images_type to float32")
         return {"image_idx": image_idx, "image": self.get_image_float32(image_idx)}
+
+    def __getitem__(self, image_idx: int) -> Dict:
+        """For display only (nerfstudio's viewer draws each view's image on its camera
+        frustum, as 8-bit RGB from ``image * 255``): the projection scaled to [0, 1] in three
+        channels.  Training reads :meth:`get_data` (the full-image datamanager caches it)."""
+        image = (self.get_image_float32(image_idx) / DATA_RANGE).clamp(0.0, 1.0).expand(-1, -1, 3)
+        return {"image_idx": image_idx, "image": image}

@@ -25,7 +25,7 @@ from typing import Dict, List, Literal, Tuple, Type
 
 import numpy as np
 import torch
-from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig
 from nerfstudio.utils.rich_utils import CONSOLE
@@ -46,6 +46,7 @@ from .projector import (
 from .remap import apply_remap, duplicate_remap, keep_remap, merge_remap
 from .uncertainty import position_std_A, robust_noise_std
 from .units import DATA_RANGE, Normalisation
+from .viewer import AtomsInViewer, mass_colours
 
 
 
@@ -169,6 +170,16 @@ class GaussianAtomsModel(SplatfactoModel):
         self._grad_count = 0
         self.crop_box = None
         self.background_color = torch.zeros(3)
+        # Draws the atoms as points in nerfstudio's viewer (found there as a ViewerControl).
+        self.atoms_in_viewer = AtomsInViewer(self._viewer_atoms)
+
+    @torch.no_grad()
+    def _viewer_atoms(self) -> tuple[np.ndarray, np.ndarray, float]:
+        """Positions (world units), integrated masses and a point size (the median width)."""
+        sigmas = self.sigmas.detach().cpu()
+        masses = gaussian_mass(sigmas, self.amplitudes.detach().cpu())
+        size = float(sigmas.median()) if len(sigmas) else 0.01
+        return self.means.detach().cpu().numpy(), masses.numpy(), size
 
     def _initial_means(self, series) -> torch.Tensor:
         """(n, 3) starting positions in normalised units."""
@@ -219,6 +230,47 @@ class GaussianAtomsModel(SplatfactoModel):
     def num_points(self) -> int:
         return self.means.shape[0]
 
+    # splatfacto's other per-Gaussian properties, in our terms (the viewer reads every property
+    # of the model when it starts; splatfacto's would look up parameters we do not have).
+    @property
+    def scales(self) -> torch.Tensor:
+        """(N, 3) log-widths, as splatfacto stores them."""
+        return self._log_scales().expand(-1, 3)
+
+    @property
+    def quats(self) -> torch.Tensor:
+        """(N, 4) rotations (identity for isotropic Gaussians)."""
+        if "quats" in self.gauss_params:
+            return self.gauss_params["quats"]
+        return torch.tensor([1.0, 0.0, 0.0, 0.0], device=self.means.device).expand(self.num_points, 4)
+
+    @property
+    def opacities(self) -> torch.Tensor:
+        """(N, 1) log-amplitudes: the nearest thing to an opacity (nothing is composited)."""
+        return self.gauss_params["log_amplitudes"]
+
+    @property
+    def colors(self) -> torch.Tensor:
+        """(N, 3) colours in [0, 1] by integrated mass (as the viewer's point cloud)."""
+        _, masses, _ = self._viewer_atoms()
+        return torch.as_tensor(mass_colours(masses) / 255.0, dtype=torch.float32)
+
+    @property
+    def features_dc(self) -> torch.Tensor:
+        return self.colors
+
+    @property
+    def features_rest(self) -> torch.Tensor:
+        return torch.zeros(self.num_points, 0, 3)
+
+    @property
+    def shs_0(self) -> torch.Tensor:
+        return self.colors[:, None, :]
+
+    @property
+    def shs_rest(self) -> torch.Tensor:
+        return self.features_rest
+
     def load_state_dict(self, state_dict, **kwargs):  # type: ignore[override]
         # Resize the parameters to the checkpoint's number of Gaussians before loading.
         n = state_dict["gauss_params.means"].shape[0]
@@ -265,6 +317,11 @@ class GaussianAtomsModel(SplatfactoModel):
         dev, dt = self.means.device, self.means.dtype
         row_coords = (torch.arange(h, device=dev, dtype=dt) + 0.5 - camera.cy[0, 0].to(dt)) / camera.fy[0, 0].to(dt)
         col_coords = (torch.arange(w, device=dev, dtype=dt) + 0.5 - camera.cx[0, 0].to(dt)) / camera.fx[0, 0].to(dt)
+        if int(camera.camera_type[0, 0]) != CameraType.ORTHOPHOTO.value:
+            # A perspective camera (the viewer's): project along its view direction with the
+            # magnification it has at the tilt centre, so zooming in and out works as expected.
+            distance = torch.dot(t, c2w[:, 2]).clamp_min(1e-3)
+            row_coords, col_coords = row_coords * distance, col_coords * distance
         axes = torch.stack([rows_dir, cols_dir])[None]
         view = self.view_index(camera) if len(self.view_params) else None
         if view is not None and "view_shifts" in self.view_params:
@@ -285,7 +342,10 @@ class GaussianAtomsModel(SplatfactoModel):
                 image = image + c[1] * row_coords[:, None] + c[2] * col_coords[None, :]
         projection = image[..., None]
         rgb = (projection / DATA_RANGE).clamp(0.0, 1.0).expand(h, w, 3)
-        return {"projection": projection, "rgb": rgb}
+        # A line integral has no depth; the viewer needs one to composite its scene (the atom
+        # points, the camera frustums) with our image: put the image behind everything.
+        depth = torch.full((1, 1, 1), 1e3, device=dev, dtype=dt).expand(h, w, 1)
+        return {"rgb": rgb, "projection": projection, "depth": depth}  # rgb first: the viewer shows it
 
     # ------------------------------------------------------------------ losses and metrics
     def get_metrics_dict(self, outputs, batch) -> Dict[str, torch.Tensor]:
@@ -379,6 +439,7 @@ class GaussianAtomsModel(SplatfactoModel):
         self.prune()
         self._grad_accum = torch.zeros(self.num_points, 3)
         self._grad_count = 0
+        self.atoms_in_viewer.refresh()
 
     @torch.no_grad()
     def merge_after_step(self, step: int) -> None:
@@ -387,6 +448,7 @@ class GaussianAtomsModel(SplatfactoModel):
         cfg = self.config
         if step >= cfg.warmup_length and step % cfg.merge_every == 0:
             self.merge()
+            self.atoms_in_viewer.refresh()
 
     @torch.no_grad()
     def clamp_parameters(self) -> None:
@@ -490,6 +552,7 @@ class GaussianAtomsModel(SplatfactoModel):
         if self.config.cluster_merge:
             self.merge()
         self.prune()
+        self.atoms_in_viewer.refresh()
 
     def _snapshot_after_step(self, directory: Path, step: int) -> None:
         # Steps count from 0: after step k*N-1, k*N steps are done (the last is the final result).
