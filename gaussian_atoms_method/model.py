@@ -32,6 +32,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch.nn import Parameter
 
 from .atoms import AtomSet, read_atoms, write_atoms
+from .figures import write_slices_png
 from .initialise import backprojection_candidates
 from .merge import cluster_labels, merged_values
 from .metrics import score_atoms
@@ -594,8 +595,9 @@ class GaussianAtomsModel(SplatfactoModel):
         return position_std_A(atoms.sigmas, atoms.amplitudes, axes, series.pixel_size_A, noise, self.config.loss), noise
 
     def write_results(self, run_dir: Path) -> dict | None:
-        """Write ``atoms.xyz``, ``atoms.csv`` (with each atom's position precision) and, with a
-        truth file, ``evaluation.json``."""
+        """Write ``atoms.xyz``, ``atoms.csv`` (with each atom's position precision), ``slices.png``
+        (central slices of the potential, with the true atoms when known) and, with a truth
+        file, ``evaluation.json``."""
         self.finalize()
         atoms = self.atoms()
         precision = self.position_std_A(atoms)
@@ -608,9 +610,15 @@ class GaussianAtomsModel(SplatfactoModel):
         write_atoms(atoms, run_dir / "atoms.xyz")
         write_atoms(atoms, run_dir / "atoms.csv")
         CONSOLE.print(f"[bold]gaussian-atoms[/bold]: wrote {len(atoms)} atoms to {run_dir / 'atoms.xyz'}")
-        if self.truth_path is None:
+        truth = read_atoms(self.truth_path) if self.truth_path is not None else None
+        scores = score_atoms(atoms.positions, truth.positions) if truth is not None else None
+        if len(atoms):
+            title = f"{len(atoms)} atoms" + (
+                f"; against the truth: TPR {scores['tpr']:.4f}, FP/atom {scores['fp_per_true_atom']:.4f}, RMSD {scores['rmsd_pm']:.1f} pm" if scores else ""
+            )
+            write_slices_png(atoms, run_dir / "slices.png", truth, title=title)
+        if scores is None:
             return None
-        scores = score_atoms(atoms.positions, read_atoms(self.truth_path).positions)
         (run_dir / "evaluation.json").write_text(json.dumps(scores, indent=2) + "\n")
         CONSOLE.print(f"[bold]gaussian-atoms[/bold]: against {self.truth_path}: {json.dumps(scores)}")
         return scores

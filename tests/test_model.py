@@ -193,3 +193,37 @@ def test_view_shifts_and_background_are_recovered(tmp_path):
     assert np.abs(learned_A - shifts_A).max() < 0.05
     learned_bg = model.view_params["background"].detach().double().numpy()[:, 0] / norm.data_scale
     np.testing.assert_allclose(learned_bg, backgrounds, rtol=0, atol=0.01 * sim.projections.max())
+
+
+def test_viewer_finds_the_atoms_and_renders_a_perspective_camera(tmp_path):
+    """nerfstudio's viewer reads every property of the model (splatfacto's included) and finds
+    custom controls by walking it: that must work, find the atom point cloud, and a viewer
+    (perspective) camera must render the orthographic projection along its view direction at
+    its magnification at the tilt centre, with a depth map behind everything."""
+    from nerfstudio.cameras.cameras import Cameras, CameraType
+    from nerfstudio.viewer.utils import parse_object
+    from nerfstudio.viewer.viewer_elements import ViewerControl
+
+    from gaussian_atoms_method.viewer import AtomsInViewer, mass_colours
+
+    _series(tmp_path)
+    model, outputs = _model(tmp_path, num_random=20)
+    controls = [c for _, c in parse_object(model, ViewerControl, "Custom Elements")]
+    assert len(controls) == 1 and isinstance(controls[0], AtomsInViewer)
+    positions, masses, size = model._viewer_atoms()
+    assert positions.shape == (model.num_points, 3) and masses.shape == (model.num_points,) and size > 0
+    assert model.colors.shape == (model.num_points, 3) and model.quats.shape == (model.num_points, 4)
+    controls[0].refresh()  # no viewer yet: a no-op, not an error
+    colours = mass_colours(np.array([0.0, 1.0, 2.0, 2.0]))
+    assert colours.dtype == np.uint8 and colours[0].sum() < colours[-1].sum()  # heavier = brighter
+
+    ortho = outputs.cameras[1:2]
+    distance = 2.5  # world units from the tilt centre, looking back along the same axis
+    c2w = ortho.camera_to_worlds.clone()
+    c2w[0, :, 3] = c2w[0, :, 2] * distance
+    f = ortho.fx[0, 0] * distance  # the perspective focal length with the same magnification there
+    persp = Cameras(camera_to_worlds=c2w, fx=f, fy=f, cx=ortho.cx[0, 0], cy=ortho.cy[0, 0], width=ortho.width[0, 0], height=ortho.height[0, 0], camera_type=CameraType.PERSPECTIVE)
+    ortho_out, persp_out = model.get_outputs(ortho), model.get_outputs(persp)
+    torch.testing.assert_close(persp_out["projection"], ortho_out["projection"], rtol=1e-4, atol=1e-3)
+    assert persp_out["depth"].shape == persp_out["projection"].shape and float(persp_out["depth"].min()) > 100
+    assert list(persp_out)[0] == "rgb"  # the viewer shows the first output

@@ -1,0 +1,89 @@
+"""Pictures of a result: central slices of the reconstructed potential with atoms overlaid."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .atoms import AtomSet
+
+#: (axis normal to the slice, the two in-plane axes), for the xy, xz and yz slices.
+SLICES = ((2, 0, 1), (1, 0, 2), (0, 1, 2))
+
+
+def potential_on_plane(atoms: AtomSet, normal_axis: int, offset_A: float, axis_u: int, axis_v: int, coords_u_A: np.ndarray, coords_v_A: np.ndarray) -> np.ndarray:
+    """The Gaussians' potential on a plane ``x[normal_axis] = offset_A``.
+
+    Parameters
+    ----------
+    atoms : AtomSet with sigmas and amplitudes
+    normal_axis, axis_u, axis_v : int
+        World axes (0 x, 1 y, 2 z): the plane's normal and its two in-plane axes.
+    coords_u_A, coords_v_A : (U,), (V,) arrays
+        Sample positions along the in-plane axes, Å.
+
+    Returns
+    -------
+    (U, V) array, in the amplitudes' units.  Each Gaussian is separable, so the plane is one
+    matrix product over the atoms within 4 sigma of it.
+    """
+    if atoms.sigmas is None or atoms.amplitudes is None:
+        raise ValueError("the potential needs each atom's sigma_A and amplitude")
+    pos, sig, amp = atoms.positions, atoms.sigmas, atoms.amplitudes
+    near = np.abs(pos[:, normal_axis] - offset_A) < 4 * sig
+    pos, sig, amp = pos[near], sig[near], amp[near]
+    weight = amp * np.exp(-((pos[:, normal_axis] - offset_A) ** 2) / (2 * sig**2))
+    gu = np.exp(-((coords_u_A[None, :] - pos[:, axis_u, None]) ** 2) / (2 * sig[:, None] ** 2))
+    gv = np.exp(-((coords_v_A[None, :] - pos[:, axis_v, None]) ** 2) / (2 * sig[:, None] ** 2))
+    return (weight[:, None] * gu).T @ gv
+
+
+def write_slices_png(pred: AtomSet, output: Path, truth: AtomSet | None = None, spacing_A: float = 0.1, slab_A: float = 1.0, title: str = "") -> Path:
+    """Three central slices (xy, xz, yz through the atoms' centroid) of the predicted potential,
+    with the predicted atoms (open circles) and true atoms (crosses) within ``slab_A`` of each
+    slice overlaid.  Written atomically (complete or absent)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .atoms import _atomic_write
+
+    if len(pred) == 0:
+        raise ValueError("no predicted atoms to draw")
+    # A predicted atom matched to a true one is drawn with it (by the true atom's distance to
+    # the slice), so a lone marker is a real miss or a false atom, not the slab's edge.
+    pred_slab_position = pred.positions.copy()
+    if truth is not None and len(truth):
+        from .metrics import match_atoms
+
+        pred_idx, true_idx = match_atoms(pred.positions, truth.positions, 0.75)
+        pred_slab_position[pred_idx] = truth.positions[true_idx]
+    centre = np.median(pred.positions, axis=0)
+    reference = truth.positions if truth is not None and len(truth) else pred.positions
+    half = float(np.max(np.abs(reference - centre))) + 3.0
+    coords = np.arange(-half, half + spacing_A / 2, spacing_A)
+    names = "xyz"
+    fig, axes = plt.subplots(1, 3, figsize=(15, 5.2))
+    for ax, (n, u, v) in zip(axes, SLICES):
+        plane = potential_on_plane(pred, n, centre[n], u, v, coords + centre[u], coords + centre[v])
+        extent = (centre[v] - half, centre[v] + half, centre[u] + half, centre[u] - half)
+        ax.imshow(plane, cmap="gray", extent=extent)
+        for atoms, slab_pos, style in ((truth, None if truth is None else truth.positions, dict(marker="x", color="tab:red", s=22, linewidths=1.0, label="true")),
+                                       (pred, pred_slab_position, dict(marker="o", facecolors="none", edgecolors="tab:cyan", s=40, linewidths=1.0, label="predicted"))):  # fmt: skip
+            if atoms is None:
+                continue
+            sel = np.abs(slab_pos[:, n] - centre[n]) < slab_A
+            ax.scatter(atoms.positions[sel, v], atoms.positions[sel, u], **style)
+        ax.set_xlabel(f"{names[v]} (Å)")
+        ax.set_ylabel(f"{names[u]} (Å)")
+        ax.set_title(f"{names[u]}{names[v]} slice at {names[n]} = {centre[n]:.1f} Å (atoms within {slab_A:g} Å)")
+    axes[0].legend(loc="upper right", fontsize=8)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    output = Path(output)
+    _atomic_write(output, lambda p: fig.savefig(p, dpi=90, format="png"))
+    plt.close(fig)
+    return output
