@@ -117,6 +117,10 @@ class GaussianAtomsModelConfig(SplatfactoModelConfig):
     """Learn a per-projection in-plane shift with the atoms (residual misalignment of the tilt
     series).  Shifts are taken relative to their mean over the views (an overall shift of
     every view is the same as moving the particle)."""
+    refine_tilts: bool = False
+    """Learn a per-projection tilt-angle offset (about the tilt axis) with the atoms: errors of
+    the goniometer readings.  Offsets are taken relative to their mean (a common offset is the
+    same as rotating the particle).  Single-axis tilt series only."""
     snapshot_every: int = 0
     """Every this many steps (0: never) write the current atoms to ``snapshots/`` in the run
     directory with the wall-clock time, for time-to-accuracy benchmarks."""
@@ -163,6 +167,13 @@ class GaussianAtomsModel(SplatfactoModel):
             view_params["background"] = Parameter(torch.zeros(n_views, 1 if cfg.background == "constant" else 3))
         if cfg.refine_alignment:
             view_params["view_shifts"] = Parameter(torch.zeros(n_views, 2))
+        if cfg.refine_tilts:
+            series = metadata.get("tilt_series")
+            if series is None:
+                raise ValueError("--pipeline.model.refine-tilts needs a single-axis tilt series from the tilt-series dataparser")
+            view_params["view_tilts"] = Parameter(torch.zeros(n_views, 1))
+            axis = torch.tensor([0.0, 1.0, 0.0] if series.tilt_axis == "y" else [1.0, 0.0, 0.0])
+            self.register_buffer("tilt_axis_vector", axis, persistent=False)
         self.view_params = torch.nn.ParameterDict(view_params)
         self.step = 0
         self.optimizers: Dict[str, torch.optim.Optimizer] = {}
@@ -323,8 +334,18 @@ class GaussianAtomsModel(SplatfactoModel):
             # magnification it has at the tilt centre, so zooming in and out works as expected.
             distance = torch.dot(t, c2w[:, 2]).clamp_min(1e-3)
             row_coords, col_coords = row_coords * distance, col_coords * distance
-        axes = torch.stack([rows_dir, cols_dir])[None]
         view = self.view_index(camera) if len(self.view_params) else None
+        if view is not None and "view_tilts" in self.view_params:
+            # The view was taken at its nominal angle plus an error: rotate its detector axes
+            # about the tilt axis by that error (Rodrigues' formula).
+            tilts = self.view_params["view_tilts"]
+            delta = (tilts[view, 0] - tilts[:, 0].mean()).to(dt)
+            a = self.tilt_axis_vector.to(dev, dt)
+            rotate = lambda v: v * torch.cos(delta) + torch.linalg.cross(a, v) * torch.sin(delta) + a * torch.dot(a, v) * (1 - torch.cos(delta))  # noqa: E731
+            # The whole camera turns about the tilt axis through the tilt centre (its position
+            # too: otherwise its offset along the beam would leak into the image as a shift).
+            rows_dir, cols_dir, t = rotate(rows_dir), rotate(cols_dir), rotate(t)
+        axes = torch.stack([rows_dir, cols_dir])[None]
         if view is not None and "view_shifts" in self.view_params:
             # The view's content sits shifted by s: evaluate the ideal projection at x - s.
             shifts = self.view_params["view_shifts"]
