@@ -60,6 +60,63 @@ def _centred_sinograms(projections: np.ndarray, centre_index: float, axis: int) 
     return sino, length
 
 
+def filtered_backprojection(sinograms: np.ndarray, angles_deg: np.ndarray, filter_name: str = "ramp", output_size: int | None = None, device: str = "cpu") -> np.ndarray:
+    """scikit-image's ``iradon`` (``circle=False``, linear interpolation) for a stack of
+    sinograms at once, in torch.
+
+    Each slice is independent, and every slice samples its filtered projections at the same
+    detector positions, so the interpolation indices and weights are computed once per angle
+    and applied to all slices in one gather: the whole volume in one pass.  That suits a GPU;
+    on a CPU it streams gigabytes of temporaries and is slower than scikit-image's loop over
+    slices (30 s against 13 s for the 271-voxel Au volume on the 2-core CI machine), so
+    :func:`reconstruct` uses it on CUDA devices only.
+
+    Parameters
+    ----------
+    sinograms : (S, L, N) array
+        One sinogram per slice: L detector positions (centre at ``L // 2``), N angles.
+    angles_deg : (N,) array
+    filter_name : scikit-image filter name ("ramp", "hann", ...)
+    output_size : int, default L
+    device : torch device ("cpu", "cuda")
+
+    Returns
+    -------
+    (S, output_size, output_size) float64 array, equal to ``iradon`` of each slice.
+    """
+    import torch
+    from skimage.transform.radon_transform import _get_fourier_filter
+
+    sino = torch.as_tensor(np.asarray(sinograms, dtype=np.float64), device=device)
+    n_slices, length, n_angles = sino.shape
+    if n_angles != len(angles_deg):
+        raise ValueError(f"{n_angles} sinogram angles but {len(angles_deg)} angles_deg")
+    size = length if output_size is None else int(output_size)
+    padded = max(64, int(2 ** np.ceil(np.log2(2 * length))))
+    fourier_filter = torch.as_tensor(_get_fourier_filter(padded, filter_name)[:, 0], device=device)
+    spectrum = torch.fft.fft(torch.nn.functional.pad(sino.transpose(1, 2), (0, padded - length)), dim=-1)
+    filtered = torch.fft.ifft(spectrum * fourier_filter, dim=-1).real[..., :length]  # (S, N, L)
+    # Zero beyond both ends, as np.interp(left=0, right=0): pad one zero each side.
+    filtered = torch.nn.functional.pad(filtered, (1, 1))
+    # Detector-major layout (N, L + 2, S): each gather below copies whole rows of S slices.
+    filtered = filtered.permute(1, 2, 0).contiguous()
+    radius = size // 2
+    grid = torch.arange(size, device=device, dtype=torch.float64) - radius
+    xpr, ypr = grid[:, None], grid[None, :]
+    out = torch.zeros(size * size, n_slices, dtype=torch.float64, device=device)
+    for k, angle in enumerate(np.deg2rad(np.asarray(angles_deg, dtype=np.float64))):
+        t = (ypr * np.cos(angle) - xpr * np.sin(angle)).reshape(-1) + length // 2  # detector index
+        inside = (t >= 0) & (t <= length - 1)
+        i0 = torch.floor(t).clamp(0, length - 1)
+        w = ((t - i0) * inside)[:, None]
+        i0 = torch.where(inside, i0 + 1, torch.zeros_like(i0)).long()  # +1: the zero pad
+        i1 = torch.where(inside & (i0 < length), i0 + 1, i0)
+        col = filtered[k]
+        out.addcmul_(col[i0], 1 - w).addcmul_(col[i1], w)
+    out = out.T.reshape(n_slices, size, size) * (np.pi / (2 * n_angles))
+    return out.cpu().numpy()
+
+
 def reconstruct(
     projections: np.ndarray,
     angles_deg: np.ndarray,
@@ -69,6 +126,7 @@ def reconstruct(
     centre_px=None,
     sart_iterations: int = 1,
     filter_name: str = "ramp",
+    device: str = "cpu",
 ) -> Volume:
     """FBP or SART reconstruction of a single-axis tilt series.
 
@@ -85,6 +143,8 @@ def reconstruct(
         SART sweeps (each over all angles).
     filter_name : str
         FBP filter (scikit-image names).
+    device : str
+        "cuda": FBP by :func:`filtered_backprojection` on the GPU; otherwise scikit-image.
 
     Returns
     -------
@@ -101,9 +161,12 @@ def reconstruct(
     slice_axis, in_plane_centre, axis_centre = (2, ci, cj) if tilt_axis == "y" else (1, cj, ci)
     sino, length = _centred_sinograms(projections, in_plane_centre, slice_axis)
     theta = np.asarray(angles_deg, dtype=np.float64)
+    fbp = filtered_backprojection(sino, theta, filter_name, length, device) if method == "fbp" and device != "cpu" else None
     slices = []
-    for s in sino:
-        if method == "fbp":
+    for k, s in enumerate(sino):
+        if fbp is not None:
+            rec = fbp[k]
+        elif method == "fbp":
             rec = iradon(s, theta=theta, filter_name=filter_name, circle=False, output_size=length)
         elif method == "sart":
             rec = None

@@ -49,6 +49,7 @@ def backprojection_candidates(
     smoothing_A: float = 0.5,
     min_distance_A: float = 1.5,
     shoulders: bool = True,
+    device: str = "cpu",
 ) -> np.ndarray:
     """Candidate atom positions, strongest first.
 
@@ -72,6 +73,8 @@ def backprojection_candidates(
     shoulders : bool
         Fill the room left under ``max_count`` with Laplacian-of-Gaussian maxima away from
         the smoothed peaks (step 4 above).
+    device : str
+        "cuda" runs the back-projection on the GPU (seconds less of start-up).
 
     Returns
     -------
@@ -80,7 +83,7 @@ def backprojection_candidates(
     """
     if max_count <= 0:
         return np.zeros((0, 3))
-    volume = reconstruct(projections, angles_deg, pixel_size_A, "fbp", tilt_axis, centre_px, filter_name="hann")
+    volume = reconstruct(projections, angles_deg, pixel_size_A, "fbp", tilt_axis, centre_px, filter_name="hann", device=device)
     sigma_vox = smoothing_A / volume.spacing_A
     data = ndimage.gaussian_filter(volume.data, sigma_vox) if smoothing_A > 0 else volume.data
     positions = _separated_maxima(data, volume.spacing_A, min_distance_A)[:max_count]

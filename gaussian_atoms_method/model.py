@@ -197,9 +197,12 @@ class GaussianAtomsModel(SplatfactoModel):
         """(n, 3) starting positions in normalised units."""
         cfg = self.config
         if cfg.init == "backprojection" and series is not None:
+            # The model is built on the CPU and moved afterwards; a GPU, if there is one, does
+            # the back-projection.
             positions_A = backprojection_candidates(
-                series.projections, series.angles_deg, series.pixel_size_A, series.tilt_axis, series.centre_px, cfg.num_random
-            )
+                series.projections, series.angles_deg, series.pixel_size_A, series.tilt_axis, series.centre_px, cfg.num_random,
+                device="cuda" if torch.cuda.is_available() else "cpu",
+            )  # fmt: skip
             if len(positions_A):
                 CONSOLE.print(f"gaussian-atoms: {len(positions_A)} Gaussians start at back-projection maxima")
                 return torch.as_tensor(positions_A * self.normalisation.length_scale, dtype=torch.float32)
