@@ -32,25 +32,26 @@ def test_candidates_cover_every_atom():
 
 
 def test_shoulder_candidates_find_light_atoms_beside_heavy_ones():
-    """Ni/Pd/Pt high-entropy alloy (Gaussian potential, limited tilts): a Ni atom beside a Pt
-    atom is often only a shoulder of the Pt atom's smoothed peak.  Smoothed peaks alone leave a
-    third of the Ni without a candidate within the 0.75 Å scoring radius; the Laplacian fill
-    reaches almost all of them (0.986 measured; >= 0.97 leaves room for noise) and keeps the
-    smoothed peaks first and unchanged."""
+    """Ni/Pd/Pt high-entropy alloy (Lobato potentials, limited tilts, noise 50): a Ni atom
+    beside a Pt atom is often only a shoulder of the Pt atom's smoothed peak.  Smoothed peaks
+    alone reach 85% of the Ni within the 0.75 Å scoring radius; the strong Laplacian maxima
+    reach 95% (measured), adding a handful of candidates, not a flood, and keep the smoothed
+    peaks first and unchanged."""
     from gaussian_atoms_method.particles import make_particle
+    from gaussian_atoms_method.simulate import simulate_tilt_series
 
     atoms = make_particle("hea", 0.3, 0)
-    sim = simulate_gaussian_tilt_series(atoms, parse_tilts("limited"), noise_std=20.0, seed=1)
+    sim = simulate_tilt_series(atoms, parse_tilts("limited"), "lobato", noise_std=50.0, seed=1)
     args = (sim.projections, sim.angles_deg, sim.pixel_size_A)
     peaks_only = backprojection_candidates(*args, max_count=3 * len(atoms), shoulders=False)
     filled = backprojection_candidates(*args, max_count=3 * len(atoms))
     np.testing.assert_allclose(filled[: len(peaks_only)], peaks_only)
-    assert len(filled) <= 3 * len(atoms)
+    assert 0 < len(filled) - len(peaks_only) < 0.1 * len(atoms)
 
     def recall(cand, element):
         dist, _ = cKDTree(cand).query(atoms.positions[atoms.species == element])
         return np.mean(dist < 0.75)
 
-    assert recall(peaks_only, "Ni") < 0.8
-    assert recall(filled, "Ni") >= 0.97
-    assert recall(filled, "Pd") >= 0.98 and recall(filled, "Pt") == 1.0
+    assert recall(peaks_only, "Ni") < 0.9
+    assert recall(filled, "Ni") >= 0.93
+    assert recall(filled, "Pd") == 1.0 and recall(filled, "Pt") == 1.0
