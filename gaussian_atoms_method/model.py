@@ -117,6 +117,13 @@ class GaussianAtomsModelConfig(SplatfactoModelConfig):
     """Learn a per-projection in-plane shift with the atoms (residual misalignment of the tilt
     series).  Shifts are taken relative to their mean over the views (an overall shift of
     every view is the same as moving the particle)."""
+    stop_when_converged: bool = True
+    """End training early once the atoms are settled: the Gaussian count unchanged and the RMS
+    step of the positions over a refine interval below ``converged_fraction`` of the atoms'
+    noise-limited precision (:mod:`gaussian_atoms_method.uncertainty`) at two checks in a row.
+    Further steps would move the atoms by less than the data can tell apart."""
+    converged_fraction: float = 1.0
+    """See stop_when_converged."""
     refine_tilts: bool = False
     """Learn a per-projection tilt-angle offset (about the tilt axis) with the atoms: errors of
     the goniometer readings.  Offsets are taken relative to their mean (a common offset is the
@@ -429,6 +436,8 @@ class GaussianAtomsModel(SplatfactoModel):
                     [TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self._write_results_at, args=[last, trainer.base_dir]
                 )
             )
+            # After the refine and merge callbacks: judged on the atoms as they stand.
+            cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self._stop_if_converged, args=[trainer, last]))
             if self.config.snapshot_every > 0:
                 cbs.append(
                     TrainingCallback(
@@ -599,10 +608,41 @@ class GaussianAtomsModel(SplatfactoModel):
             self.write_results(Path(run_dir))
 
     @torch.no_grad()
-    def position_std_A(self, atoms: AtomSet) -> tuple[np.ndarray, float] | None:
+    def converged(self, step: int) -> bool:
+        """True once the atoms are settled (see ``stop_when_converged``); checked after each
+        refine interval's densify / prune / merge."""
+        cfg = self.config
+        if step < cfg.warmup_length or step % cfg.refine_every != 0:
+            return False
+        positions = self.means.detach().cpu().clone()
+        previous, self._previous_positions = getattr(self, "_previous_positions", None), positions
+        if previous is None or previous.shape != positions.shape:
+            self._settled_checks = 0
+            return False
+        step_A = float((positions - previous).square().sum(dim=1).mean().sqrt()) / self.normalisation.length_scale
+        atoms = self.atoms()
+        if getattr(self, "_noise_std", None) is None:
+            precision = self.position_std_A(atoms)
+            if precision is None:
+                return False
+            self._noise_std = precision[1]
+        std = self.position_std_A(atoms, self._noise_std)[0]
+        precision_A = float(np.median(np.sqrt((std**2).sum(axis=1))))
+        self._settled_checks = self._settled_checks + 1 if step_A < cfg.converged_fraction * precision_A else 0
+        return self._settled_checks >= 2
+
+    def _stop_if_converged(self, trainer, last_step: int, step: int) -> None:
+        if self.config.stop_when_converged and step < last_step and self.converged(step):
+            CONSOLE.print(f"gaussian-atoms: converged at step {step}: stopping early")
+            self.write_results(Path(trainer.base_dir))
+            trainer.stop_training = True  # nerfstudio's loop ends before the next step
+
+    @torch.no_grad()
+    def position_std_A(self, atoms: AtomSet, noise: float | None = None) -> tuple[np.ndarray, float] | None:
         """Each atom's position precision (N, 3) in Å and the pixel noise it assumes (input
-        units), from the residuals of the training views (:mod:`.uncertainty`); None without
-        the tilt series (a model built outside the dataparser)."""
+        units; estimated from the residuals of the training views unless given)
+        (:mod:`.uncertainty`); None without the tilt series (a model built outside the
+        dataparser)."""
         metadata = self.kwargs.get("metadata", {}) or {}
         series, projections = metadata.get("tilt_series"), metadata.get("projections")
         if series is None or projections is None or len(atoms) == 0:
@@ -610,10 +650,11 @@ class GaussianAtomsModel(SplatfactoModel):
         from dataparsers.tilt_series_dataparser import cameras_from_tilt_series
 
         cameras = cameras_from_tilt_series(series, self.normalisation).to(self.means.device)
-        residuals = [
-            (self.get_outputs(cameras[i : i + 1])["projection"][..., 0].cpu() - projections[i]).numpy() for i in range(len(cameras))
-        ]
-        noise = robust_noise_std(np.stack(residuals)) / self.normalisation.data_scale
+        if noise is None:
+            residuals = [
+                (self.get_outputs(cameras[i : i + 1])["projection"][..., 0].cpu() - projections[i]).numpy() for i in range(len(cameras))
+            ]
+            noise = robust_noise_std(np.stack(residuals)) / self.normalisation.data_scale
         c2w = cameras.camera_to_worlds.cpu().double().numpy()
         axes = np.stack([-c2w[:, :, 1], c2w[:, :, 0]], axis=1)  # detector rows, columns (as get_outputs)
         return position_std_A(atoms.sigmas, atoms.amplitudes, axes, series.pixel_size_A, noise, self.config.loss), noise

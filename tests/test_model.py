@@ -262,3 +262,27 @@ def test_viewer_finds_the_atoms_and_renders_a_perspective_camera(tmp_path):
     torch.testing.assert_close(persp_out["projection"], ortho_out["projection"], rtol=1e-4, atol=1e-3)
     assert persp_out["depth"].shape == persp_out["projection"].shape and float(persp_out["depth"].min()) > 100
     assert list(persp_out)[0] == "rgb"  # the viewer shows the first output
+
+
+def test_convergence_stop_needs_settled_atoms(tmp_path):
+    """The early stop fires only after two refine intervals in a row in which the Gaussian
+    count held and the positions moved (RMS) less than the atoms' noise-limited precision;
+    a move or a change of count starts the count again."""
+    _series(tmp_path)
+    model, _ = _model(tmp_path, num_random=30, init="random", warmup_length=100, refine_every=100)
+    assert not model.converged(50)  # not a check step
+    assert not model.converged(100)  # first check: nothing to compare with
+    assert not model.converged(200)  # settled once
+    assert model.converged(300)  # settled twice
+    std_A, _ = model.position_std_A(model.atoms())
+    precision_A = float(np.median(np.sqrt((std_A**2).sum(axis=1))))
+    with torch.no_grad():  # every atom moves by three times the precision
+        model.gauss_params["means"][:, 0] += 3 * precision_A * model.normalisation.length_scale
+    assert not model.converged(400)
+    assert not model.converged(500) and model.converged(600)
+    from gaussian_atoms_method.remap import keep_remap
+
+    keep = torch.ones(model.num_points, dtype=torch.bool)
+    keep[0] = False
+    model._remap(*keep_remap(keep))  # one Gaussian fewer, as a prune makes it: the set changed
+    assert not model.converged(700) and not model.converged(800) and model.converged(900)
