@@ -4,6 +4,7 @@
 # at and the scores.  Usage: scripts/convergence_stop.sh OUT DEVICE DATA_DIR...
 set -euo pipefail
 out=$1; device=$2; shift 2
+mkdir -p "$out"
 echo "| data | stop when converged | wall time (s) | steps | TPR | FP/atom | RMSD (pm) |"
 echo "| --- | --- | --- | --- | --- | --- | --- |"
 for data in "$@"; do
