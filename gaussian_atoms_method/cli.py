@@ -280,13 +280,15 @@ class Benchmark:
     """Score our atoms every this many training steps."""
     device: Literal["cpu", "cuda"] = "cpu"
     baselines: tuple[Literal["fbp", "sart"], ...] = ("fbp", "sart")
+    train_args: str = ""
+    """Further ns-train options for our run, quoted, e.g. "--pipeline.model.coarse-steps 400"."""
 
     def main(self) -> None:
         from .time_to_accuracy import TimeToAccuracy
 
         if self.snapshot_every <= 0:
             raise ValueError(f"--snapshot-every must be positive, got {self.snapshot_every}")
-        TimeToAccuracy(self.data, self.output, self.iterations, self.snapshot_every, self.device, self.baselines).run()
+        TimeToAccuracy(self.data, self.output, self.iterations, self.snapshot_every, self.device, self.baselines, tuple(shlex.split(self.train_args))).run()
         print(f"wrote {self.output / 'time_to_accuracy.md'}, .csv and .png")
 
 

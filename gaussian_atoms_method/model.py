@@ -117,6 +117,9 @@ class GaussianAtomsModelConfig(SplatfactoModelConfig):
     """Learn a per-projection in-plane shift with the atoms (residual misalignment of the tilt
     series).  Shifts are taken relative to their mean over the views (an overall shift of
     every view is the same as moving the particle)."""
+    coarse_steps: int = 0
+    """Coarse to fine: the first this many steps fit the projections binned 2 x 2 (a quarter of
+    the pixels to evaluate), then full resolution.  0: always full resolution."""
     stop_when_converged: bool = True
     """End training early once the atoms are settled: the Gaussian count unchanged and the RMS
     step of the positions over a refine interval below ``converged_fraction`` of the atoms'
@@ -344,6 +347,11 @@ class GaussianAtomsModel(SplatfactoModel):
             # magnification it has at the tilt centre, so zooming in and out works as expected.
             distance = torch.dot(t, c2w[:, 2]).clamp_min(1e-3)
             row_coords, col_coords = row_coords * distance, col_coords * distance
+        if self.training and self.step < self.config.coarse_steps:
+            # Coarse phase: the centres of 2 x 2 pixel blocks (the loss bins the data alike).
+            h, w = h // 2, w // 2
+            row_coords = row_coords[: 2 * h].view(h, 2).mean(dim=1)
+            col_coords = col_coords[: 2 * w].view(w, 2).mean(dim=1)
         view = self.view_index(camera) if len(self.view_params) else None
         if view is not None and "view_tilts" in self.view_params:
             # The view was taken at its nominal angle plus an error: rotate its detector axes
@@ -380,12 +388,21 @@ class GaussianAtomsModel(SplatfactoModel):
         return {"rgb": rgb, "projection": projection, "depth": depth}  # rgb first: the viewer shows it
 
     # ------------------------------------------------------------------ losses and metrics
-    def get_metrics_dict(self, outputs, batch) -> Dict[str, torch.Tensor]:
+    @staticmethod
+    def _measured(outputs, batch) -> torch.Tensor:
+        """The measured projection, binned 2 x 2 when the rendering is (coarse phase)."""
         gt = batch["image"].to(outputs["projection"])
+        h, w = outputs["projection"].shape[:2]
+        if gt.shape[:2] != (h, w):
+            gt = gt[: 2 * h, : 2 * w].reshape(h, 2, w, 2, -1).mean(dim=(1, 3))
+        return gt
+
+    def get_metrics_dict(self, outputs, batch) -> Dict[str, torch.Tensor]:
+        gt = self._measured(outputs, batch)
         return {"l1": torch.abs(outputs["projection"] - gt).mean().detach(), "gaussian_count": torch.tensor(float(self.num_points))}
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
-        gt = batch["image"].to(outputs["projection"])
+        gt = self._measured(outputs, batch)
         residual = outputs["projection"] - gt
         loss = torch.abs(residual).mean() if self.config.loss == "l1" else residual.square().mean()
         # Parameters are checked too: the tiled projector skips a Gaussian whose centre is NaN
@@ -651,9 +668,11 @@ class GaussianAtomsModel(SplatfactoModel):
 
         cameras = cameras_from_tilt_series(series, self.normalisation).to(self.means.device)
         if noise is None:
+            training, _ = self.training, self.eval()  # full resolution, whatever the phase
             residuals = [
                 (self.get_outputs(cameras[i : i + 1])["projection"][..., 0].cpu() - projections[i]).numpy() for i in range(len(cameras))
             ]
+            self.train(training)
             noise = robust_noise_std(np.stack(residuals)) / self.normalisation.data_scale
         c2w = cameras.camera_to_worlds.cpu().double().numpy()
         axes = np.stack([-c2w[:, :, 1], c2w[:, :, 0]], axis=1)  # detector rows, columns (as get_outputs)

@@ -286,3 +286,31 @@ def test_convergence_stop_needs_settled_atoms(tmp_path):
     keep[0] = False
     model._remap(*keep_remap(keep))  # one Gaussian fewer, as a prune makes it: the set changed
     assert not model.converged(700) and not model.converged(800) and model.converged(900)
+
+
+def test_coarse_phase_renders_and_compares_2x2_blocks(tmp_path):
+    """During the coarse steps a training view renders at the centres of 2 x 2 pixel blocks
+    and the loss bins the measurement alike; afterwards (and in evaluation) full resolution.
+    A block's mean and the value at its centre differ by the curvature over the block (Gaussians
+    of 2-3 pixels here: a few percent of the peak at most)."""
+    import torch.nn.functional as F
+
+    _series(tmp_path)  # 30 x 36 pixels
+    model, outputs = _model(tmp_path, num_random=20, coarse_steps=100, init_sigma_A=0.7)
+    camera, gt = outputs.cameras[0:1], outputs.metadata["projections"][0][..., None]
+    model.train()
+    model.step = 0
+    coarse = model.get_outputs(camera)
+    assert coarse["projection"].shape == (15, 18, 1) and coarse["rgb"].shape == (15, 18, 3)
+    model.eval()
+    full = model.get_outputs(camera)["projection"]
+    assert full.shape == (30, 36, 1)
+    pooled = F.avg_pool2d(full[..., 0][None, None], 2)[0, 0]
+    peak = float(full.max())
+    assert float((coarse["projection"][..., 0] - pooled).abs().max()) < 0.05 * peak
+    model.train()
+    loss = model.get_loss_dict(coarse, {"image": gt})["main_loss"]
+    binned = F.avg_pool2d(gt[..., 0][None, None], 2)[0, 0]
+    torch.testing.assert_close(loss, (coarse["projection"][..., 0] - binned).abs().mean())
+    model.step = 100
+    assert model.get_outputs(camera)["projection"].shape == (30, 36, 1)
