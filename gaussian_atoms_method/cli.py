@@ -281,7 +281,7 @@ class Benchmark:
     device: Literal["cpu", "cuda"] = "cpu"
     baselines: tuple[Literal["fbp", "sart"], ...] = ("fbp", "sart")
     train_args: str = ""
-    """Further ns-train options for our run, quoted, e.g. "--pipeline.model.coarse-steps 400"."""
+    """Further ns-train options for our run, given with "=", e.g. --train-args="--pipeline.model.coarse-steps 500"."""
 
     def main(self) -> None:
         from .time_to_accuracy import TimeToAccuracy
