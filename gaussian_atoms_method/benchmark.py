@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import subprocess
 import sys
 import time
@@ -134,8 +135,9 @@ class AccuracyBenchmark:
         plot(rows, self.output)
 
 
-def train_ours(data: Path, run_dir: Path, iterations: int = 3000, device: str = "cpu", extra_args: tuple[str, ...] = ()):
-    """Run ``ns-train gaussian-atoms`` on a tilt-series directory in a subprocess.
+def train_ours(data: Path, run_dir: Path, iterations: int = 3000, device: str = "cpu", extra_args: tuple[str, ...] = (), threads: int | None = None):
+    """Run ``ns-train gaussian-atoms`` on a tilt-series directory in a subprocess (with
+    ``threads``, its OpenMP threads are limited to that many).
 
     Returns the predicted :class:`~.atoms.AtomSet` (read from the run's ``atoms.xyz``) and the
     wall time in seconds, nerfstudio's start-up included.
@@ -149,7 +151,8 @@ def train_ours(data: Path, run_dir: Path, iterations: int = 3000, device: str = 
         "--output-dir", str(run_dir), "--experiment-name", "ours", "--timestamp", "run",
         "--max-num-iterations", str(iterations), *extra_args, "tilt-series", "--data", str(data),
     ]  # fmt: skip
-    proc = subprocess.run(cmd, capture_output=True, text=True)
+    env = None if threads is None else {**os.environ, "OMP_NUM_THREADS": str(threads)}
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
     seconds = time.perf_counter() - start
     if proc.returncode != 0:
         raise RuntimeError(f"ns-train failed on {data}:\n{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}")

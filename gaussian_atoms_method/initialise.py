@@ -99,8 +99,8 @@ def backprojection_candidates(
         extra = _separated_maxima(laplacian, volume.spacing_A, min_distance_A)
         if len(positions) and len(extra):
             distance, _ = cKDTree(positions * volume.spacing_A).query(extra * volume.spacing_A)
-            strong = np.percentile(laplacian[tuple(positions.astype(int).T)], 90)
-            extra = extra[(distance > min_distance_A) & (laplacian[tuple(extra.astype(int).T)] >= shoulder_strength * strong)]
+            strong = np.percentile(laplacian[tuple(positions.T)], 90)
+            extra = extra[(distance > min_distance_A) & (laplacian[tuple(extra.T)] >= shoulder_strength * strong)]
         positions = np.concatenate([positions, extra])[:max_count]
     return volume.index_to_A(positions) if len(positions) else np.zeros((0, 3))
 
@@ -109,6 +109,6 @@ def _separated_maxima(data: np.ndarray, spacing_A: float, min_distance_A: float)
     """(M, 3) voxel indices of local maxima of ``data``, strongest first, ``min_distance_A`` apart."""
     peaks = local_maxima(data)
     if len(peaks) == 0:
-        return np.zeros((0, 3))
+        return np.zeros((0, 3), dtype=np.int64)
     order = np.argsort(-data[tuple(peaks.T)], kind="stable")
-    return peaks[suppress_within(peaks * spacing_A, order, min_distance_A)].astype(np.float64)
+    return peaks[suppress_within(peaks * spacing_A, order, min_distance_A)]

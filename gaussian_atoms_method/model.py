@@ -664,17 +664,17 @@ class GaussianAtomsModel(SplatfactoModel):
         series, projections = metadata.get("tilt_series"), metadata.get("projections")
         if series is None or projections is None or len(atoms) == 0:
             return None
-        from dataparsers.tilt_series_dataparser import cameras_from_tilt_series
-
-        cameras = cameras_from_tilt_series(series, self.normalisation).to(self.means.device)
         if noise is None:
+            from dataparsers.tilt_series_dataparser import cameras_from_tilt_series
+
+            cameras = cameras_from_tilt_series(series, self.normalisation).to(self.means.device)
             training, _ = self.training, self.eval()  # full resolution, whatever the phase
             residuals = [
                 (self.get_outputs(cameras[i : i + 1])["projection"][..., 0].cpu() - projections[i]).numpy() for i in range(len(cameras))
             ]
             self.train(training)
             noise = robust_noise_std(np.stack(residuals)) / self.normalisation.data_scale
-        c2w = cameras.camera_to_worlds.cpu().double().numpy()
+        c2w = self.view_c2w.cpu().double().numpy()  # the training views' poses
         axes = np.stack([-c2w[:, :, 1], c2w[:, :, 0]], axis=1)  # detector rows, columns (as get_outputs)
         return position_std_A(atoms.sigmas, atoms.amplitudes, axes, series.pixel_size_A, noise, self.config.loss), noise
 

@@ -73,9 +73,8 @@ def train_and_score(data: str, run_dir: str, args: list[str], iterations: int, d
     from .benchmark import train_ours
     from .evaluation import evaluate_atoms, load_reference
 
-    os.environ["OMP_NUM_THREADS"] = str(threads)  # inherited by the ns-train subprocess
     start = time.time()
-    pred, seconds = train_ours(Path(data), Path(run_dir), iterations, device, tuple(args))
+    pred, seconds = train_ours(Path(data), Path(run_dir), iterations, device, tuple(args), threads)
     result = {"seconds": seconds, "n_pred": len(pred), "finished_unix": time.time(), "started_unix": start}
     try:
         _, truth, _, _ = load_reference(Path(data))
@@ -107,7 +106,9 @@ class Sweep:
             raise SweepError(f"--jobs {self.jobs}: expected at least 1")
         if self.backend not in ("local", "ray"):
             raise SweepError(f"--backend {self.backend!r}: expected local or ray")
-        self.settings = grid_settings(parse_grid(self.grid))
+        grid = parse_grid(self.grid)
+        self.options = [option for option, _ in grid]
+        self.settings = grid_settings(grid)
 
     def _args(self, settings: dict[str, str]) -> list[str]:
         return [*self.base_args, *itertools.chain.from_iterable(settings.items())]
@@ -195,7 +196,7 @@ class Sweep:
                 finish(k, exc)
 
     def write(self, rows: list[dict]) -> None:
-        options = [option for option, _ in parse_grid(self.grid)]
+        options = self.options
         header = [o.lstrip("-") for o in options] + METRICS + ["status", "run"]
         table = []
         for settings, row in zip(self.settings, rows):
