@@ -78,8 +78,9 @@ def test_reconstruct_rejects_unknown_method():
 
 
 def test_batched_filtered_backprojection_equals_scikit_image():
-    """The one-pass torch FBP (used on GPUs) is scikit-image's iradon slice by slice, to
-    float64 rounding, for both filters the package uses."""
+    """The sparse-matrix FBP is scikit-image's iradon slice by slice, to float64 rounding, for
+    both filters the package uses, for output slices smaller and larger than the detector, and
+    when the matrix is built in blocks of a few output rows."""
     from skimage.transform import iradon
 
     from gaussian_atoms_method.baselines import filtered_backprojection
@@ -90,5 +91,10 @@ def test_batched_filtered_backprojection_equals_scikit_image():
     for name in ("ramp", "hann"):
         expected = np.stack([iradon(s, theta=theta, filter_name=name, circle=False, output_size=41) for s in sino])
         np.testing.assert_allclose(filtered_backprojection(sino, theta, name, 41), expected, rtol=0, atol=1e-12)
+    for size in (29, 57):
+        expected = np.stack([iradon(s, theta=theta, output_size=size, circle=False) for s in sino])
+        np.testing.assert_allclose(filtered_backprojection(sino, theta, output_size=size), expected, rtol=0, atol=1e-12)
+        blocks = filtered_backprojection(sino, theta, output_size=size, max_matrix_entries=7 * 2 * len(theta))
+        np.testing.assert_allclose(blocks, expected, rtol=0, atol=1e-12)
     with pytest.raises(ValueError, match="angles"):
         filtered_backprojection(sino, theta[:-1])
