@@ -2,8 +2,8 @@
 
 Verbs: ``simulate`` (write a tilt-series directory with known atoms), ``evaluate`` (score
 predicted atoms against the truth), ``baseline`` (FBP/SART + atom tracing), the benchmarks,
-``stress``, ``export`` and ``sweep``.  Training is
-``ns-train gaussian-atoms``.
+``stress``, ``export`` and ``sweep``.  Training is ``ns-train gaussian-atoms`` or, with
+the same options and a shorter start-up, ``gaussian-atoms train``.
 """
 
 from __future__ import annotations
@@ -386,7 +386,17 @@ def split_grid(tokens: list[str]) -> tuple[str, ...]:
     return tuple(" ".join(shlex.quote(t) for t in entry) for entry in entries)
 
 
+@dataclass
+class Train:
+    """Train on a tilt series: ``ns-train gaussian-atoms``'s options, a shorter start-up
+    (``gaussian-atoms train -h`` lists them)."""
+
+    def main(self) -> None:  # the entry point hands "train ..." to train.main before tyro
+        raise AssertionError("unreachable")
+
+
 Commands = Union[
+    Annotated[Train, tyro.conf.subcommand("train")],
     Annotated[Simulate, tyro.conf.subcommand("simulate")],
     Annotated[Evaluate, tyro.conf.subcommand("evaluate")],
     Annotated[Baseline, tyro.conf.subcommand("baseline")],
@@ -406,6 +416,16 @@ def entrypoint(argv: list[str] | None = None) -> None:
     from .atoms import AtomFileError
 
     argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["train"]:
+        # Its options are nerfstudio's TrainerConfig: tyro parses them in train.main.
+        from .train import TrainOptionError
+        from .train import main as train_main
+
+        try:
+            return train_main(argv[1:])
+        except (TiltSeriesError, TrainOptionError) as exc:
+            print(f"gaussian-atoms train: error: {exc}", file=sys.stderr)
+            raise SystemExit(2) from None
     grid: tuple[str, ...] = ()
     if argv[:1] == ["sweep"] and "--" in argv:
         # The sweep's grid is ns-train's own options, passed through after "--".

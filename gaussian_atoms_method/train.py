@@ -1,0 +1,78 @@
+"""``gaussian-atoms train``: the same training as ``ns-train gaussian-atoms``, started faster.
+
+``ns-train`` imports every method nerfstudio ships (and every installed plugin) to build its
+command line before it knows which one was asked for: 17-19 s of a run's start-up on the
+machines measured (``docs/performance.md``).  This entry point builds the command line from
+this method's :class:`~nerfstudio.engine.trainer.TrainerConfig` alone and runs nerfstudio's
+own :class:`~nerfstudio.engine.trainer.Trainer` on it, so the options, the run directory, the
+``config.yml`` (readable by ``ns-viewer``, ``ns-eval`` and ``gaussian-atoms export``), the
+checkpoints and the results are those of ``ns-train gaussian-atoms``::
+
+    gaussian-atoms train [trainer and model options] tilt-series --data DIR
+
+One process on one device; multi-GPU and multi-machine runs go through ``ns-train``.
+"""
+
+from __future__ import annotations
+
+import random
+import sys
+
+
+class TrainOptionError(ValueError):
+    """An option this entry point cannot honour."""
+
+
+def build_config(argv: list[str]):
+    """Parse ``argv`` (the options ``ns-train gaussian-atoms`` takes after the method name)
+    into a :class:`~nerfstudio.engine.trainer.TrainerConfig` based on this method's defaults."""
+    import tyro
+    from nerfstudio.engine.trainer import TrainerConfig
+
+    from .config import gaussian_atoms_trainer_config
+
+    tyro.extras.set_accent_color("bright_yellow")
+    return tyro.cli(
+        TrainerConfig,
+        default=gaussian_atoms_trainer_config(),
+        args=argv,
+        prog="gaussian-atoms train",
+        description=__doc__.split("\n\n")[0] + "\n\nOptions are those of `ns-train gaussian-atoms`.",
+    )
+
+
+def run(config) -> None:
+    """Train with ``config`` in this process, as ``ns-train``'s single-device launch does."""
+    import numpy as np
+    import torch
+    import yaml
+
+    if config.machine.num_devices * config.machine.num_machines != 1:
+        raise TrainOptionError(
+            f"--machine.num-devices {config.machine.num_devices} / --machine.num-machines "
+            f"{config.machine.num_machines}: gaussian-atoms train runs on one device; use "
+            "`ns-train gaussian-atoms` for distributed training"
+        )
+    if config.data:
+        config.pipeline.datamanager.data = config.data
+    if config.load_config:
+        config = yaml.load(config.load_config.read_text(), Loader=yaml.Loader)
+    config.set_timestamp()
+    config.print_to_terminal()
+    config.save_config()
+    seed = config.machine.seed
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    try:
+        trainer.train()
+    finally:
+        from nerfstudio.utils import profiler
+
+        profiler.flush_profiler(config.logging)
+
+
+def main(argv: list[str] | None = None) -> None:
+    run(build_config(list(sys.argv[1:] if argv is None else argv)))
