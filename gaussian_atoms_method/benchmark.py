@@ -94,7 +94,7 @@ class AccuracyBenchmark:
         return json.loads(result.read_text())
 
     def _run_ours(self, data: Path, run_dir: Path, extra_args: tuple[str, ...] = ()) -> None:
-        """``ns-train gaussian-atoms`` on ``data`` (``extra_args``: trainer/model flags), scored."""
+        """Our training on ``data`` (``extra_args``: trainer/model flags), scored."""
         from .evaluation import evaluate_atoms, load_reference
 
         atoms, seconds = train_ours(data, run_dir, self.iterations, self.device, extra_args)
@@ -135,19 +135,33 @@ class AccuracyBenchmark:
         plot(rows, self.output)
 
 
-def train_ours(data: Path, run_dir: Path, iterations: int = 3000, device: str = "cpu", extra_args: tuple[str, ...] = (), threads: int | None = None):
-    """Run ``ns-train gaussian-atoms`` on a tilt-series directory in a subprocess (with
-    ``threads``, its OpenMP threads are limited to that many).
+def train_ours(
+    data: Path,
+    run_dir: Path,
+    iterations: int = 3000,
+    device: str = "cpu",
+    extra_args: tuple[str, ...] = (),
+    threads: int | None = None,
+    launcher: str = "gaussian-atoms",
+):
+    """Train on a tilt-series directory in a subprocess: ``gaussian-atoms train`` (the default)
+    or ``ns-train gaussian-atoms`` (``launcher="ns-train"``; same trainer and options, a longer
+    start-up).  With ``threads``, its OpenMP threads are limited to that many.
 
     Returns the predicted :class:`~.atoms.AtomSet` (read from the run's ``atoms.xyz``) and the
-    wall time in seconds, nerfstudio's start-up included.
+    wall time in seconds, start-up included.
     """
     from .atoms import read_atoms
 
-    bin_dir = Path(sys.executable).parent
+    if launcher == "gaussian-atoms":
+        command = [sys.executable, "-m", "gaussian_atoms_method.cli", "train"]
+    elif launcher == "ns-train":
+        command = [str(Path(sys.executable).parent / "ns-train"), "gaussian-atoms"]
+    else:
+        raise ValueError(f"launcher must be 'gaussian-atoms' or 'ns-train', got {launcher!r}")
     start = time.perf_counter()
     cmd = [
-        str(bin_dir / "ns-train"), "gaussian-atoms", "--machine.device-type", device, "--vis", "tensorboard",
+        *command, "--machine.device-type", device, "--vis", "tensorboard",
         "--output-dir", str(run_dir), "--experiment-name", "ours", "--timestamp", "run",
         "--max-num-iterations", str(iterations), *extra_args, "tilt-series", "--data", str(data),
     ]  # fmt: skip
@@ -155,7 +169,7 @@ def train_ours(data: Path, run_dir: Path, iterations: int = 3000, device: str = 
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
     seconds = time.perf_counter() - start
     if proc.returncode != 0:
-        raise RuntimeError(f"ns-train failed on {data}:\n{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}")
+        raise RuntimeError(f"{' '.join(command[-2:])} failed on {data}:\n{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}")
     return read_atoms(run_dir / "ours" / "gaussian-atoms" / "run" / "atoms.xyz"), seconds
 
 

@@ -1,11 +1,11 @@
 """Time to accuracy: our method evaluated during training against FBP and SART with tracing,
 on the same data in the same run (``gaussian-atoms benchmark``).
 
-Ours runs as ``ns-train gaussian-atoms`` with ``--pipeline.model.snapshot-every K``: every K
-steps the model writes its current atoms and the wall-clock time; each snapshot is scored
-against the truth, so every row is (seconds since ns-train was launched, TPR, FP per atom,
-RMSD).  Launch time counts (nerfstudio's start-up and our back-projection start are part of
-what a user waits for).  FBP and SART (one sweep) are timed from reading the data to traced
+Ours runs as ``gaussian-atoms train`` (or ``ns-train gaussian-atoms``: ``launcher``) with
+``--pipeline.model.snapshot-every K``: every K steps the model writes its current atoms and
+the wall-clock time; each snapshot is scored against the truth, so every row is (seconds since
+the training process was launched, TPR, FP per atom, RMSD).  Launch time counts (nerfstudio's
+start-up and our back-projection start are part of what a user waits for).  FBP and SART (one sweep) are timed from reading the data to traced
 atoms.  Peak memory: the largest resident set of the training process (CPU) and the GPU's
 largest allocation when on CUDA.
 """
@@ -32,6 +32,7 @@ class TimeToAccuracy:
     device: str = "cpu"
     baselines: tuple[str, ...] = ("fbp", "sart")
     extra_args: tuple[str, ...] = ()
+    launcher: str = "gaussian-atoms"
 
     def run(self) -> list[dict]:
         from .atoms import read_atoms
@@ -53,7 +54,7 @@ class TimeToAccuracy:
             print(self._line(rows[-1]), flush=True)
         run_dir = self.output / "run"
         launch = time.time()
-        train_ours(self.data, run_dir, self.iterations, self.device, ("--pipeline.model.snapshot-every", str(self.snapshot_every), *self.extra_args))
+        train_ours(self.data, run_dir, self.iterations, self.device, ("--pipeline.model.snapshot-every", str(self.snapshot_every), *self.extra_args), launcher=self.launcher)
         rss_gb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1e6
         snapshots = run_dir / "ours" / "gaussian-atoms" / "run" / "snapshots"
         times = np.loadtxt(snapshots / "times.csv", delimiter=",", ndmin=2)
