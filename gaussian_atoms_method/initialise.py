@@ -54,7 +54,8 @@ def backprojection_candidates(
     shoulders: bool = True,
     shoulder_strength: float = 0.35,
     device: str = "cpu",
-) -> np.ndarray:
+    return_values: bool = False,
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Candidate atom positions, strongest first.
 
     Parameters
@@ -82,14 +83,19 @@ def backprojection_candidates(
         Laplacian at the smoothed peaks (about a heavy atom's response).
     device : str
         "cuda" runs the back-projection on the GPU (seconds less of start-up).
+    return_values : bool
+        Also return the smoothed back-projection at each candidate.
 
     Returns
     -------
     positions_A : (M, 3) array, M <= max_count
         Positions in Å about the tilt centre (world x, y, z), strongest first.
+    values : (M,) array, only with ``return_values``
+        The smoothed back-projection there (projection units per Å): about proportional to
+        the atom's potential, and near zero for candidates made of noise.
     """
     if max_count <= 0:
-        return np.zeros((0, 3))
+        return (np.zeros((0, 3)), np.zeros(0)) if return_values else np.zeros((0, 3))
     volume = reconstruct(projections, angles_deg, pixel_size_A, "fbp", tilt_axis, centre_px, filter_name="hann", device=device)
     sigma_vox = smoothing_A / volume.spacing_A
     data = ndimage.gaussian_filter(volume.data, sigma_vox) if smoothing_A > 0 else volume.data
@@ -102,7 +108,8 @@ def backprojection_candidates(
             strong = np.percentile(laplacian[tuple(positions.T)], 90)
             extra = extra[(distance > min_distance_A) & (laplacian[tuple(extra.T)] >= shoulder_strength * strong)]
         positions = np.concatenate([positions, extra])[:max_count]
-    return volume.index_to_A(positions) if len(positions) else np.zeros((0, 3))
+    positions_A = volume.index_to_A(positions) if len(positions) else np.zeros((0, 3))
+    return (positions_A, data[tuple(positions.T)] if len(positions) else np.zeros(0)) if return_values else positions_A
 
 
 def _separated_maxima(data: np.ndarray, spacing_A: float, min_distance_A: float) -> np.ndarray:

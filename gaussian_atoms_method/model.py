@@ -60,6 +60,10 @@ class GaussianAtomsModelConfig(SplatfactoModelConfig):
     """Where the Gaussians start: at the strongest local maxima of a smoothed filtered
     back-projection (see :mod:`gaussian_atoms_method.initialise`), or at random positions (the
     paper).  Back-projection needs single-axis tilts; otherwise random is used."""
+    init_mass: Literal["backprojection", "equal"] = "backprojection"
+    """How the measured mass is shared among the starting Gaussians: in proportion to the
+    smoothed back-projection at each (noise candidates start faint and are pruned sooner;
+    back-projection start only), or equally."""
     num_random: int = 10000
     """Number of Gaussians to start from (at most this many back-projection candidates)."""
     init_sigma_A: float = 0.7
@@ -153,12 +157,14 @@ class GaussianAtomsModel(SplatfactoModel):
         truth = metadata.get("truth_path")
         self.truth_path: Path | None = Path(truth) if truth is not None else None
         self.generator = torch.Generator().manual_seed(cfg.seed)
-        means = self._initial_means(metadata.get("tilt_series"))
+        means, weights = self._initial_means(metadata.get("tilt_series"))
         n = means.shape[0]
         sigma0 = cfg.init_sigma_A * self.normalisation.length_scale
         log_sigmas = torch.full((n, 1 if cfg.isotropic else 3), math.log(sigma0))
         amp0 = self._initial_amplitude(metadata, n, sigma0)
         log_amps = torch.full((n, 1), math.log(amp0))
+        if weights is not None and cfg.init_mass == "backprojection":
+            log_amps += torch.log(weights)[:, None]
         # Every Gaussian's mass stays below 1000x the whole measured mass (see clamp_parameters).
         floor_sigma = cfg.min_sigma_A * self.normalisation.length_scale
         self._max_log_amplitude = math.log(1000.0 * max(n, 1) * amp0 * (sigma0 / floor_sigma) ** 3)
@@ -203,20 +209,25 @@ class GaussianAtomsModel(SplatfactoModel):
         size = float(sigmas.median()) if len(sigmas) else 0.01
         return self.means.detach().cpu().numpy(), masses.numpy(), size
 
-    def _initial_means(self, series) -> torch.Tensor:
-        """(n, 3) starting positions in normalised units."""
+    def _initial_means(self, series) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(n, 3) starting positions in normalised units, and for a back-projection start (n,)
+        weights of mean 1 in proportion to the smoothed back-projection there (else None)."""
         cfg = self.config
         if cfg.init == "backprojection" and series is not None:
             # The model is built on the CPU and moved afterwards; a GPU, if there is one, does
             # the back-projection.
-            positions_A = backprojection_candidates(
+            positions_A, values = backprojection_candidates(
                 series.projections, series.angles_deg, series.pixel_size_A, series.tilt_axis, series.centre_px, cfg.num_random,
-                device="cuda" if torch.cuda.is_available() else "cpu",
+                device="cuda" if torch.cuda.is_available() else "cpu", return_values=True,
             )  # fmt: skip
             if len(positions_A):
                 CONSOLE.print(f"gaussian-atoms: {len(positions_A)} Gaussians start at back-projection maxima")
-                return torch.as_tensor(positions_A * self.normalisation.length_scale, dtype=torch.float32)
-        return (torch.rand(cfg.num_random, 3, generator=self.generator) - 0.5) * cfg.init_extent
+                # A candidate made of noise reads about zero; a floor of 1% of the strongest
+                # keeps every weight positive (a log-amplitude) without making it atom-like.
+                values = torch.as_tensor(values, dtype=torch.float64)
+                values = values.clamp_min(0.01 * float(values.max().clamp_min(1e-30)))
+                return torch.as_tensor(positions_A * self.normalisation.length_scale, dtype=torch.float32), (values / values.mean()).float()
+        return (torch.rand(cfg.num_random, 3, generator=self.generator) - 0.5) * cfg.init_extent, None
 
     @staticmethod
     def _initial_amplitude(metadata: dict, n: int, sigma: float) -> float:

@@ -26,6 +26,14 @@ def test_candidates_cover_every_atom():
     first, _ = cKDTree(atoms.positions).query(cand[: len(atoms)])
     assert np.mean(first < 0.75) > 0.98
 
+    # The smoothed back-projection at each candidate, strongest first: at a peak-to-noise of
+    # about 20 an atom reads several times what a maximum made of noise does.
+    same, values = backprojection_candidates(sim.projections, sim.angles_deg, sim.pixel_size_A, max_count=n_max, return_values=True)
+    np.testing.assert_array_equal(same, cand)
+    assert values.shape == (len(cand),) and np.all(np.diff(values) <= 0)
+    on_atom = cKDTree(atoms.positions).query(cand)[0] < 0.75
+    assert np.median(values[on_atom]) > 3 * np.median(values[~on_atom])
+
     few = backprojection_candidates(sim.projections, sim.angles_deg, sim.pixel_size_A, max_count=10)
     np.testing.assert_allclose(few, cand[:10])
     assert len(backprojection_candidates(sim.projections, sim.angles_deg, sim.pixel_size_A, max_count=0)) == 0

@@ -5,6 +5,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from scipy.spatial import cKDTree
 
 from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
 from dataparsers.tilt_series_format import write_tilt_series
@@ -28,6 +29,27 @@ def _model(tmp_path, **cfg):
     config = GaussianAtomsModelConfig(**cfg)
     model = config.setup(scene_box=outputs.scene_box, num_train_data=len(outputs.image_filenames), metadata=outputs.metadata)
     return model, outputs
+
+
+def test_initial_mass_follows_the_backprojection(tmp_path):
+    """init_mass="backprojection" shares the same measured mass as "equal" but in proportion to
+    the smoothed back-projection: Gaussians that start on atoms carry several times the mass of
+    those that start on noise, so the first prune removes the latter."""
+    from gaussian_atoms_method.projector import gaussian_mass
+    from gaussian_atoms_method.simulate import parse_tilts, simulate_gaussian_tilt_series, spherical_particle
+
+    atoms = spherical_particle("Au", radius_A=6.0)
+    sim = simulate_gaussian_tilt_series(atoms, parse_tilts("limited"), noise_std=20.0, seed=1)
+    write_tilt_series(tmp_path, sim.projections, sim.angles_deg, sim.pixel_size_A, truth=atoms)
+    masses = {}
+    for init_mass in ("equal", "backprojection"):
+        model, _ = _model(tmp_path, init_mass=init_mass, num_random=3 * len(atoms))
+        masses[init_mass] = gaussian_mass(model.sigmas, model.amplitudes).double()
+        on_atom = torch.as_tensor(cKDTree(atoms.positions).query(model.atoms().positions)[0] < 0.75)
+    assert masses["backprojection"].sum().item() == pytest.approx(masses["equal"].sum().item(), rel=1e-5)
+    assert torch.unique(masses["equal"]).numel() == 1
+    weighted = masses["backprojection"]
+    assert 0 < on_atom.sum() < len(on_atom) and weighted[on_atom].median() > 3 * weighted[~on_atom].median()
 
 
 @pytest.mark.parametrize("tilt_axis, centre_px", [("y", None), ("x", (12.0, 20.5))])
