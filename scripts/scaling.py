@@ -47,7 +47,7 @@ def time_iterations(n_atoms: int, device: str, iterations: int = 30, warmup: int
         write_tilt_series(Path(tmp), rng.uniform(0, 1, (len(angles), side, side)).astype(np.float32), angles, 0.25)
         outputs = TiltSeriesDataParserConfig(data=Path(tmp)).setup().get_dataparser_outputs("train")
     radius_norm = 0.5 * (side * 0.25 - 10.0) / (side * 0.25)
-    model = GaussianAtomsModelConfig(init="random", num_random=n_atoms, init_extent=2 * radius_norm / np.sqrt(3)).setup(
+    model = GaussianAtomsModelConfig(init="random", num_random=n_atoms, init_extent=2 * radius_norm / np.sqrt(3), coarse_steps=0).setup(
         scene_box=outputs.scene_box, num_train_data=len(angles), metadata=outputs.metadata
     )
     model.to(device)

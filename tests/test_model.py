@@ -25,6 +25,9 @@ def _series(tmp_path, tilt_axis="y", centre_px=None, shape=(30, 36)):
 
 
 def _model(tmp_path, **cfg):
+    # These tests check rendering and training against full-resolution references from step 0;
+    # the coarse phase (2 x 2-binned early steps, on by default) has its own test below.
+    cfg.setdefault("coarse_steps", 0)
     outputs = TiltSeriesDataParserConfig(data=tmp_path).setup().get_dataparser_outputs("train")
     config = GaussianAtomsModelConfig(**cfg)
     model = config.setup(scene_box=outputs.scene_box, num_train_data=len(outputs.image_filenames), metadata=outputs.metadata)
