@@ -68,6 +68,11 @@ def run(config) -> None:
     trainer.setup()
     try:
         trainer.train()
+    except KeyboardInterrupt:
+        # Ctrl+C, also how a viewer left running after training is closed.  Results are
+        # written at the last step only, so an interrupted run leaves none half-written.
+        print("gaussian-atoms train: interrupted", file=sys.stderr)
+        raise SystemExit(130) from None
     finally:
         from nerfstudio.utils import profiler
 
