@@ -138,11 +138,25 @@ class GaussianAtomsModelConfig(SplatfactoModelConfig):
     """Learn a per-projection tilt-angle offset (about the tilt axis) with the atoms: errors of
     the goniometer readings.  Offsets are taken relative to their mean (a common offset is the
     same as rotating the particle).  Single-axis tilt series only."""
+    views_per_step: int = 1
+    """Training views fitted per step: the view nerfstudio hands the model and this many minus
+    one others drawn at random, rendered in one projector call, one loss over all.  On a GPU a
+    batch of views costs about one view's kernel launches and the averaged gradient is smoother
+    (docs/performance.md: several views per step); on a CPU each view costs its own time.  Not
+    with refine-alignment, refine-tilts, background or anisotropic Gaussians."""
     snapshot_every: int = 0
     """Every this many steps (0: never) write the current atoms to ``snapshots/`` in the run
     directory with the wall-clock time, for time-to-accuracy benchmarks."""
     seed: int = 0
     """Seed of the random initialisation and duplications."""
+
+
+def _binned_like(image: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """(H, W, C) ``image`` as is, or averaged over 2 x 2 blocks to the (H/2, W/2) of ``like``."""
+    h, w = like.shape[:2]
+    if image.shape[:2] != (h, w):
+        image = image[: 2 * h, : 2 * w].reshape(h, 2, w, 2, -1).mean(dim=(1, 3))
+    return image
 
 
 class GaussianAtomsModel(SplatfactoModel):
@@ -203,6 +217,7 @@ class GaussianAtomsModel(SplatfactoModel):
         self.background_color = torch.zeros(3)
         # Draws the atoms as points in nerfstudio's viewer (found there as a ViewerControl).
         self.atoms_in_viewer = AtomsInViewer(self._viewer_atoms)
+        self._setup_view_batches(metadata)
 
     @torch.no_grad()
     def _viewer_atoms(self) -> tuple[np.ndarray, np.ndarray, float]:
@@ -341,6 +356,37 @@ class GaussianAtomsModel(SplatfactoModel):
         best = int(torch.argmin(dist))
         return best if float(dist[best]) < 1e-5 else None
 
+    def _setup_view_batches(self, metadata: dict) -> None:
+        """With views_per_step > 1 the model holds the measured projections (the loss of the
+        extra views needs them) and checks the views can share one projector call."""
+        cfg = self.config
+        if cfg.views_per_step < 1:
+            raise ValueError(f"--pipeline.model.views-per-step must be at least 1, got {cfg.views_per_step}")
+        self.register_buffer("train_projections", torch.zeros(0, 1, 1), persistent=False)
+        if cfg.views_per_step == 1:
+            return
+        unsupported = [name for name, on in (("refine-alignment", cfg.refine_alignment), ("refine-tilts", cfg.refine_tilts),
+                       ("background", cfg.background != "none"), ("isotropic False", not cfg.isotropic)) if on]  # fmt: skip
+        if unsupported:
+            raise ValueError(f"--pipeline.model.views-per-step {cfg.views_per_step} cannot be combined with --pipeline.model.{unsupported[0]} (per-view parameters); use 1")
+        projections = metadata.get("projections")
+        if projections is None or self.view_c2w.shape[0] < 2:
+            raise ValueError("--pipeline.model.views-per-step > 1 needs a tilt series from the tilt-series dataparser (its projections and view poses)")
+        # One call projects the same means for every view: each camera must sit on its beam
+        # axis through the tilt centre (true of the dataparser's cameras).
+        c2w = self.view_c2w
+        off_axis = torch.stack([(c2w[:, :, 3] * c2w[:, :, 0]).sum(-1), (c2w[:, :, 3] * c2w[:, :, 1]).sum(-1)]).abs().max()
+        if float(off_axis) > 1e-5:
+            raise ValueError("--pipeline.model.views-per-step > 1 needs every camera on its beam axis through the tilt centre")
+        self.train_projections = torch.as_tensor(projections, dtype=torch.float32)
+
+    def _other_views(self, view: int) -> torch.Tensor:
+        """views_per_step - 1 distinct training views other than ``view``, drawn at random."""
+        n = self.view_c2w.shape[0]
+        k = min(self.config.views_per_step - 1, n - 1)
+        others = torch.randperm(n - 1, generator=self.generator)[:k]
+        return others + (others >= view).long()  # skip ``view`` itself
+
     # ------------------------------------------------------------------ rendering
     def get_outputs(self, camera: Cameras) -> Dict[str, torch.Tensor]:
         """Project the Gaussians for one orthographic camera.
@@ -366,7 +412,9 @@ class GaussianAtomsModel(SplatfactoModel):
             h, w = h // 2, w // 2
             row_coords = row_coords[: 2 * h].view(h, 2).mean(dim=1)
             col_coords = col_coords[: 2 * w].view(w, 2).mean(dim=1)
-        view = self.view_index(camera) if len(self.view_params) else None
+        batching = self.training and self.config.views_per_step > 1
+        view = self.view_index(camera) if len(self.view_params) or batching else None
+        batching = batching and view is not None
         if view is not None and "view_tilts" in self.view_params:
             # The view was taken at its nominal angle plus an error: rotate its detector axes
             # about the tilt axis by that error (Rodrigues' formula).
@@ -383,7 +431,16 @@ class GaussianAtomsModel(SplatfactoModel):
             shifts = self.view_params["view_shifts"]
             s = (shifts[view] - shifts.mean(dim=0)).to(dt)
             row_coords, col_coords = row_coords - s[0], col_coords - s[1]
-        if self.config.isotropic:
+        extra = {}
+        if batching:
+            # This view and the others in one call (cameras sit on their beam axes through the
+            # tilt centre, so the means need no per-view offset).
+            others = self._other_views(view)
+            c2w_o = self.view_c2w[others].to(dev, dt)
+            axes = torch.cat([axes, torch.stack([-c2w_o[:, :, 1], c2w_o[:, :, 0]], dim=1)])
+            images = self._projector(dev)(self.means, self.sigmas, self.amplitudes, axes, row_coords, col_coords)
+            image, extra = images[0], {"extra_projection": images[1:, :, :, None], "extra_views": others}
+        elif self.config.isotropic:
             project = self._projector(dev)
             image = project(self.means - t, self.sigmas, self.amplitudes, axes, row_coords, col_coords)[0]
         else:
@@ -399,17 +456,13 @@ class GaussianAtomsModel(SplatfactoModel):
         # A line integral has no depth; the viewer needs one to composite its scene (the atom
         # points, the camera frustums) with our image: put the image behind everything.
         depth = torch.full((1, 1, 1), 1e3, device=dev, dtype=dt).expand(h, w, 1)
-        return {"rgb": rgb, "projection": projection, "depth": depth}  # rgb first: the viewer shows it
+        return {"rgb": rgb, "projection": projection, "depth": depth, **extra}  # rgb first: the viewer shows it
 
     # ------------------------------------------------------------------ losses and metrics
     @staticmethod
     def _measured(outputs, batch) -> torch.Tensor:
         """The measured projection, binned 2 x 2 when the rendering is (coarse phase)."""
-        gt = batch["image"].to(outputs["projection"])
-        h, w = outputs["projection"].shape[:2]
-        if gt.shape[:2] != (h, w):
-            gt = gt[: 2 * h, : 2 * w].reshape(h, 2, w, 2, -1).mean(dim=(1, 3))
-        return gt
+        return _binned_like(batch["image"].to(outputs["projection"]), outputs["projection"])
 
     def get_metrics_dict(self, outputs, batch) -> Dict[str, torch.Tensor]:
         gt = self._measured(outputs, batch)
@@ -418,6 +471,11 @@ class GaussianAtomsModel(SplatfactoModel):
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
         gt = self._measured(outputs, batch)
         residual = outputs["projection"] - gt
+        if "extra_projection" in outputs:
+            # The other views of this step: one loss over all the pixels of all of them.
+            extra = outputs["extra_projection"]
+            extra_gt = torch.stack([_binned_like(m[..., None], extra[0]) for m in self.train_projections[outputs["extra_views"]]])
+            residual = torch.cat([residual[None], extra - extra_gt.to(extra)])
         loss = torch.abs(residual).mean() if self.config.loss == "l1" else residual.square().mean()
         # Parameters are checked too: the tiled projector skips a Gaussian whose centre is NaN
         # (its window is empty), which would otherwise go unnoticed.

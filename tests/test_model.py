@@ -339,3 +339,31 @@ def test_coarse_phase_renders_and_compares_2x2_blocks(tmp_path):
     torch.testing.assert_close(loss, (coarse["projection"][..., 0] - binned).abs().mean())
     model.step = 100
     assert model.get_outputs(camera)["projection"].shape == (30, 36, 1)
+
+
+def test_views_per_step_fits_several_views_in_one_loss(tmp_path):
+    """views_per_step=3: the camera's view and two other distinct views rendered in one call;
+    the loss is the mean L1 over the three views, equal to rendering each alone.  Coarse steps
+    bin the extra views too.  Per-view parameters cannot be batched: refused, option named."""
+    _series(tmp_path)
+    model, outputs = _model(tmp_path, num_random=20, views_per_step=3)
+    single, _ = _model(tmp_path, num_random=20)  # same seed: the same start
+    projections = outputs.metadata["projections"]
+    model.train()
+    out = model.get_outputs(outputs.cameras[1:2])
+    views = [1] + out["extra_views"].tolist()
+    assert out["extra_projection"].shape == (2, 30, 36, 1) and len(set(views)) == 3
+    loss = model.get_loss_dict(out, {"image": projections[1][..., None]})["main_loss"]
+    single.eval()
+    per_view = [(single.get_outputs(outputs.cameras[v : v + 1])["projection"][..., 0] - projections[v]).abs().mean() for v in views]
+    torch.testing.assert_close(loss, torch.stack(per_view).mean(), rtol=1e-5, atol=0)
+
+    coarse, _ = _model(tmp_path, num_random=20, views_per_step=3, coarse_steps=100)
+    coarse.train()
+    out = coarse.get_outputs(outputs.cameras[0:1])
+    assert out["projection"].shape == (15, 18, 1) and out["extra_projection"].shape == (2, 15, 18, 1)
+    assert torch.isfinite(coarse.get_loss_dict(out, {"image": projections[0][..., None]})["main_loss"])
+
+    for option in ({"refine_alignment": True}, {"background": "plane"}, {"isotropic": False}):
+        with pytest.raises(ValueError, match="views-per-step 2 cannot be combined"):
+            _model(tmp_path, num_random=20, views_per_step=2, **option)
