@@ -391,8 +391,8 @@ def split_grid(tokens: list[str]) -> tuple[str, ...]:
 
 @dataclass
 class Train:
-    """Train on a tilt series: ``ns-train gaussian-atoms``'s options, a shorter start-up
-    (``gaussian-atoms train -h`` lists them)."""
+    """Train on a tilt series with the options of ns-train gaussian-atoms, started sooner
+    (gaussian-atoms train -h lists them)."""
 
     def main(self) -> None:  # the entry point hands "train ..." to train.main before tyro
         raise AssertionError("unreachable")
