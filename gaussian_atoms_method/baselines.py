@@ -1,8 +1,8 @@
 """Voxel baselines: filtered back-projection and SART, slice by slice along the tilt axis.
 
 FBP (:func:`filtered_backprojection`, equal to scikit-image's ``iradon``) and scikit-image's
-``iradon_sart`` reconstruct each slice perpendicular to the tilt axis.  Conventions (checked in the tests against our projector): with ``theta = +angle`` the
-reconstructed slice ``rec[r, c]`` holds the point at in-plane coordinate ``c`` (detector
+``iradon_sart`` reconstruct each slice perpendicular to the tilt axis.  Conventions (checked
+in the tests against our projector): with ``theta = +angle`` the reconstructed slice ``rec[r, c]`` holds the point at in-plane coordinate ``c`` (detector
 direction at zero tilt) and depth ``z = r``, both about index ``L // 2``; scikit-image puts the
 rotation axis at detector index ``L // 2``, so each sinogram is padded to an odd length and
 shifted (cubic spline) to bring our tilt centre (``centre_px``) there.  Values are returned in
@@ -220,7 +220,7 @@ def reconstruct(
             for _ in range(max(1, sart_iterations)):
                 rec = iradon_sart(s, theta=theta, image=rec)
             recs.append(rec)
-    vol = np.stack([rec.T for rec in recs], axis=0) / pixel_size_A  # (slice, in-plane, depth)
+    vol = np.swapaxes(np.asarray(recs), 1, 2) / pixel_size_A  # (slice, in-plane, depth)
     if tilt_axis == "y":
         data = np.moveaxis(vol, 0, 1)  # (x, y, z)
         origin = np.array([length // 2, axis_centre, length // 2], dtype=np.float64)

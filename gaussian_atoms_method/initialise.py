@@ -108,8 +108,8 @@ def backprojection_candidates(
             strong = np.percentile(laplacian[tuple(positions.T)], 90)
             extra = extra[(distance > min_distance_A) & (laplacian[tuple(extra.T)] >= shoulder_strength * strong)]
         positions = np.concatenate([positions, extra])[:max_count]
-    positions_A = volume.index_to_A(positions) if len(positions) else np.zeros((0, 3))
-    return (positions_A, data[tuple(positions.T)] if len(positions) else np.zeros(0)) if return_values else positions_A
+    positions_A = volume.index_to_A(positions)
+    return (positions_A, data[tuple(positions.T)]) if return_values else positions_A
 
 
 def _separated_maxima(data: np.ndarray, spacing_A: float, min_distance_A: float) -> np.ndarray:

@@ -43,6 +43,7 @@ from .projector import (
     project_gaussians,
     project_gaussians_gsplat,
     project_gaussians_tiled,
+    typical_mass,
 )
 from .remap import apply_remap, duplicate_remap, keep_remap, merge_remap
 from .uncertainty import position_std_A, robust_noise_std
@@ -149,6 +150,12 @@ class GaussianAtomsModelConfig(SplatfactoModelConfig):
     directory with the wall-clock time, for time-to-accuracy benchmarks."""
     seed: int = 0
     """Seed of the random initialisation and duplications."""
+
+
+def _detector_axes(c2w: torch.Tensor) -> torch.Tensor:
+    """(..., 2, 3) world directions of the detector rows and columns of nerfstudio camera
+    poses (..., 3, 4): columns along the camera's x, rows down its y."""
+    return torch.stack([-c2w[..., :, 1], c2w[..., :, 0]], dim=-2)
 
 
 def _binned_like(image: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
@@ -339,10 +346,15 @@ class GaussianAtomsModel(SplatfactoModel):
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
         return self.get_gaussian_param_groups() | {name: [param] for name, param in self.view_params.items()}
 
-    def _projector(self, device: torch.device):
+    def projector_name(self, device: torch.device) -> str:
+        """The projector ``projector`` names on ``device`` ("auto": dense on CUDA, else tiled)."""
         choice = self.config.projector
         if choice == "auto":
             choice = "dense" if device.type == "cuda" else "tiled"
+        return choice
+
+    def _projector(self, device: torch.device):
+        choice = self.projector_name(device)
         if choice == "gsplat" and device.type != "cuda":
             raise ValueError("--pipeline.model.projector gsplat needs a CUDA device; use auto, tiled or dense on CPU")
         return {"dense": project_gaussians, "tiled": project_gaussians_tiled, "gsplat": project_gaussians_gsplat}[choice]
@@ -397,7 +409,7 @@ class GaussianAtomsModel(SplatfactoModel):
         if camera.shape[0] != 1:
             raise ValueError("GaussianAtomsModel renders one camera at a time")
         c2w = camera.camera_to_worlds[0].to(self.means.dtype)
-        rows_dir, cols_dir, t = -c2w[:, 1], c2w[:, 0], c2w[:, 3]
+        (rows_dir, cols_dir), t = _detector_axes(c2w), c2w[:, 3]
         h, w = int(camera.height.item()), int(camera.width.item())
         dev, dt = self.means.device, self.means.dtype
         row_coords = (torch.arange(h, device=dev, dtype=dt) + 0.5 - camera.cy[0, 0].to(dt)) / camera.fy[0, 0].to(dt)
@@ -436,8 +448,7 @@ class GaussianAtomsModel(SplatfactoModel):
             # This view and the others in one call (cameras sit on their beam axes through the
             # tilt centre, so the means need no per-view offset).
             others = self._other_views(view)
-            c2w_o = self.view_c2w[others].to(dev, dt)
-            axes = torch.cat([axes, torch.stack([-c2w_o[:, :, 1], c2w_o[:, :, 0]], dim=1)])
+            axes = torch.cat([axes, _detector_axes(self.view_c2w[others].to(dev, dt))])
             images = self._projector(dev)(self.means, self.sigmas, self.amplitudes, axes, row_coords, col_coords)
             image, extra = images[0], {"extra_projection": images[1:, :, :, None], "extra_views": others}
         elif self.config.isotropic:
@@ -625,11 +636,7 @@ class GaussianAtomsModel(SplatfactoModel):
         most of the mass, and the prune then removed every atom.
         """
         atom_like = self.sigmas <= self.config.max_atom_sigma_A * self.normalisation.length_scale
-        if not bool(atom_like.any()):
-            return 0.0
-        mass, _ = torch.sort(gaussian_mass(self.sigmas, self.amplitudes)[atom_like].flatten())
-        cumulative = torch.cumsum(mass, 0)
-        return float(mass[torch.searchsorted(cumulative, 0.5 * cumulative[-1]).clamp_max(len(mass) - 1)])
+        return typical_mass(gaussian_mass(self.sigmas, self.amplitudes)[atom_like])
 
     def prune(self) -> int:
         """Remove Gaussians too faint or too wide to be an atom, or outside the reconstruction volume."""
@@ -709,13 +716,11 @@ class GaussianAtomsModel(SplatfactoModel):
             self._settled_checks = 0
             return False
         step_A = float((positions - previous).square().sum(dim=1).mean().sqrt()) / self.normalisation.length_scale
-        atoms = self.atoms()
-        if getattr(self, "_noise_std", None) is None:
-            precision = self.position_std_A(atoms)
-            if precision is None:
-                return False
-            self._noise_std = precision[1]
-        std = self.position_std_A(atoms, self._noise_std)[0]
+        # The pixel noise is estimated from the residuals at the first check, then kept.
+        precision = self.position_std_A(self.atoms(), getattr(self, "_noise_std", None))
+        if precision is None:
+            return False
+        std, self._noise_std = precision
         precision_A = float(np.median(np.sqrt((std**2).sum(axis=1))))
         self._settled_checks = self._settled_checks + 1 if step_A < cfg.converged_fraction * precision_A else 0
         return self._settled_checks >= 2
@@ -740,14 +745,16 @@ class GaussianAtomsModel(SplatfactoModel):
             from dataparsers.tilt_series_dataparser import cameras_from_tilt_series
 
             cameras = cameras_from_tilt_series(series, self.normalisation).to(self.means.device)
-            training, _ = self.training, self.eval()  # full resolution, whatever the phase
-            residuals = [
-                (self.get_outputs(cameras[i : i + 1])["projection"][..., 0].cpu() - projections[i]).numpy() for i in range(len(cameras))
-            ]
-            self.train(training)
+            training = self.training
+            self.eval()  # full resolution, one view each, whatever the phase
+            try:
+                residuals = [
+                    (self.get_outputs(cameras[i : i + 1])["projection"][..., 0].cpu() - projections[i]).numpy() for i in range(len(cameras))
+                ]
+            finally:
+                self.train(training)
             noise = robust_noise_std(np.stack(residuals)) / self.normalisation.data_scale
-        c2w = self.view_c2w.cpu().double().numpy()  # the training views' poses
-        axes = np.stack([-c2w[:, :, 1], c2w[:, :, 0]], axis=1)  # detector rows, columns (as get_outputs)
+        axes = _detector_axes(self.view_c2w.cpu().double()).numpy()  # the training views' detectors
         return position_std_A(atoms.sigmas, atoms.amplitudes, axes, series.pixel_size_A, noise, self.config.loss), noise
 
     def write_results(self, run_dir: Path) -> dict | None:

@@ -31,6 +31,16 @@ def gaussian_mass(sigmas: torch.Tensor, amplitudes: torch.Tensor) -> torch.Tenso
     return amplitudes * (2.0 * math.pi * sigmas**2) ** 1.5
 
 
+def typical_mass(masses: torch.Tensor) -> float:
+    """Mass-weighted median of ``masses`` (any shape): half of the total mass sits in entries
+    at least this heavy, so many faint entries do not pull it down.  0 when there are none."""
+    if masses.numel() == 0:
+        return 0.0
+    mass, _ = torch.sort(masses.flatten())
+    cumulative = torch.cumsum(mass, 0)
+    return float(mass[torch.searchsorted(cumulative, 0.5 * cumulative[-1]).clamp_max(len(mass) - 1)])
+
+
 def project_gaussians(
     means: torch.Tensor,
     sigmas: torch.Tensor,

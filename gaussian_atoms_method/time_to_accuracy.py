@@ -5,8 +5,8 @@ Ours runs as ``gaussian-atoms train`` (or ``ns-train gaussian-atoms``: ``launche
 ``--pipeline.model.snapshot-every K``: every K steps the model writes its current atoms and
 the wall-clock time; each snapshot is scored against the truth, so every row is (seconds since
 the training process was launched, TPR, FP per atom, RMSD).  Launch time counts (nerfstudio's
-start-up and our back-projection start are part of what a user waits for).  FBP and SART (one sweep) are timed from reading the data to traced
-atoms.  Peak memory: the largest resident set of the training process (CPU) and the GPU's
+start-up and our back-projection start are part of what a user waits for).  FBP and SART (one
+sweep) are timed from reading the data to traced atoms.  Peak memory: the largest resident set of the training process (CPU) and the GPU's
 largest allocation when on CUDA.
 """
 

@@ -1,8 +1,8 @@
 """``gaussian-atoms train``: the same training as ``ns-train gaussian-atoms``, started faster.
 
 ``ns-train`` imports every method nerfstudio ships (and every installed plugin) to build its
-command line before it knows which one was asked for: 17-19 s of a run's start-up on the
-machines measured (``docs/performance.md``).  This entry point builds the command line from
+command line before it knows which one was asked for: 3-7 s more start-up than this entry
+point on the 2-core CPU, 1.2-1.5 s on the H100 machine (``docs/performance.md``).  This entry point builds the command line from
 this method's :class:`~nerfstudio.engine.trainer.TrainerConfig` alone and runs nerfstudio's
 own :class:`~nerfstudio.engine.trainer.Trainer` on it, so the options, the run directory, the
 ``config.yml`` (readable by ``ns-viewer``, ``ns-eval`` and ``gaussian-atoms export``), the

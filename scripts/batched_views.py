@@ -30,17 +30,14 @@ from gaussian_atoms_method.evaluation import load_reference
 from gaussian_atoms_method.geometry import detector_axes_from_tilts, pixel_centres
 from gaussian_atoms_method.initialise import backprojection_candidates
 from gaussian_atoms_method.metrics import score_atoms
-from gaussian_atoms_method.projector import gaussian_mass, project_gaussians, project_gaussians_tiled
+from gaussian_atoms_method.projector import gaussian_mass, project_gaussians, project_gaussians_tiled, typical_mass
 
 
 def pruned(means, sigmas, amplitudes, max_sigma_A=1.5, fraction=0.25) -> np.ndarray:
     """Positions kept by the model's prune rule (mass-weighted median mass of atom-like widths)."""
     mass = gaussian_mass(sigmas, amplitudes)
     atom_like = sigmas <= max_sigma_A
-    m, _ = torch.sort(mass[atom_like])
-    c = torch.cumsum(m, 0)
-    typical = m[torch.searchsorted(c, 0.5 * c[-1]).clamp_max(len(m) - 1)]
-    keep = (mass >= fraction * typical) & atom_like
+    keep = (mass >= fraction * typical_mass(mass[atom_like])) & atom_like
     return means[keep].detach().cpu().double().numpy()
 
 

@@ -75,7 +75,7 @@ def time_iterations(n_atoms: int, device: str, iterations: int = 30, warmup: int
         "s_per_iter": float(np.median(times)),
         "gpu_GB": torch.cuda.max_memory_allocated() / 1e9 if device == "cuda" else float("nan"),
         "rss_GB": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6,
-        "projector": model.config.projector if model.config.projector != "auto" else ("dense" if device == "cuda" else "tiled"),
+        "projector": model.projector_name(torch.device(device)),
     }
 
 

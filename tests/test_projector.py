@@ -213,3 +213,15 @@ def test_anisotropic_matches_quadrature_and_isotropic():
     iso = project_gaussians(means, sig, amps, axes, coords, coords)
     aniso = project_anisotropic_gaussians(means, torch.diag_embed(sig[:, None].expand(3, 3) ** 2), amps, axes, coords, coords)
     assert float((iso - aniso).abs().max()) <= 1e-6 * float(iso.max())
+
+
+def test_typical_mass_is_the_mass_weighted_median():
+    """Half of the total mass sits in entries at least as heavy as the typical mass: 100 atoms
+    of mass 1 stay typical beside 1,000 faint leftovers of 0.001 (a plain median would be
+    0.001), and one heavy entry carrying most of the mass becomes the typical one."""
+    from gaussian_atoms_method.projector import typical_mass
+
+    atoms_and_faint = torch.cat([torch.ones(100), torch.full((1000,), 1e-3)])
+    assert typical_mass(atoms_and_faint) == 1.0
+    assert typical_mass(torch.tensor([1.0, 1.0, 10.0])) == 10.0
+    assert typical_mass(torch.zeros(0)) == 0.0
