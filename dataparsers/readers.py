@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .tilt_series_format import TiltSeriesError
+from .errors import TiltSeriesError
 
 STACK_SUFFIXES = (".npy", ".npz", ".tif", ".tiff", ".mrc", ".st", ".ali", ".emd", ".h5", ".hdf5", ".mat")
 ANGLE_SUFFIXES = (".txt", ".tlt", ".rawtlt", ".csv", ".dat", ".npy", ".mat")

@@ -22,8 +22,8 @@ from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserCo
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.plugins.registry_dataparser import DataParserSpecification
 
-from gaussian_atoms_method.geometry import detector_axes_from_tilts
-from gaussian_atoms_method.units import Normalisation
+from gaussian_atoms_method.physics.geometry import detector_axes_from_tilts
+from gaussian_atoms_method.physics.units import Normalisation
 
 from .tilt_series_format import TiltSeries, load_tilt_series
 

@@ -12,7 +12,7 @@ from typing import Dict, Literal
 import torch
 from nerfstudio.data.datasets.base_dataset import InputDataset
 
-from gaussian_atoms_method.units import DATA_RANGE
+from gaussian_atoms_method.physics.units import DATA_RANGE
 
 
 class TiltSeriesDataset(InputDataset):

@@ -26,13 +26,14 @@ from pathlib import Path
 
 import numpy as np
 
-from gaussian_atoms_method.geometry import TILT_AXES
+from gaussian_atoms_method.physics.geometry import TILT_AXES
+
+from .errors import TiltSeriesError
+from .readers import read_angles, read_stack, single_axis_from_euler
+
+__all__ = ["MANIFEST", "TiltSeries", "TiltSeriesError", "load_tilt_series", "write_tilt_series", "update_manifest"]
 
 MANIFEST = "tilt_series.json"
-
-
-class TiltSeriesError(ValueError):
-    """A tilt series cannot be used as given; the message names the file or option."""
 
 
 @dataclass
@@ -136,7 +137,6 @@ def load_tilt_series(
     "genfire"; single-axis only).  Without a pixel size, an MRC header's is used; without an
     angle file, an EMD file's angle dimension.
     """
-    from .readers import read_angles, read_stack, single_axis_from_euler
 
     data = Path(data)
     if data.is_file() and data.suffix == ".json":
@@ -231,7 +231,7 @@ def write_tilt_series(
 
     The manifest is written last, so a directory with a manifest is complete.
     """
-    from gaussian_atoms_method.atoms import write_atoms
+    from gaussian_atoms_method.atoms.atom_set import write_atoms
 
     series = TiltSeries(projections, angles_deg, pixel_size_A, tilt_axis, np.asarray(origin_A, dtype=float), centre_px=centre_px)
     out = Path(out_dir)

@@ -53,8 +53,8 @@ class Simulate:
 
         from dataparsers.tilt_series_format import update_manifest, write_tilt_series
 
-        from .particles import make_particle
-        from .simulate import parse_tilts, simulate_tilt_series, spherical_particle, true_potential_volume
+        from gaussian_atoms_method.harness.particles import make_particle
+        from gaussian_atoms_method.harness.simulate import parse_tilts, simulate_tilt_series, spherical_particle, true_potential_volume
 
         if self.particle == "sphere":
             particle = spherical_particle(self.element, self.radius_A)
@@ -123,8 +123,8 @@ class Evaluate:
     """Also write the JSON here."""
 
     def main(self) -> None:
-        from .atoms import read_atoms
-        from .evaluation import evaluate_atoms, load_reference, summary_line
+        from gaussian_atoms_method.atoms.atom_set import read_atoms
+        from gaussian_atoms_method.harness.evaluation import evaluate_atoms, load_reference, summary_line
 
         if (self.truth is None) == (self.data is None):
             raise ValueError("give exactly one of --truth and --data")
@@ -168,44 +168,9 @@ class Baseline:
     """Also write the reconstructed volume (volume.npy)."""
 
     def main(self) -> None:
-        import time
+        from gaussian_atoms_method.harness.baselines import run_baseline
 
-        import numpy as np
-
-        from dataparsers.tilt_series_format import load_tilt_series
-
-        from .atoms import AtomSet, write_atoms
-        from .baselines import reconstruct
-        from .evaluation import evaluate_atoms, load_reference, summary_line
-        from .tracing import trace_atoms
-
-        series = load_tilt_series(self.data)
-        start = time.perf_counter()
-        if self.method == "inr":
-            from .inr import fit_inr
-
-            vol = fit_inr(series.projections, series.angles_deg, series.pixel_size_A, series.tilt_axis, series.centre_px, self.inr_steps, device=self.device)
-        else:
-            vol = reconstruct(series.projections, series.angles_deg, series.pixel_size_A, self.method, series.tilt_axis, series.centre_px, self.sart_iterations)
-        idx, values = trace_atoms(vol.data, vol.spacing_A, self.min_distance_A, self.threshold_scale)
-        seconds = time.perf_counter() - start
-        atoms = AtomSet(vol.index_to_A(idx) + series.origin_A)
-        self.output.mkdir(parents=True, exist_ok=True)
-        write_atoms(atoms, self.output / "atoms.xyz")
-        write_atoms(atoms, self.output / "atoms.csv")
-        if self.save_volume:
-            np.save(self.output / "volume.npy", vol.data.astype(np.float32))
-        if series.truth_path is None:
-            print(f"{self.method}: {len(atoms)} atoms traced in {seconds:.1f} s")
-            return
-        _, truth, reference, voxel = load_reference(self.data, series)
-        pred_volume = None
-        if reference is not None:
-            pred_volume = vol.resample(reference.shape, voxel)
-        scores = evaluate_atoms(atoms, truth, reference_volume=reference, voxel_size_A=voxel, pred_volume=pred_volume)
-        scores["seconds"] = seconds
-        (self.output / "evaluation.json").write_text(json.dumps(scores, indent=2) + "\n")
-        print(summary_line(scores, f"{self.method} ({seconds:.1f} s)"))
+        run_baseline(self.data, self.output, self.method, self.sart_iterations, self.inr_steps, self.device, self.min_distance_A, self.threshold_scale, self.save_volume)
 
 
 @dataclass
@@ -227,7 +192,7 @@ class BenchmarkAccuracy:
     device: Literal["cpu", "cuda"] = "cpu"
 
     def main(self) -> None:
-        from .benchmark import AccuracyBenchmark
+        from gaussian_atoms_method.harness.benchmark import AccuracyBenchmark
 
         scale = self.scale if self.scale is not None else (0.35 if self.quick else 1.0)
         if not scale > 0:
@@ -261,7 +226,7 @@ class BenchmarkPeer:
     loss: Literal["l1", "l2"] = "l1"
 
     def main(self) -> None:
-        from .peer_benchmark import PeerBenchmark
+        from gaussian_atoms_method.harness.peer_benchmark import PeerBenchmark
 
         PeerBenchmark(self.data, self.output, self.doses, self.iterations, self.device, self.background, self.loss).run()
         print(f"wrote {self.output / 'results.md'} and results.csv")
@@ -287,7 +252,7 @@ class Benchmark:
     longer start-up): the time since launch includes it."""
 
     def main(self) -> None:
-        from .time_to_accuracy import TimeToAccuracy
+        from gaussian_atoms_method.harness.time_to_accuracy import TimeToAccuracy
 
         if self.snapshot_every <= 0:
             raise ValueError(f"--snapshot-every must be positive, got {self.snapshot_every}")
@@ -307,8 +272,8 @@ class Export:
     """Comma-separated elements, e.g. Fe,Pt: heavier element = larger integrated mass."""
 
     def main(self) -> None:
-        from .atoms import read_atoms, write_atoms
-        from .species import classify_species
+        from gaussian_atoms_method.atoms.atom_set import read_atoms, write_atoms
+        from gaussian_atoms_method.atoms.species import classify_species
 
         if not self.load_config.is_file():
             raise FileNotFoundError(f"{self.load_config}: run config not found")
@@ -335,7 +300,7 @@ class Stress:
     """Leave out the slow cases (training at SNR < 1, 100k atoms)."""
 
     def main(self) -> None:
-        from .stress import run_stress
+        from gaussian_atoms_method.harness.stress import run_stress
 
         cases = run_stress(include_slow=not self.quick)
         print("| case | result | detail |\n| --- | --- | --- |")
@@ -369,7 +334,7 @@ class Sweep:
     grid: tyro.conf.Suppress[tuple[str, ...]] = ()
 
     def main(self) -> None:
-        from .sweep import Sweep as SweepRunner
+        from gaussian_atoms_method.harness.sweep import Sweep as SweepRunner
 
         rows = SweepRunner(self.data, self.output, self.grid, (), self.iterations, self.jobs, self.device, self.backend, self.ray_address).run()
         failed = [r for r in rows if r.get("status") != "ok"]
@@ -416,13 +381,13 @@ def entrypoint(argv: list[str] | None = None) -> None:
     """Run one verb; errors in the user's input are reported in one line, exit status 2."""
     from dataparsers.tilt_series_format import TiltSeriesError
 
-    from .atoms import AtomFileError
+    from gaussian_atoms_method.atoms.atom_set import AtomFileError
 
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["train"]:
         # Its options are nerfstudio's TrainerConfig: tyro parses them in train.main.
-        from .train import TrainOptionError
-        from .train import main as train_main
+        from gaussian_atoms_method.nerfstudio_layer.train import TrainOptionError
+        from gaussian_atoms_method.nerfstudio_layer.train import main as train_main
 
         try:
             return train_main(argv[1:])

@@ -19,9 +19,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gaussian_atoms_method.atoms import read_atoms
-from gaussian_atoms_method.benchmark import AccuracyBenchmark
-from gaussian_atoms_method.metrics import match_atoms
+from gaussian_atoms_method.atoms.atom_set import read_atoms
+from gaussian_atoms_method.harness.benchmark import AccuracyBenchmark
+from gaussian_atoms_method.atoms.matching import match_atoms
 
 CONFIGS = {
     "full priors": (True, True, "mass"),

@@ -23,10 +23,10 @@ import torch
 from scipy import ndimage
 
 from dataparsers.tilt_series_format import load_tilt_series, write_tilt_series
-from gaussian_atoms_method.atoms import read_atoms
-from gaussian_atoms_method.benchmark import train_ours
-from gaussian_atoms_method.evaluation import evaluate_atoms
-from gaussian_atoms_method.simulate import parse_tilts, simulate_tilt_series, spherical_particle
+from gaussian_atoms_method.atoms.atom_set import read_atoms
+from gaussian_atoms_method.harness.benchmark import train_ours
+from gaussian_atoms_method.harness.evaluation import evaluate_atoms
+from gaussian_atoms_method.harness.simulate import parse_tilts, simulate_tilt_series, spherical_particle
 
 RUNS = [
     ("aligned", "aligned", ()),

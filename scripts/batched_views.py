@@ -26,11 +26,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from gaussian_atoms_method.evaluation import load_reference
-from gaussian_atoms_method.geometry import detector_axes_from_tilts, pixel_centres
-from gaussian_atoms_method.initialise import backprojection_candidates
-from gaussian_atoms_method.metrics import score_atoms
-from gaussian_atoms_method.projector import gaussian_mass, project_gaussians, project_gaussians_tiled, typical_mass
+from gaussian_atoms_method.harness.evaluation import load_reference
+from gaussian_atoms_method.physics.geometry import detector_axes_from_tilts, pixel_centres
+from gaussian_atoms_method.atoms.initialise import backprojection_candidates
+from gaussian_atoms_method.atoms.matching import score_atoms
+from gaussian_atoms_method.physics.projector import gaussian_mass, project_gaussians, project_gaussians_tiled, typical_mass
 
 
 def pruned(means, sigmas, amplitudes, max_sigma_A=1.5, fraction=0.25) -> np.ndarray:

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from gaussian_atoms_method.merge import cluster_labels, merged_values
+from gaussian_atoms_method.atoms.merge import cluster_labels, merged_values
 
 
 def scene(n_gaussians: int, duplicate_fraction: float, rng: np.random.Generator) -> np.ndarray:

@@ -24,8 +24,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from gaussian_atoms_method.geometry import detector_axes_from_tilts  # noqa: E402
-from gaussian_atoms_method.projector import project_gaussians, project_gaussians_gsplat, project_gaussians_tiled  # noqa: E402
+from gaussian_atoms_method.physics.geometry import detector_axes_from_tilts  # noqa: E402
+from gaussian_atoms_method.physics.projector import project_gaussians, project_gaussians_gsplat, project_gaussians_tiled  # noqa: E402
 
 PROJECTORS = {"dense": project_gaussians, "tiled": project_gaussians_tiled, "gsplat": project_gaussians_gsplat}
 

@@ -20,11 +20,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from gaussian_atoms_method.evaluation import evaluate_atoms  # noqa: E402
-from gaussian_atoms_method.atoms import AtomSet  # noqa: E402
-from gaussian_atoms_method.inr import fit_inr  # noqa: E402
-from gaussian_atoms_method.simulate import blur_and_noise  # noqa: E402
-from gaussian_atoms_method.tracing import trace_atoms  # noqa: E402
+from gaussian_atoms_method.harness.evaluation import evaluate_atoms  # noqa: E402
+from gaussian_atoms_method.atoms.atom_set import AtomSet  # noqa: E402
+from gaussian_atoms_method.harness.inr import fit_inr  # noqa: E402
+from gaussian_atoms_method.harness.simulate import blur_and_noise  # noqa: E402
+from gaussian_atoms_method.harness.tracing import trace_atoms  # noqa: E402
 
 
 def main() -> None:

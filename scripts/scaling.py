@@ -36,9 +36,9 @@ def time_iterations(n_atoms: int, device: str, iterations: int = 30, warmup: int
 
     from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
     from dataparsers.tilt_series_format import write_tilt_series
-    from gaussian_atoms_method.config import gaussian_atoms_trainer_config
-    from gaussian_atoms_method.model import GaussianAtomsModelConfig
-    from gaussian_atoms_method.simulate import parse_tilts
+    from gaussian_atoms_method.nerfstudio_layer.config import gaussian_atoms_trainer_config
+    from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
+    from gaussian_atoms_method.harness.simulate import parse_tilts
 
     side = detector_pixels(n_atoms)
     angles = parse_tilts("limited")
@@ -64,7 +64,7 @@ def time_iterations(n_atoms: int, device: str, iterations: int = 30, warmup: int
         loss = model.get_loss_dict(model.get_outputs(cameras[v : v + 1]), {"image": targets[v]})["main_loss"]
         loss.backward()
         optimizers.optimizer_step_all()
-        model.clamp_parameters()
+        model.density.clamp(model.gauss_params)
         if device == "cuda":
             torch.cuda.synchronize()
         if step >= warmup:

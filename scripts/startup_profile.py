@@ -33,15 +33,15 @@ for label, code in LAUNCHERS.items():
 t0 = time.perf_counter()
 import nerfstudio.engine.trainer  # noqa: E402,F401
 
-import gaussian_atoms_method.config  # noqa: E402,F401
+import gaussian_atoms_method.nerfstudio_layer.config  # noqa: E402,F401
 
 print(f"(in this process) import nerfstudio's trainer + plugin: {time.perf_counter() - t0:.1f} s", flush=True)
 
 import torch  # noqa: E402
 
 from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig  # noqa: E402
-from gaussian_atoms_method.initialise import backprojection_candidates  # noqa: E402
-from gaussian_atoms_method.model import GaussianAtomsModelConfig  # noqa: E402
+from gaussian_atoms_method.atoms.initialise import backprojection_candidates  # noqa: E402
+from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig  # noqa: E402
 
 
 def timed(label, fn):

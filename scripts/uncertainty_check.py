@@ -23,11 +23,9 @@ import numpy as np
 def check(config: Path) -> dict:
     from nerfstudio.utils.eval_utils import eval_setup
 
-    from gaussian_atoms_method.atoms import read_atoms
-    from gaussian_atoms_method.config import allow_numpy_scalars_in_checkpoints
-    from gaussian_atoms_method.metrics import match_atoms
+    from gaussian_atoms_method.atoms.atom_set import read_atoms
+    from gaussian_atoms_method.atoms.matching import match_atoms
 
-    allow_numpy_scalars_in_checkpoints()
     _, pipeline, _, _ = eval_setup(config, test_mode="inference")
     model = pipeline.model
     atoms = model.atoms()

@@ -4,7 +4,7 @@ import ase.io
 import numpy as np
 import pytest
 
-from gaussian_atoms_method.atoms import AtomFileError, AtomSet, read_atoms, write_atoms
+from gaussian_atoms_method.atoms.atom_set import AtomFileError, AtomSet, read_atoms, write_atoms
 
 
 def _atoms():
@@ -60,7 +60,7 @@ def test_errors_name_the_file(tmp_path):
 
 def test_write_is_atomic(tmp_path, monkeypatch):
     """A failing write leaves no file that looks complete."""
-    import gaussian_atoms_method.atoms as mod
+    import gaussian_atoms_method.atoms.atom_set as mod
 
     def boom(atoms, path):
         path.write_text("species,x_A\nAu,")

@@ -3,10 +3,11 @@
 import numpy as np
 import pytest
 
-from gaussian_atoms_method.baselines import reconstruct
-from gaussian_atoms_method.metrics import score_atoms
-from gaussian_atoms_method.simulate import parse_tilts, simulate_tilt_series, spherical_particle
-from gaussian_atoms_method.tracing import suppress_within, trace_atoms
+from gaussian_atoms_method.physics.reconstruction import reconstruct
+from gaussian_atoms_method.atoms.matching import score_atoms
+from gaussian_atoms_method.harness.simulate import parse_tilts, simulate_tilt_series, spherical_particle
+from gaussian_atoms_method.atoms.peaks import suppress_within
+from gaussian_atoms_method.harness.tracing import trace_atoms
 
 
 def _blobs(centres_vox, shape=(40, 40, 40), sigma=2.4, amps=None):
@@ -83,7 +84,7 @@ def test_batched_filtered_backprojection_equals_scikit_image():
     when the matrix is built in blocks of a few output rows."""
     from skimage.transform import iradon
 
-    from gaussian_atoms_method.baselines import filtered_backprojection
+    from gaussian_atoms_method.physics.reconstruction import filtered_backprojection
 
     rng = np.random.default_rng(0)
     sino = rng.normal(size=(3, 41, 17))

@@ -12,7 +12,7 @@ import numpy as np
 import scipy.io as sio
 
 from dataparsers.tilt_series_format import TiltSeries
-from gaussian_atoms_method.geometry import project_volume
+from gaussian_atoms_method.physics.geometry import project_volume
 
 
 def _corr(a, b):

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from gaussian_atoms_method.geometry import detector_axes_from_tilts
-from gaussian_atoms_method.projector import project_gaussians, project_gaussians_gsplat, project_gaussians_tiled
+from gaussian_atoms_method.physics.geometry import detector_axes_from_tilts
+from gaussian_atoms_method.physics.projector import project_gaussians, project_gaussians_gsplat, project_gaussians_tiled
 
 cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 
@@ -59,7 +59,7 @@ def test_gsplat_projector_refuses_cpu():
 @cuda
 def test_filtered_backprojection_on_cuda_matches_cpu():
     """The sparse-matrix FBP gives the same slices on the GPU (cuSPARSE, float64) as on the CPU."""
-    from gaussian_atoms_method.baselines import filtered_backprojection
+    from gaussian_atoms_method.physics.reconstruction import filtered_backprojection
 
     rng = np.random.default_rng(1)
     sino = rng.normal(size=(4, 41, 17))

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from gaussian_atoms_method.atoms import AtomSet
-from gaussian_atoms_method.figures import potential_on_plane, write_slices_png
-from gaussian_atoms_method.metrics import voxelise_gaussians
+from gaussian_atoms_method.atoms.atom_set import AtomSet
+from gaussian_atoms_method.atoms.slices import potential_on_plane, write_slices_png
+from gaussian_atoms_method.harness.metrics import voxelise_gaussians
 
 
 def _atoms(n=40, seed=0):

@@ -3,8 +3,8 @@
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gaussian_atoms_method.initialise import backprojection_candidates
-from gaussian_atoms_method.simulate import parse_tilts, simulate_gaussian_tilt_series, spherical_particle
+from gaussian_atoms_method.atoms.initialise import backprojection_candidates
+from gaussian_atoms_method.harness.simulate import parse_tilts, simulate_gaussian_tilt_series, spherical_particle
 
 
 def test_candidates_cover_every_atom():
@@ -45,8 +45,8 @@ def test_shoulder_candidates_find_light_atoms_beside_heavy_ones():
     alone reach 85% of the Ni within the 0.75 Å scoring radius; the strong Laplacian maxima
     reach 95% (measured), adding a handful of candidates, not a flood, and keep the smoothed
     peaks first and unchanged."""
-    from gaussian_atoms_method.particles import make_particle
-    from gaussian_atoms_method.simulate import simulate_tilt_series
+    from gaussian_atoms_method.harness.particles import make_particle
+    from gaussian_atoms_method.harness.simulate import simulate_tilt_series
 
     atoms = make_particle("hea", 0.3, 0)
     sim = simulate_tilt_series(atoms, parse_tilts("limited"), "lobato", noise_std=50.0, seed=1)

@@ -5,10 +5,10 @@ import csv
 import numpy as np
 import pytest
 
-from gaussian_atoms_method.atoms import AtomSet
-from gaussian_atoms_method.inr import fit_inr
-from gaussian_atoms_method.simulate import parse_tilts, simulate_tilt_series
-from gaussian_atoms_method.tracing import trace_atoms
+from gaussian_atoms_method.atoms.atom_set import AtomSet
+from gaussian_atoms_method.harness.inr import fit_inr
+from gaussian_atoms_method.harness.simulate import parse_tilts, simulate_tilt_series
+from gaussian_atoms_method.harness.tracing import trace_atoms
 
 
 def test_inr_puts_atoms_where_our_convention_says():
@@ -27,7 +27,7 @@ def test_inr_puts_atoms_where_our_convention_says():
 def test_benchmark_accuracy_tiny(tmp_path):
     """Simulate (Lobato), reconstruct, trace, evaluate and tabulate; a rerun resumes."""
     pytest.importorskip("abtem")
-    from gaussian_atoms_method.benchmark import AccuracyBenchmark
+    from gaussian_atoms_method.harness.benchmark import AccuracyBenchmark
 
     bench = AccuracyBenchmark(output=tmp_path, particles=("au",), tilts=("-70:10:70",), noise=(20.0,), methods=("fbp", "sart"), scale=0.2)
     rows = bench.run()

@@ -3,9 +3,9 @@
 import numpy as np
 import torch
 
-from gaussian_atoms_method.merge import cluster_labels, merged_values
-from gaussian_atoms_method.projector import gaussian_mass
-from gaussian_atoms_method.remap import apply_remap, duplicate_remap, keep_remap
+from gaussian_atoms_method.atoms.merge import cluster_labels, merged_values
+from gaussian_atoms_method.physics.projector import gaussian_mass
+from gaussian_atoms_method.density.remap import apply_remap, duplicate_remap, keep_remap
 
 
 def test_clusters_follow_chains_and_threshold():

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from gaussian_atoms_method.metrics import match_atoms, score_atoms
+from gaussian_atoms_method.atoms.matching import match_atoms, score_atoms
 
 
 def test_perfect_and_shifted():
@@ -49,7 +49,7 @@ def test_empty_sets():
 
 
 def test_voxelise_gaussians_mass_and_position():
-    from gaussian_atoms_method.metrics import voxelise_gaussians
+    from gaussian_atoms_method.harness.metrics import voxelise_gaussians
 
     pos = np.array([[0.3, -0.6, 1.1], [-1.5, 1.0, -0.4]])
     sig = np.array([0.5, 0.7])
@@ -66,7 +66,7 @@ def test_voxelise_gaussians_mass_and_position():
 
 
 def test_volume_ssim_reports_its_reference():
-    from gaussian_atoms_method.metrics import volume_ssim, voxelise_gaussians
+    from gaussian_atoms_method.harness.metrics import volume_ssim, voxelise_gaussians
 
     pos = np.array([[0.0, 0.0, 0.0], [1.5, 0.0, 0.0]])
     ref = voxelise_gaussians(pos, np.array([0.5, 0.5]), np.ones(2), 0.25, (24, 24, 24))
@@ -96,7 +96,7 @@ def test_species_accuracy():
 
 def test_voxelise_mixed_widths_bounded_memory():
     """One stray very wide Gaussian among narrow ones: every atom still lands, memory stays bounded."""
-    from gaussian_atoms_method.metrics import voxelise_gaussians
+    from gaussian_atoms_method.harness.metrics import voxelise_gaussians
 
     rng = np.random.default_rng(0)
     pos = rng.uniform(-3, 3, size=(2000, 3))

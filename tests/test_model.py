@@ -9,11 +9,11 @@ from scipy.spatial import cKDTree
 
 from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
 from dataparsers.tilt_series_format import write_tilt_series
-from gaussian_atoms_method.atoms import AtomSet
-from gaussian_atoms_method.geometry import detector_axes_from_tilts, pixel_centres
-from gaussian_atoms_method.model import GaussianAtomsModelConfig
-from gaussian_atoms_method.projector import project_gaussians
-from gaussian_atoms_method.training import train_views
+from gaussian_atoms_method.atoms.atom_set import AtomSet
+from gaussian_atoms_method.physics.geometry import detector_axes_from_tilts, pixel_centres
+from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
+from gaussian_atoms_method.physics.projector import project_gaussians
+from gaussian_atoms_method.nerfstudio_layer.training import train_views
 
 
 def _series(tmp_path, tilt_axis="y", centre_px=None, shape=(30, 36)):
@@ -38,8 +38,8 @@ def test_initial_mass_follows_the_backprojection(tmp_path):
     """init_mass="backprojection" shares the same measured mass as "equal" but in proportion to
     the smoothed back-projection: Gaussians that start on atoms carry several times the mass of
     those that start on noise, so the first prune removes the latter."""
-    from gaussian_atoms_method.projector import gaussian_mass
-    from gaussian_atoms_method.simulate import parse_tilts, simulate_gaussian_tilt_series, spherical_particle
+    from gaussian_atoms_method.physics.projector import gaussian_mass
+    from gaussian_atoms_method.harness.simulate import parse_tilts, simulate_gaussian_tilt_series, spherical_particle
 
     atoms = spherical_particle("Au", radius_A=6.0)
     sim = simulate_gaussian_tilt_series(atoms, parse_tilts("limited"), noise_std=20.0, seed=1)
@@ -110,9 +110,9 @@ def test_refinement_merges_and_prunes(tmp_path):
         model.gauss_params["log_amplitudes"][3] -= 10.0  # far too faint to be an atom
     mass = lambda: (model.amplitudes * (2 * math.pi * model.sigmas**2) ** 1.5).detach()
     mass_before = float(mass()[:2].sum())
-    assert model.merge() == 1 and model.num_points == 3
+    assert model.density.merge(model.gauss_params, model.optimizers) == 1 and model.num_points == 3
     assert float(mass()[0]) == pytest.approx(mass_before, rel=1e-5)
-    assert model.prune() == 1 and model.num_points == 2
+    assert model.density.prune(model.gauss_params, model.optimizers) == 1 and model.num_points == 2
 
 
 def test_anisotropic_switch_renders_the_same_spheres(tmp_path):
@@ -185,7 +185,7 @@ def test_view_shifts_and_background_are_recovered(tmp_path):
     back from simulated data when the atoms are known: shifts to 0.05 Å,
     backgrounds to 1% of the projection peak (they are 5-20% of it) (L1, 600 steps: a fifth of a 0.25 Å pixel is sub-pixel
     registration, what alignment needs for pm atoms)."""
-    from gaussian_atoms_method.simulate import simulate_gaussian_tilt_series, spherical_particle
+    from gaussian_atoms_method.harness.simulate import simulate_gaussian_tilt_series, spherical_particle
     from scipy import ndimage
 
     atoms = spherical_particle("Au", radius_A=4.0)
@@ -225,8 +225,8 @@ def test_tilt_offsets_are_recovered(tmp_path):
     error), atoms known: the learned per-view offsets match the errors (mean removed) to
     0.05 deg.  A tilt error moves an atom by its distance from the axis times the angle: the
     16 atoms sit 8-10 Å out, where 0.5 deg is 0.08 Å and 0.05 deg 8 pm."""
-    from gaussian_atoms_method.atoms import AtomSet
-    from gaussian_atoms_method.simulate import simulate_gaussian_tilt_series
+    from gaussian_atoms_method.atoms.atom_set import AtomSet
+    from gaussian_atoms_method.harness.simulate import simulate_gaussian_tilt_series
 
     rng = np.random.default_rng(7)
     directions = rng.normal(size=(16, 3))
@@ -264,7 +264,7 @@ def test_viewer_finds_the_atoms_and_renders_a_perspective_camera(tmp_path):
     from nerfstudio.viewer.utils import parse_object
     from nerfstudio.viewer.viewer_elements import ViewerControl
 
-    from gaussian_atoms_method.viewer import AtomsInViewer, mass_colours
+    from gaussian_atoms_method.nerfstudio_layer.viewer import AtomsInViewer, mass_colours
 
     _series(tmp_path)
     model, outputs = _model(tmp_path, num_random=20)
@@ -305,11 +305,11 @@ def test_convergence_stop_needs_settled_atoms(tmp_path):
         model.gauss_params["means"][:, 0] += 3 * precision_A * model.normalisation.length_scale
     assert not model.converged(400)
     assert not model.converged(500) and model.converged(600)
-    from gaussian_atoms_method.remap import keep_remap
+    from gaussian_atoms_method.density.remap import keep_remap
 
     keep = torch.ones(model.num_points, dtype=torch.bool)
     keep[0] = False
-    model._remap(*keep_remap(keep))  # one Gaussian fewer, as a prune makes it: the set changed
+    model.density.remap(model.gauss_params, model.optimizers, *keep_remap(keep))  # one Gaussian fewer, as a prune makes it: the set changed
     assert not model.converged(700) and not model.converged(800) and model.converged(900)
 
 

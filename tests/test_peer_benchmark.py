@@ -5,7 +5,7 @@ import pytest
 
 from dataparsers.readers import read_angles, read_stack, single_axis_from_euler
 from dataparsers.tilt_series_format import TiltSeriesError, load_tilt_series
-from gaussian_atoms_method.peer_benchmark import prepare_dose, read_peer_truth, score_like_peer
+from gaussian_atoms_method.harness.peer_benchmark import prepare_dose, read_peer_truth, score_like_peer
 
 
 def test_single_axis_from_euler():
@@ -39,9 +39,9 @@ def test_peer_data_read_through_the_readers(shared_data, tmp_path):
     series = load_tilt_series(prepare_dose(d, tmp_path, "1.6e5"))
     assert series.projections.shape == (60, 128, 128) and tuple(series.centre_px) == (64, 64)
 
-    from gaussian_atoms_method.atoms import read_atoms
-    from gaussian_atoms_method.baselines import reconstruct
-    from gaussian_atoms_method.tracing import trace_atoms
+    from gaussian_atoms_method.atoms.atom_set import read_atoms
+    from gaussian_atoms_method.physics.reconstruction import reconstruct
+    from gaussian_atoms_method.harness.tracing import trace_atoms
 
     vol = reconstruct(series.projections, series.angles_deg, series.pixel_size_A, "fbp", "y", series.centre_px, filter_name="hann")
     idx, _ = trace_atoms(vol.data, vol.spacing_A)

@@ -7,8 +7,8 @@ import pytest
 import torch
 from scipy import integrate
 
-from gaussian_atoms_method.geometry import detector_axes_from_tilts, pixel_centres, project_volume
-from gaussian_atoms_method.projector import gaussian_mass, project_gaussians
+from gaussian_atoms_method.physics.geometry import detector_axes_from_tilts, pixel_centres, project_volume
+from gaussian_atoms_method.physics.projector import gaussian_mass, project_gaussians
 
 
 def _project(means, sigmas, amps, angles, n_pixels, pixel_size, tilt_axis="y", dtype=torch.float64):
@@ -132,7 +132,7 @@ def _random_scene(n, seed, sigma_px_range=(0.5, 4.0), spread=0.6, dtype=torch.fl
 def test_tiled_matches_dense(n, sigma_px_range, spread, tile):
     """The tiled projector reproduces the exact dense one (values and gradients, float64):
     the only difference is the tails cut at 5.5 sigma, exp(-5.5^2 / 2) = 2.7e-7 of a peak."""
-    from gaussian_atoms_method.projector import project_gaussians_tiled
+    from gaussian_atoms_method.physics.projector import project_gaussians_tiled
 
     means, sigmas, amps = _random_scene(n, seed=n, sigma_px_range=sigma_px_range, spread=spread)
     axes = torch.tensor(detector_axes_from_tilts(np.array([-70.0, -12.0, 33.0, 90.0]), "y"), dtype=torch.float64)
@@ -154,7 +154,7 @@ def test_tiled_matches_dense(n, sigma_px_range, spread, tile):
 
 def test_tiled_float32_agrees_with_float64():
     """In float32 the tiled projector is as accurate as the arithmetic allows (1e-5 of the image peak)."""
-    from gaussian_atoms_method.projector import project_gaussians_tiled
+    from gaussian_atoms_method.physics.projector import project_gaussians_tiled
 
     means, sigmas, amps = _random_scene(2000, seed=7)
     axes = torch.tensor(detector_axes_from_tilts(np.array([5.0, 61.0]), "x"), dtype=torch.float64)
@@ -166,7 +166,7 @@ def test_tiled_float32_agrees_with_float64():
 
 def test_tiled_empty_and_invisible():
     """No Gaussians, or none reaching the detector, give an all-zero image of the right shape."""
-    from gaussian_atoms_method.projector import project_gaussians_tiled
+    from gaussian_atoms_method.physics.projector import project_gaussians_tiled
 
     axes = torch.tensor(detector_axes_from_tilts(np.array([0.0]), "y"), dtype=torch.float64)
     coords = (torch.arange(20, dtype=torch.float64) - 9.5) / 20
@@ -182,7 +182,7 @@ def test_tiled_empty_and_invisible():
 def test_anisotropic_matches_quadrature_and_isotropic():
     """General Gaussians: pixels equal the integral along the beam (quadrature), and with
     C = sigma^2 I the anisotropic projector reproduces the isotropic one."""
-    from gaussian_atoms_method.projector import covariances_from_scales_quats, project_anisotropic_gaussians
+    from gaussian_atoms_method.physics.projector import covariances_from_scales_quats, project_anisotropic_gaussians
 
     rng = np.random.default_rng(4)
     means = torch.tensor(rng.uniform(-1.5, 1.5, size=(3, 3)))
@@ -219,7 +219,7 @@ def test_typical_mass_is_the_mass_weighted_median():
     """Half of the total mass sits in entries at least as heavy as the typical mass: 100 atoms
     of mass 1 stay typical beside 1,000 faint leftovers of 0.001 (a plain median would be
     0.001), and one heavy entry carrying most of the mass becomes the typical one."""
-    from gaussian_atoms_method.projector import typical_mass
+    from gaussian_atoms_method.physics.projector import typical_mass
 
     atoms_and_faint = torch.cat([torch.ones(100), torch.full((1000,), 1e-3)])
     assert typical_mass(atoms_and_faint) == 1.0

@@ -4,17 +4,11 @@ import numpy as np
 import pytest
 import torch
 
-from gaussian_atoms_method.atoms import AtomSet
-from gaussian_atoms_method.geometry import detector_axes_from_tilts, pixel_centres
-from gaussian_atoms_method.projector import project_gaussians
-from gaussian_atoms_method.simulate import (
-    MASS_PER_Z,
-    gaussian_potential_parameters,
-    parse_tilts,
-    simulate_gaussian_tilt_series,
-    spherical_particle,
-)
-from gaussian_atoms_method.units import DATA_RANGE, Normalisation
+from gaussian_atoms_method.atoms.atom_set import AtomSet
+from gaussian_atoms_method.physics.geometry import detector_axes_from_tilts, pixel_centres
+from gaussian_atoms_method.physics.projector import project_gaussians
+from gaussian_atoms_method.harness.simulate import MASS_PER_Z, gaussian_potential_parameters, parse_tilts, simulate_gaussian_tilt_series, spherical_particle
+from gaussian_atoms_method.physics.units import DATA_RANGE, Normalisation
 
 
 def test_tilt_schemes():
@@ -92,7 +86,7 @@ def test_lobato_is_independent_physics_with_the_same_geometry():
     """abTEM's Lobato projections differ from our Gaussian model (no inverse crime) while the
     atom lands on the same detector position, for off-centre atoms at several tilts."""
     pytest.importorskip("abtem")
-    from gaussian_atoms_method.simulate import project_gaussian_potential, project_lobato_potential
+    from gaussian_atoms_method.harness.simulate import project_gaussian_potential, project_lobato_potential
 
     px, n = 0.1, 81  # fine pixels so the sub-pixel peak is well defined
     for position, angle, tilt_axis in [([1.3, -0.7, 0.9], 0.0, "y"), ([1.3, -0.7, 0.9], 35.0, "y"), ([-0.8, 1.1, -1.4], -60.0, "x")]:

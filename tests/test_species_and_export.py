@@ -9,8 +9,8 @@ import ase.io
 import numpy as np
 import pytest
 
-from gaussian_atoms_method.atoms import AtomSet, write_atoms
-from gaussian_atoms_method.species import classify_species, kmeans_1d
+from gaussian_atoms_method.atoms.atom_set import AtomSet, write_atoms
+from gaussian_atoms_method.atoms.species import classify_species, kmeans_1d
 
 
 def test_classify_two_species_by_mass():

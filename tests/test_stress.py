@@ -2,7 +2,7 @@
 
 import pytest
 
-from gaussian_atoms_method.stress import low_snr_case, run_stress
+from gaussian_atoms_method.harness.stress import low_snr_case, run_stress
 
 
 @pytest.mark.parametrize("case", run_stress(include_slow=False), ids=lambda c: c[0])

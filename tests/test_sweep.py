@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from gaussian_atoms_method.sweep import Sweep, SweepError, grid_settings, parse_grid, run_name
+from gaussian_atoms_method.harness.sweep import Sweep, SweepError, grid_settings, parse_grid, run_name
 
 BIN = Path(sys.executable).parent
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from dataparsers.tilt_series_format import TiltSeriesError, load_tilt_series, write_tilt_series
-from gaussian_atoms_method.atoms import AtomSet
+from gaussian_atoms_method.atoms.atom_set import AtomSet
 
 
 def _write(tmp_path, n=5, shape=(8, 9)):

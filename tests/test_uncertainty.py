@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 import torch
 
-from gaussian_atoms_method.geometry import detector_axes_from_tilts, pixel_centres
-from gaussian_atoms_method.projector import project_gaussians
-from gaussian_atoms_method.uncertainty import position_std_A, robust_noise_std
+from gaussian_atoms_method.physics.geometry import detector_axes_from_tilts, pixel_centres
+from gaussian_atoms_method.physics.projector import project_gaussians
+from gaussian_atoms_method.atoms.uncertainty import position_std_A, robust_noise_std
 
 PIXEL_A = 0.25
 ANGLES = np.arange(-70.0, 71.0, 10.0)  # 15 views, a missing wedge

@@ -14,9 +14,9 @@ import math
 import numpy as np
 import torch
 
-from .baselines import Volume
-from .geometry import detector_axes_from_tilts, pixel_centres
-from .units import Normalisation
+from gaussian_atoms_method.physics.reconstruction import Volume
+from gaussian_atoms_method.physics.geometry import detector_axes_from_tilts, pixel_centres
+from gaussian_atoms_method.physics.units import Normalisation
 
 
 class CoordinateMLP(torch.nn.Module):

@@ -14,7 +14,7 @@ from typing import Mapping, MutableMapping
 
 import torch
 
-from .merge import scatter_mean
+from gaussian_atoms_method.atoms.merge import scatter_mean
 
 
 def apply_remap(

@@ -16,9 +16,9 @@ from typing import Callable
 import numpy as np
 import torch
 
-from .geometry import detector_axes_from_tilts
-from .merge import cluster_labels, merged_values
-from .projector import gaussian_mass, project_gaussians, project_gaussians_tiled
+from gaussian_atoms_method.physics.geometry import detector_axes_from_tilts
+from gaussian_atoms_method.atoms.merge import cluster_labels, merged_values
+from gaussian_atoms_method.physics.projector import gaussian_mass, project_gaussians, project_gaussians_tiled
 
 Case = tuple[str, bool, str]
 
@@ -83,7 +83,7 @@ def coincident_case() -> Case:
 
 def zero_projections_case() -> Case:
     """All-zero projections are refused with a clear message, not divided by zero."""
-    from .units import Normalisation
+    from gaussian_atoms_method.physics.units import Normalisation
 
     try:
         Normalisation.for_tilt_series(np.zeros((3, 8, 8)), 0.25)
@@ -101,9 +101,9 @@ def low_snr_case(steps: int = 150) -> Case:
     from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
     from dataparsers.tilt_series_format import write_tilt_series
 
-    from .model import GaussianAtomsModelConfig
-    from .simulate import simulate_gaussian_tilt_series, spherical_particle
-    from .training import train_views
+    from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
+    from gaussian_atoms_method.harness.simulate import simulate_gaussian_tilt_series, spherical_particle
+    from gaussian_atoms_method.nerfstudio_layer.training import train_views
 
     atoms = spherical_particle("Au", radius_A=5.0)
     angles = np.linspace(-60, 60, 13)

@@ -43,8 +43,8 @@ class AccuracyBenchmark:
         """The tilt-series directory for one cell of the table (simulated once, then reused)."""
         from dataparsers.tilt_series_format import update_manifest, write_tilt_series
 
-        from .particles import make_particle
-        from .simulate import blur_and_noise, parse_tilts, simulate_tilt_series, true_potential_volume
+        from gaussian_atoms_method.harness.particles import make_particle
+        from gaussian_atoms_method.harness.simulate import blur_and_noise, parse_tilts, simulate_tilt_series, true_potential_volume
 
         out = self.output / "data" / f"{particle}-{tilts}-noise{noise:g}"
         if (out / "tilt_series.json").is_file() and "volume" in json.loads((out / "tilt_series.json").read_text()):
@@ -84,9 +84,9 @@ class AccuracyBenchmark:
             return json.loads(result.read_text())
         run_dir.mkdir(parents=True, exist_ok=True)
         if method in ("fbp", "sart", "inr"):
-            from .cli import Baseline
+            from gaussian_atoms_method.harness.baselines import run_baseline
 
-            Baseline(data=data, output=run_dir, method=method, sart_iterations=self.sart_iterations, inr_steps=self.inr_steps, device=self.device).main()
+            run_baseline(data, run_dir, method, sart_iterations=self.sart_iterations, inr_steps=self.inr_steps, device=self.device)
         elif method == "ours":
             self._run_ours(data, run_dir)
         else:
@@ -95,7 +95,7 @@ class AccuracyBenchmark:
 
     def _run_ours(self, data: Path, run_dir: Path, extra_args: tuple[str, ...] = ()) -> None:
         """Our training on ``data`` (``extra_args``: trainer/model flags), scored."""
-        from .evaluation import evaluate_atoms, load_reference
+        from gaussian_atoms_method.harness.evaluation import evaluate_atoms, load_reference
 
         atoms, seconds = train_ours(data, run_dir, self.iterations, self.device, extra_args)
         series, truth, volume, voxel = load_reference(data)
@@ -151,7 +151,7 @@ def train_ours(
     Returns the predicted :class:`~.atoms.AtomSet` (read from the run's ``atoms.xyz``) and the
     wall time in seconds, start-up included.
     """
-    from .atoms import read_atoms
+    from gaussian_atoms_method.atoms.atom_set import read_atoms
 
     if launcher == "gaussian-atoms":
         command = [sys.executable, "-m", "gaussian_atoms_method.cli", "train"]

@@ -22,9 +22,9 @@ import numpy as np
 import torch
 from scipy import ndimage
 
-from .atoms import AtomSet
-from .geometry import detector_axes_from_tilts, pixel_centres
-from .projector import project_gaussians
+from gaussian_atoms_method.atoms.atom_set import AtomSet
+from gaussian_atoms_method.physics.geometry import detector_axes_from_tilts, pixel_centres
+from gaussian_atoms_method.physics.projector import project_gaussians
 
 #: Integrated potential of one atom in the Gaussian model, per unit of atomic number
 #: (arbitrary "projected potential" units x Å^2).  With a 0.35 Å atom and 0.5 Å blur one Au
@@ -257,7 +257,7 @@ def simulate_gaussian_tilt_series(atoms: AtomSet, angles_deg: np.ndarray, **kwar
 
 def true_potential_volume(truth: AtomSet, potential: str, voxel_size_A: float, voxels: int, atom_sigma_A: float = 0.35, blur_sigma_A: float = 0.5) -> np.ndarray:
     """The true potential on a ``voxels``^3 grid about the tilt centre, blurred like the data (float32)."""
-    from .metrics import voxelise_gaussians
+    from gaussian_atoms_method.harness.metrics import voxelise_gaussians
 
     if potential == "lobato":
         return lobato_potential_volume(truth, voxel_size_A, voxels, blur_sigma_A)

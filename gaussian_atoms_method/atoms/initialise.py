@@ -34,12 +34,15 @@ noise: the fit drives their mass down and the prune removes them.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+import torch
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from .baselines import reconstruct
-from .tracing import local_maxima, suppress_within
+from gaussian_atoms_method.atoms.peaks import local_maxima, suppress_within
+from gaussian_atoms_method.physics.reconstruction import reconstruct
 
 
 def backprojection_candidates(
@@ -119,3 +122,52 @@ def _separated_maxima(data: np.ndarray, spacing_A: float, min_distance_A: float)
         return np.zeros((0, 3), dtype=np.int64)
     order = np.argsort(-data[tuple(peaks.T)], kind="stable")
     return peaks[suppress_within(peaks * spacing_A, order, min_distance_A)]
+
+
+def starting_positions(
+    series, length_scale: float, count: int, extent: float, generator: torch.Generator, from_backprojection: bool = True
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Where training starts: (n, 3) positions in normalised units and, for a back-projection
+    start, (n,) weights of mean 1 in proportion to the smoothed back-projection there (else None).
+
+    Parameters
+    ----------
+    series : TiltSeries or None
+        The measured tilt series (``projections``, ``angles_deg``, ``pixel_size_A``,
+        ``tilt_axis``, ``centre_px``); None, or ``from_backprojection`` False: a random start.
+    length_scale : float
+        Normalised length per Å (:class:`~gaussian_atoms_method.physics.units.Normalisation`).
+    count : int
+        At most this many back-projection candidates, or exactly this many random positions.
+    extent : float
+        Side of the cube (normalised units) the random positions fill.
+    generator : torch.Generator
+        Draws the random positions.
+    """
+    if from_backprojection and series is not None:
+        # A GPU, if there is one, does the back-projection (the model is built on the CPU).
+        positions_A, values = backprojection_candidates(
+            series.projections, series.angles_deg, series.pixel_size_A, series.tilt_axis, series.centre_px, count,
+            device="cuda" if torch.cuda.is_available() else "cpu", return_values=True,
+        )  # fmt: skip
+        if len(positions_A):
+            # A candidate made of noise reads about zero; a floor of 1% of the strongest keeps
+            # every weight positive (a log-amplitude) without making it atom-like.
+            values = torch.as_tensor(values, dtype=torch.float64)
+            values = values.clamp_min(0.01 * float(values.max().clamp_min(1e-30)))
+            return torch.as_tensor(positions_A * length_scale, dtype=torch.float32), (values / values.mean()).float()
+    return (torch.rand(count, 3, generator=generator) - 0.5) * extent, None
+
+
+def starting_amplitude(projections, pixel_size_A: float | None, length_scale: float | None, n: int, sigma: float, data_range: float) -> float:
+    """3D peak (normalised units) that shares the measured mass equally among ``n`` Gaussians
+    of width ``sigma`` (normalised): every Gaussian starts atom-like in total, and the fit sorts
+    them.  ``projections``: (N, H, W) tensor in normalised data units.  Without data to size
+    them by (any argument None): a faint 5% of a full-range projected peak."""
+    if projections is None or pixel_size_A is None or length_scale is None:
+        return 0.05 * data_range / (sigma * math.sqrt(2 * math.pi))
+    pixel_area = (pixel_size_A * length_scale) ** 2
+    mass = float(projections.double().sum(dim=(-2, -1)).mean().clamp_min(0.0)) * pixel_area
+    mass_each = max(mass, 1e-12) / max(n, 1)
+    return mass_each / (2 * math.pi * sigma**2) ** 1.5
+

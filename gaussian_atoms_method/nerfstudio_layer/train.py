@@ -29,7 +29,7 @@ def build_config(argv: list[str]):
     import tyro
     from nerfstudio.engine.trainer import TrainerConfig
 
-    from .config import gaussian_atoms_trainer_config
+    from gaussian_atoms_method.nerfstudio_layer.config import gaussian_atoms_trainer_config
 
     tyro.extras.set_accent_color("bright_yellow")
     return tyro.cli(

@@ -35,12 +35,12 @@ class TimeToAccuracy:
     launcher: str = "gaussian-atoms"
 
     def run(self) -> list[dict]:
-        from .atoms import read_atoms
-        from .baselines import reconstruct
-        from .benchmark import train_ours
-        from .evaluation import load_reference
-        from .metrics import score_atoms
-        from .tracing import trace_atoms
+        from gaussian_atoms_method.atoms.atom_set import read_atoms
+        from gaussian_atoms_method.physics.reconstruction import reconstruct
+        from gaussian_atoms_method.harness.benchmark import train_ours
+        from gaussian_atoms_method.harness.evaluation import load_reference
+        from gaussian_atoms_method.atoms.matching import score_atoms
+        from gaussian_atoms_method.harness.tracing import trace_atoms
 
         series, truth, _, _ = load_reference(self.data)
         # FBP runs in torch: its import (seconds) is this process's start-up, not the baseline's.

@@ -17,25 +17,9 @@ from nerfstudio.plugins.types import MethodSpecification
 from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
 from dataparsers.tilt_series_dataset import TiltSeriesDataset
 
-from .model import GaussianAtomsModelConfig
+from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
 
 MAX_ITERATIONS = 3000
-
-
-def allow_numpy_scalars_in_checkpoints() -> None:
-    """torch >= 2.6 loads checkpoints with ``weights_only=True``, which refuses the numpy
-    scalars nerfstudio's learning-rate schedulers leave in every checkpoint (so ``ns-viewer
-    --load-config`` and resuming would fail).  Allow exactly those two harmless globals."""
-    import numpy as np
-    import torch
-
-    add = getattr(torch.serialization, "add_safe_globals", None)
-    if add is not None:
-        scalar = np._core.multiarray.scalar if hasattr(np, "_core") else np.core.multiarray.scalar
-        add([scalar, np.dtype] + [type(np.dtype(t)) for t in ("float64", "float32", "int64")])
-
-
-allow_numpy_scalars_in_checkpoints()
 
 
 class TiltSeriesDatamanager(FullImageDatamanager[TiltSeriesDataset]):

@@ -27,7 +27,7 @@ def train_views(model, cameras, targets: Sequence[torch.Tensor], steps: int, ref
     """
     from nerfstudio.engine.optimizers import Optimizers
 
-    from .config import gaussian_atoms_trainer_config
+    from gaussian_atoms_method.nerfstudio_layer.config import gaussian_atoms_trainer_config
 
     optimizers = Optimizers(gaussian_atoms_trainer_config().optimizers, model.get_param_groups())
     loss = float("nan")

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .atoms import AtomSet, read_atoms
+from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms
 
 DATA_DIR = Path(__file__).parent / "data"
 PARTICLES = ("au", "fept", "apd", "hea")

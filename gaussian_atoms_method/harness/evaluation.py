@@ -7,8 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .atoms import AtomSet
-from .metrics import score_atoms, volume_ssim, voxelise_gaussians
+from gaussian_atoms_method.atoms.atom_set import AtomSet
+from gaussian_atoms_method.atoms.matching import score_atoms
+from gaussian_atoms_method.harness.metrics import volume_ssim, voxelise_gaussians
 
 
 def evaluate_atoms(
@@ -74,7 +75,7 @@ def load_reference(data: Path, series=None):
     """
     from dataparsers.tilt_series_format import MANIFEST, load_tilt_series
 
-    from .atoms import read_atoms
+    from gaussian_atoms_method.atoms.atom_set import read_atoms
 
     data = Path(data)
     if series is None:

@@ -70,8 +70,8 @@ def train_and_score(data: str, run_dir: str, args: list[str], iterations: int, d
     """
     import time
 
-    from .benchmark import train_ours
-    from .evaluation import evaluate_atoms, load_reference
+    from gaussian_atoms_method.harness.benchmark import train_ours
+    from gaussian_atoms_method.harness.evaluation import evaluate_atoms, load_reference
 
     start = time.time()
     pred, seconds = train_ours(Path(data), Path(run_dir), iterations, device, tuple(args), threads)

@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .atoms import AtomSet
-from .metrics import global_shift, match_atoms
+from gaussian_atoms_method.atoms.atom_set import AtomSet
+from gaussian_atoms_method.atoms.matching import global_shift, match_atoms
 
 DOSE_FILES = {
     "1.6e5": "aSi_2nmFosCetr_Dose1p6e5_cov35pm_ForBM3D.mat",
@@ -100,8 +100,8 @@ class PeerBenchmark:
     loss: str = "l1"
 
     def run(self) -> list[dict]:
-        from .atoms import read_atoms
-        from .benchmark import train_ours
+        from gaussian_atoms_method.atoms.atom_set import read_atoms
+        from gaussian_atoms_method.harness.benchmark import train_ours
 
         for name in (*(DOSE_FILES[d] for d in self.doses), ANGLES_FILE, TRUTH_FILE):
             if not (self.data_dir / name).is_file():

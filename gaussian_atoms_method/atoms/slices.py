@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .atoms import AtomSet
+from gaussian_atoms_method.atoms.atom_set import AtomSet
 
 #: (axis normal to the slice, the two in-plane axes), for the xy, xz and yz slices.
 SLICES = ((2, 0, 1), (1, 0, 2), (0, 1, 2))
@@ -48,7 +48,7 @@ def write_slices_png(pred: AtomSet, output: Path, truth: AtomSet | None = None, 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .atoms import _atomic_write
+    from gaussian_atoms_method.atoms.atom_set import _atomic_write
 
     if len(pred) == 0:
         raise ValueError("no predicted atoms to draw")
@@ -56,7 +56,7 @@ def write_slices_png(pred: AtomSet, output: Path, truth: AtomSet | None = None, 
     # the slice), so a lone marker is a real miss or a false atom, not the slab's edge.
     pred_slab_position = pred.positions.copy()
     if truth is not None and len(truth):
-        from .metrics import match_atoms
+        from gaussian_atoms_method.atoms.matching import match_atoms
 
         pred_idx, true_idx = match_atoms(pred.positions, truth.positions, 0.75)
         pred_slab_position[pred_idx] = truth.positions[true_idx]

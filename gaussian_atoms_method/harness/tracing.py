@@ -14,16 +14,8 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
-from scipy.spatial import cKDTree
 
-
-def local_maxima(volume: np.ndarray) -> np.ndarray:
-    """(M, 3) integer indices of the voxels that are maxima of their 3x3x3 neighbourhood (and > 0),
-    excluding the border voxels (no neighbours for the sub-voxel fit)."""
-    peaks = (volume == ndimage.maximum_filter(volume, size=3, mode="nearest")) & (volume > 0)
-    peaks[[0, -1], :, :] = peaks[:, [0, -1], :] = peaks[:, :, [0, -1]] = False
-    return np.argwhere(peaks)
+from gaussian_atoms_method.atoms.peaks import local_maxima, suppress_within
 
 
 def otsu_threshold(values: np.ndarray) -> float:
@@ -34,21 +26,6 @@ def otsu_threshold(values: np.ndarray) -> float:
     if len(values) < 2 or np.ptp(values) == 0:
         return float(values.min()) if len(values) else 0.0
     return float(threshold_otsu(values))
-
-
-def suppress_within(positions: np.ndarray, order: np.ndarray, min_distance: float) -> np.ndarray:
-    """Indices kept when visiting ``positions`` in ``order`` and dropping any point within
-    ``min_distance`` (inclusive) of one already kept."""
-    tree = cKDTree(positions)
-    neighbours = tree.query_ball_point(positions, min_distance)
-    suppressed = np.zeros(len(positions), dtype=bool)
-    kept = []
-    for i in order:
-        if suppressed[i]:
-            continue
-        kept.append(i)
-        suppressed[neighbours[i]] = True
-    return np.asarray(kept, dtype=np.int64)
 
 
 def subvoxel_refine(volume: np.ndarray, peaks: np.ndarray) -> np.ndarray:

@@ -1,0 +1,17 @@
+"""Atoms as a set of isotropic Gaussians, and what is done to such a set.
+
+* :mod:`.atom_set`: :class:`AtomSet` (positions, widths and amplitudes in Å) and its files;
+* :mod:`.initialise`: candidate atoms from a smoothed back-projection (the start);
+* :mod:`.merge`: the cluster merge (minimum-distance prior) as pure array functions;
+* :mod:`.matching`: matching predicted to true atoms and the paper's scores;
+* :mod:`.peaks`: local maxima of a volume and their suppression within a distance;
+* :mod:`.species`: species from integrated masses;
+* :mod:`.uncertainty`: each atom's Cramér-Rao position precision;
+* :mod:`.slices`: a figure of central slices of the potential with the atoms.
+
+Depends on :mod:`gaussian_atoms_method.physics` only; no nerfstudio.
+"""
+
+from .atom_set import AtomFileError, AtomSet, read_atoms, write_atoms
+
+__all__ = ["AtomFileError", "AtomSet", "read_atoms", "write_atoms"]

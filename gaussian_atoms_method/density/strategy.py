@@ -1,0 +1,215 @@
+"""Density control: how many Gaussians there are, and where.
+
+A strategy in the manner of gsplat's (``gsplat.strategy.DefaultStrategy``): an object that
+holds its own state (the positional gradients accumulated over a refine interval, the random
+generator of the duplications) and is called from the training loop after each backward pass.
+It acts on the parameter dict (name -> ``nn.Parameter``: ``means`` (N, 3), ``log_sigmas``
+(N, 1) or (N, 3), ``log_amplitudes`` (N, 1), optionally ``quats`` (N, 4)) and on the
+optimisers' state through :mod:`.remap`, so Adam's moments follow their Gaussians.  Lengths
+are in normalised units (``length_scale`` normalised units per Å, :mod:`..physics.units`).
+
+The rules, every ``refine_every`` steps after ``warmup_length``:
+
+* **duplicate** Gaussians whose mean positional gradient over the interval exceeds
+  ``densify_grad_thresh`` (until ``stop_split_at``): each copy takes half the mass, the pair
+  half a width apart;
+* **prune** Gaussians lighter than ``prune_mass_fraction`` of a typical atom (the
+  mass-weighted median), wider than ``max_atom_sigma_A`` or outside the reconstruction volume;
+* **merge** (every ``merge_every`` steps, when ``cluster_merge``) clusters closer than
+  ``merge_threshold_A`` into one Gaussian (the minimum-distance prior, :mod:`..atoms.merge`).
+
+Every step the parameters are clamped to physical ranges (:meth:`DensityControl.clamp`).
+No nerfstudio import: unit-tested on plain parameter dicts.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Mapping, MutableMapping
+
+import torch
+
+from gaussian_atoms_method.atoms.merge import cluster_labels, merged_values
+from gaussian_atoms_method.density.remap import apply_remap, duplicate_remap, keep_remap, merge_remap
+from gaussian_atoms_method.physics.projector import gaussian_mass, typical_mass
+
+Params = MutableMapping[str, torch.nn.Parameter]
+Optimizers = Mapping[str, torch.optim.Optimizer]
+
+
+def widths(params: Mapping[str, torch.Tensor], min_log_sigma: float) -> torch.Tensor:
+    """(N,) widths ``exp(log_sigma)`` floored at ``exp(min_log_sigma)``; with three widths (the
+    anisotropic ablation) their geometric mean (same volume, same mass)."""
+    return torch.exp(params["log_sigmas"].clamp_min(min_log_sigma).mean(dim=-1))
+
+
+def amplitudes(params: Mapping[str, torch.Tensor]) -> torch.Tensor:
+    """(N,) 3D peaks ``exp(log_amplitude)`` (the exponential keeps them positive)."""
+    return torch.exp(params["log_amplitudes"]).squeeze(-1)
+
+
+@dataclass
+class DensityControl:
+    """Duplicate, prune and merge Gaussians; see the module docstring for the rules.
+
+    Attributes are the settings of :class:`~gaussian_atoms_method.nerfstudio_layer.options.GaussianAtomsOptions`
+    of the same names (their docstrings say where each value comes from), with lengths converted
+    by ``length_scale`` and ``max_log_amplitude`` (the amplitude ceiling of :meth:`clamp`) set by
+    the model from the measured mass.
+    """
+
+    length_scale: float
+    max_log_amplitude: float
+    generator: torch.Generator
+    min_sigma_A: float = 0.15
+    max_sigma_A: float = 5.0
+    max_atom_sigma_A: float = 1.5
+    warmup_length: int = 200
+    refine_every: int = 100
+    stop_split_at: int = 2500
+    densify_grad_thresh: float = 0.2
+    max_gaussians: int = 200000
+    prune_mass_fraction: float = 0.25
+    cluster_merge: bool = True
+    merge_every: int = 100
+    merge_threshold_A: float = 0.7
+    merge_amplitude: str = "mass"
+    isotropic: bool = True
+    grad_accum: torch.Tensor = field(default_factory=lambda: torch.zeros(0, 3))
+    """(N, 3) sum of the means' gradient vectors since the last refine (CPU)."""
+    grad_count: int = 0
+
+    # ------------------------------------------------------------------ helpers
+    @property
+    def min_log_sigma(self) -> float:
+        return math.log(self.min_sigma_A * self.length_scale)
+
+    def reset(self, n: int) -> None:
+        """Forget the accumulated gradients, for ``n`` Gaussians."""
+        self.grad_accum = torch.zeros(n, 3)
+        self.grad_count = 0
+
+    def remap(self, params: Params, optimizers: Optimizers, src, dst, n_out: int, new_values=None, param_lists=None) -> None:
+        """Apply a remap (:mod:`.remap`) to the parameters, the optimisers' state and the
+        accumulated gradients (merged Gaussians sum their pulls)."""
+        dev = params["means"].device
+        apply_remap(params, optimizers, src.to(dev), dst.to(dev), n_out, new_values, param_lists)
+        self.grad_accum = torch.zeros(n_out, 3).index_add_(0, dst.cpu(), self.grad_accum[src.cpu()])
+
+    # ------------------------------------------------------------------ called by the training loop
+    @torch.no_grad()
+    def step_post_backward(self, params: Params, optimizers: Optimizers, step: int, param_lists=None) -> dict[str, int]:
+        """After each optimiser step: clamp, accumulate the positional gradient and, every
+        ``refine_every`` steps after the warm-up, duplicate and prune.  Returns the counts."""
+        self.clamp(params)
+        grad = params["means"].grad
+        if grad is not None:
+            if self.grad_accum.shape[0] != grad.shape[0]:
+                self.reset(grad.shape[0])
+            # Sum the gradient vectors, not their norms: with an L1 loss the per-step gradient of
+            # a well-fitted Gaussian is noise that cancels, a persistent pull towards unexplained
+            # signal does not.
+            self.grad_accum += grad.detach().cpu()
+            self.grad_count += 1
+        if step < self.warmup_length or step % self.refine_every != 0:
+            return {}
+        counts = {"duplicated": self.densify(params, optimizers, param_lists) if step < self.stop_split_at else 0}
+        counts["pruned"] = self.prune(params, optimizers, param_lists)
+        self.reset(params["means"].shape[0])
+        return counts
+
+    @torch.no_grad()
+    def merge_step(self, params: Params, optimizers: Optimizers, step: int, param_lists=None) -> int:
+        """Every ``merge_every`` steps after the warm-up (when ``cluster_merge``), merge."""
+        if self.cluster_merge and step >= self.warmup_length and step % self.merge_every == 0:
+            return self.merge(params, optimizers, param_lists)
+        return 0
+
+    @torch.no_grad()
+    def finalize(self, params: Params, optimizers: Optimizers, param_lists=None) -> None:
+        """Last merge and prune, so the result holds one Gaussian per atom."""
+        if self.cluster_merge:
+            self.merge(params, optimizers, param_lists)
+        self.prune(params, optimizers, param_lists)
+
+    # ------------------------------------------------------------------ the rules
+    @torch.no_grad()
+    def clamp(self, params: Params) -> None:
+        """Widths within [min_sigma_A, max_sigma_A]; amplitudes below ``max_log_amplitude``;
+        positions within twice the volume.  Far outside what an atom can be, these bounds only
+        stop a runaway Gaussian from overflowing float32."""
+        ls = self.length_scale
+        params["log_sigmas"].data.clamp_(math.log(self.min_sigma_A * ls), math.log(self.max_sigma_A * ls))
+        params["log_amplitudes"].data.clamp_(max=self.max_log_amplitude)
+        params["means"].data.clamp_(-1.0, 1.0)
+
+    @torch.no_grad()
+    def densify(self, params: Params, optimizers: Optimizers, param_lists=None) -> int:
+        """Duplicate Gaussians with a high mean positional gradient; each copy takes half the mass."""
+        if self.grad_count == 0:
+            return 0
+        n = params["means"].shape[0]
+        mean_grad = (self.grad_accum / self.grad_count).norm(dim=-1)
+        idx = torch.nonzero(mean_grad > self.densify_grad_thresh).flatten()
+        room = self.max_gaussians - n
+        if room <= 0 or len(idx) == 0:
+            return 0
+        idx = idx[torch.argsort(mean_grad[idx], descending=True)[:room]]
+        self.remap(params, optimizers, *duplicate_remap(n, idx), param_lists=param_lists)
+        # Halve both amplitudes and move the pair apart by one sigma in a random direction.
+        dev = params["means"].device
+        both = torch.cat([idx, torch.arange(n, n + len(idx))]).to(dev)
+        params["log_amplitudes"].data[both] -= math.log(2.0)
+        direction = torch.randn(len(idx), 3, generator=self.generator).to(dev)
+        direction = direction / direction.norm(dim=-1, keepdim=True)
+        offset = 0.5 * direction * widths(params, self.min_log_sigma)[idx.to(dev), None]
+        params["means"].data[idx.to(dev)] += offset
+        params["means"].data[n:] -= offset
+        return len(idx)
+
+    @torch.no_grad()
+    def typical_atom_mass(self, params: Mapping[str, torch.Tensor]) -> float:
+        """Mass-weighted median of the Gaussians' integrated masses: a typical atom's mass.
+
+        Half of the total mass sits in Gaussians at least this heavy.  Faint leftovers may
+        outnumber the atoms but carry little of the mass, so unlike a plain median this stays
+        on the atoms.  Only atom-like widths (<= max_atom_sigma_A) count: on the aSi-208 data
+        a Gaussian of 10 Å width grew to absorb the projections' constant background, held
+        most of the mass, and the prune then removed every atom.
+        """
+        sigmas = widths(params, self.min_log_sigma)
+        atom_like = sigmas <= self.max_atom_sigma_A * self.length_scale
+        return typical_mass(gaussian_mass(sigmas, amplitudes(params))[atom_like])
+
+    @torch.no_grad()
+    def prune(self, params: Params, optimizers: Optimizers, param_lists=None) -> int:
+        """Remove Gaussians too faint or too wide to be an atom, or outside the reconstruction volume."""
+        sigmas = widths(params, self.min_log_sigma)
+        mass = gaussian_mass(sigmas, amplitudes(params))
+        keep = mass >= self.prune_mass_fraction * self.typical_atom_mass(params)
+        keep &= sigmas <= self.max_atom_sigma_A * self.length_scale
+        keep &= (params["means"].abs() <= 0.5).all(dim=-1)
+        removed = int((~keep).sum())
+        if removed:
+            self.remap(params, optimizers, *keep_remap(keep.cpu()), param_lists=param_lists)
+        return removed
+
+    @torch.no_grad()
+    def merge(self, params: Params, optimizers: Optimizers, param_lists=None) -> int:
+        """Replace every cluster of Gaussians closer than merge_threshold_A by one."""
+        means = params["means"]
+        thr = self.merge_threshold_A * self.length_scale
+        labels, n_clusters = cluster_labels(means.detach().cpu().numpy(), thr)
+        n = means.shape[0]
+        if n_clusters == n:
+            return 0
+        labels_t = torch.as_tensor(labels, device=means.device)
+        sigmas = widths(params, self.min_log_sigma)
+        new_means, new_sigmas, amps = merged_values(means, sigmas, amplitudes(params), labels_t, n_clusters, self.merge_amplitude)
+        new_values = {"means": new_means, "log_amplitudes": torch.log(amps)[:, None]}
+        if self.isotropic:
+            new_values["log_sigmas"] = torch.log(new_sigmas)[:, None]
+        # Without isotropy the three log-widths (and rotations) take their cluster's mean.
+        self.remap(params, optimizers, *merge_remap(labels_t.cpu(), n_clusters), new_values, param_lists)
+        return n - n_clusters

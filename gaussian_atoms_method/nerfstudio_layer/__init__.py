@@ -1,0 +1,8 @@
+"""The thin nerfstudio layer: the method's config (:mod:`.config`), the splatfacto subclass
+(:mod:`.model`) with its per-view rendering (:mod:`.rendering`), convergence check
+(:mod:`.convergence`) and result writing (:mod:`.results`), the training launchers
+(:mod:`.train`: ``gaussian-atoms train``; :mod:`.training`: a minimal loop for tests), the
+viewer's atom cloud (:mod:`.viewer`) and checkpoint loading (:mod:`.checkpoints`).
+
+The only modules of :mod:`gaussian_atoms_method` that import nerfstudio (with the
+dataparser and dataset in :mod:`dataparsers`)."""

@@ -1,0 +1,28 @@
+"""Loading nerfstudio checkpoints of this method under torch >= 2.6.
+
+torch >= 2.6 loads checkpoints with ``weights_only=True``, which refuses the numpy scalars
+nerfstudio's learning-rate schedulers leave in every checkpoint (so ``ns-viewer
+--load-config``, ``gaussian-atoms export`` and resuming would fail).  nerfstudio builds the
+model before it loads a checkpoint (``Trainer.setup`` and ``eval_setup`` alike), so the model
+calls :func:`allow_numpy_scalars_in_checkpoints` when it is built: the allowance is made where
+checkpoints are loaded, not as a side effect of importing anything.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+
+def numpy_checkpoint_globals() -> list:
+    """The numpy globals a nerfstudio checkpoint holds: the scalar constructor and dtypes."""
+    scalar = np._core.multiarray.scalar if hasattr(np, "_core") else np.core.multiarray.scalar
+    return [scalar, np.dtype] + [type(np.dtype(t)) for t in ("float64", "float32", "int64")]
+
+
+def allow_numpy_scalars_in_checkpoints() -> None:
+    """Allow exactly those harmless globals in ``torch.load(weights_only=True)`` (a no-op on
+    torch versions without safe globals)."""
+    add = getattr(torch.serialization, "add_safe_globals", None)
+    if add is not None:
+        add(numpy_checkpoint_globals())

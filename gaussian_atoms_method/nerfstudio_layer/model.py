@@ -1,0 +1,295 @@
+"""``GaussianAtomsModel``: splatfacto with the tomographic projector in place of the rasteriser.
+
+One isotropic Gaussian per atom.  Parameters (normalised units, see
+:mod:`gaussian_atoms_method.physics.units`):
+
+* ``means`` (N, 3): positions;
+* ``log_sigmas`` (N, 1): one width per Gaussian, ``sigma = exp(log_sigma)`` (the isotropy
+  prior); with ``isotropic=False`` (the ablation) three widths (N, 3) and a rotation ``quats``
+  (N, 4), projected exactly by :func:`~gaussian_atoms_method.physics.projector.project_anisotropic_gaussians`;
+* ``log_amplitudes`` (N, 1): the 3D peak, ``q = exp(log_amplitude)``.  The exponential keeps it
+  positive and makes Adam's steps relative, so faint and bright atoms learn at the same pace.
+
+The model keeps the rendering (composed from :mod:`.rendering`) and the loss (L1 or L2 between
+predicted and measured projections; no SSIM, LPIPS, spherical harmonics or alpha).  How many
+Gaussians exist is the density-control strategy's (:mod:`gaussian_atoms_method.density.strategy`),
+called from the training callbacks registered here; the start is
+:mod:`gaussian_atoms_method.atoms.initialise`'s, the stop :mod:`.convergence`'s and the files
+:mod:`.results`'.  Options: :mod:`.options`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Tuple, Type
+
+import torch
+from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.models.splatfacto import SplatfactoModel
+from nerfstudio.utils.rich_utils import CONSOLE
+from torch.nn import Parameter
+
+from gaussian_atoms_method.atoms.atom_set import AtomSet
+from gaussian_atoms_method.atoms.initialise import starting_amplitude, starting_positions
+from gaussian_atoms_method.density.strategy import DensityControl, amplitudes, widths
+from gaussian_atoms_method.nerfstudio_layer import rendering as R
+from gaussian_atoms_method.nerfstudio_layer.checkpoints import allow_numpy_scalars_in_checkpoints
+from gaussian_atoms_method.nerfstudio_layer.convergence import ConvergenceCheck
+from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions
+from gaussian_atoms_method.nerfstudio_layer.results import model_position_std_A, write_results, write_snapshot
+from gaussian_atoms_method.nerfstudio_layer.splatfacto_compat import SplatfactoCompat
+from gaussian_atoms_method.nerfstudio_layer.viewer import AtomsInViewer
+from gaussian_atoms_method.physics.projector import covariances_from_scales_quats, project_anisotropic_gaussians, project_gaussians, project_gaussians_gsplat, project_gaussians_tiled
+from gaussian_atoms_method.physics.units import DATA_RANGE, Normalisation
+
+
+@dataclass
+class GaussianAtomsModelConfig(GaussianAtomsOptions):
+    """Gaussian atoms: isotropic 3D Gaussians fitted to a tilt series."""
+
+    _target: Type = field(default_factory=lambda: GaussianAtomsModel)
+
+
+class GaussianAtomsModel(SplatfactoCompat, SplatfactoModel):
+    """Splatfacto subclass whose renderer is the tomographic line-integral projector."""
+
+    config: GaussianAtomsModelConfig
+
+    # ------------------------------------------------------------------ set-up
+    def populate_modules(self) -> None:
+        # Deliberately not splatfacto's: that builds LPIPS (downloads weights), SH colours,
+        # opacities and gsplat's alpha-compositing strategy, none of which apply here.
+        allow_numpy_scalars_in_checkpoints()  # nerfstudio loads checkpoints after building the model
+        cfg, metadata = self.config, self.kwargs.get("metadata", {}) or {}
+        self.normalisation: Normalisation = metadata.get("normalisation") or Normalisation(1.0, 1.0)
+        ls, series = self.normalisation.length_scale, metadata.get("tilt_series")
+        self.truth_path: Path | None = Path(metadata["truth_path"]) if metadata.get("truth_path") is not None else None
+        self.generator = torch.Generator().manual_seed(cfg.seed)
+        means, weights = starting_positions(series, ls, cfg.num_random, cfg.init_extent, self.generator, cfg.init == "backprojection")
+        if weights is not None:
+            CONSOLE.print(f"gaussian-atoms: {len(means)} Gaussians start at back-projection maxima")
+        n, sigma0 = means.shape[0], cfg.init_sigma_A * ls
+        norm = metadata.get("normalisation")
+        amp0 = starting_amplitude(metadata.get("projections"), metadata.get("pixel_size_A"), norm.length_scale if norm else None, n, sigma0, DATA_RANGE)
+        log_amps = torch.full((n, 1), math.log(amp0))
+        if weights is not None and cfg.init_mass == "backprojection":
+            log_amps += torch.log(weights)[:, None]
+        params = {"means": Parameter(means), "log_sigmas": Parameter(torch.full((n, 1 if cfg.isotropic else 3), math.log(sigma0))), "log_amplitudes": Parameter(log_amps)}
+        if not cfg.isotropic:  # near-identity rotations; exactly identity would start every ellipsoid axis-aligned
+            params["quats"] = Parameter(torch.tensor([1.0, 0.0, 0.0, 0.0]) + 0.1 * torch.randn(n, 4, generator=self.generator))
+        self.gauss_params = torch.nn.ParameterDict(params)
+        # Every Gaussian's mass stays below 1000x the whole measured mass (DensityControl.clamp).
+        max_log_amp = math.log(1000.0 * max(n, 1) * amp0 * (sigma0 / (cfg.min_sigma_A * ls)) ** 3)
+        names = ("min_sigma_A", "max_sigma_A", "max_atom_sigma_A", "warmup_length", "refine_every", "stop_split_at", "densify_grad_thresh",
+                 "max_gaussians", "prune_mass_fraction", "cluster_merge", "merge_every", "merge_threshold_A", "merge_amplitude", "isotropic")  # fmt: skip
+        self.density = DensityControl(ls, max_log_amp, self.generator, **{k: getattr(cfg, k) for k in names})
+        self.density.reset(n)
+        self.convergence = ConvergenceCheck(cfg.warmup_length, cfg.refine_every, cfg.converged_fraction)
+        self._setup_view_params(metadata, series)
+        self.step, self.optimizers, self._optimizers_obj = 0, {}, None
+        self.crop_box, self.background_color = None, torch.zeros(3)
+        self.atoms_in_viewer = AtomsInViewer(self._viewer_atoms)  # the atoms as points in nerfstudio's viewer
+
+    def _setup_view_params(self, metadata: dict, series) -> None:
+        """Per-view parameters (untouched by density control) and the views-per-step batches."""
+        cfg, view_c2w = self.config, metadata.get("view_c2w")
+        self.register_buffer("view_c2w", view_c2w.float() if view_c2w is not None else torch.zeros(0, 3, 4), persistent=False)
+        n_views, view_params = self.view_c2w.shape[0], {}
+        if cfg.background != "none":
+            view_params["background"] = Parameter(torch.zeros(n_views, 1 if cfg.background == "constant" else 3))
+        if cfg.refine_alignment:
+            view_params["view_shifts"] = Parameter(torch.zeros(n_views, 2))
+        if cfg.refine_tilts:
+            if series is None:
+                raise ValueError("--pipeline.model.refine-tilts needs a single-axis tilt series from the tilt-series dataparser")
+            view_params["view_tilts"] = Parameter(torch.zeros(n_views, 1))
+            self.register_buffer("tilt_axis_vector", torch.tensor([0.0, 1.0, 0.0] if series.tilt_axis == "y" else [1.0, 0.0, 0.0]), persistent=False)
+        self.view_params = torch.nn.ParameterDict(view_params)
+        unsupported = [name for name, on in (("refine-alignment", cfg.refine_alignment), ("refine-tilts", cfg.refine_tilts),
+                       ("background", cfg.background != "none"), ("isotropic False", not cfg.isotropic)) if on]  # fmt: skip
+        self.register_buffer("train_projections", R.check_view_batches(cfg.views_per_step, unsupported, metadata.get("projections"), self.view_c2w), persistent=False)
+
+    # ------------------------------------------------------------------ parameters
+    @property
+    def means(self) -> torch.Tensor:
+        return self.gauss_params["means"]
+
+    @property
+    def sigmas(self) -> torch.Tensor:
+        """(N,) widths; without isotropy the geometric mean of the three (same volume, same mass)."""
+        return widths(self.gauss_params, self.density.min_log_sigma)
+
+    def _log_scales(self) -> torch.Tensor:
+        return self.gauss_params["log_sigmas"].clamp_min(self.density.min_log_sigma)
+
+    @property
+    def amplitudes(self) -> torch.Tensor:
+        return amplitudes(self.gauss_params)
+
+    @property
+    def num_points(self) -> int:
+        return self.means.shape[0]
+
+    def get_param_groups(self) -> Dict[str, List[Parameter]]:
+        return self.get_gaussian_param_groups() | {name: [param] for name, param in self.view_params.items()}
+
+    def projector_name(self, device: torch.device) -> str:
+        """The projector ``projector`` names on ``device`` ("auto": dense on CUDA, else tiled)."""
+        return ("dense" if device.type == "cuda" else "tiled") if self.config.projector == "auto" else self.config.projector
+
+    def _projector(self, device: torch.device):
+        choice = self.projector_name(device)
+        if choice == "gsplat" and device.type != "cuda":
+            raise ValueError("--pipeline.model.projector gsplat needs a CUDA device; use auto, tiled or dense on CPU")
+        return {"dense": project_gaussians, "tiled": project_gaussians_tiled, "gsplat": project_gaussians_gsplat}[choice]
+
+    # ------------------------------------------------------------------ rendering
+    def get_outputs(self, camera: Cameras) -> Dict[str, torch.Tensor]:
+        """Project the Gaussians for one camera: ``rgb`` (H, W, 3) in [0, 1] for the viewer,
+        ``projection`` (H, W, 1) in normalised data units, ``depth``; with views_per_step > 1
+        also the other views of the step (``extra_projection``, ``extra_views``)."""
+        if camera.shape[0] != 1:
+            raise ValueError("GaussianAtomsModel renders one camera at a time")
+        dev, dt = self.means.device, self.means.dtype
+        c2w = camera.camera_to_worlds[0].to(dt)
+        (rows_dir, cols_dir), t = R.detector_axes(c2w), c2w[:, 3]
+        rows, cols = R.pixel_coordinates(camera, c2w, self.training and self.step < self.config.coarse_steps, dev, dt)
+        batching = self.training and self.config.views_per_step > 1
+        view = R.view_index(self.view_c2w, camera) if len(self.view_params) or batching else None
+        if view is not None and "view_tilts" in self.view_params:
+            tilts = self.view_params["view_tilts"]  # the error relative to the mean (a common one rotates the particle)
+            rows_dir, cols_dir, t = R.rotate_about([rows_dir, cols_dir, t], self.tilt_axis_vector.to(dev, dt), (tilts[view, 0] - tilts[:, 0].mean()).to(dt))
+        axes = torch.stack([rows_dir, cols_dir])[None]
+        if view is not None and "view_shifts" in self.view_params:  # the content sits shifted by s: evaluate at x - s
+            shifts = self.view_params["view_shifts"]
+            s = (shifts[view] - shifts.mean(dim=0)).to(dt)
+            rows, cols = rows - s[0], cols - s[1]
+        extra = {}
+        if batching and view is not None:  # cameras on their beam axes through the tilt centre: no offset
+            others = R.other_views(view, self.view_c2w.shape[0], self.config.views_per_step, self.generator)
+            axes = torch.cat([axes, R.detector_axes(self.view_c2w[others].to(dev, dt))])
+            images = self._projector(dev)(self.means, self.sigmas, self.amplitudes, axes, rows, cols)
+            image, extra = images[0], {"extra_projection": images[1:, :, :, None], "extra_views": others}
+        elif self.config.isotropic:
+            image = self._projector(dev)(self.means - t, self.sigmas, self.amplitudes, axes, rows, cols)[0]
+        else:
+            cov = covariances_from_scales_quats(self._log_scales(), self.gauss_params["quats"])
+            image = project_anisotropic_gaussians(self.means - t, cov, self.amplitudes, axes, rows, cols)[0]
+        if view is not None and "background" in self.view_params:
+            image = R.add_background(image, self.view_params["background"][view].to(dt), rows, cols)
+        projection = image[..., None]
+        h, w = image.shape
+        # A line integral has no depth; the viewer composites its scene (atom points, frustums)
+        # with our image by depth: put the image behind everything.
+        depth = torch.full((1, 1, 1), 1e3, device=dev, dtype=dt).expand(h, w, 1)
+        return {"rgb": (projection / DATA_RANGE).clamp(0.0, 1.0).expand(h, w, 3), "projection": projection, "depth": depth, **extra}
+
+    # ------------------------------------------------------------------ losses and metrics
+    @staticmethod
+    def _measured(outputs, batch) -> torch.Tensor:
+        """The measured projection, binned 2 x 2 when the rendering is (coarse phase)."""
+        return R.binned_like(batch["image"].to(outputs["projection"]), outputs["projection"])
+
+    def get_metrics_dict(self, outputs, batch) -> Dict[str, torch.Tensor]:
+        gt = self._measured(outputs, batch)
+        return {"l1": torch.abs(outputs["projection"] - gt).mean().detach(), "gaussian_count": torch.tensor(float(self.num_points))}
+
+    def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
+        gt = self._measured(outputs, batch)
+        residual = outputs["projection"] - gt
+        if "extra_projection" in outputs:  # the other views of this step: one loss over all their pixels
+            extra = outputs["extra_projection"]
+            extra_gt = torch.stack([R.binned_like(m[..., None], extra[0]) for m in self.train_projections[outputs["extra_views"]]])
+            residual = torch.cat([residual[None], extra - extra_gt.to(extra)])
+        loss = torch.abs(residual).mean() if self.config.loss == "l1" else residual.square().mean()
+        # Parameters are checked too: the tiled projector skips a Gaussian whose centre is NaN.
+        if not torch.isfinite(loss) or not all(bool(torch.isfinite(p).all()) for p in self.gauss_params.values()):
+            bad = {k: int((~torch.isfinite(p)).any(dim=-1).sum()) for k, p in self.gauss_params.items()}
+            cause = ", ".join(f"{v} Gaussian(s) with non-finite {k}" for k, v in bad.items() if v) or (
+                "the measured projection holds NaN/Inf" if not torch.isfinite(gt).all() else "the projection overflowed (amplitudes too large for float32?)")  # fmt: skip
+            raise FloatingPointError(f"gaussian-atoms: step {self.step}: the loss is {float(loss)} and training cannot go on; cause: {cause}. Lower the learning rates or check the input.")
+        return {"main_loss": loss}
+
+    def get_image_metrics_and_images(self, outputs, batch) -> Tuple[Dict[str, float], Dict[str, torch.Tensor]]:
+        gt, pred = batch["image"].to(outputs["projection"]), outputs["projection"]
+        mse = torch.mean((pred - gt) ** 2)
+        metrics = {"l1": float(torch.abs(pred - gt).mean()), "psnr": float(10 * torch.log10(DATA_RANGE**2 / mse.clamp_min(1e-12))), "gaussian_count": float(self.num_points)}
+        return metrics, {"img": (torch.cat([gt, pred], dim=1) / DATA_RANGE).clamp(0, 1).expand(-1, -1, 3)}
+
+    # ------------------------------------------------------------------ training callbacks
+    def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
+        attrs, after = training_callback_attributes, [TrainingCallbackLocation.AFTER_TRAIN_ITERATION]
+        cbs = [TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], self.step_cb, args=[attrs.optimizers]),
+               TrainingCallback(after, self.refine_after_step), TrainingCallback(after, self.merge_after_step)]  # fmt: skip
+        trainer = attrs.trainer
+        if trainer is not None:
+            last = trainer._start_step + trainer.config.max_num_iterations - 1
+            cbs.append(TrainingCallback(after, self._write_results_at, args=[last, trainer.base_dir]))
+            # After the refine and merge callbacks: judged on the atoms as they stand.
+            cbs.append(TrainingCallback(after, self._stop_if_converged, args=[trainer, last]))
+            if self.config.snapshot_every > 0:
+                cbs.append(TrainingCallback(after, self._snapshot_after_step, args=[Path(trainer.base_dir) / "snapshots"]))
+        return cbs
+
+    def step_cb(self, optimizers, step: int) -> None:
+        self.step, self._optimizers_obj, self.optimizers = step, optimizers, optimizers.optimizers
+
+    def _param_lists(self):
+        """nerfstudio's second registry of the parameters (``Optimizers.parameters``), kept in step."""
+        return getattr(self._optimizers_obj, "parameters", None)
+
+    @torch.no_grad()
+    def refine_after_step(self, step: int) -> None:
+        """Clamp, accumulate the positional gradient and every refine_every steps duplicate and prune."""
+        if self.density.step_post_backward(self.gauss_params, self.optimizers, step, self._param_lists()):
+            self.atoms_in_viewer.refresh()
+
+    @torch.no_grad()
+    def merge_after_step(self, step: int) -> None:
+        """The minimum-distance prior as its own callback (every merge_every steps after the warm-up)."""
+        if self.density.merge_step(self.gauss_params, self.optimizers, step, self._param_lists()):
+            self.atoms_in_viewer.refresh()
+
+    @torch.no_grad()
+    def finalize(self) -> None:
+        """Last merge and prune so the result holds one Gaussian per atom."""
+        self.density.finalize(self.gauss_params, self.optimizers, self._param_lists())
+        self.atoms_in_viewer.refresh()
+
+    # ------------------------------------------------------------------ results
+    @torch.no_grad()
+    def atoms(self) -> AtomSet:
+        """The current Gaussians as atoms in Å, in the frame of the input's truth file."""
+        norm = self.normalisation
+        return AtomSet(positions=norm.positions_to_A(self.means.detach().cpu().double().numpy()), sigmas=norm.sigmas_to_A(self.sigmas.detach().cpu().double().numpy()),
+                       amplitudes=norm.amplitudes_to_physical(self.amplitudes.detach().cpu().double().numpy()))  # fmt: skip
+
+    def position_std_A(self, atoms: AtomSet, noise: float | None = None):
+        """Each atom's position precision (N, 3) in Å and the pixel noise assumed (:mod:`.results`)."""
+        return model_position_std_A(self, atoms, noise)
+
+    def converged(self, step: int) -> bool:
+        """True once the atoms are settled (:mod:`.convergence`)."""
+        return self.convergence.update(step, self.means, self.normalisation.length_scale, lambda noise: self.position_std_A(self.atoms(), noise))
+
+    def write_results(self, run_dir: Path) -> dict | None:
+        """atoms.xyz, atoms.csv, slices.png and evaluation.json (:func:`.results.write_results`)."""
+        return write_results(self, Path(run_dir))
+
+    def _write_results_at(self, last_step: int, run_dir: Path, step: int) -> None:
+        if step == last_step:
+            self.write_results(Path(run_dir))
+
+    def _stop_if_converged(self, trainer, last_step: int, step: int) -> None:
+        if self.config.stop_when_converged and step < last_step and self.converged(step):
+            CONSOLE.print(f"gaussian-atoms: converged at step {step}: stopping early")
+            self.write_results(Path(trainer.base_dir))
+            trainer.stop_training = True  # nerfstudio's loop ends before the next step
+
+    def _snapshot_after_step(self, directory: Path, step: int) -> None:
+        # Steps count from 0: after step k*N-1, k*N steps are done (the last is the final result).
+        if (step + 1) % self.config.snapshot_every == 0:
+            write_snapshot(self.atoms(), directory, step + 1, self.num_points, torch.cuda.max_memory_allocated() if self.means.is_cuda else 0)

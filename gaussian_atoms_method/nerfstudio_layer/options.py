@@ -1,0 +1,112 @@
+"""The model's options (``--pipeline.model.*``): what each does and where its value comes from.
+
+:class:`GaussianAtomsOptions` holds them all; :class:`~.model.GaussianAtomsModelConfig` adds
+only the model class it builds.  Where each option takes effect is drawn in
+``docs/architecture.md``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+from nerfstudio.models.splatfacto import SplatfactoModelConfig
+
+
+@dataclass
+class GaussianAtomsOptions(SplatfactoModelConfig):
+    """Gaussian atoms: isotropic 3D Gaussians fitted to a tilt series."""
+
+    init: Literal["backprojection", "random"] = "backprojection"
+    """Where the Gaussians start: at the strongest local maxima of a smoothed filtered
+    back-projection (see :mod:`gaussian_atoms_method.initialise`), or at random positions (the
+    paper).  Back-projection needs single-axis tilts; otherwise random is used."""
+    init_mass: Literal["backprojection", "equal"] = "backprojection"
+    """How the measured mass is shared among the starting Gaussians: in proportion to the
+    smoothed back-projection at each (noise candidates start faint and are pruned sooner;
+    back-projection start only), or equally."""
+    num_random: int = 10000
+    """Number of Gaussians to start from (at most this many back-projection candidates)."""
+    init_sigma_A: float = 0.7
+    """Initial width of every Gaussian, Å."""
+    init_extent: float = 0.8
+    """Side of the cube (normalised units, the detector's longer side is 1) that the random
+    Gaussians start in."""
+    min_sigma_A: float = 0.15
+    """Floor on the width, Å: no atom (after probe blur) is narrower; keeps the fit finite."""
+    max_atom_sigma_A: float = 1.5
+    """Gaussians wider than this (Å) are not atoms (an atom blurred by a 0.5 Å probe is about
+    0.6 Å wide): they are pruned and left out of the typical atom mass."""
+    max_sigma_A: float = 5.0
+    """Ceiling on the width, Å: far wider than any atom; keeps a runaway Gaussian finite."""
+    warmup_length: int = 200
+    """Steps before the first densify / prune / merge."""
+    refine_every: int = 100
+    """Steps between densify / prune / merge."""
+    stop_split_at: int = 2500
+    """No more duplication after this step (pruning and merging continue)."""
+    densify_grad_thresh: float = 0.2
+    """Duplicate Gaussians whose mean positional gradient (norm of the average gradient vector
+    over a refine interval, normalised units) exceeds this.  Measured on the demo data, a
+    fitted atom's sits at 0.02-0.1 (L1 noise), so 0.2 only duplicates under a persistent pull.
+    The paper's 0.005 is on gsplat's screen-space scale and would duplicate everything here."""
+    max_gaussians: int = 200000
+    """Never hold more Gaussians than this."""
+    prune_mass_fraction: float = 0.25
+    """Prune Gaussians whose integrated mass is below this fraction of a typical atom's
+    (the mass-weighted median mass)."""
+    isotropic: bool = True
+    """One width per Gaussian (the isotropy prior).  False: three widths and a rotation each."""
+    cluster_merge: bool = True
+    """Merge Gaussians closer than merge_threshold_A (the minimum-distance prior)."""
+    merge_every: int = 100
+    """Steps between cluster merges (after the warm-up)."""
+    merge_threshold_A: float = 0.7
+    """Gaussians closer than this (Å) merge into one."""
+    merge_amplitude: Literal["mass", "mean"] = "mass"
+    """Amplitude of a merged Gaussian: conserve the summed mass, or the mean amplitude (paper)."""
+    projector: Literal["auto", "tiled", "dense", "gsplat"] = "auto"
+    """Projection backend (all exact to float32; docs/performance.md): ``dense``, the full-image
+    separable matmul (fastest on a GPU: 1.4-3 ms per 280x280 view for 1k-50k Gaussians on an
+    H100); ``tiled``, each Gaussian only on the tiles it reaches (about 4x faster than dense on
+    a CPU); ``gsplat``, tiled with stock gsplat's tile intersection (CUDA only; correct but
+    slower than dense at these sizes).  ``auto``: dense on CUDA, tiled on CPU."""
+    loss: Literal["l1", "l2"] = "l1"
+    """Data term: L1 (the paper; robust to outliers) or L2 (unbiased for the mean: better at
+    low electron counts, where the median of a Poisson count sits below its mean and L1 lets
+    faint atoms fade; measured on the aSi-208 data at dose 1.6e4)."""
+    background: Literal["none", "constant", "plane"] = "none"
+    """A smooth per-projection background learned with the atoms (carbon support, contamination,
+    a detector offset): a constant, or a plane over the detector, per view."""
+    refine_alignment: bool = False
+    """Learn a per-projection in-plane shift with the atoms (residual misalignment of the tilt
+    series).  Shifts are taken relative to their mean over the views (an overall shift of
+    every view is the same as moving the particle)."""
+    coarse_steps: int = 300
+    """Coarse to fine: the first this many steps fit the projections binned 2 x 2 (a quarter of
+    the pixels to evaluate), then full resolution.  0: always full resolution.  300 covers the
+    warm-up and the first prune, where the atoms are found and the noise candidates go: on the
+    Au particle that reaches the accuracy targets 7-9 s sooner on a CPU with the same final
+    result (docs/performance.md, skips)."""
+    stop_when_converged: bool = True
+    """End training early once the atoms are settled: the Gaussian count unchanged and the RMS
+    step of the positions over a refine interval below ``converged_fraction`` of the atoms'
+    noise-limited precision (:mod:`gaussian_atoms_method.uncertainty`) at two checks in a row.
+    Further steps would move the atoms by less than the data can tell apart."""
+    converged_fraction: float = 1.0
+    """See stop_when_converged."""
+    refine_tilts: bool = False
+    """Learn a per-projection tilt-angle offset (about the tilt axis) with the atoms: errors of
+    the goniometer readings.  Offsets are taken relative to their mean (a common offset is the
+    same as rotating the particle).  Single-axis tilt series only."""
+    views_per_step: int = 1
+    """Training views fitted per step: the view nerfstudio hands the model and this many minus
+    one others drawn at random, rendered in one projector call, one loss over all.  On a GPU a
+    batch of views costs about one view's kernel launches and the averaged gradient is smoother
+    (docs/performance.md: several views per step); on a CPU each view costs its own time.  Not
+    with refine-alignment, refine-tilts, background or anisotropic Gaussians."""
+    snapshot_every: int = 0
+    """Every this many steps (0: never) write the current atoms to ``snapshots/`` in the run
+    directory with the wall-clock time, for time-to-accuracy benchmarks."""
+    seed: int = 0
+    """Seed of the random initialisation and duplications."""

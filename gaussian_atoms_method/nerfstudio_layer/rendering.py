@@ -1,0 +1,109 @@
+"""Per-view rendering pieces of the model: detector geometry from nerfstudio cameras and the
+corrections a measured view may need.
+
+* the detector axes and pixel coordinates of a camera (orthographic, or the viewer's
+  perspective camera projected with its magnification at the tilt centre);
+* the coarse phase: 2 x 2-binned pixel centres and data (``coarse_steps``);
+* a tilt-angle error (``refine_tilts``): the camera turned about the tilt axis;
+* an in-plane shift (``refine_alignment``) and a constant or plane background (``background``);
+* several views per step in one projector call (``views_per_step``).
+
+Each is a small function on tensors; :meth:`GaussianAtomsModel.get_outputs
+<gaussian_atoms_method.nerfstudio_layer.model.GaussianAtomsModel.get_outputs>` composes them.
+"""
+
+from __future__ import annotations
+
+import torch
+from nerfstudio.cameras.cameras import Cameras, CameraType
+
+
+def detector_axes(c2w: torch.Tensor) -> torch.Tensor:
+    """(..., 2, 3) world directions of the detector rows and columns of nerfstudio camera
+    poses (..., 3, 4): columns along the camera's x, rows down its y."""
+    return torch.stack([-c2w[..., :, 1], c2w[..., :, 0]], dim=-2)
+
+
+def binned_like(image: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """(H, W, C) ``image`` as is, or averaged over 2 x 2 blocks to the (H/2, W/2) of ``like``."""
+    h, w = like.shape[:2]
+    if image.shape[:2] != (h, w):
+        image = image[: 2 * h, : 2 * w].reshape(h, 2, w, 2, -1).mean(dim=(1, 3))
+    return image
+
+
+def pixel_coordinates(camera: Cameras, c2w: torch.Tensor, coarse: bool, device, dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    """(H,) and (W,) detector coordinates (normalised lengths) of the pixel centres of one
+    camera, along its rows and columns from the tilt centre.
+
+    A perspective camera (the viewer's) is projected along its view direction with the
+    magnification it has at the tilt centre, so zooming in and out works as expected.  With
+    ``coarse`` the coordinates are those of the centres of 2 x 2 pixel blocks (the loss bins
+    the data alike, :func:`binned_like`).
+    """
+    h, w = int(camera.height.item()), int(camera.width.item())
+    rows = (torch.arange(h, device=device, dtype=dtype) + 0.5 - camera.cy[0, 0].to(dtype)) / camera.fy[0, 0].to(dtype)
+    cols = (torch.arange(w, device=device, dtype=dtype) + 0.5 - camera.cx[0, 0].to(dtype)) / camera.fx[0, 0].to(dtype)
+    if int(camera.camera_type[0, 0]) != CameraType.ORTHOPHOTO.value:
+        distance = torch.dot(c2w[:, 3], c2w[:, 2]).clamp_min(1e-3)
+        rows, cols = rows * distance, cols * distance
+    if coarse:
+        h, w = h // 2, w // 2
+        rows, cols = rows[: 2 * h].view(h, 2).mean(dim=1), cols[: 2 * w].view(w, 2).mean(dim=1)
+    return rows, cols
+
+
+def rotate_about(vectors: list[torch.Tensor], axis: torch.Tensor, angle: torch.Tensor) -> list[torch.Tensor]:
+    """Each (3,) vector rotated by ``angle`` (radians) about the unit ``axis`` (Rodrigues).
+
+    Used for a view's tilt-angle error: the whole camera turns about the tilt axis through the
+    tilt centre (its detector axes and its position: otherwise its offset along the beam would
+    leak into the image as a shift)."""
+    c, s = torch.cos(angle), torch.sin(angle)
+    return [v * c + torch.linalg.cross(axis, v) * s + axis * torch.dot(axis, v) * (1 - c) for v in vectors]
+
+
+def add_background(image: torch.Tensor, coefficients: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:
+    """(H, W) ``image`` plus a view's background: a constant (1 coefficient) or a plane over
+    the detector in normalised coordinates (3: constant, row slope, column slope)."""
+    image = image + coefficients[0]
+    if len(coefficients) == 3:
+        image = image + coefficients[1] * rows[:, None] + coefficients[2] * cols[None, :]
+    return image
+
+
+def view_index(view_c2w: torch.Tensor, camera: Cameras) -> int | None:
+    """Index of the training view (poses ``view_c2w`` (V, 3, 4)) this camera is, or None."""
+    if view_c2w.shape[0] == 0:
+        return None
+    c2w = camera.camera_to_worlds[0].to(view_c2w)
+    dist = (view_c2w - c2w).abs().flatten(1).max(dim=1).values
+    best = int(torch.argmin(dist))
+    return best if float(dist[best]) < 1e-5 else None
+
+
+def check_view_batches(views_per_step: int, unsupported: list[str], projections, view_c2w: torch.Tensor) -> torch.Tensor:
+    """The (V, H, W) measured projections the extra views of a step are fitted to (empty for
+    one view per step), after checking the views can share one projector call; ValueError
+    naming the option otherwise."""
+    if views_per_step < 1:
+        raise ValueError(f"--pipeline.model.views-per-step must be at least 1, got {views_per_step}")
+    if views_per_step == 1:
+        return torch.zeros(0, 1, 1)
+    if unsupported:
+        raise ValueError(f"--pipeline.model.views-per-step {views_per_step} cannot be combined with --pipeline.model.{unsupported[0]} (per-view parameters); use 1")
+    if projections is None or view_c2w.shape[0] < 2:
+        raise ValueError("--pipeline.model.views-per-step > 1 needs a tilt series from the tilt-series dataparser (its projections and view poses)")
+    # One call projects the same means for every view: each camera must sit on its beam axis
+    # through the tilt centre (true of the dataparser's cameras).
+    off_axis = torch.stack([(view_c2w[:, :, 3] * view_c2w[:, :, 0]).sum(-1), (view_c2w[:, :, 3] * view_c2w[:, :, 1]).sum(-1)]).abs().max()
+    if float(off_axis) > 1e-5:
+        raise ValueError("--pipeline.model.views-per-step > 1 needs every camera on its beam axis through the tilt centre")
+    return torch.as_tensor(projections, dtype=torch.float32)
+
+
+def other_views(view: int, n_views: int, views_per_step: int, generator: torch.Generator) -> torch.Tensor:
+    """``views_per_step - 1`` distinct training views other than ``view``, drawn at random."""
+    k = min(views_per_step - 1, n_views - 1)
+    others = torch.randperm(n_views - 1, generator=generator)[:k]
+    return others + (others >= view).long()  # skip ``view`` itself

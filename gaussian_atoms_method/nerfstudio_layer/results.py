@@ -1,0 +1,89 @@
+"""What a run leaves in its directory: the atoms with their precision, a slices figure, the
+scores against a truth file, and snapshots during training.
+
+* ``atoms.xyz`` / ``atoms.csv``: the final Gaussians as atoms in Å (after the last merge and
+  prune), with each position's Cramér-Rao precision;
+* ``slices.png``: central slices of the potential with the atoms (and the true ones);
+* ``evaluation.json``: TPR, false positives per true atom and RMSD, with a truth file;
+* ``snapshots/step-NNNNNN.csv`` and ``snapshots/times.csv``: with ``snapshot_every``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms, write_atoms
+from gaussian_atoms_method.atoms.matching import score_atoms
+from gaussian_atoms_method.atoms.slices import write_slices_png
+from gaussian_atoms_method.atoms.uncertainty import position_std_A, robust_noise_std
+from gaussian_atoms_method.nerfstudio_layer.rendering import detector_axes
+
+
+@torch.no_grad()
+def model_position_std_A(model, atoms: AtomSet, noise: float | None = None) -> tuple[np.ndarray, float] | None:
+    """Each atom's position precision (N, 3) in Å and the pixel noise it assumes (input units;
+    estimated from the residuals of the training views unless given)
+    (:mod:`gaussian_atoms_method.atoms.uncertainty`); None without the tilt series (a model
+    built outside the dataparser)."""
+    metadata = model.kwargs.get("metadata", {}) or {}
+    series, projections = metadata.get("tilt_series"), metadata.get("projections")
+    if series is None or projections is None or len(atoms) == 0:
+        return None
+    if noise is None:
+        from dataparsers.tilt_series_dataparser import cameras_from_tilt_series
+
+        cameras = cameras_from_tilt_series(series, model.normalisation).to(model.means.device)
+        training = model.training
+        model.eval()  # full resolution, one view each, whatever the phase
+        try:
+            residuals = [(model.get_outputs(cameras[i : i + 1])["projection"][..., 0].cpu() - projections[i]).numpy() for i in range(len(cameras))]
+        finally:
+            model.train(training)
+        noise = robust_noise_std(np.stack(residuals)) / model.normalisation.data_scale
+    axes = detector_axes(model.view_c2w.cpu().double()).numpy()  # the training views' detectors
+    return position_std_A(atoms.sigmas, atoms.amplitudes, axes, series.pixel_size_A, noise, model.config.loss), noise
+
+
+def write_results(model, run_dir: Path) -> dict | None:
+    """After the model's last merge and prune, write ``atoms.xyz``, ``atoms.csv`` (with each
+    atom's position precision), ``slices.png`` and, with a truth file, ``evaluation.json``;
+    return the scores (None without a truth file)."""
+    model.finalize()
+    atoms = model.atoms()
+    precision = model_position_std_A(model, atoms)
+    if precision is not None:
+        atoms.position_std_A, noise = precision
+        CONSOLE.print(
+            f"gaussian-atoms: residual noise {noise:.4g} (input units); median position precision "
+            + ", ".join(f"{a} {v * 100:.1f} pm" for a, v in zip("xyz", np.median(atoms.position_std_A, axis=0)))
+        )
+    write_atoms(atoms, run_dir / "atoms.xyz")
+    write_atoms(atoms, run_dir / "atoms.csv")
+    CONSOLE.print(f"[bold]gaussian-atoms[/bold]: wrote {len(atoms)} atoms to {run_dir / 'atoms.xyz'}")
+    truth = read_atoms(model.truth_path) if model.truth_path is not None else None
+    scores = score_atoms(atoms.positions, truth.positions) if truth is not None else None
+    if len(atoms):
+        title = f"{len(atoms)} atoms" + (
+            f"; against the truth: TPR {scores['tpr']:.4f}, FP/atom {scores['fp_per_true_atom']:.4f}, RMSD {scores['rmsd_pm']:.1f} pm" if scores else ""
+        )
+        write_slices_png(atoms, run_dir / "slices.png", truth, title=title)
+    if scores is None:
+        return None
+    (run_dir / "evaluation.json").write_text(json.dumps(scores, indent=2) + "\n")
+    CONSOLE.print(f"[bold]gaussian-atoms[/bold]: against {model.truth_path}: {json.dumps(scores)}")
+    return scores
+
+
+def write_snapshot(atoms: AtomSet, directory: Path, step: int, n_gaussians: int, peak_gpu_bytes: int) -> None:
+    """The atoms as they stand after ``step`` steps and the wall-clock time:
+    ``step-NNNNNN.csv`` and a line ``step,unix_time,gaussians,peak_gpu_bytes`` in ``times.csv``."""
+    directory.mkdir(parents=True, exist_ok=True)
+    write_atoms(atoms, directory / f"step-{step:06d}.csv")
+    with open(directory / "times.csv", "a") as f:
+        f.write(f"{step},{time.time():.3f},{n_gaussians},{peak_gpu_bytes}\n")
