@@ -3,7 +3,7 @@
 Each projection becomes a ``CameraType.ORTHOPHOTO`` camera whose pose is the tilt rotation.
 nerfstudio cameras look along their -z axis with x to the right and y up; our detector rows
 run downwards, so the camera-to-world rotation has columns ``(cols, -rows, beam)`` of the
-detector orientation (see :mod:`gaussian_atoms_method.geometry`).  ``fx = fy`` is the number of
+detector orientation (see :mod:`gaussian_atoms_method.physics.geometry`).  ``fx = fy`` is the number of
 pixels per normalised length and ``(cx, cy)`` the point the tilt centre projects to, in
 nerfstudio's pixel-corner coordinates (``centre_px + 0.5``), so pixel ``(i, j)`` lies at
 detector coordinates ``((i + 0.5 - cy) / fy, (j + 0.5 - cx) / fx)``.

@@ -367,3 +367,13 @@ def test_views_per_step_fits_several_views_in_one_loss(tmp_path):
     for option in ({"refine_alignment": True}, {"background": "plane"}, {"isotropic": False}):
         with pytest.raises(ValueError, match="views-per-step 2 cannot be combined"):
             _model(tmp_path, num_random=20, views_per_step=2, **option)
+
+
+def test_built_model_loads_checkpoints_with_numpy_scalars(tmp_path):
+    """nerfstudio's schedulers leave numpy scalars in every checkpoint; torch >= 2.6 loads with
+    weights_only=True.  Building the model (as nerfstudio does before loading) allows them."""
+    _series(tmp_path)
+    _model(tmp_path, num_random=3, init="random")
+    path = tmp_path / "step.ckpt"
+    torch.save({"lr": np.float64(1e-3), "dtype": np.dtype("float32")}, path)
+    assert torch.load(path, weights_only=True)["lr"] == pytest.approx(1e-3)

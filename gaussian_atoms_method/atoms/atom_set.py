@@ -36,7 +36,7 @@ class AtomSet:
     species : (N,) array of str, or None
     position_std_A : (N, 3) float array, Å, or None
         Estimated standard deviation of each position along x, y, z
-        (:mod:`gaussian_atoms_method.uncertainty`).
+        (:mod:`gaussian_atoms_method.atoms.uncertainty`).
     """
 
     positions: np.ndarray

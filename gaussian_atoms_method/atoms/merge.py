@@ -8,7 +8,7 @@ conserves the cluster's integrated mass (``amplitude_rule="mass"``, the default:
 half-atoms gives one whole atom, so the fit does not have to regrow the lost half).
 
 The merge is applied to the parameters and the optimiser's state as a remap
-(:func:`.remap.merge_remap`).
+(:func:`gaussian_atoms_method.density.remap.merge_remap`).
 """
 
 from __future__ import annotations

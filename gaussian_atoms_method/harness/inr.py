@@ -2,7 +2,7 @@
 
 The potential is an MLP of position (random Fourier features, softplus output so the density
 is non-negative).  It is trained with the same projection geometry as our method
-(:mod:`.geometry`, normalised units of :mod:`.units`): a batch of detector pixels of one view,
+(:mod:`gaussian_atoms_method.physics.geometry`, normalised units of :mod:`gaussian_atoms_method.physics.units`): a batch of detector pixels of one view,
 each ray's line integral estimated by stratified samples along the beam, L1 loss against the
 measured values.  Afterwards the MLP is sampled on the voxel grid and traced like FBP/SART.
 """

@@ -1,7 +1,9 @@
 """The model's options (``--pipeline.model.*``): what each does and where its value comes from.
 
 :class:`GaussianAtomsOptions` holds them all; :class:`~.model.GaussianAtomsModelConfig` adds
-only the model class it builds.  Where each option takes effect is drawn in
+only the model class it builds.  The density-control defaults are
+:class:`~gaussian_atoms_method.density.strategy.DensityControl`'s (one source of truth); their
+reasons are given here, where ``--help`` shows them.  Where each option takes effect is drawn in
 ``docs/architecture.md``.
 """
 
@@ -12,6 +14,8 @@ from typing import Literal
 
 from nerfstudio.models.splatfacto import SplatfactoModelConfig
 
+from gaussian_atoms_method.density.strategy import DensityControl
+
 
 @dataclass
 class GaussianAtomsOptions(SplatfactoModelConfig):
@@ -19,7 +23,7 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
 
     init: Literal["backprojection", "random"] = "backprojection"
     """Where the Gaussians start: at the strongest local maxima of a smoothed filtered
-    back-projection (see :mod:`gaussian_atoms_method.initialise`), or at random positions (the
+    back-projection (see :mod:`gaussian_atoms_method.atoms.initialise`), or at random positions (the
     paper).  Back-projection needs single-axis tilts; otherwise random is used."""
     init_mass: Literal["backprojection", "equal"] = "backprojection"
     """How the measured mass is shared among the starting Gaussians: in proportion to the
@@ -32,38 +36,38 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
     init_extent: float = 0.8
     """Side of the cube (normalised units, the detector's longer side is 1) that the random
     Gaussians start in."""
-    min_sigma_A: float = 0.15
+    min_sigma_A: float = DensityControl.min_sigma_A
     """Floor on the width, Å: no atom (after probe blur) is narrower; keeps the fit finite."""
-    max_atom_sigma_A: float = 1.5
+    max_atom_sigma_A: float = DensityControl.max_atom_sigma_A
     """Gaussians wider than this (Å) are not atoms (an atom blurred by a 0.5 Å probe is about
     0.6 Å wide): they are pruned and left out of the typical atom mass."""
-    max_sigma_A: float = 5.0
+    max_sigma_A: float = DensityControl.max_sigma_A
     """Ceiling on the width, Å: far wider than any atom; keeps a runaway Gaussian finite."""
-    warmup_length: int = 200
+    warmup_length: int = DensityControl.warmup_length
     """Steps before the first densify / prune / merge."""
-    refine_every: int = 100
+    refine_every: int = DensityControl.refine_every
     """Steps between densify / prune / merge."""
-    stop_split_at: int = 2500
+    stop_split_at: int = DensityControl.stop_split_at
     """No more duplication after this step (pruning and merging continue)."""
-    densify_grad_thresh: float = 0.2
+    densify_grad_thresh: float = DensityControl.densify_grad_thresh
     """Duplicate Gaussians whose mean positional gradient (norm of the average gradient vector
     over a refine interval, normalised units) exceeds this.  Measured on the demo data, a
     fitted atom's sits at 0.02-0.1 (L1 noise), so 0.2 only duplicates under a persistent pull.
     The paper's 0.005 is on gsplat's screen-space scale and would duplicate everything here."""
-    max_gaussians: int = 200000
+    max_gaussians: int = DensityControl.max_gaussians
     """Never hold more Gaussians than this."""
-    prune_mass_fraction: float = 0.25
+    prune_mass_fraction: float = DensityControl.prune_mass_fraction
     """Prune Gaussians whose integrated mass is below this fraction of a typical atom's
     (the mass-weighted median mass)."""
-    isotropic: bool = True
+    isotropic: bool = DensityControl.isotropic
     """One width per Gaussian (the isotropy prior).  False: three widths and a rotation each."""
-    cluster_merge: bool = True
+    cluster_merge: bool = DensityControl.cluster_merge
     """Merge Gaussians closer than merge_threshold_A (the minimum-distance prior)."""
-    merge_every: int = 100
+    merge_every: int = DensityControl.merge_every
     """Steps between cluster merges (after the warm-up)."""
-    merge_threshold_A: float = 0.7
+    merge_threshold_A: float = DensityControl.merge_threshold_A
     """Gaussians closer than this (Å) merge into one."""
-    merge_amplitude: Literal["mass", "mean"] = "mass"
+    merge_amplitude: Literal["mass", "mean"] = DensityControl.merge_amplitude
     """Amplitude of a merged Gaussian: conserve the summed mass, or the mean amplitude (paper)."""
     projector: Literal["auto", "tiled", "dense", "gsplat"] = "auto"
     """Projection backend (all exact to float32; docs/performance.md): ``dense``, the full-image
@@ -91,7 +95,7 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
     stop_when_converged: bool = True
     """End training early once the atoms are settled: the Gaussian count unchanged and the RMS
     step of the positions over a refine interval below ``converged_fraction`` of the atoms'
-    noise-limited precision (:mod:`gaussian_atoms_method.uncertainty`) at two checks in a row.
+    noise-limited precision (:mod:`gaussian_atoms_method.atoms.uncertainty`) at two checks in a row.
     Further steps would move the atoms by less than the data can tell apart."""
     converged_fraction: float = 1.0
     """See stop_when_converged."""

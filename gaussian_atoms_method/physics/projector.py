@@ -63,7 +63,7 @@ def project_gaussians(
         3D peak values ``q``.
     detector_axes : (V, 3, 3) or (V, 2, 3) tensor
         Per view, the world directions of the detector rows and columns (and beam, unused);
-        see :mod:`gaussian_atoms_method.geometry`.
+        see :mod:`gaussian_atoms_method.physics.geometry`.
     row_coords : (H,) tensor
         Coordinates of the pixel centres along the detector rows.
     col_coords : (W,) tensor

@@ -1,0 +1,89 @@
+"""The per-view rendering pieces (nerfstudio_layer/rendering.py), each on a constructed case."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from nerfstudio.cameras.cameras import Cameras, CameraType
+from scipy.spatial.transform import Rotation
+
+from gaussian_atoms_method.nerfstudio_layer import rendering as R
+
+
+def _camera(c2w, h=6, w=8, f=10.0, kind=CameraType.ORTHOPHOTO):
+    return Cameras(camera_to_worlds=c2w[None], fx=f, fy=f, cx=w / 2, cy=h / 2, width=w, height=h, camera_type=kind)
+
+
+def test_binning_averages_two_by_two_blocks():
+    image = torch.arange(6 * 8, dtype=torch.float64).reshape(6, 8, 1)
+    binned = R.binned_like(image, torch.zeros(3, 4, 1))
+    expected = image[..., 0].numpy().reshape(3, 2, 4, 2).mean(axis=(1, 3))
+    np.testing.assert_array_equal(binned[..., 0].numpy(), expected)
+    assert R.binned_like(image, image) is image  # same size: unchanged
+
+
+def test_pixel_coordinates_are_centred_and_bin_like_the_data():
+    c2w = torch.eye(4, dtype=torch.float64)[:3]
+    rows, cols = R.pixel_coordinates(_camera(c2w), c2w, coarse=False, device="cpu", dtype=torch.float64)
+    np.testing.assert_allclose(rows.numpy(), (np.arange(6) + 0.5 - 3) / 10)
+    np.testing.assert_allclose(cols.numpy(), (np.arange(8) + 0.5 - 4) / 10)
+    rows_c, cols_c = R.pixel_coordinates(_camera(c2w), c2w, coarse=True, device="cpu", dtype=torch.float64)
+    np.testing.assert_allclose(rows_c.numpy(), rows.numpy().reshape(3, 2).mean(axis=1))
+    np.testing.assert_allclose(cols_c.numpy(), cols.numpy().reshape(4, 2).mean(axis=1))
+
+
+def test_perspective_camera_takes_its_magnification_at_the_tilt_centre():
+    c2w = torch.eye(4, dtype=torch.float64)[:3].clone()
+    c2w[:, 3] = c2w[:, 2] * 2.5  # 2.5 from the centre along the view axis
+    rows, _ = R.pixel_coordinates(_camera(c2w, kind=CameraType.PERSPECTIVE), c2w, False, "cpu", torch.float64)
+    np.testing.assert_allclose(rows.numpy(), 2.5 * (np.arange(6) + 0.5 - 3) / 10)
+
+
+def test_rotation_about_the_tilt_axis_matches_a_rotation_matrix():
+    axis = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+    vectors = [torch.tensor(v, dtype=torch.float64) for v in ([1.0, 0.2, -0.3], [0.0, 0.0, 1.0])]
+    angle = math.radians(7.0)
+    rotated = R.rotate_about(vectors, axis, torch.tensor(angle, dtype=torch.float64))
+    matrix = Rotation.from_rotvec(angle * axis.numpy()).as_matrix()
+    for v, r in zip(vectors, rotated):
+        np.testing.assert_allclose(r.numpy(), matrix @ v.numpy(), atol=1e-15)
+
+
+def test_background_constant_and_plane():
+    image = torch.zeros(3, 4, dtype=torch.float64)
+    rows, cols = torch.linspace(-1, 1, 3, dtype=torch.float64), torch.linspace(-1, 1, 4, dtype=torch.float64)
+    assert float(R.add_background(image, torch.tensor([2.0], dtype=torch.float64), rows, cols).max()) == 2.0
+    plane = R.add_background(image, torch.tensor([2.0, 0.5, -1.0], dtype=torch.float64), rows, cols)
+    np.testing.assert_allclose(plane.numpy(), 2.0 + 0.5 * rows.numpy()[:, None] - cols.numpy()[None, :])
+
+
+def test_view_index_finds_the_training_pose():
+    poses = torch.stack([torch.eye(4)[:3] + 0.1 * i for i in range(4)])
+    assert R.view_index(poses, _camera(poses[2])) == 2
+    assert R.view_index(poses, _camera(poses[2] + 0.01)) is None  # another view (the viewer's)
+    assert R.view_index(torch.zeros(0, 3, 4), _camera(poses[0])) is None
+
+
+def test_other_views_are_distinct_and_never_the_view_itself():
+    generator = torch.Generator().manual_seed(0)
+    for view in range(5):
+        others = R.other_views(view, 5, 4, generator)
+        assert len(others) == 3 and len(set(others.tolist())) == 3 and view not in others.tolist()
+    assert len(R.other_views(0, 3, 8, generator)) == 2  # at most every other view
+
+
+def test_view_batches_refuse_what_they_cannot_do_by_name():
+    poses = torch.eye(4)[:3].expand(3, 3, 4).clone()
+    assert R.check_view_batches(1, ["background"], None, poses).numel() == 0  # one view: nothing to check
+    with pytest.raises(ValueError, match="at least 1"):
+        R.check_view_batches(0, [], None, poses)
+    with pytest.raises(ValueError, match="--pipeline.model.background"):
+        R.check_view_batches(4, ["background"], np.zeros((3, 2, 2)), poses)
+    with pytest.raises(ValueError, match="needs a tilt series"):
+        R.check_view_batches(4, [], None, poses)
+    off = poses.clone()
+    off[:, 0, 3] = 1.0  # the camera sits off its beam axis
+    with pytest.raises(ValueError, match="beam axis"):
+        R.check_view_batches(4, [], np.zeros((3, 2, 2)), off)
+    assert R.check_view_batches(4, [], np.ones((3, 2, 2)), poses).shape == (3, 2, 2)
