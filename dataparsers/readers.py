@@ -13,6 +13,7 @@ No nerfstudio import.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -31,6 +32,9 @@ class StackData:
     projections: np.ndarray
     pixel_size_A: float | None = None
     angles_deg: np.ndarray | None = None
+    imod_tilt_axis_angle_deg: float | None = None
+    """The tilt-axis angle IMOD records in an MRC header's labels ("Tilt axis angle = -86.0"),
+    counterclockwise from Y (the rows)."""
 
 
 def _pick(names: list[str], wanted: str | None, path: Path, what: str) -> str:
@@ -100,7 +104,18 @@ def _read_mrc(path: Path, tilt_index_axis: int | None) -> StackData:
     with mrcfile.open(path, permissive=True) as mrc:
         data = np.array(mrc.data)
         size = float(mrc.voxel_size.x)
-    return StackData(_tilt_first(data, tilt_index_axis, path, "the MRC stack"), size if size > 0 else None)
+        labels = [bytes(label).decode("ascii", "replace") for label in mrc.header.label[: int(mrc.header.nlabl)]]
+    return StackData(_tilt_first(data, tilt_index_axis, path, "the MRC stack"), size if size > 0 else None, None, imod_tilt_axis_angle(labels))
+
+
+def imod_tilt_axis_angle(labels: list[str]) -> float | None:
+    """The last "Tilt axis angle = A" IMOD wrote into MRC labels (newstack, alignment), or None."""
+    found = None
+    for label in labels:
+        match = re.search(r"tilt axis angle\s*=\s*([-+]?\d+(?:\.\d*)?)", label, re.IGNORECASE)
+        if match:
+            found = float(match.group(1))
+    return found
 
 
 def _read_hdf5(path: Path, dataset: str | None, tilt_index_axis: int | None) -> StackData:
@@ -178,7 +193,7 @@ def read_angles(path: str | Path, variable: str | None = None) -> np.ndarray:
     return angles
 
 
-def single_axis_from_euler(euler_deg: np.ndarray, where: str | Path = "tilt angles", convention: str = "resire") -> np.ndarray:
+def single_axis_from_euler(euler_deg: np.ndarray, where: str | Path = "tilt angles") -> np.ndarray:
     """Tilt angles (degrees, about our ``y`` axis) from ``(N, 3)`` Euler angles ``(phi, theta, psi)``.
 
     In the ZYZ convention shared by GENFIRE and RESIRE a single-axis tilt series has
@@ -188,8 +203,6 @@ def single_axis_from_euler(euler_deg: np.ndarray, where: str | Path = "tilt angl
     supported yet: they are refused with a clear message rather than silently misread.
     """
     euler = np.asarray(euler_deg, dtype=np.float64)
-    if convention not in ("resire", "genfire"):
-        raise TiltSeriesError(f"{where}: unknown Euler convention {convention!r}; expected 'resire' or 'genfire' (ZYZ)")
     if euler.ndim != 2 or euler.shape[1] != 3:
         raise TiltSeriesError(f"{where}: expected N x 3 Euler angles (phi, theta, psi) in degrees, got shape {euler.shape}")
     off_axis = np.abs(euler[:, [0, 2]]).max() if len(euler) else 0.0

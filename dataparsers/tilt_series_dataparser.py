@@ -11,6 +11,7 @@ detector coordinates ``((i + 0.5 - cy) / fy, (j + 0.5 - cx) / fx)``.
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Optional, Tuple, Type
@@ -25,12 +26,13 @@ from nerfstudio.plugins.registry_dataparser import DataParserSpecification
 from gaussian_atoms_method.physics.geometry import detector_axes_from_tilts
 from gaussian_atoms_method.physics.units import Normalisation
 
+from .errors import TiltSeriesError
 from .tilt_series_format import TiltSeries, load_tilt_series
 
 
 def cameras_from_tilt_series(series: TiltSeries, norm: Normalisation) -> Cameras:
     """Orthographic nerfstudio cameras, one per projection, in normalised units."""
-    axes = torch.from_numpy(detector_axes_from_tilts(series.angles_deg, series.tilt_axis)).float()
+    axes = torch.from_numpy(detector_axes_from_tilts(series.angles_deg, series.tilt_axis, series.tilt_axis_angle_deg)).float()
     rows, cols, beam = axes[:, 0], axes[:, 1], axes[:, 2]
     c2w = torch.zeros(series.n_views, 3, 4)
     c2w[:, :, 0], c2w[:, :, 1], c2w[:, :, 2] = cols, -rows, beam
@@ -75,10 +77,19 @@ class TiltSeriesDataParserConfig(DataParserConfig):
     """Array axis of the tilt index (default: the format's convention; last for MATLAB)."""
     angles_variable: Optional[str] = None
     """Variable of a .mat angle file that holds the angles, when it holds several."""
-    euler_convention: Optional[Literal["resire", "genfire"]] = None
-    """Convention of N x 3 Euler angles (ZYZ; single-axis tilts only). Default resire."""
     centre_px: Optional[Tuple[float, float]] = None
     """Detector (row, col) of the tilt axis; default the middle. RESIRE/GENFIRE data: (n//2, n//2)."""
+    tilt_axis_angle_deg: Optional[float] = None
+    """Angle of the tilt axis in the images (degrees, counterclockwise with the rows pointing up,
+    from the direction tilt-axis names); default the manifest's, an IMOD MRC header's, or 0."""
+
+    def load(self, data: Optional[Path] = None) -> TiltSeries:
+        """The tilt series these options name (``data`` overrides the directory); raises
+        :class:`~dataparsers.errors.TiltSeriesError` naming the file and the problem."""
+        return load_tilt_series(
+            self.data if data is None else data, self.projections, self.angles_deg, self.pixel_size_A, self.tilt_axis, self.truth,
+            self.dataset, self.tilt_index_axis, self.angles_variable, self.centre_px, self.tilt_axis_angle_deg,
+        )  # fmt: skip
 
 
 @dataclass
@@ -88,11 +99,12 @@ class TiltSeriesDataParser(DataParser):
     config: TiltSeriesDataParserConfig
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
-        c = self.config
-        series = load_tilt_series(
-            c.data, c.projections, c.angles_deg, c.pixel_size_A, c.tilt_axis, c.truth,
-            c.dataset, c.tilt_index_axis, c.angles_variable, c.euler_convention, c.centre_px,
-        )  # fmt: skip
+        try:
+            series = self.config.load()
+        except TiltSeriesError as exc:
+            # As nerfstudio's own dataparsers do: say what is wrong and exit (ns-viewer, eval).
+            print(f"gaussian-atoms: error: {exc}", file=sys.stderr)
+            raise SystemExit(2) from None
         norm = Normalisation.for_tilt_series(series.projections, series.pixel_size_A, series.origin_A)
         projections = torch.from_numpy(series.projections * np.float32(norm.data_scale))
         cameras = cameras_from_tilt_series(series, norm)

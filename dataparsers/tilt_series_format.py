@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gaussian_atoms_method.physics.geometry import TILT_AXES
+from gaussian_atoms_method.physics.geometry import TILT_AXES, imod_axis_angle
 
 from .errors import TiltSeriesError
 from .readers import read_angles, read_stack, single_axis_from_euler
@@ -55,6 +55,10 @@ class TiltSeries:
     centre_px : (2,) float64 array or None
         Detector (row, column) pixel index onto which the tilt centre projects; None means the
         middle of the detector.
+    tilt_axis_angle_deg : float
+        Angle of the tilt axis in the recorded images, from the detector direction ``tilt_axis``
+        names (:mod:`gaussian_atoms_method.physics.geometry`: counterclockwise with the rows
+        pointing up, as IMOD shows a stack).
     """
 
     projections: np.ndarray
@@ -65,6 +69,7 @@ class TiltSeries:
     truth_path: Path | None = None
     source: Path | None = None
     centre_px: np.ndarray | None = None
+    tilt_axis_angle_deg: float = 0.0
 
     def __post_init__(self) -> None:
         where = str(self.source) if self.source is not None else "tilt series"
@@ -78,6 +83,8 @@ class TiltSeries:
         n_bad = int(np.size(proj) - np.count_nonzero(np.isfinite(proj)))
         if n_bad:
             raise TiltSeriesError(f"{where}: projections hold {n_bad} NaN/Inf value(s)")
+        if not np.any(proj):
+            raise TiltSeriesError(f"{where}: projections are all zero: there is nothing to reconstruct")
         self.projections = proj.astype(np.float32, copy=False)
         angles = np.asarray(self.angles_deg, dtype=np.float64).reshape(-1)
         if len(angles) != proj.shape[0]:
@@ -103,6 +110,12 @@ class TiltSeries:
         if centre.shape != (2,) or not np.all(np.isfinite(centre)):
             raise TiltSeriesError(f"{where}: centre_px must be two finite pixel indices (row, col), got {self.centre_px!r}")
         self.centre_px = centre
+        try:
+            self.tilt_axis_angle_deg = float(self.tilt_axis_angle_deg)
+        except (TypeError, ValueError):
+            raise TiltSeriesError(f"{where}: tilt_axis_angle_deg must be a number of degrees, got {self.tilt_axis_angle_deg!r}") from None
+        if not np.isfinite(self.tilt_axis_angle_deg):
+            raise TiltSeriesError(f"{where}: tilt_axis_angle_deg must be finite, got {self.tilt_axis_angle_deg}")
 
     @property
     def n_views(self) -> int:
@@ -123,8 +136,8 @@ def load_tilt_series(
     dataset: str | None = None,
     tilt_index_axis: int | None = None,
     angles_variable: str | None = None,
-    euler_convention: str | None = None,
     centre_px=None,
+    tilt_axis_angle_deg: float | None = None,
 ) -> TiltSeries:
     """Read a tilt series from a directory with ``tilt_series.json`` and/or explicit options.
 
@@ -133,9 +146,10 @@ def load_tilt_series(
     :mod:`dataparsers.readers` (numpy, TIFF, MRC, EMD/HDF5, MATLAB; text, IMOD .tlt, .mat
     angles).  ``dataset`` names the variable or dataset inside a file that holds several,
     ``tilt_index_axis`` the array axis of the tilt index, ``angles_variable`` the variable of
-    a .mat angle file; N x 3 Euler angles are read in ``euler_convention`` (ZYZ, "resire" or
-    "genfire"; single-axis only).  Without a pixel size, an MRC header's is used; without an
-    angle file, an EMD file's angle dimension.
+    a .mat angle file; N x 3 Euler angles (ZYZ, as GENFIRE and RESIRE) must describe a
+    single-axis series.  Without a pixel size, an MRC header's is used; without an angle file,
+    an EMD file's angle dimension; without a tilt-axis angle, the one IMOD writes into an MRC
+    header's labels (with ``tilt_axis`` "x", IMOD's reference direction, unless given).
     """
 
     data = Path(data)
@@ -155,7 +169,7 @@ def load_tilt_series(
             raise TiltSeriesError(f"{manifest_path}: expected a JSON object")
         known = {
             "projections", "angles_deg", "pixel_size_A", "tilt_axis", "truth", "origin_A", "centre_px", "volume",
-            "volume_voxel_size_A", "description", "simulation", "dataset", "tilt_index_axis", "angles_variable", "euler_convention",
+            "volume_voxel_size_A", "description", "simulation", "dataset", "tilt_index_axis", "angles_variable", "tilt_axis_angle_deg",
         }  # fmt: skip
         unknown = set(manifest) - known
         if unknown:
@@ -185,7 +199,7 @@ def load_tilt_series(
         angles_path = root / angles_name
         angles = read_angles(angles_path, pick(angles_variable, "angles_variable"))
         if angles.ndim == 2 and angles.shape[1] == 3:
-            angles = single_axis_from_euler(angles, angles_path, pick(euler_convention, "euler_convention") or "resire")
+            angles = single_axis_from_euler(angles, angles_path)
     elif stack.angles_deg is not None:
         angles_path, angles = proj_path, stack.angles_deg
     else:
@@ -198,12 +212,17 @@ def load_tilt_series(
     truth_path = root / truth_name if truth_name is not None else None
     if truth_path is not None and not truth_path.is_file():
         raise TiltSeriesError(f"{truth_path}: truth file not found")
+    axis, axis_angle = pick(tilt_axis, "tilt_axis"), pick(tilt_axis_angle_deg, "tilt_axis_angle_deg")
+    if axis_angle is None and stack.imod_tilt_axis_angle_deg is not None:
+        axis = axis or "x"  # IMOD measures its angle from Y, the rows: our "x"
+        axis_angle = imod_axis_angle(stack.imod_tilt_axis_angle_deg, axis) if axis in TILT_AXES else 0.0
     try:
         return TiltSeries(
             projections=proj,
             angles_deg=angles,
             pixel_size_A=px,
-            tilt_axis=pick(tilt_axis, "tilt_axis") or "y",
+            tilt_axis=axis or "y",
+            tilt_axis_angle_deg=axis_angle if axis_angle is not None else 0.0,
             origin_A=manifest.get("origin_A", [0.0, 0.0, 0.0]),
             truth_path=truth_path,
             source=proj_path,
@@ -212,7 +231,7 @@ def load_tilt_series(
     except TiltSeriesError as exc:
         # Name the file the problem most likely lives in.
         msg = str(exc).split(": ", 1)[-1]
-        culprit = angles_path if "angle" in msg else (where if any(k in msg for k in ("pixel", "axis", "origin", "centre")) else proj_path)
+        culprit = angles_path if "angle" in msg and "axis" not in msg else (where if any(k in msg for k in ("pixel", "axis", "origin", "centre")) else proj_path)
         raise TiltSeriesError(f"{culprit}: {msg}") from None
 
 
@@ -226,6 +245,7 @@ def write_tilt_series(
     tilt_axis: str = "y",
     extra: dict | None = None,
     centre_px=None,
+    tilt_axis_angle_deg: float = 0.0,
 ) -> Path:
     """Write a ``tilt_series.json`` directory; ``truth`` is an AtomSet in its own frame.
 
@@ -233,7 +253,7 @@ def write_tilt_series(
     """
     from gaussian_atoms_method.atoms.atom_set import write_atoms
 
-    series = TiltSeries(projections, angles_deg, pixel_size_A, tilt_axis, np.asarray(origin_A, dtype=float), centre_px=centre_px)
+    series = TiltSeries(projections, angles_deg, pixel_size_A, tilt_axis, np.asarray(origin_A, dtype=float), centre_px=centre_px, tilt_axis_angle_deg=tilt_axis_angle_deg)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / MANIFEST).unlink(missing_ok=True)
@@ -247,6 +267,8 @@ def write_tilt_series(
         "origin_A": series.origin_A.tolist(),
         "centre_px": series.centre_px.tolist(),
     }
+    if series.tilt_axis_angle_deg:
+        manifest["tilt_axis_angle_deg"] = series.tilt_axis_angle_deg
     if truth is not None:
         write_atoms(truth, out / "atoms_true.xyz")
         manifest["truth"] = "atoms_true.xyz"

@@ -386,12 +386,12 @@ def entrypoint(argv: list[str] | None = None) -> None:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["train"]:
         # Its options are nerfstudio's TrainerConfig: tyro parses them in train.main.
-        from gaussian_atoms_method.nerfstudio_layer.train import TrainOptionError
         from gaussian_atoms_method.nerfstudio_layer.train import main as train_main
+        from gaussian_atoms_method.nerfstudio_layer.trainer import INPUT_ERRORS
 
         try:
             return train_main(argv[1:])
-        except (TiltSeriesError, TrainOptionError) as exc:
+        except INPUT_ERRORS as exc:
             print(f"gaussian-atoms train: error: {exc}", file=sys.stderr)
             raise SystemExit(2) from None
     grid: tuple[str, ...] = ()

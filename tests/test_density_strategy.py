@@ -112,3 +112,21 @@ def test_clamp_keeps_runaway_values_finite():
     control.clamp(params)
     assert torch.exp(params["log_sigmas"]).flatten().tolist() == pytest.approx([0.5, 0.015])
     assert float(params["log_amplitudes"].max()) == 3.0 and float(params["means"].abs().max()) == 1.0
+
+
+def test_safeguards_are_counted_and_reported():
+    """Clamps and out-of-volume prunes are counted over the run and reported in words; an
+    atom-like Gaussian outside the volume is named as such (atoms may be lost)."""
+    params, opts, control = _setup([[0.0, 0.0, 0.0], [0.3, 0.0, 0.0], [0.0, 0.7, 0.0]], sigma_A=0.06)
+    control.length_scale = 0.1
+    assert control.report() == []
+    with torch.no_grad():
+        params["log_sigmas"][0] = -50.0
+    control.clamp(params)
+    control.clamp(params)  # already in range: not counted again
+    with torch.no_grad():
+        params["log_sigmas"][0] = math.log(0.06)  # an atom again, so only the outside one is pruned
+    assert control.prune(params, opts) == 1
+    lines = control.report()
+    assert lines[0] == "clamped (Gaussian-steps): 1 widths held at the 0.15 Å floor"
+    assert lines[1].startswith("1 Gaussians left the reconstruction volume") and "1 of them atom-like" in lines[1]

@@ -9,6 +9,7 @@ from nerfstudio.cameras.cameras import Cameras, CameraType
 from scipy.spatial.transform import Rotation
 
 from gaussian_atoms_method.nerfstudio_layer import rendering as R
+from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions, OptionError
 
 
 def _camera(c2w, h=6, w=8, f=10.0, kind=CameraType.ORTHOPHOTO):
@@ -75,15 +76,21 @@ def test_other_views_are_distinct_and_never_the_view_itself():
 
 def test_view_batches_refuse_what_they_cannot_do_by_name():
     poses = torch.eye(4)[:3].expand(3, 3, 4).clone()
-    assert R.check_view_batches(1, ["background"], None, poses).numel() == 0  # one view: nothing to check
-    with pytest.raises(ValueError, match="at least 1"):
-        R.check_view_batches(0, [], None, poses)
-    with pytest.raises(ValueError, match="--pipeline.model.background"):
-        R.check_view_batches(4, ["background"], np.zeros((3, 2, 2)), poses)
-    with pytest.raises(ValueError, match="needs a tilt series"):
-        R.check_view_batches(4, [], None, poses)
+    assert R.check_view_batches(1, None, poses).numel() == 0  # one view: nothing to check
+    with pytest.raises(OptionError, match="needs a tilt series"):
+        R.check_view_batches(4, None, poses)
     off = poses.clone()
     off[:, 0, 3] = 1.0  # the camera sits off its beam axis
-    with pytest.raises(ValueError, match="beam axis"):
-        R.check_view_batches(4, [], np.zeros((3, 2, 2)), off)
-    assert R.check_view_batches(4, [], np.ones((3, 2, 2)), poses).shape == (3, 2, 2)
+    with pytest.raises(OptionError, match="beam axis"):
+        R.check_view_batches(4, np.zeros((3, 2, 2)), off)
+    assert R.check_view_batches(4, np.ones((3, 2, 2)), poses).shape == (3, 2, 2)
+
+
+@pytest.mark.parametrize(
+    "options, named",
+    [({"views_per_step": 0}, "views-per-step"), ({"views_per_step": 4, "background": "constant"}, "--pipeline.model.background"),
+     ({"num_random": 0}, "num-random"), ({"init_sigma_A": 9.0}, "init-sigma-A"), ({"merge_threshold_A": -1.0}, "merge-threshold-A")],
+)  # fmt: skip
+def test_option_conflicts_are_named_before_anything_is_built(options, named):
+    with pytest.raises(OptionError, match=named):
+        GaussianAtomsOptions(**options).check()

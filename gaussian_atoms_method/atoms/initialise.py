@@ -58,6 +58,7 @@ def backprojection_candidates(
     shoulder_strength: float = 0.35,
     device: str = "cpu",
     return_values: bool = False,
+    tilt_axis_angle_deg: float = 0.0,
 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Candidate atom positions, strongest first.
 
@@ -86,6 +87,8 @@ def backprojection_candidates(
         Laplacian at the smoothed peaks (about a heavy atom's response).
     device : str
         "cuda" runs the back-projection on the GPU (seconds less of start-up).
+    tilt_axis_angle_deg : float
+        Angle of the tilt axis in the images (:mod:`gaussian_atoms_method.physics.geometry`).
     return_values : bool
         Also return the smoothed back-projection at each candidate.
 
@@ -99,7 +102,7 @@ def backprojection_candidates(
     """
     if max_count <= 0:
         return (np.zeros((0, 3)), np.zeros(0)) if return_values else np.zeros((0, 3))
-    volume = reconstruct(projections, angles_deg, pixel_size_A, "fbp", tilt_axis, centre_px, filter_name="hann", device=device)
+    volume = reconstruct(projections, angles_deg, pixel_size_A, "fbp", tilt_axis, centre_px, filter_name="hann", device=device, tilt_axis_angle_deg=tilt_axis_angle_deg)
     sigma_vox = smoothing_A / volume.spacing_A
     data = ndimage.gaussian_filter(volume.data, sigma_vox) if smoothing_A > 0 else volume.data
     positions = _separated_maxima(data, volume.spacing_A, min_distance_A)[:max_count]
@@ -148,7 +151,7 @@ def starting_positions(
         # A GPU, if there is one, does the back-projection (the model is built on the CPU).
         positions_A, values = backprojection_candidates(
             series.projections, series.angles_deg, series.pixel_size_A, series.tilt_axis, series.centre_px, count,
-            device="cuda" if torch.cuda.is_available() else "cpu", return_values=True,
+            device="cuda" if torch.cuda.is_available() else "cpu", return_values=True, tilt_axis_angle_deg=series.tilt_axis_angle_deg,
         )  # fmt: skip
         if len(positions_A):
             # A candidate made of noise reads about zero; a floor of 1% of the strongest keeps

@@ -79,6 +79,13 @@ class DensityControl:
     grad_accum: torch.Tensor = field(default_factory=lambda: torch.zeros(0, 3))
     """(N, 3) sum of the means' gradient vectors since the last refine (CPU)."""
     grad_count: int = 0
+    clamp_counts: torch.Tensor | None = None
+    """(4,) Gaussian-steps held at the width floor, the width ceiling, the amplitude ceiling and
+    the edge of the position box (kept on the parameters' device: no sync per step)."""
+    pruned_outside: int = 0
+    """Gaussians pruned for leaving the reconstruction volume ..."""
+    pruned_outside_atom_like: int = 0
+    """... of which heavy and narrow enough to be atoms (real atoms lost if centre_px is off)."""
 
     # ------------------------------------------------------------------ helpers
     @property
@@ -140,9 +147,30 @@ class DensityControl:
         positions within twice the volume.  Far outside what an atom can be, these bounds only
         stop a runaway Gaussian from overflowing float32."""
         ls = self.length_scale
-        params["log_sigmas"].data.clamp_(math.log(self.min_sigma_A * ls), math.log(self.max_sigma_A * ls))
-        params["log_amplitudes"].data.clamp_(max=self.max_log_amplitude)
-        params["means"].data.clamp_(-1.0, 1.0)
+        lo, hi = math.log(self.min_sigma_A * ls), math.log(self.max_sigma_A * ls)
+        log_sigmas, log_amps, means = params["log_sigmas"].data, params["log_amplitudes"].data, params["means"].data
+        held = torch.stack([(log_sigmas < lo).any(-1).sum(), (log_sigmas > hi).any(-1).sum(), (log_amps > self.max_log_amplitude).sum(), (means.abs() > 1.0).any(-1).sum()])
+        self.clamp_counts = held if self.clamp_counts is None else self.clamp_counts + held.to(self.clamp_counts.device)
+        log_sigmas.clamp_(lo, hi)
+        log_amps.clamp_(max=self.max_log_amplitude)
+        means.clamp_(-1.0, 1.0)
+
+    def report(self) -> list[str]:
+        """What the safeguards did over the run, one sentence each (empty when nothing): the
+        clamps of :meth:`clamp` and the prunes of Gaussians that left the volume."""
+        lines = []
+        if self.clamp_counts is not None:
+            names = (f"widths held at the {self.min_sigma_A} Å floor", f"widths held at the {self.max_sigma_A} Å ceiling",
+                     "amplitudes held at the ceiling (1000x the measured mass)", "positions held at the edge of twice the volume")  # fmt: skip
+            held = [f"{int(n)} {name}" for n, name in zip(self.clamp_counts.tolist(), names) if n]
+            if held:
+                lines.append("clamped (Gaussian-steps): " + ", ".join(held))
+        if self.pruned_outside:
+            line = f"{self.pruned_outside} Gaussians left the reconstruction volume and were pruned"
+            if self.pruned_outside_atom_like:
+                line += f", {self.pruned_outside_atom_like} of them atom-like (check centre_px and pixel_size_A: atoms may lie outside the volume)"
+            lines.append(line)
+        return lines
 
     @torch.no_grad()
     def densify(self, params: Params, optimizers: Optimizers, param_lists=None) -> int:
@@ -189,7 +217,10 @@ class DensityControl:
         mass = gaussian_mass(sigmas, amplitudes(params))
         keep = mass >= self.prune_mass_fraction * self.typical_atom_mass(params)
         keep &= sigmas <= self.max_atom_sigma_A * self.length_scale
-        keep &= (params["means"].abs() <= 0.5).all(dim=-1)
+        inside = (params["means"].abs() <= 0.5).all(dim=-1)
+        self.pruned_outside += int((~inside).sum())
+        self.pruned_outside_atom_like += int((keep & ~inside).sum())
+        keep &= inside
         removed = int((~keep).sum())
         if removed:
             self.remap(params, optimizers, *keep_remap(keep.cpu()), param_lists=param_lists)

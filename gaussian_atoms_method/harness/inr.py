@@ -51,6 +51,7 @@ def fit_inr(
     device: str = "cpu",
     frequency_std: float = 20.0,
     hidden: int = 64,
+    tilt_axis_angle_deg: float = 0.0,
 ) -> Volume:
     """Fit an INR to a tilt series and sample it on the voxel grid (values per Å, like FBP).
 
@@ -67,7 +68,7 @@ def fit_inr(
     px = pixel_size_A * norm.length_scale
     rows = torch.tensor(pixel_centres(h, px, ci), dtype=torch.float32, device=device)
     cols = torch.tensor(pixel_centres(w, px, cj), dtype=torch.float32, device=device)
-    axes = torch.tensor(detector_axes_from_tilts(angles_deg, tilt_axis), dtype=torch.float32, device=device)
+    axes = torch.tensor(detector_axes_from_tilts(angles_deg, tilt_axis, tilt_axis_angle_deg), dtype=torch.float32, device=device)
     target = torch.from_numpy(projections * np.float32(norm.data_scale)).to(device)
     model = CoordinateMLP(frequency_std=frequency_std, hidden=hidden, seed=seed).to(device)
     opt = torch.optim.Adam(model.parameters(), lr=learning_rate)

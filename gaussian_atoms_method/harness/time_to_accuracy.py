@@ -49,7 +49,7 @@ class TimeToAccuracy:
         rows = []
         for method in self.baselines:
             start = time.perf_counter()
-            vol = reconstruct(series.projections, series.angles_deg, series.pixel_size_A, method, series.tilt_axis, series.centre_px)
+            vol = reconstruct(series.projections, series.angles_deg, series.pixel_size_A, method, series.tilt_axis, series.centre_px, tilt_axis_angle_deg=series.tilt_axis_angle_deg)
             idx, _ = trace_atoms(vol.data, vol.spacing_A)
             seconds = time.perf_counter() - start
             s = score_atoms(vol.index_to_A(idx) + series.origin_A, truth.positions)

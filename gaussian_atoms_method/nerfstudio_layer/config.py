@@ -10,7 +10,6 @@ from nerfstudio.configs.base_config import ViewerConfig
 from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanager, FullImageDatamanagerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
-from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
 
@@ -18,6 +17,7 @@ from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
 from dataparsers.tilt_series_dataset import TiltSeriesDataset
 
 from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
+from gaussian_atoms_method.nerfstudio_layer.trainer import GaussianAtomsTrainerConfig
 
 MAX_ITERATIONS = 3000
 
@@ -26,9 +26,9 @@ class TiltSeriesDatamanager(FullImageDatamanager[TiltSeriesDataset]):
     """nerfstudio's full-image datamanager serving float projections from memory."""
 
 
-def gaussian_atoms_trainer_config(max_iterations: int = MAX_ITERATIONS) -> TrainerConfig:
+def gaussian_atoms_trainer_config(max_iterations: int = MAX_ITERATIONS) -> GaussianAtomsTrainerConfig:
     """The default configuration of ``ns-train gaussian-atoms``."""
-    return TrainerConfig(
+    return GaussianAtomsTrainerConfig(
         method_name="gaussian-atoms",
         steps_per_eval_image=500,
         steps_per_eval_batch=0,

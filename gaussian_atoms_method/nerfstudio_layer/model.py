@@ -38,7 +38,7 @@ from gaussian_atoms_method.density.strategy import DensityControl, amplitudes, w
 from gaussian_atoms_method.nerfstudio_layer import rendering as R
 from gaussian_atoms_method.nerfstudio_layer.checkpoints import allow_numpy_scalars_in_checkpoints
 from gaussian_atoms_method.nerfstudio_layer.convergence import ConvergenceCheck
-from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions
+from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions, OptionError
 from gaussian_atoms_method.nerfstudio_layer.results import model_position_std_A, write_results, write_snapshot
 from gaussian_atoms_method.nerfstudio_layer.splatfacto_compat import SplatfactoCompat
 from gaussian_atoms_method.nerfstudio_layer.viewer import AtomsInViewer
@@ -64,6 +64,7 @@ class GaussianAtomsModel(SplatfactoCompat, SplatfactoModel):
         # opacities and gsplat's alpha-compositing strategy, none of which apply here.
         allow_numpy_scalars_in_checkpoints()  # nerfstudio loads checkpoints after building the model
         cfg, metadata = self.config, self.kwargs.get("metadata", {}) or {}
+        cfg.check()
         self.normalisation: Normalisation = metadata.get("normalisation") or Normalisation(1.0, 1.0)
         ls, series = self.normalisation.length_scale, metadata.get("tilt_series")
         self.truth_path: Path | None = Path(metadata["truth_path"]) if metadata.get("truth_path") is not None else None
@@ -104,13 +105,11 @@ class GaussianAtomsModel(SplatfactoCompat, SplatfactoModel):
             view_params["view_shifts"] = Parameter(torch.zeros(n_views, 2))
         if cfg.refine_tilts:
             if series is None:
-                raise ValueError("--pipeline.model.refine-tilts needs a single-axis tilt series from the tilt-series dataparser")
+                raise OptionError("--pipeline.model.refine-tilts needs a single-axis tilt series from the tilt-series dataparser")
             view_params["view_tilts"] = Parameter(torch.zeros(n_views, 1))
             self.register_buffer("tilt_axis_vector", torch.tensor([0.0, 1.0, 0.0] if series.tilt_axis == "y" else [1.0, 0.0, 0.0]), persistent=False)
         self.view_params = torch.nn.ParameterDict(view_params)
-        unsupported = [name for name, on in (("refine-alignment", cfg.refine_alignment), ("refine-tilts", cfg.refine_tilts),
-                       ("background", cfg.background != "none"), ("isotropic False", not cfg.isotropic)) if on]  # fmt: skip
-        self.register_buffer("train_projections", R.check_view_batches(cfg.views_per_step, unsupported, metadata.get("projections"), self.view_c2w), persistent=False)
+        self.register_buffer("train_projections", R.check_view_batches(cfg.views_per_step, metadata.get("projections"), self.view_c2w), persistent=False)
 
     # ------------------------------------------------------------------ parameters
     @property
@@ -143,7 +142,7 @@ class GaussianAtomsModel(SplatfactoCompat, SplatfactoModel):
     def _projector(self, device: torch.device):
         choice = self.projector_name(device)
         if choice == "gsplat" and device.type != "cuda":
-            raise ValueError("--pipeline.model.projector gsplat needs a CUDA device; use auto, tiled or dense on CPU")
+            raise OptionError("--pipeline.model.projector gsplat needs a CUDA device; use auto, tiled or dense on CPU")
         return {"dense": project_gaussians, "tiled": project_gaussians_tiled, "gsplat": project_gaussians_gsplat}[choice]
 
     # ------------------------------------------------------------------ rendering

@@ -17,6 +17,10 @@ from nerfstudio.models.splatfacto import SplatfactoModelConfig
 from gaussian_atoms_method.density.strategy import DensityControl
 
 
+class OptionError(ValueError):
+    """A model option (or a combination of them) that cannot be honoured; the message names it."""
+
+
 @dataclass
 class GaussianAtomsOptions(SplatfactoModelConfig):
     """Gaussian atoms: isotropic 3D Gaussians fitted to a tilt series."""
@@ -114,3 +118,24 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
     directory with the wall-clock time, for time-to-accuracy benchmarks."""
     seed: int = 0
     """Seed of the random initialisation and duplications."""
+
+    def check(self) -> None:
+        """Raise :class:`OptionError` naming the option for settings that cannot work together,
+        before anything is built (the model checks what needs the data when it is built)."""
+        if self.views_per_step < 1:
+            raise OptionError(f"--pipeline.model.views-per-step must be at least 1, got {self.views_per_step}")
+        if self.views_per_step > 1:
+            per_view = [name for name, on in (("refine-alignment", self.refine_alignment), ("refine-tilts", self.refine_tilts),
+                        ("background", self.background != "none"), ("isotropic False", not self.isotropic)) if on]  # fmt: skip
+            if per_view:
+                raise OptionError(f"--pipeline.model.views-per-step {self.views_per_step} cannot be combined with --pipeline.model.{per_view[0]} (per-view parameters); use 1")
+        positive = {"num-random": self.num_random, "init-sigma-A": self.init_sigma_A, "min-sigma-A": self.min_sigma_A, "max-sigma-A": self.max_sigma_A,
+                    "refine-every": self.refine_every, "merge-every": self.merge_every, "max-gaussians": self.max_gaussians}  # fmt: skip
+        for name, value in positive.items():
+            if not value > 0:
+                raise OptionError(f"--pipeline.model.{name} must be positive, got {value}")
+        if not self.min_sigma_A <= self.init_sigma_A <= self.max_sigma_A:
+            raise OptionError(f"--pipeline.model.init-sigma-A {self.init_sigma_A} must lie within [min-sigma-A {self.min_sigma_A}, max-sigma-A {self.max_sigma_A}]")
+        if self.merge_threshold_A < 0 or self.prune_mass_fraction < 0 or self.coarse_steps < 0 or self.snapshot_every < 0:
+            raise OptionError("--pipeline.model.merge-threshold-A, prune-mass-fraction, coarse-steps and snapshot-every must not be negative")
+

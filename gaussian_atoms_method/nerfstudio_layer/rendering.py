@@ -17,6 +17,8 @@ from __future__ import annotations
 import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
 
+from gaussian_atoms_method.nerfstudio_layer.options import OptionError
+
 
 def detector_axes(c2w: torch.Tensor) -> torch.Tensor:
     """(..., 2, 3) world directions of the detector rows and columns of nerfstudio camera
@@ -82,23 +84,20 @@ def view_index(view_c2w: torch.Tensor, camera: Cameras) -> int | None:
     return best if float(dist[best]) < 1e-5 else None
 
 
-def check_view_batches(views_per_step: int, unsupported: list[str], projections, view_c2w: torch.Tensor) -> torch.Tensor:
+def check_view_batches(views_per_step: int, projections, view_c2w: torch.Tensor) -> torch.Tensor:
     """The (V, H, W) measured projections the extra views of a step are fitted to (empty for
-    one view per step), after checking the views can share one projector call; ValueError
+    one view per step), after checking the views can share one projector call (the options
+    themselves are checked by :meth:`.options.GaussianAtomsOptions.check`); OptionError
     naming the option otherwise."""
-    if views_per_step < 1:
-        raise ValueError(f"--pipeline.model.views-per-step must be at least 1, got {views_per_step}")
-    if views_per_step == 1:
+    if views_per_step <= 1:
         return torch.zeros(0, 1, 1)
-    if unsupported:
-        raise ValueError(f"--pipeline.model.views-per-step {views_per_step} cannot be combined with --pipeline.model.{unsupported[0]} (per-view parameters); use 1")
     if projections is None or view_c2w.shape[0] < 2:
-        raise ValueError("--pipeline.model.views-per-step > 1 needs a tilt series from the tilt-series dataparser (its projections and view poses)")
+        raise OptionError("--pipeline.model.views-per-step > 1 needs a tilt series from the tilt-series dataparser (its projections and view poses)")
     # One call projects the same means for every view: each camera must sit on its beam axis
     # through the tilt centre (true of the dataparser's cameras).
     off_axis = torch.stack([(view_c2w[:, :, 3] * view_c2w[:, :, 0]).sum(-1), (view_c2w[:, :, 3] * view_c2w[:, :, 1]).sum(-1)]).abs().max()
     if float(off_axis) > 1e-5:
-        raise ValueError("--pipeline.model.views-per-step > 1 needs every camera on its beam axis through the tilt centre")
+        raise OptionError("--pipeline.model.views-per-step > 1 needs every camera on its beam axis through the tilt centre")
     return torch.as_tensor(projections, dtype=torch.float32)
 
 

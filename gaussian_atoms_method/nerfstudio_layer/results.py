@@ -55,6 +55,8 @@ def write_results(model, run_dir: Path) -> dict | None:
     atom's position precision), ``slices.png`` and, with a truth file, ``evaluation.json``;
     return the scores (None without a truth file)."""
     model.finalize()
+    for line in model.density.report():
+        CONSOLE.print(f"gaussian-atoms: {line}")
     atoms = model.atoms()
     precision = model_position_std_A(model, atoms)
     if precision is not None:

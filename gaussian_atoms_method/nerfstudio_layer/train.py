@@ -18,23 +18,24 @@ from __future__ import annotations
 import random
 import sys
 
-
-class TrainOptionError(ValueError):
-    """An option this entry point cannot honour."""
+from gaussian_atoms_method.nerfstudio_layer.options import OptionError
 
 
 def build_config(argv: list[str]):
     """Parse ``argv`` (the options ``ns-train gaussian-atoms`` takes after the method name)
     into a :class:`~nerfstudio.engine.trainer.TrainerConfig` based on this method's defaults."""
     import tyro
-    from nerfstudio.engine.trainer import TrainerConfig
 
     from gaussian_atoms_method.nerfstudio_layer.config import gaussian_atoms_trainer_config
 
     tyro.extras.set_accent_color("bright_yellow")
+    default = gaussian_atoms_trainer_config()
+    # As ns-train: booleans take a value (``--pipeline.model.cluster-merge False``), since
+    # nerfstudio wraps its method configs in FlagConversionOff; sweeps pass flags that way.
     return tyro.cli(
-        TrainerConfig,
-        default=gaussian_atoms_trainer_config(),
+        type(default),
+        default=default,
+        config=(tyro.conf.FlagConversionOff,),
         args=argv,
         prog="gaussian-atoms train",
         description=__doc__.split("\n\n")[0] + "\n\nOptions are those of `ns-train gaussian-atoms`.",
@@ -48,7 +49,7 @@ def run(config) -> None:
     import yaml
 
     if config.machine.num_devices * config.machine.num_machines != 1:
-        raise TrainOptionError(
+        raise OptionError(
             f"--machine.num-devices {config.machine.num_devices} / --machine.num-machines "
             f"{config.machine.num_machines}: gaussian-atoms train runs on one device; use "
             "`ns-train gaussian-atoms` for distributed training"
@@ -67,12 +68,7 @@ def run(config) -> None:
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
     try:
-        trainer.train()
-    except KeyboardInterrupt:
-        # Ctrl+C, also how a viewer left running after training is closed.  Results are
-        # written at the last step only, so an interrupted run leaves none half-written.
-        print("gaussian-atoms train: interrupted", file=sys.stderr)
-        raise SystemExit(130) from None
+        trainer.train()  # GaussianAtomsTrainer: failures and Ctrl+C end in one line
     finally:
         from nerfstudio.utils import profiler
 

@@ -19,6 +19,17 @@ The convention (also written down in README.md)
   ``tilt_axis="x"`` is the same with the roles of x and y exchanged:
   ``scipy.ndimage.rotate(vol, +theta, axes=(1, 2), reshape=False).sum(axis=2)``.
 
+* ``tilt_axis_angle_deg`` (default 0): the tilt axis may lie at an angle in the image, as
+  practitioners' series often do (IMOD and SerialEM report values such as -86 deg).  The
+  recorded image is the ideal one (tilt axis along the detector direction ``tilt_axis`` names:
+  rows for "x", columns for "y") turned in the detector plane by that angle, counterclockwise
+  when the image is shown with its first axis (rows) pointing up, as IMOD shows an MRC stack
+  (rows = Y): a point at ideal detector coordinates ``u`` is recorded at ``R u`` with
+  ``R = [[cos a, sin a], [-sin a, cos a]]`` on (row, column) coordinates.  In scipy's terms the
+  recorded image is ``scipy.ndimage.rotate(ideal, -a, reshape=False)``.  IMOD's angle is
+  measured from Y, the rows: it is this angle for ``tilt_axis="x"``, and this angle minus 90
+  deg for ``tilt_axis="y"`` (:func:`imod_axis_angle`).
+
 A detector orientation is a 3x3 matrix ``D`` whose rows are the world directions of the
 detector row axis, the detector column axis and the beam; ``D @ r`` gives the detector
 coordinates (row, column, depth) of a world point ``r``.
@@ -31,7 +42,40 @@ import numpy as np
 TILT_AXES = ("x", "y")
 
 
-def detector_axes_from_tilts(angles_deg: np.ndarray, tilt_axis: str = "y") -> np.ndarray:
+def in_plane_rotation(tilt_axis_angle_deg: float) -> np.ndarray:
+    """(2, 2) matrix ``R`` taking ideal (row, column) detector coordinates to recorded ones for a
+    tilt axis at ``tilt_axis_angle_deg`` in the image (module docstring)."""
+    a = np.deg2rad(float(tilt_axis_angle_deg))
+    return np.array([[np.cos(a), np.sin(a)], [-np.sin(a), np.cos(a)]])
+
+
+def imod_axis_angle(imod_angle_deg: float, tilt_axis: str) -> float:
+    """Our ``tilt_axis_angle_deg`` for IMOD's tilt-axis angle (counterclockwise from Y, the
+    rows): the same for ``tilt_axis="x"`` (rows), 90 deg more for ``"y"`` (columns), in (-180, 180]."""
+    angle = float(imod_angle_deg) + (90.0 if tilt_axis == "y" else 0.0)
+    return float(-((-angle + 180.0) % 360.0 - 180.0))
+
+
+def to_nominal_axis(projections: np.ndarray, tilt_axis_angle_deg: float, centre_px=None, order: int = 1) -> np.ndarray:
+    """Resample (N, H, W) recorded projections to the ideal detector (tilt axis along the
+    nominal direction) about the tilt centre ``centre_px`` (default the middle), by
+    interpolation of ``order``; zero outside the recorded image.  For the slice-by-slice
+    reconstructions (FBP, SART), which need the axis along rows or columns; the fit itself
+    uses the recorded pixels as they are."""
+    from scipy import ndimage
+
+    projections = np.asarray(projections)
+    if float(tilt_axis_angle_deg) == 0.0:
+        return projections
+    h, w = projections.shape[1:]
+    centre = (np.array([h, w], dtype=np.float64) - 1) / 2 if centre_px is None else np.asarray(centre_px, dtype=np.float64)
+    rotation = in_plane_rotation(tilt_axis_angle_deg)
+    # ideal pixel u (about the centre) is read from the recorded image at R u.
+    offset = centre - rotation @ centre
+    return np.stack([ndimage.affine_transform(p, rotation, offset=offset, order=order, mode="constant") for p in projections])
+
+
+def detector_axes_from_tilts(angles_deg: np.ndarray, tilt_axis: str = "y", tilt_axis_angle_deg: float = 0.0) -> np.ndarray:
     """Detector orientations for single-axis tilts.
 
     Parameters
@@ -40,6 +84,9 @@ def detector_axes_from_tilts(angles_deg: np.ndarray, tilt_axis: str = "y") -> np
         Tilt angles in degrees.
     tilt_axis : {"y", "x"}
         World axis the specimen is tilted about (see module docstring).
+    tilt_axis_angle_deg : float
+        Angle of the tilt axis in the recorded image (module docstring); the detector's row and
+        column directions turn in the detector plane, the beam stays.
 
     Returns
     -------
@@ -58,6 +105,10 @@ def detector_axes_from_tilts(angles_deg: np.ndarray, tilt_axis: str = "y") -> np
         rows = np.stack([one, zero, zero], axis=-1)
         cols = np.stack([zero, c, -s], axis=-1)
     beam = np.cross(rows, cols)
+    if float(tilt_axis_angle_deg) != 0.0:
+        # recorded coordinates R (D_ideal r): the recorded axes are R's combinations of the ideal ones.
+        rotation = in_plane_rotation(tilt_axis_angle_deg)
+        rows, cols = rotation[0, 0] * rows + rotation[0, 1] * cols, rotation[1, 0] * rows + rotation[1, 1] * cols
     return np.stack([rows, cols, beam], axis=1)
 
 

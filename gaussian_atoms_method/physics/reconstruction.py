@@ -17,6 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from gaussian_atoms_method.physics.geometry import to_nominal_axis
+
 
 @dataclass
 class Volume:
@@ -175,6 +177,7 @@ def reconstruct(
     sart_iterations: int = 1,
     filter_name: str = "ramp",
     device: str = "cpu",
+    tilt_axis_angle_deg: float = 0.0,
 ) -> Volume:
     """FBP or SART reconstruction of a single-axis tilt series.
 
@@ -193,6 +196,9 @@ def reconstruct(
         FBP filter (scikit-image names).
     device : str
         Torch device of the FBP (:func:`filtered_backprojection`); SART is scikit-image's.
+    tilt_axis_angle_deg : float
+        Angle of the tilt axis in the images (:mod:`.geometry`); the projections are first
+        resampled (linear) so that it lies along the detector direction ``tilt_axis`` names.
 
     Returns
     -------
@@ -203,7 +209,7 @@ def reconstruct(
 
     if method not in ("fbp", "sart"):
         raise ValueError(f"method must be 'fbp' or 'sart', got {method!r}")
-    projections = np.asarray(projections, dtype=np.float64)
+    projections = to_nominal_axis(np.asarray(projections, dtype=np.float64), tilt_axis_angle_deg, centre_px)
     _, h, w = projections.shape
     ci, cj = ((h - 1) / 2, (w - 1) / 2) if centre_px is None else centre_px
     # Slices are perpendicular to the tilt axis: for "y" each detector column j is one slice

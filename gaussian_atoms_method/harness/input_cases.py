@@ -1,0 +1,84 @@
+"""A catalogue of broken and odd tilt series, as users bring them.
+
+Each case writes a tilt-series directory; a broken one must stop with one line naming the file
+or option (exit 2, no traceback, nothing written), an odd but valid one must train.  Used by
+``tests/test_front_door.py`` and ``scripts/input_matrix.py`` (which runs every case through
+``ns-train gaussian-atoms`` and ``gaussian-atoms train``).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from dataparsers.tilt_series_format import MANIFEST, write_tilt_series
+from gaussian_atoms_method.atoms.atom_set import AtomSet
+
+
+def _valid(out: Path, shape=(24, 24), n_views=7, dtype=np.float32, **kw) -> Path:
+    rng = np.random.default_rng(0)
+    projections = (rng.uniform(0, 1, (n_views,) + shape) * (1000 if np.issubdtype(dtype, np.integer) else 1)).astype(dtype)
+    angles = np.linspace(-60, 60, n_views)
+    truth = AtomSet(np.array([[0.0, 0.0, 0.0], [2.5, 0.0, 0.0]]), species=["Au", "Au"])
+    return write_tilt_series(out, projections, angles, 0.3, truth=truth, **kw)
+
+
+def _edit_manifest(out: Path, **changes) -> Path:
+    manifest = json.loads((out / MANIFEST).read_text())
+    for key, value in changes.items():
+        if value is None:
+            manifest.pop(key, None)
+        else:
+            manifest[key] = value
+    (out / MANIFEST).write_text(json.dumps(manifest))
+    return out
+
+
+def _resave(out: Path, transform: Callable[[np.ndarray], np.ndarray]) -> Path:
+    np.save(out / "projections.npy", transform(np.load(out / "projections.npy")))
+    return out
+
+
+def _nan(p):
+    p = p.copy()
+    p[2, 3, 4] = np.nan
+    return p
+
+
+BROKEN: dict[str, tuple[Callable[[Path], Path], str]] = {
+    # name: (writer, a fragment the one-line message must hold)
+    "missing directory": (lambda out: out / "nowhere", "data directory not found"),
+    "no manifest": (lambda out: (_valid(out), (out / MANIFEST).unlink(), out)[2], "not found, and no projections option"),
+    "bad JSON": (lambda out: (_valid(out), (out / MANIFEST).write_text("{projections: oops"), out)[2], "not valid JSON"),
+    "manifest not an object": (lambda out: (_valid(out), (out / MANIFEST).write_text("[1, 2]"), out)[2], "expected a JSON object"),
+    "unknown key": (lambda out: _edit_manifest(_valid(out), pixelsize=0.3), "unknown key"),
+    "projections missing": (lambda out: _edit_manifest(_valid(out), projections="gone.npy"), "gone.npy: projections file not found"),
+    "angles missing": (lambda out: _edit_manifest(_valid(out), angles_deg="gone.txt"), "gone.txt: tilt angles file not found"),
+    "no pixel size": (lambda out: _edit_manifest(_valid(out), pixel_size_A=None), "'pixel_size_A' is missing"),
+    "negative pixel size": (lambda out: _edit_manifest(_valid(out), pixel_size_A=-0.3), "pixel_size_A must be a positive"),
+    "pixel size not a number": (lambda out: _edit_manifest(_valid(out), pixel_size_A="big"), "pixel_size_A must be a number"),
+    "wrong angle count": (lambda out: (_valid(out), (out / "angles.txt").write_text("0\n10\n20\n"), out)[2], "3 tilt angles for 7 projections"),
+    "duplicate angles": (lambda out: (_valid(out), (out / "angles.txt").write_text("\n".join(["0", "0", "10", "20", "30", "40", "50"])), out)[2], "duplicate tilt angle"),
+    "angles not numbers": (lambda out: (_valid(out), (out / "angles.txt").write_text("a\nb\n"), out)[2], "could not read tilt angles"),
+    "NaN pixels": (lambda out: _resave(_valid(out), _nan), "NaN/Inf"),
+    "2D projections": (lambda out: _resave(_valid(out), lambda p: p[0]), "3D stack"),
+    "complex projections": (lambda out: _resave(_valid(out), lambda p: p.astype(np.complex64)), "real numbers"),
+    "unknown tilt axis": (lambda out: _edit_manifest(_valid(out), tilt_axis="z"), "tilt_axis must be one of"),
+    "bad centre": (lambda out: _edit_manifest(_valid(out), centre_px=[1, 2, 3]), "centre_px must be two"),
+    "bad origin": (lambda out: _edit_manifest(_valid(out), origin_A=[0, 0]), "origin_A must be three"),
+    "truth missing": (lambda out: _edit_manifest(_valid(out), truth="gone.xyz"), "gone.xyz: truth file not found"),
+    "truth unreadable": (lambda out: (_valid(out), (out / "atoms_true.xyz").write_text("not an xyz file\n"), out)[2], "atoms_true.xyz"),
+    "all zero": (lambda out: _resave(_valid(out), lambda p: np.zeros_like(p)), "all zero"),
+}
+
+ODD: dict[str, Callable[[Path], Path]] = {
+    "integer counts": lambda out: _valid(out, dtype=np.uint16),
+    "non-square images": lambda out: _valid(out, shape=(20, 31)),
+    "negative values": lambda out: _resave(_valid(out), lambda p: p - 0.5),
+    "x tilt axis": lambda out: _valid(out, tilt_axis="x"),
+    "tilt axis at -86 deg in the image": lambda out: _valid(out, tilt_axis_angle_deg=-86.0),
+    "off-centre tilt axis": lambda out: _valid(out, centre_px=(10.0, 13.5)),
+}

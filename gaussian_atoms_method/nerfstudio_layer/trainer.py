@@ -1,0 +1,84 @@
+"""The run, as ``ns-train gaussian-atoms`` and ``gaussian-atoms train`` launch it: bad input
+stops in one line before anything is written, and a failure in training in one line.
+
+nerfstudio's ``ns-train`` prints the whole config, writes ``config.yml`` into a new run
+directory and only then builds the dataparser and the model, so a broken tilt series or a
+wrong option used to end in a 30-line traceback with a half-made run directory left behind.
+:class:`GaussianAtomsTrainerConfig` checks the input (the tilt series, its truth file and the
+model options) in :meth:`~GaussianAtomsTrainerConfig.print_to_terminal`, the first thing both
+launchers do once the options are parsed; :class:`GaussianAtomsTrainer` turns a training
+failure (a non-finite loss, which names its step and cause) or Ctrl+C into one line.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass, field
+from typing import Type
+
+from nerfstudio.engine.trainer import Trainer, TrainerConfig
+
+from dataparsers.errors import TiltSeriesError
+from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
+from gaussian_atoms_method.atoms.atom_set import AtomFileError, read_atoms
+from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions, OptionError
+
+INPUT_ERRORS = (TiltSeriesError, AtomFileError, OptionError)
+"""Errors in what the user gave: reported in one line, exit status 2."""
+
+
+def fail(message: str, status: int) -> None:
+    """Print ``message`` as one line on stderr and exit with ``status`` (no traceback)."""
+    print(" ".join(str(message).split()), file=sys.stderr)
+    raise SystemExit(status)
+
+
+def check_input(config: TrainerConfig) -> None:
+    """Raise one of :data:`INPUT_ERRORS`, naming the file or option, for input that cannot
+    train: the model options, the tilt series (read and validated as the dataparser will) and
+    its truth file."""
+    model = config.pipeline.model
+    if isinstance(model, GaussianAtomsOptions):
+        model.check()
+    datamanager = config.pipeline.datamanager
+    dataparser = datamanager.dataparser
+    if isinstance(dataparser, TiltSeriesDataParserConfig):
+        data = config.data or datamanager.data or dataparser.data
+        series = dataparser.load(data)
+        if series.truth_path is not None:
+            read_atoms(series.truth_path)
+
+
+@dataclass
+class GaussianAtomsTrainerConfig(TrainerConfig):
+    """nerfstudio's TrainerConfig for this method; builds :class:`GaussianAtomsTrainer`."""
+
+    _target: Type = field(default_factory=lambda: GaussianAtomsTrainer)
+
+    def __post_init__(self) -> None:
+        # ns-train's ``--data`` alias, applied as the options are parsed (ns-train would log a
+        # line for it before the input check could speak).
+        if self.data is not None:
+            self.pipeline.datamanager.data, self.data = self.data, None
+
+    def print_to_terminal(self) -> None:
+        # Both launchers call this first, before saving config.yml: check the input here.
+        try:
+            check_input(self)
+        except INPUT_ERRORS as exc:
+            fail(f"gaussian-atoms: error: {exc}", 2)
+        super().print_to_terminal()
+
+
+class GaussianAtomsTrainer(Trainer):
+    """nerfstudio's Trainer; a failure during training ends in one line naming its step and cause."""
+
+    def train(self) -> None:
+        try:
+            super().train()
+        except FloatingPointError as exc:  # the model names the step and the cause
+            fail(str(exc), 1)
+        except KeyboardInterrupt:
+            # Ctrl+C, also how a viewer left open after training is closed.  Results are written
+            # at the last step only, so an interrupted run leaves none half-written.
+            fail("gaussian-atoms: interrupted", 130)
