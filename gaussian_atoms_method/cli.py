@@ -26,12 +26,12 @@ class Simulate:
     """Directory to write (tilt_series.json, projections.npy, angles.txt, atoms_true.xyz)."""
     particle: str = "au"
     """au, fept, apd, hea, sphere (an fcc sphere of --element, --radius-A) or a structure file."""
-    scale: float = 1.0
-    """Linear size factor (atom count ~ scale^3) for small versions of the named particles."""
-    element: str = "Au"
-    """Element of the fcc sphere (--particle sphere)."""
-    radius_A: float = 10.0
-    """Radius of the fcc sphere, Å (--particle sphere)."""
+    scale: Optional[float] = None
+    """Linear size factor (atom count ~ scale^3) for small versions of the named particles (default 1)."""
+    element: Optional[str] = None
+    """Element of the fcc sphere (--particle sphere; default Au)."""
+    radius_A: Optional[float] = None
+    """Radius of the fcc sphere, Å (--particle sphere; default 10)."""
     potential: Literal["lobato", "gaussian"] = "lobato"
     """abTEM Lobato projected potential (independent physics), or the quick Gaussian model."""
     tilts: str = "limited"
@@ -56,10 +56,17 @@ class Simulate:
         from gaussian_atoms_method.harness.particles import make_particle
         from gaussian_atoms_method.harness.simulate import parse_tilts, simulate_tilt_series, spherical_particle, true_potential_volume
 
+        # Options that would be ignored are refused: `--element Au --radius-A 11` without
+        # `--particle sphere` once simulated the 6,679-atom Au particle instead.
         if self.particle == "sphere":
-            particle = spherical_particle(self.element, self.radius_A)
+            if self.scale is not None:
+                raise ValueError("--scale applies to the named particles; give --radius-A for --particle sphere")
+            particle = spherical_particle(self.element or "Au", 10.0 if self.radius_A is None else self.radius_A)
         else:
-            particle = make_particle(self.particle, self.scale, self.seed)
+            ignored = [name for name, value in (("--element", self.element), ("--radius-A", self.radius_A)) if value is not None]
+            if ignored:
+                raise ValueError(f"{' and '.join(ignored)} apply to --particle sphere, not --particle {self.particle}")
+            particle = make_particle(self.particle, 1.0 if self.scale is None else self.scale, self.seed)
         # The tilt centre is the particle's centroid; the truth keeps the particle's own frame.
         origin = particle.positions.mean(axis=0)
         sim = simulate_tilt_series(
@@ -85,7 +92,7 @@ class Simulate:
             extra={
                 "simulation": {
                     "particle": self.particle,
-                    "scale": self.scale,
+                    "scale": self.scale if self.particle != "sphere" else None,
                     "potential": self.potential,
                     "noise_std": self.noise_std,
                     "peak_to_noise": sim.peak_to_noise,

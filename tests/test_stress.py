@@ -1,16 +1,15 @@
-"""The stress cases pass (the float32/float64 agreement among them)."""
+"""The stress cases (gaussian-atoms stress), each run inside its test: float32 against float64
+for extreme widths and amplitudes, atoms beyond the edge, coincident atoms, all-zero data,
+SNR below 1, and 100k atoms against the dense float64 reference.  Tolerances are the
+module's (gaussian_atoms_method/harness/stress.py: what float32 arithmetic can meet)."""
 
 import pytest
 
-from gaussian_atoms_method.harness.stress import low_snr_case, run_stress
+from gaussian_atoms_method.harness.stress import CASES
 
 
-@pytest.mark.parametrize("case", run_stress(include_slow=False), ids=lambda c: c[0])
-def test_quick_stress_case(case):
-    name, ok, detail = case
-    assert ok, f"{name}: {detail}"
-
-
-def test_training_at_snr_below_one_stays_finite():
-    name, ok, detail = low_snr_case(steps=120)
-    assert ok, f"{name}: {detail}"
+@pytest.mark.parametrize("name", list(CASES))
+def test_stress_case(name):
+    case, _ = CASES[name]
+    label, ok, detail = case()
+    assert ok, f"{label}: {detail}"

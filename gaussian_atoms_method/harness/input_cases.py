@@ -23,7 +23,9 @@ def _valid(out: Path, shape=(24, 24), n_views=7, dtype=np.float32, **kw) -> Path
     projections = (rng.uniform(0, 1, (n_views,) + shape) * (1000 if np.issubdtype(dtype, np.integer) else 1)).astype(dtype)
     angles = np.linspace(-60, 60, n_views)
     truth = AtomSet(np.array([[0.0, 0.0, 0.0], [2.5, 0.0, 0.0]]), species=["Au", "Au"])
-    return write_tilt_series(out, projections, angles, 0.3, truth=truth, **kw)
+    out = write_tilt_series(out, projections, angles, 0.3, truth=truth, **kw)
+    np.save(out / "projections.npy", projections)  # as given: write_tilt_series stores float32
+    return out
 
 
 def _edit_manifest(out: Path, **changes) -> Path:

@@ -123,32 +123,44 @@ def low_snr_case(steps: int = 150) -> Case:
 
 
 def many_atoms_case(n: int = 100_000, pixels: int = 280) -> Case:
-    """100k Gaussians on a 280 x 280 view: forward and backward finite; time and memory."""
+    """100k Gaussians on a 280 x 280 view: the tiled projector (float32, forward and backward)
+    against the dense reference in float64; time and memory of the tiled one."""
     g = torch.Generator().manual_seed(0)
-    means = ((torch.rand(n, 3, generator=g) - 0.5) * 0.8).requires_grad_()
-    sig = torch.full((n,), 0.6 / 70).requires_grad_()
-    amps = torch.ones(n).requires_grad_()
-    axes = torch.tensor(detector_axes_from_tilts(np.array([30.0]), "y"), dtype=torch.float32)
-    coords = (torch.arange(pixels, dtype=torch.float32) + 0.5 - pixels / 2) / pixels
+    means = (torch.rand(n, 3, generator=g, dtype=torch.float64) - 0.5) * 0.8
+    sig = torch.full((n,), 0.6 / 70, dtype=torch.float64)
+    amps = 10.0 ** (torch.rand(n, generator=g, dtype=torch.float64) - 0.5)  # a factor 10 in amplitude
+    axes = torch.tensor(detector_axes_from_tilts(np.array([30.0]), "y"))
+    coords = (torch.arange(pixels, dtype=torch.float64) + 0.5 - pixels / 2) / pixels
     start = time.perf_counter()
-    img = project_gaussians_tiled(means, sig, amps, axes, coords, coords)
-    img.abs().mean().backward()
+    img, grads = _value_and_grads(project_gaussians_tiled, means, sig, amps, axes, coords, torch.float32)
     seconds = time.perf_counter() - start
     rss_gb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
-    ok = bool(torch.isfinite(img).all()) and bool(torch.isfinite(means.grad).all())
-    return f"{n:,} atoms", ok, f"forward+backward of one {pixels}x{pixels} view in {seconds:.2f} s; peak RSS {rss_gb:.1f} GB"
+    ref, ref_grads = _value_and_grads(project_gaussians, means, sig, amps, axes, coords, torch.float64)
+    value_err = float((img - ref).abs().max() / ref.abs().max())
+    grad_err = max(float((g - r).abs().max() / r.abs().max()) for g, r in zip(grads, ref_grads))
+    ok = bool(torch.isfinite(img).all()) and value_err <= 1e-5 and grad_err <= 1e-3
+    return (
+        f"{n:,} atoms",
+        ok,
+        f"tiled float32 vs dense float64: values {value_err:.1e} of peak, gradients {grad_err:.1e} of max; "
+        f"forward+backward of one {pixels}x{pixels} view in {seconds:.2f} s; peak RSS {rss_gb:.1f} GB",
+    )
+
+
+CASES: dict[str, tuple[Callable[[], Case], bool]] = {
+    # name: (case, slow)
+    "sigma 0.05-0.5 px": (lambda: precision_case("sigma 0.05-0.5 px", (0.05, 0.5), (1.0, 10.0)), False),
+    "sigma 2-20 px": (lambda: precision_case("sigma 2-20 px", (2.0, 20.0), (1.0, 10.0), n=60), False),
+    "amplitudes 1e-3-1e3": (lambda: precision_case("amplitudes 1e-3-1e3", (0.5, 4.0), (1e-3, 1e3)), False),
+    "edge": (edge_case, False),
+    "coincident": (coincident_case, False),
+    "all-zero projections": (zero_projections_case, False),
+    "SNR below 1": (low_snr_case, True),
+    "100k atoms": (many_atoms_case, True),
+}
+"""Every stress case by name; ``slow``: training or 100k atoms (seconds, not milliseconds)."""
 
 
 def run_stress(include_slow: bool = True) -> list[Case]:
-    """All cases; ``include_slow=False`` leaves out the 100k-atom and training cases."""
-    cases = [
-        lambda: precision_case("sigma 0.05-0.5 px", (0.05, 0.5), (1.0, 10.0)),
-        lambda: precision_case("sigma 2-20 px", (2.0, 20.0), (1.0, 10.0), n=60),
-        lambda: precision_case("amplitudes 1e-3-1e3", (0.5, 4.0), (1e-3, 1e3)),
-        edge_case,
-        coincident_case,
-        zero_projections_case,
-    ]
-    if include_slow:
-        cases += [low_snr_case, many_atoms_case]
-    return [case() for case in cases]
+    """Run the cases (``include_slow=False`` leaves out the slow ones)."""
+    return [case() for case, slow in CASES.values() if include_slow or not slow]

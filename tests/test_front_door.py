@@ -1,0 +1,91 @@
+"""The front door: every broken tilt series stops in one line naming the file or option (exit
+2, no traceback, no run directory), every odd but valid one trains, through both launchers."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
+from gaussian_atoms_method.harness.input_cases import BROKEN, ODD
+from gaussian_atoms_method.nerfstudio_layer.config import gaussian_atoms_trainer_config
+from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
+from gaussian_atoms_method.nerfstudio_layer.trainer import INPUT_ERRORS, GaussianAtomsTrainer, check_input
+from gaussian_atoms_method.nerfstudio_layer.training import train_views
+
+BIN = Path(sys.executable).parent
+
+
+def own_lines(text: str) -> list[str]:
+    """Output lines less the FutureWarnings torch and nerfstudio print on import (each a
+    "...Warning: ..." line and the source line under it)."""
+    lines, skip = [], False
+    for line in text.splitlines():
+        if "Warning: " in line:
+            skip = True
+            continue
+        if skip and line.startswith(" "):
+            continue
+        skip = False
+        if line.strip():
+            lines.append(line)
+    return lines
+
+
+@pytest.mark.parametrize("name", list(BROKEN))
+def test_broken_input_is_named_before_anything_runs(name, tmp_path):
+    write, fragment = BROKEN[name]
+    config = gaussian_atoms_trainer_config()
+    config.pipeline.datamanager.data = write(tmp_path / "series")
+    with pytest.raises(INPUT_ERRORS, match=None) as info:
+        check_input(config)
+    message = str(info.value)
+    assert fragment in message and "\n" not in message
+
+
+@pytest.mark.parametrize("name", list(ODD))
+def test_odd_but_valid_input_trains(name, tmp_path):
+    data = ODD[name](tmp_path / "series")
+    config = gaussian_atoms_trainer_config()
+    config.pipeline.datamanager.data = data
+    check_input(config)
+    outputs = TiltSeriesDataParserConfig(data=data).setup().get_dataparser_outputs("train")
+    model = GaussianAtomsModelConfig(num_random=50).setup(scene_box=outputs.scene_box, num_train_data=len(outputs.cameras), metadata=outputs.metadata)
+    targets = [outputs.metadata["projections"][v][..., None] for v in range(len(outputs.cameras))]
+    loss = train_views(model, outputs.cameras, targets, steps=4)
+    assert np.isfinite(loss) and all(bool(torch.isfinite(p).all()) for p in model.gauss_params.values())
+
+
+def test_integer_counts_stay_integer_on_disk(tmp_path):
+    """The odd case really is integer data (write_tilt_series itself stores float32)."""
+    assert np.load(ODD["integer counts"](tmp_path) / "projections.npy").dtype == np.uint16
+
+
+@pytest.mark.parametrize("launcher", [["ns-train", "gaussian-atoms"], ["gaussian-atoms", "train"]])
+def test_launchers_stop_in_one_line_and_write_nothing(launcher, tmp_path):
+    data = BROKEN["NaN pixels"][0](tmp_path / "series")
+    out = tmp_path / "out"
+    cmd = [str(BIN / launcher[0]), *launcher[1:], "--data", str(data), "--max-num-iterations", "2", "--machine.device-type", "cpu", "--vis", "tensorboard", "--output-dir", str(out)]
+    run = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    lines = own_lines(run.stdout + run.stderr)
+    assert run.returncode == 2 and "Traceback" not in run.stderr
+    assert len(lines) == 1 and "projections.npy: projections hold 1 NaN/Inf value(s)" in lines[0], lines
+    assert not out.exists()
+
+
+def test_training_failure_is_one_line_with_step_and_cause(monkeypatch, capsys):
+    """A non-finite loss (the model names the step and the cause) ends the run in one line."""
+    from nerfstudio.engine.trainer import Trainer
+
+    def diverge(self):
+        raise FloatingPointError("gaussian-atoms: step 17: the loss is nan and training cannot go on; cause: 3 Gaussian(s) with non-finite means.")
+
+    monkeypatch.setattr(Trainer, "train", diverge)
+    trainer = object.__new__(GaussianAtomsTrainer)
+    with pytest.raises(SystemExit) as info:
+        trainer.train()
+    err = capsys.readouterr().err
+    assert info.value.code == 1 and err.count("\n") == 1 and "step 17" in err and "non-finite means" in err
