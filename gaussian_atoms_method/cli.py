@@ -163,7 +163,7 @@ class Baseline:
     """Directory for atoms.xyz, atoms.csv, volume.npy and evaluation.json."""
     method: Literal["fbp", "sart", "inr"] = "sart"
     sart_iterations: int = 1
-    inr_steps: int = 1500
+    inr_steps: int = 10000
     """Training steps of the INR (a batch of rays of one view each)."""
     device: Literal["cpu", "cuda"] = "cpu"
     """Where the INR trains."""

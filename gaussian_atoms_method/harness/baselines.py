@@ -25,7 +25,7 @@ def run_baseline(
     output: Path,
     method: str = "sart",
     sart_iterations: int = 1,
-    inr_steps: int = 1500,
+    inr_steps: int = 10000,
     device: str = "cpu",
     min_distance_A: float = 2.0,
     threshold_scale: float = 1.0,

@@ -32,7 +32,7 @@ class AccuracyBenchmark:
     scale: float = 1.0
     iterations: int = 3000
     sart_iterations: int = 1
-    inr_steps: int = 1500
+    inr_steps: int = 10000
     pixel_size_A: float = 0.25
     blur_sigma_A: float = 0.5
     seed: int = 0
