@@ -10,29 +10,13 @@ import pytest
 import torch
 
 from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
-from gaussian_atoms_method.harness.input_cases import BROKEN, ODD
+from gaussian_atoms_method.harness.input_cases import BROKEN, ODD, own_lines
 from gaussian_atoms_method.nerfstudio_layer.config import gaussian_atoms_trainer_config
 from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
 from gaussian_atoms_method.nerfstudio_layer.trainer import INPUT_ERRORS, GaussianAtomsTrainer, check_input
 from gaussian_atoms_method.nerfstudio_layer.training import train_views
 
 BIN = Path(sys.executable).parent
-
-
-def own_lines(text: str) -> list[str]:
-    """Output lines less the FutureWarnings torch and nerfstudio print on import (each a
-    "...Warning: ..." line and the source line under it)."""
-    lines, skip = [], False
-    for line in text.splitlines():
-        if "Warning: " in line:
-            skip = True
-            continue
-        if skip and line.startswith(" "):
-            continue
-        skip = False
-        if line.strip():
-            lines.append(line)
-    return lines
 
 
 @pytest.mark.parametrize("name", list(BROKEN))

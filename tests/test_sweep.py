@@ -99,14 +99,15 @@ def test_sweep_on_ray_local_cluster(tmp_path):
 
 def test_sweep_cli_trains_each_setting(tmp_path):
     """Two real runs side by side on a small Gaussian-potential sphere: each run's config holds
-    its own setting, and both are scored against the truth (an easy particle: all 55 atoms)."""
+    its own setting (a boolean given as False too), and both are scored against the truth (an
+    easy particle: all 55 atoms)."""
     data = tmp_path / "data"
     sim = subprocess.run([str(BIN / "gaussian-atoms"), "simulate", "--output", str(data), "--particle", "sphere", "--potential", "gaussian",
                           "--radius-A", "6", "--tilts", "-70:5:70", "--noise-std", "20"], capture_output=True, text=True)  # fmt: skip
     assert sim.returncode == 0, sim.stderr
     out = tmp_path / "sweep"
     cmd = [str(BIN / "gaussian-atoms"), "sweep", "--data", str(data), "--output", str(out), "--iterations", "400", "--jobs", "2",
-           "--", "--pipeline.model.merge-threshold-A", "0.5", "0.7"]  # fmt: skip
+           "--", "--pipeline.model.merge-threshold-A", "0.5", "0.7", "--pipeline.model.stop-when-converged", "False"]  # fmt: skip
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
     table = list(csv.DictReader(open(out / "sweep.csv")))
@@ -115,6 +116,7 @@ def test_sweep_cli_trains_each_setting(tmp_path):
         assert row["status"] == "ok" and float(row["tpr"]) == 1.0 and float(row["fp_per_true_atom"]) == 0.0
         config = (out / "runs" / row["run"] / "ours" / "gaussian-atoms" / "run" / "config.yml").read_text()
         assert f"merge_threshold_A: {row['pipeline.model.merge-threshold-A']}" in config
+        assert "stop_when_converged: false" in config  # a boolean grid value, as ns-train takes it
         assert json.loads((out / "runs" / row["run"] / "result.json").read_text())["settings"]
     again = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert again.returncode == 0 and "2 already finished, 0 to run" in again.stdout

@@ -84,3 +84,20 @@ ODD: dict[str, Callable[[Path], Path]] = {
     "tilt axis at -86 deg in the image": lambda out: _valid(out, tilt_axis_angle_deg=-86.0),
     "off-centre tilt axis": lambda out: _valid(out, centre_px=(10.0, 13.5)),
 }
+
+
+def own_lines(text: str) -> list[str]:
+    """Lines of a launcher's output less the FutureWarnings torch and nerfstudio print on
+    import (each a "...Warning: ..." line and the indented source line under it): what the
+    one-line rule for bad input is about."""
+    lines, skip = [], False
+    for line in text.splitlines():
+        if "Warning: " in line:
+            skip = True
+            continue
+        if skip and line.startswith(" "):
+            continue
+        skip = False
+        if line.strip():
+            lines.append(line)
+    return lines
