@@ -34,6 +34,9 @@ def test_simulate_train_evaluate(tmp_path):
         "tilt-series", "--data", data,
     )  # fmt: skip
     assert train.returncode == 0, train.stdout[-3000:] + train.stderr[-3000:]
+    # The data's noise is additive Gaussian (noise-std 20): the residuals' variance-mean
+    # relation says so (physics/noise.py; tests/test_noise.py for Poisson and mixed noise).
+    assert "residual noise is additive" in " ".join(train.stdout.split())
     run = tmp_path / "out" / "e2e" / "gaussian-atoms" / "run"
     atoms = ase.io.read(run / "atoms.xyz")
     truth = ase.io.read(data / "atoms_true.xyz")

@@ -23,6 +23,7 @@ from gaussian_atoms_method.atoms.matching import score_atoms
 from gaussian_atoms_method.atoms.slices import write_slices_png
 from gaussian_atoms_method.atoms.uncertainty import position_std_A, robust_noise_std
 from gaussian_atoms_method.nerfstudio_layer.rendering import detector_axes
+from gaussian_atoms_method.physics.noise import fit_noise_model
 
 
 @torch.no_grad()
@@ -42,10 +43,14 @@ def model_position_std_A(model, atoms: AtomSet, noise: float | None = None) -> t
         training = model.training
         model.eval()  # full resolution, one view each, whatever the phase
         try:
-            residuals = [(model.get_outputs(cameras[i : i + 1])["projection"][..., 0].cpu() - projections[i]).numpy() for i in range(len(cameras))]
+            predicted = np.stack([model.get_outputs(cameras[i : i + 1])["projection"][..., 0].cpu().numpy() for i in range(len(cameras))])
         finally:
             model.train(training)
-        noise = robust_noise_std(np.stack(residuals)) / model.normalisation.data_scale
+        residuals = predicted - projections.cpu().numpy()
+        noise = robust_noise_std(residuals) / model.normalisation.data_scale
+        # The variance-mean relation of the same residuals (input units): additive or Poisson-like.
+        scale = model.normalisation.data_scale
+        model.noise_model = fit_noise_model(residuals / scale, predicted / scale)
     axes = detector_axes(model.view_c2w.cpu().double()).numpy()  # the training views' detectors
     return position_std_A(atoms.sigmas, atoms.amplitudes, axes, series.pixel_size_A, noise, model.config.loss), noise
 
@@ -61,6 +66,12 @@ def write_results(model, run_dir: Path) -> dict | None:
     precision = model_position_std_A(model, atoms)
     if precision is not None:
         atoms.position_std_A, noise = precision
+        nm = getattr(model, "noise_model", None)
+        if nm is not None:
+            CONSOLE.print(
+                f"gaussian-atoms: residual noise is {nm.kind}: variance {nm.read_var:.4g} + {nm.gain:.4g} x signal "
+                f"(input units; slope {nm.gain_se:.2g} standard error)"
+            )
         CONSOLE.print(
             f"gaussian-atoms: residual noise {noise:.4g} (input units); median position precision "
             + ", ".join(f"{a} {v * 100:.1f} pm" for a, v in zip("xyz", np.median(atoms.position_std_A, axis=0)))
