@@ -50,3 +50,14 @@ def test_missed_atoms_do_not_inflate_the_noise():
     residuals[rng.random(N) < 0.02] += 100.0
     model = fit_noise_model(residuals, mean)
     assert model.kind == "additive" and model.read_var == pytest.approx(9.0, rel=0.1)
+
+
+def test_fit_error_proportional_to_the_signal_is_not_taken_for_poisson_noise():
+    """A fit's relative error (residuals of 5% of the signal at the peaks) grows with the
+    signal squared; it goes to the misfit term, and the noise stays additive."""
+    rng = np.random.default_rng(4)
+    mean = rng.uniform(0, 400, N)
+    residuals = rng.normal(0, 20.0, N) + 0.05 * mean * rng.normal(0, 1.0, N)
+    model = fit_noise_model(residuals, mean)
+    assert model.kind == "additive" and model.read_var == pytest.approx(400.0, rel=0.05)
+    assert model.misfit == pytest.approx(0.05**2, rel=0.15)

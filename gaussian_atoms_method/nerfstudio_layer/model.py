@@ -28,7 +28,6 @@ from typing import Dict, List, Tuple, Type
 import torch
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
-from nerfstudio.models.splatfacto import SplatfactoModel
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch.nn import Parameter
 
@@ -53,8 +52,9 @@ class GaussianAtomsModelConfig(GaussianAtomsOptions):
     _target: Type = field(default_factory=lambda: GaussianAtomsModel)
 
 
-class GaussianAtomsModel(SplatfactoCompat, SplatfactoModel):
-    """Splatfacto subclass whose renderer is the tomographic line-integral projector."""
+class GaussianAtomsModel(SplatfactoCompat):
+    """Splatfacto subclass (through :class:`.splatfacto_compat.SplatfactoCompat`) whose renderer
+    is the tomographic line-integral projector."""
 
     config: GaussianAtomsModelConfig
 

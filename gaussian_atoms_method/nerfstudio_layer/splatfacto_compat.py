@@ -2,8 +2,8 @@
 
 nerfstudio's viewer and exporters read every property of a splatfacto model when they start
 (``scales``, ``quats``, ``opacities``, ``colors``, spherical-harmonic features); splatfacto's
-own would look up parameters we do not have (ns-viewer crashed on them).  The mixin defines
-them from our parameters: widths, identity rotations, log-amplitudes in place of opacities,
+own would look up parameters we do not have (ns-viewer crashed on them).  This base class
+defines them from our parameters: widths, identity rotations, log-amplitudes in place of opacities,
 colours by integrated mass.
 """
 
@@ -13,16 +13,18 @@ from typing import Dict, List
 
 import numpy as np
 import torch
+from nerfstudio.models.splatfacto import SplatfactoModel
 from torch.nn import Parameter
 
 from gaussian_atoms_method.nerfstudio_layer.viewer import mass_colours
 from gaussian_atoms_method.physics.projector import gaussian_mass
 
 
-class SplatfactoCompat:
-    """Mixin for :class:`~gaussian_atoms_method.nerfstudio_layer.model.GaussianAtomsModel`
-    (needs ``gauss_params``, ``means``, ``sigmas``, ``amplitudes``, ``num_points``,
-    ``_log_scales`` and ``density``)."""
+class SplatfactoCompat(SplatfactoModel):
+    """splatfacto with its per-Gaussian properties in our terms: the base of
+    :class:`~gaussian_atoms_method.nerfstudio_layer.model.GaussianAtomsModel`, which provides
+    ``gauss_params``, ``means``, ``sigmas``, ``amplitudes``, ``num_points``, ``_log_scales``
+    and ``density``."""
 
     @torch.no_grad()
     def _viewer_atoms(self) -> tuple[np.ndarray, np.ndarray, float]:
