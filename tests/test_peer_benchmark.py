@@ -5,7 +5,7 @@ import pytest
 
 from dataparsers.readers import read_angles, read_stack, single_axis_from_euler
 from dataparsers.tilt_series_format import TiltSeriesError, load_tilt_series
-from gaussian_atoms_method.harness.peer_benchmark import prepare_dose, read_peer_truth, score_like_peer
+from gaussian_atoms_method.harness.peer_benchmark import peer_scores, prepare_dose, read_peer_truth, score_like_peer
 
 
 def test_single_axis_from_euler():
@@ -49,3 +49,12 @@ def test_peer_data_read_through_the_readers(shared_data, tmp_path):
     # A plain FBP + tracing already finds nearly all: the frame (swap, centre, sign) is right;
     # a wrong swap or sign leaves under 20% matched (measured 35 and 39 of 208).
     assert scores["tpr"] > 0.9
+
+
+@pytest.mark.parametrize("dose, found, false, rmsd_pm", [("1.6e5", 208, 0, 4.24), ("1.6e4", 208, 0, 17.3), ("8e3", 199, 0, 28.9)])
+def test_peer_rows_are_read_and_scored_as_recorded(shared_data, dose, found, false, rmsd_pm):
+    """The peer pipeline's own models (peer_models/), converted and scored the way
+    ../shared/data/README.md records them: the rows benchmark-peer prints beside ours."""
+    scores = peer_scores(shared_data / "asi208", dose)
+    assert scores["n_matched"] == found and scores["n_pred"] - scores["n_matched"] == false
+    assert scores["rmsd_pm"] == pytest.approx(rmsd_pm, abs=0.05 if rmsd_pm < 10 else 0.5)  # the README gives 3 digits
