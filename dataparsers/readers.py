@@ -14,6 +14,7 @@ No nerfstudio import.
 from __future__ import annotations
 
 import re
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -176,7 +177,9 @@ def read_angles(path: str | Path, variable: str | None = None) -> np.ndarray:
             variables = {k: v for k, v in _mat_variables(path).items() if np.ndim(v) == 2 and np.issubdtype(np.asarray(v).dtype, np.number)}
             angles = np.asarray(variables[_pick(list(variables), variable, path, "angle variable")])
         elif suffix in (".txt", ".tlt", ".rawtlt", ".csv", ".dat"):
-            angles = np.loadtxt(path, delimiter="," if suffix == ".csv" else None, ndmin=1)
+            with warnings.catch_warnings():  # an empty file: the count check below says so in one line
+                warnings.simplefilter("ignore", UserWarning)
+                angles = np.loadtxt(path, delimiter="," if suffix == ".csv" else None, ndmin=1)
         else:
             raise TiltSeriesError(f"{path}: unsupported tilt angles file type {suffix!r}; expected one of {ANGLE_SUFFIXES}")
     except TiltSeriesError:

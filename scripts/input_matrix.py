@@ -26,7 +26,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from dataparsers.tilt_series_format import MANIFEST  # noqa: E402
-from gaussian_atoms_method.harness.input_cases import BROKEN, ODD, _edit_manifest, _valid, own_lines  # noqa: E402
+from gaussian_atoms_method.harness.input_cases import BROKEN, ODD, edit_manifest, valid_series, valid_then, own_lines  # noqa: E402
 
 BIN = Path(sys.executable).parent
 
@@ -34,42 +34,42 @@ BIN = Path(sys.executable).parent
 def _tiff(out: Path) -> Path:
     import tifffile
 
-    out = _valid(out)
+    out = valid_series(out)
     tifffile.imwrite(out / "stack.tif", np.load(out / "projections.npy"))
-    return _edit_manifest(out, projections="stack.tif")
+    return edit_manifest(out, projections="stack.tif")
 
 
 def _imod_mrc(out: Path) -> Path:
     import mrcfile
 
-    out = _valid(out)
+    out = valid_series(out)
     with mrcfile.new(out / "stack.mrc") as mrc:
         mrc.set_data(np.load(out / "projections.npy").astype(np.float32))
         mrc.voxel_size = 0.3
         mrc.add_label("newstack: Tilt axis angle = -86.0, binning = 1")
-    return _edit_manifest(out, projections="stack.mrc", pixel_size_A=None, tilt_axis=None)
+    return edit_manifest(out, projections="stack.mrc", pixel_size_A=None, tilt_axis=None)
 
 
 def _npz_two(out: Path) -> Path:
-    out = _valid(out)
+    out = valid_series(out)
     p = np.load(out / "projections.npy")
     np.savez(out / "stack.npz", a=p, b=p)
-    return _edit_manifest(out, projections="stack.npz")
+    return edit_manifest(out, projections="stack.npz")
 
 
 def _inf_angle(out: Path) -> Path:
-    out = _valid(out)
+    out = valid_series(out)
     (out / "angles.txt").write_text("\n".join(["-60", "-40", "-20", "0", "20", "40", "inf"]))
     return out
 
 
 EXTRA_BROKEN = {
     "npz with two arrays, none named": (_npz_two, "name the one to use"),
-    "projections entry is a directory": (lambda out: (_valid(out), (out / "sub").mkdir(), _edit_manifest(out, projections="sub"))[2], "sub"),
-    "empty angles file": (lambda out: (_valid(out), (out / "angles.txt").write_text(""), out)[2], "angles"),
+    "projections entry is a directory": (lambda out: edit_manifest(valid_then(out, lambda d: (d / "sub").mkdir()), projections="sub"), "sub"),
+    "empty angles file": (lambda out: valid_then(out, lambda d: (d / "angles.txt").write_text("")), "angles"),
     "infinite angle": (_inf_angle, "NaN/Inf"),
-    "zero pixel size": (lambda out: _edit_manifest(_valid(out), pixel_size_A=0), "pixel_size_A must be a positive"),
-    "manifest is a file path, not a directory": (lambda out: _valid(out) / MANIFEST / "x", "not found"),
+    "zero pixel size": (lambda out: edit_manifest(valid_series(out), pixel_size_A=0), "pixel_size_A must be a positive"),
+    "manifest is a file path, not a directory": (lambda out: valid_series(out) / MANIFEST / "x", "not found"),
 }
 EXTRA_ODD = {"TIFF stack": _tiff, "IMOD MRC with its tilt-axis angle": _imod_mrc}
 

@@ -18,7 +18,10 @@ from dataparsers.tilt_series_format import MANIFEST, write_tilt_series
 from gaussian_atoms_method.atoms.atom_set import AtomSet
 
 
-def _valid(out: Path, shape=(24, 24), n_views=7, dtype=np.float32, **kw) -> Path:
+def valid_series(out: Path, shape=(24, 24), n_views=7, dtype=np.float32, **kw) -> Path:
+    """A small valid tilt series in ``out``: (n_views, *shape) uniform noise of ``dtype``
+    (integers scaled to 0-1000 counts), tilts -60..60 deg, 0.3 Å pixels, two Au atoms as the
+    truth; ``kw`` goes to :func:`write_tilt_series` (tilt_axis, centre_px, ...)."""
     rng = np.random.default_rng(0)
     projections = (rng.uniform(0, 1, (n_views,) + shape) * (1000 if np.issubdtype(dtype, np.integer) else 1)).astype(dtype)
     angles = np.linspace(-60, 60, n_views)
@@ -28,7 +31,8 @@ def _valid(out: Path, shape=(24, 24), n_views=7, dtype=np.float32, **kw) -> Path
     return out
 
 
-def _edit_manifest(out: Path, **changes) -> Path:
+def edit_manifest(out: Path, **changes) -> Path:
+    """Set manifest keys of the series in ``out`` (None removes the key)."""
     manifest = json.loads((out / MANIFEST).read_text())
     for key, value in changes.items():
         if value is None:
@@ -39,8 +43,15 @@ def _edit_manifest(out: Path, **changes) -> Path:
     return out
 
 
-def _resave(out: Path, transform: Callable[[np.ndarray], np.ndarray]) -> Path:
+def resave(out: Path, transform: Callable[[np.ndarray], np.ndarray]) -> Path:
+    """Replace the projections of the series in ``out`` by ``transform`` of them."""
     np.save(out / "projections.npy", transform(np.load(out / "projections.npy")))
+    return out
+
+
+def valid_then(out: Path, change: Callable[[Path], object]) -> Path:
+    """A valid series in ``out``, then ``change(out)`` applied to its files."""
+    change(valid_series(out))
     return out
 
 
@@ -53,36 +64,36 @@ def _nan(p):
 BROKEN: dict[str, tuple[Callable[[Path], Path], str]] = {
     # name: (writer, a fragment the one-line message must hold)
     "missing directory": (lambda out: out / "nowhere", "data directory not found"),
-    "no manifest": (lambda out: (_valid(out), (out / MANIFEST).unlink(), out)[2], "not found, and no projections option"),
-    "bad JSON": (lambda out: (_valid(out), (out / MANIFEST).write_text("{projections: oops"), out)[2], "not valid JSON"),
-    "manifest not an object": (lambda out: (_valid(out), (out / MANIFEST).write_text("[1, 2]"), out)[2], "expected a JSON object"),
-    "unknown key": (lambda out: _edit_manifest(_valid(out), pixelsize=0.3), "unknown key"),
-    "projections missing": (lambda out: _edit_manifest(_valid(out), projections="gone.npy"), "gone.npy: projections file not found"),
-    "angles missing": (lambda out: _edit_manifest(_valid(out), angles_deg="gone.txt"), "gone.txt: tilt angles file not found"),
-    "no pixel size": (lambda out: _edit_manifest(_valid(out), pixel_size_A=None), "'pixel_size_A' is missing"),
-    "negative pixel size": (lambda out: _edit_manifest(_valid(out), pixel_size_A=-0.3), "pixel_size_A must be a positive"),
-    "pixel size not a number": (lambda out: _edit_manifest(_valid(out), pixel_size_A="big"), "pixel_size_A must be a number"),
-    "wrong angle count": (lambda out: (_valid(out), (out / "angles.txt").write_text("0\n10\n20\n"), out)[2], "3 tilt angles for 7 projections"),
-    "duplicate angles": (lambda out: (_valid(out), (out / "angles.txt").write_text("\n".join(["0", "0", "10", "20", "30", "40", "50"])), out)[2], "duplicate tilt angle"),
-    "angles not numbers": (lambda out: (_valid(out), (out / "angles.txt").write_text("a\nb\n"), out)[2], "could not read tilt angles"),
-    "NaN pixels": (lambda out: _resave(_valid(out), _nan), "NaN/Inf"),
-    "2D projections": (lambda out: _resave(_valid(out), lambda p: p[0]), "3D stack"),
-    "complex projections": (lambda out: _resave(_valid(out), lambda p: p.astype(np.complex64)), "real numbers"),
-    "unknown tilt axis": (lambda out: _edit_manifest(_valid(out), tilt_axis="z"), "tilt_axis must be one of"),
-    "bad centre": (lambda out: _edit_manifest(_valid(out), centre_px=[1, 2, 3]), "centre_px must be two"),
-    "bad origin": (lambda out: _edit_manifest(_valid(out), origin_A=[0, 0]), "origin_A must be three"),
-    "truth missing": (lambda out: _edit_manifest(_valid(out), truth="gone.xyz"), "gone.xyz: truth file not found"),
-    "truth unreadable": (lambda out: (_valid(out), (out / "atoms_true.xyz").write_text("not an xyz file\n"), out)[2], "atoms_true.xyz"),
-    "all zero": (lambda out: _resave(_valid(out), lambda p: np.zeros_like(p)), "all zero"),
+    "no manifest": (lambda out: valid_then(out, lambda d: (d / MANIFEST).unlink()), "not found, and no projections option"),
+    "bad JSON": (lambda out: valid_then(out, lambda d: (d / MANIFEST).write_text("{projections: oops")), "not valid JSON"),
+    "manifest not an object": (lambda out: valid_then(out, lambda d: (d / MANIFEST).write_text("[1, 2]")), "expected a JSON object"),
+    "unknown key": (lambda out: edit_manifest(valid_series(out), pixelsize=0.3), "unknown key"),
+    "projections missing": (lambda out: edit_manifest(valid_series(out), projections="gone.npy"), "gone.npy: projections file not found"),
+    "angles missing": (lambda out: edit_manifest(valid_series(out), angles_deg="gone.txt"), "gone.txt: tilt angles file not found"),
+    "no pixel size": (lambda out: edit_manifest(valid_series(out), pixel_size_A=None), "'pixel_size_A' is missing"),
+    "negative pixel size": (lambda out: edit_manifest(valid_series(out), pixel_size_A=-0.3), "pixel_size_A must be a positive"),
+    "pixel size not a number": (lambda out: edit_manifest(valid_series(out), pixel_size_A="big"), "pixel_size_A must be a number"),
+    "wrong angle count": (lambda out: valid_then(out, lambda d: (d / "angles.txt").write_text("0\n10\n20\n")), "3 tilt angles for 7 projections"),
+    "duplicate angles": (lambda out: valid_then(out, lambda d: (d / "angles.txt").write_text("\n".join(["0", "0", "10", "20", "30", "40", "50"]))), "duplicate tilt angle"),
+    "angles not numbers": (lambda out: valid_then(out, lambda d: (d / "angles.txt").write_text("a\nb\n")), "could not read tilt angles"),
+    "NaN pixels": (lambda out: resave(valid_series(out), _nan), "NaN/Inf"),
+    "2D projections": (lambda out: resave(valid_series(out), lambda p: p[0]), "3D stack"),
+    "complex projections": (lambda out: resave(valid_series(out), lambda p: p.astype(np.complex64)), "real numbers"),
+    "unknown tilt axis": (lambda out: edit_manifest(valid_series(out), tilt_axis="z"), "tilt_axis must be one of"),
+    "bad centre": (lambda out: edit_manifest(valid_series(out), centre_px=[1, 2, 3]), "centre_px must be two"),
+    "bad origin": (lambda out: edit_manifest(valid_series(out), origin_A=[0, 0]), "origin_A must be three"),
+    "truth missing": (lambda out: edit_manifest(valid_series(out), truth="gone.xyz"), "gone.xyz: truth file not found"),
+    "truth unreadable": (lambda out: valid_then(out, lambda d: (d / "atoms_true.xyz").write_text("not an xyz file\n")), "atoms_true.xyz"),
+    "all zero": (lambda out: resave(valid_series(out), lambda p: np.zeros_like(p)), "all zero"),
 }
 
 ODD: dict[str, Callable[[Path], Path]] = {
-    "integer counts": lambda out: _valid(out, dtype=np.uint16),
-    "non-square images": lambda out: _valid(out, shape=(20, 31)),
-    "negative values": lambda out: _resave(_valid(out), lambda p: p - 0.5),
-    "x tilt axis": lambda out: _valid(out, tilt_axis="x"),
-    "tilt axis at -86 deg in the image": lambda out: _valid(out, tilt_axis_angle_deg=-86.0),
-    "off-centre tilt axis": lambda out: _valid(out, centre_px=(10.0, 13.5)),
+    "integer counts": lambda out: valid_series(out, dtype=np.uint16),
+    "non-square images": lambda out: valid_series(out, shape=(20, 31)),
+    "negative values": lambda out: resave(valid_series(out), lambda p: p - 0.5),
+    "x tilt axis": lambda out: valid_series(out, tilt_axis="x"),
+    "tilt axis at -86 deg in the image": lambda out: valid_series(out, tilt_axis_angle_deg=-86.0),
+    "off-centre tilt axis": lambda out: valid_series(out, centre_px=(10.0, 13.5)),
 }
 
 
