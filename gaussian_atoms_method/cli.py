@@ -48,6 +48,11 @@ class Simulate:
     save_volume: bool = True
     """Also write the true potential volume, blurred like the data (for the SSIM metric)."""
 
+    @property
+    def particle_scale(self) -> float | None:
+        """The size factor of a named particle (1 unless given); None for the sphere."""
+        return None if self.particle == "sphere" else (1.0 if self.scale is None else self.scale)
+
     def main(self) -> None:
         import numpy as np
 
@@ -66,7 +71,7 @@ class Simulate:
             ignored = [name for name, value in (("--element", self.element), ("--radius-A", self.radius_A)) if value is not None]
             if ignored:
                 raise ValueError(f"{' and '.join(ignored)} apply to --particle sphere, not --particle {self.particle}")
-            particle = make_particle(self.particle, 1.0 if self.scale is None else self.scale, self.seed)
+            particle = make_particle(self.particle, self.particle_scale, self.seed)
         # The tilt centre is the particle's centroid; the truth keeps the particle's own frame.
         origin = particle.positions.mean(axis=0)
         sim = simulate_tilt_series(
@@ -92,7 +97,7 @@ class Simulate:
             extra={
                 "simulation": {
                     "particle": self.particle,
-                    "scale": self.scale if self.particle != "sphere" else None,
+                    "scale": self.particle_scale,
                     "potential": self.potential,
                     "noise_std": self.noise_std,
                     "peak_to_noise": sim.peak_to_noise,
@@ -366,7 +371,7 @@ class Train:
     """Train on a tilt series with the options of ns-train gaussian-atoms, started sooner
     (gaussian-atoms train -h lists them)."""
 
-    def main(self) -> None:  # the entry point hands "train ..." to train.main before tyro
+    def main(self) -> None:  # the entry point hands "train ..." to train.run before tyro
         raise AssertionError("unreachable")
 
 
@@ -384,6 +389,24 @@ Commands = Union[
 ]
 
 
+def parse(argv: list[str]) -> object:
+    """What ``gaussian-atoms ARGV`` would run, built but not run: for ``train`` its nerfstudio
+    TrainerConfig (the options of ``ns-train gaussian-atoms``), otherwise the verb's dataclass
+    (a sweep with its grid, ns-train's own options passed through after "--")."""
+    if argv[:1] == ["train"]:
+        from gaussian_atoms_method.nerfstudio_layer.train import build_config
+
+        return build_config(argv[1:])
+    grid: tuple[str, ...] = ()
+    if argv[:1] == ["sweep"] and "--" in argv:
+        cut = argv.index("--")
+        argv, grid = argv[:cut], split_grid(argv[cut + 1 :])
+    command = tyro.cli(Commands, args=argv)
+    if isinstance(command, Sweep):
+        command.grid = grid
+    return command
+
+
 def entrypoint(argv: list[str] | None = None) -> None:
     """Run one verb; errors in the user's input are reported in one line, exit status 2."""
     from dataparsers.tilt_series_format import TiltSeriesError
@@ -392,23 +415,15 @@ def entrypoint(argv: list[str] | None = None) -> None:
 
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["train"]:
-        # Its options are nerfstudio's TrainerConfig: tyro parses them in train.main.
-        from gaussian_atoms_method.nerfstudio_layer.train import main as train_main
+        from gaussian_atoms_method.nerfstudio_layer.train import run as train_run
         from gaussian_atoms_method.nerfstudio_layer.trainer import INPUT_ERRORS
 
         try:
-            return train_main(argv[1:])
+            return train_run(parse(argv))
         except INPUT_ERRORS as exc:
             print(f"gaussian-atoms train: error: {exc}", file=sys.stderr)
             raise SystemExit(2) from None
-    grid: tuple[str, ...] = ()
-    if argv[:1] == ["sweep"] and "--" in argv:
-        # The sweep's grid is ns-train's own options, passed through after "--".
-        cut = argv.index("--")
-        argv, grid = argv[:cut], split_grid(argv[cut + 1 :])
-    command = tyro.cli(Commands, args=argv)
-    if isinstance(command, Sweep):
-        command.grid = grid
+    command = parse(argv)
     try:
         command.main()
     except (TiltSeriesError, AtomFileError, ValueError, FileNotFoundError) as exc:

@@ -43,17 +43,9 @@ def _parse(argv: list[str]) -> object:
         assert argv[1] == "gaussian-atoms"
         return build_config(argv[2:])
     if program == "gaussian-atoms":
-        from gaussian_atoms_method.cli import Commands, split_grid
-        from gaussian_atoms_method.nerfstudio_layer.train import build_config
+        from gaussian_atoms_method.cli import parse
 
-        args = argv[1:]
-        if args[0] == "train":
-            return build_config(args[1:])
-        if args[0] == "sweep" and "--" in args:
-            cut = args.index("--")
-            split_grid(args[cut + 1 :])
-            args = args[:cut]
-        return tyro.cli(Commands, args=args)
+        return parse(argv[1:])
     if program == "ns-viewer":
         assert argv[1:2] == ["--load-config"] and len(argv) == 3
         return argv[2]

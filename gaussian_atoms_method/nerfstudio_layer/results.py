@@ -46,10 +46,9 @@ def model_position_std_A(model, atoms: AtomSet, noise: float | None = None) -> t
             predicted = np.stack([model.get_outputs(cameras[i : i + 1])["projection"][..., 0].cpu().numpy() for i in range(len(cameras))])
         finally:
             model.train(training)
-        residuals = predicted - projections.cpu().numpy()
-        noise = robust_noise_std(residuals) / model.normalisation.data_scale
+        residuals, scale = predicted - projections.cpu().numpy(), model.normalisation.data_scale
+        noise = robust_noise_std(residuals) / scale
         # The variance-mean relation of the same residuals (input units): additive or Poisson-like.
-        scale = model.normalisation.data_scale
         model.noise_model = fit_noise_model(residuals / scale, predicted / scale)
     axes = detector_axes(model.view_c2w.cpu().double()).numpy()  # the training views' detectors
     return position_std_A(atoms.sigmas, atoms.amplitudes, axes, series.pixel_size_A, noise, model.config.loss), noise

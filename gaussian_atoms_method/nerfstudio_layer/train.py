@@ -16,7 +16,6 @@ One process on one device; multi-GPU and multi-machine runs go through ``ns-trai
 from __future__ import annotations
 
 import random
-import sys
 
 from gaussian_atoms_method.nerfstudio_layer.options import OptionError
 
@@ -54,8 +53,6 @@ def run(config) -> None:
             f"{config.machine.num_machines}: gaussian-atoms train runs on one device; use "
             "`ns-train gaussian-atoms` for distributed training"
         )
-    if config.data:
-        config.pipeline.datamanager.data = config.data
     if config.load_config:
         config = yaml.load(config.load_config.read_text(), Loader=yaml.Loader)
     config.set_timestamp()
@@ -75,5 +72,3 @@ def run(config) -> None:
         profiler.flush_profiler(config.logging)
 
 
-def main(argv: list[str] | None = None) -> None:
-    run(build_config(list(sys.argv[1:] if argv is None else argv)))
