@@ -28,6 +28,9 @@ def _model(tmp_path, **cfg):
     # These tests check rendering and training against full-resolution references from step 0;
     # the coarse phase (2 x 2-binned early steps, on by default) has its own test below.
     cfg.setdefault("coarse_steps", 0)
+    # _series' projections are uniform noise on a level of 5: background auto would (rightly)
+    # learn that level; these tests compare the atoms' rendering alone.
+    cfg.setdefault("background", "none")
     outputs = TiltSeriesDataParserConfig(data=tmp_path).setup().get_dataparser_outputs("train")
     config = GaussianAtomsModelConfig(**cfg)
     model = config.setup(scene_box=outputs.scene_box, num_train_data=len(outputs.image_filenames), metadata=outputs.metadata)
@@ -197,7 +200,7 @@ def test_view_shifts_and_background_are_recovered(tmp_path):
     backgrounds = rng.uniform(0.05, 0.2, size=len(angles)) * sim.projections.max()
     proj = np.stack([ndimage.shift(p, s / sim.pixel_size_A, order=3) + b for p, s, b in zip(sim.projections, shifts_A, backgrounds)])
     write_tilt_series(tmp_path, proj.astype(np.float32), angles, sim.pixel_size_A, truth=sim.truth)
-    model, outputs = _model(tmp_path, num_random=len(atoms), init="random", refine_alignment=True, background="constant")
+    model, outputs = _model(tmp_path, num_random=len(atoms), init="random", refine_alignment=True, background="constant", loss="l1")
     norm = model.normalisation
     with torch.no_grad():
         model.gauss_params["means"].copy_(torch.as_tensor(norm.positions_from_A(atoms.positions), dtype=torch.float32))
@@ -364,7 +367,17 @@ def test_views_per_step_fits_several_views_in_one_loss(tmp_path):
     assert out["projection"].shape == (15, 18, 1) and out["extra_projection"].shape == (2, 15, 18, 1)
     assert torch.isfinite(coarse.get_loss_dict(out, {"image": projections[0][..., None]})["main_loss"])
 
-    for option in ({"refine_alignment": True}, {"background": "plane"}, {"isotropic": False}):
+    # A background is per view but adds after the projector: batched views each get their own.
+    bg, _ = _model(tmp_path, num_random=20, views_per_step=3, background="constant")
+    bg.view_params["background"].data[:, 0] = torch.arange(4.0)
+    bg.train()
+    out = bg.get_outputs(outputs.cameras[1:2])
+    for image, v in zip(out["extra_projection"], out["extra_views"].tolist()):
+        bg.eval()
+        alone = bg.get_outputs(outputs.cameras[v : v + 1])["projection"]
+        bg.train()
+        torch.testing.assert_close(image, alone, rtol=1e-5, atol=1e-4)
+    for option in ({"refine_alignment": True}, {"isotropic": False}):
         with pytest.raises(ValueError, match="views-per-step 2 cannot be combined"):
             _model(tmp_path, num_random=20, views_per_step=2, **option)
 

@@ -88,7 +88,7 @@ def test_view_batches_refuse_what_they_cannot_do_by_name():
 
 @pytest.mark.parametrize(
     "options, named",
-    [({"views_per_step": 0}, "views-per-step"), ({"views_per_step": 4, "background": "constant"}, "--pipeline.model.background"),
+    [({"views_per_step": 0}, "views-per-step"), ({"views_per_step": 4, "refine_tilts": True}, "--pipeline.model.refine-tilts"),
      ({"num_random": 0}, "num-random"), ({"init_sigma_A": 9.0}, "init-sigma-A"), ({"merge_threshold_A": -1.0}, "merge-threshold-A")],
 )  # fmt: skip
 def test_option_conflicts_are_named_before_anything_is_built(options, named):

@@ -41,6 +41,8 @@ from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions,
 from gaussian_atoms_method.nerfstudio_layer.results import model_position_std_A, write_results, write_snapshot
 from gaussian_atoms_method.nerfstudio_layer.splatfacto_compat import SplatfactoCompat
 from gaussian_atoms_method.nerfstudio_layer.viewer import AtomsInViewer
+from gaussian_atoms_method.physics.data_terms import data_term
+from gaussian_atoms_method.nerfstudio_layer.noise_reading import read_noise
 from gaussian_atoms_method.physics.projector import covariances_from_scales_quats, project_anisotropic_gaussians, project_gaussians, project_gaussians_gsplat, project_gaussians_tiled
 from gaussian_atoms_method.physics.units import DATA_RANGE, Normalisation
 
@@ -89,18 +91,22 @@ class GaussianAtomsModel(SplatfactoCompat):
         self.density = DensityControl(ls, max_log_amp, self.generator, **{k: getattr(cfg, k) for k in names})
         self.density.reset(n)
         self.convergence = ConvergenceCheck(cfg.warmup_length, cfg.refine_every, cfg.converged_fraction)
-        self._setup_view_params(metadata, series)
+        self.noise_read, self.data_term, floor = read_noise(metadata.get("projections"), cfg.loss, cfg.background)
+        self._setup_view_params(metadata, series, floor)
         self.step, self.optimizers, self._optimizers_obj = 0, {}, None
         self.crop_box, self.background_color = None, torch.zeros(3)
         self.atoms_in_viewer = AtomsInViewer(self._viewer_atoms)  # the atoms as points in nerfstudio's viewer
 
-    def _setup_view_params(self, metadata: dict, series) -> None:
-        """Per-view parameters (untouched by density control) and the views-per-step batches."""
+    def _setup_view_params(self, metadata: dict, series, floor: float | None) -> None:
+        """Per-view parameters (untouched by density control) and the views-per-step batches;
+        ``floor``: the detected background level (normalised units) a learned one starts at."""
         cfg, view_c2w = self.config, metadata.get("view_c2w")
         self.register_buffer("view_c2w", view_c2w.float() if view_c2w is not None else torch.zeros(0, 3, 4), persistent=False)
         n_views, view_params = self.view_c2w.shape[0], {}
-        if cfg.background != "none":
-            view_params["background"] = Parameter(torch.zeros(n_views, 1 if cfg.background == "constant" else 3))
+        background = cfg.background if cfg.background != "auto" else ("constant" if floor is not None else "none")
+        if background != "none":
+            view_params["background"] = Parameter(torch.zeros(n_views, 1 if background == "constant" else 3))
+            view_params["background"].data[:, 0] = floor or 0.0
         if cfg.refine_alignment:
             view_params["view_shifts"] = Parameter(torch.zeros(n_views, 2))
         if cfg.refine_tilts:
@@ -171,13 +177,16 @@ class GaussianAtomsModel(SplatfactoCompat):
             others = R.other_views(view, self.view_c2w.shape[0], self.config.views_per_step, self.generator)
             axes = torch.cat([axes, R.detector_axes(self.view_c2w[others].to(dev, dt))])
             images = self._projector(dev)(self.means, self.sigmas, self.amplitudes, axes, rows, cols)
+            if "background" in self.view_params:
+                views = torch.cat([torch.tensor([view]), others])
+                images = torch.stack([R.add_background(im, self.view_params["background"][v].to(dt), rows, cols) for im, v in zip(images, views.tolist())])
             image, extra = images[0], {"extra_projection": images[1:, :, :, None], "extra_views": others}
         elif self.config.isotropic:
             image = self._projector(dev)(self.means - t, self.sigmas, self.amplitudes, axes, rows, cols)[0]
         else:
             cov = covariances_from_scales_quats(self._log_scales(), self.gauss_params["quats"])
             image = project_anisotropic_gaussians(self.means - t, cov, self.amplitudes, axes, rows, cols)[0]
-        if view is not None and "background" in self.view_params:
+        if view is not None and "background" in self.view_params and not extra:
             image = R.add_background(image, self.view_params["background"][view].to(dt), rows, cols)
         projection = image[..., None]
         h, w = image.shape
@@ -197,19 +206,14 @@ class GaussianAtomsModel(SplatfactoCompat):
         return {"l1": torch.abs(outputs["projection"] - gt).mean().detach(), "gaussian_count": torch.tensor(float(self.num_points))}
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
-        gt = self._measured(outputs, batch)
-        residual = outputs["projection"] - gt
+        pred, gt = outputs["projection"], self._measured(outputs, batch)
         if "extra_projection" in outputs:  # the other views of this step: one loss over all their pixels
             extra = outputs["extra_projection"]
-            extra_gt = torch.stack([R.binned_like(m[..., None], extra[0]) for m in self.train_projections[outputs["extra_views"]]])
-            residual = torch.cat([residual[None], extra - extra_gt.to(extra)])
-        loss = torch.abs(residual).mean() if self.config.loss == "l1" else residual.square().mean()
-        # Parameters are checked too: the tiled projector skips a Gaussian whose centre is NaN.
-        if not torch.isfinite(loss) or not all(bool(torch.isfinite(p).all()) for p in self.gauss_params.values()):
-            bad = {k: int((~torch.isfinite(p)).any(dim=-1).sum()) for k, p in self.gauss_params.items()}
-            cause = ", ".join(f"{v} Gaussian(s) with non-finite {k}" for k, v in bad.items() if v) or (
-                "the measured projection holds NaN/Inf" if not torch.isfinite(gt).all() else "the projection overflowed (amplitudes too large for float32?)")  # fmt: skip
-            raise FloatingPointError(f"gaussian-atoms: step {self.step}: the loss is {float(loss)} and training cannot go on; cause: {cause}. Lower the learning rates or check the input.")
+            extra_gt = torch.stack([R.binned_like(m[..., None], extra[0]) for m in self.train_projections[outputs["extra_views"]]]).to(extra)
+            pred, gt = torch.cat([pred[None], extra]), torch.cat([gt[None], extra_gt])
+        noise = self.noise_read
+        loss = data_term(pred, gt, self.data_term, noise.gain if noise else 1.0, noise.read_var if noise else 0.0)
+        R.check_finite(loss, self.gauss_params, gt, self.step)
         return {"main_loss": loss}
 
     def get_image_metrics_and_images(self, outputs, batch) -> Tuple[Dict[str, float], Dict[str, torch.Tensor]]:

@@ -79,13 +79,19 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
     H100); ``tiled``, each Gaussian only on the tiles it reaches (about 4x faster than dense on
     a CPU); ``gsplat``, tiled with stock gsplat's tile intersection (CUDA only; correct but
     slower than dense at these sizes).  ``auto``: dense on CUDA, tiled on CPU."""
-    loss: Literal["l1", "l2"] = "l1"
-    """Data term: L1 (the paper; robust to outliers) or L2 (unbiased for the mean: better at
-    low electron counts, where the median of a Poisson count sits below its mean and L1 lets
-    faint atoms fade; measured on the aSi-208 data at dose 1.6e4)."""
-    background: Literal["none", "constant", "plane"] = "none"
+    loss: Literal["auto", "l1", "l2", "poisson"] = "auto"
+    """Data term (:mod:`gaussian_atoms_method.physics.data_terms`): ``auto`` reads the noise
+    from the projections before training (:func:`gaussian_atoms_method.physics.noise.noise_from_projections`)
+    and takes the Poisson likelihood where the variance grows significantly with the signal
+    (electron counts), else L1 (the paper's; additive noise); or force ``l1``, ``l2`` or
+    ``poisson``.  Every run prints the noise it read and the term it chose."""
+    background: Literal["auto", "none", "constant", "plane"] = "auto"
     """A smooth per-projection background learned with the atoms (carbon support, contamination,
-    a detector offset): a constant, or a plane over the detector, per view."""
+    a detector offset): a constant, or a plane over the detector, per view.  ``auto``: a
+    constant, starting at the measured level, when the projections' outer frame sits
+    significantly off zero (more than 5 standard errors of its mean,
+    :func:`gaussian_atoms_method.physics.noise.detector_floor`: the peer's aSi-208 counts sit
+    on 1.0 count), else none."""
     refine_alignment: bool = False
     """Learn a per-projection in-plane shift with the atoms (residual misalignment of the tilt
     series).  Shifts are taken relative to their mean over the views (an overall shift of
@@ -112,7 +118,7 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
     one others drawn at random, rendered in one projector call, one loss over all.  On a GPU a
     batch of views costs about one view's kernel launches and the averaged gradient is smoother
     (docs/performance.md: several views per step); on a CPU each view costs its own time.  Not
-    with refine-alignment, refine-tilts, background or anisotropic Gaussians."""
+    with refine-alignment, refine-tilts or anisotropic Gaussians."""
     snapshot_every: int = 0
     """Every this many steps (0: never) write the current atoms to ``snapshots/`` in the run
     directory with the wall-clock time, for time-to-accuracy benchmarks."""
@@ -126,7 +132,7 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
             raise OptionError(f"--pipeline.model.views-per-step must be at least 1, got {self.views_per_step}")
         if self.views_per_step > 1:
             per_view = [name for name, on in (("refine-alignment", self.refine_alignment), ("refine-tilts", self.refine_tilts),
-                        ("background", self.background != "none"), ("isotropic False", not self.isotropic)) if on]  # fmt: skip
+                        ("isotropic False", not self.isotropic)) if on]  # fmt: skip
             if per_view:
                 raise OptionError(f"--pipeline.model.views-per-step {self.views_per_step} cannot be combined with --pipeline.model.{per_view[0]} (per-view parameters); use 1")
         positive = {"num-random": self.num_random, "init-sigma-A": self.init_sigma_A, "min-sigma-A": self.min_sigma_A, "max-sigma-A": self.max_sigma_A,

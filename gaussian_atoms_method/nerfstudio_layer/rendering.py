@@ -106,3 +106,15 @@ def other_views(view: int, n_views: int, views_per_step: int, generator: torch.G
     k = min(views_per_step - 1, n_views - 1)
     others = torch.randperm(n_views - 1, generator=generator)[:k]
     return others + (others >= view).long()  # skip ``view`` itself
+
+
+def check_finite(loss: torch.Tensor, params, measured: torch.Tensor, step: int) -> None:
+    """Raise FloatingPointError naming the step and the cause when the loss or a parameter is
+    not finite (parameters are checked too: the tiled projector skips a Gaussian whose centre
+    is NaN, so the loss alone would not show it)."""
+    if torch.isfinite(loss) and all(bool(torch.isfinite(p).all()) for p in params.values()):
+        return
+    bad = {k: int((~torch.isfinite(p)).any(dim=-1).sum()) for k, p in params.items()}
+    cause = ", ".join(f"{v} Gaussian(s) with non-finite {k}" for k, v in bad.items() if v) or (
+        "the measured projection holds NaN/Inf" if not torch.isfinite(measured).all() else "the projection overflowed (amplitudes too large for float32?)")  # fmt: skip
+    raise FloatingPointError(f"gaussian-atoms: step {step}: the loss is {float(loss)} and training cannot go on; cause: {cause}. Lower the learning rates or check the input.")

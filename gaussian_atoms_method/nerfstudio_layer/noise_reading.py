@@ -1,0 +1,46 @@
+"""What the model reads from the projections before training: the noise and a detector floor.
+
+The physics is :mod:`gaussian_atoms_method.physics.noise` (the measurement) and
+:mod:`gaussian_atoms_method.physics.data_terms` (the choice of term); this puts the options'
+``auto`` values into effect and says on one line what was read and chosen.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from gaussian_atoms_method.physics.data_terms import choose_data_term
+from gaussian_atoms_method.physics.noise import NoiseModel, detector_floor, noise_from_projections
+
+FLOOR_Z = 5.0
+"""A frame level this many standard errors off zero is a real offset: a one-in-3.5-million
+false alarm for Gaussian noise, and a learned constant that starts at zero costs nothing when
+the alarm is false."""
+FLAT_FRAME_RATIO = 1.5
+"""The frame counts as empty background when its pixels vary by at most this many times the
+noise variance at its level: a variance estimate from the thousands of frame pixels is good to
+a few per cent, the pre-fit noise model to 10-20% (:func:`~gaussian_atoms_method.physics.noise.noise_from_projections`);
+atoms reaching the frame (a film, a crowded field) add far more."""
+
+
+def read_noise(projections, loss: str, background: str) -> tuple[NoiseModel | None, str, float | None]:
+    """The noise model of the (V, H, W) normalised projections (None without data), the data
+    term to use and the detected floor (normalised units; None when the frame sits at zero or
+    ``background`` is not ``auto``).  ``loss``/``background``: the options."""
+    if projections is None or min(projections.shape[-2:]) < 5:
+        return None, ("l1" if loss == "auto" else loss), None
+    data = np.asarray(projections.detach().cpu().double() if hasattr(projections, "detach") else projections, dtype=np.float64)
+    noise = noise_from_projections(data)
+    term = choose_data_term(noise, float(np.percentile(data, 99.9))) if loss == "auto" else loss
+    if term == "poisson" and noise.gain <= 0:
+        # Forced on additive noise: the Poisson term needs a gain; one count per noise variance
+        # makes its weights uniform (it then behaves as L2).
+        noise = NoiseModel(0.0, max(noise.read_var, 1e-12), noise.offset)
+    floor, floor_se, frame_var = detector_floor(data)
+    flat = frame_var <= FLAT_FRAME_RATIO * float(noise.variance(np.array([floor]))[0])
+    found = background == "auto" and flat and abs(floor) > FLOOR_Z * floor_se
+    said = f"{noise.kind} (read variance {noise.read_var:.3g}, gain {noise.gain:.3g} per count, normalised units)"
+    bg = f"; frame level {floor:.3g} ± {floor_se:.1g}: learning a constant background per view from it" if found else ""
+    CONSOLE.print(f"gaussian-atoms: noise read from the projections: {said}; data term {term}{bg}")
+    return noise, term, (floor if found else None)
