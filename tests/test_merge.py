@@ -40,12 +40,16 @@ def test_merge_conserves_mass_or_averages():
     amps = torch.tensor([2.0, 1.0, 4.0])
     labels = torch.tensor([0, 0, 1])
     m, s, a = merged_values(means, sigmas, amps, labels, 2, "mass")
-    torch.testing.assert_close(m[0], torch.tensor([0.1, 0.0, 0.0]))
-    torch.testing.assert_close(s, torch.tensor([0.6, 0.6]))
+    # Mass-weighted: masses 2 * 0.5^3 = 0.25 and 1 * 0.7^3 = 0.343 (times (2 pi)^1.5).
+    w = torch.tensor([0.25, 0.343]) / 0.593
+    torch.testing.assert_close(m[0], torch.tensor([float(w[1]) * 0.2, 0.0, 0.0]))
+    torch.testing.assert_close(s, torch.tensor([float(w[0] * 0.5 + w[1] * 0.7), 0.6]))
     torch.testing.assert_close(gaussian_mass(s, a)[0], gaussian_mass(sigmas[:2], amps[:2]).sum())
     torch.testing.assert_close(a[1], amps[2])
-    _, _, a_mean = merged_values(means, sigmas, amps, labels, 2, "mean")
-    torch.testing.assert_close(a_mean, torch.tensor([1.5, 4.0]))
+    m_mean, s_mean, a_mean = merged_values(means, sigmas, amps, labels, 2, "mean")
+    torch.testing.assert_close(a_mean, torch.tensor([1.5, 4.0]))  # the paper's rule: plain means
+    torch.testing.assert_close(m_mean[0], torch.tensor([0.1, 0.0, 0.0]))
+    torch.testing.assert_close(s_mean, torch.tensor([0.6, 0.6]))
 
 
 def _params_and_adam(n=5):

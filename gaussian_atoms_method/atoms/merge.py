@@ -2,8 +2,8 @@
 
 The minimum-interatomic-distance prior of the paper.  All Gaussians connected by chains of
 pairs closer than the threshold form one cluster (found exactly with a k-d tree and connected
-components, no per-point loop), which is replaced by a single Gaussian at the mean position
-and the mean width.  Its amplitude is either the mean amplitude (the paper) or the one that
+components, no per-point loop), which is replaced by a single Gaussian at the mass-weighted mean position
+and width.  Its amplitude is either the mean amplitude (the paper) or the one that
 conserves the cluster's integrated mass (``amplitude_rule="mass"``, the default: merging two
 half-atoms gives one whole atom, so the fit does not have to regrow the lost half).
 
@@ -20,7 +20,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 
-def cluster_labels(positions: np.ndarray, threshold: float) -> tuple[np.ndarray, int]:
+def cluster_labels(positions: np.ndarray, threshold: float, mergeable: np.ndarray | None = None) -> tuple[np.ndarray, int]:
     """Label the connected clusters of points closer than ``threshold`` to each other.
 
     Parameters
@@ -28,6 +28,8 @@ def cluster_labels(positions: np.ndarray, threshold: float) -> tuple[np.ndarray,
     positions : (N, 3) array
     threshold : float
         Pairs at distance ``<= threshold`` are linked (same unit as positions).
+    mergeable : (N,) bool array, optional
+        Only pairs of two mergeable points are linked (the others stay alone).
 
     Returns
     -------
@@ -38,6 +40,8 @@ def cluster_labels(positions: np.ndarray, threshold: float) -> tuple[np.ndarray,
     if n == 0:
         return np.zeros(0, dtype=np.int64), 0
     pairs = cKDTree(positions).query_pairs(threshold, output_type="ndarray")
+    if mergeable is not None and len(pairs):
+        pairs = pairs[mergeable[pairs[:, 0]] & mergeable[pairs[:, 1]]]
     if len(pairs) == 0:
         return np.arange(n, dtype=np.int64), n
     graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
@@ -58,7 +62,8 @@ def scatter_mean(values: torch.Tensor, src: torch.Tensor, dst: torch.Tensor, n_o
 def merged_values(
     means: torch.Tensor, sigmas: torch.Tensor, amplitudes: torch.Tensor, labels: torch.Tensor, n_clusters: int, amplitude_rule: str = "mass"
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Mean position, mean width and combined amplitude of each cluster.
+    """Position, width and combined amplitude of each cluster: mass-weighted means (``"mass"``)
+    or plain means (``"mean"``, the paper).
 
     Parameters
     ----------
@@ -73,13 +78,18 @@ def merged_values(
     means (M, 3), sigmas (M,), amplitudes (M,)
     """
     src = torch.arange(len(labels), device=labels.device)
-    new_means = scatter_mean(means, src, labels, n_clusters)
-    new_sigmas = scatter_mean(sigmas, src, labels, n_clusters)
     if amplitude_rule == "mean":
+        new_means = scatter_mean(means, src, labels, n_clusters)
+        new_sigmas = scatter_mean(sigmas, src, labels, n_clusters)
         new_amps = scatter_mean(amplitudes, src, labels, n_clusters)
     elif amplitude_rule == "mass":
+        # Mass-weighted position and width: a faint fragment merged into an atom moves it by
+        # its share of the mass, not by half the distance.
         mass = amplitudes * (2.0 * torch.pi * sigmas**2) ** 1.5
         total = torch.zeros(n_clusters, dtype=mass.dtype, device=mass.device).index_add_(0, labels, mass)
+        weight = (mass / total.clamp_min(torch.finfo(mass.dtype).tiny)[labels])[:, None]
+        new_means = torch.zeros(n_clusters, means.shape[1], dtype=means.dtype, device=means.device).index_add_(0, labels, weight * means)
+        new_sigmas = torch.zeros(n_clusters, dtype=sigmas.dtype, device=sigmas.device).index_add_(0, labels, weight[:, 0] * sigmas)
         new_amps = total / (2.0 * torch.pi * new_sigmas**2) ** 1.5
     else:
         raise ValueError(f"amplitude_rule must be 'mass' or 'mean', got {amplitude_rule!r}")

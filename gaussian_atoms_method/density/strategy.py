@@ -13,10 +13,20 @@ The rules, every ``refine_every`` steps after ``warmup_length``:
 * **duplicate** Gaussians whose mean positional gradient over the interval exceeds
   ``densify_grad_thresh`` (until ``stop_split_at``): each copy takes half the mass, the pair
   half a width apart;
-* **prune** Gaussians lighter than ``prune_mass_fraction`` of a typical atom (the
-  mass-weighted median), wider than ``max_atom_sigma_A`` or outside the reconstruction volume;
+* **prune** Gaussians whose mass is not significantly above zero given the measured noise
+  (:meth:`DensityControl.mass_significance`: mass over its Cramér-Rao standard deviation below
+  :meth:`DensityControl.significance_threshold`, the level no noise blob reaches anywhere in
+  the volume), wider than ``max_atom_sigma_A`` or outside the reconstruction volume; without a
+  noise model (a model built without data) lighter than ``prune_mass_fraction`` of a typical
+  atom;
 * **merge** (every ``merge_every`` steps, when ``cluster_merge``) clusters closer than
-  ``merge_threshold_A`` into one Gaussian (the minimum-distance prior, :mod:`..atoms.merge`).
+  ``merge_threshold_A`` into one Gaussian at their mass-weighted mean (the minimum-distance
+  prior, :mod:`..atoms.merge`).  Gaussians made in the last ``merge_every`` steps (duplicates,
+  additions) are not merged yet: a duplicate pair starts 1 sigma (about 0.6 Å) apart, inside
+  the 0.7 Å threshold, and merging it at once undid every densification.
+
+At the end (:meth:`DensityControl.finalize`): prune, then merge, so a noise blob is not merged
+into an atom and the merged atom is judged whole; the model then refits briefly.
 
 Every step the parameters are clamped to physical ranges (:meth:`DensityControl.clamp`).
 No nerfstudio import: unit-tested on plain parameter dicts.
@@ -71,6 +81,17 @@ class DensityControl:
     densify_grad_thresh: float = 0.2
     max_gaussians: int = 200000
     prune_mass_fraction: float = 0.25
+    false_alarm_rate: float = 0.05
+    noise: object | None = None
+    """The pixel noise (:class:`~gaussian_atoms_method.physics.noise.NoiseModel`, normalised data
+    units); None: unknown, the mass-fraction prune applies."""
+    floor: float = 0.0
+    """The background level the atoms sit on (normalised data units), for the Poisson part of the noise."""
+    pixel_size: float = 0.0
+    """Detector pixel size, normalised units."""
+    n_views: int = 0
+    efficiency: float = 1.0
+    """Variance of the fit's estimator over the least-squares one (pi/2 for L1)."""
     cluster_merge: bool = True
     merge_every: int = 100
     merge_threshold_A: float = 0.7
@@ -79,6 +100,9 @@ class DensityControl:
     grad_accum: torch.Tensor = field(default_factory=lambda: torch.zeros(0, 3))
     """(N, 3) sum of the means' gradient vectors since the last refine (CPU)."""
     grad_count: int = 0
+    born: torch.Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.long))
+    """(N,) step at which each Gaussian was made (0 for the start); fresh ones are not merged."""
+    step: int = 0
     clamp_counts: torch.Tensor | None = None
     """(4,) Gaussian-steps held at the width floor, the width ceiling, the amplitude ceiling and
     the edge of the position box (kept on the parameters' device: no sync per step)."""
@@ -96,19 +120,26 @@ class DensityControl:
         """Forget the accumulated gradients, for ``n`` Gaussians."""
         self.grad_accum = torch.zeros(n, 3)
         self.grad_count = 0
+        if self.born.shape[0] != n:
+            self.born = torch.zeros(n, dtype=torch.long)
 
     def remap(self, params: Params, optimizers: Optimizers, src, dst, n_out: int, new_values=None, param_lists=None) -> None:
-        """Apply a remap (:mod:`.remap`) to the parameters, the optimisers' state and the
-        accumulated gradients (merged Gaussians sum their pulls)."""
-        dev = params["means"].device
+        """Apply a remap (:mod:`.remap`) to the parameters, the optimisers' state, the
+        accumulated gradients (merged Gaussians sum their pulls) and the birth steps (a merged
+        Gaussian is as young as its youngest member)."""
+        dev, n_in = params["means"].device, params["means"].shape[0]
         apply_remap(params, optimizers, src.to(dev), dst.to(dev), n_out, new_values, param_lists)
-        self.grad_accum = torch.zeros(n_out, 3).index_add_(0, dst.cpu(), self.grad_accum[src.cpu()])
+        src, dst = src.cpu(), dst.cpu()
+        self.grad_accum = torch.zeros(n_out, 3).index_add_(0, dst, self.grad_accum[src])
+        born = self.born if self.born.shape[0] == n_in else torch.zeros(n_in, dtype=torch.long)
+        self.born = torch.zeros(n_out, dtype=torch.long).scatter_reduce_(0, dst, born[src], reduce="amax", include_self=False)
 
     # ------------------------------------------------------------------ called by the training loop
     @torch.no_grad()
     def step_post_backward(self, params: Params, optimizers: Optimizers, step: int, param_lists=None) -> dict[str, int]:
         """After each optimiser step: clamp, accumulate the positional gradient and, every
         ``refine_every`` steps after the warm-up, duplicate and prune.  Returns the counts."""
+        self.step = step
         self.clamp(params)
         grad = params["means"].grad
         if grad is not None:
@@ -129,16 +160,20 @@ class DensityControl:
     @torch.no_grad()
     def merge_step(self, params: Params, optimizers: Optimizers, step: int, param_lists=None) -> int:
         """Every ``merge_every`` steps after the warm-up (when ``cluster_merge``), merge."""
+        self.step = step
         if self.cluster_merge and step >= self.warmup_length and step % self.merge_every == 0:
-            return self.merge(params, optimizers, param_lists)
+            return self.merge(params, optimizers, param_lists, protect_fresh=True)
         return 0
 
     @torch.no_grad()
-    def finalize(self, params: Params, optimizers: Optimizers, param_lists=None) -> None:
-        """Last merge and prune, so the result holds one Gaussian per atom."""
+    def finalize(self, params: Params, optimizers: Optimizers, param_lists=None) -> int:
+        """Last prune, then merge (fresh Gaussians too), so the result holds one Gaussian per
+        atom; returns how many Gaussians went (the model refits when any did)."""
+        self.born = torch.zeros_like(self.born)  # at the end every Gaussian is judged
+        removed = self.prune(params, optimizers, param_lists)
         if self.cluster_merge:
-            self.merge(params, optimizers, param_lists)
-        self.prune(params, optimizers, param_lists)
+            removed += self.merge(params, optimizers, param_lists)
+        return removed
 
     # ------------------------------------------------------------------ the rules
     @torch.no_grad()
@@ -194,6 +229,8 @@ class DensityControl:
         offset = 0.5 * direction * widths(params, self.min_log_sigma)[idx.to(dev), None]
         params["means"].data[idx.to(dev)] += offset
         params["means"].data[n:] -= offset
+        self.born[idx] = self.step
+        self.born[n:] = self.step
         return len(idx)
 
     @torch.no_grad()
@@ -210,12 +247,57 @@ class DensityControl:
         atom_like = sigmas <= self.max_atom_sigma_A * self.length_scale
         return typical_mass(gaussian_mass(sigmas, amplitudes(params))[atom_like])
 
+    def fresh(self, n: int) -> torch.Tensor:
+        """(n,) bool: made (duplicated or added) within the last ``refine_every`` steps."""
+        if self.born.shape[0] != n:
+            self.born = torch.zeros(n, dtype=torch.long)
+        return (self.born > 0) & (self.born > self.step - max(self.refine_every, self.merge_every))
+
+    @torch.no_grad()
+    def mass_significance(self, params: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        """(N,) each Gaussian's mass over its Cramér-Rao standard deviation.
+
+        A Gaussian of projected width ``s`` pixels and mass ``M``, fitted with its width over
+        ``V`` views of pixel noise variance ``v``, has ``Var(M) = 8 pi s^2 v / V`` (pixel units;
+        the amplitude alone would give ``4 pi s^2 v / V``: fitting the width doubles it), times
+        the estimator's efficiency (pi/2 for L1).  ``v`` is the noise model's variance at the
+        level the Gaussian's pixels sit on, weighted as the fit weights them: the floor plus
+        2/3 of its projected peak (the g^2-weighted mean of a 2D Gaussian is 2/3 of its peak).
+        A lower bound (neighbours' overlap only adds): atoms read more significant than they are,
+        so it errs towards keeping.
+        """
+        sigmas = widths(params, self.min_log_sigma)
+        mass = gaussian_mass(sigmas, amplitudes(params)).double()
+        s = sigmas.double()  # normalised; 2D peak = mass / (2 pi s^2) in data units
+        level = self.floor + (2.0 / 3.0) * mass / (2.0 * math.pi * s**2)
+        x = (level - self.noise.offset).clamp_min(0.0)
+        var = self.noise.read_var + self.noise.gain * x
+        sd = torch.sqrt(self.efficiency * 8.0 * math.pi * var.clamp_min(1e-300) / max(self.n_views, 1)) * s * self.pixel_size
+        return (mass / sd).to(sigmas.dtype)
+
+    def significance_threshold(self) -> float:
+        """The significance no noise blob should reach anywhere in the volume: the one-sided
+        normal quantile at ``false_alarm_rate`` shared over the volume's cells of 1 Å^3 (no two
+        atoms of any material are closer than about 1 Å, so there are no more independent
+        places for an atom; the Gaussians sit where the noise is highest, so each cell is a
+        trial).  A 25 Å box (the aSi-208 data): 15,600 cells, 4.5 sigma at 5%."""
+        from statistics import NormalDist
+
+        cells = max((1.0 / self.length_scale) ** 3, 1.0)  # the volume [-0.5, 0.5]^3 in Å^3
+        return NormalDist().inv_cdf(1.0 - self.false_alarm_rate / cells)
+
     @torch.no_grad()
     def prune(self, params: Params, optimizers: Optimizers, param_lists=None) -> int:
-        """Remove Gaussians too faint or too wide to be an atom, or outside the reconstruction volume."""
+        """Remove Gaussians whose mass is not significant (or, without a noise model, lighter
+        than ``prune_mass_fraction`` of a typical atom), too wide to be an atom, or outside the
+        reconstruction volume."""
         sigmas = widths(params, self.min_log_sigma)
-        mass = gaussian_mass(sigmas, amplitudes(params))
-        keep = mass >= self.prune_mass_fraction * self.typical_atom_mass(params)
+        if self.noise is not None and self.pixel_size > 0 and self.n_views > 0:
+            # A fresh duplicate holds half its parent's mass: it has one refine interval to
+            # gather what the data give it before it is judged.
+            keep = (self.mass_significance(params) >= self.significance_threshold()) | self.fresh(params["means"].shape[0]).to(sigmas.device)
+        else:
+            keep = gaussian_mass(sigmas, amplitudes(params)) >= self.prune_mass_fraction * self.typical_atom_mass(params)
         keep &= sigmas <= self.max_atom_sigma_A * self.length_scale
         inside = (params["means"].abs() <= 0.5).all(dim=-1)
         self.pruned_outside += int((~inside).sum())
@@ -227,12 +309,14 @@ class DensityControl:
         return removed
 
     @torch.no_grad()
-    def merge(self, params: Params, optimizers: Optimizers, param_lists=None) -> int:
-        """Replace every cluster of Gaussians closer than merge_threshold_A by one."""
+    def merge(self, params: Params, optimizers: Optimizers, param_lists=None, protect_fresh: bool = False) -> int:
+        """Replace every cluster of Gaussians closer than merge_threshold_A by one; with
+        ``protect_fresh``, Gaussians made in the last ``merge_every`` steps stay out."""
         means = params["means"]
         thr = self.merge_threshold_A * self.length_scale
-        labels, n_clusters = cluster_labels(means.detach().cpu().numpy(), thr)
         n = means.shape[0]
+        mature = ~self.fresh(n) if protect_fresh else torch.ones(n, dtype=torch.bool)
+        labels, n_clusters = cluster_labels(means.detach().cpu().numpy(), thr, mature.numpy())
         if n_clusters == n:
             return 0
         labels_t = torch.as_tensor(labels, device=means.device)

@@ -40,6 +40,7 @@ from gaussian_atoms_method.nerfstudio_layer.convergence import ConvergenceCheck
 from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions, OptionError
 from gaussian_atoms_method.nerfstudio_layer.results import model_position_std_A, write_results, write_snapshot
 from gaussian_atoms_method.nerfstudio_layer.splatfacto_compat import SplatfactoCompat
+from gaussian_atoms_method.nerfstudio_layer.training import refit
 from gaussian_atoms_method.nerfstudio_layer.viewer import AtomsInViewer
 from gaussian_atoms_method.physics.data_terms import data_term
 from gaussian_atoms_method.nerfstudio_layer.noise_reading import read_noise
@@ -87,12 +88,17 @@ class GaussianAtomsModel(SplatfactoCompat):
         # Every Gaussian's mass stays below 1000x the whole measured mass (DensityControl.clamp).
         max_log_amp = math.log(1000.0 * max(n, 1) * amp0 * (sigma0 / (cfg.min_sigma_A * ls)) ** 3)
         names = ("min_sigma_A", "max_sigma_A", "max_atom_sigma_A", "warmup_length", "refine_every", "stop_split_at", "densify_grad_thresh",
-                 "max_gaussians", "prune_mass_fraction", "cluster_merge", "merge_every", "merge_threshold_A", "merge_amplitude", "isotropic")  # fmt: skip
+                 "max_gaussians", "prune_mass_fraction", "false_alarm_rate", "cluster_merge", "merge_every", "merge_threshold_A", "merge_amplitude", "isotropic")  # fmt: skip
         self.density = DensityControl(ls, max_log_amp, self.generator, **{k: getattr(cfg, k) for k in names})
         self.density.reset(n)
         self.convergence = ConvergenceCheck(cfg.warmup_length, cfg.refine_every, cfg.converged_fraction)
         self.noise_read, self.data_term, floor = read_noise(metadata.get("projections"), cfg.loss, cfg.background)
         self._setup_view_params(metadata, series, floor)
+        # The prune judges each Gaussian's mass against this noise (DensityControl.mass_significance).
+        if self.noise_read is not None and metadata.get("pixel_size_A"):
+            d = self.density
+            d.noise, d.floor, d.pixel_size, d.n_views = self.noise_read, floor or 0.0, metadata["pixel_size_A"] * ls, self.view_c2w.shape[0]
+            d.efficiency = math.pi / 2 if self.data_term == "l1" else 1.0
         self.step, self.optimizers, self._optimizers_obj = 0, {}, None
         self.crop_box, self.background_color = None, torch.zeros(3)
         self.atoms_in_viewer = AtomsInViewer(self._viewer_atoms)  # the atoms as points in nerfstudio's viewer
@@ -213,6 +219,7 @@ class GaussianAtomsModel(SplatfactoCompat):
             pred, gt = torch.cat([pred[None], extra]), torch.cat([gt[None], extra_gt])
         noise = self.noise_read
         loss = data_term(pred, gt, self.data_term, noise.gain if noise else 1.0, noise.read_var if noise else 0.0)
+        loss = loss + 0.0 * self.means.sum()  # differentiable even when every Gaussian was pruned
         R.check_finite(loss, self.gauss_params, gt, self.step)
         return {"main_loss": loss}
 
@@ -258,8 +265,11 @@ class GaussianAtomsModel(SplatfactoCompat):
 
     @torch.no_grad()
     def finalize(self) -> None:
-        """Last merge and prune so the result holds one Gaussian per atom."""
-        self.density.finalize(self.gauss_params, self.optimizers, self._param_lists())
+        """Last prune and merge so the result holds one Gaussian per atom, then, when either
+        changed anything, a short refit (:func:`.training.refit`) so the survivors take up
+        what the removed ones carried."""
+        if self.density.finalize(self.gauss_params, self.optimizers, self._param_lists()) and self.optimizers:
+            refit(self)
         self.atoms_in_viewer.refresh()
 
     # ------------------------------------------------------------------ results

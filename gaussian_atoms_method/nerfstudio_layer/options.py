@@ -61,8 +61,15 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
     max_gaussians: int = DensityControl.max_gaussians
     """Never hold more Gaussians than this."""
     prune_mass_fraction: float = DensityControl.prune_mass_fraction
-    """Prune Gaussians whose integrated mass is below this fraction of a typical atom's
-    (the mass-weighted median mass)."""
+    """Only where the noise is unknown (a model built without a tilt series): prune Gaussians
+    whose integrated mass is below this fraction of a typical atom's (the mass-weighted median
+    mass).  With data, the prune is by significance (false_alarm_rate)."""
+    false_alarm_rate: float = DensityControl.false_alarm_rate
+    """Chance that a noise blob anywhere in the volume survives the prune: a Gaussian stays
+    while its mass over its Cramér-Rao standard deviation (in the measured noise) exceeds the
+    normal quantile at this rate shared over the volume's 1 Å^3 cells
+    (:meth:`gaussian_atoms_method.density.strategy.DensityControl.significance_threshold`;
+    4.5 sigma for a 25 Å box at 5%)."""
     isotropic: bool = DensityControl.isotropic
     """One width per Gaussian (the isotropy prior).  False: three widths and a rotation each."""
     cluster_merge: bool = DensityControl.cluster_merge
@@ -142,6 +149,8 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
                 raise OptionError(f"--pipeline.model.{name} must be positive, got {value}")
         if not self.min_sigma_A <= self.init_sigma_A <= self.max_sigma_A:
             raise OptionError(f"--pipeline.model.init-sigma-A {self.init_sigma_A} must lie within [min-sigma-A {self.min_sigma_A}, max-sigma-A {self.max_sigma_A}]")
+        if not 0 < self.false_alarm_rate < 1:
+            raise OptionError(f"--pipeline.model.false-alarm-rate must lie in (0, 1), got {self.false_alarm_rate}")
         if self.merge_threshold_A < 0 or self.prune_mass_fraction < 0 or self.coarse_steps < 0 or self.snapshot_every < 0:
             raise OptionError("--pipeline.model.merge-threshold-A, prune-mass-fraction, coarse-steps and snapshot-every must not be negative")
 
