@@ -130,3 +130,72 @@ def test_safeguards_are_counted_and_reported():
     lines = control.report()
     assert lines[0] == "clamped (Gaussian-steps): 1 widths held at the 0.15 Å floor"
     assert lines[1].startswith("1 Gaussians left the reconstruction volume") and "1 of them atom-like" in lines[1]
+
+
+def _with_noise(control, read_var=1.0, gain=0.0, pixel_size=0.025, n_views=50):
+    from gaussian_atoms_method.physics.noise import NoiseModel
+
+    control.noise, control.pixel_size, control.n_views = NoiseModel(read_var, gain), pixel_size, n_views
+    return control
+
+
+def test_mass_significance_matches_the_numerical_fisher_information():
+    """Var(mass) = 8 pi s^2 v / V for a 2D Gaussian fitted with its width: checked against the
+    Fisher information of (mass, width) summed over a pixel grid (float64, central
+    differences), for widths of 1.5-4 pixels (atoms at 0.2-0.4 Å pixels): within 2%."""
+    import numpy as np
+
+    for s_px in (1.5, 2.4, 4.0):
+        y, x = np.mgrid[-30:31, -30:31].astype(np.float64)
+
+        def image(mass, s):
+            return mass * np.exp(-(x**2 + y**2) / (2 * s**2)) / (2 * np.pi * s**2)
+
+        h = 1e-5
+        d_mass = (image(1 + h, s_px) - image(1 - h, s_px)) / (2 * h)
+        d_width = (image(1, s_px + h) - image(1, s_px - h)) / (2 * h)
+        jac = np.stack([d_mass.ravel(), d_width.ravel()])
+        views, var = 50, 2.0
+        fisher = views * jac @ jac.T / var
+        sd_numeric = np.sqrt(np.linalg.inv(fisher)[0, 0])
+        params, _, control = _setup([[0.0, 0.0, 0.0]], sigma_A=s_px * 0.025, amplitude=1.0, min_sigma_A=0.01)
+        _with_noise(control, read_var=var, pixel_size=0.025, n_views=views)
+        mass = float(_mass(params, control)[0])  # normalised units: pixel area 0.025^2
+        z = float(control.mass_significance(params)[0])
+        sd_formula = mass / z / 0.025**2  # back to pixel units
+        assert sd_formula == pytest.approx(sd_numeric, rel=0.02)
+
+
+def test_final_prune_by_significance_keeps_a_faint_atom_and_drops_a_noise_blob():
+    """With the noise known, the final prune asks whether each mass is significantly above zero:
+    a light atom at 9 sigma stays beside a heavy one (a mass fraction of 0.08: the relative rule
+    of the training-time prunes would drop it), a blob at 2 sigma goes.  The threshold for a 100 Å box (10^6 cells, 5%) is
+    5.33 sigma."""
+    params, opts, control = _setup([[0.0, 0.0, 0.0], [0.2, 0.0, 0.0], [-0.2, 0.0, 0.0]], sigma_A=0.006)
+    control.length_scale = 0.01  # a 100 Å box; the Gaussians 0.6 Å wide, 20 Å apart
+    _with_noise(control, pixel_size=0.0025)
+    z_unit = float(control.mass_significance(params)[0])  # amplitude 1
+    with torch.no_grad():
+        params["log_amplitudes"][:] = torch.log(torch.tensor([[110.0 / z_unit], [9.0 / z_unit], [2.0 / z_unit]], dtype=torch.float64))
+    assert control.significance_threshold() == pytest.approx(5.33, abs=0.01)
+    assert control.prune(params, opts, final=True) == 1
+    kept = control.mass_significance(params)
+    assert params["means"].shape[0] == 2 and float(kept.min()) == pytest.approx(9.0, rel=1e-6)
+
+
+def test_a_duplicate_is_not_merged_back_in_the_same_step():
+    """A duplicate pair starts 1 sigma (0.6 Å) apart, inside the 0.7 Å merge threshold: the
+    merge of the same step (and of the next, within one interval) leaves it; a pair still that
+    close an interval later is one atom and merges."""
+    params, opts, control = _setup([[0.0, 0.0, 0.0]], sigma_A=0.06, warmup_length=0, refine_every=100, merge_every=100)
+    control.length_scale = 0.1
+    params["means"].grad = torch.zeros_like(params["means"])
+    control.grad_accum = torch.tensor([[1.0, 0.0, 0.0]])  # a persistent pull
+    control.grad_count = 1
+    counts = control.step_post_backward(params, opts, step=200)
+    assert counts["duplicated"] == 1 and params["means"].shape[0] == 2
+    gap_A = float((params["means"][0] - params["means"][1]).norm()) / 0.1
+    assert gap_A < control.merge_threshold_A
+    assert control.merge_step(params, opts, step=200) == 0
+    assert params["means"].shape[0] == 2
+    assert control.merge_step(params, opts, step=300) == 1  # an interval on, still one atom
