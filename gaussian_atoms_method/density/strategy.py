@@ -250,6 +250,13 @@ class DensityControl:
         atom_like = sigmas <= self.max_atom_sigma_A * self.length_scale
         return typical_mass(gaussian_mass(sigmas, amplitudes(params))[atom_like])
 
+    def set_noise(self, noise, floor: float, pixel_size: float, n_views: int, data_term: str) -> None:
+        """The measured noise (normalised units) the prune judges masses against, the floor the
+        atoms sit on, the pixel size (normalised), the number of views and the data term (L1
+        estimates carry pi/2 the least-squares variance)."""
+        self.noise, self.floor, self.pixel_size, self.n_views = noise, floor, pixel_size, n_views
+        self.efficiency = math.pi / 2 if data_term == "l1" else 1.0
+
     def fresh(self, n: int) -> torch.Tensor:
         """(n,) bool: made (duplicated or added) within the last ``refine_every`` steps."""
         if self.born.shape[0] != n:

@@ -10,12 +10,11 @@ One isotropic Gaussian per atom.  Parameters (normalised units, see
 * ``log_amplitudes`` (N, 1): the 3D peak, ``q = exp(log_amplitude)``.  The exponential keeps it
   positive and makes Adam's steps relative, so faint and bright atoms learn at the same pace.
 
-The model keeps the rendering (composed from :mod:`.rendering`) and the loss (L1 or L2 between
-predicted and measured projections; no SSIM, LPIPS, spherical harmonics or alpha).  How many
-Gaussians exist is the density-control strategy's (:mod:`gaussian_atoms_method.density.strategy`),
-called from the training callbacks registered here; the start is
-:mod:`gaussian_atoms_method.atoms.initialise`'s, the stop :mod:`.convergence`'s and the files
-:mod:`.results`'.  Options: :mod:`.options`.
+The model keeps the rendering (composed from :mod:`.rendering`) and the loss (the data term
+chosen from the measured noise, :mod:`.noise_reading`; no SSIM, LPIPS, SH or alpha).  How many
+Gaussians exist is :mod:`gaussian_atoms_method.density.strategy`'s, called from the callbacks
+registered here; the start :mod:`gaussian_atoms_method.atoms.initialise`'s, the stop
+:mod:`.convergence`'s, the files :mod:`.results`'.  Options: :mod:`.options`.
 """
 
 from __future__ import annotations
@@ -38,12 +37,12 @@ from gaussian_atoms_method.nerfstudio_layer import rendering as R
 from gaussian_atoms_method.nerfstudio_layer.checkpoints import allow_numpy_scalars_in_checkpoints
 from gaussian_atoms_method.nerfstudio_layer.convergence import ConvergenceCheck
 from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions, OptionError
+from gaussian_atoms_method.nerfstudio_layer.noise_reading import read_noise
+from gaussian_atoms_method.nerfstudio_layer.refit import refit
 from gaussian_atoms_method.nerfstudio_layer.results import model_position_std_A, write_results, write_snapshot
 from gaussian_atoms_method.nerfstudio_layer.splatfacto_compat import SplatfactoCompat
-from gaussian_atoms_method.nerfstudio_layer.training import refit
 from gaussian_atoms_method.nerfstudio_layer.viewer import AtomsInViewer
 from gaussian_atoms_method.physics.data_terms import data_term
-from gaussian_atoms_method.nerfstudio_layer.noise_reading import read_noise
 from gaussian_atoms_method.physics.projector import covariances_from_scales_quats, project_anisotropic_gaussians, project_gaussians, project_gaussians_gsplat, project_gaussians_tiled
 from gaussian_atoms_method.physics.units import DATA_RANGE, Normalisation
 
@@ -94,18 +93,14 @@ class GaussianAtomsModel(SplatfactoCompat):
         self.convergence = ConvergenceCheck(cfg.warmup_length, cfg.refine_every, cfg.converged_fraction)
         self.noise_read, self.data_term, floor = read_noise(metadata.get("projections"), cfg.loss, cfg.background)
         self._setup_view_params(metadata, series, floor)
-        # The prune judges each Gaussian's mass against this noise (DensityControl.mass_significance).
-        if self.noise_read is not None and metadata.get("pixel_size_A"):
-            d = self.density
-            d.noise, d.floor, d.pixel_size, d.n_views = self.noise_read, floor or 0.0, metadata["pixel_size_A"] * ls, self.view_c2w.shape[0]
-            d.efficiency = math.pi / 2 if self.data_term == "l1" else 1.0
+        if self.noise_read is not None and metadata.get("pixel_size_A"):  # the prune judges masses against this noise
+            self.density.set_noise(self.noise_read, floor or 0.0, metadata["pixel_size_A"] * ls, self.view_c2w.shape[0], self.data_term)
         self.step, self.optimizers, self._optimizers_obj = 0, {}, None
         self.crop_box, self.background_color = None, torch.zeros(3)
         self.atoms_in_viewer = AtomsInViewer(self._viewer_atoms)  # the atoms as points in nerfstudio's viewer
 
     def _setup_view_params(self, metadata: dict, series, floor: float | None) -> None:
-        """Per-view parameters (untouched by density control) and the views-per-step batches;
-        ``floor``: the detected background level (normalised units) a learned one starts at."""
+        """Per-view parameters and the views-per-step batches; a learned background starts at ``floor``."""
         cfg, view_c2w = self.config, metadata.get("view_c2w")
         self.register_buffer("view_c2w", view_c2w.float() if view_c2w is not None else torch.zeros(0, 3, 4), persistent=False)
         n_views, view_params = self.view_c2w.shape[0], {}
@@ -184,8 +179,7 @@ class GaussianAtomsModel(SplatfactoCompat):
             axes = torch.cat([axes, R.detector_axes(self.view_c2w[others].to(dev, dt))])
             images = self._projector(dev)(self.means, self.sigmas, self.amplitudes, axes, rows, cols)
             if "background" in self.view_params:
-                views = torch.cat([torch.tensor([view]), others])
-                images = torch.stack([R.add_background(im, self.view_params["background"][v].to(dt), rows, cols) for im, v in zip(images, views.tolist())])
+                images = torch.stack([R.add_background(im, self.view_params["background"][v].to(dt), rows, cols) for im, v in zip(images, [view, *others.tolist()])])
             image, extra = images[0], {"extra_projection": images[1:, :, :, None], "extra_views": others}
         elif self.config.isotropic:
             image = self._projector(dev)(self.means - t, self.sigmas, self.amplitudes, axes, rows, cols)[0]
@@ -217,9 +211,8 @@ class GaussianAtomsModel(SplatfactoCompat):
             extra = outputs["extra_projection"]
             extra_gt = torch.stack([R.binned_like(m[..., None], extra[0]) for m in self.train_projections[outputs["extra_views"]]]).to(extra)
             pred, gt = torch.cat([pred[None], extra]), torch.cat([gt[None], extra_gt])
-        noise = self.noise_read
-        loss = data_term(pred, gt, self.data_term, noise.gain if noise else 1.0, noise.read_var if noise else 0.0)
-        loss = loss + 0.0 * self.means.sum()  # differentiable even when every Gaussian was pruned
+        noise = self.noise_read  # + 0 x means: differentiable even when every Gaussian was pruned
+        loss = data_term(pred, gt, self.data_term, noise.gain if noise else 1.0, noise.read_var if noise else 0.0) + 0.0 * self.means.sum()
         R.check_finite(loss, self.gauss_params, gt, self.step)
         return {"main_loss": loss}
 
@@ -265,9 +258,7 @@ class GaussianAtomsModel(SplatfactoCompat):
 
     @torch.no_grad()
     def finalize(self) -> None:
-        """Last prune and merge so the result holds one Gaussian per atom, then, when either
-        changed anything, a short refit (:func:`.training.refit`) so the survivors take up
-        what the removed ones carried."""
+        """Last prune and merge (one Gaussian per atom), then a short refit if they changed anything."""
         if self.density.finalize(self.gauss_params, self.optimizers, self._param_lists()) and self.optimizers:
             refit(self)
         self.atoms_in_viewer.refresh()
