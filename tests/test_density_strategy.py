@@ -199,3 +199,16 @@ def test_a_duplicate_is_not_merged_back_in_the_same_step():
     assert control.merge_step(params, opts, step=200) == 0
     assert params["means"].shape[0] == 2
     assert control.merge_step(params, opts, step=300) == 1  # an interval on, still one atom
+
+
+def test_added_gaussians_carry_their_mass_fresh_moments_and_are_fresh():
+    """DensityControl.add appends Gaussians at the given sites with the given mass and width,
+    zero Adam moments, and marks them fresh (neither merged nor pruned for one interval)."""
+    params, opts, control = _setup([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0]], sigma_A=0.06)
+    control.step = 700
+    added = control.add(params, opts, torch.tensor([[0.2, 0.1, 0.0]], dtype=torch.float64), 0.2, torch.tensor([3.0]))
+    assert added == 1 and params["means"].shape[0] == 3
+    assert float(_mass(params, control)[2]) == pytest.approx(3.0, rel=1e-9)
+    assert float(widths(params, control.min_log_sigma)[2]) == pytest.approx(0.2, rel=1e-9)
+    assert float(opts["means"].state[params["means"]]["exp_avg"][2].abs().sum()) == 0.0
+    assert control.fresh(3).tolist() == [False, False, True]

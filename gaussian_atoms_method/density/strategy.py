@@ -85,6 +85,7 @@ class DensityControl:
     max_gaussians: int = 200000
     prune_mass_fraction: float = 0.25
     false_alarm_rate: float = 0.05
+    residual_every: int = 500
     noise: object | None = None
     """The pixel noise (:class:`~gaussian_atoms_method.physics.noise.NoiseModel`, normalised data
     units); None: unknown, the mass-fraction prune applies."""
@@ -106,6 +107,8 @@ class DensityControl:
     born: torch.Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.long))
     """(N,) step at which each Gaussian was made (0 for the start); fresh ones are not merged."""
     step: int = 0
+    residual_clean: bool = False
+    """A residual check found nothing to add: the later ones are skipped."""
     clamp_counts: torch.Tensor | None = None
     """(4,) Gaussian-steps held at the width floor, the width ceiling, the amplitude ceiling and
     the edge of the position box (kept on the parameters' device: no sync per step)."""
@@ -237,6 +240,30 @@ class DensityControl:
         return len(idx)
 
     @torch.no_grad()
+    def add(self, params: Params, optimizers: Optimizers, means: torch.Tensor, sigma: float, masses: torch.Tensor, param_lists=None) -> int:
+        """Append Gaussians at ``means`` (K, 3) of width ``sigma`` and integrated ``masses`` (K,)
+        (normalised units), with fresh optimiser moments; at most up to ``max_gaussians``.
+        Returns how many were added (they are fresh: not merged or pruned for one interval)."""
+        n = params["means"].shape[0]
+        k = min(len(means), self.max_gaussians - n)
+        self.residual_clean = len(means) == 0
+        if k <= 0 or n == 0:
+            return 0
+        self.remap(params, optimizers, *duplicate_remap(n, torch.zeros(k, dtype=torch.long)), param_lists=param_lists)
+        dev = params["means"].device
+        params["means"].data[n:] = means[:k].to(params["means"])
+        params["log_sigmas"].data[n:] = math.log(sigma)
+        amps = masses[:k].double().clamp_min(1e-30) / (2.0 * math.pi * sigma**2) ** 1.5
+        params["log_amplitudes"].data[n:, 0] = torch.log(amps).to(dev, params["log_amplitudes"].dtype)
+        for name, param in params.items():
+            state = optimizers[name].state.get(param, {}) if name in optimizers else {}
+            for value in state.values():
+                if torch.is_tensor(value) and value.dim() > 0 and value.shape[0] == n + k:
+                    value[n:] = 0
+        self.born[n:] = self.step
+        return k
+
+    @torch.no_grad()
     def typical_atom_mass(self, params: Mapping[str, torch.Tensor]) -> float:
         """Mass-weighted median of the Gaussians' integrated masses: a typical atom's mass.
 
@@ -256,6 +283,12 @@ class DensityControl:
         estimates carry pi/2 the least-squares variance)."""
         self.noise, self.floor, self.pixel_size, self.n_views = noise, floor, pixel_size, n_views
         self.efficiency = math.pi / 2 if data_term == "l1" else 1.0
+
+    def residual_check_due(self, step: int) -> bool:
+        """Every ``residual_every`` steps (0: never) from the warm-up until ``stop_split_at``,
+        until a check finds nothing to add (:meth:`note_residual_check`)."""
+        every = self.residual_every
+        return every > 0 and not self.residual_clean and self.warmup_length <= step < self.stop_split_at and step > 0 and step % every == 0
 
     def fresh(self, n: int) -> torch.Tensor:
         """(n,) bool: made (duplicated or added) within the last ``refine_every`` steps."""

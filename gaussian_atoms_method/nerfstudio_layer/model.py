@@ -20,7 +20,7 @@ registered here; the start :mod:`gaussian_atoms_method.atoms.initialise`'s, the 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Dict, List, Tuple, Type
 
@@ -39,6 +39,7 @@ from gaussian_atoms_method.nerfstudio_layer.convergence import ConvergenceCheck
 from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions, OptionError
 from gaussian_atoms_method.nerfstudio_layer.noise_reading import read_noise
 from gaussian_atoms_method.nerfstudio_layer.refit import refit
+from gaussian_atoms_method.nerfstudio_layer.residuals import add_missing_atoms
 from gaussian_atoms_method.nerfstudio_layer.results import model_position_std_A, write_results, write_snapshot
 from gaussian_atoms_method.nerfstudio_layer.splatfacto_compat import SplatfactoCompat
 from gaussian_atoms_method.nerfstudio_layer.viewer import AtomsInViewer
@@ -86,9 +87,7 @@ class GaussianAtomsModel(SplatfactoCompat):
         self.gauss_params = torch.nn.ParameterDict(params)
         # Every Gaussian's mass stays below 1000x the whole measured mass (DensityControl.clamp).
         max_log_amp = math.log(1000.0 * max(n, 1) * amp0 * (sigma0 / (cfg.min_sigma_A * ls)) ** 3)
-        names = ("min_sigma_A", "max_sigma_A", "max_atom_sigma_A", "warmup_length", "refine_every", "stop_split_at", "densify_grad_thresh",
-                 "max_gaussians", "prune_mass_fraction", "false_alarm_rate", "cluster_merge", "merge_every", "merge_threshold_A", "merge_amplitude", "isotropic")  # fmt: skip
-        self.density = DensityControl(ls, max_log_amp, self.generator, **{k: getattr(cfg, k) for k in names})
+        self.density = DensityControl(ls, max_log_amp, self.generator, **{f.name: getattr(cfg, f.name) for f in fields(DensityControl) if hasattr(cfg, f.name)})
         self.density.reset(n)
         self.convergence = ConvergenceCheck(cfg.warmup_length, cfg.refine_every, cfg.converged_fraction)
         self.noise_read, self.data_term, floor = read_noise(metadata.get("projections"), cfg.loss, cfg.background)
@@ -96,8 +95,7 @@ class GaussianAtomsModel(SplatfactoCompat):
         if self.noise_read is not None and metadata.get("pixel_size_A"):  # the prune judges masses against this noise
             self.density.set_noise(self.noise_read, floor or 0.0, metadata["pixel_size_A"] * ls, self.view_c2w.shape[0], self.data_term)
         self.step, self.optimizers, self._optimizers_obj = 0, {}, None
-        self.crop_box, self.background_color = None, torch.zeros(3)
-        self.atoms_in_viewer = AtomsInViewer(self._viewer_atoms)  # the atoms as points in nerfstudio's viewer
+        self.crop_box, self.background_color, self.atoms_in_viewer = None, torch.zeros(3), AtomsInViewer(self._viewer_atoms)  # the atoms as points in the viewer
 
     def _setup_view_params(self, metadata: dict, series, floor: float | None) -> None:
         """Per-view parameters and the views-per-step batches; a learned background starts at ``floor``."""
@@ -246,8 +244,10 @@ class GaussianAtomsModel(SplatfactoCompat):
 
     @torch.no_grad()
     def refine_after_step(self, step: int) -> None:
-        """Clamp, accumulate the positional gradient and every refine_every steps duplicate and prune."""
-        if self.density.step_post_backward(self.gauss_params, self.optimizers, step, self._param_lists()):
+        """Clamp, accumulate the positional gradient, every refine_every steps duplicate and prune,
+        every residual_every add Gaussians where the residuals show mass (:mod:`.residuals`)."""
+        changed = self.density.step_post_backward(self.gauss_params, self.optimizers, step, self._param_lists())
+        if self.density.residual_check_due(step) and add_missing_atoms(self) or changed:
             self.atoms_in_viewer.refresh()
 
     @torch.no_grad()

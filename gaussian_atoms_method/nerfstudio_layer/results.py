@@ -23,6 +23,7 @@ from gaussian_atoms_method.atoms.matching import score_atoms
 from gaussian_atoms_method.atoms.slices import write_slices_png
 from gaussian_atoms_method.atoms.uncertainty import position_std_A, robust_noise_std
 from gaussian_atoms_method.nerfstudio_layer.rendering import detector_axes
+from gaussian_atoms_method.nerfstudio_layer.residuals import render_training_views
 from gaussian_atoms_method.physics.noise import fit_noise_model
 
 
@@ -37,15 +38,7 @@ def model_position_std_A(model, atoms: AtomSet, noise: float | None = None) -> t
     if series is None or projections is None or len(atoms) == 0:
         return None
     if noise is None:
-        from dataparsers.tilt_series_dataparser import cameras_from_tilt_series
-
-        cameras = cameras_from_tilt_series(series, model.normalisation).to(model.means.device)
-        training = model.training
-        model.eval()  # full resolution, one view each, whatever the phase
-        try:
-            predicted = np.stack([model.get_outputs(cameras[i : i + 1])["projection"][..., 0].cpu().numpy() for i in range(len(cameras))])
-        finally:
-            model.train(training)
+        predicted = render_training_views(model)
         residuals, scale = predicted - projections.cpu().numpy(), model.normalisation.data_scale
         noise = robust_noise_std(residuals) / scale
         # The variance-mean relation of the same residuals (input units): additive or Poisson-like.

@@ -1,0 +1,58 @@
+"""The fit's residuals over every training view, and Gaussians added where they show mass.
+
+:func:`render_training_views` renders the model in every training view (full resolution,
+background included); :func:`add_missing_atoms` back-projects measured minus predicted and adds
+a Gaussian at each site of significant unexplained mass
+(:func:`gaussian_atoms_method.atoms.residual_sites.unexplained_sites`), through the density
+strategy (:meth:`gaussian_atoms_method.density.strategy.DensityControl.add`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from gaussian_atoms_method.atoms.residual_sites import unexplained_sites
+
+
+@torch.no_grad()
+def render_training_views(model) -> np.ndarray | None:
+    """(V, H, W) the model's projections of its training views (normalised data units), or
+    None without the tilt series."""
+    from dataparsers.tilt_series_dataparser import cameras_from_tilt_series
+
+    series = (model.kwargs.get("metadata", {}) or {}).get("tilt_series")
+    if series is None:
+        return None
+    cameras = cameras_from_tilt_series(series, model.normalisation).to(model.means.device)
+    training = model.training
+    model.eval()  # full resolution, one view each, whatever the phase
+    try:
+        return np.stack([model.get_outputs(cameras[i : i + 1])["projection"][..., 0].cpu().numpy() for i in range(len(cameras))])
+    finally:
+        model.train(training)
+
+
+@torch.no_grad()
+def add_missing_atoms(model) -> int:
+    """Add a Gaussian at every site where the residuals hold significant unexplained mass; the
+    new ones take the Gaussians' median width.  Returns how many were added."""
+    metadata = model.kwargs.get("metadata", {}) or {}
+    series, projections = metadata.get("tilt_series"), metadata.get("projections")
+    predicted = render_training_views(model)
+    if predicted is None or projections is None or model.num_points == 0:
+        return 0
+    ls = model.normalisation.length_scale
+    sigma_A = float(model.sigmas.median()) / ls
+    sites_A, masses = unexplained_sites(
+        projections.cpu().numpy() - predicted, series.angles_deg, series.pixel_size_A, model.means.detach().cpu().double().numpy() / ls, sigma_A,
+        series.tilt_axis, series.centre_px, false_alarm_rate=model.config.false_alarm_rate, tilt_axis_angle_deg=series.tilt_axis_angle_deg,
+    )  # fmt: skip
+    if len(sites_A) == 0:
+        model.density.residual_clean = True  # nothing unexplained: no more checks
+        return 0
+    means = torch.as_tensor(sites_A * ls, dtype=model.means.dtype)
+    added = model.density.add(model.gauss_params, model.optimizers, means, sigma_A * ls, torch.as_tensor(masses * ls**2), model._param_lists())
+    CONSOLE.print(f"gaussian-atoms: step {model.step}: {added} Gaussians added where the residuals hold unexplained mass")
+    return added

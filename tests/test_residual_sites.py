@@ -1,0 +1,59 @@
+"""A missing atom is found from the residual (atoms/residual_sites.py)."""
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from gaussian_atoms_method.atoms.atom_set import AtomSet
+from gaussian_atoms_method.atoms.residual_sites import unexplained_sites
+from gaussian_atoms_method.harness.simulate import parse_tilts, simulate_gaussian_tilt_series, spherical_particle
+
+
+def _missing_one(noise_std, seed=1):
+    atoms = spherical_particle("Au", radius_A=6.0)
+    angles = parse_tilts("limited")
+    sim = simulate_gaussian_tilt_series(atoms, angles, noise_std=noise_std, seed=seed)
+    missing = int(np.argmin(np.linalg.norm(atoms.positions - atoms.positions.mean(0), axis=1)))  # buried in the middle
+    others = AtomSet(np.delete(atoms.positions, missing, axis=0), species=np.delete(np.asarray(atoms.species), missing))
+    fitted = simulate_gaussian_tilt_series(others, angles, noise_std=0.0)
+    assert fitted.projections.shape == sim.projections.shape
+    return atoms, missing, others, sim, sim.projections - fitted.projections
+
+
+def test_a_missing_atom_is_found_from_the_residual():
+    """A fit holding every atom but one buried in the middle of a 6 Å Au sphere (limited tilts,
+    peak-to-noise about 40): the residual's back-projection gives exactly one site, within
+    0.5 Å of the missing atom (a voxel maximum of an FBP elongated by the missing wedge), with
+    a mass within a factor two of one atom's (the limited range lowers the FBP's peak)."""
+    atoms, missing, others, sim, residuals = _missing_one(noise_std=20.0)
+    sites, masses = unexplained_sites(residuals, sim.angles_deg, sim.pixel_size_A, others.positions, sigma_A=float(sim.truth.sigmas[0]))
+    assert len(sites) == 1
+    assert np.linalg.norm(sites[0] - atoms.positions[missing]) < 0.5
+    clean = simulate_gaussian_tilt_series(atoms, sim.angles_deg, noise_std=0.0).projections
+    fitted = sim.projections - residuals
+    atom_mass = float((clean - fitted).sum(axis=(1, 2)).mean()) * sim.pixel_size_A**2  # its projection's integral
+    assert 0.5 * atom_mass < masses[0] < 2.0 * atom_mass
+
+
+def test_a_complete_fit_leaves_no_site():
+    """With every atom in the fit the residual is pure noise: no site anywhere (the threshold is
+    the level no noise peak reaches in the volume at a 5% false-alarm rate; three noise seeds)."""
+    atoms = spherical_particle("Au", radius_A=6.0)
+    angles = parse_tilts("limited")
+    clean = simulate_gaussian_tilt_series(atoms, angles, noise_std=0.0)
+    for seed in (1, 2, 3):
+        noisy = simulate_gaussian_tilt_series(atoms, angles, noise_std=20.0, seed=seed)
+        sites, _ = unexplained_sites(noisy.projections - clean.projections, noisy.angles_deg, noisy.pixel_size_A, atoms.positions, sigma_A=0.6)
+        assert len(sites) == 0
+
+
+def test_sites_keep_clear_of_existing_gaussians():
+    """A site closer than 1 Å to an existing Gaussian is not proposed (the Gaussian there takes
+    up the mass); at 1.42 Å (a C-C bond) it is."""
+    atoms, missing, others, sim, residuals = _missing_one(noise_std=20.0)
+    target = atoms.positions[missing]
+    near = np.vstack([others.positions, target + [0.6, 0.0, 0.0]])
+    sites, _ = unexplained_sites(residuals, sim.angles_deg, sim.pixel_size_A, near, sigma_A=0.6)
+    assert len(sites) == 0 or cKDTree(near).query(sites)[0].min() > 1.0
+    bond = np.vstack([others.positions, target + [1.42, 0.0, 0.0]])
+    sites, _ = unexplained_sites(residuals, sim.angles_deg, sim.pixel_size_A, bond, sigma_A=0.6)
+    assert len(sites) == 1 and np.linalg.norm(sites[0] - target) < 0.5
