@@ -259,7 +259,7 @@ class GaussianAtomsModel(SplatfactoCompat):
     @torch.no_grad()
     def finalize(self) -> None:
         """Last prune and merge (one Gaussian per atom), then a short refit if they changed anything."""
-        if self.density.finalize(self.gauss_params, self.optimizers, self._param_lists()) and self.optimizers:
+        if self.density.finalize(self.gauss_params, self.optimizers, self._param_lists()) and self.optimizers and self.config.final_refit:
             refit(self)
         self.atoms_in_viewer.refresh()
 

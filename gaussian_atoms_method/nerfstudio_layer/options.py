@@ -77,6 +77,9 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
     the volume with chance false_alarm_rate): atoms the start and the fit missed.  Checks stop
     once one finds nothing.  Each costs a rendering of every view and two back-projections
     (about a second for the demo's 47 views of 114 x 114)."""
+    final_refit: bool = True
+    """After the final prune and merge, when they removed anything, one pass over the views so the
+    survivors take up what the removed Gaussians carried (:mod:`.refit`)."""
     isotropic: bool = DensityControl.isotropic
     """One width per Gaussian (the isotropy prior).  False: three widths and a rotation each."""
     cluster_merge: bool = DensityControl.cluster_merge
