@@ -21,7 +21,7 @@ def test_candidates_cover_every_atom():
     dist, _ = cKDTree(cand).query(atoms.positions)
     assert np.all(dist < 0.75), f"{np.sum(dist >= 0.75)} of {len(atoms)} atoms have no candidate"
     pair_dist, _ = cKDTree(cand).query(cand, k=2)
-    assert pair_dist[:, 1].min() > 1.5
+    assert pair_dist[:, 1].min() > 1.0  # min_distance_A: closer than any bond (C-C 1.42 Å)
     # The first len(atoms) candidates are the atoms themselves: the strongest maxima.
     first, _ = cKDTree(atoms.positions).query(cand[: len(atoms)])
     assert np.mean(first < 0.75) > 0.98
@@ -63,3 +63,19 @@ def test_shoulder_candidates_find_light_atoms_beside_heavy_ones():
     assert recall(peaks_only, "Ni") < 0.9
     assert recall(filled, "Ni") >= 0.93
     assert recall(filled, "Pd") == 1.0 and recall(filled, "Pt") == 1.0
+
+
+def test_without_a_cap_the_count_follows_the_data():
+    """No max_count: every maximum above the back-projected noise's family-wise level, so the
+    count follows the data: every atom of the sphere has a candidate, fewer than twice as many
+    candidates as atoms (the extra ones are the missing wedge's streaks), and pure noise of the
+    same level gives almost none (at most one: the 5% false-alarm rate, three seeds)."""
+    atoms = spherical_particle("Au", radius_A=8.0)
+    angles = parse_tilts("limited")
+    sim = simulate_gaussian_tilt_series(atoms, angles, noise_std=20.0, seed=1)
+    cand = backprojection_candidates(sim.projections, sim.angles_deg, sim.pixel_size_A)
+    assert np.all(cKDTree(cand).query(atoms.positions)[0] < 0.75)
+    assert len(atoms) <= len(cand) < 2 * len(atoms)
+    for seed in (1, 2, 3):
+        noise = np.random.default_rng(seed).normal(0.0, 20.0, sim.projections.shape)
+        assert len(backprojection_candidates(noise, sim.angles_deg, sim.pixel_size_A, shoulders=False)) <= 1

@@ -80,7 +80,7 @@ def test_camera_rendering_matches_core_projector_in_A(tmp_path, tilt_axis, centr
 def test_width_is_learned(tmp_path):
     """Gradients reach sigma: one Gaussian started 40% too wide converges to the true width."""
     _series(tmp_path)
-    model, outputs = _model(tmp_path, num_random=1)
+    model, outputs = _model(tmp_path, num_random=1, init="random")
     with torch.no_grad():
         model.gauss_params["means"].zero_()
     cams = outputs.cameras
@@ -106,7 +106,7 @@ def test_width_is_learned(tmp_path):
 
 def test_refinement_merges_and_prunes(tmp_path):
     _series(tmp_path)
-    model, _ = _model(tmp_path, num_random=4, merge_threshold_A=0.5)
+    model, _ = _model(tmp_path, num_random=4, merge_threshold_A=0.5, init="random")
     ls = model.normalisation.length_scale
     with torch.no_grad():
         model.gauss_params["means"].copy_(torch.tensor([[0, 0, 0], [0.3 * ls, 0, 0], [0.2, 0.2, 0.2], [-0.2, 0, 0]]))

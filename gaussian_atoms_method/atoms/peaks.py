@@ -1,8 +1,10 @@
-"""Peaks in a voxel volume: local maxima, and keeping the strongest of those closer than a
-distance.  Shared by the start from a back-projection (:mod:`.initialise`) and the baselines'
+"""Peaks in a voxel volume: local maxima, keeping the strongest of those closer than a
+distance, and the height a noise field's peaks stay below.  Shared by the start from a back-projection (:mod:`.initialise`) and the baselines'
 atom tracing (:mod:`gaussian_atoms_method.harness.tracing`)."""
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from scipy import ndimage
@@ -30,3 +32,31 @@ def suppress_within(positions: np.ndarray, order: np.ndarray, min_distance: floa
         kept.append(i)
         suppressed[neighbours[i]] = True
     return np.asarray(kept, dtype=np.int64)
+
+
+def random_field_threshold(field: np.ndarray, false_alarm_rate: float = 0.05, n_voxels: int | None = None) -> float:
+    """The height ``u`` (in standard deviations) that a smooth 3D Gaussian random field exceeds
+    anywhere with probability about ``false_alarm_rate``: where the expected Euler
+    characteristic of the excursion set, ``R (4 ln 2)^(3/2) / (2 pi)^2 (u^2 - 1) exp(-u^2 / 2)``
+    (Worsley et al., Hum. Brain Mapp. 1996), equals the rate.  ``R``, the number of resolution
+    elements, is the volume over the product of the field's FWHMs along each axis, each read
+    from the field itself as ``sqrt(4 ln 2 var(f) / var(df/dx))`` (voxels; exact for smoothed
+    white noise).  ``n_voxels``: the size of the volume the threshold is for, when ``field``
+    is a sample of the same noise on a smaller grid.
+    """
+    f = np.asarray(field, dtype=np.float64)
+    f = (f - f.mean()) / max(f.std(), 1e-300)
+    fwhm = [math.sqrt(4 * math.log(2) / max(float(np.var(np.diff(f, axis=a))), 1e-300)) for a in range(f.ndim)]
+    resels = max(float(np.prod(f.shape) if n_voxels is None else n_voxels) / float(np.prod(fwhm)), 1.0)
+    density = (4 * math.log(2)) ** 1.5 / (2 * math.pi) ** 2
+
+    def expected(u):
+        return resels * density * (u * u - 1.0) * math.exp(-u * u / 2.0)
+
+    lo, hi = 1.8, 40.0  # (u^2 - 1) exp(-u^2 / 2) falls monotonically beyond sqrt(3)
+    if expected(lo) <= false_alarm_rate:
+        return lo
+    for _ in range(100):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if expected(mid) > false_alarm_rate else (lo, mid)
+    return hi

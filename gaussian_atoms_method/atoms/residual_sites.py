@@ -36,7 +36,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from gaussian_atoms_method.atoms.peaks import local_maxima, suppress_within
+from gaussian_atoms_method.atoms.peaks import local_maxima, random_field_threshold, suppress_within
 from gaussian_atoms_method.physics.reconstruction import reconstruct
 
 
@@ -104,33 +104,6 @@ def unexplained_sites(
         distance, _ = cKDTree(np.asarray(existing_A, dtype=np.float64)).query(positions_A)
         positions_A, values = positions_A[distance > min_distance_A], values[distance > min_distance_A]
     return positions_A, values * (2 * math.pi * (sigma_A**2 + smoothing_A**2)) ** 1.5
-
-
-def random_field_threshold(field: np.ndarray, false_alarm_rate: float = 0.05) -> float:
-    """The height ``u`` (in standard deviations) that a smooth 3D Gaussian random field exceeds
-    anywhere with probability about ``false_alarm_rate``: where the expected Euler
-    characteristic of the excursion set, ``R (4 ln 2)^(3/2) / (2 pi)^2 (u^2 - 1) exp(-u^2 / 2)``
-    (Worsley et al., Hum. Brain Mapp. 1996), equals the rate.  ``R``, the number of resolution
-    elements, is the volume over the product of the field's FWHMs along each axis, each read
-    from the field itself as ``sqrt(4 ln 2 var(f) / var(df/dx))`` (voxels; exact for smoothed
-    white noise).
-    """
-    f = np.asarray(field, dtype=np.float64)
-    f = (f - f.mean()) / max(f.std(), 1e-300)
-    fwhm = [math.sqrt(4 * math.log(2) / max(float(np.var(np.diff(f, axis=a))), 1e-300)) for a in range(f.ndim)]
-    resels = max(float(np.prod(f.shape)) / float(np.prod(fwhm)), 1.0)
-    density = (4 * math.log(2)) ** 1.5 / (2 * math.pi) ** 2
-
-    def expected(u):
-        return resels * density * (u * u - 1.0) * math.exp(-u * u / 2.0)
-
-    lo, hi = 1.8, 40.0  # (u^2 - 1) exp(-u^2 / 2) falls monotonically beyond sqrt(3)
-    if expected(lo) <= false_alarm_rate:
-        return lo
-    for _ in range(100):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if expected(mid) > false_alarm_rate else (lo, mid)
-    return hi
 
 
 def point_response(shape, angles_deg, pixel_size_A: float, sigma_A: float, tilt_axis="y", centre_px=None, smoothing_A: float = 0.5, tilt_axis_angle_deg: float = 0.0, device: str = "cpu"):

@@ -85,7 +85,7 @@ class DensityControl:
     max_gaussians: int = 200000
     prune_mass_fraction: float = 0.25
     false_alarm_rate: float = 0.05
-    residual_every: int = 500
+    add_from_residuals: bool = True
     noise: object | None = None
     """The pixel noise (:class:`~gaussian_atoms_method.physics.noise.NoiseModel`, normalised data
     units); None: unknown, the mass-fraction prune applies."""
@@ -284,11 +284,11 @@ class DensityControl:
         self.noise, self.floor, self.pixel_size, self.n_views = noise, floor, pixel_size, n_views
         self.efficiency = math.pi / 2 if data_term == "l1" else 1.0
 
-    def residual_check_due(self, step: int) -> bool:
-        """Every ``residual_every`` steps (0: never) from the warm-up until ``stop_split_at``,
-        until a check finds nothing to add (:meth:`note_residual_check`)."""
-        every = self.residual_every
-        return every > 0 and not self.residual_clean and self.warmup_length <= step < self.stop_split_at and step > 0 and step % every == 0
+    def residual_check_open(self, step: int) -> bool:
+        """Whether the residuals are still to be searched for missing atoms (the model does it
+        once the atoms are settled): ``add_from_residuals``, before ``stop_split_at`` (as
+        duplication), and until a search finds nothing."""
+        return self.add_from_residuals and not self.residual_clean and step < self.stop_split_at
 
     def fresh(self, n: int) -> torch.Tensor:
         """(n,) bool: made (duplicated or added) within the last ``refine_every`` steps."""

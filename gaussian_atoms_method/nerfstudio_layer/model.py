@@ -133,10 +133,6 @@ class GaussianAtomsModel(SplatfactoCompat):
     def amplitudes(self) -> torch.Tensor:
         return amplitudes(self.gauss_params)
 
-    @property
-    def num_points(self) -> int:
-        return self.means.shape[0]
-
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
         return self.get_gaussian_param_groups() | {name: [param] for name, param in self.view_params.items()}
 
@@ -244,10 +240,8 @@ class GaussianAtomsModel(SplatfactoCompat):
 
     @torch.no_grad()
     def refine_after_step(self, step: int) -> None:
-        """Clamp, accumulate the positional gradient, every refine_every steps duplicate and prune,
-        every residual_every add Gaussians where the residuals show mass (:mod:`.residuals`)."""
-        changed = self.density.step_post_backward(self.gauss_params, self.optimizers, step, self._param_lists())
-        if self.density.residual_check_due(step) and add_missing_atoms(self) or changed:
+        """Clamp, accumulate the positional gradient and every refine_every steps duplicate and prune."""
+        if self.density.step_post_backward(self.gauss_params, self.optimizers, step, self._param_lists()):
             self.atoms_in_viewer.refresh()
 
     @torch.no_grad()
@@ -288,12 +282,17 @@ class GaussianAtomsModel(SplatfactoCompat):
             self.write_results(Path(run_dir))
 
     def _stop_if_converged(self, trainer, last_step: int, step: int) -> None:
-        if self.config.stop_when_converged and step < last_step and self.converged(step):
+        """Once the atoms are settled: add Gaussians where the residuals hold mass and train on, or stop."""
+        search = self.density.residual_check_open(step)
+        if step >= last_step or not (self.config.stop_when_converged or search) or not self.converged(step):
+            return
+        if search and add_missing_atoms(self):  # (:mod:`.residuals`) the new ones must settle
+            self.atoms_in_viewer.refresh()
+        elif self.config.stop_when_converged:
             CONSOLE.print(f"gaussian-atoms: converged at step {step}: stopping early")
             self.write_results(Path(trainer.base_dir))
             trainer.stop_training = True  # nerfstudio's loop ends before the next step
 
-    def _snapshot_after_step(self, directory: Path, step: int) -> None:
-        # Steps count from 0: after step k*N-1, k*N steps are done (the last is the final result).
+    def _snapshot_after_step(self, directory: Path, step: int) -> None:  # after step k*N-1, k*N steps are done
         if (step + 1) % self.config.snapshot_every == 0:
             write_snapshot(self.atoms(), directory, step + 1, self.num_points, torch.cuda.max_memory_allocated() if self.means.is_cuda else 0)

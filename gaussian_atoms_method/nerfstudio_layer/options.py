@@ -34,7 +34,9 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
     smoothed back-projection at each (noise candidates start faint and are pruned sooner;
     back-projection start only), or equally."""
     num_random: int = 10000
-    """Number of Gaussians to start from (at most this many back-projection candidates)."""
+    """Number of Gaussians of a random start (``init random``, the paper's).  The
+    back-projection start takes as many candidates as the data hold above their noise
+    (:mod:`gaussian_atoms_method.atoms.initialise`): no cap."""
     init_sigma_A: float = 0.7
     """Initial width of every Gaussian, Å."""
     init_extent: float = 0.8
@@ -70,13 +72,15 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
     normal quantile at this rate shared over the volume's 1 Å^3 cells
     (:meth:`gaussian_atoms_method.density.strategy.DensityControl.significance_threshold`;
     4.5 sigma for a 25 Å box at 5%)."""
-    residual_every: int = DensityControl.residual_every
-    """Every this many steps from the warm-up until stop_split_at (0: never), back-project the
-    residuals of every view and add a Gaussian wherever they hold significant unexplained mass
+    add_from_residuals: bool = DensityControl.add_from_residuals
+    """Once the atoms are settled (the convergence check), back-project the residuals of every
+    view and add a Gaussian wherever they hold significant unexplained mass
     (:mod:`gaussian_atoms_method.atoms.residual_sites`: above the level a noise peak reaches in
-    the volume with chance false_alarm_rate): atoms the start and the fit missed.  Checks stop
-    once one finds nothing.  Each costs a rendering of every view and two back-projections
-    (about a second for the demo's 47 views of 114 x 114)."""
+    the volume with chance false_alarm_rate), then train on; stop only when a search finds
+    nothing (or at stop_split_at).  Each search costs a rendering of every view and two
+    back-projections.  Searching earlier, every 500 steps, also added Gaussians at the
+    unsettled atoms' misfit (29 on the demo, which has no atom missing) and kept the
+    convergence check from stopping."""
     final_refit: bool = True
     """After the final prune and merge, when they removed anything, one pass over the views so the
     survivors take up what the removed Gaussians carried (:mod:`.refit`)."""

@@ -152,12 +152,14 @@ def noise_from_projections(projections: np.ndarray, offset: float = 0.0, smoothi
     filtered = ndimage.correlate(p, IMMERKAER_KERNEL[None], mode="nearest")[:, 1:-1, 1:-1] / 6.0
     # The local mean from a ring around the 3 x 3 pixels the filter reads: from the same pixels
     # it would share their noise, and binning by it would select low-noise pixels into low
-    # bins (on the aSi-208 counts at dose 8e3 that faked a Poisson gain of 1.9 counts).
+    # bins (on the aSi-208 counts at dose 8e3 that faked a Poisson gain of 1.9 counts).  The
+    # Gaussian smoothing less its own 3 x 3 centre (separable, so fast on large series).
+    g = np.exp(-np.arange(-1, 2) ** 2 / (2 * smoothing_px**2))
     radius = int(np.ceil(4 * smoothing_px))
-    yy, xx = np.mgrid[-radius : radius + 1, -radius : radius + 1]
-    ring = np.exp(-(yy**2 + xx**2) / (2 * smoothing_px**2))
-    ring[radius - 1 : radius + 2, radius - 1 : radius + 2] = 0.0
-    mean = ndimage.correlate(p, (ring / ring.sum())[None], mode="nearest")[:, 1:-1, 1:-1]
+    norm = np.exp(-np.arange(-radius, radius + 1) ** 2 / (2 * smoothing_px**2)).sum()
+    centre = np.outer(g, g) / norm**2  # the 3 x 3 centre of the normalised 2D Gaussian
+    smooth = ndimage.gaussian_filter(p, (0, smoothing_px, smoothing_px), mode="nearest", truncate=radius / smoothing_px)
+    mean = ((smooth - ndimage.correlate(p, centre[None], mode="nearest")) / (1.0 - centre.sum()))[:, 1:-1, 1:-1]
     # Plain variances: counts of a few electrons take a handful of values and defeat the MAD.
     return fit_noise_model(filtered, mean, offset=offset, z_min=z_min, robust=False, quadratic=False)
 
