@@ -202,6 +202,8 @@ class BenchmarkAccuracy:
     iterations: int = 3000
     """Training iterations of our method."""
     device: Literal["cpu", "cuda"] = "cpu"
+    pixel_size_A: float = 0.25
+    """Detector pixel size of the simulated projections, Å."""
 
     def main(self) -> None:
         from gaussian_atoms_method.harness.benchmark import AccuracyBenchmark
@@ -218,6 +220,7 @@ class BenchmarkAccuracy:
             scale=scale,
             iterations=min(self.iterations, 1500) if self.quick else self.iterations,
             device=self.device,
+            pixel_size_A=self.pixel_size_A,
         )
         bench.run()
         print(f"wrote {self.output / 'results.md'}, results.csv and accuracy_vs_noise.png")

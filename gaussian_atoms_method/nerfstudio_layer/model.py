@@ -282,13 +282,14 @@ class GaussianAtomsModel(SplatfactoCompat):
             self.write_results(Path(run_dir))
 
     def _stop_if_converged(self, trainer, last_step: int, step: int) -> None:
-        """Once the atoms are settled: add Gaussians where the residuals hold mass and train on, or stop."""
-        search = self.density.residual_check_open(step)
-        if step >= last_step or not (self.config.stop_when_converged or search) or not self.converged(step):
-            return
-        if search and add_missing_atoms(self):  # (:mod:`.residuals`) the new ones must settle
+        """Once the atoms are settled (and at the last refine before stop_split_at, so every run
+        searches once): add Gaussians where the residuals hold mass (:mod:`.residuals`) and
+        train on; settled with nothing to add: stop."""
+        search, last_search = self.density.residual_check_open(step), step == min(self.density.stop_split_at, last_step) - self.config.refine_every
+        settled = step < last_step and (self.config.stop_when_converged or search) and self.converged(step)
+        if search and (settled or last_search) and add_missing_atoms(self):
             self.atoms_in_viewer.refresh()
-        elif self.config.stop_when_converged:
+        elif settled and self.config.stop_when_converged:
             CONSOLE.print(f"gaussian-atoms: converged at step {step}: stopping early")
             self.write_results(Path(trainer.base_dir))
             trainer.stop_training = True  # nerfstudio's loop ends before the next step
