@@ -204,6 +204,9 @@ class BenchmarkAccuracy:
     device: Literal["cpu", "cuda"] = "cpu"
     pixel_size_A: float = 0.25
     """Detector pixel size of the simulated projections, Å."""
+    noise_kind: Literal["gaussian", "poisson"] = "gaussian"
+    """``gaussian``: --noise is the standard deviation of additive noise; ``poisson``: --noise is
+    the dose as expected counts at the brightest pixel (Poisson counts on a one-count floor)."""
 
     def main(self) -> None:
         from gaussian_atoms_method.harness.benchmark import AccuracyBenchmark
@@ -221,6 +224,7 @@ class BenchmarkAccuracy:
             iterations=min(self.iterations, 1500) if self.quick else self.iterations,
             device=self.device,
             pixel_size_A=self.pixel_size_A,
+            noise_kind=self.noise_kind,
         )
         bench.run()
         print(f"wrote {self.output / 'results.md'}, results.csv and accuracy_vs_noise.png")

@@ -37,6 +37,11 @@ class AccuracyBenchmark:
     blur_sigma_A: float = 0.5
     seed: int = 0
     device: str = "cpu"
+    noise_kind: str = "gaussian"
+    """``gaussian``: ``noise`` is the standard deviation of additive noise (projection units);
+    ``poisson``: ``noise`` is the dose as the expected counts at the brightest pixel, the
+    projections drawn as Poisson counts of ``1 + dose x clean / max(clean)`` (a floor of one
+    count, as the peer's aSi-208 data)."""
 
     # ------------------------------------------------------------------ data
     def dataset(self, particle: str, tilts: str, noise: float) -> Path:
@@ -46,7 +51,7 @@ class AccuracyBenchmark:
         from gaussian_atoms_method.harness.particles import make_particle
         from gaussian_atoms_method.harness.simulate import blur_and_noise, parse_tilts, simulate_tilt_series, true_potential_volume
 
-        out = self.output / "data" / f"{particle}-{tilts}-noise{noise:g}"
+        out = self.output / "data" / f"{particle}-{tilts}-{'counts' if self.noise_kind == 'poisson' else 'noise'}{noise:g}"
         if (out / "tilt_series.json").is_file() and "volume" in json.loads((out / "tilt_series.json").read_text()):
             return out
         clean_path = self.output / "data" / f"{particle}-{tilts}-clean.npz"
@@ -59,14 +64,20 @@ class AccuracyBenchmark:
             clean = simulate_tilt_series(atoms, angles, "lobato", self.pixel_size_A, blur_sigma_A=self.blur_sigma_A, noise_std=0.0).projections
             clean_path.parent.mkdir(parents=True, exist_ok=True)
             np.savez(clean_path, projections=clean)
-        noisy = blur_and_noise(clean.astype(np.float64), self.pixel_size_A, 0.0, noise, self.seed + int(noise))
+        if self.noise_kind == "poisson":
+            rng = np.random.default_rng(self.seed + int(noise))
+            noisy = rng.poisson(1.0 + noise * np.clip(clean, 0.0, None) / clean.max()).astype(np.float64)
+            peak_to_noise = float(np.sqrt(noise))
+        else:
+            noisy = blur_and_noise(clean.astype(np.float64), self.pixel_size_A, 0.0, noise, self.seed + int(noise))
+            peak_to_noise = float(clean.max() / noise)
         write_tilt_series(
             out,
             noisy.astype(np.float32),
             angles,
             self.pixel_size_A,
             truth=atoms,
-            extra={"simulation": {"particle": particle, "scale": self.scale, "potential": "lobato", "noise_std": noise, "peak_to_noise": float(clean.max() / noise), "blur_sigma_A": self.blur_sigma_A}},
+            extra={"simulation": {"particle": particle, "scale": self.scale, "potential": "lobato", "noise_std": noise, "noise_kind": self.noise_kind, "peak_to_noise": peak_to_noise, "blur_sigma_A": self.blur_sigma_A}},
         )
         volume_path = self.output / "data" / f"{particle}-volume.npy"
         if not volume_path.is_file():
