@@ -126,8 +126,14 @@ class DensityControl:
         """Forget the accumulated gradients, for ``n`` Gaussians."""
         self.grad_accum = torch.zeros(n, 3)
         self.grad_count = 0
+        self._births(n)
+
+    def _births(self, n: int) -> torch.Tensor:
+        """The (n,) birth steps, started over at 0 (the start) when they are not for ``n``
+        Gaussians (a strategy handed parameters it did not make)."""
         if self.born.shape[0] != n:
             self.born = torch.zeros(n, dtype=torch.long)
+        return self.born
 
     def remap(self, params: Params, optimizers: Optimizers, src, dst, n_out: int, new_values=None, param_lists=None) -> None:
         """Apply a remap (:mod:`.remap`) to the parameters, the optimisers' state, the
@@ -137,8 +143,7 @@ class DensityControl:
         apply_remap(params, optimizers, src.to(dev), dst.to(dev), n_out, new_values, param_lists)
         src, dst = src.cpu(), dst.cpu()
         self.grad_accum = torch.zeros(n_out, 3).index_add_(0, dst, self.grad_accum[src])
-        born = self.born if self.born.shape[0] == n_in else torch.zeros(n_in, dtype=torch.long)
-        self.born = torch.zeros(n_out, dtype=torch.long).scatter_reduce_(0, dst, born[src], reduce="amax", include_self=False)
+        self.born = torch.zeros(n_out, dtype=torch.long).scatter_reduce_(0, dst, self._births(n_in)[src], reduce="amax", include_self=False)
 
     # ------------------------------------------------------------------ called by the training loop
     @torch.no_grad()
@@ -292,9 +297,8 @@ class DensityControl:
 
     def fresh(self, n: int) -> torch.Tensor:
         """(n,) bool: made (duplicated or added) within the last ``refine_every`` steps."""
-        if self.born.shape[0] != n:
-            self.born = torch.zeros(n, dtype=torch.long)
-        return (self.born > 0) & (self.born > self.step - max(self.refine_every, self.merge_every))
+        born = self._births(n)
+        return (born > 0) & (born > self.step - max(self.refine_every, self.merge_every))
 
     @torch.no_grad()
     def mass_significance(self, params: Mapping[str, torch.Tensor]) -> torch.Tensor:
@@ -344,16 +348,15 @@ class DensityControl:
         RMSD went from 1.3 to 2.6 pm and the aSi-208 data at dose 1.6e5 kept 31 false atoms).  The
         final prune applies :meth:`significance_threshold` alone."""
         sigmas = widths(params, self.min_log_sigma)
-        if self.noise is not None and self.pixel_size > 0 and self.n_views > 0:
+        noise_known = self.noise is not None and self.pixel_size > 0 and self.n_views > 0
+        keep = torch.ones_like(sigmas, dtype=torch.bool)
+        if not (final and noise_known):  # the relative rule: without a noise model, or during training
+            keep &= gaussian_mass(sigmas, amplitudes(params)) >= self.prune_mass_fraction * self.typical_atom_mass(params)
+        if noise_known:
             # A fresh duplicate holds half its parent's mass: it has one refine interval to
             # gather what the data give it before it is judged.
-            threshold = self.significance_threshold() if final else TRAINING_SIGNIFICANCE
-            keep = self.mass_significance(params) >= threshold
-            if not final:
-                keep &= gaussian_mass(sigmas, amplitudes(params)) >= self.prune_mass_fraction * self.typical_atom_mass(params)
+            keep &= self.mass_significance(params) >= (self.significance_threshold() if final else TRAINING_SIGNIFICANCE)
             keep |= self.fresh(params["means"].shape[0]).to(sigmas.device)
-        else:
-            keep = gaussian_mass(sigmas, amplitudes(params)) >= self.prune_mass_fraction * self.typical_atom_mass(params)
         keep &= sigmas <= self.max_atom_sigma_A * self.length_scale
         inside = (params["means"].abs() <= 0.5).all(dim=-1)
         self.pruned_outside += int((~inside).sum())

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import torch
 
+from gaussian_atoms_method.nerfstudio_layer.residuals import training_views
+
 
 def refit(model, passes: int = 1) -> int:
     """After the final prune and merge: ``passes`` passes over the training views, one view
@@ -14,22 +16,14 @@ def refit(model, passes: int = 1) -> int:
     when the members were fragments of one atom; one pass of 40-60 views moves it the rest of
     the way at a cost of a few tenths of a per cent of a 3,000-step run.  Returns the steps
     taken (0 without the tilt series)."""
-    from dataparsers.tilt_series_dataparser import cameras_from_tilt_series
-
-    metadata = model.kwargs.get("metadata", {}) or {}
-    series, projections = metadata.get("tilt_series"), metadata.get("projections")
-    if series is None or projections is None:
-        return 0
-    cameras = cameras_from_tilt_series(series, model.normalisation).to(model.means.device)
+    projections = (model.kwargs.get("metadata", {}) or {}).get("projections")
     names = [n for n in model.gauss_params.keys() if n in model.optimizers]
-    training = model.training
-    model.eval()  # one view per step at full resolution
-    # Called where results are written: possibly under no_grad or inference mode.
-    try:
+    with training_views(model) as cameras:
+        if cameras is None or projections is None:
+            return 0
+        # Called where results are written: possibly under no_grad or inference mode.
         with torch.inference_mode(False), torch.enable_grad():
             _refit_steps(model, cameras, projections, names, passes)
-    finally:
-        model.train(training)
     return passes * len(cameras)
 
 

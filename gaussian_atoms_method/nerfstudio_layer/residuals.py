@@ -9,6 +9,8 @@ strategy (:meth:`gaussian_atoms_method.density.strategy.DensityControl.add`).
 
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 import numpy as np
 import torch
 from nerfstudio.utils.rich_utils import CONSOLE
@@ -16,22 +18,33 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from gaussian_atoms_method.atoms.residual_sites import unexplained_sites
 
 
-@torch.no_grad()
-def render_training_views(model) -> np.ndarray | None:
-    """(V, H, W) the model's projections of its training views (normalised data units), or
-    None without the tilt series."""
+@contextmanager
+def training_views(model):
+    """The cameras of the model's training views (None without the tilt series), with the
+    model in eval mode meanwhile: full resolution, one view per call, whatever the phase."""
     from dataparsers.tilt_series_dataparser import cameras_from_tilt_series
 
     series = (model.kwargs.get("metadata", {}) or {}).get("tilt_series")
     if series is None:
-        return None
+        yield None
+        return
     cameras = cameras_from_tilt_series(series, model.normalisation).to(model.means.device)
     training = model.training
-    model.eval()  # full resolution, one view each, whatever the phase
+    model.eval()
     try:
-        return np.stack([model.get_outputs(cameras[i : i + 1])["projection"][..., 0].cpu().numpy() for i in range(len(cameras))])
+        yield cameras
     finally:
         model.train(training)
+
+
+@torch.no_grad()
+def render_training_views(model) -> np.ndarray | None:
+    """(V, H, W) the model's projections of its training views (normalised data units), or
+    None without the tilt series."""
+    with training_views(model) as cameras:
+        if cameras is None:
+            return None
+        return np.stack([model.get_outputs(cameras[i : i + 1])["projection"][..., 0].cpu().numpy() for i in range(len(cameras))])
 
 
 @torch.no_grad()
@@ -49,10 +62,9 @@ def add_missing_atoms(model) -> int:
         projections.cpu().numpy() - predicted, series.angles_deg, series.pixel_size_A, model.means.detach().cpu().double().numpy() / ls, sigma_A,
         series.tilt_axis, series.centre_px, false_alarm_rate=model.config.false_alarm_rate, tilt_axis_angle_deg=series.tilt_axis_angle_deg,
     )  # fmt: skip
-    if len(sites_A) == 0:
-        model.density.residual_clean = True  # nothing unexplained: no more checks
-        return 0
-    means = torch.as_tensor(sites_A * ls, dtype=model.means.dtype)
+    means = torch.as_tensor(sites_A * ls, dtype=model.means.dtype).reshape(-1, 3)
+    # With no site, add() notes that the residuals are clean (no more searches).
     added = model.density.add(model.gauss_params, model.optimizers, means, sigma_A * ls, torch.as_tensor(masses * ls**2), model._param_lists())
-    CONSOLE.print(f"gaussian-atoms: step {model.step}: {added} Gaussians added where the residuals hold unexplained mass")
+    if added:
+        CONSOLE.print(f"gaussian-atoms: step {model.step}: {added} Gaussians added where the residuals hold unexplained mass")
     return added
