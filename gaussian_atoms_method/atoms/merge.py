@@ -20,16 +20,21 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 
-def cluster_labels(positions: np.ndarray, threshold: float, mergeable: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+def cluster_labels(
+    positions: np.ndarray, threshold: float, mergeable: np.ndarray | None = None, extra_pairs: np.ndarray | None = None
+) -> tuple[np.ndarray, int]:
     """Label the connected clusters of points closer than ``threshold`` to each other.
 
     Parameters
     ----------
     positions : (N, 3) array
     threshold : float
-        Pairs at distance ``<= threshold`` are linked (same unit as positions).
+        Pairs at distance ``<= threshold`` are linked (same unit as positions); 0 links none.
     mergeable : (N,) bool array, optional
         Only pairs of two mergeable points are linked (the others stay alone).
+    extra_pairs : (K, 2) int array, optional
+        Further linked pairs, whatever their distance (the pairs the data cannot resolve,
+        :mod:`.resolution`).
 
     Returns
     -------
@@ -39,7 +44,9 @@ def cluster_labels(positions: np.ndarray, threshold: float, mergeable: np.ndarra
     n = len(positions)
     if n == 0:
         return np.zeros(0, dtype=np.int64), 0
-    pairs = cKDTree(positions).query_pairs(threshold, output_type="ndarray")
+    pairs = cKDTree(positions).query_pairs(threshold, output_type="ndarray") if threshold > 0 else np.zeros((0, 2), dtype=np.int64)
+    if extra_pairs is not None and len(extra_pairs):
+        pairs = np.concatenate([pairs.reshape(-1, 2), np.asarray(extra_pairs, dtype=pairs.dtype).reshape(-1, 2)])
     if mergeable is not None and len(pairs):
         pairs = pairs[mergeable[pairs[:, 0]] & mergeable[pairs[:, 1]]]
     if len(pairs) == 0:

@@ -25,8 +25,11 @@ The rules, every ``refine_every`` steps after ``warmup_length``:
   additions) are not merged yet: a duplicate pair starts 1 sigma (about 0.6 Å) apart, inside
   the 0.7 Å threshold, and merging it at once undid every densification.
 
-At the end (:meth:`DensityControl.finalize`): prune, then merge, so a noise blob is not merged
-into an atom and the merged atom is judged whole; the model then refits briefly.
+At the end (:meth:`DensityControl.finalize`): first every pair of Gaussians the data cannot tell
+from one (:meth:`DensityControl.unresolved_pairs`: merging them costs less chi-square than the
+noise reaches, :mod:`..atoms.resolution`) becomes one, so an atom the fit shared between two
+Gaussians along the missing wedge is judged whole; then the prune, so a noise blob the data do
+resolve is not merged into an atom; then the distance merge; the model then refits briefly.
 
 Every step the parameters are clamped to physical ranges (:meth:`DensityControl.clamp`).
 No nerfstudio import: unit-tested on plain parameter dicts.
@@ -38,9 +41,11 @@ import math
 from dataclasses import dataclass, field
 from typing import Mapping, MutableMapping
 
+import numpy as np
 import torch
 
 from gaussian_atoms_method.atoms.merge import cluster_labels, merged_values
+from gaussian_atoms_method.atoms.resolution import candidate_pairs, merge_energy, merged_moments
 from gaussian_atoms_method.density.remap import apply_remap, duplicate_remap, keep_remap, merge_remap
 from gaussian_atoms_method.physics.projector import gaussian_mass, typical_mass
 
@@ -94,6 +99,8 @@ class DensityControl:
     pixel_size: float = 0.0
     """Detector pixel size, normalised units."""
     n_views: int = 0
+    view_dirs: torch.Tensor | None = None
+    """(V, 3) the training views' beam directions, for the resolution test; None: not tested."""
     efficiency: float = 1.0
     """Variance of the fit's estimator over the least-squares one (pi/2 for L1)."""
     cluster_merge: bool = True
@@ -178,10 +185,12 @@ class DensityControl:
 
     @torch.no_grad()
     def finalize(self, params: Params, optimizers: Optimizers, param_lists=None) -> int:
-        """Last prune, then merge (fresh Gaussians too), so the result holds one Gaussian per
-        atom; returns how many Gaussians went (the model refits when any did)."""
+        """Merge the pairs the data cannot resolve, prune, then merge (fresh Gaussians too), so
+        the result holds one Gaussian per atom; returns how many Gaussians went (the model
+        refits when any did)."""
         self.born = torch.zeros_like(self.born)  # at the end every Gaussian is judged
-        removed = self.prune(params, optimizers, param_lists, final=True)
+        removed = self.merge(params, optimizers, param_lists, distance=False) if self.cluster_merge else 0
+        removed += self.prune(params, optimizers, param_lists, final=True)
         if self.cluster_merge:
             removed += self.merge(params, optimizers, param_lists)
         return removed
@@ -282,11 +291,11 @@ class DensityControl:
         atom_like = sigmas <= self.max_atom_sigma_A * self.length_scale
         return typical_mass(gaussian_mass(sigmas, amplitudes(params))[atom_like])
 
-    def set_noise(self, noise, floor: float, pixel_size: float, n_views: int, data_term: str) -> None:
+    def set_noise(self, noise, floor: float, pixel_size: float, n_views: int, data_term: str, view_dirs: torch.Tensor | None = None) -> None:
         """The measured noise (normalised units) the prune judges masses against, the floor the
-        atoms sit on, the pixel size (normalised), the number of views and the data term (L1
-        estimates carry pi/2 the least-squares variance)."""
-        self.noise, self.floor, self.pixel_size, self.n_views = noise, floor, pixel_size, n_views
+        atoms sit on, the pixel size (normalised), the number of views, the data term (L1
+        estimates carry pi/2 the least-squares variance) and the views' (V, 3) beam directions."""
+        self.noise, self.floor, self.pixel_size, self.n_views, self.view_dirs = noise, floor, pixel_size, n_views, view_dirs
         self.efficiency = math.pi / 2 if data_term == "l1" else 1.0
 
     def residual_check_open(self, step: int) -> bool:
@@ -316,11 +325,47 @@ class DensityControl:
         sigmas = widths(params, self.min_log_sigma)
         mass = gaussian_mass(sigmas, amplitudes(params)).double()
         s = sigmas.double()  # normalised; 2D peak = mass / (2 pi s^2) in data units
-        level = self.floor + (2.0 / 3.0) * mass / (2.0 * math.pi * s**2)
-        x = (level - self.noise.offset).clamp_min(0.0)
-        var = self.noise.read_var + self.noise.gain * x
-        sd = torch.sqrt(self.efficiency * 8.0 * math.pi * var.clamp_min(1e-300) / max(self.n_views, 1)) * s * self.pixel_size
+        var = self.pixel_variance(mass, s)
+        sd = torch.sqrt(self.efficiency * 8.0 * math.pi * var / max(self.n_views, 1)) * s * self.pixel_size
         return (mass / sd).to(sigmas.dtype)
+
+    def pixel_variance(self, mass, s):
+        """The noise variance (data units^2) of the pixels a Gaussian of ``mass`` and width ``s``
+        (normalised) sits on, as the fit weights them: the noise model at the floor plus 2/3 of
+        its projected peak ``mass / (2 pi s^2)`` (the g^2-weighted mean of a 2D Gaussian)."""
+        level = self.floor + (2.0 / 3.0) * mass / (2.0 * math.pi * s**2)
+        x = (level - self.noise.offset).clip(min=0.0)
+        return (self.noise.read_var + self.noise.gain * x).clip(min=1e-300)
+
+    def noise_known(self) -> bool:
+        """Whether a noise model, pixel size and views are set (:meth:`set_noise`)."""
+        return self.noise is not None and self.pixel_size > 0 and self.n_views > 0
+
+    @torch.no_grad()
+    def unresolved_pairs(self, params: Mapping[str, torch.Tensor], mergeable: torch.Tensor) -> np.ndarray:
+        """(K, 2) pairs of mergeable Gaussians the data cannot tell from one (:mod:`..atoms.resolution`):
+        turning the pair into one Gaussian changes the projections by less chi-square (the
+        pixels' noise variance from :meth:`pixel_variance` at the merged Gaussian, divided by
+        the efficiency) than a noise-fitted pair gains, the chi-square quantile with 5 degrees
+        of freedom (the pair's ten parameters against the merged one's five) at the family-wise
+        rate of :meth:`significance_threshold`.  Empty without a noise model or view directions."""
+        if not self.noise_known() or self.view_dirs is None or int(mergeable.sum()) < 2:
+            return np.zeros((0, 2), dtype=np.int64)
+        from scipy.stats import chi2
+
+        idx = torch.nonzero(mergeable.cpu()).flatten().numpy()
+        sigmas = widths(params, self.min_log_sigma).detach().double().cpu().numpy()[idx]
+        mass = gaussian_mass(torch.as_tensor(sigmas), amplitudes(params).detach().double().cpu()[idx]).numpy()
+        pos = params["means"].detach().double().cpu().numpy()[idx]
+        pairs = candidate_pairs(pos, sigmas)
+        dirs = self.view_dirs.detach().double().cpu().numpy()
+        cost = np.concatenate([np.zeros(0)] + [merge_energy(pos, sigmas, mass, pairs[k : k + 4096], dirs) for k in range(0, len(pairs), 4096)])
+        if len(pairs) == 0:
+            return pairs
+        _, s_c = merged_moments(pos, sigmas, mass, pairs)
+        chi_square = cost / (self.pixel_size**2 * self.efficiency * self.pixel_variance(mass[pairs].sum(axis=1), s_c))
+        level = chi2.isf(self.false_alarm_rate / self.cells(), df=5)
+        return idx[pairs[chi_square < level]]
 
     def significance_threshold(self) -> float:
         """The significance no noise blob should reach anywhere in the volume: the one-sided
@@ -330,8 +375,11 @@ class DensityControl:
         trial).  A 25 Å box (the aSi-208 data): 15,600 cells, 4.5 sigma at 5%."""
         from statistics import NormalDist
 
-        cells = max((1.0 / self.length_scale) ** 3, 1.0)  # the volume [-0.5, 0.5]^3 in Å^3
-        return NormalDist().inv_cdf(1.0 - self.false_alarm_rate / cells)
+        return NormalDist().inv_cdf(1.0 - self.false_alarm_rate / self.cells())
+
+    def cells(self) -> float:
+        """The volume [-0.5, 0.5]^3 in Å^3: its number of 1 Å^3 cells (at least one)."""
+        return max((1.0 / self.length_scale) ** 3, 1.0)
 
     @torch.no_grad()
     def prune(self, params: Params, optimizers: Optimizers, param_lists=None, final: bool = False) -> int:
@@ -348,7 +396,7 @@ class DensityControl:
         RMSD went from 1.3 to 2.6 pm and the aSi-208 data at dose 1.6e5 kept 31 false atoms).  The
         final prune applies :meth:`significance_threshold` alone."""
         sigmas = widths(params, self.min_log_sigma)
-        noise_known = self.noise is not None and self.pixel_size > 0 and self.n_views > 0
+        noise_known = self.noise_known()
         keep = torch.ones_like(sigmas, dtype=torch.bool)
         if not (final and noise_known):  # the relative rule: without a noise model, or during training
             keep &= gaussian_mass(sigmas, amplitudes(params)) >= self.prune_mass_fraction * self.typical_atom_mass(params)
@@ -368,14 +416,21 @@ class DensityControl:
         return removed
 
     @torch.no_grad()
-    def merge(self, params: Params, optimizers: Optimizers, param_lists=None, protect_fresh: bool = False) -> int:
+    def merge(self, params: Params, optimizers: Optimizers, param_lists=None, protect_fresh: bool = False, distance: bool = True) -> int:
         """Replace every cluster of Gaussians closer than merge_threshold_A by one; with
-        ``protect_fresh``, Gaussians made in the last ``merge_every`` steps stay out."""
+        ``protect_fresh``, Gaussians made in the last ``merge_every`` steps stay out.  At the end
+        (not ``protect_fresh``) the pairs the data cannot resolve (:meth:`unresolved_pairs`,
+        among atom-like Gaussians inside the volume) are linked too; ``distance`` False links
+        those alone."""
         means = params["means"]
-        thr = self.merge_threshold_A * self.length_scale
+        thr = self.merge_threshold_A * self.length_scale if distance else 0.0
         n = means.shape[0]
         mature = ~self.fresh(n) if protect_fresh else torch.ones(n, dtype=torch.bool)
-        labels, n_clusters = cluster_labels(means.detach().cpu().numpy(), thr, mature.numpy())
+        unresolved = None
+        if not protect_fresh:
+            atom_like = (widths(params, self.min_log_sigma) <= self.max_atom_sigma_A * self.length_scale) & (means.abs() <= 0.5).all(dim=-1)
+            unresolved = self.unresolved_pairs(params, atom_like.cpu())
+        labels, n_clusters = cluster_labels(means.detach().cpu().numpy(), thr, mature.numpy(), unresolved)
         if n_clusters == n:
             return 0
         labels_t = torch.as_tensor(labels, device=means.device)

@@ -93,7 +93,7 @@ class GaussianAtomsModel(SplatfactoCompat):
         self.noise_read, self.data_term, floor = read_noise(metadata.get("projections"), cfg.loss, cfg.background)
         self._setup_view_params(metadata, series, floor)
         if self.noise_read is not None and metadata.get("pixel_size_A"):  # the prune judges masses against this noise
-            self.density.set_noise(self.noise_read, floor or 0.0, metadata["pixel_size_A"] * ls, self.view_c2w.shape[0], self.data_term)
+            self.density.set_noise(self.noise_read, floor or 0.0, metadata["pixel_size_A"] * ls, self.view_c2w.shape[0], self.data_term, self.view_c2w[:, :3, 2])
         self.step, self.optimizers, self._optimizers_obj = 0, {}, None
         self.crop_box, self.background_color, self.atoms_in_viewer = None, torch.zeros(3), AtomsInViewer(self._viewer_atoms)  # the atoms as points in the viewer
 
