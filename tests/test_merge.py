@@ -95,3 +95,17 @@ def test_duplicate_and_merge_remap_average_state():
     labels = torch.tensor([0, 0, 1, 2, 3, 4])
     apply_remap(params, opts, torch.arange(6), labels, 5)
     torch.testing.assert_close(opts["means"].state[params["means"]]["exp_avg_sq"][0], sq[:2].mean(0))
+
+
+def test_disjoint_pairs_never_chain():
+    """A-B, B-C and C-D all linked (E alone): connected components would make one cluster of
+    four; the greedy disjoint pairs (best first) merge A-B and C-D, and B-C is not taken."""
+    import numpy as np
+
+    from gaussian_atoms_method.atoms.merge import disjoint_pair_labels
+
+    labels, n = disjoint_pair_labels(5, np.array([[0, 1], [1, 2], [2, 3]]))
+    assert n == 3 and labels[0] == labels[1] and labels[2] == labels[3] and len({labels[1], labels[2], labels[4]}) == 3
+    labels, n = disjoint_pair_labels(4, np.array([[1, 2], [0, 1], [2, 3]]))
+    assert n == 3 and labels[1] == labels[2] and len({labels[0], labels[1], labels[3]}) == 3
+    assert disjoint_pair_labels(3, np.zeros((0, 2), dtype=np.int64))[1] == 3

@@ -20,21 +20,16 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 
-def cluster_labels(
-    positions: np.ndarray, threshold: float, mergeable: np.ndarray | None = None, extra_pairs: np.ndarray | None = None
-) -> tuple[np.ndarray, int]:
+def cluster_labels(positions: np.ndarray, threshold: float, mergeable: np.ndarray | None = None) -> tuple[np.ndarray, int]:
     """Label the connected clusters of points closer than ``threshold`` to each other.
 
     Parameters
     ----------
     positions : (N, 3) array
     threshold : float
-        Pairs at distance ``<= threshold`` are linked (same unit as positions); 0 links none.
+        Pairs at distance ``<= threshold`` are linked (same unit as positions).
     mergeable : (N,) bool array, optional
         Only pairs of two mergeable points are linked (the others stay alone).
-    extra_pairs : (K, 2) int array, optional
-        Further linked pairs, whatever their distance (the pairs the data cannot resolve,
-        :mod:`.resolution`).
 
     Returns
     -------
@@ -44,9 +39,7 @@ def cluster_labels(
     n = len(positions)
     if n == 0:
         return np.zeros(0, dtype=np.int64), 0
-    pairs = cKDTree(positions).query_pairs(threshold, output_type="ndarray") if threshold > 0 else np.zeros((0, 2), dtype=np.int64)
-    if extra_pairs is not None and len(extra_pairs):
-        pairs = np.concatenate([pairs.reshape(-1, 2), np.asarray(extra_pairs, dtype=pairs.dtype).reshape(-1, 2)])
+    pairs = cKDTree(positions).query_pairs(threshold, output_type="ndarray")
     if mergeable is not None and len(pairs):
         pairs = pairs[mergeable[pairs[:, 0]] & mergeable[pairs[:, 1]]]
     if len(pairs) == 0:
@@ -101,3 +94,29 @@ def merged_values(
     else:
         raise ValueError(f"amplitude_rule must be 'mass' or 'mean', got {amplitude_rule!r}")
     return new_means, new_sigmas, new_amps
+
+
+def disjoint_pair_labels(n: int, pairs: np.ndarray) -> tuple[np.ndarray, int]:
+    """Labels that merge a greedy set of disjoint pairs, taken in the given order (best first):
+    a pair is merged only when neither member is in an earlier merged pair.
+
+    Unlike connected components this never chains: where A-B and B-C are both links, A-B merges
+    and C stays, to be judged again against the merged AB.
+
+    Parameters
+    ----------
+    n : int, number of points
+    pairs : (K, 2) int array, in order of preference
+
+    Returns
+    -------
+    labels : (n,) int array, numbered 0..n_clusters-1
+    n_clusters : int
+    """
+    partner = np.full(n, -1, dtype=np.int64)
+    for i, j in np.asarray(pairs, dtype=np.int64).reshape(-1, 2):
+        if i != j and partner[i] < 0 and partner[j] < 0:
+            partner[i], partner[j] = j, i
+    root = np.where((partner >= 0) & (partner < np.arange(n)), partner, np.arange(n))
+    _, labels = np.unique(root, return_inverse=True)
+    return labels.astype(np.int64), int(labels.max() + 1) if n else 0

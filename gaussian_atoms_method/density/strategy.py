@@ -44,7 +44,7 @@ from typing import Mapping, MutableMapping
 import numpy as np
 import torch
 
-from gaussian_atoms_method.atoms.merge import cluster_labels, merged_values
+from gaussian_atoms_method.atoms.merge import cluster_labels, disjoint_pair_labels, merged_values
 from gaussian_atoms_method.atoms.resolution import candidate_pairs, merge_energy, merged_moments
 from gaussian_atoms_method.density.remap import apply_remap, duplicate_remap, keep_remap, merge_remap
 from gaussian_atoms_method.physics.projector import gaussian_mass, typical_mass
@@ -189,7 +189,7 @@ class DensityControl:
         the result holds one Gaussian per atom; returns how many Gaussians went (the model
         refits when any did)."""
         self.born = torch.zeros_like(self.born)  # at the end every Gaussian is judged
-        removed = self.merge(params, optimizers, param_lists, distance=False) if self.cluster_merge else 0
+        removed = self.merge_unresolved(params, optimizers, param_lists) if self.cluster_merge else 0
         removed += self.prune(params, optimizers, param_lists, final=True)
         if self.cluster_merge:
             removed += self.merge(params, optimizers, param_lists)
@@ -342,13 +342,14 @@ class DensityControl:
         return self.noise is not None and self.pixel_size > 0 and self.n_views > 0
 
     @torch.no_grad()
-    def unresolved_pairs(self, params: Mapping[str, torch.Tensor], mergeable: torch.Tensor) -> np.ndarray:
+    def unresolved_pairs(self, params: Mapping[str, torch.Tensor], mergeable: torch.Tensor, weak: torch.Tensor | None = None) -> np.ndarray:
         """(K, 2) pairs of mergeable Gaussians the data cannot tell from one (:mod:`..atoms.resolution`):
         turning the pair into one Gaussian changes the projections by less chi-square (the
         pixels' noise variance from :meth:`pixel_variance` at the merged Gaussian, divided by
         the efficiency) than a noise-fitted pair gains, the chi-square quantile with 5 degrees
         of freedom (the pair's ten parameters against the merged one's five) at the family-wise
-        rate of :meth:`significance_threshold`.  Empty without a noise model or view directions."""
+        rate of :meth:`significance_threshold`.  With ``weak`` (N,) bool, only pairs with a weak
+        member.  Least resolved first; empty without a noise model or view directions."""
         if not self.noise_known() or self.view_dirs is None or int(mergeable.sum()) < 2:
             return np.zeros((0, 2), dtype=np.int64)
         from scipy.stats import chi2
@@ -358,6 +359,9 @@ class DensityControl:
         mass = gaussian_mass(torch.as_tensor(sigmas), amplitudes(params).detach().double().cpu()[idx]).numpy()
         pos = params["means"].detach().double().cpu().numpy()[idx]
         pairs = candidate_pairs(pos, sigmas)
+        if weak is not None:
+            weak_idx = weak.cpu().numpy()[idx]
+            pairs = pairs[weak_idx[pairs[:, 0]] | weak_idx[pairs[:, 1]]]
         dirs = self.view_dirs.detach().double().cpu().numpy()
         cost = np.concatenate([np.zeros(0)] + [merge_energy(pos, sigmas, mass, pairs[k : k + 4096], dirs) for k in range(0, len(pairs), 4096)])
         if len(pairs) == 0:
@@ -365,7 +369,8 @@ class DensityControl:
         _, s_c = merged_moments(pos, sigmas, mass, pairs)
         chi_square = cost / (self.pixel_size**2 * self.efficiency * self.pixel_variance(mass[pairs].sum(axis=1), s_c))
         level = chi2.isf(self.false_alarm_rate / self.cells(), df=5)
-        return idx[pairs[chi_square < level]]
+        order = np.argsort(chi_square, kind="stable")
+        return idx[pairs[order[chi_square[order] < level]]]
 
     def significance_threshold(self) -> float:
         """The significance no noise blob should reach anywhere in the volume: the one-sided
@@ -416,21 +421,38 @@ class DensityControl:
         return removed
 
     @torch.no_grad()
-    def merge(self, params: Params, optimizers: Optimizers, param_lists=None, protect_fresh: bool = False, distance: bool = True) -> int:
+    def merge(self, params: Params, optimizers: Optimizers, param_lists=None, protect_fresh: bool = False) -> int:
         """Replace every cluster of Gaussians closer than merge_threshold_A by one; with
-        ``protect_fresh``, Gaussians made in the last ``merge_every`` steps stay out.  At the end
-        (not ``protect_fresh``) the pairs the data cannot resolve (:meth:`unresolved_pairs`,
-        among atom-like Gaussians inside the volume) are linked too; ``distance`` False links
-        those alone."""
+        ``protect_fresh``, Gaussians made in the last ``merge_every`` steps stay out."""
         means = params["means"]
-        thr = self.merge_threshold_A * self.length_scale if distance else 0.0
         n = means.shape[0]
         mature = ~self.fresh(n) if protect_fresh else torch.ones(n, dtype=torch.bool)
-        unresolved = None
-        if not protect_fresh:
+        labels, n_clusters = cluster_labels(means.detach().cpu().numpy(), self.merge_threshold_A * self.length_scale, mature.numpy())
+        return self._merge_labels(params, optimizers, labels, n_clusters, param_lists)
+
+    @torch.no_grad()
+    def merge_unresolved(self, params: Params, optimizers: Optimizers, param_lists=None, max_rounds: int = 4) -> int:
+        """Merge the pairs of atom-like Gaussians inside the volume that the data cannot resolve
+        (:meth:`unresolved_pairs`), pairwise: in each round a greedy set of disjoint pairs, least
+        resolved first (:func:`..atoms.merge.disjoint_pair_labels`), then the test again on the
+        merged Gaussians.  Never by connected components: at Au noise 500 chains of unresolved
+        links through the fragments between atoms merged whole neighbourhoods (TPR 0.61).
+        ``max_rounds`` 4 rejoins an atom shared by up to 16 Gaussians."""
+        removed = 0
+        for _ in range(max_rounds):
+            means = params["means"]
             atom_like = (widths(params, self.min_log_sigma) <= self.max_atom_sigma_A * self.length_scale) & (means.abs() <= 0.5).all(dim=-1)
-            unresolved = self.unresolved_pairs(params, atom_like.cpu())
-        labels, n_clusters = cluster_labels(means.detach().cpu().numpy(), thr, mature.numpy(), unresolved)
+            weak = self.mass_significance(params) < self.significance_threshold()
+            pairs = self.unresolved_pairs(params, atom_like.cpu(), weak.cpu())
+            if len(pairs) == 0:
+                break
+            removed += self._merge_labels(params, optimizers, *disjoint_pair_labels(means.shape[0], pairs), param_lists)
+        return removed
+
+    def _merge_labels(self, params: Params, optimizers: Optimizers, labels: np.ndarray, n_clusters: int, param_lists=None) -> int:
+        """Replace each labelled cluster by one Gaussian (mass-weighted, :func:`..atoms.merge.merged_values`)."""
+        means = params["means"]
+        n = means.shape[0]
         if n_clusters == n:
             return 0
         labels_t = torch.as_tensor(labels, device=means.device)

@@ -9,6 +9,9 @@
 * ``carbon``: a light, dense, disordered carbon: a diamond network compressed to 1.49 Å bonds
   with 0.025 Å random displacements (nearest neighbours 1.37-1.53 Å, as short as amorphous
   carbon's), a 7,000-atom sphere;
+* ``asi``: a large amorphous silicon particle, 20,000 atoms: the same packing at a-Si's number
+  density (0.049 atoms/Å^3: 2.28 g/cm^3) with no two atoms closer than 2.2 Å (the Si-Si bond is
+  2.35 Å); a 91 Å sphere, for the size the benchmarks must reach;
 * anything ASE can read.
 
 ``scale`` shrinks a particle linearly (atom count ~ scale^3) for quick tests: ``au`` is cut to
@@ -25,7 +28,7 @@ from scipy.spatial import cKDTree
 from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms
 
 DATA_DIR = Path(__file__).parent / "data"
-PARTICLES = ("au", "fept", "apd", "hea", "carbon")
+PARTICLES = ("au", "fept", "apd", "hea", "carbon", "asi")
 
 
 def make_particle(name_or_path: str, scale: float = 1.0, seed: int = 0) -> AtomSet:
@@ -41,6 +44,8 @@ def make_particle(name_or_path: str, scale: float = 1.0, seed: int = 0) -> AtomS
         atoms = amorphous_packing(n_atoms=int(round(16000 * scale**3)), species=("Pd",), min_distance_A=2.5, rng=rng)
     elif name_or_path == "hea":
         atoms = amorphous_packing(n_atoms=int(round(16000 * scale**3)), species=("Ni", "Pd", "Pt"), min_distance_A=2.4, rng=rng)
+    elif name_or_path == "asi":
+        atoms = amorphous_packing(n_atoms=int(round(20000 * scale**3)), species=("Si",), min_distance_A=2.2, rng=rng, number_density_per_A3=0.049)
     elif name_or_path == "carbon":
         atoms = disordered_carbon(n_atoms=int(round(7000 * scale**3)), rng=rng)
     else:

@@ -150,11 +150,12 @@ class PeerBenchmark:
 
     def write(self, rows: list[dict]) -> None:
         self.output.mkdir(parents=True, exist_ok=True)
-        fields = ["dose", "n_true", "n_pred", "n_matched", "tpr", "fp_per_true_atom", "rmsd_pm", "seconds"]
+        scores = ["n_pred", "n_matched", "tpr", "fp_per_true_atom", "rmsd_pm"]
+        fields = ["dose", "n_true", *scores, "seconds", *(f"peer_{k}" for k in scores)]
         with open(self.output / "results.csv", "w", newline="") as f:
             writer = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
             writer.writeheader()
-            writer.writerows(rows)
+            writer.writerows([r | {f"peer_{k}": v for k, v in (r.get("peer") or {}).items()} for r in rows])
         lines = ["| dose (e/Å²) | method | found (≤ 0.9 Å) | false | RMSD (pm) | time (s) |", "| --- | --- | --- | --- | --- | --- |"]
         for r in rows:
             lines.append(f"| {r['dose']} | ours | {r['n_matched']}/{r['n_true']} | {r['n_pred'] - r['n_matched']} | {r['rmsd_pm']:.2f} | {r['seconds']:.0f} |")
