@@ -55,13 +55,20 @@ def main() -> None:
     import matplotlib.pyplot as plt
 
     rows = [("aSi-208", "dose (e/Å²)", peer_series(read_rows(args.peer))), ("Au, Poisson counts", "dose (counts at the brightest pixel)", method_series(read_rows(args.au)))]
+    from matplotlib.ticker import FuncFormatter, NullFormatter
+
+    colours = {"ours": "C0", "peer": "C1", "fbp": "C2", "sart": "C3"}
     fig, axes = plt.subplots(2, 3, figsize=(12, 6.4))
     for row, (name, xlabel, series) in enumerate(rows):
         for label, (doses, values) in series.items():
             for col, (key, _) in enumerate(SCORES):
-                axes[row, col].plot(doses, values[key], "o-", label=label)
+                axes[row, col].plot(doses, values[key], "o-", label=label, color=colours.get(label))
+        ticks = sorted({d for doses, _ in series.values() for d in doses})
         for col, (_, title) in enumerate(SCORES):
             axes[row, col].set_xscale("log")
+            axes[row, col].set_xticks(ticks)
+            axes[row, col].xaxis.set_major_formatter(FuncFormatter(lambda x, _: f"{x:g}"))
+            axes[row, col].xaxis.set_minor_formatter(NullFormatter())
             axes[row, col].set_title(f"{name}: {title}")
             axes[row, col].set_xlabel(xlabel)
         axes[row, 0].legend()
