@@ -260,3 +260,17 @@ def test_added_gaussians_carry_their_mass_fresh_moments_and_are_fresh():
     assert float(widths(params, control.min_log_sigma)[2]) == pytest.approx(0.2, rel=1e-9)
     assert float(opts["means"].state[params["means"]]["exp_avg"][2].abs().sum()) == 0.0
     assert control.fresh(3).tolist() == [False, False, True]
+
+
+def test_discovery_level_drops_with_many_atoms_and_never_exceeds_the_family_wise_one():
+    """Benjamini-Hochberg over a 100 Å box (10^6 cells of 1 Å^3) at rate 0.001: one Gaussian
+    at 4.5 sigma (P = 3.4e-6 > 0.001 / 10^6) is judged at the family-wise 5.33; among 5,000
+    atoms at 4.5 sigma (P = 3.4e-6 <= 0.001 x 5,000 / 10^6 = 5e-6) it is kept, and 500 noise
+    Gaussians at 2 sigma beside them do not pull the level down to themselves."""
+    _, _, control = _setup([[0.0, 0.0, 0.0]])
+    control.length_scale = 0.01
+    fw = control.significance_threshold()
+    assert control.discovery_threshold(torch.tensor([4.5])) == pytest.approx(fw)
+    many = torch.cat([torch.full((5000,), 4.5), torch.full((500,), 2.0)])
+    assert control.discovery_threshold(many) == pytest.approx(4.5)
+    assert control.discovery_threshold(torch.full((5000,), 30.0)) == pytest.approx(fw)  # capped at family-wise
