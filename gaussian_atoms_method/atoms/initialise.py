@@ -21,7 +21,12 @@ already shows where the mass is, so we start there:
    6,679-atom Au series (limited tilts, noise 200) every atom's smoothed back-projection
    stands at least 19.5 noise standard deviations high; the level is about 5, and 9,980
    maxima clear it (the rest are the missing wedge's streaks of the atoms themselves, which
-   the fit prunes).
+   the fit prunes).  So the maxima above the level are then accepted CLEAN-style
+   (:func:`~gaussian_atoms_method.atoms.point_response.clean_peaks`): strongest first, each
+   judged on its value less the responses of the atoms accepted before it.  On the Au series at
+   noise 500 that keeps 6,828 of 7,231 maxima, halves the candidates with no atom within
+   0.75 Å (753 -> 373), and keeps the recall (0.9672 -> 0.9659): a surplus candidate on an
+   atom's ridge becomes a second Gaussian that shares the atom and is lost with it.
 
 Measured recall (a candidate within 1.2 Å of every true atom, 10,000 candidates, Au limited,
 Lobato potentials): 1.000 at noise 50, 0.9998 at noise 200, 0.994 at noise 500; the ramp
@@ -50,6 +55,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from gaussian_atoms_method.atoms.peaks import local_maxima, random_field_threshold, suppress_within
+from gaussian_atoms_method.atoms.point_response import clean_peaks, point_response
 from gaussian_atoms_method.physics.noise import noise_from_projections
 from gaussian_atoms_method.physics.reconstruction import reconstruct
 
@@ -143,6 +149,9 @@ def backprojection_candidates(
         sample, scale = backprojected_noise(projections, angles_deg, pixel_size_A, tilt_axis, smoothing_A, device)
         level = random_field_threshold(sample, false_alarm_rate, data.size) * float(sample.std()) * scale
         positions = positions[data[tuple(positions.T)] > level] if len(positions) else positions
+        if len(positions):  # one candidate per atom, not one per maximum of its ridge (step 3)
+            response, centre = point_response(projections.shape, angles_deg, pixel_size_A, smoothing_A, tilt_axis, centre_px, smoothing_A, tilt_axis_angle_deg, device)
+            positions = positions[clean_peaks(positions, data[tuple(positions.T)], response, centre, level)[0]]
     positions = positions[:cap]
     if shoulders and smoothing_A > 0 and (cap is None or len(positions) < cap):
         laplacian = -ndimage.gaussian_laplace(volume.data, sigma_vox)

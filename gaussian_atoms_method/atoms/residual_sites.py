@@ -18,7 +18,7 @@ of the residuals gathers those into a peak at the atom.  So, like the start
 4. the back-projection of one atom is not one peak: a limited tilt range and the filter give it
    side lobes that read as sites of their own (six beside one missing Au atom at a
    peak-to-noise of 40).  So the sites are taken strongest first, CLEAN-style: each accepted
-   site's response (:func:`point_response`, the smoothed FBP of an atom at the tilt centre,
+   site's response (:func:`~.point_response.point_response`, the smoothed FBP of an atom at the tilt centre,
    shifted) is taken off the values of the sites not yet visited, which must still clear the
    level.  Then, at least ``min_distance_A`` apart and from every existing Gaussian
    (1 Å: closer than the shortest bond of any material, C-C 1.42 Å, so a missing neighbour
@@ -37,6 +37,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from gaussian_atoms_method.atoms.peaks import local_maxima, random_field_threshold, suppress_within
+from gaussian_atoms_method.atoms.point_response import clean_peaks, point_response
 from gaussian_atoms_method.physics.reconstruction import reconstruct
 
 
@@ -89,33 +90,10 @@ def unexplained_sites(
     kept = suppress_within(peaks * volume.spacing_A, order, min_distance_A)
     peaks, values = peaks[kept], values[kept]
     response, centre = point_response(residuals.shape, angles_deg, pixel_size_A, sigma_A, tilt_axis, centre_px, smoothing_A, tilt_axis_angle_deg, device)
-    accepted, amounts = [], []
-    for i in range(len(peaks)):
-        value = values[i]
-        if accepted:  # what the accepted sites' responses put here
-            offsets = peaks[i] - peaks[accepted] + centre
-            inside = np.all((offsets >= 0) & (offsets < np.array(response.shape)), axis=1)
-            value -= float(np.dot(np.asarray(amounts)[inside], response[tuple(offsets[inside].T)]))
-        if value > level:
-            accepted.append(i)
-            amounts.append(value)
+    accepted, amounts = clean_peaks(peaks, values, response, centre, level)
     positions_A, values = volume.index_to_A(peaks[accepted]), np.asarray(amounts, dtype=np.float64)
     if len(existing_A):
         distance, _ = cKDTree(np.asarray(existing_A, dtype=np.float64)).query(positions_A)
         positions_A, values = positions_A[distance > min_distance_A], values[distance > min_distance_A]
     return positions_A, values * (2 * math.pi * (sigma_A**2 + smoothing_A**2)) ** 1.5
 
-
-def point_response(shape, angles_deg, pixel_size_A: float, sigma_A: float, tilt_axis="y", centre_px=None, smoothing_A: float = 0.5, tilt_axis_angle_deg: float = 0.0, device: str = "cpu"):
-    """The smoothed Hann-filtered back-projection of one Gaussian atom of width ``sigma_A`` at
-    the tilt centre, in the geometry of a tilt series of ``shape`` (N, H, W), scaled to 1 at its
-    peak; returns it and the (3,) voxel index of the peak.  A point at the tilt centre projects
-    to the centre pixel in every view, so its projections are one 2D Gaussian repeated."""
-    n, h, w = shape
-    ci, cj = ((h - 1) / 2, (w - 1) / 2) if centre_px is None else centre_px
-    rows, cols = np.arange(h)[:, None] - ci, np.arange(w)[None, :] - cj
-    image = np.exp(-(rows**2 + cols**2) / (2 * (sigma_A / pixel_size_A) ** 2))
-    volume = reconstruct(np.repeat(image[None], n, axis=0), angles_deg, pixel_size_A, "fbp", tilt_axis, centre_px, filter_name="hann", device=device, tilt_axis_angle_deg=tilt_axis_angle_deg)
-    data = ndimage.gaussian_filter(volume.data, smoothing_A / volume.spacing_A)
-    centre = np.array(np.unravel_index(int(np.argmax(data)), data.shape))
-    return data / data[tuple(centre)], centre
