@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 from scipy import ndimage
+from scipy.spatial import cKDTree
 
 from gaussian_atoms_method.physics.reconstruction import reconstruct
 
@@ -58,17 +59,24 @@ def clean_peaks(peaks: np.ndarray, values: np.ndarray, response: np.ndarray, cen
     accepted : (K,) int array, indices into ``peaks``
     amounts : (K,) array, their values after the subtraction
     """
-    accepted = np.zeros(len(peaks), dtype=np.int64)
+    accepted = np.zeros(len(peaks), dtype=bool)
     amounts = np.zeros(len(peaks))
     shape = np.array(response.shape)
-    k = 0
+    if len(peaks) == 0:
+        return np.zeros(0, dtype=np.int64), amounts
+    # Only peaks within the response's box can take anything off one another: the neighbours
+    # of each from one k-d tree query, instead of every accepted peak (20,000 atoms: 17 s).
+    reach = float(np.linalg.norm(np.maximum(centre, shape - 1 - centre)))
+    neighbours = cKDTree(peaks).query_ball_point(peaks, reach)
     for i in range(len(peaks)):
         value = float(values[i])
-        if k:
-            offsets = peaks[i] - peaks[accepted[:k]] + centre
+        near = np.asarray(neighbours[i], dtype=np.int64)
+        near = near[accepted[near]]
+        if len(near):
+            offsets = peaks[i] - peaks[near] + centre
             inside = np.all((offsets >= 0) & (offsets < shape), axis=1)
-            value -= float(np.dot(amounts[:k][inside], response[tuple(offsets[inside].T)]))
+            value -= float(np.dot(amounts[near][inside], response[tuple(offsets[inside].T)]))
         if value > level:
-            accepted[k], amounts[k] = i, value
-            k += 1
-    return accepted[:k], amounts[:k]
+            accepted[i], amounts[i] = True, value
+    index = np.nonzero(accepted)[0]
+    return index, amounts[index]

@@ -114,13 +114,6 @@ class DensityControl:
     grad_count: int = 0
     born: torch.Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.long))
     """(N,) step at which each Gaussian was made (0 for the start); fresh ones are not merged."""
-    added: torch.Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.bool))
-    """(N,) placed where the residuals held significant unexplained mass (:meth:`add`): evidence
-    enough to stay until the final prune judges them with the rest.  On disordered carbon (C-C
-    1.45 Å) the fit can hold two bonded atoms in one Gaussian between them; a Gaussian added at
-    the missed atom must take its mass from that one, which takes more than a refine interval:
-    396 of 405 added went at the next training prune, and with 300 steps of protection 219 of
-    229 did (TPR 0.941 both); left to the final prune, 0.966 at 0.006 false per atom."""
     step: int = 0
     residual_clean: bool = False
     """A residual check found nothing to add: the later ones are skipped."""
@@ -148,8 +141,6 @@ class DensityControl:
         Gaussians (a strategy handed parameters it did not make)."""
         if self.born.shape[0] != n:
             self.born = torch.zeros(n, dtype=torch.long)
-        if self.added.shape[0] != n:
-            self.added = torch.zeros(n, dtype=torch.bool)
         return self.born
 
     def remap(self, params: Params, optimizers: Optimizers, src, dst, n_out: int, new_values=None, param_lists=None) -> None:
@@ -161,7 +152,6 @@ class DensityControl:
         src, dst = src.cpu(), dst.cpu()
         self.grad_accum = torch.zeros(n_out, 3).index_add_(0, dst, self.grad_accum[src])
         self.born = torch.zeros(n_out, dtype=torch.long).scatter_reduce_(0, dst, self._births(n_in)[src], reduce="amax", include_self=False)
-        self.added = torch.zeros(n_out, dtype=torch.bool).index_put_((dst,), self.added[src], accumulate=True)
 
     # ------------------------------------------------------------------ called by the training loop
     @torch.no_grad()
@@ -200,7 +190,6 @@ class DensityControl:
         the result holds one Gaussian per atom; returns how many Gaussians went (the model
         refits when any did)."""
         self.born = torch.zeros_like(self.born)  # at the end every Gaussian is judged
-        self.added = torch.zeros_like(self.added)
         removed = self.merge_unresolved(params, optimizers, param_lists) if self.cluster_merge else 0
         removed += self.prune(params, optimizers, param_lists, final=True)
         if self.cluster_merge:
@@ -287,7 +276,6 @@ class DensityControl:
                 if torch.is_tensor(value) and value.dim() > 0 and value.shape[0] == n + k:
                     value[n:] = 0
         self.born[n:] = self.step
-        self.added[n:] = True
         return k
 
     @torch.no_grad()
@@ -445,8 +433,6 @@ class DensityControl:
             z = self.mass_significance(params)
             keep &= z >= (self.discovery_threshold(z) if final else TRAINING_SIGNIFICANCE)
             keep |= self.fresh(params["means"].shape[0]).to(sigmas.device)
-            if not final:
-                keep |= self.added.to(sigmas.device)
         keep &= sigmas <= self.max_atom_sigma_A * self.length_scale
         inside = (params["means"].abs() <= 0.5).all(dim=-1)
         self.pruned_outside += int((~inside).sum())
