@@ -274,4 +274,3 @@ def test_discovery_level_drops_with_many_atoms_and_never_exceeds_the_family_wise
     many = torch.cat([torch.full((5000,), 4.5), torch.full((500,), 2.0)])
     assert control.discovery_threshold(many) == pytest.approx(4.5)
     assert control.discovery_threshold(torch.full((5000,), 30.0)) == pytest.approx(fw)  # capped at family-wise
-
