@@ -25,7 +25,7 @@ class Simulate:
     output: Path = Path("data/sim")
     """Directory to write (tilt_series.json, projections.npy, angles.txt, atoms_true.xyz)."""
     particle: str = "au"
-    """au, fept, apd, hea, sphere (an fcc sphere of --element, --radius-A) or a structure file."""
+    """au, fept, apd, hea, carbon, asi, sphere (an fcc sphere of --element, --radius-A) or a structure file."""
     scale: Optional[float] = None
     """Linear size factor (atom count ~ scale^3) for small versions of the named particles (default 1)."""
     element: Optional[str] = None
