@@ -274,3 +274,32 @@ def test_discovery_level_drops_with_many_atoms_and_never_exceeds_the_family_wise
     many = torch.cat([torch.full((5000,), 4.5), torch.full((500,), 2.0)])
     assert control.discovery_threshold(many) == pytest.approx(4.5)
     assert control.discovery_threshold(torch.full((5000,), 30.0)) == pytest.approx(fw)  # capped at family-wise
+
+
+def test_a_weak_atom_a_bond_away_is_not_merged_into_its_neighbour():
+    """A cubic grid of atoms 2.5 Å apart (their shortest bond, read from them), 0.7 Å wide and 6
+    sigma strong (Au at noise 500), with one weak atom among them at 3.65 sigma and a weak
+    fragment 1.2 Å from an atom along the wedge.  The chi-square test alone cannot resolve the
+    weak atom from its neighbours 2.5 Å away; two atoms are never closer than the bond, so the
+    unresolved merge takes only the fragment and leaves the weak atom where it is (for the
+    prune to judge)."""
+    grid = [[0.025 * i, 0.025 * j, 0.025 * k] for i in range(3) for j in range(3) for k in range(3)]
+    params, opts, control = _setup(grid + [[0.0, 0.0, 0.012]], sigma_A=0.007, min_sigma_A=0.01)
+    control.length_scale = 0.01
+    dirs = _tilt_series_dirs()
+    _with_noise(control, pixel_size=0.0025, n_views=len(dirs), view_dirs=dirs)
+    control.efficiency = math.pi / 2
+    z_unit = float(control.mass_significance(params)[0])
+    with torch.no_grad():
+        params["log_amplitudes"][:] = math.log(6.0 / z_unit)
+        params["log_amplitudes"][13] = math.log(3.65 / z_unit)  # the middle atom: weak
+        params["log_amplitudes"][27] = math.log(3.65 / z_unit)  # the fragment, 1.2 Å from atom 0
+    z = control.mass_significance(params)
+    weak = z < control.significance_threshold()
+    assert weak.tolist() == [i in (13, 27) for i in range(28)]
+    untested = control.unresolved_pairs(params, torch.ones(28, dtype=torch.bool), weak)
+    assert any(13 in pair for pair in untested.tolist())  # the test alone would merge it
+    assert control.shortest_bond(params["means"], ~weak) == pytest.approx(0.025, rel=1e-12)
+    assert control.merge_unresolved(params, opts) == 1  # the fragment only
+    assert params["means"].shape[0] == 27
+    assert float((params["means"] - torch.tensor([0.025, 0.025, 0.025], dtype=torch.float64)).norm(dim=-1).min()) < 1e-12

@@ -343,14 +343,15 @@ class DensityControl:
         return self.noise is not None and self.pixel_size > 0 and self.n_views > 0
 
     @torch.no_grad()
-    def unresolved_pairs(self, params: Mapping[str, torch.Tensor], mergeable: torch.Tensor, weak: torch.Tensor | None = None) -> np.ndarray:
+    def unresolved_pairs(self, params: Mapping[str, torch.Tensor], mergeable: torch.Tensor, weak: torch.Tensor | None = None, max_separation: float = math.inf) -> np.ndarray:
         """(K, 2) pairs of mergeable Gaussians the data cannot tell from one (:mod:`..atoms.resolution`):
         turning the pair into one Gaussian changes the projections by less chi-square (the
         pixels' noise variance from :meth:`pixel_variance` at the merged Gaussian, divided by
         the efficiency) than a noise-fitted pair gains, the chi-square quantile with 5 degrees
         of freedom (the pair's ten parameters against the merged one's five) at the family-wise
         rate of :meth:`significance_threshold`.  With ``weak`` (N,) bool, only pairs with a weak
-        member.  Least resolved first; empty without a noise model or view directions."""
+        member; only pairs closer than ``max_separation`` (normalised).  Least resolved first;
+        empty without a noise model or view directions."""
         if not self.noise_known() or self.view_dirs is None or int(mergeable.sum()) < 2:
             return np.zeros((0, 2), dtype=np.int64)
         from scipy.stats import chi2
@@ -360,6 +361,7 @@ class DensityControl:
         mass = gaussian_mass(torch.as_tensor(sigmas), amplitudes(params).detach().double().cpu()[idx]).numpy()
         pos = params["means"].detach().double().cpu().numpy()[idx]
         pairs = candidate_pairs(pos, sigmas)
+        pairs = pairs[np.linalg.norm(pos[pairs[:, 0]] - pos[pairs[:, 1]], axis=1) < max_separation]
         if weak is not None:
             weak_idx = weak.cpu().numpy()[idx]
             pairs = pairs[weak_idx[pairs[:, 0]] | weak_idx[pairs[:, 1]]]
@@ -460,17 +462,37 @@ class DensityControl:
         resolved first (:func:`..atoms.merge.disjoint_pair_labels`), then the test again on the
         merged Gaussians.  Never by connected components: at Au noise 500 chains of unresolved
         links through the fragments between atoms merged whole neighbourhoods (TPR 0.61).
-        ``max_rounds`` 4 rejoins an atom shared by up to 16 Gaussians."""
+        ``max_rounds`` 4 rejoins an atom shared by up to 16 Gaussians.
+
+        Two atoms are never closer than the material's shortest bond, read from the data
+        (:meth:`shortest_bond`): a pair farther apart is left to the prune, whatever the test
+        says.  At Au noise 500 a weak atom next to a neighbour 2.3-2.9 Å away can be as hard to
+        resolve as an atom shared along the wedge (1.0-2.2 Å); without the bond the merge took
+        2.5% of the atoms, with it TPR 0.9728 -> 0.9787 and false atoms 0.0250 -> 0.0222 per atom."""
         removed = 0
         for _ in range(max_rounds):
             means = params["means"]
             atom_like = (widths(params, self.min_log_sigma) <= self.max_atom_sigma_A * self.length_scale) & (means.abs() <= 0.5).all(dim=-1)
-            weak = self.mass_significance(params) < self.significance_threshold()
-            pairs = self.unresolved_pairs(params, atom_like.cpu(), weak.cpu())
+            z = self.mass_significance(params)
+            weak = z < self.significance_threshold()
+            pairs = self.unresolved_pairs(params, atom_like.cpu(), weak.cpu(), self.shortest_bond(means, ~weak & atom_like))
             if len(pairs) == 0:
                 break
             removed += self._merge_labels(params, optimizers, *disjoint_pair_labels(means.shape[0], pairs), param_lists)
         return removed
+
+    def shortest_bond(self, means: torch.Tensor, strong: torch.Tensor) -> float:
+        """The 5th percentile of the nearest-neighbour distances among the ``strong`` (N,) bool
+        Gaussians (normalised): the material's shortest bond as the data show it (Au 2.25 Å at
+        noise 500; C-C 1.4 Å).  A low percentile, not the minimum: a few strong fragments of
+        atoms sit closer.  Infinite with fewer than 20 strong Gaussians (too few to read it)."""
+        pos = means.detach()[strong.to(means.device)].double().cpu().numpy()
+        if len(pos) < 20:
+            return math.inf
+        from scipy.spatial import cKDTree
+
+        distance, _ = cKDTree(pos).query(pos, k=2)
+        return float(np.percentile(distance[:, 1], 5))
 
     def _merge_labels(self, params: Params, optimizers: Optimizers, labels: np.ndarray, n_clusters: int, param_lists=None) -> int:
         """Replace each labelled cluster by one Gaussian (mass-weighted, :func:`..atoms.merge.merged_values`)."""
