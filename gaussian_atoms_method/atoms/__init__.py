@@ -2,7 +2,10 @@
 
 * :mod:`.atom_set`: :class:`AtomSet` (positions, widths and amplitudes in Å) and its files;
 * :mod:`.initialise`: candidate atoms from a smoothed back-projection (the start);
+* :mod:`.point_response`: one atom's smoothed back-projection, and peaks taken CLEAN-style;
+* :mod:`.residual_sites`: where the residuals hold mass no Gaussian explains;
 * :mod:`.merge`: the cluster merge (minimum-distance prior) as pure array functions;
+* :mod:`.resolution`: whether the data tell two nearby Gaussians from one (the merge's chi-square);
 * :mod:`.matching`: matching predicted to true atoms and the paper's scores;
 * :mod:`.peaks`: local maxima of a volume and their suppression within a distance;
 * :mod:`.species`: species from integrated masses;
