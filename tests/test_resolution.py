@@ -57,3 +57,12 @@ def test_candidate_pairs_within_three_combined_widths():
     assert sorted(map(tuple, candidate_pairs(positions, sigmas).tolist())) == [(0, 1), (0, 2), (1, 2)]
     sigmas = np.array([0.4, 0.4, 0.4])
     assert candidate_pairs(positions, sigmas).tolist() == [[0, 1]]
+
+
+def test_merge_energy_in_chunks_equals_all_at_once():
+    rng = np.random.default_rng(0)
+    positions, sigmas, masses = rng.normal(size=(40, 3)), rng.uniform(0.3, 0.7, 40), rng.uniform(0.5, 2.0, 40)
+    pairs = np.array([(i, j) for i in range(40) for j in range(i + 1, 40)])
+    dirs = rng.normal(size=(9, 3))
+    whole = merge_energy(positions, sigmas, masses, pairs, dirs, chunk=len(pairs))
+    assert np.array_equal(merge_energy(positions, sigmas, masses, pairs, dirs, chunk=100), whole)

@@ -59,6 +59,7 @@ from gaussian_atoms_method.atoms.point_response import clean_peaks, point_respon
 from gaussian_atoms_method.physics.noise import noise_from_projections
 from gaussian_atoms_method.physics.reconstruction import reconstruct
 
+
 def backprojected_noise(projections: np.ndarray, angles_deg: np.ndarray, pixel_size_A: float, tilt_axis: str, smoothing_A: float,
                         device: str = "cpu", seed: int = 0, size_px: int = 64) -> tuple[np.ndarray, float]:  # fmt: skip
     """A sample of the smoothed Hann back-projection of the projections' noise alone: the
@@ -140,7 +141,6 @@ def backprojection_candidates(
     """
     if max_count is not None and max_count <= 0:
         return (np.zeros((0, 3)), np.zeros(0)) if return_values else np.zeros((0, 3))
-    cap = max_count if max_count is not None else None
     volume = reconstruct(projections, angles_deg, pixel_size_A, "fbp", tilt_axis, centre_px, filter_name="hann", device=device, tilt_axis_angle_deg=tilt_axis_angle_deg)
     sigma_vox = smoothing_A / volume.spacing_A
     data = ndimage.gaussian_filter(volume.data, sigma_vox) if smoothing_A > 0 else volume.data
@@ -150,17 +150,17 @@ def backprojection_candidates(
         level = random_field_threshold(sample, false_alarm_rate, data.size) * float(sample.std()) * scale
         positions = positions[data[tuple(positions.T)] > level] if len(positions) else positions
         if len(positions):  # one candidate per atom, not one per maximum of its ridge (step 3)
-            response, centre = point_response(projections.shape, angles_deg, pixel_size_A, smoothing_A, tilt_axis, centre_px, smoothing_A, tilt_axis_angle_deg, device)
+            response, centre = point_response(projections.shape, angles_deg, pixel_size_A, smoothing_A, tilt_axis, smoothing_A, tilt_axis_angle_deg, device)
             positions = positions[clean_peaks(positions, data[tuple(positions.T)], response, centre, level)[0]]
-    positions = positions[:cap]
-    if shoulders and smoothing_A > 0 and (cap is None or len(positions) < cap):
+    positions = positions[:max_count]
+    if shoulders and smoothing_A > 0 and (max_count is None or len(positions) < max_count):
         laplacian = -ndimage.gaussian_laplace(volume.data, sigma_vox)
         extra = _separated_maxima(laplacian, volume.spacing_A, min_distance_A)
         if len(positions) and len(extra):
             distance, _ = cKDTree(positions * volume.spacing_A).query(extra * volume.spacing_A)
             strong = np.percentile(laplacian[tuple(positions.T)], 90)
             extra = extra[(distance > min_distance_A) & (laplacian[tuple(extra.T)] >= shoulder_strength * strong)]
-        positions = np.concatenate([positions, extra])[:cap]
+        positions = np.concatenate([positions, extra])[:max_count]
     positions_A = volume.index_to_A(positions)
     return (positions_A, data[tuple(positions.T)]) if return_values else positions_A
 

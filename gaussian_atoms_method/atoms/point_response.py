@@ -19,14 +19,14 @@ from scipy.spatial import cKDTree
 from gaussian_atoms_method.physics.reconstruction import reconstruct
 
 
-def point_response(shape, angles_deg, pixel_size_A: float, sigma_A: float, tilt_axis="y", centre_px=None, smoothing_A: float = 0.5, tilt_axis_angle_deg: float = 0.0, device: str = "cpu", half_width_A: float = 10.0):
+def point_response(shape, angles_deg, pixel_size_A: float, sigma_A: float, tilt_axis="y", smoothing_A: float = 0.5, tilt_axis_angle_deg: float = 0.0, device: str = "cpu", half_width_A: float = 10.0):
     """The smoothed Hann-filtered back-projection of one Gaussian atom of width ``sigma_A`` at
     the tilt centre, in the geometry of a tilt series of ``shape`` (N, H, W), scaled to 1 at its
     peak; returns it and the (3,) voxel index of the peak.  A point at the tilt centre projects
     to the centre pixel in every view, so its projections are one 2D Gaussian repeated.
 
-    The detector is cut to ``half_width_A`` about the centre (``centre_px`` then only says the
-    detector is the series'): the response of a point is the same wherever it sits, and past
+    The detector is cut to ``half_width_A`` about its middle (so the series' own tilt centre
+    does not enter): the response of a point is the same wherever it sits, and past
     10 Å (20 widths of a blurred atom) only the missing wedge's faint streaks remain, which
     :func:`clean_peaks` may ignore (it subtracts less, so keeps more).  The full 280-pixel Au
     detector took seconds of start-up; 81 pixels, a fraction of one."""

@@ -89,9 +89,9 @@ def unexplained_sites(
     order = np.argsort(-values, kind="stable")
     kept = suppress_within(peaks * volume.spacing_A, order, min_distance_A)
     peaks, values = peaks[kept], values[kept]
-    response, centre = point_response(residuals.shape, angles_deg, pixel_size_A, sigma_A, tilt_axis, centre_px, smoothing_A, tilt_axis_angle_deg, device)
-    accepted, amounts = clean_peaks(peaks, values, response, centre, level)
-    positions_A, values = volume.index_to_A(peaks[accepted]), np.asarray(amounts, dtype=np.float64)
+    response, centre = point_response(residuals.shape, angles_deg, pixel_size_A, sigma_A, tilt_axis, smoothing_A, tilt_axis_angle_deg, device)
+    accepted, values = clean_peaks(peaks, values, response, centre, level)
+    positions_A = volume.index_to_A(peaks[accepted])
     if len(existing_A):
         distance, _ = cKDTree(np.asarray(existing_A, dtype=np.float64)).query(positions_A)
         positions_A, values = positions_A[distance > min_distance_A], values[distance > min_distance_A]

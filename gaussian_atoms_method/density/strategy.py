@@ -365,10 +365,9 @@ class DensityControl:
         if weak is not None:
             weak_idx = weak.cpu().numpy()[idx]
             pairs = pairs[weak_idx[pairs[:, 0]] | weak_idx[pairs[:, 1]]]
-        dirs = self.view_dirs.detach().double().cpu().numpy()
-        cost = np.concatenate([np.zeros(0)] + [merge_energy(pos, sigmas, mass, pairs[k : k + 4096], dirs) for k in range(0, len(pairs), 4096)])
         if len(pairs) == 0:
             return pairs
+        cost = merge_energy(pos, sigmas, mass, pairs, self.view_dirs.detach().double().cpu().numpy())
         _, s_c = merged_moments(pos, sigmas, mass, pairs)
         chi_square = cost / (self.pixel_size**2 * self.efficiency * self.pixel_variance(mass[pairs].sum(axis=1), s_c))
         level = chi2.isf(self.false_alarm_rate / self.cells(), df=5)
