@@ -79,3 +79,29 @@ def test_without_a_cap_the_count_follows_the_data():
     for seed in (1, 2, 3):
         noise = np.random.default_rng(seed).normal(0.0, 20.0, sim.projections.shape)
         assert len(backprojection_candidates(noise, sim.angles_deg, sim.pixel_size_A, shoulders=False)) <= 1
+
+
+def test_fine_scale_candidates_resolve_bonded_carbon():
+    """Disordered carbon (1.49 Å bonds, Lobato potentials, 0.32 Å pixels, tilts -72:4:72,
+    noise 20): two bonded atoms are one peak of the 0.5 Å matched filter, and the 0.5 Å
+    Laplacian's shoulders are within 1 Å of that peak.  Step 5 (the Laplacian at one voxel,
+    cut at its own noise level) seats the neighbour: recall within 0.75 Å 0.913 -> 0.951 on
+    this 448-atom sphere (measured), for 17 more candidates; the earlier steps' candidates come
+    first and unchanged."""
+    from gaussian_atoms_method.harness.particles import make_particle
+    from gaussian_atoms_method.harness.simulate import simulate_tilt_series
+
+    atoms = make_particle("carbon", 0.4, 0)
+    sim = simulate_tilt_series(atoms, parse_tilts("-72:4:72"), "lobato", noise_std=20.0, seed=1, pixel_size_A=0.32)
+    args = (sim.projections, sim.angles_deg, sim.pixel_size_A)
+    before = backprojection_candidates(*args, fine_scale_A=0)
+    after = backprojection_candidates(*args)
+    np.testing.assert_allclose(after[: len(before)], before)
+    assert 0 < len(after) - len(before) < 0.1 * len(atoms)
+
+    def recall(cand):
+        return np.mean(cKDTree(cand).query(atoms.positions)[0] < 0.75)
+
+    assert recall(before) < 0.93
+    assert recall(after) >= 0.94
+    assert cKDTree(after).query(after, k=2)[0][:, 1].min() > 1.0  # still min_distance_A apart
