@@ -289,8 +289,17 @@ class DensityControl:
         most of the mass, and the prune then removed every atom.
         """
         sigmas = widths(params, self.min_log_sigma)
-        atom_like = sigmas <= self.max_atom_sigma_A * self.length_scale
+        atom_like = self.atom_width(sigmas)
         return typical_mass(gaussian_mass(sigmas, amplitudes(params))[atom_like])
+
+    def atom_width(self, sigmas: torch.Tensor) -> torch.Tensor:
+        """(N,) bool: no wider than ``max_atom_sigma_A`` (the widest an atom can be)."""
+        return sigmas <= self.max_atom_sigma_A * self.length_scale
+
+    @staticmethod
+    def inside(means: torch.Tensor) -> torch.Tensor:
+        """(N,) bool: inside the reconstruction volume [-0.5, 0.5]^3 (normalised units)."""
+        return (means.abs() <= 0.5).all(dim=-1)
 
     def set_noise(self, noise, floor: float, pixel_size: float, n_views: int, data_term: str, view_dirs: torch.Tensor | None = None) -> None:
         """The measured noise (normalised units) the prune judges masses against, the floor the
@@ -434,8 +443,8 @@ class DensityControl:
             z = self.mass_significance(params)
             keep &= z >= (self.discovery_threshold(z) if final else TRAINING_SIGNIFICANCE)
             keep |= self.fresh(params["means"].shape[0]).to(sigmas.device)
-        keep &= sigmas <= self.max_atom_sigma_A * self.length_scale
-        inside = (params["means"].abs() <= 0.5).all(dim=-1)
+        keep &= self.atom_width(sigmas)
+        inside = self.inside(params["means"])
         self.pruned_outside += int((~inside).sum())
         self.pruned_outside_atom_like += int((keep & ~inside).sum())
         keep &= inside
@@ -471,7 +480,7 @@ class DensityControl:
         removed = 0
         for _ in range(max_rounds):
             means = params["means"]
-            atom_like = (widths(params, self.min_log_sigma) <= self.max_atom_sigma_A * self.length_scale) & (means.abs() <= 0.5).all(dim=-1)
+            atom_like = self.atom_width(widths(params, self.min_log_sigma)) & self.inside(means)
             z = self.mass_significance(params)
             weak = z < self.significance_threshold()
             pairs = self.unresolved_pairs(params, atom_like.cpu(), weak.cpu(), self.shortest_bond(means, ~weak & atom_like))
