@@ -61,3 +61,24 @@ def test_fit_error_proportional_to_the_signal_is_not_taken_for_poisson_noise():
     model = fit_noise_model(residuals, mean)
     assert model.kind == "additive" and model.read_var == pytest.approx(400.0, rel=0.05)
     assert model.misfit == pytest.approx(0.05**2, rel=0.15)
+
+
+def test_noise_read_from_scaled_data_is_the_scaled_model():
+    """The model reads the noise once, from the normalised projections (the input times
+    ``data_scale``); the start uses it in the input's units (``NoiseModel.scaled``).  The reading
+    is scale-equivariant (variances scale as the square, the gain and the offset as the data),
+    so the scaled model equals the one read from the input itself, to float rounding; the
+    misfit, a relative variance, does not change."""
+    from gaussian_atoms_method.physics.noise import noise_from_projections
+
+    rng = np.random.default_rng(3)
+    lam = np.broadcast_to(np.linspace(2, 60, 48), (6, 48, 48))  # smooth: the reading's local mean follows it
+    counts = 0.8 * rng.poisson(lam) + rng.normal(0, 1.5, lam.shape)
+    raw = noise_from_projections(counts)
+    scale = 256.0 / np.abs(counts).max()
+    back = noise_from_projections(counts * scale).scaled(1.0 / scale)
+    assert raw.kind == back.kind == "mixed"
+    for name in ("read_var", "gain", "offset", "read_var_se", "gain_se", "misfit"):
+        assert getattr(back, name) == pytest.approx(getattr(raw, name), rel=1e-9, abs=1e-12)
+    v = np.linspace(0, 50, 11)
+    np.testing.assert_allclose(raw.scaled(scale).variance(v * scale), raw.variance(v) * scale**2, rtol=1e-12)

@@ -91,18 +91,20 @@ the carbon gains stayed (start recall 0.9861 and 0.9604)."""
 
 
 def backprojected_noise(projections: np.ndarray, angles_deg: np.ndarray, pixel_size_A: float, tilt_axis: str,
-                        device: str = "cpu", seed: int = 0, size_px: int = 64) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+                        device: str = "cpu", seed: int = 0, size_px: int = 64, noise=None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """A sample of the Hann back-projection of the projections' noise alone: the volume of unit
     white noise on a ``size_px`` detector of the same pixels and tilts, and the (V, H, W) noise
     variance of each pixel of the projections, which scales it (:func:`noise_level` filters the
     sample as the data are filtered and reads the level).
 
     The noise is read from the projections (:func:`gaussian_atoms_method.physics.noise.noise_from_projections`:
-    additive, Poisson or both; each pixel's variance at its smoothed value).  A parallel-beam
+    additive, Poisson or both; each pixel's variance at its smoothed value), unless ``noise``
+    (a :class:`~gaussian_atoms_method.physics.noise.NoiseModel` in the projections' units)
+    gives it.  A parallel-beam
     back-projection of stationary noise is stationary, so the small detector gives the spread
     (and the smoothness) of the full one's noise at a fraction of the cost."""
     p = np.asarray(projections, dtype=np.float64)
-    noise = noise_from_projections(p)
+    noise = noise_from_projections(p) if noise is None else noise
     variance = np.clip(noise.variance(ndimage.gaussian_filter(p, (0, 2.0, 2.0))), 0.0, None)
     h, w = min(size_px, p.shape[1]), min(size_px, p.shape[2])
     draw = np.random.default_rng(seed).standard_normal((p.shape[0], h, w))
@@ -138,6 +140,7 @@ def backprojection_candidates(
     false_alarm_rate: float = 0.05,
     fine_scale_A: float | None = None,
     fine_min_distance_A: float = 0.7,
+    noise=None,
 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Candidate atom positions, strongest first.
 
@@ -175,6 +178,8 @@ def backprojection_candidates(
     fine_scale_A : float, optional
         Scale of step 5's Laplacian of Gaussian, Å; default one voxel (the detector pixel);
         0: no step 5.
+    noise : NoiseModel, optional
+        The projections' noise in their units, if already read (else read here).
     fine_min_distance_A : float
         Step 5's maxima lie more than this far from each other and from every candidate, Å
         (0.7: half the shortest bond, C-C 1.42 Å; step 5 says why not ``min_distance_A``).
@@ -194,7 +199,7 @@ def backprojection_candidates(
     data = ndimage.gaussian_filter(volume.data, sigma_vox) if smoothing_A > 0 else volume.data
     positions = _separated_maxima(data, volume.spacing_A, min_distance_A)
     if max_count is None:  # as many as stand above the back-projected noise
-        sample, variance = backprojected_noise(projections, angles_deg, pixel_size_A, tilt_axis, device)
+        sample, variance = backprojected_noise(projections, angles_deg, pixel_size_A, tilt_axis, device, noise=noise)
         level = noise_level(sample, math.sqrt(float(variance.mean())), lambda v: ndimage.gaussian_filter(v, sigma_vox) if smoothing_A > 0 else v, false_alarm_rate, data.size)
         positions = positions[data[tuple(positions.T)] > level] if len(positions) else positions
         if len(positions):  # one candidate per atom, not one per maximum of its ridge (step 3)
@@ -233,7 +238,7 @@ def _separated_maxima(data: np.ndarray, spacing_A: float, min_distance_A: float,
 
 
 def starting_positions(
-    series, length_scale: float, count: int, extent: float, generator: torch.Generator, from_backprojection: bool = True
+    series, length_scale: float, count: int, extent: float, generator: torch.Generator, from_backprojection: bool = True, noise=None
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Where training starts: (n, 3) positions in normalised units and, for a back-projection
     start, (n,) weights of mean 1 in proportion to the smoothed back-projection there (else None).
@@ -252,12 +257,14 @@ def starting_positions(
         Side of the cube (normalised units) the random positions fill.
     generator : torch.Generator
         Draws the random positions.
+    noise : NoiseModel, optional
+        The projections' noise in the series' units, if already read.
     """
     if from_backprojection and series is not None:
         # A GPU, if there is one, does the back-projection (the model is built on the CPU).
         positions_A, values = backprojection_candidates(
             series.projections, series.angles_deg, series.pixel_size_A, series.tilt_axis, series.centre_px, None,
-            device="cuda" if torch.cuda.is_available() else "cpu", return_values=True, tilt_axis_angle_deg=series.tilt_axis_angle_deg,
+            device="cuda" if torch.cuda.is_available() else "cpu", return_values=True, tilt_axis_angle_deg=series.tilt_axis_angle_deg, noise=noise,
         )  # fmt: skip
         if len(positions_A):
             # A candidate made of noise reads about zero; a floor of 1% of the strongest keeps

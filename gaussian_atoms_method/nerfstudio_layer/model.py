@@ -37,7 +37,7 @@ from gaussian_atoms_method.nerfstudio_layer import rendering as R
 from gaussian_atoms_method.nerfstudio_layer.checkpoints import allow_numpy_scalars_in_checkpoints
 from gaussian_atoms_method.nerfstudio_layer.convergence import ConvergenceCheck
 from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions, OptionError
-from gaussian_atoms_method.nerfstudio_layer.noise_reading import read_noise
+from gaussian_atoms_method.nerfstudio_layer.noise_reading import measure_noise, read_noise
 from gaussian_atoms_method.nerfstudio_layer.refit import refit
 from gaussian_atoms_method.nerfstudio_layer.residuals import add_missing_atoms
 from gaussian_atoms_method.nerfstudio_layer.results import model_position_std_A, write_results, write_snapshot
@@ -72,7 +72,9 @@ class GaussianAtomsModel(SplatfactoCompat):
         ls, series = self.normalisation.length_scale, metadata.get("tilt_series")
         self.truth_path: Path | None = Path(metadata["truth_path"]) if metadata.get("truth_path") is not None else None
         self.generator = torch.Generator().manual_seed(cfg.seed)
-        means, weights = starting_positions(series, ls, cfg.num_random, cfg.init_extent, self.generator, cfg.init == "backprojection")
+        measured = measure_noise(metadata.get("projections"))  # read once: the start and the data term share it
+        start_noise = measured.scaled(1.0 / self.normalisation.data_scale) if measured is not None else None  # in the input's units
+        means, weights = starting_positions(series, ls, cfg.num_random, cfg.init_extent, self.generator, cfg.init == "backprojection", start_noise)
         if weights is not None:
             CONSOLE.print(f"gaussian-atoms: {len(means)} Gaussians start at back-projection maxima")
         n, sigma0 = means.shape[0], cfg.init_sigma_A * ls
@@ -90,7 +92,7 @@ class GaussianAtomsModel(SplatfactoCompat):
         self.density = DensityControl(ls, max_log_amp, self.generator, **{f.name: getattr(cfg, f.name) for f in fields(DensityControl) if hasattr(cfg, f.name)})
         self.density.reset(n)
         self.convergence = ConvergenceCheck(cfg.warmup_length, cfg.refine_every, cfg.converged_fraction)
-        self.noise_read, self.data_term, floor = read_noise(metadata.get("projections"), cfg.loss, cfg.background)
+        self.noise_read, self.data_term, floor = read_noise(metadata.get("projections"), cfg.loss, cfg.background, measured)
         self._setup_view_params(metadata, series, floor)
         if self.noise_read is not None and metadata.get("pixel_size_A"):  # the prune judges masses against this noise
             self.density.set_noise(self.noise_read, floor or 0.0, metadata["pixel_size_A"] * ls, self.view_c2w.shape[0], self.data_term, self.view_c2w[:, :3, 2])

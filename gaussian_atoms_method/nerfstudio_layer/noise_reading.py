@@ -24,14 +24,28 @@ a few per cent, the pre-fit noise model to 10-20% (:func:`~gaussian_atoms_method
 atoms reaching the frame (a film, a crowded field) add far more."""
 
 
-def read_noise(projections, loss: str, background: str) -> tuple[NoiseModel | None, str, float | None]:
+def _as_array(projections) -> np.ndarray:
+    return np.asarray(projections.detach().cpu().double() if hasattr(projections, "detach") else projections, dtype=np.float64)
+
+
+def measure_noise(projections) -> NoiseModel | None:
+    """The noise of the (V, H, W) projections as measured (:func:`~gaussian_atoms_method.physics.noise.noise_from_projections`),
+    in their units; None without data or with images under 5 x 5 pixels.  Read once: the start
+    (:mod:`gaussian_atoms_method.atoms.initialise`) and :func:`read_noise` share it."""
+    if projections is None or min(projections.shape[-2:]) < 5:
+        return None
+    return noise_from_projections(_as_array(projections))
+
+
+def read_noise(projections, loss: str, background: str, measured: NoiseModel | None = None) -> tuple[NoiseModel | None, str, float | None]:
     """The noise model of the (V, H, W) normalised projections (None without data), the data
     term to use and the detected floor (normalised units; None when the frame sits at zero or
-    ``background`` is not ``auto``).  ``loss``/``background``: the options."""
-    if projections is None or min(projections.shape[-2:]) < 5:
+    ``background`` is not ``auto``).  ``loss``/``background``: the options; ``measured``: the
+    projections' noise from :func:`measure_noise`, if already read."""
+    noise = measured if measured is not None else measure_noise(projections)
+    if noise is None:
         return None, ("l1" if loss == "auto" else loss), None
-    data = np.asarray(projections.detach().cpu().double() if hasattr(projections, "detach") else projections, dtype=np.float64)
-    noise = noise_from_projections(data)
+    data = _as_array(projections)
     term = choose_data_term(noise, float(np.percentile(data, 99.9))) if loss == "auto" else loss
     if term == "poisson" and noise.gain <= 0:
         # Forced on additive noise: the Poisson term needs a gain; one count per noise variance

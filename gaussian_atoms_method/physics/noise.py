@@ -43,6 +43,12 @@ class NoiseModel:
     misfit: float = 0.0
     """Variance per squared signal: the fit's relative error, not noise."""
 
+    def scaled(self, factor: float) -> "NoiseModel":
+        """The same noise for the data multiplied by ``factor`` (the misfit, a relative
+        variance, is unchanged)."""
+        f = float(factor)
+        return NoiseModel(self.read_var * f * f, self.gain * f, self.offset * f, self.read_var_se * f * f, self.gain_se * f, self.misfit)
+
     @property
     def kind(self) -> str:
         """"additive", "poisson" or "mixed": which terms are significantly above zero."""
