@@ -59,11 +59,12 @@ noise: the fit drives their mass down and the prune removes them.
    one maximum each closer than half a bond to the other's.  The filter's noise is higher
    than the matched filter's, so it adds only where the dose resolves the neighbour
    (its level: :data:`BRIGHT_PIXELS_PERCENTILE`).
-   Measured, start recall within 0.75 Å, then final TPR / false per atom on the H100 (before
-   -> after): carbon noise 5 0.9399 -> 0.9861, 0.9411 / 0.0001 -> 0.9870 / 0.0000; carbon
-   noise 20 0.9116 -> 0.9604, 0.9137 / 0.0020 -> 0.9621 / 0.0030; HEA noise 50 +23
-   candidates, 0.9940 / 0.0035 -> 0.9970 / 0.0025; Au noise 50 +410 candidates (surplus on
-   the missing wedge's streaks), same scores; Au noise 200 and 500, HEA noise 200: none added.
+   Measured, start recall within 0.75 Å, then final TPR / false per atom (before -> after):
+   carbon noise 5 0.9399 -> 0.9861, 0.9411 / 0.0001 -> 0.9873 / 0.0003; carbon noise 20
+   0.9116 -> 0.9604, 0.9137 / 0.0020 -> 0.9621 / 0.0030 (H100); HEA noise 50 +23 candidates,
+   0.9940 / 0.0035 -> 0.9965 / 0.0020; Au noise 50 +410 candidates (surplus on the missing
+   wedge's streaks), same scores (this CPU); Au noise 200 and 500, HEA noise 200, the aSi-208
+   counts: none added (docs/results.md).
 """
 
 from __future__ import annotations
@@ -77,7 +78,7 @@ from scipy.spatial import cKDTree
 
 from gaussian_atoms_method.atoms.peaks import local_maxima, random_field_threshold, suppress_within
 from gaussian_atoms_method.atoms.point_response import clean_peaks, point_response
-from gaussian_atoms_method.physics.noise import noise_from_projections
+from gaussian_atoms_method.physics.noise import NoiseModel, noise_from_projections
 from gaussian_atoms_method.physics.reconstruction import reconstruct
 
 
@@ -91,7 +92,7 @@ the carbon gains stayed (start recall 0.9861 and 0.9604)."""
 
 
 def backprojected_noise(projections: np.ndarray, angles_deg: np.ndarray, pixel_size_A: float, tilt_axis: str,
-                        device: str = "cpu", seed: int = 0, size_px: int = 64, noise=None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+                        device: str = "cpu", seed: int = 0, size_px: int = 64, noise: NoiseModel | None = None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """A sample of the Hann back-projection of the projections' noise alone: the volume of unit
     white noise on a ``size_px`` detector of the same pixels and tilts, and the (V, H, W) noise
     variance of each pixel of the projections, which scales it (:func:`noise_level` filters the
@@ -140,7 +141,7 @@ def backprojection_candidates(
     false_alarm_rate: float = 0.05,
     fine_scale_A: float | None = None,
     fine_min_distance_A: float = 0.7,
-    noise=None,
+    noise: NoiseModel | None = None,
 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Candidate atom positions, strongest first.
 
@@ -178,11 +179,11 @@ def backprojection_candidates(
     fine_scale_A : float, optional
         Scale of step 5's Laplacian of Gaussian, Å; default one voxel (the detector pixel);
         0: no step 5.
-    noise : NoiseModel, optional
-        The projections' noise in their units, if already read (else read here).
     fine_min_distance_A : float
         Step 5's maxima lie more than this far from each other and from every candidate, Å
         (0.7: half the shortest bond, C-C 1.42 Å; step 5 says why not ``min_distance_A``).
+    noise : NoiseModel, optional
+        The projections' noise in their units, if already read (else read here).
 
     Returns
     -------
@@ -238,7 +239,7 @@ def _separated_maxima(data: np.ndarray, spacing_A: float, min_distance_A: float,
 
 
 def starting_positions(
-    series, length_scale: float, count: int, extent: float, generator: torch.Generator, from_backprojection: bool = True, noise=None
+    series, length_scale: float, count: int, extent: float, generator: torch.Generator, from_backprojection: bool = True, noise: NoiseModel | None = None
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Where training starts: (n, 3) positions in normalised units and, for a back-projection
     start, (n,) weights of mean 1 in proportion to the smoothed back-projection there (else None).
