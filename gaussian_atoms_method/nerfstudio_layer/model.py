@@ -72,14 +72,12 @@ class GaussianAtomsModel(SplatfactoCompat):
         ls, series = self.normalisation.length_scale, metadata.get("tilt_series")
         self.truth_path: Path | None = Path(metadata["truth_path"]) if metadata.get("truth_path") is not None else None
         self.generator = torch.Generator().manual_seed(cfg.seed)
-        measured = measure_noise(metadata.get("projections"))  # read once: the start and the data term share it
-        start_noise = measured.scaled(1.0 / self.normalisation.data_scale) if measured is not None else None  # in the input's units
-        means, weights = starting_positions(series, ls, cfg.num_random, cfg.init_extent, self.generator, cfg.init == "backprojection", start_noise)
+        measured = measure_noise(metadata.get("projections"))  # read once: the start (in the input's units) and the data term share it
+        means, weights = starting_positions(series, ls, cfg.num_random, cfg.init_extent, self.generator, cfg.init == "backprojection", measured and measured.scaled(1.0 / self.normalisation.data_scale))
         if weights is not None:
             CONSOLE.print(f"gaussian-atoms: {len(means)} Gaussians start at back-projection maxima")
         n, sigma0 = means.shape[0], cfg.init_sigma_A * ls
-        norm = metadata.get("normalisation")
-        amp0 = starting_amplitude(metadata.get("projections"), metadata.get("pixel_size_A"), norm.length_scale if norm else None, n, sigma0, DATA_RANGE)
+        amp0 = starting_amplitude(metadata.get("projections"), metadata.get("pixel_size_A"), ls if metadata.get("normalisation") else None, n, sigma0, DATA_RANGE)
         log_amps = torch.full((n, 1), math.log(amp0))
         if weights is not None and cfg.init_mass == "backprojection":
             log_amps += torch.log(weights)[:, None]
