@@ -197,11 +197,15 @@ def backprojection_candidates(
         return (np.zeros((0, 3)), np.zeros(0)) if return_values else np.zeros((0, 3))
     volume = reconstruct(projections, angles_deg, pixel_size_A, "fbp", tilt_axis, centre_px, filter_name="hann", device=device, tilt_axis_angle_deg=tilt_axis_angle_deg)
     sigma_vox = smoothing_A / volume.spacing_A
-    data = ndimage.gaussian_filter(volume.data, sigma_vox) if smoothing_A > 0 else volume.data
+
+    def smooth(v):  # the matched filter: the data and the noise sample go through the same one
+        return ndimage.gaussian_filter(v, sigma_vox) if smoothing_A > 0 else v
+
+    data = smooth(volume.data)
     positions = _separated_maxima(data, volume.spacing_A, min_distance_A)
     if max_count is None:  # as many as stand above the back-projected noise
         sample, variance = backprojected_noise(projections, angles_deg, pixel_size_A, tilt_axis, device, noise=noise)
-        level = noise_level(sample, math.sqrt(float(variance.mean())), lambda v: ndimage.gaussian_filter(v, sigma_vox) if smoothing_A > 0 else v, false_alarm_rate, data.size)
+        level = noise_level(sample, math.sqrt(float(variance.mean())), smooth, false_alarm_rate, data.size)
         positions = positions[data[tuple(positions.T)] > level] if len(positions) else positions
         if len(positions):  # one candidate per atom, not one per maximum of its ridge (step 3)
             response, centre = point_response(projections.shape, angles_deg, pixel_size_A, smoothing_A, tilt_axis, smoothing_A, tilt_axis_angle_deg, device)
@@ -217,8 +221,12 @@ def backprojection_candidates(
         positions = np.concatenate([positions, extra])[:max_count]
     if max_count is None and len(positions) and fine_scale_A != 0:  # step 5: the finest scale the detector samples
         fine_vox = max(fine_scale_A / volume.spacing_A, 1.0) if fine_scale_A is not None else 1.0
-        fine = -ndimage.gaussian_laplace(volume.data.astype(np.float32), fine_vox)  # float32: half the time, same maxima
-        fine_level = noise_level(sample, math.sqrt(float(np.percentile(variance, BRIGHT_PIXELS_PERCENTILE))), lambda v: -ndimage.gaussian_laplace(v, fine_vox), false_alarm_rate, data.size)
+
+        def fine_filter(v):  # the data and the noise sample through the same Laplacian
+            return -ndimage.gaussian_laplace(v, fine_vox)
+
+        fine = fine_filter(volume.data.astype(np.float32))  # float32: half the time, same maxima
+        fine_level = noise_level(sample, math.sqrt(float(np.percentile(variance, BRIGHT_PIXELS_PERCENTILE))), fine_filter, false_alarm_rate, data.size)
         extra = _separated_maxima(fine, volume.spacing_A, fine_min_distance_A, fine_level)
         if len(extra):
             distance, _ = cKDTree(positions * volume.spacing_A).query(extra * volume.spacing_A)
