@@ -95,7 +95,7 @@ def test_fine_scale_candidates_resolve_bonded_carbon():
     sim = simulate_tilt_series(atoms, parse_tilts("-72:4:72"), "lobato", noise_std=20.0, seed=1, pixel_size_A=0.32)
     args = (sim.projections, sim.angles_deg, sim.pixel_size_A)
     before = backprojection_candidates(*args, fine_scale_A=0)
-    after = backprojection_candidates(*args)
+    after = backprojection_candidates(*args, deconvolve=False)
     np.testing.assert_allclose(after[: len(before)], before)
     assert 0 < len(after) - len(before) < 0.1 * len(atoms)
 
@@ -105,3 +105,29 @@ def test_fine_scale_candidates_resolve_bonded_carbon():
     assert recall(before) < 0.93
     assert recall(after) >= 0.96
     assert cKDTree(after).query(after, k=2)[0][:, 1].min() > 0.7  # fine_min_distance_A apart
+
+
+def test_deconvolution_seats_the_shoulder_atoms():
+    """Step 6 on the same carbon sphere (noise 20): the candidates' fitted responses taken off
+    the pixel-scale Laplacian leave the atoms that are a neighbour's shoulder at every scale.
+    Measured: recall within 0.75 Å 0.978 -> 0.998 for 15 more candidates, 2 of them surplus
+    (the decoy level allows a quarter).  Earlier candidates stay first and unchanged; the new
+    ones lie more than half a bond from every other."""
+    from gaussian_atoms_method.harness.particles import make_particle
+    from gaussian_atoms_method.harness.simulate import simulate_tilt_series
+
+    atoms = make_particle("carbon", 0.4, 0)
+    sim = simulate_tilt_series(atoms, parse_tilts("-72:4:72"), "lobato", noise_std=20.0, seed=1, pixel_size_A=0.32)
+    args = (sim.projections, sim.angles_deg, sim.pixel_size_A)
+    before = backprojection_candidates(*args, deconvolve=False)
+    after = backprojection_candidates(*args)
+    np.testing.assert_allclose(after[: len(before)], before)
+    added = after[len(before):]
+    assert 0 < len(added) < 0.1 * len(atoms)
+
+    def recall(cand):
+        return np.mean(cKDTree(cand).query(atoms.positions)[0] < 0.75)
+
+    assert recall(after) >= recall(before) + 0.01 and recall(after) >= 0.99
+    assert np.mean(cKDTree(atoms.positions).query(added)[0] < 0.75) >= 0.75  # the decoy level's share
+    assert cKDTree(after).query(after, k=2)[0][:, 1].min() > 0.7

@@ -11,12 +11,23 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 
-def local_maxima(volume: np.ndarray) -> np.ndarray:
-    """(M, 3) integer indices of the voxels that are maxima of their 3x3x3 neighbourhood (and > 0),
-    excluding the border voxels (no neighbours for the sub-voxel fit)."""
-    peaks = (volume == ndimage.maximum_filter(volume, size=3, mode="nearest")) & (volume > 0)
-    peaks[[0, -1], :, :] = peaks[:, [0, -1], :] = peaks[:, :, [0, -1]] = False
-    return np.argwhere(peaks)
+def local_maxima(volume: np.ndarray, level: float = 0.0) -> np.ndarray:
+    """(M, 3) integer indices of the voxels that are maxima of their 3x3x3 neighbourhood and
+    above ``level`` (and 0), excluding the border voxels (no neighbours for the sub-voxel fit),
+    in C order.  Where few voxels clear the level, only those are compared with their 26
+    neighbours: on the Au series' 271^3 volume at the start's levels that is a few thousandths
+    of the voxels, and the search takes 0.02 s instead of a full maximum filter's 0.5 s."""
+    above = volume > max(level, 0.0)
+    above[[0, -1], :, :] = above[:, [0, -1], :] = above[:, :, [0, -1]] = False
+    peaks = np.argwhere(above)
+    if len(peaks) > volume.size // 100:  # many: one pass of the maximum filter is cheaper
+        return peaks[(volume == ndimage.maximum_filter(volume, size=3, mode="nearest"))[tuple(peaks.T)]]
+    value = volume[tuple(peaks.T)]
+    keep = np.ones(len(peaks), dtype=bool)
+    for offset in np.ndindex(3, 3, 3):
+        if offset != (1, 1, 1):
+            keep &= value >= volume[tuple((peaks + np.array(offset) - 1).T)]
+    return peaks[keep]
 
 
 def suppress_within(positions: np.ndarray, order: np.ndarray, min_distance: float) -> np.ndarray:
@@ -32,6 +43,16 @@ def suppress_within(positions: np.ndarray, order: np.ndarray, min_distance: floa
         kept.append(i)
         suppressed[neighbours[i]] = True
     return np.asarray(kept, dtype=np.int64)
+
+
+def separated_maxima(data: np.ndarray, spacing_A: float, min_distance_A: float, level: float = -math.inf) -> np.ndarray:
+    """(M, 3) voxel indices of local maxima of ``data`` above ``level``, strongest first,
+    ``min_distance_A`` apart."""
+    peaks = local_maxima(data, level)
+    if len(peaks) == 0:
+        return np.zeros((0, 3), dtype=np.int64)
+    order = np.argsort(-data[tuple(peaks.T)], kind="stable")
+    return peaks[suppress_within(peaks * spacing_A, order, min_distance_A)]
 
 
 def random_field_threshold(field: np.ndarray, false_alarm_rate: float = 0.05, n_voxels: int | None = None) -> float:

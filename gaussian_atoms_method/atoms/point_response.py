@@ -19,6 +19,21 @@ from scipy.spatial import cKDTree
 from gaussian_atoms_method.physics.reconstruction import reconstruct
 
 
+def backprojected_atom(shape, angles_deg, pixel_size_A: float, sigma_A: float, tilt_axis="y", tilt_axis_angle_deg: float = 0.0, device: str = "cpu", half_width_A: float = 10.0):
+    """The Hann-filtered back-projection (a volume) of one Gaussian atom of width ``sigma_A``
+    at the tilt centre, in the geometry of a tilt series of ``shape`` (N, H, W), on a detector
+    cut to ``half_width_A`` about its middle (:func:`point_response` says why).  Projection and
+    filtered back-projection are linear and shift-invariant, so a wider atom's is this one
+    blurred by a 3D Gaussian of the difference in quadrature."""
+    n, h, w = shape
+    half = int(np.ceil(half_width_A / pixel_size_A))
+    h, w = min(h, 2 * half + 1), min(w, 2 * half + 1)
+    ci, cj = (h - 1) / 2, (w - 1) / 2
+    rows, cols = np.arange(h)[:, None] - ci, np.arange(w)[None, :] - cj
+    image = np.exp(-(rows**2 + cols**2) / (2 * (sigma_A / pixel_size_A) ** 2))
+    return reconstruct(np.repeat(image[None], n, axis=0), angles_deg, pixel_size_A, "fbp", tilt_axis, None, filter_name="hann", device=device, tilt_axis_angle_deg=tilt_axis_angle_deg)
+
+
 def point_response(shape, angles_deg, pixel_size_A: float, sigma_A: float, tilt_axis="y", smoothing_A: float = 0.5, tilt_axis_angle_deg: float = 0.0, device: str = "cpu", half_width_A: float = 10.0):
     """The smoothed Hann-filtered back-projection of one Gaussian atom of width ``sigma_A`` at
     the tilt centre, in the geometry of a tilt series of ``shape`` (N, H, W), scaled to 1 at its
@@ -30,16 +45,14 @@ def point_response(shape, angles_deg, pixel_size_A: float, sigma_A: float, tilt_
     10 Å (20 widths of a blurred atom) only the missing wedge's faint streaks remain, which
     :func:`clean_peaks` may ignore (it subtracts less, so keeps more).  The full 280-pixel Au
     detector took seconds of start-up; 81 pixels, a fraction of one."""
-    n, h, w = shape
-    half = int(np.ceil(half_width_A / pixel_size_A))
-    h, w = min(h, 2 * half + 1), min(w, 2 * half + 1)
-    ci, cj = (h - 1) / 2, (w - 1) / 2
-    rows, cols = np.arange(h)[:, None] - ci, np.arange(w)[None, :] - cj
-    image = np.exp(-(rows**2 + cols**2) / (2 * (sigma_A / pixel_size_A) ** 2))
-    volume = reconstruct(np.repeat(image[None], n, axis=0), angles_deg, pixel_size_A, "fbp", tilt_axis, None, filter_name="hann", device=device, tilt_axis_angle_deg=tilt_axis_angle_deg)
-    data = ndimage.gaussian_filter(volume.data, smoothing_A / volume.spacing_A)
-    centre = np.array(np.unravel_index(int(np.argmax(data)), data.shape))
-    return data / data[tuple(centre)], centre
+    volume = backprojected_atom(shape, angles_deg, pixel_size_A, sigma_A, tilt_axis, tilt_axis_angle_deg, device, half_width_A)
+    return peak_normalised(ndimage.gaussian_filter(volume.data, smoothing_A / volume.spacing_A))
+
+
+def peak_normalised(response: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``response`` scaled to 1 at its maximum, and the (3,) voxel index of that maximum."""
+    centre = np.array(np.unravel_index(int(np.argmax(response)), response.shape))
+    return response / response[tuple(centre)], centre
 
 
 def clean_peaks(peaks: np.ndarray, values: np.ndarray, response: np.ndarray, centre: np.ndarray, level: float) -> tuple[np.ndarray, np.ndarray]:
