@@ -19,9 +19,9 @@ def local_maxima(volume: np.ndarray, level: float = 0.0) -> np.ndarray:
     of the voxels, and the search takes 0.02 s instead of a full maximum filter's 0.5 s."""
     above = volume > max(level, 0.0)
     above[[0, -1], :, :] = above[:, [0, -1], :] = above[:, :, [0, -1]] = False
+    if np.count_nonzero(above) > volume.size // 100:  # many: one pass of the maximum filter is cheaper
+        return np.argwhere(above & (volume == ndimage.maximum_filter(volume, size=3, mode="nearest")))
     peaks = np.argwhere(above)
-    if len(peaks) > volume.size // 100:  # many: one pass of the maximum filter is cheaper
-        return peaks[(volume == ndimage.maximum_filter(volume, size=3, mode="nearest"))[tuple(peaks.T)]]
     value = volume[tuple(peaks.T)]
     keep = np.ones(len(peaks), dtype=bool)
     for offset in np.ndindex(3, 3, 3):
