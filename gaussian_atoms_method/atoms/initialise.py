@@ -71,9 +71,12 @@ noise: the fit drives their mass down and the prune removes them.
    to that field with every amplitude at once and taken off it; the maxima of what is left,
    above step 5's noise level and a level that the fit's own error (read from the remainder's
    negative side) makes unlikely, half a bond from everything, are added
-   (:mod:`~gaussian_atoms_method.atoms.deconvolution`).  Only where step 5 finds maxima of the
-   filter above its noise (none: the dose does not resolve the pixel scale, and the width
-   cannot be read).  Start recall within 0.75 Å, this CPU (candidates added): carbon noise 5
+   (:mod:`~gaussian_atoms_method.atoms.deconvolution`).  Only where step 5 adds candidates:
+   where no maximum of the pixel-scale filter away from the candidates clears its noise, the
+   dose does not resolve atoms at that scale beyond the smoothed peaks, and on every dataset
+   measured step 6 then found none either (Au at noise 200 and 500, HEA at 200, the Au and
+   aSi-208 counts); skipping it there saves 2.4 s of the Au start (this CPU), where the
+   time to accuracy is counted.  Start recall within 0.75 Å, this CPU (candidates added): carbon noise 5
    0.9861 -> 1.0 (116), noise 20 0.9604 -> 0.994 (296); HEA noise 50 0.9915 -> 0.9975 (27);
    Au noise 50 (8), FePt noise 50 (2), aPd noise 50 (18) at recall 1.0; none at noise 200 or
    500, on the Au counts or on the aSi-208 counts.
@@ -246,10 +249,12 @@ def backprojection_candidates(
         fine = fine_filter(volume.data.astype(np.float32))  # float32: half the time, same maxima
         fine_level = noise_level(sample, math.sqrt(float(np.percentile(variance, BRIGHT_PIXELS_PERCENTILE))), fine_filter, false_alarm_rate, data.size)
         maxima = separated_maxima(fine, volume.spacing_A, fine_min_distance_A, fine_level)
+        resolved = np.zeros((0, 3), dtype=np.int64)  # step 5's additions
         if len(maxima):
             distance, _ = cKDTree(positions * volume.spacing_A).query(maxima * volume.spacing_A)
-            positions = np.concatenate([positions, maxima[distance > fine_min_distance_A]])
-        if deconvolve and len(maxima):  # step 6: what the candidates' responses leave unexplained
+            resolved = maxima[distance > fine_min_distance_A]
+            positions = np.concatenate([positions, resolved])
+        if deconvolve and len(resolved):  # step 6: what the candidates' responses leave unexplained
             narrow_A = max(0.3, 0.7 * pixel_size_A)  # sampled by the detector
             narrow = backprojected_atom(projections.shape, angles_deg, pixel_size_A, narrow_A, tilt_axis, tilt_axis_angle_deg, device).data
             sharpness = float(np.median(peak_sharpness(fine, maxima[: max(len(maxima) // 4, 1)])))  # the strongest quarter: atoms
