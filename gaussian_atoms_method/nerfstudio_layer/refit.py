@@ -1,30 +1,52 @@
-"""The short refit after the final prune and merge (:meth:`.model.GaussianAtomsModel.finalize`):
+"""The refit after the final prune and merge (:meth:`.model.GaussianAtomsModel.finalize`):
 the survivors take up what the removed Gaussians carried."""
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from gaussian_atoms_method.nerfstudio_layer.residuals import training_views
 
 
-def refit(model, passes: int = 1) -> int:
-    """After the final prune and merge: ``passes`` passes over the training views, one view
-    per step in random order at full resolution, updating the Gaussians with the model's own
-    optimisers (their learning rates where training left them) and no density control.  A
-    merged atom sits at its members' mass-weighted mean, which is where the data put it only
-    when the members were fragments of one atom; one pass of 40-60 views moves it the rest of
-    the way at a cost of a few tenths of a per cent of a 3,000-step run.  Returns the steps
-    taken (0 without the tilt series)."""
+def refit(model, max_passes: int = 10) -> int:
+    """After the final prune and merge: passes over the training views, one view per step in
+    random order at full resolution, updating the Gaussians with the model's own optimisers
+    (their learning rates where training left them) and no density control, until the atoms
+    settle: no atom moves by more than its own Cramér-Rao precision over a pass, two passes in
+    a row (the training's stop, :mod:`.convergence`, per atom rather than as an RMS: after the
+    merge only the merged atoms still move), at most ``max_passes``.  Returns the steps taken
+    (0 without the tilt series).
+
+    Why more than one pass: a merged atom sits at its members' mass-weighted mean, which is
+    where the data put it only when the members were fragments of one atom.  At Au noise 500
+    the unresolved merge joins about 1,900 atoms to a fragment 1.1-2.1 Å away; the mean then
+    lies a median 0.51 Å from the atom (0.32 Å for the atom's own Gaussian), and 443 lie more
+    than 0.75 Å away.  Measured there (H100, the final atoms after each pass): TPR 0.9823,
+    0.9844, 0.9853 and 0.9876 after 1, 2, 3 and 10 passes, false atoms per atom 0.0196 ->
+    0.0144, RMSD 28.3 -> 27.4 pm; atoms moving more than their precision in the pass: 1.2%,
+    0.06%, then none (the steps left, 0.03 Å RMS, are the optimiser's own jitter)."""
     projections = (model.kwargs.get("metadata", {}) or {}).get("projections")
     names = [n for n in model.gauss_params.keys() if n in model.optimizers]
+    steps, settled, noise = 0, 0, None
     with training_views(model) as cameras:
         if cameras is None or projections is None:
             return 0
         # Called where results are written: possibly under no_grad or inference mode.
         with torch.inference_mode(False), torch.enable_grad():
-            _refit_steps(model, cameras, projections, names, passes)
-    return passes * len(cameras)
+            for _ in range(max_passes):
+                before = model.means.detach().clone()
+                _refit_steps(model, cameras, projections, names, 1)
+                steps += len(cameras)
+                moved_A = (model.means.detach() - before).norm(dim=1).cpu().numpy() / model.normalisation.length_scale
+                result = model.position_std_A(model.atoms(), noise)
+                if result is None:
+                    break
+                std, noise = result
+                settled = settled + 1 if np.all(moved_A <= np.sqrt((std**2).sum(axis=1))) else 0
+                if settled >= 2:
+                    break
+    return steps
 
 
 def _refit_steps(model, cameras, projections, names, passes: int) -> None:
