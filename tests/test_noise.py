@@ -82,3 +82,12 @@ def test_noise_read_from_scaled_data_is_the_scaled_model():
         assert getattr(back, name) == pytest.approx(getattr(raw, name), rel=1e-9, abs=1e-12)
     v = np.linspace(0, 50, 11)
     np.testing.assert_allclose(raw.scaled(scale).variance(v * scale), raw.variance(v) * scale**2, rtol=1e-12)
+
+
+def test_a_flat_series_reads_zero_noise_without_failing():
+    """Every pixel the same (a blank or saturated series): every bin has the same mean, so the
+    variance-mean design is collinear; the reading is zero noise, not a singular-matrix error."""
+    from gaussian_atoms_method.physics.noise import noise_from_projections
+
+    model = noise_from_projections(np.ones((4, 40, 40)))
+    assert abs(model.read_var) < 1e-9 and abs(model.gain) < 1e-9  # the floor that keeps weights finite

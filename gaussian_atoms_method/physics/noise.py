@@ -112,10 +112,10 @@ def fit_noise_model(residuals: np.ndarray, predicted: np.ndarray, offset: float 
     # Iterate once: weights from the fitted variances rather than the noisy bin estimates.
     for _ in range(2):
         normal = design.T @ (weights[:, None] * design)
-        coef = np.linalg.solve(normal, design.T @ (weights * variances))
+        coef = np.linalg.pinv(normal) @ (design.T @ (weights * variances))  # pinv: a flat series has one mean in every bin (collinear design)
         fitted = np.maximum(design @ coef, 1e-300)
         weights = 0.37 * counts / (2.0 * fitted**2)
-    cov = np.linalg.inv(design.T @ (weights[:, None] * design))
+    cov = np.linalg.pinv(design.T @ (weights[:, None] * design))
     read_var, gain = float(coef[0]), float(coef[1])
     misfit = float(coef[2]) if len(coef) > 2 else 0.0
     read_se, gain_se = float(np.sqrt(cov[0, 0])), float(np.sqrt(cov[1, 1]))
