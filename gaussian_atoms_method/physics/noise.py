@@ -88,6 +88,15 @@ def binned_variance(residuals: np.ndarray, predicted: np.ndarray, bins: int = 16
     return np.array(centres), np.array(variances), np.array(counts)
 
 
+def _solve(matrix: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """``matrix^-1 rhs``; the least-squares solution where ``matrix`` is singular (a flat series:
+    one mean in every bin makes the variance-mean design collinear)."""
+    try:
+        return np.linalg.solve(matrix, rhs)
+    except np.linalg.LinAlgError:
+        return np.linalg.lstsq(matrix, rhs, rcond=None)[0]
+
+
 def fit_noise_model(residuals: np.ndarray, predicted: np.ndarray, offset: float = 0.0, bins: int = 16, z_min: float = 3.0, robust: bool = True, quadratic: bool = True) -> NoiseModel:
     """Fit ``Var = read_var + gain * x + misfit * x^2`` (``x = max(m - offset, 0)``) to the
     binned robust variances.
@@ -112,10 +121,10 @@ def fit_noise_model(residuals: np.ndarray, predicted: np.ndarray, offset: float 
     # Iterate once: weights from the fitted variances rather than the noisy bin estimates.
     for _ in range(2):
         normal = design.T @ (weights[:, None] * design)
-        coef = np.linalg.pinv(normal) @ (design.T @ (weights * variances))  # pinv: a flat series has one mean in every bin (collinear design)
+        coef = _solve(normal, design.T @ (weights * variances))
         fitted = np.maximum(design @ coef, 1e-300)
         weights = 0.37 * counts / (2.0 * fitted**2)
-    cov = np.linalg.pinv(design.T @ (weights[:, None] * design))
+    cov = _solve(design.T @ (weights[:, None] * design), np.eye(design.shape[1]))
     read_var, gain = float(coef[0]), float(coef[1])
     misfit = float(coef[2]) if len(coef) > 2 else 0.0
     read_se, gain_se = float(np.sqrt(cov[0, 0])), float(np.sqrt(cov[1, 1]))
