@@ -7,8 +7,8 @@ search for maxima seats it.  Measured on the 7,000-atom disordered carbon (tilts
 from one that sits on a bonded neighbour, and the fit never recovered them (its TPR equalled
 the start's recall).  So:
 
-1. each candidate's response through the same filter (:func:`~.point_response.point_response`),
-   placed at its sub-voxel peak (:func:`subvoxel_peaks`), is fitted to the field with every
+1. each candidate's response through the same filter, at the atom width the data show
+   (:func:`matched_response`), placed at its sub-voxel peak (:func:`subvoxel_peaks`), is fitted to the field with every
    amplitude at once (:func:`fit_amplitudes`, least squares by conjugate gradients; at the
    pixel scale the responses of neighbours barely overlap: 5 steps reach a relative gradient
    of 0.004-0.006 on the carbon and 30 give the same maxima, and 2 steps change the carbon's
@@ -24,7 +24,8 @@ maxima of the negated remainder (*decoys*, under the same rules) count how many 
 maxima the error alone makes above any height, as in a target-decoy estimate of the false
 discovery rate (:func:`decoy_level`).  Measured on the carbon at noise 5 and 20, at every height
 from 4 to 9 the decoys number 0.8-1.3 times the positive maxima that are not atoms; the missing
-atoms stand 6-9.4 high, the error's maxima 0.9-6.4 (noise 5) and 3.4-8.6 (noise 20).
+atoms stand 6-9.4 high, the error's maxima 0.9-6.4 (noise 5) and 3.4-8.6 (noise 20) (a
+fixed 0.6 Å response, before the width was read from the data).
 """
 
 from __future__ import annotations
