@@ -36,7 +36,7 @@ def refit(model, max_passes: int = 10) -> int:
         with torch.inference_mode(False), torch.enable_grad():
             for _ in range(max_passes):
                 before = model.means.detach().clone()
-                _refit_steps(model, cameras, projections, names, 1)
+                _refit_pass(model, cameras, projections, names)
                 steps += len(cameras)
                 moved_A = (model.means.detach() - before).norm(dim=1).cpu().numpy() / model.normalisation.length_scale
                 result = model.position_std_A(model.atoms(), noise)
@@ -49,11 +49,10 @@ def refit(model, max_passes: int = 10) -> int:
     return steps
 
 
-def _refit_steps(model, cameras, projections, names, passes: int) -> None:
+def _refit_pass(model, cameras, projections, names) -> None:
     # Views in random order, as training draws them: in tilt order neighbouring views pull
     # alike and Adam's momentum carries the atoms along (the aPd noise-200 RMSD rose 1.2 pm).
-    order = torch.cat([torch.randperm(len(cameras), generator=model.generator) for _ in range(passes)])
-    for v in order.tolist():
+    for v in torch.randperm(len(cameras), generator=model.generator).tolist():
         for n in names:
             model.optimizers[n].zero_grad()
         target = projections[v].to(model.means.device)[..., None]
