@@ -4,8 +4,7 @@ constructed cases; the step on a simulated carbon sphere is in ``test_initialise
 import numpy as np
 from scipy import ndimage
 
-from gaussian_atoms_method.atoms.deconvolution import decoy_level, fit_amplitudes, matched_response, peak_sharpness, subvoxel_peaks, unexplained_sites
-from gaussian_atoms_method.atoms.peaks import local_maxima
+from gaussian_atoms_method.atoms.deconvolution import decoy_level, fit_amplitudes, matched_response, peak_sharpness, subvoxel_peaks, remainder_sites
 from gaussian_atoms_method.atoms.point_response import backprojected_atom, peak_normalised
 from gaussian_atoms_method.harness.simulate import parse_tilts
 
@@ -53,7 +52,7 @@ def test_decoy_level_keeps_what_the_decoys_do_not_match():
     assert decoy_level(sites[5:], decoys, 0.25) == np.inf  # the error alone: nothing kept
 
 
-def test_unexplained_sites_finds_the_atom_without_a_candidate():
+def test_remainder_sites_finds_the_atom_without_a_candidate():
     """Four blobs; candidates on three of them.  The fourth, 4.5 voxels from one (a shoulder
     of it after filtering), is the one site the remainder shows; with all four as candidates,
     none."""
@@ -61,9 +60,9 @@ def test_unexplained_sites_finds_the_atom_without_a_candidate():
     response, centre = peak_normalised(_gaussian_blob((17, 17, 17), (8, 8, 8), sigma))
     atoms = np.array([[12, 12, 12], [12, 16, 12], [20, 12, 14], [12, 12, 16.5]])
     field = sum(_gaussian_blob((32, 32, 32), p, sigma) for p in atoms)
-    sites = unexplained_sites(field, atoms[:3].astype(int), response, centre, 1.0, 2.0, 0.05)
+    sites = remainder_sites(field, atoms[:3].astype(int), response, centre, 1.0, 2.0, 0.05)
     assert len(sites) == 1 and np.linalg.norm(sites[0] - atoms[3]) <= 1.0
-    assert len(unexplained_sites(field, np.rint(atoms).astype(int), response, centre, 1.0, 2.0, 0.05)) == 0
+    assert len(remainder_sites(field, np.rint(atoms).astype(int), response, centre, 1.0, 2.0, 0.05)) == 0
 
 
 def test_matched_response_reads_the_atom_width():
@@ -83,16 +82,3 @@ def test_matched_response_reads_the_atom_width():
     narrow = backprojected_atom(shape, angles, 0.32, 0.3, half_width_A=8.0).data
     _, _, width = matched_response(narrow, 0.3, 0.32, sharp, float(peak_sharpness(field, peak)[0]))
     assert abs(width - 0.6) < 0.03
-
-
-def test_local_maxima_above_a_level_equal_the_maximum_filter():
-    """The sparse search (only voxels above the level compared with their neighbours) and the
-    maximum filter give the same maxima, ties included, at any level."""
-    rng = np.random.default_rng(1)
-    volume = ndimage.gaussian_filter(rng.standard_normal((30, 40, 20)), 1.2).astype(np.float32)
-    volume[5, 5, 5] = volume[5, 5, 6] = volume.max() + 1
-    full = (volume == ndimage.maximum_filter(volume, size=3, mode="nearest")) & (volume > 0)
-    full[[0, -1]] = full[:, [0, -1]] = full[:, :, [0, -1]] = False
-    every = np.argwhere(full)
-    for level in (-np.inf, 0.0, 0.1, 0.3):
-        np.testing.assert_array_equal(local_maxima(volume, level), every[volume[tuple(every.T)] > level])

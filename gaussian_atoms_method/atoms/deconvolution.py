@@ -36,7 +36,7 @@ import numpy as np
 from scipy import fft, ndimage
 from scipy.spatial import cKDTree
 
-from gaussian_atoms_method.atoms.peaks import separated_maxima
+from gaussian_atoms_method.atoms.peaks import parabola_vertex, separated_maxima
 from gaussian_atoms_method.atoms.point_response import peak_normalised
 
 DECOY_FALSE_DISCOVERY_RATE = 0.25
@@ -48,17 +48,24 @@ noise 5 this keeps all 97 missing atoms with 26 others; at noise 20 the level is
 (6.7), which keeps 254 of 277 (0.1 would keep 215)."""
 
 
+def _face_neighbours(field: np.ndarray, indices: np.ndarray):
+    """Per axis, ``field`` at each (M, 3) voxel's two face neighbours along it (below, above),
+    clipped to the volume."""
+    last = np.array(field.shape) - 1
+    for axis in range(3):
+        step = np.zeros(3, dtype=np.int64)
+        step[axis] = 1
+        yield field[tuple(np.clip(indices - step, 0, last).T)], field[tuple(np.clip(indices + step, 0, last).T)]
+
+
 def peak_sharpness(field: np.ndarray, peaks: np.ndarray) -> np.ndarray:
     """At each (M, 3) voxel of ``peaks``: the mean of ``field`` at the six face neighbours
     over its value there (1 for a flat field, lower for a sharper peak)."""
     peaks = np.asarray(peaks, dtype=np.int64).reshape(-1, 3)
-    last = np.array(field.shape) - 1
     around = np.zeros(len(peaks))
-    for axis in range(3):
-        for sign in (-1, 1):
-            step = np.zeros(3, dtype=np.int64)
-            step[axis] = sign
-            around += field[tuple(np.clip(peaks + step, 0, last).T)]
+    for below, above in _face_neighbours(field, peaks):
+        around += below
+        around += above
     return around / 6.0 / field[tuple(peaks.T)]
 
 
@@ -92,21 +99,12 @@ def matched_response(narrow: np.ndarray, narrow_sigma_A: float, spacing_A: float
 
 def subvoxel_peaks(field: np.ndarray, indices: np.ndarray) -> np.ndarray:
     """(M, 3) float voxel positions of the peaks of ``field`` near the integer ``indices``
-    (M, 3): a parabola through each voxel and its two neighbours along each axis, the offset
-    clipped to half a voxel (0 where the field is not concave there)."""
+    (M, 3): a parabola through each voxel and its two neighbours along each axis
+    (:func:`~.peaks.parabola_vertex`: clipped to half a voxel, 0 where not concave)."""
     indices = np.asarray(indices, dtype=np.int64)
-    last = np.array(field.shape) - 1
-    offsets = np.zeros(indices.shape)
     centre = field[tuple(indices.T)]
-    for axis in range(3):
-        step = np.zeros(3, dtype=np.int64)
-        step[axis] = 1
-        below = field[tuple(np.clip(indices - step, 0, last).T)]
-        above = field[tuple(np.clip(indices + step, 0, last).T)]
-        curvature = below - 2 * centre + above
-        concave = curvature < 0
-        offsets[:, axis] = np.where(concave, 0.5 * (below - above) / np.where(concave, curvature, -1.0), 0.0)
-    return indices + offsets.clip(-0.5, 0.5)
+    offsets = np.stack([parabola_vertex(below, centre, above) for below, above in _face_neighbours(field, indices)], axis=1)
+    return indices + offsets
 
 
 def _kernel_spectrum(response: np.ndarray, centre, shape) -> np.ndarray:
@@ -192,7 +190,7 @@ def decoy_level(values: np.ndarray, decoys: np.ndarray, false_discovery_rate: fl
     return float(values[passing[-1]]) if len(passing) else np.inf
 
 
-def unexplained_sites(field: np.ndarray, indices: np.ndarray, response: np.ndarray, centre, spacing_A: float, min_distance_A: float, noise_level: float,
+def remainder_sites(field: np.ndarray, indices: np.ndarray, response: np.ndarray, centre, spacing_A: float, min_distance_A: float, noise_level: float,
                       false_discovery_rate: float = DECOY_FALSE_DISCOVERY_RATE, iterations: int = 2) -> np.ndarray:  # fmt: skip
     """(K, 3) voxel indices of the maxima the candidates at ``indices`` (M, 3) do not explain,
     strongest first (see the module's text).
@@ -219,5 +217,5 @@ def unexplained_sites(field: np.ndarray, indices: np.ndarray, response: np.ndarr
 
     sites = apart(separated_maxima(remainder, spacing_A, min_distance_A, noise_level))
     decoys = apart(separated_maxima(-remainder, spacing_A, min_distance_A, noise_level))
-    level = decoy_level(remainder[tuple(sites.T)], -remainder[tuple(decoys.T)], false_discovery_rate)
-    return sites[remainder[tuple(sites.T)] >= level] if len(sites) else sites
+    heights = remainder[tuple(sites.T)]
+    return sites[heights >= decoy_level(heights, -remainder[tuple(decoys.T)], false_discovery_rate)]

@@ -91,7 +91,7 @@ import torch
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from gaussian_atoms_method.atoms.deconvolution import matched_response, peak_sharpness, unexplained_sites
+from gaussian_atoms_method.atoms.deconvolution import matched_response, peak_sharpness, remainder_sites
 from gaussian_atoms_method.atoms.peaks import random_field_threshold, separated_maxima
 from gaussian_atoms_method.atoms.point_response import backprojected_atom, clean_peaks, point_response
 from gaussian_atoms_method.physics.noise import NoiseModel, noise_from_projections
@@ -259,7 +259,7 @@ def backprojection_candidates(
             narrow = backprojected_atom(projections.shape, angles_deg, pixel_size_A, narrow_A, tilt_axis, tilt_axis_angle_deg, device).data
             sharpness = float(np.median(peak_sharpness(fine, maxima[: max(len(maxima) // 4, 1)])))  # the strongest quarter: atoms
             response, centre, _ = matched_response(narrow, narrow_A, volume.spacing_A, fine_filter, sharpness)
-            extra = unexplained_sites(fine, positions, response, centre, volume.spacing_A, fine_min_distance_A, fine_level)
+            extra = remainder_sites(fine, positions, response, centre, volume.spacing_A, fine_min_distance_A, fine_level)
             positions = np.concatenate([positions, extra])
     positions_A = volume.index_to_A(positions)
     return (positions_A, data[tuple(positions.T)]) if return_values else positions_A

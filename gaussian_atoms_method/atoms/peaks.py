@@ -55,6 +55,14 @@ def separated_maxima(data: np.ndarray, spacing_A: float, min_distance_A: float, 
     return peaks[suppress_within(peaks * spacing_A, order, min_distance_A)]
 
 
+def parabola_vertex(below: np.ndarray, centre: np.ndarray, above: np.ndarray) -> np.ndarray:
+    """Offset (voxels) of the vertex of the parabola through three equally spaced values, clipped
+    to half a voxel; 0 where the three are not concave (no maximum between them)."""
+    curvature = below - 2 * centre + above
+    concave = curvature < 0
+    return np.where(concave, 0.5 * (below - above) / np.where(concave, curvature, -1.0), 0.0).clip(-0.5, 0.5)
+
+
 def random_field_threshold(field: np.ndarray, false_alarm_rate: float = 0.05, n_voxels: int | None = None) -> float:
     """The height ``u`` (in standard deviations) that a smooth 3D Gaussian random field exceeds
     anywhere with probability about ``false_alarm_rate``: where the expected Euler

@@ -36,7 +36,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from gaussian_atoms_method.atoms.peaks import local_maxima, random_field_threshold, suppress_within
+from gaussian_atoms_method.atoms.peaks import random_field_threshold, separated_maxima
 from gaussian_atoms_method.atoms.point_response import clean_peaks, point_response
 from gaussian_atoms_method.physics.reconstruction import reconstruct
 
@@ -79,16 +79,10 @@ def unexplained_sites(
     data = ndimage.gaussian_filter(volume.data, smoothing_A / volume.spacing_A)
     noise = 1.4826 * float(np.median(np.abs(data - np.median(data))))
     level = random_field_threshold(data, false_alarm_rate) * noise
-    peaks = local_maxima(data)
-    if noise <= 0 or len(peaks) == 0:
-        return np.zeros((0, 3)), np.zeros(0)
-    values = data[tuple(peaks.T)]
-    peaks, values = peaks[values > level], values[values > level]
+    peaks = separated_maxima(data, volume.spacing_A, min_distance_A, level) if noise > 0 else np.zeros((0, 3), dtype=np.int64)
     if len(peaks) == 0:
         return np.zeros((0, 3)), np.zeros(0)
-    order = np.argsort(-values, kind="stable")
-    kept = suppress_within(peaks * volume.spacing_A, order, min_distance_A)
-    peaks, values = peaks[kept], values[kept]
+    values = data[tuple(peaks.T)]
     response, centre = point_response(residuals.shape, angles_deg, pixel_size_A, sigma_A, tilt_axis, smoothing_A, tilt_axis_angle_deg, device)
     accepted, values = clean_peaks(peaks, values, response, centre, level)
     positions_A = volume.index_to_A(peaks[accepted])

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gaussian_atoms_method.atoms.peaks import local_maxima, suppress_within
+from gaussian_atoms_method.atoms.peaks import local_maxima, parabola_vertex, suppress_within
 
 
 def otsu_threshold(values: np.ndarray) -> float:
@@ -43,11 +43,7 @@ def subvoxel_refine(volume: np.ndarray, peaks: np.ndarray) -> np.ndarray:
         positive = (fm > 0) & (fp > 0) & (f0 > 0)
         with np.errstate(divide="ignore", invalid="ignore"):
             lm, l0, lp = np.log(np.where(positive, fm, 1)), np.log(np.where(positive, f0, 1)), np.log(np.where(positive, fp, 1))
-        fm, f0_axis, fp = np.where(positive, lm, fm), np.where(positive, l0, f0), np.where(positive, lp, fp)
-        curvature = fm - 2 * f0_axis + fp
-        with np.errstate(divide="ignore", invalid="ignore"):
-            delta = np.where(curvature < 0, 0.5 * (fm - fp) / curvature, 0.0)
-        out[:, axis] += np.clip(delta, -0.5, 0.5)
+        out[:, axis] += parabola_vertex(np.where(positive, lm, fm), np.where(positive, l0, f0), np.where(positive, lp, fp))
     return out
 
 
