@@ -25,7 +25,7 @@ def test_poisson_term_weights_each_pixel_by_its_variance():
     assert float(data_term(predicted.detach(), measured, "l1")) == pytest.approx(float(r.abs().mean()))
     assert float(data_term(predicted.detach(), measured, "l2")) == pytest.approx(float(r.square().mean()))
     with pytest.raises(ValueError, match="data term"):
-        data_term(predicted, measured, "huber")
+        data_term(predicted, measured, "cauchy")
 
 
 def test_poisson_fit_of_counts_is_unbiased_where_l1_is_not():
@@ -48,18 +48,18 @@ def _sphere_series(noise):
 
 def test_noise_read_before_the_fit_tells_counts_from_additive_noise():
     """Gaussian noise of variance 400 on a simulated particle reads additive, its variance within
-    5%, and the term chosen is L1; the same particle as Poisson counts (peak 40 counts, on a floor
+    5%, and the term chosen is Huber's; the same particle as Poisson counts (peak 40 counts, on a floor
     of one count) reads Poisson, gain within 20% of one count, and the term is Poisson."""
     sim = _sphere_series(20.0)
     additive = noise_from_projections(sim.projections)
     assert additive.kind == "additive" and additive.read_var == pytest.approx(400.0, rel=0.05)
-    assert choose_data_term(additive, float(sim.projections.max())) == "l1"
+    assert choose_data_term(additive, float(sim.projections.max())) == "huber"
     clean = _sphere_series(0.0).projections
     counts = np.random.default_rng(4).poisson(1.0 + 40.0 * clean / clean.max()).astype(np.float64)
     poisson = noise_from_projections(counts)
     assert poisson.gain == pytest.approx(1.0, rel=0.2) and choose_data_term(poisson, float(counts.max())) == "poisson"
-    # A "gain" from data with tens of thousands of counts per pixel is not shot noise: L1.
-    assert choose_data_term(NoiseModel(0.0, 1e-4), 10.0) == "l1"
+    # A "gain" from data with tens of thousands of counts per pixel is not shot noise: additive.
+    assert choose_data_term(NoiseModel(0.0, 1e-4), 10.0) == "huber"
 
 
 def test_detector_floor_finds_an_offset_and_not_an_empty_frame():
@@ -71,3 +71,23 @@ def test_detector_floor_finds_an_offset_and_not_an_empty_frame():
     assert abs(floor - 1.0) < 2 * se + 0.01 and frame_var == pytest.approx(1.0, rel=0.1)
     floor, se, _ = detector_floor(_sphere_series(20.0).projections)
     assert abs(floor) < 4 * se
+
+
+def test_huber_term_is_least_squares_within_its_corner_and_l1_beyond():
+    """Residuals within HUBER_K noise standard deviations pull as least squares (gradient r over
+    the corner), beyond it as L1 (gradient the sign), so an atom's fit weighs noise
+    efficiently and the model's misfit robustly; the corner follows the noise (read variance
+    plus gain times the level)."""
+    from gaussian_atoms_method.physics.data_terms import HUBER_K
+
+    read_var, gain = 4.0, 0.5
+    measured = torch.tensor([0.0, 0.0, 10.0, 10.0], dtype=torch.float64)
+    corner = HUBER_K * torch.sqrt(read_var + gain * measured)
+    residual = torch.tensor([0.5, 10.0, 1.0, -30.0], dtype=torch.float64)  # within, beyond, within, beyond
+    predicted = (measured + residual).requires_grad_()
+    value = data_term(predicted, measured, "huber", gain, read_var)
+    value.backward()
+    expected = torch.tensor([0.5 / corner[0], 1.0, 1.0 / corner[2], -1.0], dtype=torch.float64) / 4
+    torch.testing.assert_close(predicted.grad, expected, rtol=1e-12, atol=0.0)
+    parts = torch.where(residual.abs() <= corner, 0.5 * residual**2 / corner, residual.abs() - 0.5 * corner)
+    assert float(value) == pytest.approx(float(parts.mean()), rel=1e-12)

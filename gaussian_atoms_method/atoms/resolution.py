@@ -64,24 +64,29 @@ def merged_moments(positions: np.ndarray, sigmas: np.ndarray, masses: np.ndarray
     return centre, np.sqrt((w * (sigmas[pairs] ** 2 + spread)).sum(axis=1))
 
 
-def merge_energy(positions: np.ndarray, sigmas: np.ndarray, masses: np.ndarray, pairs: np.ndarray, view_dirs: np.ndarray, chunk: int = 4096) -> np.ndarray:
+def merge_energy(
+    positions: np.ndarray, sigmas: np.ndarray, masses: np.ndarray, pairs: np.ndarray, view_dirs: np.ndarray, chunk: int = 4096, merged: tuple[np.ndarray, np.ndarray] | None = None
+) -> np.ndarray:
     """(K,) squared norm of the change in the projections, summed over the views, when each pair
-    becomes its merged Gaussian (:func:`merged_moments`); units mass^2 / length^2.
+    becomes its merged Gaussian (:func:`merged_moments`, or ``merged``); units mass^2 / length^2.
 
     Parameters
     ----------
     positions : (N, 3); sigmas, masses : (N,)
     pairs : (K, 2) int array
     view_dirs : (V, 3) beam directions (normalised here)
+    merged : ((K, 3), (K,)) arrays, optional
+        The merged Gaussians' centres and widths, if not :func:`merged_moments`'.
 
     The pairs go in chunks of ``chunk`` (their (K, 3, 3, V) kernels are held at once: 4,096
     pairs and 47 views take 14 MB).
     """
     if len(pairs) > chunk:
-        return np.concatenate([merge_energy(positions, sigmas, masses, pairs[k : k + chunk], view_dirs, chunk) for k in range(0, len(pairs), chunk)])
+        parts = [(k, None if merged is None else (merged[0][k : k + chunk], merged[1][k : k + chunk])) for k in range(0, len(pairs), chunk)]
+        return np.concatenate([merge_energy(positions, sigmas, masses, pairs[k : k + chunk], view_dirs, chunk, part) for k, part in parts])
     if len(pairs) == 0:
         return np.zeros(0)
-    centre, s_c = merged_moments(positions, sigmas, masses, pairs)
+    centre, s_c = merged_moments(positions, sigmas, masses, pairs) if merged is None else merged
     pos = np.stack([positions[pairs[:, 0]], positions[pairs[:, 1]], centre], axis=1)  # (K, 3, 3)
     s2 = np.stack([sigmas[pairs[:, 0]] ** 2, sigmas[pairs[:, 1]] ** 2, s_c**2], axis=1)  # (K, 3)
     w = np.stack([masses[pairs[:, 0]], masses[pairs[:, 1]], -masses[pairs].sum(axis=1)], axis=1)

@@ -47,6 +47,7 @@ import torch
 from gaussian_atoms_method.atoms.merge import cluster_labels, disjoint_pair_labels, merged_values
 from gaussian_atoms_method.atoms.resolution import candidate_pairs, merge_energy, merged_moments
 from gaussian_atoms_method.density.remap import apply_remap, duplicate_remap, keep_remap, merge_remap
+from gaussian_atoms_method.physics.data_terms import HUBER_EFFICIENCY
 from gaussian_atoms_method.physics.projector import gaussian_mass, typical_mass
 
 Params = MutableMapping[str, torch.nn.Parameter]
@@ -185,12 +186,16 @@ class DensityControl:
         return 0
 
     @torch.no_grad()
-    def finalize(self, params: Params, optimizers: Optimizers, param_lists=None) -> int:
-        """Merge the pairs the data cannot resolve, prune, then merge (fresh Gaussians too), so
-        the result holds one Gaussian per atom; returns how many Gaussians went (the model
-        refits when any did)."""
+    def finalize(self, params: Params, optimizers: Optimizers, param_lists=None, correlations=None) -> int:
+        """Merge the pairs the data prefer as one (with ``correlations``, :meth:`merge_by_likelihood`),
+        then those they cannot resolve, prune, then merge (fresh Gaussians too), so the result
+        holds one Gaussian per atom; returns how many Gaussians went (the model refits when any
+        did)."""
         self.born = torch.zeros_like(self.born)  # at the end every Gaussian is judged
-        removed = self.merge_unresolved(params, optimizers, param_lists) if self.cluster_merge else 0
+        removed = 0
+        if self.cluster_merge:
+            removed += self.merge_by_likelihood(params, optimizers, param_lists, correlations) if correlations is not None else 0
+            removed += self.merge_unresolved(params, optimizers, param_lists)
         removed += self.prune(params, optimizers, param_lists, final=True)
         if self.cluster_merge:
             removed += self.merge(params, optimizers, param_lists)
@@ -304,9 +309,9 @@ class DensityControl:
     def set_noise(self, noise, floor: float, pixel_size: float, n_views: int, data_term: str, view_dirs: torch.Tensor | None = None) -> None:
         """The measured noise (normalised units) the prune judges masses against, the floor the
         atoms sit on, the pixel size (normalised), the number of views, the data term (L1
-        estimates carry pi/2 the least-squares variance) and the views' (V, 3) beam directions."""
+        estimates carry pi/2 the least-squares variance, Huber's 1/0.95) and the views' (V, 3) beam directions."""
         self.noise, self.floor, self.pixel_size, self.n_views, self.view_dirs = noise, floor, pixel_size, n_views, view_dirs
-        self.efficiency = math.pi / 2 if data_term == "l1" else 1.0
+        self.efficiency = {"l1": math.pi / 2, "huber": 1.0 / HUBER_EFFICIENCY}.get(data_term, 1.0)
 
     def residual_check_open(self, step: int) -> bool:
         """Whether the residuals are still to be searched for missing atoms (the model does it
@@ -382,6 +387,43 @@ class DensityControl:
         level = chi2.isf(self.false_alarm_rate / self.cells(), df=5)
         order = np.argsort(chi_square, kind="stable")
         return idx[pairs[order[chi_square[order] < level]]]
+
+    @torch.no_grad()
+    def likelihood_change(self, params: Mapping[str, torch.Tensor], pairs: np.ndarray, correlations) -> np.ndarray | None:
+        """(K,) for each pair of Gaussians ``(a, b)``: the data's chi-square with the pair made one
+        Gaussian (at their mass-weighted centre and width, with their mass: the merge
+        :meth:`_merge_labels` makes) minus that with the pair.  Negative: the data prefer one.
+
+        With ``r`` the residual, ``p`` the pair's projections and ``s`` the merged one's, the
+        change is ``sum w (p - s)^2 + 2 sum w r (p - s)`` (``w`` one over the noise variance): the
+        first term is :func:`..atoms.resolution.merge_energy` over the noise at the merged
+        Gaussian (:meth:`pixel_variance`), the second reads the residual through
+        ``correlations`` (a callable of probe means (P, 3) and widths (P,) returning the (P,)
+        sums ``sum w r g`` for unit-amplitude probes, :func:`..nerfstudio_layer.residuals.residual_correlations`).
+        None when it returns None or without a noise model or view directions."""
+        if not self.noise_known() or self.view_dirs is None:
+            return None
+        pos = params["means"].detach().double()
+        sig = widths(params, self.min_log_sigma).detach().double()
+        amp = amplitudes(params).detach().double()
+        pairs_t = torch.as_tensor(pairs, device=pos.device)
+        mass = gaussian_mass(sig, amp)
+        m = mass[pairs_t]  # (K, 2)
+        w = m / m.sum(dim=1, keepdim=True)
+        centre = (w[:, :, None] * pos[pairs_t]).sum(dim=1)
+        s_c = (w * sig[pairs_t]).sum(dim=1)
+        members = torch.unique(pairs_t.flatten())
+        g = correlations(torch.cat([pos[members], centre]), torch.cat([sig[members], s_c]))
+        if g is None:
+            return None
+        g_member = np.zeros(len(pos))
+        g_member[members.cpu().numpy()] = g[: len(members)]
+        amp_c = (m.sum(dim=1) / (2.0 * math.pi * s_c**2) ** 1.5).cpu().numpy()
+        a_np, pairs_np = amp.cpu().numpy(), np.asarray(pairs)
+        cross = a_np[pairs_np[:, 0]] * g_member[pairs_np[:, 0]] + a_np[pairs_np[:, 1]] * g_member[pairs_np[:, 1]] - amp_c * g[len(members) :]
+        energy = merge_energy(pos.cpu().numpy(), sig.cpu().numpy(), mass.cpu().numpy(), pairs_np, self.view_dirs.detach().double().cpu().numpy(), merged=(centre.cpu().numpy(), s_c.cpu().numpy()))
+        chi_square = energy / (self.pixel_size**2 * self.pixel_variance(m.sum(dim=1).cpu().numpy(), s_c.cpu().numpy()))
+        return chi_square + 2.0 * cross
 
     def significance_threshold(self) -> float:
         """The significance no noise blob should reach anywhere in the volume: the one-sided
@@ -462,6 +504,44 @@ class DensityControl:
         mature = ~self.fresh(n) if protect_fresh else torch.ones(n, dtype=torch.bool)
         labels, n_clusters = cluster_labels(means.detach().cpu().numpy(), self.merge_threshold_A * self.length_scale, mature.numpy())
         return self._merge_labels(params, optimizers, labels, n_clusters, param_lists)
+
+    @torch.no_grad()
+    def merge_by_likelihood(self, params: Params, optimizers: Optimizers, param_lists=None, correlations=None, max_rounds: int = 4) -> int:
+        """Merge the pairs of atom-like Gaussians inside the volume whose merge raises the data's
+        chi-square (:meth:`likelihood_change`, the residual read through ``correlations``) by
+        less than two Gaussians gain by fitting noise: the chi-square quantile with 5 degrees of
+        freedom at the family-wise rate of :meth:`unresolved_pairs`.  Pairwise, least change
+        first, in rounds as :meth:`merge_unresolved` (each round reads the residual again).
+
+        Why the residual: the resolution test (:meth:`unresolved_pairs`) asks whether the data
+        *could* tell the pair from one Gaussian; a pair the data resolve may still fit them worse
+        than one atom.  A least-squares fit at Au noise 500 shares 7% of the atoms between two
+        Gaussians of nearly equal mass (median ratio 0.96) 1.1-1.8 Å apart along the missing
+        wedge, both significant and resolved: 0.078 false atoms per atom.  Of 8,826 pairs there
+        (all within :data:`..atoms.resolution.SEARCH_WIDTHS`), those of two atoms changed the
+        chi-square by 62 or more in 99% (2 of 3,270 under the level of 39.8); merging every pair
+        under the level took the false atoms from 0.203 to 0.040 per atom and the TPR from 0.9934
+        to 0.9943, before the refit."""
+        from scipy.stats import chi2
+
+        level = chi2.isf(self.false_alarm_rate / self.cells(), df=5)
+        removed = 0
+        for _ in range(max_rounds):
+            means = params["means"]
+            sigmas = widths(params, self.min_log_sigma)
+            idx = torch.nonzero((self.atom_width(sigmas) & self.inside(means)).cpu()).flatten().numpy()
+            pairs = idx[candidate_pairs(means.detach().double().cpu().numpy()[idx], sigmas.detach().double().cpu().numpy()[idx])] if len(idx) > 1 else np.zeros((0, 2), dtype=np.int64)
+            if len(pairs) == 0:
+                break
+            change = self.likelihood_change(params, pairs, correlations)
+            if change is None:
+                break
+            order = np.argsort(change, kind="stable")
+            merging = pairs[order[change[order] < level]]
+            if len(merging) == 0:
+                break
+            removed += self._merge_labels(params, optimizers, *disjoint_pair_labels(means.shape[0], merging), param_lists)
+        return removed
 
     @torch.no_grad()
     def merge_unresolved(self, params: Params, optimizers: Optimizers, param_lists=None, max_rounds: int = 4) -> int:

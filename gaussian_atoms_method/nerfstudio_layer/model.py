@@ -39,7 +39,7 @@ from gaussian_atoms_method.nerfstudio_layer.convergence import ConvergenceCheck
 from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions, OptionError
 from gaussian_atoms_method.nerfstudio_layer.noise_reading import measure_noise, read_noise
 from gaussian_atoms_method.nerfstudio_layer.refit import refit
-from gaussian_atoms_method.nerfstudio_layer.residuals import add_missing_atoms
+from gaussian_atoms_method.nerfstudio_layer.residuals import add_missing_atoms, residual_correlations
 from gaussian_atoms_method.nerfstudio_layer.results import model_position_std_A, write_results, write_snapshot
 from gaussian_atoms_method.nerfstudio_layer.splatfacto_compat import SplatfactoCompat
 from gaussian_atoms_method.nerfstudio_layer.viewer import AtomsInViewer
@@ -252,8 +252,8 @@ class GaussianAtomsModel(SplatfactoCompat):
 
     @torch.no_grad()
     def finalize(self) -> None:
-        """Last prune and merge (one Gaussian per atom), then a short refit if they changed anything."""
-        if self.density.finalize(self.gauss_params, self.optimizers, self._param_lists()) and self.optimizers and self.config.final_refit:
+        """Last merges and prune (one Gaussian per atom; the residual read by :func:`.residuals.residual_correlations`), then a short refit if they changed anything."""
+        if self.density.finalize(self.gauss_params, self.optimizers, self._param_lists(), lambda m, s: residual_correlations(self, m, s)) and self.optimizers and self.config.final_refit:
             refit(self)
         self.atoms_in_viewer.refresh()
 

@@ -108,12 +108,13 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
     H100); ``tiled``, each Gaussian only on the tiles it reaches (about 4x faster than dense on
     a CPU); ``gsplat``, tiled with stock gsplat's tile intersection (CUDA only; correct but
     slower than dense at these sizes).  ``auto``: dense on CUDA, tiled on CPU."""
-    loss: Literal["auto", "l1", "l2", "poisson"] = "auto"
+    loss: Literal["auto", "l1", "l2", "huber", "poisson"] = "auto"
     """Data term (:mod:`gaussian_atoms_method.physics.data_terms`): ``auto`` reads the noise
     from the projections before training (:func:`gaussian_atoms_method.physics.noise.noise_from_projections`)
     and takes the Poisson likelihood where the variance grows significantly with the signal
-    (electron counts), else L1 (the paper's; additive noise); or force ``l1``, ``l2`` or
-    ``poisson``.  Every run prints the noise it read and the term it chose."""
+    (electron counts), else Huber's (least squares within 1.345 noise standard deviations,
+    L1 beyond: additive noise, robust to the model's misfit); or force ``l1`` (the paper's),
+    ``l2``, ``huber`` or ``poisson``.  Every run prints the noise it read and the term it chose."""
     background: Literal["auto", "none", "constant", "plane"] = "auto"
     """A smooth per-projection background learned with the atoms (carbon support, contamination,
     a detector offset): a constant, or a plane over the detector, per view.  ``auto``: a

@@ -68,3 +68,51 @@ def add_missing_atoms(model) -> int:
     if added:
         CONSOLE.print(f"gaussian-atoms: step {model.step}: {added} Gaussians added where the residuals hold unexplained mass")
     return added
+
+
+def residual_correlations(model, means: torch.Tensor, sigmas: torch.Tensor) -> np.ndarray | None:
+    """(P,) for probe Gaussians of unit amplitude at ``means`` (P, 3) with widths ``sigmas``
+    (P,) (normalised units): ``sum over views and pixels of w r g``, with ``r`` the residual
+    (measured minus the model's projection), ``g`` the probe's projection and ``w`` one over
+    the noise variance at the pixel's predicted level.  A Gaussian of amplitude ``A`` explains
+    ``A`` times its probe's value of the residual's chi-square, to first order: what
+    :meth:`..density.strategy.DensityControl.merge_by_likelihood` needs to tell which of a pair and
+    its merged Gaussian the data prefer.  None without the tilt series or a noise model, or for
+    anisotropic Gaussians.
+
+    Computed as the gradient of ``sum w r g`` with respect to the probes' log-amplitudes at
+    zero: the probes are rendered by the model's own projector (same geometry, view shifts and
+    tilts included) in place of its Gaussians, which are put back after.
+    """
+    projections = (model.kwargs.get("metadata", {}) or {}).get("projections")
+    noise = model.density.noise
+    if projections is None or noise is None or not model.config.isotropic or len(means) == 0:
+        return None
+    own = model.gauss_params
+    probe = torch.nn.ParameterDict(
+        {
+            "means": torch.nn.Parameter(means.detach().to(own["means"])),
+            "log_sigmas": torch.nn.Parameter(torch.log(sigmas.detach().to(own["means"]))[:, None]),
+            "log_amplitudes": torch.nn.Parameter(torch.zeros(len(means), 1, dtype=own["means"].dtype, device=own["means"].device)),
+        }
+    )
+    total = torch.zeros(len(means), dtype=torch.float64)
+    with training_views(model) as cameras:
+        if cameras is None:
+            return None
+        with torch.inference_mode(False), torch.enable_grad():
+            for v in range(len(cameras)):
+                camera = cameras[v : v + 1]
+                with torch.no_grad():
+                    predicted = model.get_outputs(camera)["projection"][..., 0]
+                    residual = projections[v].to(predicted) - predicted
+                    level = (predicted - noise.offset).clamp_min(0.0)
+                    weight = 1.0 / (noise.read_var + noise.gain * level + noise.misfit * level**2).clamp_min(1e-30)
+                model.gauss_params = probe
+                try:
+                    image = model.get_outputs(camera)["projection"][..., 0]
+                finally:
+                    model.gauss_params = own
+                (grad,) = torch.autograd.grad((image * residual * weight).sum(), probe["log_amplitudes"])
+                total += grad[:, 0].detach().double().cpu()
+    return total.numpy()
