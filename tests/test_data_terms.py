@@ -90,4 +90,4 @@ def test_huber_term_is_least_squares_within_its_corner_and_l1_beyond():
     expected = torch.tensor([0.5 / corner[0], 1.0, 1.0 / corner[2], -1.0], dtype=torch.float64) / 4
     torch.testing.assert_close(predicted.grad, expected, rtol=1e-12, atol=0.0)
     parts = torch.where(residual.abs() <= corner, 0.5 * residual**2 / corner, residual.abs() - 0.5 * corner)
-    assert float(value) == pytest.approx(float(parts.mean()), rel=1e-12)
+    assert float(value.detach()) == pytest.approx(float(parts.mean()), rel=1e-12)

@@ -328,7 +328,7 @@ def test_coarse_phase_renders_and_compares_2x2_blocks(tmp_path):
     import torch.nn.functional as F
 
     _series(tmp_path)  # 30 x 36 pixels
-    model, outputs = _model(tmp_path, num_random=20, coarse_steps=100, init_sigma_A=0.7)
+    model, outputs = _model(tmp_path, num_random=20, coarse_steps=100, init_sigma_A=0.7, loss="l1")  # the binning, in the simplest term
     camera, gt = outputs.cameras[0:1], outputs.metadata["projections"][0][..., None]
     model.train()
     model.step = 0
@@ -353,7 +353,7 @@ def test_views_per_step_fits_several_views_in_one_loss(tmp_path):
     the loss is the mean L1 over the three views, equal to rendering each alone.  Coarse steps
     bin the extra views too.  Per-view parameters cannot be batched: refused, option named."""
     _series(tmp_path)
-    model, outputs = _model(tmp_path, num_random=20, views_per_step=3)
+    model, outputs = _model(tmp_path, num_random=20, views_per_step=3, loss="l1")
     single, _ = _model(tmp_path, num_random=20)  # same seed: the same start
     projections = outputs.metadata["projections"]
     model.train()
