@@ -87,9 +87,15 @@ def data_term(predicted: torch.Tensor, measured: torch.Tensor, kind: str, gain: 
         return residual.square().mean()
     if kind == "huber":
         # Divided by the corner: the gradient is r / corner inside, sign(r) beyond (as L1's).
-        corner = HUBER_K * torch.sqrt((read_var + gain * measured.clamp_min(0.0)).clamp_min(1e-30))
+        # With a = min(|r|, corner), a (|r| - a / 2) / corner is r^2 / (2 corner) inside and
+        # |r| - corner / 2 beyond, in five elementwise operations (a where() costs both branches).
+        if gain > 0:
+            corner = HUBER_K * torch.sqrt((read_var + gain * measured.clamp_min(0.0)).clamp_min(1e-30))
+        else:
+            corner = HUBER_K * max(read_var, 1e-30) ** 0.5
         size = residual.abs()
-        return torch.where(size <= corner, 0.5 * residual.square() / corner, size - 0.5 * corner).mean()
+        inner = torch.minimum(size, corner) if gain > 0 else size.clamp(max=corner)
+        return (inner * (size - 0.5 * inner) / corner).mean()
     if kind == "poisson":
         if not gain > 0:
             raise ValueError(f"the Poisson data term needs a positive gain, got {gain}")
