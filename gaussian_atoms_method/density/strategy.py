@@ -25,7 +25,9 @@ The rules, every ``refine_every`` steps after ``warmup_length``:
   additions) are not merged yet: a duplicate pair starts 1 sigma (about 0.6 Å) apart, inside
   the 0.7 Å threshold, and merging it at once undid every densification.
 
-At the end (:meth:`DensityControl.finalize`): first every pair of Gaussians the data cannot tell
+At the end (:meth:`DensityControl.finalize`): first every pair the data fit at least as well as
+one Gaussian becomes one (:meth:`DensityControl.merge_by_likelihood`, the residual read through a
+callable the model passes); then every pair of Gaussians the data cannot tell
 from one (:meth:`DensityControl.unresolved_pairs`: merging them costs less chi-square than the
 noise reaches, :mod:`..atoms.resolution`) becomes one, so an atom the fit shared between two
 Gaussians along the missing wedge is judged whole; then the prune, so a noise blob the data do
