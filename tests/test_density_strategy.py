@@ -320,18 +320,21 @@ def test_likelihood_change_matches_the_pixel_chi_square_and_tells_a_split_atom_f
     at zero tilt), each with half the mass.  Against the data of one atom the change of the
     data's chi-square on merging them (computed from the residual's correlations and the
     merge's energy) is negative: the data prefer one Gaussian.  Against two atoms 1.5 Å apart it
-    is far above the merge level.  Either way it equals the float64 pixel sum
+    is far above the merge level; finalize merges the first pair and keeps the second.  Either
+    way the change equals the float64 pixel sum
     ``sum w [(r + p - s)^2 - r^2]`` to 1e-6 of the merge's energy (the energy is an integral;
     on pixels 2.4 times finer than the width the pixel sum of a Gaussian matches it to far
     better than that)."""
     from gaussian_atoms_method.physics.projector import project_gaussians
 
+    ls = 0.05  # normalised units per Å: the 16 Å field inside the volume
     dirs = _tilt_series_dirs()
     axes = _series_axes(dirs)
-    coords = (torch.arange(64, dtype=torch.float64) - 31.5) * 0.25
-    pair = [[0.0, 0.0, -0.75], [0.0, 0.0, 0.75]]
-    params, _, control = _setup(pair, sigma_A=0.6, amplitude=1.0)
-    _with_noise(control, read_var=0.01, pixel_size=0.25, n_views=len(dirs), view_dirs=dirs)
+    coords = (torch.arange(64, dtype=torch.float64) - 31.5) * 0.25 * ls
+    pair = [[0.0, 0.0, -0.75 * ls], [0.0, 0.0, 0.75 * ls]]
+    params, opts, control = _setup(pair, sigma_A=0.6 * ls, amplitude=1.0 / ls)  # projected peak 1.5
+    control.length_scale = ls
+    _with_noise(control, read_var=0.01, pixel_size=0.25 * ls, n_views=len(dirs), view_dirs=dirs)
     sig, amp = widths(params, control.min_log_sigma).detach(), amplitudes(params).detach()
     model = project_gaussians(params["means"].detach(), sig, amp, axes, coords, coords)
     if truth == "one atom":
@@ -356,3 +359,11 @@ def test_likelihood_change_matches_the_pixel_chi_square_and_tells_a_split_atom_f
         from scipy.stats import chi2
 
         assert change > chi2.isf(control.false_alarm_rate / control.cells(), df=5)
+    # finalize with the residual: the split atom becomes one Gaussian with the whole mass at the
+    # pair's centre; the two atoms stay two.
+    total = float(_mass(params, control).sum())
+    control.finalize(params, opts, correlations=correlations)
+    assert params["means"].shape[0] == (1 if truth == "one atom" else 2)
+    assert float(_mass(params, control).sum()) == pytest.approx(total, rel=1e-9)
+    if truth == "one atom":
+        assert float(params["means"].detach().abs().max()) < 1e-12  # at the pair's centre of mass
