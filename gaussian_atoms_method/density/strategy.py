@@ -394,7 +394,7 @@ class DensityControl:
     def likelihood_change(self, params: Mapping[str, torch.Tensor], pairs: np.ndarray, correlations) -> np.ndarray | None:
         """(K,) for each pair of Gaussians ``(a, b)``: the data's chi-square with the pair made one
         Gaussian (at their mass-weighted centre and width, with their mass: the merge
-        :meth:`_merge_labels` makes) minus that with the pair.  Negative: the data prefer one.
+        :meth:`_merge_labels` makes, by the same :func:`..atoms.merge.merged_values`) minus that with the pair.  Negative: the data prefer one.
 
         With ``r`` the residual, ``p`` the pair's projections and ``s`` the merged one's, the
         change is ``sum w (p - s)^2 + 2 sum w r (p - s)`` (``w`` one over the noise variance): the
@@ -409,22 +409,19 @@ class DensityControl:
         sig = widths(params, self.min_log_sigma).detach().double()
         amp = amplitudes(params).detach().double()
         pairs_t = torch.as_tensor(pairs, device=pos.device)
-        mass = gaussian_mass(sig, amp)
-        m = mass[pairs_t]  # (K, 2)
-        w = m / m.sum(dim=1, keepdim=True)
-        centre = (w[:, :, None] * pos[pairs_t]).sum(dim=1)
-        s_c = (w * sig[pairs_t]).sum(dim=1)
-        members = torch.unique(pairs_t.flatten())
-        g = correlations(torch.cat([pos[members], centre]), torch.cat([sig[members], s_c]))
+        members = pairs_t.flatten()  # each pair its own cluster of two
+        centre, s_c, amp_c = merged_values(pos[members], sig[members], amp[members], torch.arange(len(pairs_t), device=pos.device).repeat_interleave(2), len(pairs_t), "mass")
+        unique = torch.unique(members)
+        g = correlations(torch.cat([pos[unique], centre]), torch.cat([sig[unique], s_c]))
         if g is None:
             return None
-        g_member = np.zeros(len(pos))
-        g_member[members.cpu().numpy()] = g[: len(members)]
-        amp_c = (m.sum(dim=1) / (2.0 * math.pi * s_c**2) ** 1.5).cpu().numpy()
-        a_np, pairs_np = amp.cpu().numpy(), np.asarray(pairs)
-        cross = a_np[pairs_np[:, 0]] * g_member[pairs_np[:, 0]] + a_np[pairs_np[:, 1]] * g_member[pairs_np[:, 1]] - amp_c * g[len(members) :]
-        energy = merge_energy(pos.cpu().numpy(), sig.cpu().numpy(), mass.cpu().numpy(), pairs_np, self.view_dirs.detach().double().cpu().numpy(), merged=(centre.cpu().numpy(), s_c.cpu().numpy()))
-        chi_square = energy / (self.pixel_size**2 * self.pixel_variance(m.sum(dim=1).cpu().numpy(), s_c.cpu().numpy()))
+        g_all = np.zeros(len(pos))
+        g_all[unique.cpu().numpy()] = g[: len(unique)]
+        pairs_np, a_np = np.asarray(pairs), amp.cpu().numpy()
+        cross = (a_np[pairs_np] * g_all[pairs_np]).sum(axis=1) - amp_c.cpu().numpy() * g[len(unique) :]
+        mass = gaussian_mass(sig, amp).cpu().numpy()
+        energy = merge_energy(pos.cpu().numpy(), sig.cpu().numpy(), mass, pairs_np, self.view_dirs.detach().double().cpu().numpy(), merged=(centre.cpu().numpy(), s_c.cpu().numpy()))
+        chi_square = energy / (self.pixel_size**2 * self.pixel_variance(mass[pairs_np].sum(axis=1), s_c.cpu().numpy()))
         return chi_square + 2.0 * cross
 
     def significance_threshold(self) -> float:
@@ -527,23 +524,19 @@ class DensityControl:
         from scipy.stats import chi2
 
         level = chi2.isf(self.false_alarm_rate / self.cells(), df=5)
-        removed = 0
-        for _ in range(max_rounds):
-            means = params["means"]
-            sigmas = widths(params, self.min_log_sigma)
-            idx = torch.nonzero((self.atom_width(sigmas) & self.inside(means)).cpu()).flatten().numpy()
-            pairs = idx[candidate_pairs(means.detach().double().cpu().numpy()[idx], sigmas.detach().double().cpu().numpy()[idx])] if len(idx) > 1 else np.zeros((0, 2), dtype=np.int64)
-            if len(pairs) == 0:
-                break
-            change = self.likelihood_change(params, pairs, correlations)
+
+        def preferred_as_one(atom_like: torch.Tensor) -> np.ndarray:
+            idx = torch.nonzero(atom_like).flatten().numpy()
+            if len(idx) < 2:
+                return np.zeros((0, 2), dtype=np.int64)
+            pairs = idx[candidate_pairs(params["means"].detach().double().cpu().numpy()[idx], widths(params, self.min_log_sigma).detach().double().cpu().numpy()[idx])]
+            change = self.likelihood_change(params, pairs, correlations) if len(pairs) else None
             if change is None:
-                break
+                return np.zeros((0, 2), dtype=np.int64)
             order = np.argsort(change, kind="stable")
-            merging = pairs[order[change[order] < level]]
-            if len(merging) == 0:
-                break
-            removed += self._merge_labels(params, optimizers, *disjoint_pair_labels(means.shape[0], merging), param_lists)
-        return removed
+            return pairs[order[change[order] < level]]
+
+        return self._merge_pairs_in_rounds(params, optimizers, param_lists, preferred_as_one, max_rounds)
 
     @torch.no_grad()
     def merge_unresolved(self, params: Params, optimizers: Optimizers, param_lists=None, max_rounds: int = 4) -> int:
@@ -559,16 +552,25 @@ class DensityControl:
         says.  At Au noise 500 a weak atom next to a neighbour 2.3-2.9 Å away can be as hard to
         resolve as an atom shared along the wedge (1.0-2.2 Å); without the bond the merge took
         2.5% of the atoms, with it TPR 0.9728 -> 0.9787 and false atoms 0.0250 -> 0.0222 per atom."""
+
+        def unresolved(atom_like: torch.Tensor) -> np.ndarray:
+            weak = (self.mass_significance(params) < self.significance_threshold()).cpu()
+            return self.unresolved_pairs(params, atom_like, weak, self.shortest_bond(params["means"], ~weak & atom_like))
+
+        return self._merge_pairs_in_rounds(params, optimizers, param_lists, unresolved, max_rounds)
+
+    def _merge_pairs_in_rounds(self, params: Params, optimizers: Optimizers, param_lists, ordered_pairs, max_rounds: int) -> int:
+        """Up to ``max_rounds`` rounds of: ``ordered_pairs`` of the (N,) CPU mask of atom-like
+        Gaussians inside the volume gives (K, 2) pairs, best first; a greedy disjoint set of them
+        is merged (:func:`..atoms.merge.disjoint_pair_labels`).  Stops when no pair is left;
+        returns how many Gaussians went."""
         removed = 0
         for _ in range(max_rounds):
-            means = params["means"]
-            atom_like = self.atom_width(widths(params, self.min_log_sigma)) & self.inside(means)
-            z = self.mass_significance(params)
-            weak = z < self.significance_threshold()
-            pairs = self.unresolved_pairs(params, atom_like.cpu(), weak.cpu(), self.shortest_bond(means, ~weak & atom_like))
+            atom_like = (self.atom_width(widths(params, self.min_log_sigma)) & self.inside(params["means"])).cpu()
+            pairs = ordered_pairs(atom_like)
             if len(pairs) == 0:
                 break
-            removed += self._merge_labels(params, optimizers, *disjoint_pair_labels(means.shape[0], pairs), param_lists)
+            removed += self._merge_labels(params, optimizers, *disjoint_pair_labels(params["means"].shape[0], pairs), param_lists)
         return removed
 
     def shortest_bond(self, means: torch.Tensor, strong: torch.Tensor) -> float:

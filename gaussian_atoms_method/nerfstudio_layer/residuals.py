@@ -96,23 +96,18 @@ def residual_correlations(model, means: torch.Tensor, sigmas: torch.Tensor) -> n
             "log_amplitudes": torch.nn.Parameter(torch.zeros(len(means), 1, dtype=own["means"].dtype, device=own["means"].device)),
         }
     )
+    predicted = render_training_views(model)
+    if predicted is None:
+        return None
+    weighted = (projections.cpu().numpy() - predicted) / np.maximum(noise.variance(predicted), 1e-30)  # w r
     total = torch.zeros(len(means), dtype=torch.float64)
-    with training_views(model) as cameras:
-        if cameras is None:
-            return None
-        with torch.inference_mode(False), torch.enable_grad():
-            for v in range(len(cameras)):
-                camera = cameras[v : v + 1]
-                with torch.no_grad():
-                    predicted = model.get_outputs(camera)["projection"][..., 0]
-                    residual = projections[v].to(predicted) - predicted
-                    level = (predicted - noise.offset).clamp_min(0.0)
-                    weight = 1.0 / (noise.read_var + noise.gain * level + noise.misfit * level**2).clamp_min(1e-30)
-                model.gauss_params = probe
-                try:
-                    image = model.get_outputs(camera)["projection"][..., 0]
-                finally:
-                    model.gauss_params = own
-                (grad,) = torch.autograd.grad((image * residual * weight).sum(), probe["log_amplitudes"])
-                total += grad[:, 0].detach().double().cpu()
+    with training_views(model) as cameras, torch.inference_mode(False), torch.enable_grad():
+        for v in range(len(cameras)):
+            model.gauss_params = probe
+            try:
+                image = model.get_outputs(cameras[v : v + 1])["projection"][..., 0]
+            finally:
+                model.gauss_params = own
+            (grad,) = torch.autograd.grad((image * torch.as_tensor(weighted[v]).to(image)).sum(), probe["log_amplitudes"])
+            total += grad[:, 0].detach().double().cpu()
     return total.numpy()

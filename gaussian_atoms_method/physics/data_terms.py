@@ -94,7 +94,7 @@ def data_term(predicted: torch.Tensor, measured: torch.Tensor, kind: str, gain: 
         else:
             corner = HUBER_K * max(read_var, 1e-30) ** 0.5
         size = residual.abs()
-        inner = torch.minimum(size, corner) if gain > 0 else size.clamp(max=corner)
+        inner = size.clamp(max=corner)
         return (inner * (size - 0.5 * inner) / corner).mean()
     if kind == "poisson":
         if not gain > 0:
