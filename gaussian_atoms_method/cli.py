@@ -250,6 +250,27 @@ class BenchmarkPeer:
 
 
 @dataclass
+class BenchmarkFilm:
+    """Real data: sub-areas of a measured amorphous Ta film (Yuan et al., Nature Materials 21,
+    95-102, 2022), each reconstructed with the defaults and scored against the authors' model."""
+
+    data: Path = Path("../shared/data/ta_film")
+    """The film's folder (Projections_area*.mat, angles.mat, alignPara.mat, the model)."""
+    output: Path = Path("outputs/benchmark-film")
+    areas: tuple[int, ...] = (8, 21, 23, 25)
+    iterations: int = 3000
+    device: Literal["cpu", "cuda"] = "cpu"
+    train_args: str = ""
+    """Further ns-train options, given with "=", e.g. --train-args="--pipeline.model.background plane"."""
+
+    def main(self) -> None:
+        from gaussian_atoms_method.harness.film_benchmark import FilmBenchmark
+
+        FilmBenchmark(self.data, self.output, self.areas, self.iterations, self.device, tuple(shlex.split(self.train_args))).run()
+        print(f"wrote {self.output / 'results.md'} and results.csv")
+
+
+@dataclass
 class Benchmark:
     """Time to accuracy: our method scored during training against FBP and SART + tracing on
     the same data; CSV, Markdown and a PNG of error against wall time."""
@@ -388,6 +409,7 @@ Commands = Union[
     Annotated[Benchmark, tyro.conf.subcommand("benchmark")],
     Annotated[BenchmarkAccuracy, tyro.conf.subcommand("benchmark-accuracy")],
     Annotated[BenchmarkPeer, tyro.conf.subcommand("benchmark-peer")],
+    Annotated[BenchmarkFilm, tyro.conf.subcommand("benchmark-film")],
     Annotated[Stress, tyro.conf.subcommand("stress")],
     Annotated[Export, tyro.conf.subcommand("export")],
     Annotated[Sweep, tyro.conf.subcommand("sweep")],

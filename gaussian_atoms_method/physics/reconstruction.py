@@ -178,6 +178,7 @@ def reconstruct(
     filter_name: str = "ramp",
     device: str = "cpu",
     tilt_axis_angle_deg: float = 0.0,
+    slice_size_px: int | None = None,
 ) -> Volume:
     """FBP or SART reconstruction of a single-axis tilt series.
 
@@ -199,6 +200,11 @@ def reconstruct(
     tilt_axis_angle_deg : float
         Angle of the tilt axis in the images (:mod:`.geometry`); the projections are first
         resampled (linear) so that it lies along the detector direction ``tilt_axis`` names.
+    slice_size_px : int, optional
+        FBP only: side of each reconstructed slice (perpendicular to the tilt axis), default the
+        detector's length across the axis; larger for an object wider than the field of view
+        (:mod:`.field_of_view`), whose voxels beyond the detector see only the views whose rays
+        reach them.
 
     Returns
     -------
@@ -217,8 +223,9 @@ def reconstruct(
     slice_axis, in_plane_centre, axis_centre = (2, ci, cj) if tilt_axis == "y" else (1, cj, ci)
     sino, length = _centred_sinograms(projections, in_plane_centre, slice_axis)
     theta = np.asarray(angles_deg, dtype=np.float64)
+    size = length if slice_size_px is None or method != "fbp" else max(int(slice_size_px) | 1, length)  # odd: centre at size // 2
     if method == "fbp":
-        recs = filtered_backprojection(sino, theta, filter_name, length, device)
+        recs = filtered_backprojection(sino, theta, filter_name, size, device)
     else:
         recs = []
         for s in sino:
@@ -229,8 +236,8 @@ def reconstruct(
     vol = np.swapaxes(np.asarray(recs), 1, 2) / pixel_size_A  # (slice, in-plane, depth)
     if tilt_axis == "y":
         data = np.moveaxis(vol, 0, 1)  # (x, y, z)
-        origin = np.array([length // 2, axis_centre, length // 2], dtype=np.float64)
+        origin = np.array([size // 2, axis_centre, size // 2], dtype=np.float64)
     else:
         data = vol  # (x, y, z) with x the slice axis
-        origin = np.array([axis_centre, length // 2, length // 2], dtype=np.float64)
+        origin = np.array([axis_centre, size // 2, size // 2], dtype=np.float64)
     return Volume(np.ascontiguousarray(data), float(pixel_size_A), origin)
