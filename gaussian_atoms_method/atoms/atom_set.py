@@ -75,6 +75,11 @@ class AtomSet:
             return None
         return self.amplitudes * (2.0 * np.pi * self.sigmas**2) ** 1.5
 
+    def subset(self, mask) -> "AtomSet":
+        """The atoms where the (N,) bool ``mask`` (or index array) selects, every attribute alike."""
+        pick = (lambda v: None if v is None else v[mask])
+        return AtomSet(self.positions[mask], pick(self.sigmas), pick(self.amplitudes), pick(self.species), dict(self.info), pick(self.position_std_A))
+
     def shifted(self, offset_A) -> "AtomSet":
         """A copy with every position moved by ``offset_A`` (3,)."""
         return AtomSet(self.positions + np.asarray(offset_A, dtype=np.float64), self.sigmas, self.amplitudes, self.species, dict(self.info), self.position_std_A)

@@ -95,7 +95,7 @@ from gaussian_atoms_method.atoms.deconvolution import matched_response, peak_sha
 from gaussian_atoms_method.atoms.peaks import random_field_threshold, separated_maxima
 from gaussian_atoms_method.atoms.point_response import backprojected_atom, clean_peaks, point_response
 from gaussian_atoms_method.physics.noise import NoiseModel, noise_from_projections
-from gaussian_atoms_method.physics.reconstruction import reconstruct
+from gaussian_atoms_method.physics.reconstruction import Volume, reconstruct
 
 
 BRIGHT_PIXELS_PERCENTILE = 99.0
@@ -159,6 +159,7 @@ def backprojection_candidates(
     fine_min_distance_A: float = 0.7,
     noise: NoiseModel | None = None,
     deconvolve: bool = True,
+    slice_size_px: int | None = None,
 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Candidate atom positions, strongest first.
 
@@ -203,6 +204,9 @@ def backprojection_candidates(
         The projections' noise in their units, if already read (else read here).
     deconvolve : bool
         Step 6 (with step 5): add the sites the candidates' fitted responses leave unexplained.
+    slice_size_px : int, optional
+        Reconstruct across the tilt axis over this many voxels (an object wider than the field of
+        view, :mod:`gaussian_atoms_method.physics.field_of_view`); the depth stays the detector's.
 
     Returns
     -------
@@ -214,7 +218,11 @@ def backprojection_candidates(
     """
     if max_count is not None and max_count <= 0:
         return (np.zeros((0, 3)), np.zeros(0)) if return_values else np.zeros((0, 3))
-    volume = reconstruct(projections, angles_deg, pixel_size_A, "fbp", tilt_axis, centre_px, filter_name="hann", device=device, tilt_axis_angle_deg=tilt_axis_angle_deg)
+    volume = reconstruct(projections, angles_deg, pixel_size_A, "fbp", tilt_axis, centre_px, filter_name="hann", device=device, tilt_axis_angle_deg=tilt_axis_angle_deg, slice_size_px=slice_size_px)
+    if slice_size_px is not None:  # wider across the axis only: the depth back to the detector's length
+        depth = projections.shape[1 if tilt_axis == "y" else 2] | 1
+        start = int(volume.origin_index[2]) - depth // 2
+        volume = Volume(np.ascontiguousarray(volume.data[:, :, max(start, 0) : start + depth]), volume.spacing_A, volume.origin_index - np.array([0.0, 0.0, max(start, 0)]))
     sigma_vox = smoothing_A / volume.spacing_A
 
     def smooth(v):  # the matched filter: the data and the noise sample go through the same one
@@ -266,7 +274,8 @@ def backprojection_candidates(
 
 
 def starting_positions(
-    series, length_scale: float, count: int, extent: float, generator: torch.Generator, from_backprojection: bool = True, noise: NoiseModel | None = None
+    series, length_scale: float, count: int, extent: float, generator: torch.Generator, from_backprojection: bool = True, noise: NoiseModel | None = None,
+    slice_size_px: int | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Where training starts: (n, 3) positions in normalised units and, for a back-projection
     start, (n,) weights of mean 1 in proportion to the smoothed back-projection there (else None).
@@ -287,12 +296,14 @@ def starting_positions(
         Draws the random positions.
     noise : NoiseModel, optional
         The projections' noise in the series' units, if already read.
+    slice_size_px : int, optional
+        Across the tilt axis, start over this many voxels (:func:`backprojection_candidates`).
     """
     if from_backprojection and series is not None:
         # A GPU, if there is one, does the back-projection (the model is built on the CPU).
         positions_A, values = backprojection_candidates(
             series.projections, series.angles_deg, series.pixel_size_A, series.tilt_axis, series.centre_px, None,
-            device="cuda" if torch.cuda.is_available() else "cpu", return_values=True, tilt_axis_angle_deg=series.tilt_axis_angle_deg, noise=noise,
+            device="cuda" if torch.cuda.is_available() else "cpu", return_values=True, tilt_axis_angle_deg=series.tilt_axis_angle_deg, noise=noise, slice_size_px=slice_size_px,
         )  # fmt: skip
         if len(positions_A):
             # A candidate made of noise reads about zero; a floor of 1% of the strongest keeps

@@ -112,6 +112,15 @@ class DensityControl:
     merge_threshold_A: float = 0.7
     merge_amplitude: str = "mass"
     isotropic: bool = True
+    half_extent: tuple[float, float, float] = (0.5, 0.5, 0.5)
+    """Half-sides of the reconstruction volume (normalised units): the cube the detector's longer
+    side spans, or wider across the tilt axis for an object wider than the field of view
+    (:mod:`..physics.field_of_view`)."""
+    field_half_extent: tuple[float, float, float] | None = None
+    """Half-sides of the field whose Gaussians are reported as atoms (normalised); None: the
+    whole volume.  Beyond it (an object wider than the field of view) Gaussians only explain the
+    rays that reach the detector through material outside the field; the final prune leaves
+    them (a faint one there, pruned, would hand its signal to the atoms above the detector)."""
     grad_accum: torch.Tensor = field(default_factory=lambda: torch.zeros(0, 3))
     """(N, 3) sum of the means' gradient vectors since the last refine (CPU)."""
     grad_count: int = 0
@@ -212,11 +221,12 @@ class DensityControl:
         ls = self.length_scale
         lo, hi = math.log(self.min_sigma_A * ls), math.log(self.max_sigma_A * ls)
         log_sigmas, log_amps, means = params["log_sigmas"].data, params["log_amplitudes"].data, params["means"].data
-        held = torch.stack([(log_sigmas < lo).any(-1).sum(), (log_sigmas > hi).any(-1).sum(), (log_amps > self.max_log_amplitude).sum(), (means.abs() > 1.0).any(-1).sum()])
+        held = torch.stack([(log_sigmas < lo).any(-1).sum(), (log_sigmas > hi).any(-1).sum(), (log_amps > self.max_log_amplitude).sum(), (means.abs() > 2.0 * torch.as_tensor(self.half_extent, device=means.device, dtype=means.dtype)).any(-1).sum()])
         self.clamp_counts = held if self.clamp_counts is None else self.clamp_counts + held.to(self.clamp_counts.device)
         log_sigmas.clamp_(lo, hi)
         log_amps.clamp_(max=self.max_log_amplitude)
-        means.clamp_(-1.0, 1.0)
+        bound = 2.0 * torch.as_tensor(self.half_extent, device=means.device, dtype=means.dtype)
+        means.copy_(torch.maximum(torch.minimum(means, bound), -bound))
 
     def report(self) -> list[str]:
         """What the safeguards did over the run, one sentence each (empty when nothing): the
@@ -303,10 +313,15 @@ class DensityControl:
         """(N,) bool: no wider than ``max_atom_sigma_A`` (the widest an atom can be)."""
         return sigmas <= self.max_atom_sigma_A * self.length_scale
 
-    @staticmethod
-    def inside(means: torch.Tensor) -> torch.Tensor:
-        """(N,) bool: inside the reconstruction volume [-0.5, 0.5]^3 (normalised units)."""
-        return (means.abs() <= 0.5).all(dim=-1)
+    def in_field(self, means: torch.Tensor) -> torch.Tensor:
+        """(N,) bool: inside the reported field (``field_half_extent``; the volume without one)."""
+        if self.field_half_extent is None:
+            return self.inside(means)
+        return (means.abs() <= torch.as_tensor(self.field_half_extent, device=means.device, dtype=means.dtype)).all(dim=-1)
+
+    def inside(self, means: torch.Tensor) -> torch.Tensor:
+        """(N,) bool: inside the reconstruction volume (``half_extent``, normalised units)."""
+        return (means.abs() <= torch.as_tensor(self.half_extent, device=means.device, dtype=means.dtype)).all(dim=-1)
 
     def set_noise(self, noise, floor: float, pixel_size: float, n_views: int, data_term: str, view_dirs: torch.Tensor | None = None) -> None:
         """The measured noise (normalised units) the prune judges masses against, the floor the
@@ -352,7 +367,7 @@ class DensityControl:
         its projected peak ``mass / (2 pi s^2)`` (the g^2-weighted mean of a 2D Gaussian)."""
         level = self.floor + (2.0 / 3.0) * mass / (2.0 * math.pi * s**2)
         x = (level - self.noise.offset).clip(min=0.0)
-        return (self.noise.read_var + self.noise.gain * x).clip(min=1e-300)
+        return (self.noise.read_var + self.noise.gain * x + getattr(self.noise, "misfit", 0.0) * x**2).clip(min=1e-300)
 
     def noise_known(self) -> bool:
         """Whether a noise model, pixel size and views are set (:meth:`set_noise`)."""
@@ -456,8 +471,8 @@ class DensityControl:
         return min(float(z[ok[-1]]) if len(ok) else math.inf, self.significance_threshold())
 
     def cells(self) -> float:
-        """The volume [-0.5, 0.5]^3 in Å^3: its number of 1 Å^3 cells (at least one)."""
-        return max((1.0 / self.length_scale) ** 3, 1.0)
+        """The reconstruction volume in Å^3: its number of 1 Å^3 cells (at least one)."""
+        return max(math.prod(2.0 * h for h in self.half_extent) / self.length_scale**3, 1.0)
 
     @torch.no_grad()
     def prune(self, params: Params, optimizers: Optimizers, param_lists=None, final: bool = False) -> int:
@@ -484,6 +499,8 @@ class DensityControl:
             z = self.mass_significance(params)
             keep &= z >= (self.discovery_threshold(z) if final else TRAINING_SIGNIFICANCE)
             keep |= self.fresh(params["means"].shape[0]).to(sigmas.device)
+            if final and self.field_half_extent is not None:
+                keep |= ~self.in_field(params["means"])
         keep &= self.atom_width(sigmas)
         inside = self.inside(params["means"])
         self.pruned_outside += int((~inside).sum())

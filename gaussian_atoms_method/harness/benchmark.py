@@ -160,7 +160,7 @@ def train_ours(
     start-up).  With ``threads``, its OpenMP threads are limited to that many.
 
     Returns the predicted :class:`~.atoms.AtomSet` (read from the run's ``atoms.xyz``) and the
-    wall time in seconds, start-up included.
+    wall time in seconds, start-up included; the run's output is kept in ``run_dir/train.log``.
     """
     from gaussian_atoms_method.atoms.atom_set import read_atoms
 
@@ -179,6 +179,8 @@ def train_ours(
     env = None if threads is None else {**os.environ, "OMP_NUM_THREADS": str(threads)}
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
     seconds = time.perf_counter() - start
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "train.log").write_text(proc.stdout + proc.stderr)  # what the run read and chose
     if proc.returncode != 0:
         raise RuntimeError(f"{' '.join(command[-2:])} failed on {data}:\n{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}")
     return read_atoms(run_dir / "ours" / "gaussian-atoms" / "run" / "atoms.xyz"), seconds

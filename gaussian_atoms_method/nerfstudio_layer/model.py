@@ -37,7 +37,7 @@ from gaussian_atoms_method.nerfstudio_layer import rendering as R
 from gaussian_atoms_method.nerfstudio_layer.checkpoints import allow_numpy_scalars_in_checkpoints
 from gaussian_atoms_method.nerfstudio_layer.convergence import ConvergenceCheck
 from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions, OptionError
-from gaussian_atoms_method.nerfstudio_layer.noise_reading import measure_noise, read_noise
+from gaussian_atoms_method.nerfstudio_layer.noise_reading import measure_noise, read_field_of_view, read_noise
 from gaussian_atoms_method.nerfstudio_layer.refit import refit
 from gaussian_atoms_method.nerfstudio_layer.residuals import add_missing_atoms, residual_correlations
 from gaussian_atoms_method.nerfstudio_layer.results import model_position_std_A, write_results, write_snapshot
@@ -73,7 +73,8 @@ class GaussianAtomsModel(SplatfactoCompat):
         self.truth_path: Path | None = Path(metadata["truth_path"]) if metadata.get("truth_path") is not None else None
         self.generator = torch.Generator().manual_seed(cfg.seed)
         measured = measure_noise(metadata.get("projections"))  # read once: the start (in the input's units) and the data term share it
-        means, weights = starting_positions(series, ls, cfg.num_random, cfg.init_extent, self.generator, cfg.init == "backprojection", measured and measured.scaled(1.0 / self.normalisation.data_scale))
+        half_extent, self.field_half_extent, slice_px = read_field_of_view(series, metadata.get("projections"), ls, cfg.extended_object)
+        means, weights = starting_positions(series, ls, cfg.num_random, cfg.init_extent, self.generator, cfg.init == "backprojection", measured and measured.scaled(1.0 / self.normalisation.data_scale), slice_px)
         if weights is not None:
             CONSOLE.print(f"gaussian-atoms: {len(means)} Gaussians start at back-projection maxima")
         n, sigma0 = means.shape[0], cfg.init_sigma_A * ls
@@ -87,7 +88,7 @@ class GaussianAtomsModel(SplatfactoCompat):
         self.gauss_params = torch.nn.ParameterDict(params)
         # Every Gaussian's mass stays below 1000x the whole measured mass (DensityControl.clamp).
         max_log_amp = math.log(1000.0 * max(n, 1) * amp0 * (sigma0 / (cfg.min_sigma_A * ls)) ** 3)
-        self.density = DensityControl(ls, max_log_amp, self.generator, **{f.name: getattr(cfg, f.name) for f in fields(DensityControl) if hasattr(cfg, f.name)})
+        self.density = DensityControl(ls, max_log_amp, self.generator, half_extent=half_extent, field_half_extent=self.field_half_extent if half_extent != self.field_half_extent else None, **{f.name: getattr(cfg, f.name) for f in fields(DensityControl) if hasattr(cfg, f.name)})
         self.density.reset(n)
         self.convergence = ConvergenceCheck(cfg.warmup_length, cfg.refine_every, cfg.converged_fraction)
         self.noise_read, self.data_term, floor = read_noise(metadata.get("projections"), cfg.loss, cfg.background, measured)
@@ -264,6 +265,14 @@ class GaussianAtomsModel(SplatfactoCompat):
         norm = self.normalisation
         return AtomSet(positions=norm.positions_to_A(self.means.detach().cpu().double().numpy()), sigmas=norm.sigmas_to_A(self.sigmas.detach().cpu().double().numpy()),
                        amplitudes=norm.amplitudes_to_physical(self.amplitudes.detach().cpu().double().numpy()))  # fmt: skip
+
+    def in_field(self, atoms: AtomSet):
+        """(N,) bool: the atoms inside the field whose Gaussians are reported (above the detector
+        for an object wider than it, :func:`.noise_reading.read_field_of_view`)."""
+        import numpy as np
+
+        positions = self.normalisation.positions_from_A(atoms.positions)
+        return np.all(np.abs(positions) <= np.asarray(getattr(self, "field_half_extent", (0.5, 0.5, 0.5))) + 1e-9, axis=1)
 
     def position_std_A(self, atoms: AtomSet, noise: float | None = None):
         """Each atom's position precision (N, 3) in Å and the pixel noise assumed (:mod:`.results`)."""

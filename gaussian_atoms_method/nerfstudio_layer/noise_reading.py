@@ -1,4 +1,5 @@
-"""What the model reads from the projections before training: the noise and a detector floor.
+"""What the model reads from the projections before training: the noise, a detector floor and
+whether the object is wider than the field of view.
 
 The physics is :mod:`gaussian_atoms_method.physics.noise` (the measurement) and
 :mod:`gaussian_atoms_method.physics.data_terms` (the choice of term); this puts the options'
@@ -11,6 +12,7 @@ import numpy as np
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from gaussian_atoms_method.physics.data_terms import choose_data_term
+from gaussian_atoms_method.physics.field_of_view import film_evidence, slab_half_width
 from gaussian_atoms_method.physics.noise import NoiseModel, detector_floor, noise_from_projections
 
 FLOOR_Z = 5.0
@@ -58,3 +60,29 @@ def read_noise(projections, loss: str, background: str, measured: NoiseModel | N
     bg = f"; frame level {floor:.3g} ± {floor_se:.1g}: learning a constant background per view from it" if found else ""
     CONSOLE.print(f"gaussian-atoms: noise read from the projections: {said}; data term {term}{bg}")
     return noise, term, (floor if found else None)
+
+
+def read_field_of_view(series, projections, length_scale: float, option: str) -> tuple[tuple[float, float, float], tuple[float, float, float], int | None]:
+    """The volume the Gaussians fill and the field whose Gaussians are reported (half-sides,
+    normalised units) and the start's slice size across the tilt axis (None: the detector's).
+
+    Both are the cube the detector's longer side spans unless the object is wider than the field
+    of view (``option`` "on", or "auto" and :func:`~gaussian_atoms_method.physics.field_of_view.film_evidence`
+    says so): then the volume reaches across the tilt axis as far as the rays that reach the
+    detector travel through the cube's depth, and the field is the detector's width there."""
+    cube = (0.5, 0.5, 0.5)
+    if series is None or projections is None or option == "off":
+        return cube, cube, None
+    evidence = film_evidence(_as_array(projections), series.angles_deg)
+    if option == "auto" and not evidence.extended:
+        return cube, cube, None
+    across = 0 if series.tilt_axis == "y" else 1
+    n_across = series.projections.shape[1 + across]
+    detector_half = 0.5 * n_across * series.pixel_size_A * length_scale
+    reach = slab_half_width(detector_half, 0.5, series.angles_deg)
+    half, field = list(cube), list(cube)
+    half[across], field[across] = max(reach, 0.5), detector_half
+    slice_px = 2 * int(np.ceil(reach / (series.pixel_size_A * length_scale))) + 1
+    why = f"the views' projected mass grows like 1/cos(tilt) ({evidence.z:.1f} standard errors, {evidence.outside_fraction:.0%} of the zero-tilt mass)" if option == "auto" else "extended-object on"
+    CONSOLE.print(f"gaussian-atoms: an object wider than the field of view: {why}; Gaussians fill {2 * reach / length_scale:.0f} Å across the tilt axis, those above the detector are reported as atoms")
+    return tuple(half), tuple(field), slice_px

@@ -122,6 +122,13 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
     significantly off zero (more than 5 standard errors of its mean,
     :func:`gaussian_atoms_method.physics.noise.detector_floor`: the peer's aSi-208 counts sit
     on 1.0 count), else none."""
+    extended_object: Literal["auto", "on", "off"] = "auto"
+    """An object wider than the field of view (a film): Gaussians also fill the slab beyond the
+    detector across the tilt axis, as far as the rays that reach the detector travel, so the
+    high-tilt views' material outside the box is explained there, and only the Gaussians above
+    the detector are reported as atoms (the rest go to ``non_atoms.xyz``).  ``auto``: when the
+    views' projected mass grows like 1/cos(tilt)
+    (:func:`gaussian_atoms_method.physics.field_of_view.film_evidence`, 3 standard errors)."""
     refine_alignment: bool = False
     """Learn a per-projection in-plane shift with the atoms (residual misalignment of the tilt
     series).  Shifts are taken relative to their mean over the views (an overall shift of

@@ -71,9 +71,13 @@ def write_results(model, run_dir: Path) -> dict | None:
             f"gaussian-atoms: residual noise {noise:.4g} (input units); median position precision "
             + ", ".join(f"{a} {v * 100:.1f} pm" for a, v in zip("xyz", np.median(atoms.position_std_A, axis=0)))
         )
+    reported = model.in_field(atoms)
+    atoms, non_atoms = atoms.subset(reported), atoms.subset(~reported)
     write_atoms(atoms, run_dir / "atoms.xyz")
     write_atoms(atoms, run_dir / "atoms.csv")
-    CONSOLE.print(f"[bold]gaussian-atoms[/bold]: wrote {len(atoms)} atoms to {run_dir / 'atoms.xyz'}")
+    if len(non_atoms) or (run_dir / "non_atoms.xyz").exists():
+        write_atoms(non_atoms, run_dir / "non_atoms.xyz")
+    CONSOLE.print(f"[bold]gaussian-atoms[/bold]: wrote {len(atoms)} atoms to {run_dir / 'atoms.xyz'}" + (f" and {len(non_atoms)} non-atoms (beyond the field of view) to non_atoms.xyz" if len(non_atoms) else ""))
     truth = read_atoms(model.truth_path) if model.truth_path is not None else None
     scores = score_atoms(atoms.positions, truth.positions) if truth is not None else None
     if len(atoms):

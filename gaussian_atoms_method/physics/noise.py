@@ -122,7 +122,7 @@ def fit_noise_model(residuals: np.ndarray, predicted: np.ndarray, offset: float 
     for _ in range(2):
         normal = design.T @ (weights[:, None] * design)
         coef = _solve(normal, design.T @ (weights * variances))
-        fitted = np.maximum(design @ coef, 1e-300)
+        fitted = np.maximum(design @ coef, 1e-12 * float(variances.max()))  # squared below: no underflow to 0
         weights = 0.37 * counts / (2.0 * fitted**2)
     cov = _solve(design.T @ (weights[:, None] * design), np.eye(design.shape[1]))
     read_var, gain = float(coef[0]), float(coef[1])
