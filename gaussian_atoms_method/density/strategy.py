@@ -537,21 +537,29 @@ class DensityControl:
         (all within :data:`..atoms.resolution.SEARCH_WIDTHS`), those of two atoms changed the
         chi-square by 62 or more in 99% (2 of 3,270 under the level of 39.8); merging every pair
         under the level took the false atoms from 0.203 to 0.040 per atom and the TPR from 0.9934
-        to 0.9943, before the refit."""
+        to 0.9943, before the refit.
+
+        A pair closer than the material's shortest distance (:meth:`shortest_distance`) stays two
+        only where the likelihood demands it: its level is raised by the prior odds against so
+        close a pair."""
         from scipy.stats import chi2
 
         level = chi2.isf(self.false_alarm_rate / self.cells(), df=5)
+        closest, prior = self.shortest_distance(params)
 
         def preferred_as_one(atom_like: torch.Tensor) -> np.ndarray:
             idx = torch.nonzero(atom_like).flatten().numpy()
             if len(idx) < 2:
                 return np.zeros((0, 2), dtype=np.int64)
-            pairs = idx[candidate_pairs(params["means"].detach().double().cpu().numpy()[idx], widths(params, self.min_log_sigma).detach().double().cpu().numpy()[idx])]
+            pos = params["means"].detach().double().cpu().numpy()
+            pairs = idx[candidate_pairs(pos[idx], widths(params, self.min_log_sigma).detach().double().cpu().numpy()[idx])]
             change = self.likelihood_change(params, pairs, correlations) if len(pairs) else None
             if change is None:
                 return np.zeros((0, 2), dtype=np.int64)
-            order = np.argsort(change, kind="stable")
-            return pairs[order[change[order] < level]]
+            too_close = np.linalg.norm(pos[pairs[:, 0]] - pos[pairs[:, 1]], axis=1) < closest
+            margin = change - (level + np.where(too_close, prior, 0.0))
+            order = np.argsort(margin, kind="stable")
+            return pairs[order[margin[order] < 0]]
 
         return self._merge_pairs_in_rounds(params, optimizers, param_lists, preferred_as_one, max_rounds)
 
@@ -589,6 +597,23 @@ class DensityControl:
                 break
             removed += self._merge_labels(params, optimizers, *disjoint_pair_labels(params["means"].shape[0], pairs), param_lists)
         return removed
+
+    def shortest_distance(self, params: Mapping[str, torch.Tensor]) -> tuple[float, float]:
+        """The material's shortest interatomic distance (normalised), read from the pair
+        distribution of the confident atoms (atom-like, in the field, significant at
+        :meth:`significance_threshold`; :func:`..atoms.pair_distribution.shortest_distance`),
+        and the chi-square a pair closer than that must gain over one Gaussian beyond the usual
+        level: twice the log prior odds ``(1 - f) / f`` against it, with ``f`` the share of
+        confident atoms that close (a pair that is rare among the confident atoms needs that
+        much more evidence).  (inf, 0) with too few confident atoms or no noise model."""
+        from gaussian_atoms_method.atoms.pair_distribution import shortest_distance
+
+        if not self.noise_known():
+            return math.inf, 0.0
+        sigmas = widths(params, self.min_log_sigma)
+        confident = self.atom_width(sigmas) & self.in_field(params["means"]) & (self.mass_significance(params) >= self.significance_threshold())
+        distance, share = shortest_distance(params["means"].detach()[confident].double().cpu().numpy())
+        return distance, max(2.0 * math.log((1.0 - share) / share), 0.0) if share < 1.0 else 0.0
 
     def shortest_bond(self, means: torch.Tensor, strong: torch.Tensor) -> float:
         """The 5th percentile of the nearest-neighbour distances among the ``strong`` (N,) bool

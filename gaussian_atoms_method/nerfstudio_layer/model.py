@@ -37,7 +37,7 @@ from gaussian_atoms_method.nerfstudio_layer import rendering as R
 from gaussian_atoms_method.nerfstudio_layer.checkpoints import allow_numpy_scalars_in_checkpoints
 from gaussian_atoms_method.nerfstudio_layer.convergence import ConvergenceCheck
 from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions, OptionError
-from gaussian_atoms_method.nerfstudio_layer.noise_reading import measure_noise, read_field_of_view, read_noise
+from gaussian_atoms_method.nerfstudio_layer.noise_reading import measure_noise, noise_after_fit, read_field_of_view, read_noise
 from gaussian_atoms_method.nerfstudio_layer.refit import refit
 from gaussian_atoms_method.nerfstudio_layer.residuals import add_missing_atoms, residual_correlations
 from gaussian_atoms_method.nerfstudio_layer.results import model_position_std_A, write_results, write_snapshot
@@ -254,9 +254,24 @@ class GaussianAtomsModel(SplatfactoCompat):
     @torch.no_grad()
     def finalize(self) -> None:
         """Last merges and prune (one Gaussian per atom; the residual read by :func:`.residuals.residual_correlations`), then a short refit if they changed anything."""
+        self._judge_in_noise_after_fit()
         if self.density.finalize(self.gauss_params, self.optimizers, self._param_lists(), lambda m, s: residual_correlations(self, m, s)) and self.optimizers and self.config.final_refit:
             refit(self)
         self.atoms_in_viewer.refresh()
+
+    def _judge_in_noise_after_fit(self) -> None:
+        """The final merges and prune judge in what the fit leaves unexplained (:func:`.noise_reading.noise_after_fit`)."""
+        projections = (self.kwargs.get("metadata", {}) or {}).get("projections")
+        if self.density.noise is None or projections is None or self.num_points == 0 or not self.config.judge_after_fit:
+            return
+        from gaussian_atoms_method.nerfstudio_layer.residuals import render_training_views
+
+        predicted = render_training_views(self)
+        sigma_px = float(self.sigmas.median()) / self.density.pixel_size
+        judged, kappa, ratio = noise_after_fit(self.density.noise, projections.cpu().numpy(), predicted, sigma_px)
+        if ratio > 1.0 + 1e-9:
+            CONSOLE.print(f"gaussian-atoms: the fit leaves {ratio:.3g} times the noise read before training at an atom (correlated over it by {kappa:.3g}); the final merges and prune judge in that")
+        self.density.noise = judged
 
     # ------------------------------------------------------------------ results
     @torch.no_grad()

@@ -13,7 +13,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from gaussian_atoms_method.physics.data_terms import choose_data_term
 from gaussian_atoms_method.physics.field_of_view import film_evidence, slab_half_width
-from gaussian_atoms_method.physics.noise import NoiseModel, detector_floor, noise_from_projections
+from gaussian_atoms_method.physics.noise import NoiseModel, correlation_inflation, detector_floor, envelope, fit_noise_model, inflated, noise_from_projections
 
 FLOOR_Z = 5.0
 """A frame level this many standard errors off zero is a real offset: a one-in-3.5-million
@@ -86,3 +86,22 @@ def read_field_of_view(series, projections, length_scale: float, option: str) ->
     why = f"the views' projected mass grows like 1/cos(tilt) ({evidence.z:.1f} standard errors, {evidence.outside_fraction:.0%} of the zero-tilt mass)" if option == "auto" else "extended-object on"
     CONSOLE.print(f"gaussian-atoms: an object wider than the field of view: {why}; Gaussians fill {2 * reach / length_scale:.0f} Å across the tilt axis, those above the detector are reported as atoms")
     return tuple(half), tuple(field), slice_px
+
+
+def noise_after_fit(before: NoiseModel, measured: np.ndarray, predicted: np.ndarray, sigma_px: float) -> tuple[NoiseModel, float, float]:
+    """The noise the final tests judge in: what the fit leaves unexplained, as an atom sees it.
+
+    The residuals' variance-mean relation (:func:`~gaussian_atoms_method.physics.noise.fit_noise_model`)
+    times their correlation over an atom of ``sigma_px``
+    (:func:`~gaussian_atoms_method.physics.noise.correlation_inflation`), and never less than
+    ``before``, the noise read before training.  Where the data match the forward model the
+    residual is that noise, white, and nothing changes; on real data (a denoised film, a probe
+    with tails) the fit leaves structure that no Gaussian should be kept or split for.  Returns
+    the model, the correlation factor and the residual variance over ``before``'s at the median
+    predicted level."""
+    residual = fit_noise_model(measured - predicted, predicted)
+    kappa = correlation_inflation(measured - predicted, sigma_px)
+    judged = envelope(before, inflated(residual, kappa))
+    level = np.array([float(np.median(predicted))])
+    ratio = float(judged.variance(level)[0] / max(float(before.variance(level)[0]), 1e-300))
+    return judged, kappa, ratio

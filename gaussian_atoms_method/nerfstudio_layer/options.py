@@ -89,6 +89,12 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
     back-projections.  Searching earlier, every 500 steps, also added Gaussians at the
     unsettled atoms' misfit (29 on the demo, which has no atom missing) and kept the
     convergence check from stopping."""
+    judge_after_fit: bool = True
+    """The final merges and prune judge significance in what the fit leaves unexplained, as an
+    atom sees it (the residuals' variance times their correlation over an atom), never less
+    than the noise read before training (:func:`.noise_reading.noise_after_fit`).  Where the data
+    match the forward model that is the noise and nothing changes; on real data the fit's
+    leftover structure is otherwise read as significant atoms and resolved pairs."""
     final_refit: bool = True
     """After the final prune and merge, when they removed anything, one pass over the views so the
     survivors take up what the removed Gaussians carried (:mod:`.refit`)."""

@@ -1,0 +1,85 @@
+"""The shortest interatomic distance read from the atoms, and the close-pair rule that uses it."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from gaussian_atoms_method.atoms.atom_set import read_atoms
+from gaussian_atoms_method.atoms.pair_distribution import MIN_ATOMS, shortest_distance
+from gaussian_atoms_method.harness.particles import make_particle
+
+AU_NP = "../shared/data/au_np/Au_NP.xyz"
+
+
+@pytest.mark.parametrize("name, nearest_A", [("carbon", 1.38), ("asi", 2.2), ("apd", 2.5), ("fept", 2.67)])
+def test_the_distance_sits_just_below_each_materials_shortest_bond(name, nearest_A):
+    """On true structures the onset of g(r)'s first shell lies within 10% below the material's
+    shortest nearest-neighbour distance (the kernel's width smooths the edge: 1.40 of 1.38 Å
+    for carbon, 2.10 of 2.2 for a-Si), and almost no atom is closer."""
+    atoms = make_particle(name, scale=0.35)
+    distance, share = shortest_distance(atoms.positions)
+    assert 0.9 * nearest_A <= distance <= 1.02 * nearest_A
+    assert share <= 0.02
+
+
+def test_split_atoms_do_not_move_the_distance():
+    """Split 10% of the Au particle's atoms into halves 1.2 Å apart: the first shell (12
+    neighbours at 2.88 Å) still dominates g(r) and the distance stays within 10% of the bond;
+    every half is reported as closer than it (and so are neighbours that a half moved towards)."""
+    pytest.importorskip("ase")
+    from pathlib import Path
+
+    if not Path(AU_NP).is_file():
+        pytest.skip("needs ../shared/data/au_np")
+    positions = read_atoms(AU_NP).positions[:3000]
+    rng = np.random.default_rng(0)
+    split = rng.choice(len(positions), 300, replace=False)
+    direction = rng.normal(size=(300, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    halves = np.concatenate([np.delete(positions, split, axis=0), positions[split] + 0.6 * direction, positions[split] - 0.6 * direction])
+    distance, share = shortest_distance(halves)
+    assert 0.9 * 2.88 <= distance <= 2.88
+    assert share >= 600 / len(halves)
+    assert shortest_distance(halves[: MIN_ATOMS - 1]) == (math.inf, 1.0)
+
+
+def test_a_too_close_pair_needs_the_prior_odds_to_stay_two(monkeypatch):
+    """Two pairs whose merge costs the same chi-square, just above the usual level: the one
+    closer than the material's shortest distance merges (its level is raised by twice the log
+    prior odds against so close a pair), the one farther apart stays two."""
+    from scipy.stats import chi2
+
+    from gaussian_atoms_method.density.strategy import DensityControl
+    from gaussian_atoms_method.physics.noise import NoiseModel
+
+    rng = np.random.default_rng(1)
+    lattice = np.stack(np.meshgrid(*[np.arange(-3, 4)] * 3, indexing="ij"), -1).reshape(-1, 3) * 2.5  # 343 atoms 2.5 Å apart
+    lattice = lattice + 0.05 * rng.normal(size=lattice.shape)
+    close, far = lattice[0] + [0, 0, 1.2], lattice[-1] + [0, 0, 2.4]  # a pair 1.2 Å apart, one 2.4 Å (but for the lattice)
+    positions = np.concatenate([lattice, [close, far]]) * 0.01  # 0.01 normalised units per Å
+    n = len(positions)
+    params = torch.nn.ParameterDict({
+        "means": torch.nn.Parameter(torch.tensor(positions)),
+        "log_sigmas": torch.nn.Parameter(torch.full((n, 1), math.log(0.006), dtype=torch.float64)),
+        "log_amplitudes": torch.nn.Parameter(torch.zeros(n, 1, dtype=torch.float64)),
+    })  # fmt: skip
+    optimizers = {k: torch.optim.Adam([p], lr=0.0) for k, p in params.items()}
+    control = DensityControl(length_scale=0.01, max_log_amplitude=50.0, generator=torch.Generator().manual_seed(0))
+    control.reset(n)
+    control.noise, control.pixel_size, control.n_views = NoiseModel(1e-9, 0.0), 0.003, 40
+    control.view_dirs = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)
+    distance, prior = control.shortest_distance(params)
+    assert 2.2 <= distance / 0.01 <= 2.5 and prior > 5.0  # one pair in 345 atoms is that close
+    level = chi2.isf(control.false_alarm_rate / control.cells(), df=5)
+
+    def change(pairs):  # a test pair's merge costs the usual level + 1; any other pair far more
+        return np.where((pairs >= n - 2).any(axis=1), level + 1.0, 1e9)
+
+    monkeypatch.setattr(DensityControl, "likelihood_change", lambda self, p, pairs, c: change(pairs))
+    removed = control.merge_by_likelihood(params, optimizers, correlations=lambda m, s: None, max_rounds=1)
+    assert removed == 1
+    left = params["means"].detach().numpy() / 0.01
+    assert np.min(np.linalg.norm(left - (lattice[0] + [0, 0, 1.2]), axis=1)) > 0.5  # the close pair became one
+    assert np.min(np.linalg.norm(left - (lattice[-1] + [0, 0, 2.4]), axis=1)) < 1e-9  # the far one stayed two
