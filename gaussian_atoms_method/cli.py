@@ -41,6 +41,13 @@ class Simulate:
     """Width of each atom of the Gaussian potential, Å (--potential gaussian)."""
     blur_sigma_A: float = 0.5
     """Gaussian probe blur, Å."""
+    probe: Literal["gaussian", "aberrated"] = "gaussian"
+    """The blur: a Gaussian of --blur-sigma-A, or an aberrated STEM probe's intensity (20 mrad,
+    300 kV, 40 Å defocus, 10 µm Cs: rings and tails)."""
+    floor_fraction: float = 0.0
+    """A floor under every view, as a fraction of a column's value (0: none)."""
+    floor_variation: float = 0.0
+    """How much the floor varies across a view (a random ramp), as a fraction of the floor."""
     noise_std: float = 50.0
     """Standard deviation of the additive Gaussian noise, projection units (V·Å for Lobato)."""
     tilt_axis: Literal["x", "y"] = "y"
@@ -84,6 +91,9 @@ class Simulate:
             noise_std=self.noise_std,
             tilt_axis=self.tilt_axis,
             seed=self.seed,
+            probe=self.probe,
+            floor_fraction=self.floor_fraction,
+            floor_variation=self.floor_variation,
         )
         truth = sim.truth.shifted(origin)
         write_tilt_series(
@@ -102,6 +112,9 @@ class Simulate:
                     "noise_std": self.noise_std,
                     "peak_to_noise": sim.peak_to_noise,
                     "blur_sigma_A": self.blur_sigma_A,
+                    "probe": self.probe,
+                    "floor_fraction": self.floor_fraction,
+                    "floor_variation": self.floor_variation,
                     "seed": self.seed,
                 }
             },

@@ -196,8 +196,11 @@ def simulate_tilt_series(
     noise_std: float = 50.0,
     tilt_axis: str = "y",
     seed: int = 0,
+    probe: str = "gaussian",
+    floor_fraction: float = 0.0,
+    floor_variation: float = 0.0,
 ) -> SimulatedTiltSeries:
-    """Project atoms (positions in Å about the tilt centre), blur, add noise.
+    """Project atoms (positions in Å about the tilt centre), blur, add a floor, add noise.
 
     Parameters
     ----------
@@ -217,6 +220,12 @@ def simulate_tilt_series(
         Standard deviation of the additive Gaussian noise, in projection units.
     tilt_axis : {"y", "x"}
     seed : int
+    probe : {"gaussian", "aberrated"}
+        The blur: a Gaussian of ``blur_sigma_A``, or an aberrated probe's intensity with rings
+        and tails (:func:`.microscope.aberrated_probe_intensity`; ``blur_sigma_A`` unused).
+    floor_fraction, floor_variation : float
+        A floor under every view at this fraction of a column's value, varying across the view
+        by this fraction (:func:`.microscope.add_varying_floor`); 0: none.
 
     Returns
     -------
@@ -237,7 +246,18 @@ def simulate_tilt_series(
         widths = None
     else:
         raise ValueError(f"potential must be 'lobato' or 'gaussian', got {potential!r}")
-    blurred = blur_and_noise(clean, pixel_size_A, blur_sigma_A, 0.0, seed)
+    if probe == "aberrated":
+        from gaussian_atoms_method.harness.microscope import aberrated_probe_intensity, convolve_views
+
+        blurred, widths = convolve_views(clean, aberrated_probe_intensity(pixel_size_A)), None
+    elif probe == "gaussian":
+        blurred = blur_and_noise(clean, pixel_size_A, blur_sigma_A, 0.0, seed)
+    else:
+        raise ValueError(f"probe must be 'gaussian' or 'aberrated', got {probe!r}")
+    if floor_fraction:
+        from gaussian_atoms_method.harness.microscope import add_varying_floor
+
+        blurred = add_varying_floor(blurred, floor_fraction, floor_variation, seed)
     noisy = blur_and_noise(blurred, pixel_size_A, 0.0, noise_std, seed)
     return SimulatedTiltSeries(
         projections=noisy.astype(np.float32),

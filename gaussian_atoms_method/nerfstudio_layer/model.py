@@ -24,6 +24,7 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Dict, List, Tuple, Type
 
+import numpy as np
 import torch
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
@@ -91,21 +92,23 @@ class GaussianAtomsModel(SplatfactoCompat):
         self.density = DensityControl(ls, max_log_amp, self.generator, half_extent=half_extent, field_half_extent=self.field_half_extent if half_extent != self.field_half_extent else None, **{f.name: getattr(cfg, f.name) for f in fields(DensityControl) if hasattr(cfg, f.name)})
         self.density.reset(n)
         self.convergence = ConvergenceCheck(cfg.warmup_length, cfg.refine_every, cfg.converged_fraction)
-        self.noise_read, self.data_term, floor = read_noise(metadata.get("projections"), cfg.loss, cfg.background, measured)
-        self._setup_view_params(metadata, series, floor)
+        self.noise_read, self.data_term, floor, surfaces = read_noise(metadata.get("projections"), cfg.loss, cfg.background, measured)
+        self._setup_view_params(metadata, series, floor, surfaces)
         if self.noise_read is not None and metadata.get("pixel_size_A"):  # the prune judges masses against this noise
             self.density.set_noise(self.noise_read, floor or 0.0, metadata["pixel_size_A"] * ls, self.view_c2w.shape[0], self.data_term, self.view_c2w[:, :3, 2])
         self.step, self.optimizers, self._optimizers_obj = 0, {}, None
         self.crop_box, self.background_color, self.atoms_in_viewer = None, torch.zeros(3), AtomsInViewer(self._viewer_atoms)  # the atoms as points in the viewer
 
-    def _setup_view_params(self, metadata: dict, series, floor: float | None) -> None:
-        """Per-view parameters and the views-per-step batches; a learned background starts at ``floor``."""
+    def _setup_view_params(self, metadata: dict, series, floor: float | None, surfaces=None) -> None:
+        """Per-view parameters and the views-per-step batches; a learned background starts at
+        ``floor``, on the (V, H, W) ``surfaces`` of a floor that varies within the views."""
         cfg, view_c2w = self.config, metadata.get("view_c2w")
         self.register_buffer("view_c2w", view_c2w.float() if view_c2w is not None else torch.zeros(0, 3, 4), persistent=False)
         n_views, view_params = self.view_c2w.shape[0], {}
         background = cfg.background if cfg.background != "auto" else ("constant" if floor is not None else "none")
+        self.register_buffer("background_surfaces", torch.as_tensor(surfaces if surfaces is not None else np.zeros((0, 1, 1)), dtype=torch.float32), persistent=False)
         if background != "none":
-            view_params["background"] = Parameter(torch.zeros(n_views, 1 if background == "constant" else 3))
+            view_params["background"] = Parameter(torch.zeros(n_views, 3 if background == "plane" else 1))
             view_params["background"].data[:, 0] = floor or 0.0
         if cfg.refine_alignment:
             view_params["view_shifts"] = Parameter(torch.zeros(n_views, 2))
@@ -174,7 +177,7 @@ class GaussianAtomsModel(SplatfactoCompat):
             axes = torch.cat([axes, R.detector_axes(self.view_c2w[others].to(dev, dt))])
             images = self._projector(dev)(self.means, self.sigmas, self.amplitudes, axes, rows, cols)
             if "background" in self.view_params:
-                images = torch.stack([R.add_background(im, self.view_params["background"][v].to(dt), rows, cols) for im, v in zip(images, [view, *others.tolist()])])
+                images = torch.stack([self._add_background(im, v, rows, cols) for im, v in zip(images, [view, *others.tolist()])])
             image, extra = images[0], {"extra_projection": images[1:, :, :, None], "extra_views": others}
         elif self.config.isotropic:
             image = self._projector(dev)(self.means - t, self.sigmas, self.amplitudes, axes, rows, cols)[0]
@@ -182,13 +185,20 @@ class GaussianAtomsModel(SplatfactoCompat):
             cov = covariances_from_scales_quats(self._log_scales(), self.gauss_params["quats"])
             image = project_anisotropic_gaussians(self.means - t, cov, self.amplitudes, axes, rows, cols)[0]
         if view is not None and "background" in self.view_params and not extra:
-            image = R.add_background(image, self.view_params["background"][view].to(dt), rows, cols)
+            image = self._add_background(image, view, rows, cols)
         projection = image[..., None]
         h, w = image.shape
         # A line integral has no depth; the viewer composites its scene (atom points, frustums)
         # with our image by depth: put the image behind everything.
         depth = torch.full((1, 1, 1), 1e3, device=dev, dtype=dt).expand(h, w, 1)
         return {"rgb": (projection / DATA_RANGE).clamp(0.0, 1.0).expand(h, w, 3), "projection": projection, "depth": depth, **extra}
+
+    def _add_background(self, image: torch.Tensor, view: int, rows: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:
+        """The view's learned background and, for a floor that varies within the views, its surface."""
+        image = R.add_background(image, self.view_params["background"][view].to(image.dtype), rows, cols)
+        if len(self.background_surfaces):
+            image = image + R.binned_like(self.background_surfaces[view][..., None], image[..., None])[..., 0].to(image)
+        return image
 
     # ------------------------------------------------------------------ losses and metrics
     @staticmethod
@@ -268,9 +278,9 @@ class GaussianAtomsModel(SplatfactoCompat):
 
         predicted = render_training_views(self)
         sigma_px = float(self.sigmas.median()) / self.density.pixel_size
-        judged, kappa, ratio = noise_after_fit(self.density.noise, projections.cpu().numpy(), predicted, sigma_px)
-        if ratio > 1.0 + 1e-9:
-            CONSOLE.print(f"gaussian-atoms: the fit leaves {ratio:.3g} times the noise read before training at an atom (correlated over it by {kappa:.3g}); the final merges and prune judge in that")
+        judged, factor = noise_after_fit(self.density.noise, projections.cpu().numpy(), predicted, sigma_px)
+        if factor > 1.0:
+            CONSOLE.print(f"gaussian-atoms: over an atom the fit's residuals vary {factor:.3g} times as much as the noise read before training; the final merges and prune judge in that")
         self.density.noise = judged
 
     # ------------------------------------------------------------------ results

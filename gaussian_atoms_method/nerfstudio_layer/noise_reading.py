@@ -13,7 +13,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from gaussian_atoms_method.physics.data_terms import choose_data_term
 from gaussian_atoms_method.physics.field_of_view import film_evidence, slab_half_width
-from gaussian_atoms_method.physics.noise import NoiseModel, correlation_inflation, detector_floor, envelope, fit_noise_model, inflated, noise_from_projections
+from gaussian_atoms_method.physics.noise import NoiseModel, atom_scale_excess, detector_floor, frame_surfaces, inflated, noise_from_projections
 
 FLOOR_Z = 5.0
 """A frame level this many standard errors off zero is a real offset: a one-in-3.5-million
@@ -39,14 +39,21 @@ def measure_noise(projections) -> NoiseModel | None:
     return noise_from_projections(_as_array(projections))
 
 
-def read_noise(projections, loss: str, background: str, measured: NoiseModel | None = None) -> tuple[NoiseModel | None, str, float | None]:
+def read_noise(projections, loss: str, background: str, measured: NoiseModel | None = None) -> tuple[NoiseModel | None, str, float | None, np.ndarray | None]:
     """The noise model of the (V, H, W) normalised projections (None without data), the data
-    term to use and the detected floor (normalised units; None when the frame sits at zero or
-    ``background`` is not ``auto``).  ``loss``/``background``: the options; ``measured``: the
-    projections' noise from :func:`measure_noise`, if already read."""
+    term to use, the detected floor and, for a floor that varies within the views, its shape.
+
+    With ``background`` "auto" a floor is found when the frame's level sits significantly off
+    zero (:data:`FLOOR_Z`) and the frame is background: flat (a constant per view is learned from
+    the floor), or smooth (its pixels vary about each view's quadratic frame surface,
+    :func:`~gaussian_atoms_method.physics.noise.frame_surfaces`, by no more than the noise:
+    that surface less its mean is added to the view, and a constant per view is learned).
+    Atoms reaching the frame (a film, a crowded field) make it neither.  With "smooth" the
+    surfaces are used whatever the frame.  Returns (noise, term, floor or None, (V, H, W)
+    surfaces or None), normalised units."""
     noise = measured if measured is not None else measure_noise(projections)
     if noise is None:
-        return None, ("l1" if loss == "auto" else loss), None
+        return None, ("l1" if loss == "auto" else loss), None, None
     data = _as_array(projections)
     term = choose_data_term(noise, float(np.percentile(data, 99.9))) if loss == "auto" else loss
     if term == "poisson" and noise.gain <= 0:
@@ -54,12 +61,20 @@ def read_noise(projections, loss: str, background: str, measured: NoiseModel | N
         # makes its weights uniform (it then behaves as L2).
         noise = NoiseModel(0.0, max(noise.read_var, 1e-12), noise.offset)
     floor, floor_se, frame_var = detector_floor(data)
-    flat = frame_var <= FLAT_FRAME_RATIO * float(noise.variance(np.array([floor]))[0])
-    found = background == "auto" and flat and abs(floor) > FLOOR_Z * floor_se
+    noise_var = FLAT_FRAME_RATIO * float(noise.variance(np.array([floor]))[0])
+    off_zero = abs(floor) > FLOOR_Z * floor_se
+    found, surfaces = background == "auto" and frame_var <= noise_var and off_zero, None
+    if background == "smooth" or (background == "auto" and off_zero and not found):
+        surfaces, smooth_var = frame_surfaces(data)
+        if background == "auto" and smooth_var > noise_var:
+            surfaces = None
+        elif surfaces is not None:
+            found, surfaces = True, surfaces - surfaces.mean(axis=(1, 2), keepdims=True)
     said = f"{noise.kind} (read variance {noise.read_var:.3g}, gain {noise.gain:.3g} per count, normalised units)"
-    bg = f"; frame level {floor:.3g} ± {floor_se:.1g}: learning a constant background per view from it" if found else ""
+    shape = "a floor that varies smoothly within each view (its frame's quadratic surface) and a constant" if surfaces is not None else "a constant background"
+    bg = f"; frame level {floor:.3g} ± {floor_se:.1g}: learning {shape} per view from it" if found and background == "auto" else ""
     CONSOLE.print(f"gaussian-atoms: noise read from the projections: {said}; data term {term}{bg}")
-    return noise, term, (floor if found else None)
+    return noise, term, (floor if found else None), surfaces
 
 
 def read_field_of_view(series, projections, length_scale: float, option: str) -> tuple[tuple[float, float, float], tuple[float, float, float], int | None]:
@@ -88,20 +103,12 @@ def read_field_of_view(series, projections, length_scale: float, option: str) ->
     return tuple(half), tuple(field), slice_px
 
 
-def noise_after_fit(before: NoiseModel, measured: np.ndarray, predicted: np.ndarray, sigma_px: float) -> tuple[NoiseModel, float, float]:
-    """The noise the final tests judge in: what the fit leaves unexplained, as an atom sees it.
-
-    The residuals' variance-mean relation (:func:`~gaussian_atoms_method.physics.noise.fit_noise_model`)
-    times their correlation over an atom of ``sigma_px``
-    (:func:`~gaussian_atoms_method.physics.noise.correlation_inflation`), and never less than
-    ``before``, the noise read before training.  Where the data match the forward model the
-    residual is that noise, white, and nothing changes; on real data (a denoised film, a probe
-    with tails) the fit leaves structure that no Gaussian should be kept or split for.  Returns
-    the model, the correlation factor and the residual variance over ``before``'s at the median
-    predicted level."""
-    residual = fit_noise_model(measured - predicted, predicted)
-    kappa = correlation_inflation(measured - predicted, sigma_px)
-    judged = envelope(before, inflated(residual, kappa))
-    level = np.array([float(np.median(predicted))])
-    ratio = float(judged.variance(level)[0] / max(float(before.variance(level)[0]), 1e-300))
-    return judged, kappa, ratio
+def noise_after_fit(before: NoiseModel, measured: np.ndarray, predicted: np.ndarray, sigma_px: float) -> tuple[NoiseModel, float]:
+    """The noise the final tests judge in: ``before`` (read before training) scaled by how much
+    more the fit's residuals vary over an atom than it says
+    (:func:`~gaussian_atoms_method.physics.noise.atom_scale_excess`), never scaled down.  Where
+    the data match the forward model the residual is that noise and the factor is about 1; on
+    real data (a denoised film, a probe's tails) the fit leaves structure that no Gaussian should
+    be kept or split for.  Returns the scaled model and the factor."""
+    factor = max(atom_scale_excess(measured - predicted, before.variance(predicted), sigma_px), 1.0)
+    return inflated(before, factor), factor

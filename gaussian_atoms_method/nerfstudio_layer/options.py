@@ -121,13 +121,16 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
     (electron counts), else Huber's (least squares within 1.345 noise standard deviations,
     L1 beyond: additive noise, robust to the model's misfit); or force ``l1`` (the paper's),
     ``l2``, ``huber`` or ``poisson``.  Every run prints the noise it read and the term it chose."""
-    background: Literal["auto", "none", "constant", "plane"] = "auto"
-    """A smooth per-projection background learned with the atoms (carbon support, contamination,
-    a detector offset): a constant, or a plane over the detector, per view.  ``auto``: a
-    constant, starting at the measured level, when the projections' outer frame sits
-    significantly off zero (more than 5 standard errors of its mean,
-    :func:`gaussian_atoms_method.physics.noise.detector_floor`: the peer's aSi-208 counts sit
-    on 1.0 count), else none."""
+    background: Literal["auto", "none", "constant", "plane", "smooth"] = "auto"
+    """A per-projection background learned with the atoms (carbon support, contamination, a
+    detector offset, a phase image's floor): a constant, a plane over the detector, or
+    ``smooth``: each view's floor as its outer frame shows it (the frame's least-squares
+    quadratic surface, :func:`gaussian_atoms_method.physics.noise.frame_surfaces`) plus a learned
+    constant.  ``auto``: when the projections' outer frame sits significantly off zero (more than
+    5 standard errors of its mean, :func:`gaussian_atoms_method.physics.noise.detector_floor`:
+    the peer's aSi-208 counts sit on 1.0 count), a constant if the frame is flat and ``smooth``
+    if it is flat about its quadratic surface (within 1.5 times the noise variance at its level
+    either way); none when atoms reach the frame."""
     extended_object: Literal["auto", "on", "off"] = "auto"
     """An object wider than the field of view (a film): Gaussians also fill the slab beyond the
     detector across the tilt axis, as far as the rays that reach the detector travel, so the

@@ -1,8 +1,9 @@
 """What a run leaves in its directory: the atoms with their precision, a slices figure, the
 scores against a truth file, and snapshots during training.
 
-* ``atoms.xyz`` / ``atoms.csv``: the final Gaussians as atoms in Å (after the last merge and
-  prune), with each position's Cramér-Rao precision;
+* ``atoms.xyz`` / ``atoms.csv``: the final Gaussians that are atoms, in Å (after the last merge
+  and prune), with each position's Cramér-Rao precision; ``non_atoms.xyz``: the rest (beyond the
+  field of view, or outside the support); ``classes.png``: their population by class;
 * ``slices.png``: central slices of the potential with the atoms (and the true ones);
 * ``evaluation.json``: TPR, false positives per true atom and RMSD, with a truth file;
 * ``snapshots/step-NNNNNN.csv`` and ``snapshots/times.csv``: with ``snapshot_every``.
@@ -19,6 +20,7 @@ import torch
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms, write_atoms
+from gaussian_atoms_method.atoms.classification import classify_gaussians, write_population_png
 from gaussian_atoms_method.atoms.matching import score_atoms
 from gaussian_atoms_method.atoms.slices import write_slices_png
 from gaussian_atoms_method.atoms.uncertainty import position_std_A, robust_noise_std
@@ -71,13 +73,11 @@ def write_results(model, run_dir: Path) -> dict | None:
             f"gaussian-atoms: residual noise {noise:.4g} (input units); median position precision "
             + ", ".join(f"{a} {v * 100:.1f} pm" for a, v in zip("xyz", np.median(atoms.position_std_A, axis=0)))
         )
-    reported = model.in_field(atoms)
-    atoms, non_atoms = atoms.subset(reported), atoms.subset(~reported)
+    atoms, non_atoms = split_atoms(atoms, model.in_field(atoms), run_dir / "classes.png")
     write_atoms(atoms, run_dir / "atoms.xyz")
     write_atoms(atoms, run_dir / "atoms.csv")
-    if len(non_atoms) or (run_dir / "non_atoms.xyz").exists():
-        write_atoms(non_atoms, run_dir / "non_atoms.xyz")
-    CONSOLE.print(f"[bold]gaussian-atoms[/bold]: wrote {len(atoms)} atoms to {run_dir / 'atoms.xyz'}" + (f" and {len(non_atoms)} non-atoms (beyond the field of view) to non_atoms.xyz" if len(non_atoms) else ""))
+    write_atoms(non_atoms, run_dir / "non_atoms.xyz")
+    CONSOLE.print(f"[bold]gaussian-atoms[/bold]: wrote {len(atoms)} atoms to {run_dir / 'atoms.xyz'} and {len(non_atoms)} non-atoms to non_atoms.xyz")
     truth = read_atoms(model.truth_path) if model.truth_path is not None else None
     scores = score_atoms(atoms.positions, truth.positions) if truth is not None else None
     if len(atoms):
@@ -90,6 +90,25 @@ def write_results(model, run_dir: Path) -> dict | None:
     (run_dir / "evaluation.json").write_text(json.dumps(scores, indent=2) + "\n")
     CONSOLE.print(f"[bold]gaussian-atoms[/bold]: against {model.truth_path}: {json.dumps(scores)}")
     return scores
+
+
+def split_atoms(gaussians: AtomSet, in_field: np.ndarray, figure: Path | None = None) -> tuple[AtomSet, AtomSet]:
+    """The Gaussians as atoms and non-atoms: beyond the field of view, or in the field but
+    outside the support (:func:`gaussian_atoms_method.atoms.classification.classify_gaussians`);
+    prints the counts (atoms per class) and, with ``figure``, draws the population there."""
+    field = gaussians.subset(in_field)
+    classes = classify_gaussians(field.masses, field.sigmas, field.positions)
+    reported = np.zeros(len(gaussians), dtype=bool)
+    reported[np.flatnonzero(in_field)[classes.atoms]] = True
+    counts = classes.counts()
+    outside, beyond = counts.pop("non-atoms"), int((~in_field).sum())
+    per_class = ", ".join(f"{v} in {k}" for k, v in counts.items()) if len(counts) > 1 else ""
+    CONSOLE.print(f"gaussian-atoms: {int(reported.sum())} atoms{f' ({per_class}, by mass and width)' if per_class else ''}; "
+                  f"{outside + beyond} non-atoms: {outside} outside the support (no neighbour within the material's distances), {beyond} beyond the field of view")  # fmt: skip
+    if figure is not None and len(field):
+        others = gaussians.subset(~in_field)
+        write_population_png(field.masses, field.sigmas, classes, figure, (others.masses, others.sigmas))
+    return gaussians.subset(reported), gaussians.subset(~reported)
 
 
 def write_snapshot(atoms: AtomSet, directory: Path, step: int, n_gaussians: int, peak_gpu_bytes: int) -> None:

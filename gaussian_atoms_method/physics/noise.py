@@ -62,44 +62,36 @@ class NoiseModel:
         return self.read_var + self.gain * x + self.misfit * x**2
 
 
-def correlation_inflation(residuals: np.ndarray, sigma_px: float) -> float:
-    """How much more an atom-sized sum of the (V, H, W) ``residuals`` varies than independent
-    pixels of their variance would make it: ``Var(g * r) / (Var(r) sum g^2)`` for ``g`` the
-    Gaussian of ``sigma_px`` (robust variances, 1.4826 MAD squared), at least 1.
+def atom_scale_excess(residuals: np.ndarray, variance: np.ndarray, sigma_px: float) -> float:
+    """How much more the (V, H, W) ``residuals`` vary over an atom than the noise model says:
+    ``Var(g * (r / sqrt(v))) / sum g^2`` for ``g`` the Gaussian of ``sigma_px`` and ``v`` the
+    model's per-pixel ``variance`` (a robust variance, 1.4826 MAD squared, of the filtered field
+    away from the edges).
 
-    White noise reads 1; what a fit leaves on real data is correlated over an atom (denoised
-    projections, the probe, the model's misfit), and a chi-square over pixels that treats it as
-    independent overstates every difference at the atom's scale by this factor (the Ta film after
-    the fit: 15 at the atoms' width of 1.9 pixels)."""
+    1 for noise the model describes (white noise of the stated variance reads 1.00-1.03 at
+    1-5 pixels); what a fit leaves on real data is larger and correlated over an atom
+    (denoised projections, a probe's tails, the model's misfit), and every chi-square over
+    pixels that treats it as the model's noise overstates a difference at the atom's scale by
+    this factor."""
     from scipy import ndimage
 
-    r = np.asarray(residuals, dtype=np.float64)
-    r = r.reshape((-1,) + r.shape[-2:])
+    w = np.asarray(residuals, dtype=np.float64) / np.sqrt(np.maximum(np.asarray(variance, dtype=np.float64), 1e-300))
+    w = w.reshape((-1,) + w.shape[-2:])
     radius = int(np.ceil(4.0 * sigma_px))
     impulse = np.zeros((2 * radius + 1,) * 2)
     impulse[radius, radius] = 1.0
     g2 = float((ndimage.gaussian_filter(impulse, sigma_px, mode="constant", truncate=radius / sigma_px) ** 2).sum())
-    filtered = ndimage.gaussian_filter(r, (0, sigma_px, sigma_px), mode="constant", truncate=radius / sigma_px)
-    if min(r.shape[-2:]) > 2 * radius + 4:  # away from the edges, where the filter sees the padding
+    filtered = ndimage.gaussian_filter(w, (0, sigma_px, sigma_px), mode="constant", truncate=radius / sigma_px)
+    if min(w.shape[-2:]) > 2 * radius + 4:  # away from the edges, where the filter sees the padding
         filtered = filtered[:, radius:-radius, radius:-radius]
-
-    def robust_var(x):
-        return (MAD_TO_STD * np.median(np.abs(x - np.median(x)))) ** 2
-
-    pixel = robust_var(r)
-    return max(robust_var(filtered) / (pixel * g2), 1.0) if pixel > 0 else 1.0
+    spread = MAD_TO_STD * np.median(np.abs(filtered - np.median(filtered)))
+    return float(spread**2 / g2)
 
 
 def inflated(noise: NoiseModel, factor: float) -> NoiseModel:
     """``noise`` with every variance term times ``factor`` (standard errors alike)."""
     f = float(factor)
     return NoiseModel(noise.read_var * f, noise.gain * f, noise.offset, noise.read_var_se * f, noise.gain_se * f, noise.misfit * f)
-
-
-def envelope(first: NoiseModel, second: NoiseModel) -> NoiseModel:
-    """A noise model at least as large as either at every level: each term's larger value."""
-    return NoiseModel(max(first.read_var, second.read_var), max(first.gain, second.gain), first.offset,
-                      max(first.read_var_se, second.read_var_se), max(first.gain_se, second.gain_se), max(first.misfit, second.misfit))  # fmt: skip
 
 
 def binned_variance(residuals: np.ndarray, predicted: np.ndarray, bins: int = 16, min_count: int = 200, robust: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -219,6 +211,39 @@ def noise_from_projections(projections: np.ndarray, offset: float = 0.0, smoothi
     return fit_noise_model(filtered, mean, offset=offset, z_min=z_min, robust=False, quadratic=False)
 
 
+def frame_mask(shape: tuple[int, int], frame_fraction: float = 0.08) -> np.ndarray:
+    """(H, W) bool: the outer frame, ``frame_fraction`` of the shorter side (at least one pixel)."""
+    h, w = shape
+    k = max(1, int(round(frame_fraction * min(h, w))))
+    mask = np.zeros((h, w), dtype=bool)
+    mask[:k], mask[-k:], mask[:, :k], mask[:, -k:] = True, True, True, True
+    return mask
+
+
+def frame_surfaces(projections: np.ndarray, frame_fraction: float = 0.08) -> tuple[np.ndarray, float]:
+    """A smooth floor under every view, read where the views hold only background.
+
+    Per view, the least-squares quadratic surface (in the pixel indices scaled to [-1, 1]) through
+    the outer frame (:func:`frame_mask`), evaluated over the whole detector: a support film's or
+    a phase image's floor that varies within the view, as far as the frame shows it.
+
+    Returns
+    -------
+    surfaces : (N, H, W) array
+    frame_variance : float
+        The frame pixels' variance about their view's surface: about the noise variance at the
+        floor when the frame is smooth background, far more when atoms reach it.
+    """
+    p = np.asarray(projections, dtype=np.float64)
+    n, h, w = p.shape
+    r, c = np.meshgrid(np.linspace(-1.0, 1.0, h), np.linspace(-1.0, 1.0, w), indexing="ij")
+    basis = np.stack([np.ones_like(r), r, c, r * r, r * c, c * c])  # (6, H, W)
+    mask = frame_mask((h, w), frame_fraction)
+    coef, *_ = np.linalg.lstsq(basis[:, mask].T, p[:, mask].T, rcond=None)  # (6, N)
+    surfaces = np.einsum("kn,khw->nhw", coef, basis)
+    return surfaces, float((p[:, mask] - surfaces[:, mask]).var())
+
+
 def detector_floor(projections: np.ndarray, frame_fraction: float = 0.08) -> tuple[float, float, float]:
     """The level the projections sit on away from the object, and its standard error.
 
@@ -240,10 +265,6 @@ def detector_floor(projections: np.ndarray, frame_fraction: float = 0.08) -> tup
         floor when the frame is empty background, far more when the object reaches it.
     """
     p = np.asarray(projections, dtype=np.float64)
-    h, w = p.shape[-2:]
-    k = max(1, int(round(frame_fraction * min(h, w))))
-    mask = np.zeros((h, w), dtype=bool)
-    mask[:k], mask[-k:], mask[:, :k], mask[:, -k:] = True, True, True, True
-    frames = p[:, mask]
+    frames = p[:, frame_mask(p.shape[-2:], frame_fraction)]
     spread = float((frames - frames.mean(axis=1, keepdims=True)).var())
     return float(np.median(frames.mean(axis=1))), float(np.sqrt(spread / frames.size)), spread
