@@ -24,7 +24,6 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Dict, List, Tuple, Type
 
-import numpy as np
 import torch
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
@@ -38,7 +37,7 @@ from gaussian_atoms_method.nerfstudio_layer import rendering as R
 from gaussian_atoms_method.nerfstudio_layer.checkpoints import allow_numpy_scalars_in_checkpoints
 from gaussian_atoms_method.nerfstudio_layer.convergence import ConvergenceCheck
 from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions, OptionError
-from gaussian_atoms_method.nerfstudio_layer.noise_reading import measure_noise, noise_after_fit, read_field_of_view, read_noise
+from gaussian_atoms_method.nerfstudio_layer.noise_reading import judge_after_fit, measure_noise, read_field_of_view, read_noise
 from gaussian_atoms_method.nerfstudio_layer.refit import refit
 from gaussian_atoms_method.nerfstudio_layer.residuals import add_missing_atoms, residual_correlations
 from gaussian_atoms_method.nerfstudio_layer.results import model_position_std_A, write_results, write_snapshot
@@ -104,19 +103,9 @@ class GaussianAtomsModel(SplatfactoCompat):
         ``floor``, on the (V, H, W) ``surfaces`` of a floor that varies within the views."""
         cfg, view_c2w = self.config, metadata.get("view_c2w")
         self.register_buffer("view_c2w", view_c2w.float() if view_c2w is not None else torch.zeros(0, 3, 4), persistent=False)
-        n_views, view_params = self.view_c2w.shape[0], {}
-        background = cfg.background if cfg.background != "auto" else ("constant" if floor is not None else "none")
-        self.register_buffer("background_surfaces", torch.as_tensor(surfaces if surfaces is not None else np.zeros((0, 1, 1)), dtype=torch.float32), persistent=False)
-        if background != "none":
-            view_params["background"] = Parameter(torch.zeros(n_views, 3 if background == "plane" else 1))
-            view_params["background"].data[:, 0] = floor or 0.0
-        if cfg.refine_alignment:
-            view_params["view_shifts"] = Parameter(torch.zeros(n_views, 2))
-        if cfg.refine_tilts:
-            if series is None:
-                raise OptionError("--pipeline.model.refine-tilts needs a single-axis tilt series from the tilt-series dataparser")
-            view_params["view_tilts"] = Parameter(torch.zeros(n_views, 1))
-            self.register_buffer("tilt_axis_vector", torch.tensor([0.0, 1.0, 0.0] if series.tilt_axis == "y" else [1.0, 0.0, 0.0]), persistent=False)
+        view_params, buffers = R.view_parameters(cfg, self.view_c2w.shape[0], floor, surfaces, series, self.normalisation.length_scale)
+        for name, value in buffers.items():
+            self.register_buffer(name, value, persistent=False)
         self.view_params = torch.nn.ParameterDict(view_params)
         self.register_buffer("train_projections", R.check_view_batches(cfg.views_per_step, metadata.get("projections"), self.view_c2w), persistent=False)
 
@@ -175,30 +164,23 @@ class GaussianAtomsModel(SplatfactoCompat):
         if batching and view is not None:  # cameras on their beam axes through the tilt centre: no offset
             others = R.other_views(view, self.view_c2w.shape[0], self.config.views_per_step, self.generator)
             axes = torch.cat([axes, R.detector_axes(self.view_c2w[others].to(dev, dt))])
-            images = self._projector(dev)(self.means, self.sigmas, self.amplitudes, axes, rows, cols)
+            images = R.blur(self, self._projector(dev)(self.means, self.sigmas, self.amplitudes, axes, rows, cols), rows)
             if "background" in self.view_params:
-                images = torch.stack([self._add_background(im, v, rows, cols) for im, v in zip(images, [view, *others.tolist()])])
+                images = torch.stack([R.add_view_background(self, im, v, rows, cols) for im, v in zip(images, [view, *others.tolist()])])
             image, extra = images[0], {"extra_projection": images[1:, :, :, None], "extra_views": others}
         elif self.config.isotropic:
-            image = self._projector(dev)(self.means - t, self.sigmas, self.amplitudes, axes, rows, cols)[0]
+            image = R.blur(self, self._projector(dev)(self.means - t, self.sigmas, self.amplitudes, axes, rows, cols), rows)[0]
         else:
             cov = covariances_from_scales_quats(self._log_scales(), self.gauss_params["quats"])
-            image = project_anisotropic_gaussians(self.means - t, cov, self.amplitudes, axes, rows, cols)[0]
+            image = R.blur(self, project_anisotropic_gaussians(self.means - t, cov, self.amplitudes, axes, rows, cols), rows)[0]
         if view is not None and "background" in self.view_params and not extra:
-            image = self._add_background(image, view, rows, cols)
+            image = R.add_view_background(self, image, view, rows, cols)
         projection = image[..., None]
         h, w = image.shape
         # A line integral has no depth; the viewer composites its scene (atom points, frustums)
         # with our image by depth: put the image behind everything.
         depth = torch.full((1, 1, 1), 1e3, device=dev, dtype=dt).expand(h, w, 1)
         return {"rgb": (projection / DATA_RANGE).clamp(0.0, 1.0).expand(h, w, 3), "projection": projection, "depth": depth, **extra}
-
-    def _add_background(self, image: torch.Tensor, view: int, rows: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:
-        """The view's learned background and, for a floor that varies within the views, its surface."""
-        image = R.add_background(image, self.view_params["background"][view].to(image.dtype), rows, cols)
-        if len(self.background_surfaces):
-            image = image + R.binned_like(self.background_surfaces[view][..., None], image[..., None])[..., 0].to(image)
-        return image
 
     # ------------------------------------------------------------------ losses and metrics
     @staticmethod
@@ -264,24 +246,10 @@ class GaussianAtomsModel(SplatfactoCompat):
     @torch.no_grad()
     def finalize(self) -> None:
         """Last merges and prune (one Gaussian per atom; the residual read by :func:`.residuals.residual_correlations`), then a short refit if they changed anything."""
-        self._judge_in_noise_after_fit()
+        judge_after_fit(self)
         if self.density.finalize(self.gauss_params, self.optimizers, self._param_lists(), lambda m, s: residual_correlations(self, m, s)) and self.optimizers and self.config.final_refit:
             refit(self)
         self.atoms_in_viewer.refresh()
-
-    def _judge_in_noise_after_fit(self) -> None:
-        """The final merges and prune judge in what the fit leaves unexplained (:func:`.noise_reading.noise_after_fit`)."""
-        projections = (self.kwargs.get("metadata", {}) or {}).get("projections")
-        if self.density.noise is None or projections is None or self.num_points == 0 or not self.config.judge_after_fit:
-            return
-        from gaussian_atoms_method.nerfstudio_layer.residuals import render_training_views
-
-        predicted = render_training_views(self)
-        sigma_px = float(self.sigmas.median()) / self.density.pixel_size
-        judged, factor = noise_after_fit(self.density.noise, projections.cpu().numpy(), predicted, sigma_px)
-        if factor > 1.0:
-            CONSOLE.print(f"gaussian-atoms: over an atom the fit's residuals vary {factor:.3g} times as much as the noise read before training; the final merges and prune judge in that")
-        self.density.noise = judged
 
     # ------------------------------------------------------------------ results
     @torch.no_grad()
@@ -290,14 +258,6 @@ class GaussianAtomsModel(SplatfactoCompat):
         norm = self.normalisation
         return AtomSet(positions=norm.positions_to_A(self.means.detach().cpu().double().numpy()), sigmas=norm.sigmas_to_A(self.sigmas.detach().cpu().double().numpy()),
                        amplitudes=norm.amplitudes_to_physical(self.amplitudes.detach().cpu().double().numpy()))  # fmt: skip
-
-    def in_field(self, atoms: AtomSet):
-        """(N,) bool: the atoms inside the field whose Gaussians are reported (above the detector
-        for an object wider than it, :func:`.noise_reading.read_field_of_view`)."""
-        import numpy as np
-
-        positions = self.normalisation.positions_from_A(atoms.positions)
-        return np.all(np.abs(positions) <= np.asarray(getattr(self, "field_half_extent", (0.5, 0.5, 0.5))) + 1e-9, axis=1)
 
     def position_std_A(self, atoms: AtomSet, noise: float | None = None):
         """Each atom's position precision (N, 3) in Å and the pixel noise assumed (:mod:`.results`)."""

@@ -131,6 +131,12 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
     the peer's aSi-208 counts sit on 1.0 count), a constant if the frame is flat and ``smooth``
     if it is flat about its quadratic surface (within 1.5 times the noise variance at its level
     either way); none when atoms reach the frame."""
+    psf: Literal["learned", "none"] = "learned"
+    """The microscope's point-spread function: ``learned``, a radially symmetric kernel of unit
+    integral shared by every view (Gaussians of 1, 2 and 4 Å weighted by learned weights,
+    :mod:`gaussian_atoms_method.physics.psf`) convolves the projections, so a probe's tails and
+    rings are not explained by extra faint, wide Gaussians; ``none``: the blur is in the atoms'
+    widths alone (the paper's model)."""
     extended_object: Literal["auto", "on", "off"] = "auto"
     """An object wider than the field of view (a film): Gaussians also fill the slab beyond the
     detector across the tilt axis, as far as the rays that reach the detector travel, so the

@@ -5,7 +5,9 @@ corrections a measured view may need.
   perspective camera projected with its magnification at the tilt centre);
 * the coarse phase: 2 x 2-binned pixel centres and data (``coarse_steps``);
 * a tilt-angle error (``refine_tilts``): the camera turned about the tilt axis;
-* an in-plane shift (``refine_alignment``) and a constant or plane background (``background``);
+* the per-view parameters (:func:`view_parameters`): an in-plane shift (``refine_alignment``),
+  a tilt error (``refine_tilts``), a constant, plane or smooth background (``background``) and
+  the point-spread function shared by all views (``psf``, :mod:`..physics.psf`);
 * several views per step in one projector call (``views_per_step``).
 
 Each is a small function on tensors; :meth:`GaussianAtomsModel.get_outputs
@@ -18,6 +20,7 @@ import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
 
 from gaussian_atoms_method.nerfstudio_layer.options import OptionError
+from gaussian_atoms_method.physics.psf import KERNEL_WIDTHS_A, START_LOGIT, apply_kernel, kernel_weights
 
 
 def detector_axes(c2w: torch.Tensor) -> torch.Tensor:
@@ -71,6 +74,47 @@ def add_background(image: torch.Tensor, coefficients: torch.Tensor, rows: torch.
     image = image + coefficients[0]
     if len(coefficients) == 3:
         image = image + coefficients[1] * rows[:, None] + coefficients[2] * cols[None, :]
+    return image
+
+
+def view_parameters(cfg, n_views: int, floor: float | None, surfaces, series, length_scale: float) -> tuple[dict, dict]:
+    """The model's per-view parameters (name -> Parameter) and the buffers they need: a learned
+    background starting at ``floor`` (on the (V, H, W) ``surfaces`` of a floor that varies within
+    the views), the point-spread function's weights, shifts and tilt errors, as the options ask."""
+    import numpy as np
+    from torch.nn import Parameter
+
+    params, buffers = {}, {"background_surfaces": torch.as_tensor(surfaces if surfaces is not None else np.zeros((0, 1, 1)), dtype=torch.float32)}
+    background = cfg.background if cfg.background != "auto" else ("constant" if floor is not None else "none")
+    if background != "none":
+        params["background"] = Parameter(torch.zeros(n_views, 3 if background == "plane" else 1))
+        params["background"].data[:, 0] = floor or 0.0
+    if cfg.psf == "learned":  # one kernel for every view: the microscope's
+        params["psf"] = Parameter(torch.full((len(KERNEL_WIDTHS_A),), START_LOGIT))
+        buffers["psf_widths"] = torch.tensor(KERNEL_WIDTHS_A) * length_scale
+    if cfg.refine_alignment:
+        params["view_shifts"] = Parameter(torch.zeros(n_views, 2))
+    if cfg.refine_tilts:
+        if series is None:
+            raise OptionError("--pipeline.model.refine-tilts needs a single-axis tilt series from the tilt-series dataparser")
+        params["view_tilts"] = Parameter(torch.zeros(n_views, 1))
+        buffers["tilt_axis_vector"] = torch.tensor([0.0, 1.0, 0.0] if series.tilt_axis == "y" else [1.0, 0.0, 0.0])
+    return params, buffers
+
+
+def blur(model, images: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+    """(V, H, W) projections through the model's learned point-spread function, if it has one."""
+    if "psf" not in model.view_params or len(rows) < 2:
+        return images
+    return apply_kernel(images, float(rows[1] - rows[0]), model.psf_widths.to(images), kernel_weights(model.view_params["psf"].to(images)))
+
+
+def add_view_background(model, image: torch.Tensor, view: int, rows: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:
+    """``image`` plus the view's learned background and, for a floor that varies within the
+    views, its surface (binned like the image in the coarse phase)."""
+    image = add_background(image, model.view_params["background"][view].to(image.dtype), rows, cols)
+    if len(model.background_surfaces):
+        image = image + binned_like(model.background_surfaces[view][..., None], image[..., None])[..., 0].to(image)
     return image
 
 

@@ -59,6 +59,11 @@ def write_results(model, run_dir: Path) -> dict | None:
     model.finalize()
     for line in model.density.report():
         CONSOLE.print(f"gaussian-atoms: {line}")
+    if "psf" in model.view_params:
+        from gaussian_atoms_method.physics.psf import KERNEL_WIDTHS_A, kernel_weights
+
+        weights = ", ".join(f"{w:.3f} at {s:g} Å" for w, s in zip(kernel_weights(model.view_params["psf"].detach().cpu()).tolist(), KERNEL_WIDTHS_A))
+        CONSOLE.print(f"gaussian-atoms: point-spread function learned: intensity fractions {weights} (the rest in the atoms' own widths)")
     atoms = model.atoms()
     precision = model_position_std_A(model, atoms)
     if precision is not None:
@@ -73,7 +78,7 @@ def write_results(model, run_dir: Path) -> dict | None:
             f"gaussian-atoms: residual noise {noise:.4g} (input units); median position precision "
             + ", ".join(f"{a} {v * 100:.1f} pm" for a, v in zip("xyz", np.median(atoms.position_std_A, axis=0)))
         )
-    atoms, non_atoms = split_atoms(atoms, model.in_field(atoms), run_dir / "classes.png")
+    atoms, non_atoms = split_atoms(atoms, in_field(model, atoms), run_dir / "classes.png")
     write_atoms(atoms, run_dir / "atoms.xyz")
     write_atoms(atoms, run_dir / "atoms.csv")
     write_atoms(non_atoms, run_dir / "non_atoms.xyz")
@@ -90,6 +95,13 @@ def write_results(model, run_dir: Path) -> dict | None:
     (run_dir / "evaluation.json").write_text(json.dumps(scores, indent=2) + "\n")
     CONSOLE.print(f"[bold]gaussian-atoms[/bold]: against {model.truth_path}: {json.dumps(scores)}")
     return scores
+
+
+def in_field(model, atoms: AtomSet) -> np.ndarray:
+    """(N,) bool: the atoms inside the field whose Gaussians are reported (above the detector
+    for an object wider than it, :func:`.noise_reading.read_field_of_view`)."""
+    positions = model.normalisation.positions_from_A(atoms.positions)
+    return np.all(np.abs(positions) <= np.asarray(getattr(model, "field_half_extent", (0.5, 0.5, 0.5))) + 1e-9, axis=1)
 
 
 def split_atoms(gaussians: AtomSet, in_field: np.ndarray, figure: Path | None = None) -> tuple[AtomSet, AtomSet]:
