@@ -13,7 +13,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from gaussian_atoms_method.physics.data_terms import choose_data_term
 from gaussian_atoms_method.physics.field_of_view import film_evidence, slab_half_width
-from gaussian_atoms_method.physics.noise import NoiseModel, atom_scale_excess, detector_floor, frame_surfaces, inflated, noise_from_projections
+from gaussian_atoms_method.physics.noise import NoiseModel, atom_scale_excess, detector_floor, frame_mask, frame_surfaces, inflated, noise_from_projections
 
 FLOOR_Z = 5.0
 """A frame level this many standard errors off zero is a real offset: a one-in-3.5-million
@@ -44,10 +44,11 @@ def read_noise(projections, loss: str, background: str, measured: NoiseModel | N
     term to use, the detected floor and, for a floor that varies within the views, its shape.
 
     With ``background`` "auto" a floor is found when the frame's level sits significantly off
-    zero (:data:`FLOOR_Z`) and the frame is background: flat (a constant per view is learned from
-    the floor), or smooth (its pixels vary about each view's quadratic frame surface,
-    :func:`~gaussian_atoms_method.physics.noise.frame_surfaces`, by no more than the noise:
-    that surface less its mean is added to the view, and a constant per view is learned).
+    zero (:data:`FLOOR_Z`) and the frame is background: smooth, when each view's quadratic frame
+    surface (:func:`~gaussian_atoms_method.physics.noise.frame_surfaces`) explains the frame
+    significantly better than a constant (by :data:`FLOOR_Z` standard errors of the variance)
+    and leaves no more than the noise (that surface less its mean is added to the view and a
+    constant per view is learned); else flat (a constant per view is learned from the floor).
     Atoms reaching the frame (a film, a crowded field) make it neither.  With "smooth" the
     surfaces are used whatever the frame.  Returns (noise, term, floor or None, (V, H, W)
     surfaces or None), normalised units."""
@@ -63,13 +64,16 @@ def read_noise(projections, loss: str, background: str, measured: NoiseModel | N
     floor, floor_se, frame_var = detector_floor(data)
     noise_var = FLAT_FRAME_RATIO * float(noise.variance(np.array([floor]))[0])
     off_zero = abs(floor) > FLOOR_Z * floor_se
-    found, surfaces = background == "auto" and frame_var <= noise_var and off_zero, None
-    if background == "smooth" or (background == "auto" and off_zero and not found):
+    found, surfaces = False, None
+    if background == "smooth" or (background == "auto" and off_zero):
         surfaces, smooth_var = frame_surfaces(data)
-        if background == "auto" and smooth_var > noise_var:
-            surfaces = None
-        elif surfaces is not None:
+        # The surface explains the frame better than a constant by more than FLOOR_Z standard
+        # errors of a variance over the frame's pixels (sqrt(2 / n) of it).
+        varies = frame_var - smooth_var > FLOOR_Z * smooth_var * np.sqrt(2.0 / frame_mask(data.shape[-2:]).sum() / len(data))
+        if background == "smooth" or (varies and smooth_var <= noise_var):
             found, surfaces = True, surfaces - surfaces.mean(axis=(1, 2), keepdims=True)
+        else:
+            found, surfaces = background == "auto" and frame_var <= noise_var, None
     said = f"{noise.kind} (read variance {noise.read_var:.3g}, gain {noise.gain:.3g} per count, normalised units)"
     shape = "a floor that varies smoothly within each view (its frame's quadratic surface) and a constant" if surfaces is not None else "a constant background"
     bg = f"; frame level {floor:.3g} ± {floor_se:.1g}: learning {shape} per view from it" if found and background == "auto" else ""
