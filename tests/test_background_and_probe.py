@@ -18,6 +18,12 @@ def test_aberrated_probe_has_tails_no_gaussian_has():
     probe = aberrated_probe_intensity(pixel)
     assert probe.sum() == pytest.approx(1.0) and probe.min() >= 0
     c = probe.shape[0] // 2
+    assert probe.shape[0] % 2 == 1 and np.unravel_index(probe.argmax(), probe.shape) == (c, c)  # centred: no shift
+    point = np.zeros((1, 41, 41))
+    point[0, 20, 20] = 1.0
+    blurred = convolve_views(point, probe)[0]
+    centroid = [(blurred.sum(axis=1 - a) * np.arange(41)).sum() / blurred.sum() for a in (0, 1)]
+    np.testing.assert_allclose(centroid, [20.0, 20.0], atol=1e-6)  # a point's image stays where it is
     r = np.hypot(*np.meshgrid(np.arange(probe.shape[0]) - c, np.arange(probe.shape[1]) - c, indexing="ij")) * pixel
     assert probe[r <= 0.6].sum() > 0.3
     half = np.sort(r.ravel())[np.searchsorted(np.cumsum(probe.ravel()[np.argsort(r.ravel())]), 0.5)]
