@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from gaussian_atoms_method.physics.psf import KERNEL_WIDTHS_A, apply_kernel, kernel_transfer, kernel_weights
+from gaussian_atoms_method.physics.psf import KERNEL_WIDTHS_A, apply_kernel, kernel_transfer, project_weights
 
 
 def test_kernel_of_one_gaussian_blurs_a_gaussian_exactly_and_keeps_mass():
@@ -21,8 +21,10 @@ def test_kernel_of_one_gaussian_blurs_a_gaussian_exactly_and_keeps_mass():
     expected = torch.exp(-r2 / (2 * (a**2 + s**2))) / (2 * math.pi * (a**2 + s**2))
     assert float((blurred - expected).abs().max()) < 1e-9 * float(expected.max())
     mixed = apply_kernel(image[None], spacing, torch.tensor(KERNEL_WIDTHS_A, dtype=torch.float64), torch.tensor([0.3, -0.1, 0.2], dtype=torch.float64))
-    weights = kernel_weights(torch.tensor([0.5, -3.0, 2.0], dtype=torch.float64))  # the learned parameterisation
-    assert bool((weights > 0).all()) and float(weights.sum()) < 1.0
+    weights = torch.tensor([0.5, -3.0, 2.0], dtype=torch.float64)
+    project_weights(weights)  # after each step: a non-negative kernel
+    assert bool((weights >= 0).all()) and float(weights.sum()) == pytest.approx(1.0) and float(weights[1]) == 0.0
+    assert torch.equal(apply_kernel(image[None], spacing, torch.tensor(KERNEL_WIDTHS_A), torch.zeros(3))[0], image)  # zero weights: identity
     assert float(mixed.sum()) == pytest.approx(float(image.sum()), rel=1e-6)
     assert float(kernel_transfer(torch.zeros(1), torch.tensor([1.0]), torch.tensor([0.7]))) == 1.0
 
@@ -51,14 +53,15 @@ def test_kernel_is_recovered_from_a_simulated_series(tmp_path):
     with torch.no_grad():
         model.gauss_params["means"].copy_(torch.as_tensor(norm.positions_from_A(atoms.positions), dtype=torch.float32))
         model.gauss_params["log_sigmas"].fill_(math.log(sim.truth.sigmas[0] * norm.length_scale))
-    opt = torch.optim.Adam([{"params": [model.view_params["psf"]], "lr": 5e-2}, {"params": [model.gauss_params["log_amplitudes"]], "lr": 2e-2}])
+    opt = torch.optim.Adam([{"params": [model.view_params["psf"]], "lr": 1e-2}, {"params": [model.gauss_params["log_amplitudes"]], "lr": 2e-2}])
     targets = [outputs.metadata["projections"][v][..., None] for v in range(len(angles))]
     for step in range(800):
         opt.zero_grad()
         v = step % len(angles)
         model.get_loss_dict(model.get_outputs(outputs.cameras[v : v + 1]), {"image": targets[v]})["main_loss"].backward()
         opt.step()
-    learned = kernel_weights(model.view_params["psf"].detach().double())
+        project_weights(model.view_params["psf"].data)
+    learned = model.view_params["psf"].detach().double()
     widths = torch.tensor(KERNEL_WIDTHS_A, dtype=torch.float64)
     freq2 = torch.linspace(0.0, (0.5 / sim.pixel_size_A) ** 2, 200, dtype=torch.float64)
     assert float((kernel_transfer(freq2, widths, learned) - kernel_transfer(freq2, widths, true_weights)).abs().max()) < 0.03

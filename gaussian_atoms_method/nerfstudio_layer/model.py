@@ -44,6 +44,7 @@ from gaussian_atoms_method.nerfstudio_layer.results import model_position_std_A,
 from gaussian_atoms_method.nerfstudio_layer.splatfacto_compat import SplatfactoCompat
 from gaussian_atoms_method.nerfstudio_layer.viewer import AtomsInViewer
 from gaussian_atoms_method.physics.data_terms import data_term
+from gaussian_atoms_method.physics.psf import project_weights
 from gaussian_atoms_method.physics.projector import covariances_from_scales_quats, project_anisotropic_gaussians, project_gaussians, project_gaussians_gsplat, project_gaussians_tiled
 from gaussian_atoms_method.physics.units import DATA_RANGE, Normalisation
 
@@ -234,6 +235,8 @@ class GaussianAtomsModel(SplatfactoCompat):
     @torch.no_grad()
     def refine_after_step(self, step: int) -> None:
         """Clamp, accumulate the positional gradient and every refine_every steps duplicate and prune."""
+        if "psf" in self.view_params:
+            project_weights(self.view_params["psf"].data)  # a non-negative kernel (physics/psf.py)
         if self.density.step_post_backward(self.gauss_params, self.optimizers, step, self._param_lists()):
             self.atoms_in_viewer.refresh()
 

@@ -20,7 +20,7 @@ import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
 
 from gaussian_atoms_method.nerfstudio_layer.options import OptionError
-from gaussian_atoms_method.physics.psf import KERNEL_WIDTHS_A, START_LOGIT, apply_kernel, kernel_weights
+from gaussian_atoms_method.physics.psf import KERNEL_WIDTHS_A, apply_kernel
 
 
 def detector_axes(c2w: torch.Tensor) -> torch.Tensor:
@@ -90,7 +90,7 @@ def view_parameters(cfg, n_views: int, floor: float | None, surfaces, series, le
         params["background"] = Parameter(torch.zeros(n_views, 3 if background == "plane" else 1))
         params["background"].data[:, 0] = floor or 0.0
     if cfg.psf == "learned":  # one kernel for every view: the microscope's
-        params["psf"] = Parameter(torch.full((len(KERNEL_WIDTHS_A),), START_LOGIT))
+        params["psf"] = Parameter(torch.zeros(len(KERNEL_WIDTHS_A)))  # the identity: no kernel until the data ask
         buffers["psf_widths"] = torch.tensor(KERNEL_WIDTHS_A) * length_scale
     if cfg.refine_alignment:
         params["view_shifts"] = Parameter(torch.zeros(n_views, 2))
@@ -106,7 +106,7 @@ def blur(model, images: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
     """(V, H, W) projections through the model's learned point-spread function, if it has one."""
     if "psf" not in model.view_params or len(rows) < 2:
         return images
-    return apply_kernel(images, float(rows[1] - rows[0]), model.psf_widths.to(images), kernel_weights(model.view_params["psf"].to(images)))
+    return apply_kernel(images, float(rows[1] - rows[0]), model.psf_widths.to(images), model.view_params["psf"].to(images))  # kept non-negative by project_weights after each step
 
 
 def add_view_background(model, image: torch.Tensor, view: int, rows: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:

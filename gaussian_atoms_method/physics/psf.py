@@ -9,11 +9,12 @@ integral (mass is conserved)
 
     K = (1 - sum_k w_k) delta + sum_k w_k G(s_k),     K^(f) = 1 + sum_k w_k (exp(-2 pi^2 s_k^2 f^2) - 1)
 
-over a ladder of widths :data:`KERNEL_WIDTHS_A`, with weights ``w_k`` learned with the atoms as
-``w_k = exp(a_k) / (1 + sum_j exp(a_j))`` (:func:`kernel_weights`): every weight positive and
-the delta's share too, so the kernel is a non-negative intensity, as an incoherent (ADF-STEM)
-probe's is.  Unconstrained weights on the Ta film went to -1.4 at 1 Å: a sharpening kernel that
-let the fit put more, not fewer, Gaussians (0.71 extra atoms per model atom against 0.56).  Below the ladder the kernel
+over a ladder of widths :data:`KERNEL_WIDTHS_A`, with weights ``w_k`` learned with the atoms and
+kept non-negative with the delta's share ``1 - sum w`` (:func:`project_weights` after every
+step), so the kernel is a non-negative intensity, as an incoherent (ADF-STEM) probe's is, and
+starts as the identity: a run whose data want no kernel renders exactly as without one.
+Unconstrained weights on the Ta film went to -1.4 at 1 Å: a sharpening kernel that let the fit
+put more, not fewer, Gaussians (0.71 extra atoms per model atom against 0.56).  Below the ladder the kernel
 and the atoms' widths are one and the same thing (a narrower blur widens every atom alike), so
 the kernel starts where an atom ends and an atom's width still holds its own share of the blur.
 Applied by FFT on the zero-padded image.  Pure torch.
@@ -31,15 +32,15 @@ wide; ``max_atom_sigma_A`` 1.5) to the few Å an aberrated probe's tails and rin
 harness's 20 mrad probe at 40 Å defocus holds 9% of its intensity beyond 2 Å and 2% beyond 5)."""
 
 
-START_LOGIT = -5.0
-"""Each weight's logit at the start: 0.7% of the intensity in each width, 2% in all (a matched
-Gaussian blur leaves them there; Adam moves a logit by about its rate per step)."""
-
-
-def kernel_weights(logits: torch.Tensor) -> torch.Tensor:
-    """(K,) positive weights summing to less than one from (K,) logits (the delta keeps the rest)."""
-    e = torch.exp(logits)
-    return e / (1.0 + e.sum())
+@torch.no_grad()
+def project_weights(weights: torch.Tensor) -> None:
+    """In place: every weight at least 0 and their sum at most 1 (a non-negative kernel).  A
+    projected gradient step: a weight pushed below zero comes back to zero, where the data can
+    still lift it."""
+    weights.clamp_(min=0.0)
+    total = float(weights.sum())
+    if total > 1.0:
+        weights.div_(total)
 
 
 def kernel_transfer(freq2: torch.Tensor, widths: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
@@ -51,7 +52,10 @@ def kernel_transfer(freq2: torch.Tensor, widths: torch.Tensor, weights: torch.Te
 
 def apply_kernel(images: torch.Tensor, spacing: float, widths: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
     """(..., H, W) images convolved with the kernel (pixel ``spacing`` in the widths' unit),
-    zero-padded by three of the widest width so nothing wraps around; same shape."""
+    zero-padded by three of the widest width so nothing wraps around; same shape.  All weights
+    zero and no gradient wanted for them: the images themselves (no transform)."""
+    if not (weights.requires_grad and torch.is_grad_enabled()) and not bool((weights != 0).any()):
+        return images
     h, w = images.shape[-2:]
     pad = int(math.ceil(3.0 * float(widths.max()) / spacing)) if len(widths) else 0
     ph, pw = h + 2 * pad, w + 2 * pad
