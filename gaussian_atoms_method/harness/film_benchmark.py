@@ -136,21 +136,18 @@ class FilmBenchmark:
     flags: tuple[str, ...] = ()
 
     def run(self) -> list[dict]:
-        from gaussian_atoms_method.harness.benchmark import train_ours
+        from gaussian_atoms_method.harness.benchmark import scored_run
+
+        def score(area, data, atoms):
+            meta = json.loads((data / "tilt_series.json").read_text())
+            shape = np.load(data / meta["projections"], mmap_mode="r").shape[1:]
+            return score_area(atoms.positions, model_in_area_A(self.data_dir, area), shape, tuple(meta["centre_px"])) | {"n_atoms_reported": len(atoms)}
 
         rows = []
         for area in self.areas:
             run_dir = self.output / "runs" / f"area{area}"
-            result = run_dir / "film_scores.json"
-            if not result.is_file():
-                data = prepare_area(self.data_dir, self.output / "data", area)
-                atoms, seconds = train_ours(data, run_dir, self.iterations, self.device, self.flags)
-                meta = json.loads((data / "tilt_series.json").read_text())
-                shape = np.load(data / meta["projections"], mmap_mode="r").shape[1:]
-                scores = score_area(atoms.positions, model_in_area_A(self.data_dir, area), shape, tuple(meta["centre_px"])) | {"seconds": seconds, "n_atoms_reported": len(atoms)}
-                run_dir.mkdir(parents=True, exist_ok=True)
-                result.write_text(json.dumps(scores, indent=2) + "\n")
-            s = json.loads(result.read_text())
+            s = scored_run(run_dir / "film_scores.json", run_dir, lambda: prepare_area(self.data_dir, self.output / "data", area),
+                           lambda data, atoms: score(area, data, atoms), self.iterations, self.device, self.flags)  # fmt: skip
             rows.append({"area": area, **s})
             print(f"Ta film area {area}: found {s['found']:.3f} of {s['n_model']} model atoms, extra {s['extra_per_model_atom']:.3f} per model atom, RMSD {s['rmsd_pm']:.1f} pm, {s['seconds']:.0f} s", flush=True)
         self.write(rows)

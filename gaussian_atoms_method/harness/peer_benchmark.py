@@ -124,7 +124,7 @@ class PeerBenchmark:
 
     def run(self) -> list[dict]:
         from gaussian_atoms_method.atoms.atom_set import read_atoms
-        from gaussian_atoms_method.harness.benchmark import train_ours
+        from gaussian_atoms_method.harness.benchmark import scored_run
 
         for name in (*(DOSE_FILES[d] for d in self.doses), ANGLES_FILE, TRUTH_FILE):
             if not (self.data_dir / name).is_file():
@@ -132,15 +132,8 @@ class PeerBenchmark:
         rows = []
         for dose in self.doses:
             run_dir = self.output / "runs" / f"dose{dose}"
-            result = run_dir / "evaluation.json"
-            if not result.is_file():
-                data = prepare_dose(self.data_dir, self.output / "data", dose)
-                atoms, seconds = train_ours(data, run_dir, self.iterations, self.device, self.flags)
-                truth = read_atoms(data / "atoms_true.xyz")
-                scores = score_like_peer(atoms.positions, truth.positions) | {"seconds": seconds}
-                run_dir.mkdir(parents=True, exist_ok=True)
-                result.write_text(json.dumps(scores, indent=2) + "\n")
-            s = json.loads(result.read_text())
+            s = scored_run(run_dir / "evaluation.json", run_dir, lambda: prepare_dose(self.data_dir, self.output / "data", dose),
+                           lambda data, atoms: score_like_peer(atoms.positions, read_atoms(data / "atoms_true.xyz").positions), self.iterations, self.device, self.flags)  # fmt: skip
             peer = peer_scores(self.data_dir, dose)
             rows.append({"dose": dose, **s, "peer": peer})
             beside = f"; peer {peer['n_matched']}/{peer['n_true']}, FP {peer['n_pred'] - peer['n_matched']}, RMSD {peer['rmsd_pm']:.2f} pm" if peer else ""

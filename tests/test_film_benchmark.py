@@ -1,0 +1,45 @@
+"""The Ta film benchmark: its geometry and its scoring (../shared/data/ta_film)."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gaussian_atoms_method.harness.film_benchmark import area_geometry, model_in_area_A, prepare_area, score_area, scored_region
+
+DATA = Path("../shared/data/ta_film")
+pytestmark = pytest.mark.skipif(not (DATA / "alignPara.mat").is_file(), reason="needs ../shared/data/ta_film")
+
+
+def test_the_model_scores_itself_perfectly_and_a_shift_is_taken_out():
+    """The authors' model as the prediction: every scored atom found, none extra, 0 pm; shifted by
+    0.3 Å it is aligned back (the iterated global shift) to the same; with a tenth of its atoms
+    removed and as many added 1.6 Å off, found and extra move by that tenth."""
+    _, half = area_geometry(DATA, 23)
+    model = model_in_area_A(DATA, 23)
+    shape = (151, 77)
+    perfect = score_area(model, model, shape, tuple(half[:2]))
+    assert perfect["found"] == 1.0 and perfect["extra_per_model_atom"] == 0.0 and perfect["rmsd_pm"] < 1e-9
+    assert 700 < perfect["n_model"] < 900  # sub-area 23's interior
+    shifted = score_area(model + [0.3, -0.2, 0.1], model, shape, tuple(half[:2]))
+    assert shifted["found"] == 1.0 and shifted["rmsd_pm"] < 1e-6
+    np.testing.assert_allclose(shifted["shift_A"], [-0.3, 0.2, -0.1], atol=1e-9)
+    box, inside = scored_region(model, shape, tuple(half[:2]))
+    rng = np.random.default_rng(0)
+    drop = rng.choice(np.flatnonzero(inside), int(0.1 * inside.sum()), replace=False)
+    direction = rng.normal(size=(len(drop), 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    changed = np.concatenate([np.delete(model, drop, axis=0), model[drop] + 1.6 * direction])
+    scores = score_area(changed, model, shape, tuple(half[:2]))
+    assert scores["found"] == pytest.approx(0.9, abs=0.01)
+    assert scores["extra_per_model_atom"] == pytest.approx(0.1, abs=0.02)  # a few of the moved ones leave the scored box
+
+
+def test_a_sub_area_is_written_as_a_tilt_series(tmp_path):
+    """Sub-area 8: 46 views of 131 x 61 pixels, the tilt centre at CropHalf, angles -63 to +56."""
+    from dataparsers.tilt_series_format import load_tilt_series
+
+    series = load_tilt_series(prepare_area(DATA, tmp_path, 8))
+    assert series.projections.shape == (46, 131, 61)
+    assert series.angles_deg.min() == pytest.approx(-63.0, abs=0.01) and series.angles_deg.max() == pytest.approx(55.9, abs=0.01)
+    assert tuple(series.centre_px) == (65.0, 30.0)
