@@ -136,7 +136,7 @@ def test_anisotropic_switch_renders_the_same_spheres(tmp_path):
     aniso.get_loss_dict(aniso.get_outputs(cam), {"image": target})["main_loss"].backward()
     assert torch.all(aniso.gauss_params["log_sigmas"].grad.abs().sum(0) > 0)
     assert float(aniso.gauss_params["quats"].grad.abs().sum()) > 0
-    assert set(aniso.get_param_groups()) == {"means", "log_sigmas", "log_amplitudes", "quats"}
+    assert set(aniso.get_param_groups()) == {"means", "log_sigmas", "log_amplitudes", "quats", "psf"}  # psf: the learned kernel
 
 
 def test_same_seed_same_atoms(tmp_path):
