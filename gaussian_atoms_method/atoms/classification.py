@@ -25,6 +25,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
+
+from gaussian_atoms_method.atoms.pair_distribution import nearest_neighbour_distances
 
 MAX_CLASSES = 4
 """At most this many classes: species told apart by mass (the benchmarks hold up to three
@@ -132,15 +135,11 @@ def classify_gaussians(masses: np.ndarray, sigmas_A: np.ndarray, positions_A: np
 def in_support(positions_A: np.ndarray) -> np.ndarray:
     """(N,) bool: at least two neighbours within the far-out fence of all the nearest-neighbour
     distances (:data:`FENCE_IQR`) or twice their median; every position with fewer than four in all."""
-    from gaussian_atoms_method.atoms.pair_distribution import nearest_neighbour_distances
-
     positions = np.asarray(positions_A, dtype=np.float64).reshape(-1, 3)
     if len(positions) < 4:
         return np.ones(len(positions), dtype=bool)
     d = nearest_neighbour_distances(positions)
     q1, q3 = np.percentile(d, [25, 75])
-    from scipy.spatial import cKDTree
-
     radius = max(q3 + FENCE_IQR * (q3 - q1), 2.0 * float(np.median(d)))
     return cKDTree(positions).query_ball_point(positions, radius, return_length=True) >= 3  # itself and two more
 

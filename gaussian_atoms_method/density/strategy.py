@@ -367,7 +367,7 @@ class DensityControl:
         its projected peak ``mass / (2 pi s^2)`` (the g^2-weighted mean of a 2D Gaussian)."""
         level = self.floor + (2.0 / 3.0) * mass / (2.0 * math.pi * s**2)
         x = (level - self.noise.offset).clip(min=0.0)
-        return (self.noise.read_var + self.noise.gain * x + getattr(self.noise, "misfit", 0.0) * x**2).clip(min=1e-300)
+        return (self.noise.read_var + self.noise.gain * x).clip(min=1e-300)
 
     def noise_known(self) -> bool:
         """Whether a noise model, pixel size and views are set (:meth:`set_noise`)."""

@@ -192,8 +192,7 @@ def scored_run(result: Path, run_dir: Path, prepare, score, iterations: int, dev
     ``run_dir`` and ``score(data, atoms)`` scores the atoms (the wall time is added)."""
     if not result.is_file():
         data = prepare()
-        atoms, seconds = train_ours(data, run_dir, iterations, device, flags)
-        run_dir.mkdir(parents=True, exist_ok=True)
+        atoms, seconds = train_ours(data, run_dir, iterations, device, flags)  # makes run_dir
         result.write_text(json.dumps(score(data, atoms) | {"seconds": seconds}, indent=2) + "\n")
     return json.loads(result.read_text())
 

@@ -16,8 +16,10 @@ Each is a small function on tensors; :meth:`GaussianAtomsModel.get_outputs
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
+from torch.nn import Parameter
 
 from gaussian_atoms_method.nerfstudio_layer.options import OptionError
 from gaussian_atoms_method.physics.psf import KERNEL_WIDTHS_A, apply_kernel

@@ -78,7 +78,8 @@ def write_results(model, run_dir: Path) -> dict | None:
             f"gaussian-atoms: residual noise {noise:.4g} (input units); median position precision "
             + ", ".join(f"{a} {v * 100:.1f} pm" for a, v in zip("xyz", np.median(atoms.position_std_A, axis=0)))
         )
-    atoms, non_atoms = split_atoms(atoms, in_field(model, atoms), run_dir / "classes.png")
+    # atoms() lists the Gaussians in the model's order: the density control's own test of the field
+    atoms, non_atoms = split_atoms(atoms, model.density.in_field(model.means.detach()).cpu().numpy(), run_dir / "classes.png")
     write_atoms(atoms, run_dir / "atoms.xyz")
     write_atoms(atoms, run_dir / "atoms.csv")
     write_atoms(non_atoms, run_dir / "non_atoms.xyz")
@@ -95,13 +96,6 @@ def write_results(model, run_dir: Path) -> dict | None:
     (run_dir / "evaluation.json").write_text(json.dumps(scores, indent=2) + "\n")
     CONSOLE.print(f"[bold]gaussian-atoms[/bold]: against {model.truth_path}: {json.dumps(scores)}")
     return scores
-
-
-def in_field(model, atoms: AtomSet) -> np.ndarray:
-    """(N,) bool: the atoms inside the field whose Gaussians are reported (above the detector
-    for an object wider than it, :func:`.noise_reading.read_field_of_view`)."""
-    positions = model.normalisation.positions_from_A(atoms.positions)
-    return np.all(np.abs(positions) <= np.asarray(getattr(model, "field_half_extent", (0.5, 0.5, 0.5))) + 1e-9, axis=1)
 
 
 def split_atoms(gaussians: AtomSet, in_field: np.ndarray, figure: Path | None = None) -> tuple[AtomSet, AtomSet]:

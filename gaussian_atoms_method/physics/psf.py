@@ -38,9 +38,7 @@ def project_weights(weights: torch.Tensor) -> None:
     projected gradient step: a weight pushed below zero comes back to zero, where the data can
     still lift it."""
     weights.clamp_(min=0.0)
-    total = float(weights.sum())
-    if total > 1.0:
-        weights.div_(total)
+    weights.div_(weights.sum().clamp(min=1.0))  # on the device: no host round-trip per step
 
 
 def kernel_transfer(freq2: torch.Tensor, widths: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
