@@ -91,6 +91,10 @@ class TiltSeries:
             raise TiltSeriesError(f"{where}: {len(angles)} tilt angles for {proj.shape[0]} projections")
         if not np.all(np.isfinite(angles)):
             raise TiltSeriesError(f"{where}: tilt angles hold NaN/Inf")
+        directions = np.unique(np.round(np.mod(angles, 180.0), 6) % 180.0)
+        if len(directions) < 2:
+            seen = f"{len(angles)} projection" + ("" if len(angles) == 1 else f"s all at {angles[0]:g} deg (mod 180)")
+            raise TiltSeriesError(f"{where}: {seen}: a tilt series needs views from two or more directions to tell depth")
         uniq, counts = np.unique(angles, return_counts=True)
         if np.any(counts > 1):
             raise TiltSeriesError(f"{where}: duplicate tilt angle(s) {uniq[counts > 1].tolist()} deg")

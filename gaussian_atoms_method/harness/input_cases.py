@@ -84,6 +84,8 @@ BROKEN: dict[str, tuple[Callable[[Path], Path], str]] = {
     "bad origin": (lambda out: edit_manifest(valid_series(out), origin_A=[0, 0]), "origin_A must be three"),
     "truth missing": (lambda out: edit_manifest(valid_series(out), truth="gone.xyz"), "gone.xyz: truth file not found"),
     "truth unreadable": (lambda out: valid_then(out, lambda d: (d / "atoms_true.xyz").write_text("not an xyz file\n")), "atoms_true.xyz"),
+    "single projection": (lambda out: valid_then(out, lambda d: (resave(d, lambda p: p[:1]), (d / "angles.txt").write_text("0\n"))), "1 projection: a tilt series needs views"),
+    "all at one direction": (lambda out: valid_then(out, lambda d: (resave(d, lambda p: p[:2]), (d / "angles.txt").write_text("-90\n90\n"))), "all at -90 deg (mod 180)"),
     "all zero": (lambda out: resave(valid_series(out), lambda p: np.zeros_like(p)), "all zero"),
 }
 
