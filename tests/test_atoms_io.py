@@ -9,7 +9,7 @@ from gaussian_atoms_method.atoms.atom_set import AtomFileError, AtomSet, read_at
 
 def _atoms():
     rng = np.random.default_rng(3)
-    return AtomSet(rng.normal(size=(7, 3)) * 10, sigmas=rng.uniform(0.5, 0.8, 7), amplitudes=rng.uniform(1, 9, 7), species=["Au"] * 3 + ["Pt"] * 4)
+    return AtomSet(rng.normal(size=(7, 3)) * 10, sigmas=rng.uniform(0.5, 0.8, 7), amplitudes=rng.uniform(1, 9, 7), species=["Au"] * 3 + ["Pt"] * 4, atom_class=[1, 1, 1, 2, 2, 2, 0])
 
 
 @pytest.mark.parametrize("suffix", [".xyz", ".extxyz", ".csv"])
@@ -22,6 +22,7 @@ def test_round_trip(tmp_path, suffix):
     np.testing.assert_allclose(b.sigmas, a.sigmas, rtol=1e-7)
     np.testing.assert_allclose(b.amplitudes, a.amplitudes, rtol=1e-7)
     assert list(b.species) == list(a.species)
+    assert list(b.atom_class) == list(a.atom_class)
 
 
 def test_xyz_is_plain_ase(tmp_path):

@@ -37,6 +37,9 @@ class AtomSet:
     position_std_A : (N, 3) float array, Å, or None
         Estimated standard deviation of each position along x, y, z
         (:mod:`gaussian_atoms_method.atoms.uncertainty`).
+    atom_class : (N,) int array, or None
+        Each Gaussian's class (:mod:`gaussian_atoms_method.atoms.classification`): 1..k by
+        increasing mass for atoms, 0 for a non-atom.
     """
 
     positions: np.ndarray
@@ -45,6 +48,7 @@ class AtomSet:
     species: np.ndarray | None = None
     info: dict = field(default_factory=dict)
     position_std_A: np.ndarray | None = None
+    atom_class: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.positions = np.asarray(self.positions, dtype=np.float64).reshape(-1, 3)
@@ -60,6 +64,10 @@ class AtomSet:
             self.position_std_A = np.asarray(self.position_std_A, dtype=np.float64).reshape(-1, 3)
             if len(self.position_std_A) != n:
                 raise ValueError(f"position_std_A has {len(self.position_std_A)} rows for {n} atoms")
+        if self.atom_class is not None:
+            self.atom_class = np.asarray(self.atom_class, dtype=np.int64).reshape(-1)
+            if len(self.atom_class) != n:
+                raise ValueError(f"atom_class has {len(self.atom_class)} entries for {n} atoms")
         if self.species is not None:
             self.species = np.asarray(self.species, dtype=str).reshape(-1)
             if len(self.species) != n:
@@ -78,11 +86,11 @@ class AtomSet:
     def subset(self, mask) -> "AtomSet":
         """The atoms where the (N,) bool ``mask`` (or index array) selects, every attribute alike."""
         pick = (lambda v: None if v is None else v[mask])
-        return AtomSet(self.positions[mask], pick(self.sigmas), pick(self.amplitudes), pick(self.species), dict(self.info), pick(self.position_std_A))
+        return AtomSet(self.positions[mask], pick(self.sigmas), pick(self.amplitudes), pick(self.species), dict(self.info), pick(self.position_std_A), pick(self.atom_class))
 
     def shifted(self, offset_A) -> "AtomSet":
         """A copy with every position moved by ``offset_A`` (3,)."""
-        return AtomSet(self.positions + np.asarray(offset_A, dtype=np.float64), self.sigmas, self.amplitudes, self.species, dict(self.info), self.position_std_A)
+        return AtomSet(self.positions + np.asarray(offset_A, dtype=np.float64), self.sigmas, self.amplitudes, self.species, dict(self.info), self.position_std_A, self.atom_class)
 
     # ------------------------------------------------------------------ ASE
     def to_ase(self):
@@ -97,6 +105,8 @@ class AtomSet:
             atoms.new_array("amplitude", self.amplitudes)
         if self.position_std_A is not None:
             atoms.new_array("position_std_A", self.position_std_A)
+        if self.atom_class is not None:
+            atoms.new_array("atom_class", self.atom_class)
         return atoms
 
     @classmethod
@@ -109,6 +119,7 @@ class AtomSet:
             amplitudes=arrays.get("amplitude"),
             species=species,
             position_std_A=arrays.get("position_std_A"),
+            atom_class=arrays.get("atom_class"),
         )
 
 
@@ -164,11 +175,13 @@ def _write_csv(atoms: AtomSet, path: Path) -> None:
     if atoms.position_std_A is not None:
         for k, axis in enumerate("xyz"):
             columns[f"std_{axis}_A"] = atoms.position_std_A[:, k]
+    if atoms.atom_class is not None:
+        columns["class"] = atoms.atom_class
     with open(path, "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(columns.keys())
         for i in range(n):
-            writer.writerow([columns["species"][i]] + [repr(float(columns[k][i])) for k in list(columns)[1:]])
+            writer.writerow([columns["species"][i]] + [str(int(columns[k][i])) if k == "class" else repr(float(columns[k][i])) for k in list(columns)[1:]])
 
 
 def read_atoms(path: str | Path) -> AtomSet:
@@ -208,7 +221,8 @@ def _read_csv(path: Path) -> AtomSet:
     amp = np.array([float(r.get("amplitude", "nan")) for r in rows])
     species = np.array([r.get("species", "X") for r in rows])
     std = np.array([[float(r[f"std_{a}_A"]) for a in "xyz"] for r in rows]) if "std_x_A" in rows[0] else None
-    return AtomSet(pos, None if np.isnan(sig).all() else sig, None if np.isnan(amp).all() else amp, species, position_std_A=std)
+    classes = np.array([int(float(r["class"])) for r in rows]) if "class" in rows[0] else None
+    return AtomSet(pos, None if np.isnan(sig).all() else sig, None if np.isnan(amp).all() else amp, species, position_std_A=std, atom_class=classes)
 
 
 def _read_type_xyz_text(path: Path) -> AtomSet:

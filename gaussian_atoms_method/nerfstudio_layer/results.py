@@ -106,6 +106,9 @@ def split_atoms(gaussians: AtomSet, in_field: np.ndarray, figure: Path | None = 
     classes = classify_gaussians(field.masses, field.sigmas, field.positions)
     reported = np.zeros(len(gaussians), dtype=bool)
     reported[np.flatnonzero(in_field)[classes.atoms]] = True
+    labels = np.zeros(len(gaussians), dtype=np.int64)  # 0: a non-atom
+    labels[np.flatnonzero(in_field)] = np.where(classes.atoms, classes.classes, 0)
+    gaussians = AtomSet(gaussians.positions, gaussians.sigmas, gaussians.amplitudes, gaussians.species, dict(gaussians.info), gaussians.position_std_A, labels)
     counts = classes.counts()
     outside, beyond = counts.pop("non-atoms"), int((~in_field).sum())
     per_class = ", ".join(f"{v} in {k}" for k, v in counts.items()) if len(counts) > 1 else ""
