@@ -1,9 +1,13 @@
 """Readers for the file formats tilt series come in.
 
-Projection stacks: ``.npy``/``.npz``; ``.tif``/``.tiff`` stacks (tifffile); ``.mrc``/``.st``/
-``.ali`` (mrcfile, pixel size from the header when set); ``.emd``/``.h5``/``.hdf5`` (h5py; the
-tomviz/Berkeley EMD layout ``data/<name>/data`` with ``dim1..3`` giving the tilt angles);
-``.mat`` MATLAB v5 (scipy) and v7.3 (h5py, axes reversed as MATLAB stores them column-major).
+Projection stacks: what microscopes and HyperSpy write goes through rosettasciio
+(:mod:`dataparsers.rosetta`: Gatan ``.dm3``/``.dm4``, Velox ``.emd``, ``.hspy``/``.zspy``,
+``.mrc``/``.st``/``.ali``, TIFF), with the pixel size and, where the file holds them, the tilt
+angles.  Read here, where rosettasciio has no reader or loses what a tilt series needs:
+``.npy``/``.npz``; ``.mat`` MATLAB v5 (scipy) and v7.3 (h5py, axes reversed as MATLAB stores
+them column-major); plain ``.h5``/``.hdf5`` with one 3D dataset; the tomviz/Berkeley EMD layout
+``data/<name>/data`` whose ``dim1..3`` hold the tilt angles, uneven steps included (rosettasciio
+keeps only a first angle and a step).
 Angle files: text (``.txt``, IMOD ``.tlt``/``.rawtlt``, ``.csv``), ``.npy``, ``.mat``.
 
 Each reader returns what it found as a :class:`StackData`; errors are :class:`TiltSeriesError`
@@ -13,29 +17,17 @@ No nerfstudio import.
 
 from __future__ import annotations
 
-import re
 import warnings
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from .errors import TiltSeriesError
+from .rosetta import LENGTH_TO_A, read_with_rosettasciio
+from .stack_data import StackData, imod_tilt_axis_angle  # noqa: F401 (imported from here by callers)
 
-STACK_SUFFIXES = (".npy", ".npz", ".tif", ".tiff", ".mrc", ".st", ".ali", ".emd", ".h5", ".hdf5", ".mat")
+STACK_SUFFIXES = (".npy", ".npz", ".mat", ".h5", ".hdf5", ".emd", ".tif", ".tiff", ".mrc", ".st", ".ali", ".mrcz", ".dm3", ".dm4", ".hspy", ".zspy")
 ANGLE_SUFFIXES = (".txt", ".tlt", ".rawtlt", ".csv", ".dat", ".npy", ".mat")
-
-
-@dataclass
-class StackData:
-    """A projection stack as read: ``(N, H, W)`` after moving the tilt axis first."""
-
-    projections: np.ndarray
-    pixel_size_A: float | None = None
-    angles_deg: np.ndarray | None = None
-    imod_tilt_axis_angle_deg: float | None = None
-    """The tilt-axis angle IMOD records in an MRC header's labels ("Tilt axis angle = -86.0"),
-    counterclockwise from Y (the rows)."""
 
 
 def _pick(names: list[str], wanted: str | None, path: Path, what: str) -> str:
@@ -82,16 +74,14 @@ def read_stack(path: str | Path, dataset: str | None = None, tilt_index_axis: in
             with np.load(path, allow_pickle=False) as z:
                 name = _pick(list(z.files), dataset, path, "array")
                 return StackData(_tilt_first(z[name], tilt_index_axis, path, name))
-        if suffix in (".tif", ".tiff"):
-            import tifffile
-
-            return StackData(_tilt_first(tifffile.imread(path), tilt_index_axis, path, "the TIFF stack"))
-        if suffix in (".mrc", ".st", ".ali"):
-            return _read_mrc(path, tilt_index_axis)
-        if suffix in (".emd", ".h5", ".hdf5"):
-            return _read_hdf5(path, dataset, tilt_index_axis)
         if suffix == ".mat":
             return _read_mat(path, dataset, tilt_index_axis)
+        if suffix == ".h5" or (suffix in (".emd", ".hdf5") and _ours_hdf5(path)):
+            return _read_hdf5(path, dataset, tilt_index_axis)
+        if suffix in (".tif", ".tiff"):
+            return _read_tiff(path, dataset, tilt_index_axis)
+        if suffix in STACK_SUFFIXES:
+            return read_with_rosettasciio(path, dataset, tilt_index_axis)
     except TiltSeriesError:
         raise
     except Exception as exc:  # the libraries raise many types; name the file
@@ -99,24 +89,30 @@ def read_stack(path: str | Path, dataset: str | None = None, tilt_index_axis: in
     raise TiltSeriesError(f"{path}: unsupported projections file type {suffix!r}; expected one of {STACK_SUFFIXES}")
 
 
-def _read_mrc(path: Path, tilt_index_axis: int | None) -> StackData:
-    import mrcfile
+def _read_tiff(path: Path, dataset: str | None, tilt_index_axis: int | None) -> StackData:
+    """A TIFF stack through rosettasciio (pixel size from its tags); a stack it cannot take
+    (tifffile's plain pages, with few columns, read as samples) as tifffile reads it."""
+    try:
+        return read_with_rosettasciio(path, dataset, tilt_index_axis)
+    except TiltSeriesError:
+        raise
+    except Exception:
+        import tifffile
 
-    with mrcfile.open(path, permissive=True) as mrc:
-        data = np.array(mrc.data)
-        size = float(mrc.voxel_size.x)
-        labels = [bytes(label).decode("ascii", "replace") for label in mrc.header.label[: int(mrc.header.nlabl)]]
-    return StackData(_tilt_first(data, tilt_index_axis, path, "the MRC stack"), size if size > 0 else None, None, imod_tilt_axis_angle(labels))
+        return StackData(_tilt_first(tifffile.imread(path), tilt_index_axis, path, "the TIFF stack"))
 
 
-def imod_tilt_axis_angle(labels: list[str]) -> float | None:
-    """The last "Tilt axis angle = A" IMOD wrote into MRC labels (newstack, alignment), or None."""
-    found = None
-    for label in labels:
-        match = re.search(r"tilt axis angle\s*=\s*([-+]?\d+(?:\.\d*)?)", label, re.IGNORECASE)
-        if match:
-            found = float(match.group(1))
-    return found
+def _ours_hdf5(path: Path) -> bool:
+    """An HDF5 file rosettasciio would misread: the Berkeley EMD layout (whose angle dimension it
+    reduces to a first angle and a step), or a plain HDF5 file that is not HyperSpy's."""
+    import h5py
+
+    if not h5py.is_hdf5(path):
+        return False
+    with h5py.File(path, "r") as f:
+        if "data" in f and isinstance(f["data"], h5py.Group) and any(isinstance(g, h5py.Group) and "data" in g for g in f["data"].values()):
+            return True
+        return path.suffix.lower() == ".hdf5" and "Experiments" not in f
 
 
 def _read_hdf5(path: Path, dataset: str | None, tilt_index_axis: int | None) -> StackData:
@@ -128,7 +124,7 @@ def _read_hdf5(path: Path, dataset: str | None, tilt_index_axis: int | None) -> 
             groups = [k for k, g in f["data"].items() if isinstance(g, h5py.Group) and "data" in g]
             group = f["data"][_pick(groups, dataset, path, "EMD data group")]
             array = np.array(group["data"])
-            angles, axis = None, tilt_index_axis
+            angles, axis, lengths = None, tilt_index_axis, {}
             for d in range(array.ndim):
                 dim = group.get(f"dim{d + 1}")
                 if dim is None:
@@ -137,11 +133,26 @@ def _read_hdf5(path: Path, dataset: str | None, tilt_index_axis: int | None) -> 
                 if "angle" in label or "deg" in label:
                     angles = np.array(dim).astype(np.float64).reshape(-1)
                     axis = d if tilt_index_axis is None else tilt_index_axis
-            return StackData(_tilt_first(array, axis, path, "the EMD data"), None, angles)
+                else:
+                    lengths[d] = _emd_step_A(dim)
+            pixel = [v for d, v in lengths.items() if d != axis]
+            size = pixel[0] if len(pixel) == 2 and None not in pixel and abs(pixel[0] - pixel[1]) <= 1e-3 * pixel[0] else None
+            return StackData(_tilt_first(array, axis, path, "the EMD data"), size, angles)
         names: list[str] = []
         f.visititems(lambda n, obj: names.append(n) if isinstance(obj, h5py.Dataset) and obj.ndim == 3 else None)
         name = _pick(names, dataset, path, "3D dataset")
         return StackData(_tilt_first(np.array(f[name]), tilt_index_axis, path, name))
+
+
+def _emd_step_A(dim) -> float | None:
+    """The step in Å of a Berkeley EMD dimension whose units are a length, else None."""
+    units = dim.attrs.get("units", b"")
+    units = (units.decode() if isinstance(units, bytes) else str(units)).strip()
+    factor = LENGTH_TO_A.get(units) or LENGTH_TO_A.get(units.lower())
+    values = np.asarray(dim, dtype=np.float64).reshape(-1)
+    if factor is None or len(values) < 2 or values[1] == values[0]:
+        return None
+    return float(abs(values[1] - values[0]) * factor)
 
 
 def _mat_variables(path: Path) -> dict:

@@ -18,21 +18,21 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("gaussian_atoms_method", "dataparsers")
-LAYERS = ["physics", "atoms", "density", "formats", "nerfstudio", "harness", "cli"]
+LAYERS = ["physics", "atoms", "density", "formats", "nerfstudio", "api", "harness", "cli"]
 
 
 def layer_of(module: str) -> str:
     """The layer a module belongs to (a KeyError for a module outside the layout)."""
     parts = module.split(".")
     if parts[0] == "dataparsers":
-        if len(parts) == 1 or parts[1] in ("errors", "readers", "tilt_series_format"):
+        if len(parts) == 1 or parts[1] in ("errors", "readers", "rosetta", "stack_data", "tilt_series_format"):
             return "formats"
         if parts[1] in ("tilt_series_dataparser", "tilt_series_dataset"):
             return "nerfstudio"
         raise KeyError(module)
     if len(parts) == 1:
-        return "physics"  # the package's __init__: imports nothing
-    sub = {"physics": "physics", "atoms": "atoms", "density": "density", "nerfstudio_layer": "nerfstudio", "harness": "harness", "cli": "cli"}
+        return "api"  # the package's __init__: the API's names, loaded on first use
+    sub = {"physics": "physics", "atoms": "atoms", "density": "density", "nerfstudio_layer": "nerfstudio", "harness": "harness", "cli": "cli", "api": "api"}
     return sub[parts[1]]
 
 

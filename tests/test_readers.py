@@ -8,7 +8,7 @@ import scipy.io
 import tifffile
 
 from dataparsers.readers import read_angles, read_stack
-from dataparsers.tilt_series_format import TiltSeriesError
+from dataparsers.tilt_series_format import TiltSeriesError, load_tilt_series
 
 STACK = np.random.default_rng(0).normal(size=(4, 6, 5)).astype(np.float32)  # (N, H, W)
 ANGLES = np.array([-60.0, -20.0, 20.0, 60.0])
@@ -131,3 +131,42 @@ def test_mrc_pixel_size_and_imod_tlt(tmp_path):
     series = load_tilt_series(tmp_path, "tilt.mrc", "tilt.tlt")
     assert series.pixel_size_A == pytest.approx(0.42, rel=1e-6)
     np.testing.assert_allclose(series.projections, data)
+
+
+@pytest.mark.parametrize("suffix", [".hspy", ".emd", ".mrc"])
+def test_series_written_by_rosettasciio_reads_back(tmp_path, suffix):
+    """A tilt series saved by HyperSpy (through rosettasciio) reads back with the same arrays,
+    pixel size and angles: from the file's angle axis (hspy, emd), or an IMOD .tlt beside an
+    MRC, whose header keeps no angles."""
+    hs = pytest.importorskip("hyperspy.api")
+    angles = np.array([-60.0, -30.0, 0.0, 30.0])
+    signal = hs.signals.Signal2D(STACK.copy())
+    tilt, rows, cols = signal.axes_manager[0], signal.axes_manager[1], signal.axes_manager[2]
+    tilt.name, tilt.units, tilt.scale, tilt.offset = "tilt", "degrees", 30.0, -60.0
+    for axis in (rows, cols):
+        axis.units, axis.scale = "nm", 0.03
+    signal.save(tmp_path / f"series{suffix}")
+    (tmp_path / "series.tlt").write_text("\n".join(f"{a:g}" for a in angles))
+    series = load_tilt_series(tmp_path, f"series{suffix}", "series.tlt" if suffix == ".mrc" else None)
+    np.testing.assert_array_equal(series.projections, STACK)
+    assert series.pixel_size_A == pytest.approx(0.3, rel=1e-6)  # 0.03 nm, stored in float32
+    np.testing.assert_allclose(series.angles_deg, angles)
+
+
+def test_etspy_tilts_and_anisotropic_pixels(tmp_path):
+    """Uneven tilts in ``metadata.Tomography.tilts`` (where etspy keeps them) are the angles;
+    pixels of different height and width are refused in one line."""
+    hs = pytest.importorskip("hyperspy.api")
+    uneven = np.array([-62.0, -21.5, 3.0, 57.0])
+    signal = hs.signals.Signal2D(STACK.copy())
+    signal.metadata.set_item("Tomography.tilts", uneven)
+    signal.axes_manager[1].units = signal.axes_manager[2].units = "Å"
+    signal.axes_manager[1].scale = signal.axes_manager[2].scale = 0.42
+    signal.save(tmp_path / "s.hspy")
+    got = read_stack(tmp_path / "s.hspy")
+    np.testing.assert_allclose(got.angles_deg, uneven)
+    assert got.pixel_size_A == pytest.approx(0.42)
+    signal.axes_manager[2].scale = 0.5  # HyperSpy lists the signal axes x then y: this is the rows
+    signal.save(tmp_path / "wide.hspy")
+    with pytest.raises(TiltSeriesError, match=r"wide.hspy: pixels of 0.5 x 0.42 Å; square pixels expected"):
+        read_stack(tmp_path / "wide.hspy")

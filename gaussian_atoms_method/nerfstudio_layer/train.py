@@ -43,8 +43,6 @@ def build_config(argv: list[str]):
 
 def run(config) -> None:
     """Train with ``config`` in this process, as ``ns-train``'s single-device launch does."""
-    import numpy as np
-    import torch
     import yaml
 
     if config.machine.num_devices * config.machine.num_machines != 1:
@@ -57,6 +55,21 @@ def run(config) -> None:
         config = yaml.load(config.load_config.read_text(), Loader=yaml.Loader)
     config.set_timestamp()
     config.print_to_terminal()
+    trainer = make_trainer(config)
+    try:
+        trainer.train()  # GaussianAtomsTrainer: failures and Ctrl+C end in one line
+    finally:
+        from nerfstudio.utils import profiler
+
+        profiler.flush_profiler(config.logging)
+
+
+def make_trainer(config):
+    """Save ``config.yml``, seed every generator with ``config.machine.seed`` and build the
+    trainer, set up for one process on one device (what ``ns-train`` does before training)."""
+    import numpy as np
+    import torch
+
     config.save_config()
     seed = config.machine.seed
     random.seed(seed)
@@ -64,11 +77,6 @@ def run(config) -> None:
     torch.manual_seed(seed)
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
-    try:
-        trainer.train()  # GaussianAtomsTrainer: failures and Ctrl+C end in one line
-    finally:
-        from nerfstudio.utils import profiler
-
-        profiler.flush_profiler(config.logging)
+    return trainer
 
 

@@ -1,0 +1,234 @@
+"""The Python API: a tilt series as arrays in, atoms out, through the same trainer as the CLI.
+
+    >>> import gaussian_atoms_method as ga
+    >>> atoms = ga.reconstruct(projections, angles_deg, pixel_size_A=0.25)   # (N, H, W) arrays
+    >>> atoms.positions, atoms.sigmas, atoms.position_std_A, atoms.atom_class
+
+:func:`reconstruct` writes the arrays as a tilt-series directory, builds the configuration
+``ns-train gaussian-atoms`` builds (the same defaults; model options by their Python names) and
+runs nerfstudio's trainer on it, with a progress bar in place of nerfstudio's table.  Bad input
+raises :class:`InputError`, whose message is the line the CLI prints for the same input.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dataparsers.errors import TiltSeriesError
+from dataparsers.rosetta import stack_from_signal
+from dataparsers.tilt_series_format import TiltSeries, load_tilt_series, write_tilt_series
+from gaussian_atoms_method.atoms.atom_set import AtomFileError, AtomSet, read_atoms
+
+DEVICES = ("auto", "cpu", "cuda")
+
+
+class InputError(ValueError):
+    """Input that cannot train; the message is the one line the CLI prints for it."""
+
+
+def _input_error(exc: Exception) -> InputError:
+    return InputError("gaussian-atoms: error: " + " ".join(str(exc).split()))
+
+
+def read_tilt_series(path: str | Path, **options) -> TiltSeries:
+    """Read a tilt series as ``ns-train gaussian-atoms`` does: a directory with
+    ``tilt_series.json``, or a projection file with ``angles_deg=``/``pixel_size_A=`` where the
+    file does not hold them (``options`` as :func:`dataparsers.tilt_series_format.load_tilt_series`).
+
+    Returns
+    -------
+    TiltSeries
+        ``projections`` (N, H, W) float32, ``angles_deg`` (N,), ``pixel_size_A``, and the geometry.
+    """
+    path = Path(path)
+    try:
+        if path.is_file() and path.suffix != ".json":
+            return load_tilt_series(path.parent, projections=path.name, **options)
+        return load_tilt_series(path, **options)
+    except TiltSeriesError as exc:
+        raise _input_error(exc) from None
+
+
+def _from_hyperspy(signal, angles_deg, pixel_size_A):
+    """Projections, angles and pixel size from a HyperSpy signal (its axes' units and scales)."""
+    title = getattr(getattr(signal.metadata, "General", None), "title", "") or "HyperSpy signal"
+    axes = signal.axes_manager.as_dictionary()  # "axis-0", ...: the data's axes in array order
+    as_dict = {"data": np.asarray(signal.data), "axes": [axes[f"axis-{k}"] for k in range(len(axes))], "metadata": signal.metadata.as_dictionary()}
+    stack = stack_from_signal(as_dict, Path(str(title)))
+    if angles_deg is None and stack.angles_deg is None:
+        raise TiltSeriesError(f"{title}: no tilt angles in the signal's axes or metadata.Tomography.tilts; pass angles_deg")
+    if pixel_size_A is None and stack.pixel_size_A is None:
+        raise TiltSeriesError(f"{title}: the signal's axes have no length units; pass pixel_size_A")
+    return stack.projections, (stack.angles_deg if angles_deg is None else angles_deg), (stack.pixel_size_A if pixel_size_A is None else pixel_size_A)
+
+
+def _as_series(projections, angles_deg, pixel_size_A, tilt_axis: str) -> TiltSeries:
+    if isinstance(projections, TiltSeries):
+        return projections
+    if hasattr(projections, "axes_manager") and hasattr(projections, "metadata"):  # a HyperSpy signal
+        projections, angles_deg, pixel_size_A = _from_hyperspy(projections, angles_deg, pixel_size_A)
+    if angles_deg is None:
+        raise TiltSeriesError("angles_deg: the tilt angles are missing (one per projection, in degrees)")
+    if pixel_size_A is None:
+        raise TiltSeriesError("pixel_size_A: the pixel size is missing (Å)")
+    try:
+        pixel = float(pixel_size_A)
+    except (TypeError, ValueError):
+        raise TiltSeriesError(f"pixel_size_A must be a number of Å, got {pixel_size_A!r}") from None
+    return TiltSeries(np.asarray(projections), np.asarray(angles_deg, dtype=np.float64), pixel, tilt_axis, source=Path("projections"))
+
+
+def _device(device: str) -> str:
+    import torch
+
+    if device not in DEVICES:
+        raise TiltSeriesError(f"device must be one of {DEVICES}, got {device!r}")
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if device == "cuda" and not torch.cuda.is_available():
+        raise TiltSeriesError("device 'cuda': torch sees no CUDA device here; use device='cpu' or 'auto'")
+    return device
+
+
+def build_config(data: Path, output_dir: Path, device: str, max_num_iterations: int | None, model_options: dict[str, Any]):
+    """The :class:`~gaussian_atoms_method.nerfstudio_layer.trainer.GaussianAtomsTrainerConfig`
+    that ``ns-train gaussian-atoms --machine.device-type DEVICE tilt-series --data DATA`` builds,
+    with ``model_options`` set on ``pipeline.model`` (an unknown name raises ``OptionError``)."""
+    from gaussian_atoms_method.nerfstudio_layer.config import MAX_ITERATIONS, gaussian_atoms_trainer_config
+    from gaussian_atoms_method.nerfstudio_layer.options import OptionError
+
+    config = gaussian_atoms_trainer_config(MAX_ITERATIONS if max_num_iterations is None else int(max_num_iterations))
+    names = {f.name for f in dataclasses.fields(config.pipeline.model) if not f.name.startswith("_")}
+    for name, value in model_options.items():
+        if name not in names:
+            raise OptionError(f"{name}: not a model option; the options are those of `ns-train gaussian-atoms --help` under --pipeline.model, e.g. {sorted(names)[:4]}")
+        setattr(config.pipeline.model, name, value)
+    config.pipeline.datamanager.data = data
+    config.machine.device_type = device
+    config.vis = "tensorboard"
+    config.logging.local_writer.enable = False  # the progress bar says how far it is
+    config.output_dir, config.experiment_name = output_dir, "reconstruct"
+    return config
+
+
+def reconstruct(
+    projections,
+    angles_deg=None,
+    pixel_size_A: float | None = None,
+    *,
+    device: str = "auto",
+    tilt_axis: str = "y",
+    output_dir: str | Path | None = None,
+    max_num_iterations: int | None = None,
+    progress: bool = True,
+    seed: int = 42,
+    **model_options,
+) -> AtomSet:
+    """Solve a tilt series for its atoms.
+
+    Parameters
+    ----------
+    projections : (N, H, W) array, a HyperSpy ``Signal2D`` or a :class:`TiltSeries`
+        Line integrals of the potential, one image per tilt.  A HyperSpy signal gives its pixel
+        size (image axes in nm, Å or pm) and its angles (an angle-valued navigation axis, or
+        ``metadata.Tomography.tilts``) unless they are passed.
+    angles_deg : (N,) array
+        Tilt angles in degrees, about ``tilt_axis``.
+    pixel_size_A : float
+        Detector pixel size in Å.
+    device : {"auto", "cpu", "cuda"}
+        Where to train ("auto": the GPU when torch sees one).
+    output_dir : path, optional
+        Keep the run here (``reconstruct/gaussian-atoms/<timestamp>``: ``config.yml`` for
+        ``ns-viewer``, ``atoms.xyz``, ``classes.png``, ...); by default it is written to a
+        temporary directory and removed.
+    max_num_iterations : int, optional
+        As ``--max-num-iterations`` (default 3,000; training stops earlier once converged).
+    **model_options
+        The ``--pipeline.model.*`` options by their Python names, e.g. ``psf="none"``,
+        ``background="smooth"``, ``merge_threshold_A=0.7``.
+
+    Returns
+    -------
+    AtomSet
+        The atoms, in Å about the tilt centre (in a :class:`TiltSeries`'s truth frame when one is
+        given, as the CLI writes them): ``positions`` (M, 3), ``sigmas``, ``amplitudes``,
+        ``position_std_A`` (M, 3) and ``atom_class`` (1..k by mass); ``info["non_atoms"]``
+        holds the Gaussians not reported as atoms and, with ``output_dir``, ``info["run_dir"]``
+        the run directory.
+
+    Raises
+    ------
+    InputError
+        For input that cannot train, with the one-line message the CLI prints.
+    """
+    from gaussian_atoms_method.nerfstudio_layer.options import OptionError
+    from gaussian_atoms_method.nerfstudio_layer.trainer import check_input
+
+    keep = output_dir is not None
+    work = Path(tempfile.mkdtemp(prefix="gaussian-atoms-"))
+    try:
+        try:
+            series = _as_series(projections, angles_deg, pixel_size_A, tilt_axis)
+            truth = read_atoms(series.truth_path) if series.truth_path is not None else None
+            data = write_tilt_series(work / "series", series.projections, series.angles_deg, series.pixel_size_A, truth, series.origin_A,
+                                     series.tilt_axis, centre_px=series.centre_px, tilt_axis_angle_deg=series.tilt_axis_angle_deg)  # fmt: skip
+            config = build_config(data, Path(output_dir) if keep else work / "outputs", _device(device), max_num_iterations, model_options)
+            check_input(config)
+        except (TiltSeriesError, AtomFileError, OptionError) as exc:
+            raise _input_error(exc) from None
+        run_dir = _train(config, seed, progress)
+        atoms = read_atoms(run_dir / "atoms.xyz")
+        atoms.info["non_atoms"] = read_atoms(run_dir / "non_atoms.xyz")
+        if keep:
+            atoms.info["run_dir"] = run_dir
+        return atoms
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def _train(config, seed: int, progress: bool) -> Path:
+    """Run the trainer ``gaussian-atoms train`` runs on ``config`` in this process; the run
+    directory.  A failure in training raises (``FloatingPointError`` naming the step and the
+    cause, ``KeyboardInterrupt``) instead of ending the process as the CLI does."""
+    from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
+    from nerfstudio.engine.trainer import Trainer
+
+    from gaussian_atoms_method.nerfstudio_layer.train import make_trainer
+
+    config.machine.seed = seed
+    config.set_timestamp()
+    trainer = make_trainer(config)
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=config.max_num_iterations, desc="gaussian-atoms", unit="step")
+        trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], lambda step: bar.update(step + 1 - bar.n)))
+    try:
+        Trainer.train(trainer)  # nerfstudio's loop, without the CLI's exit on failure
+    finally:
+        if bar is not None:
+            bar.close()
+        _close_event_writers()
+    return Path(trainer.base_dir)
+
+
+def _close_event_writers() -> None:
+    """nerfstudio keeps its event writers in module lists for the process's life: the next
+    run in the same process (a notebook's second call) would write into this run's directory."""
+    from nerfstudio.utils import writer
+
+    for event_writer in writer.EVENT_WRITERS:
+        close = getattr(getattr(event_writer, "tb_writer", None), "close", None)
+        if close is not None:
+            close()
+    writer.EVENT_WRITERS.clear()
+    writer.EVENT_STORAGE.clear()
+    writer.GLOBAL_BUFFER.clear()
