@@ -1,8 +1,13 @@
 #!/usr/bin/env bash
 # Before/after of the convergence stop: ns-train on each tilt-series directory given, with
 # --pipeline.model.stop-when-converged False and True; prints wall time, the step it ended
-# at and the scores.  Usage: scripts/convergence_stop.sh OUT DEVICE DATA_DIR...
+# at and the scores, as a Markdown table.
 set -euo pipefail
+usage() { echo "usage: scripts/convergence_stop.sh OUT DEVICE DATA_DIR...  (DEVICE: cpu or cuda; one table row per data directory and setting)"; }
+case "${1:-}" in -h|--help) usage; exit 0 ;; esac
+if [ $# -lt 3 ]; then usage >&2; exit 2; fi
+bin="$(cd "$(dirname "$0")/.." && pwd)/.venv/bin"
+if [ -x "$bin/ns-train" ]; then PATH="$bin:$PATH"; fi
 out=$1; device=$2; shift 2
 mkdir -p "$out"
 echo "| data | stop when converged | wall time (s) | steps | TPR | FP/atom | RMSD (pm) |"

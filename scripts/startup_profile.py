@@ -1,5 +1,6 @@
-"""Where the start-up of a run goes: imports, reading the tilt series, the back-projection
-initialisation (on the CPU and, when there is one, the GPU), and building the model.
+"""Where the start-up of a run goes: each launcher's imports and option parsing, reading the
+tilt series, the back-projection start (on the CPU and, when there is one, the GPU), and
+building the model.
 
     python scripts/startup_profile.py DATA_DIR
 
@@ -9,11 +10,11 @@ is in the first).
 
 from __future__ import annotations
 
+import argparse
 import subprocess
 import sys
 import time
 
-data = sys.argv[1]
 # Each launcher's import and command-line parsing, in a fresh interpreter (imports are cached
 # within one): what ns-train and gaussian-atoms train do before the first line of training.
 LAUNCHERS = {
@@ -22,29 +23,14 @@ LAUNCHERS = {
         "tyro.cli(AnnotatedBaseConfigUnion, args=['gaussian-atoms', 'tilt-series', '--data', sys.argv[1]])"
     ),
     "gaussian-atoms train: import trainer + plugin, parse": (
-        "from gaussian_atoms_method.train import build_config; build_config(['tilt-series', '--data', sys.argv[1]])"
+        "from gaussian_atoms_method.nerfstudio_layer.train import build_config; build_config(['tilt-series', '--data', sys.argv[1]])"
     ),
 }
-for label, code in LAUNCHERS.items():
-    t = time.perf_counter()
-    subprocess.run([sys.executable, "-W", "ignore", "-c", "import sys; " + code, data], check=True, capture_output=True)
-    print(f"{label} (python start-up included): {time.perf_counter() - t:.1f} s", flush=True)
-
-t0 = time.perf_counter()
-import nerfstudio.engine.trainer  # noqa: E402,F401
-
-import gaussian_atoms_method.nerfstudio_layer.config  # noqa: E402,F401
-
-print(f"(in this process) import nerfstudio's trainer + plugin: {time.perf_counter() - t0:.1f} s", flush=True)
-
-import torch  # noqa: E402
-
-from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig  # noqa: E402
-from gaussian_atoms_method.atoms.initialise import backprojection_candidates  # noqa: E402
-from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig  # noqa: E402
 
 
 def timed(label, fn):
+    import torch
+
     t = time.perf_counter()
     out = fn()
     if torch.cuda.is_available():
@@ -53,9 +39,36 @@ def timed(label, fn):
     return out
 
 
-outputs = timed("dataparser (read, normalise, cameras)", lambda: TiltSeriesDataParserConfig(data=data).setup().get_dataparser_outputs("train"))
-s = outputs.metadata["tilt_series"]
-args = (s.projections, s.angles_deg, s.pixel_size_A, s.tilt_axis, s.centre_px, 10000)
-for device in (["cuda", "cuda"] if torch.cuda.is_available() else []) + ["cpu"]:
-    timed(f"back-projection candidates on {device}", lambda: backprojection_candidates(*args, device=device))
-timed("model construction (includes the candidates)", lambda: GaussianAtomsModelConfig().setup(scene_box=outputs.scene_box, num_train_data=s.n_views, metadata=outputs.metadata))
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("data", help="a tilt-series directory (tilt_series.json)")
+    data = parser.parse_args().data
+    for label, code in LAUNCHERS.items():
+        t = time.perf_counter()
+        run = subprocess.run([sys.executable, "-W", "ignore", "-c", "import sys; " + code, data], capture_output=True, text=True)
+        if run.returncode != 0:
+            sys.exit(f"{label}: failed: {(run.stderr.strip().splitlines() or ['?'])[-1]}")
+        print(f"{label} (python start-up included): {time.perf_counter() - t:.1f} s", flush=True)
+
+    t0 = time.perf_counter()
+    import nerfstudio.engine.trainer  # noqa: F401
+
+    import gaussian_atoms_method.nerfstudio_layer.config  # noqa: F401
+
+    print(f"(in this process) import nerfstudio's trainer + plugin: {time.perf_counter() - t0:.1f} s", flush=True)
+    import torch
+
+    from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
+    from gaussian_atoms_method.atoms.initialise import backprojection_candidates
+    from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
+
+    outputs = timed("dataparser (read, normalise, cameras)", lambda: TiltSeriesDataParserConfig(data=data).setup().get_dataparser_outputs("train"))
+    s = outputs.metadata["tilt_series"]
+    args = (s.projections, s.angles_deg, s.pixel_size_A, s.tilt_axis, s.centre_px, 10000)
+    for device in (["cuda", "cuda"] if torch.cuda.is_available() else []) + ["cpu"]:
+        timed(f"back-projection candidates on {device}", lambda: backprojection_candidates(*args, device=device))
+    timed("model construction (includes the candidates)", lambda: GaussianAtomsModelConfig().setup(scene_box=outputs.scene_box, num_train_data=s.n_views, metadata=outputs.metadata))
+
+
+if __name__ == "__main__":
+    main()
