@@ -64,7 +64,7 @@ noise: the fit drives their mass down and the prune removes them.
    0.9116 -> 0.9604, 0.9137 / 0.0020 -> 0.9621 / 0.0030 (H100); HEA noise 50 +23 candidates,
    0.9940 / 0.0035 -> 0.9965 / 0.0020; Au noise 50 +410 candidates (surplus on the missing
    wedge's streaks), same scores (this CPU); Au noise 200 and 500, HEA noise 200, the aSi-208
-   counts: none added (docs/results.md).
+   counts: none added (CHANGELOG.md).
 6. An atom that is a neighbour's shoulder at every scale has no maximum at all (carbon noise 5:
    97 atoms, each 1.2-1.45 Å from the candidate on its bonded neighbour, after step 5).  So the
    candidates' responses through step 5's filter, at the atom width the data show, are fitted
