@@ -25,7 +25,8 @@ class Simulate:
     output: Path = Path("data/sim")
     """Directory to write (tilt_series.json, projections.npy, angles.txt, atoms_true.xyz)."""
     particle: str = "au"
-    """au, fept, apd, hea, carbon, asi, sphere (an fcc sphere of --element, --radius-A) or a structure file."""
+    """au, fept, apd, hea, carbon, asi, film (amorphous Pd, 110 x 40 x 20 Å: give --field-of-view-A),
+    sphere (an fcc sphere of --element, --radius-A) or a structure file."""
     scale: Optional[float] = None
     """Linear size factor (atom count ~ scale^3) for small versions of the named particles (default 1)."""
     element: Optional[str] = None
@@ -50,6 +51,10 @@ class Simulate:
     """How much the floor varies across a view (a random ramp), as a fraction of the floor."""
     noise_std: float = 50.0
     """Standard deviation of the additive Gaussian noise, projection units (V·Å for Lobato)."""
+    field_of_view_A: Optional[float] = None
+    """Side of the detector, Å, when it sees less than the object (a film): the views are
+    projected through all of it and cropped; the truth holds the atoms above the detector.
+    Default: the detector spans the object."""
     tilt_axis: Literal["x", "y"] = "y"
     seed: int = 0
     save_volume: bool = True
@@ -94,6 +99,7 @@ class Simulate:
             probe=self.probe,
             floor_fraction=self.floor_fraction,
             floor_variation=self.floor_variation,
+            field_of_view_A=self.field_of_view_A,
         )
         truth = sim.truth.shifted(origin)
         write_tilt_series(
@@ -115,6 +121,7 @@ class Simulate:
                     "probe": self.probe,
                     "floor_fraction": self.floor_fraction,
                     "floor_variation": self.floor_variation,
+                    "field_of_view_A": self.field_of_view_A,
                     "seed": self.seed,
                 }
             },

@@ -28,7 +28,7 @@ from scipy.spatial import cKDTree
 from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms
 
 DATA_DIR = Path(__file__).parent / "data"
-PARTICLES = ("au", "fept", "apd", "hea", "carbon", "asi")
+PARTICLES = ("au", "fept", "apd", "hea", "carbon", "asi", "film")
 
 
 def make_particle(name_or_path: str, scale: float = 1.0, seed: int = 0) -> AtomSet:
@@ -46,6 +46,10 @@ def make_particle(name_or_path: str, scale: float = 1.0, seed: int = 0) -> AtomS
         atoms = amorphous_packing(n_atoms=int(round(16000 * scale**3)), species=("Ni", "Pd", "Pt"), min_distance_A=2.4, rng=rng)
     elif name_or_path == "asi":
         atoms = amorphous_packing(n_atoms=int(round(20000 * scale**3)), species=("Si",), min_distance_A=2.2, rng=rng, number_density_per_A3=0.049)
+    elif name_or_path == "film":
+        # Amorphous Pd, 20 Å thick, 40 Å along the tilt axis and 110 Å across it: wider than a 40 Å
+        # field of view by what rays at 70 degrees cross (20 Å x tan 70 = 55 Å) and a margin.
+        atoms = amorphous_packing(n_atoms=0, species=("Pd",), min_distance_A=2.5, rng=rng, box_A=(110.0 * scale, 40.0 * scale, 20.0))
     elif name_or_path == "carbon":
         atoms = disordered_carbon(n_atoms=int(round(7000 * scale**3)), rng=rng)
     else:
@@ -109,18 +113,27 @@ def _thin(pos: np.ndarray, species: np.ndarray, min_distance_A: float) -> tuple[
     return pos[keep], species[keep]
 
 
-def amorphous_packing(n_atoms: int, species: tuple[str, ...], min_distance_A: float, rng: np.random.Generator, number_density_per_A3: float = 0.066) -> AtomSet:
-    """A dense random packing in a sphere: random points pushed apart to a minimum distance.
+def amorphous_packing(
+    n_atoms: int, species: tuple[str, ...], min_distance_A: float, rng: np.random.Generator, number_density_per_A3: float = 0.066, box_A: tuple[float, float, float] | None = None
+) -> AtomSet:
+    """A dense random packing in a sphere of ``n_atoms``, or in a box of sides ``box_A`` (x, y, z)
+    at the number density (a film): random points pushed apart to a minimum distance.
 
     Starts from uniform random points at the metallic-glass number density and repeatedly
     moves every pair closer than ``min_distance_A`` apart along their axis (vectorised, k-d
     tree) until no pair is closer than 0.98 of it.  Species are assigned at random in equal parts.
     """
+    if box_A is not None:
+        half = 0.5 * np.asarray(box_A, dtype=np.float64)
+        n_atoms = int(round(number_density_per_A3 * np.prod(2.0 * half)))
     if n_atoms < 1:
         raise ValueError("n_atoms must be at least 1")
     radius = (3 * n_atoms / (4 * np.pi * number_density_per_A3)) ** (1 / 3)
-    u = rng.normal(size=(n_atoms, 3))
-    pos = u / np.linalg.norm(u, axis=1, keepdims=True) * radius * rng.uniform(0, 1, (n_atoms, 1)) ** (1 / 3)
+    if box_A is not None:
+        pos = rng.uniform(-half, half, (n_atoms, 3))
+    else:
+        u = rng.normal(size=(n_atoms, 3))
+        pos = u / np.linalg.norm(u, axis=1, keepdims=True) * radius * rng.uniform(0, 1, (n_atoms, 1)) ** (1 / 3)
     for _ in range(500):
         pairs = cKDTree(pos).query_pairs(min_distance_A, output_type="ndarray")
         if len(pairs) == 0:
@@ -132,9 +145,12 @@ def amorphous_packing(n_atoms: int, species: tuple[str, ...], min_distance_A: fl
         np.add.at(move, pairs[:, 0], -push)
         np.add.at(move, pairs[:, 1], push)
         pos += move
-        # Keep the particle spherical: pull escapees back to the surface.
-        r = np.linalg.norm(pos, axis=1, keepdims=True)
-        pos = np.where(r > radius, pos * radius / r, pos)
+        # Keep the shape: pull escapees back to the surface.
+        if box_A is not None:
+            pos = np.clip(pos, -half, half)
+        else:
+            r = np.linalg.norm(pos, axis=1, keepdims=True)
+            pos = np.where(r > radius, pos * radius / r, pos)
     spe = np.array(species)[rng.permutation(n_atoms) % len(species)]
     return AtomSet(pos, species=spe)
 

@@ -199,6 +199,7 @@ def simulate_tilt_series(
     probe: str = "gaussian",
     floor_fraction: float = 0.0,
     floor_variation: float = 0.0,
+    field_of_view_A: float | None = None,
 ) -> SimulatedTiltSeries:
     """Project atoms (positions in Å about the tilt centre), blur, add a floor, add noise.
 
@@ -226,6 +227,10 @@ def simulate_tilt_series(
     floor_fraction, floor_variation : float
         A floor under every view at this fraction of a column's value, varying across the view
         by this fraction (:func:`.microscope.add_varying_floor`); 0: none.
+    field_of_view_A : float, optional
+        A detector narrower than the object (a film): the views are projected through all of it,
+        blurred, then cropped to this side about the tilt centre; the truth holds the atoms
+        above the detector (both in-plane coordinates within half the side).
 
     Returns
     -------
@@ -254,6 +259,8 @@ def simulate_tilt_series(
         blurred = blur_and_noise(clean, pixel_size_A, blur_sigma_A, 0.0, seed)
     else:
         raise ValueError(f"probe must be 'gaussian' or 'aberrated', got {probe!r}")
+    if field_of_view_A is not None:
+        blurred, atoms, widths = _crop_to_field(blurred, atoms, widths, pixel_size_A, field_of_view_A)
     if floor_fraction:
         from gaussian_atoms_method.harness.microscope import add_varying_floor
 
@@ -267,6 +274,18 @@ def simulate_tilt_series(
         noise_std=float(noise_std),
         peak_to_noise=float(blurred.max() / noise_std) if noise_std > 0 else float("inf"),
     )
+
+
+def _crop_to_field(views: np.ndarray, atoms: AtomSet, widths, pixel_size_A: float, field_of_view_A: float):
+    """The central ``field_of_view_A`` of (N, P, P) ``views`` (the side rounded to pixels of the
+    same parity as P, so the pixel centres stay where they were) and the atoms above it."""
+    size = views.shape[-1]
+    field = min(int(round(field_of_view_A / pixel_size_A)), size)
+    field -= (size - field) % 2
+    start = (size - field) // 2
+    inside = np.all(np.abs(atoms.positions[:, :2]) <= 0.5 * field * pixel_size_A, axis=1)
+    kept = AtomSet(atoms.positions[inside], species=atoms.species[inside])
+    return views[:, start : start + field, start : start + field], kept, (None if widths is None else widths[inside])
 
 
 def simulate_gaussian_tilt_series(atoms: AtomSet, angles_deg: np.ndarray, **kwargs) -> SimulatedTiltSeries:
