@@ -67,6 +67,10 @@ def test_slab_reports_only_the_gaussians_above_the_detector(tmp_path):
     detector_half_A = 0.5 * 64 * PIXEL_A
     assert model.density.half_extent[0] / ls == pytest.approx(slab_half_width(detector_half_A, 0.5 / ls, ANGLES))
     assert model.field_half_extent[0] / ls == pytest.approx(detector_half_A)
+    # Along the tilt axis the volume goes three of the widest atom's widths past the detector
+    # (the film goes on there); the field stops at the detector.
+    assert model.density.half_extent[1] / ls == pytest.approx(detector_half_A + 3.0 * model.config.max_atom_sigma_A)
+    assert model.field_half_extent[1] / ls == pytest.approx(detector_half_A)
     beyond = lambda positions: np.abs(positions[:, 0]) > detector_half_A + 1e-6  # noqa: E731
     assert beyond(model.atoms().positions).sum() > 0  # the start reaches beyond the detector
     targets = [torch.as_tensor(p)[..., None] * model.normalisation.data_scale for p in projections]

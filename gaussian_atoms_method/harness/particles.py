@@ -47,9 +47,10 @@ def make_particle(name_or_path: str, scale: float = 1.0, seed: int = 0) -> AtomS
     elif name_or_path == "asi":
         atoms = amorphous_packing(n_atoms=int(round(20000 * scale**3)), species=("Si",), min_distance_A=2.2, rng=rng, number_density_per_A3=0.049)
     elif name_or_path == "film":
-        # Amorphous Pd, 20 Å thick, 40 Å along the tilt axis and 110 Å across it: wider than a 40 Å
-        # field of view by what rays at 70 degrees cross (20 Å x tan 70 = 55 Å) and a margin.
-        atoms = amorphous_packing(n_atoms=0, species=("Pd",), min_distance_A=2.5, rng=rng, box_A=(110.0 * scale, 40.0 * scale, 20.0))
+        # Amorphous Pd, 20 Å thick, 110 Å across the tilt axis and 50 Å along it: wider than a 40 Å
+        # field of view by what rays at 70 degrees cross (20 Å x tan 70 = 55 Å), and going on
+        # past the detector's edges along the axis as a film does.
+        atoms = amorphous_packing(n_atoms=0, species=("Pd",), min_distance_A=2.5, rng=rng, box_A=(110.0 * scale, 50.0 * scale, 20.0), periodic_xy=True)
     elif name_or_path == "carbon":
         atoms = disordered_carbon(n_atoms=int(round(7000 * scale**3)), rng=rng)
     else:
@@ -114,10 +115,13 @@ def _thin(pos: np.ndarray, species: np.ndarray, min_distance_A: float) -> tuple[
 
 
 def amorphous_packing(
-    n_atoms: int, species: tuple[str, ...], min_distance_A: float, rng: np.random.Generator, number_density_per_A3: float = 0.066, box_A: tuple[float, float, float] | None = None
+    n_atoms: int, species: tuple[str, ...], min_distance_A: float, rng: np.random.Generator, number_density_per_A3: float = 0.066,
+    box_A: tuple[float, float, float] | None = None, periodic_xy: bool = False,
 ) -> AtomSet:
     """A dense random packing in a sphere of ``n_atoms``, or in a box of sides ``box_A`` (x, y, z)
-    at the number density (a film): random points pushed apart to a minimum distance.
+    at the number density (a film): random points pushed apart to a minimum distance.  With
+    ``periodic_xy`` the box is periodic in x and y (a piece of a wider film: no atoms piled on
+    its side faces).
 
     Starts from uniform random points at the metallic-glass number density and repeatedly
     moves every pair closer than ``min_distance_A`` apart along their axis (vectorised, k-d
@@ -134,11 +138,17 @@ def amorphous_packing(
     else:
         u = rng.normal(size=(n_atoms, 3))
         pos = u / np.linalg.norm(u, axis=1, keepdims=True) * radius * rng.uniform(0, 1, (n_atoms, 1)) ** (1 / 3)
+    period = np.array([2.0 * half[0], 2.0 * half[1], 0.0]) if (box_A is not None and periodic_xy) else None
     for _ in range(500):
-        pairs = cKDTree(pos).query_pairs(min_distance_A, output_type="ndarray")
+        if period is not None:  # cKDTree's periodic box: coordinates in [0, L), z unbounded (a large box)
+            pairs = cKDTree(pos + [half[0], half[1], half[2] + 1.0], boxsize=[period[0], period[1], 4.0 * half[2] + 8.0]).query_pairs(min_distance_A, output_type="ndarray")
+        else:
+            pairs = cKDTree(pos).query_pairs(min_distance_A, output_type="ndarray")
         if len(pairs) == 0:
             break
         d = pos[pairs[:, 1]] - pos[pairs[:, 0]]
+        if period is not None:
+            d[:, :2] -= period[:2] * np.round(d[:, :2] / period[:2])
         dist = np.linalg.norm(d, axis=1, keepdims=True).clip(1e-6)
         push = 0.5 * (min_distance_A * 1.02 - dist) * d / dist
         move = np.zeros_like(pos)
@@ -146,7 +156,10 @@ def amorphous_packing(
         np.add.at(move, pairs[:, 1], push)
         pos += move
         # Keep the shape: pull escapees back to the surface.
-        if box_A is not None:
+        if period is not None:
+            pos[:, :2] = (pos[:, :2] + half[:2]) % period[:2] - half[:2]
+            pos[:, 2] = np.clip(pos[:, 2], -half[2], half[2])
+        elif box_A is not None:
             pos = np.clip(pos, -half, half)
         else:
             r = np.linalg.norm(pos, axis=1, keepdims=True)

@@ -74,7 +74,8 @@ class GaussianAtomsModel(SplatfactoCompat):
         self.truth_path: Path | None = Path(metadata["truth_path"]) if metadata.get("truth_path") is not None else None
         self.generator = torch.Generator().manual_seed(cfg.seed)
         measured = measure_noise(metadata.get("projections"))  # read once: the start (in the input's units) and the data term share it
-        half_extent, self.field_half_extent, slice_px = read_field_of_view(series, metadata.get("projections"), ls, cfg.extended_object)
+        # Along the tilt axis the film goes on past the detector: atoms within three of the widest atom's widths still reach its edge.
+        half_extent, self.field_half_extent, slice_px = read_field_of_view(series, metadata.get("projections"), ls, cfg.extended_object, 3.0 * cfg.max_atom_sigma_A)
         means, weights = starting_positions(series, ls, cfg.num_random, cfg.init_extent, self.generator, cfg.init == "backprojection", measured and measured.scaled(1.0 / self.normalisation.data_scale), slice_px)
         if weights is not None:
             CONSOLE.print(f"gaussian-atoms: {len(means)} Gaussians start at back-projection maxima")

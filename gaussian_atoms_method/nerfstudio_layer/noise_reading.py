@@ -81,14 +81,16 @@ def read_noise(projections, loss: str, background: str, measured: NoiseModel | N
     return noise, term, (floor if found else None), surfaces
 
 
-def read_field_of_view(series, projections, length_scale: float, option: str) -> tuple[tuple[float, float, float], tuple[float, float, float], int | None]:
+def read_field_of_view(series, projections, length_scale: float, option: str, edge_margin_A: float = 0.0) -> tuple[tuple[float, float, float], tuple[float, float, float], int | None]:
     """The volume the Gaussians fill and the field whose Gaussians are reported (half-sides,
     normalised units) and the start's slice size across the tilt axis (None: the detector's).
 
     Both are the cube the detector's longer side spans unless the object is wider than the field
     of view (``option`` "on", or "auto" and :func:`~gaussian_atoms_method.physics.field_of_view.film_evidence`
     says so): then the volume reaches across the tilt axis as far as the rays that reach the
-    detector travel through the cube's depth, and the field is the detector's width there."""
+    detector travel through the cube's depth, and along it ``edge_margin_A`` beyond the detector
+    (the film goes on there too, and an atom just beyond the edge still puts part of itself on
+    the detector's last pixels in every view); the field is the detector."""
     cube = (0.5, 0.5, 0.5)
     if series is None or projections is None or option == "off":
         return cube, cube, None
@@ -99,8 +101,10 @@ def read_field_of_view(series, projections, length_scale: float, option: str) ->
     n_across = series.projections.shape[1 + across]
     detector_half = 0.5 * n_across * series.pixel_size_A * length_scale
     reach = slab_half_width(detector_half, 0.5, series.angles_deg)
+    along_half = 0.5 * series.projections.shape[2 - across] * series.pixel_size_A * length_scale
     half, field = list(cube), list(cube)
     half[across], field[across] = max(reach, 0.5), detector_half
+    half[1 - across], field[1 - across] = along_half + edge_margin_A * length_scale, along_half
     slice_px = 2 * int(np.ceil(reach / (series.pixel_size_A * length_scale))) + 1
     why = f"the views' projected mass grows like 1/cos(tilt) ({evidence.z:.1f} standard errors, {evidence.outside_fraction:.0%} of the zero-tilt mass)" if option == "auto" else "extended-object on"
     CONSOLE.print(f"gaussian-atoms: an object wider than the field of view: {why}; Gaussians fill {2 * reach / length_scale:.0f} Å across the tilt axis, those above the detector are reported as atoms")
