@@ -151,21 +151,29 @@ class Evaluate:
     """A true atom is found if a predicted atom lies within this distance (Å)."""
     mean_shift: bool = False
     """Align first by an iterated global mean shift (the Miao group's scoring)."""
+    interior_A: Optional[float] = None
+    """Score only the true and predicted atoms at least this far inside the detector's footprint
+    (an object wider than the field of view; needs --data)."""
     output: Optional[Path] = None
     """Also write the JSON here."""
 
     def main(self) -> None:
         from gaussian_atoms_method.atoms.atom_set import read_atoms
-        from gaussian_atoms_method.harness.evaluation import evaluate_atoms, load_reference, summary_line
+        from gaussian_atoms_method.harness.evaluation import evaluate_atoms, inside_footprint, load_reference, summary_line
 
         if (self.truth is None) == (self.data is None):
             raise ValueError("give exactly one of --truth and --data")
+        if self.interior_A is not None and self.data is None:
+            raise ValueError("--interior-A needs --data (the detector's footprint)")
         pred = read_atoms(self.pred)
         volume = voxel = None
         origin = (0.0, 0.0, 0.0)
         if self.data is not None:
             series, truth, volume, voxel = load_reference(self.data)
             origin = series.origin_A
+            if self.interior_A is not None:
+                pred, truth = (a.subset(inside_footprint(a.positions, series, self.interior_A)) for a in (pred, truth))
+                volume = None  # the volume spans the whole cube
         else:
             truth = read_atoms(self.truth)
         if volume is not None and (pred.sigmas is None or pred.amplitudes is None):

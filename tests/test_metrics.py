@@ -107,3 +107,16 @@ def test_voxelise_mixed_widths_bounded_memory():
     i, j, k = np.round(pos[5] / 0.25 + 15.5).astype(int)
     assert vol[i, j, k] >= 1.0  # a narrow atom's own peak (plus the wide one's plateau) is there
     assert vol.min() > 0.9  # the wide Gaussian covers the whole box at nearly its peak
+
+
+def test_interior_of_the_detector_footprint():
+    """Positions at least the margin inside the zero-tilt footprint (rows along x, columns along
+    y about centre_px, in the truth's frame): a 10 x 8 detector of 0.5 Å about its middle spans
+    x in [-2.5, 2.5], y in [-2, 2] Å."""
+    from dataparsers.tilt_series_format import TiltSeries
+    from gaussian_atoms_method.harness.evaluation import inside_footprint
+
+    series = TiltSeries(np.ones((2, 10, 8)), np.array([-30.0, 30.0]), 0.5, origin_A=np.array([10.0, 0.0, 0.0]))
+    positions = np.array([[10.0, 0.0, 5.0], [12.4, 0.0, 0.0], [12.6, 0.0, 0.0], [10.0, -1.4, 0.0], [10.0, -1.6, 0.0]])
+    np.testing.assert_array_equal(inside_footprint(positions, series, 0.0), [True, True, False, True, True])
+    np.testing.assert_array_equal(inside_footprint(positions, series, 0.5), [True, False, False, True, False])

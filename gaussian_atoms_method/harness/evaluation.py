@@ -67,6 +67,22 @@ def summary_line(scores: dict, label: str = "") -> str:
     return (f"{label}: " if label else "") + ", ".join(parts)
 
 
+def inside_footprint(positions_A: np.ndarray, series, margin_A: float) -> np.ndarray:
+    """(N,) bool: positions (Å, the series' truth frame) at least ``margin_A`` inside the
+    detector's footprint at zero tilt (rows along x, columns along y, about ``centre_px``).
+
+    Where a film goes on past the detector, whether a Gaussian at the field's edge is reported
+    as an atom turns on its position error, and an atom there is seen by only some views:
+    scoring the interior, as the Ta film's authors score their sub-areas, measures the method."""
+    if series.tilt_axis_angle_deg:
+        raise ValueError("--interior-A: the footprint of a detector turned in its plane (tilt_axis_angle_deg) is not supported")
+    rel = np.asarray(positions_A, dtype=np.float64)[:, :2] - np.asarray(series.origin_A)[:2]
+    px, (h, w), (cr, cc) = series.pixel_size_A, series.image_shape, series.centre_px
+    low = np.array([(-0.5 - cr) * px, (-0.5 - cc) * px]) + margin_A
+    high = np.array([(h - 0.5 - cr) * px, (w - 0.5 - cc) * px]) - margin_A
+    return np.all((rel >= low) & (rel <= high), axis=1)
+
+
 def load_reference(data: Path, series=None):
     """What a tilt-series directory holds for scoring.
 
