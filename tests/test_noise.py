@@ -91,3 +91,36 @@ def test_a_flat_series_reads_zero_noise_without_failing():
 
     model = noise_from_projections(np.ones((4, 40, 40)))
     assert abs(model.read_var) < 1e-9 and abs(model.gain) < 1e-9  # the floor that keeps weights finite
+
+
+def _floor_under_crowded_frame(seed: int = 0):
+    """(20, 64, 64) views: a floor of 10 with a 3% ramp across each view, unit Gaussian noise and
+    atoms (2D Gaussians of 1.5 px, peak 20) everywhere, the frame included: the frame's plain mean
+    sits on their tails."""
+    rng = np.random.default_rng(seed)
+    n, h = 20, 64
+    r, c = np.meshgrid(np.arange(h), np.arange(h), indexing="ij")
+    views = np.empty((n, h, h))
+    for v in range(n):
+        ramp = 10.0 * (1.0 + 0.03 * rng.uniform(-1, 1) * (r - h / 2) / h)
+        atoms = np.zeros((h, h))
+        for y, x in rng.uniform(0, h, (20, 2)):
+            atoms += 20.0 * np.exp(-((r - y) ** 2 + (c - x) ** 2) / (2 * 1.5**2))
+        views[v] = ramp + atoms + rng.normal(0.0, 1.0, (h, h))
+    return views
+
+
+def test_the_floor_under_a_frame_atoms_reach_is_read_from_the_pixels_they_leave():
+    from gaussian_atoms_method.physics.noise import clipped_frame, detector_floor
+
+    views = _floor_under_crowded_frame()
+    plain, _, plain_var = detector_floor(views)
+    surfaces, floor, se, frame_var, smooth_var = clipped_frame(views, noise_std=1.0)
+    # The plain frame mean carries the atoms' tails (a deviation high, five times the noise
+    # variance: not background); the clipped frame holds a floor within a quarter of a noise
+    # deviation (what tails under 3 deviations add; the per-view constant the fit learns from
+    # it takes up the rest), varying about its surfaces within the 1.5 noise variances that
+    # call a frame background (noise_reading.FLAT_FRAME_RATIO).
+    assert plain - 10.0 > 1.0 and plain_var > 5.0
+    assert abs(floor - 10.0) < 0.25 and se < 0.05
+    assert 0.9 < smooth_var < 1.5

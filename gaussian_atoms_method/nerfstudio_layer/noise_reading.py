@@ -13,7 +13,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from gaussian_atoms_method.physics.data_terms import choose_data_term
 from gaussian_atoms_method.physics.field_of_view import film_evidence, slab_half_width
-from gaussian_atoms_method.physics.noise import NoiseModel, atom_scale_excess, detector_floor, frame_mask, frame_surfaces, inflated, noise_from_projections
+from gaussian_atoms_method.physics.noise import NoiseModel, atom_scale_excess, clipped_frame, detector_floor, frame_mask, frame_surfaces, inflated, noise_from_projections
 
 FLOOR_Z = 5.0
 """A frame level this many standard errors off zero is a real offset: a one-in-3.5-million
@@ -49,7 +49,9 @@ def read_noise(projections, loss: str, background: str, measured: NoiseModel | N
     significantly better than a constant (by :data:`FLOOR_Z` standard errors of the variance)
     and leaves no more than the noise (that surface less its mean is added to the view and a
     constant per view is learned); else flat (a constant per view is learned from the floor).
-    Atoms reaching the frame (a film, a crowded field) make it neither.  With "smooth" the
+    Where atoms reach the frame the same is asked of the pixels they leave alone
+    (:func:`~gaussian_atoms_method.physics.noise.clipped_frame`); a film's frame, all atoms,
+    leaves too few and too rough a floor.  With "smooth" the
     surfaces are used whatever the frame.  Returns (noise, term, floor or None, (V, H, W)
     surfaces or None), normalised units."""
     noise = measured if measured is not None else measure_noise(projections)
@@ -62,23 +64,39 @@ def read_noise(projections, loss: str, background: str, measured: NoiseModel | N
         # makes its weights uniform (it then behaves as L2).
         noise = NoiseModel(0.0, max(noise.read_var, 1e-12), noise.offset)
     floor, floor_se, frame_var = detector_floor(data)
-    noise_var = FLAT_FRAME_RATIO * float(noise.variance(np.array([floor]))[0])
     off_zero = abs(floor) > FLOOR_Z * floor_se
-    found, surfaces = False, None
+    found, surfaces, clipped = False, None, False
     if background == "smooth" or (background == "auto" and off_zero):
         surfaces, smooth_var = frame_surfaces(data)
-        # The surface explains the frame better than a constant by more than FLOOR_Z standard
-        # errors of a variance over the frame's pixels (sqrt(2 / n) of it).
-        varies = frame_var - smooth_var > FLOOR_Z * smooth_var * np.sqrt(2.0 / frame_mask(data.shape[-2:]).sum() / len(data))
-        if background == "smooth" or (varies and smooth_var <= noise_var):
+        n_frame = frame_mask(data.shape[-2:]).sum() * len(data)
+        found, smooth = _floor_shape(noise, floor, frame_var, smooth_var, n_frame)
+        if background == "auto" and not found:
+            # Atoms reach the frame: read the floor from the pixels they leave alone.
+            surfaces, floor, floor_se, frame_var, smooth_var = clipped_frame(data, float(np.sqrt(noise.variance(np.array([floor]))[0])))
+            found, smooth = _floor_shape(noise, floor, frame_var, smooth_var, frame_var / max(floor_se, 1e-300) ** 2)
+            found, clipped = found and abs(floor) > FLOOR_Z * floor_se, True
+        if background == "smooth" or (found and smooth):
             found, surfaces = True, surfaces - surfaces.mean(axis=(1, 2), keepdims=True)
         else:
-            found, surfaces = background == "auto" and frame_var <= noise_var, None
+            surfaces = None
     said = f"{noise.kind} (read variance {noise.read_var:.3g}, gain {noise.gain:.3g} per count, normalised units)"
     shape = "a floor that varies smoothly within each view (its frame's quadratic surface) and a constant" if surfaces is not None else "a constant background"
-    bg = f"; frame level {floor:.3g} ± {floor_se:.1g}: learning {shape} per view from it" if found and background == "auto" else ""
+    where = " (its pixels that no atom reaches)" if clipped else ""
+    bg = f"; frame level{where} {floor:.3g} ± {floor_se:.1g}: learning {shape} per view from it" if found and background == "auto" else ""
     CONSOLE.print(f"gaussian-atoms: noise read from the projections: {said}; data term {term}{bg}")
     return noise, term, (floor if found else None), surfaces
+
+
+def _floor_shape(noise: NoiseModel, floor: float, frame_var: float, smooth_var: float, n_pixels: float) -> tuple[bool, bool]:
+    """Whether the frame is background (it varies by at most :data:`FLAT_FRAME_RATIO` times the
+    noise variance at ``floor``, about its views' means or their quadratic surfaces) and whether
+    it is smooth rather than flat (the surfaces explain it better than the means by more than
+    :data:`FLOOR_Z` standard errors of a variance over ``n_pixels``, ``sqrt(2 / n)`` of it)."""
+    limit = FLAT_FRAME_RATIO * float(noise.variance(np.array([floor]))[0])
+    varies = frame_var - smooth_var > FLOOR_Z * smooth_var * np.sqrt(2.0 / max(n_pixels, 1.0))
+    if varies and smooth_var <= limit:
+        return True, True
+    return frame_var <= limit, False
 
 
 def read_field_of_view(series, projections, length_scale: float, option: str, edge_margin_A: float = 0.0) -> tuple[tuple[float, float, float], tuple[float, float, float], int | None]:

@@ -130,7 +130,8 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
     5 standard errors of its mean, :func:`gaussian_atoms_method.physics.noise.detector_floor`:
     the peer's aSi-208 counts sit on 1.0 count), a constant if the frame is flat and ``smooth``
     if it is flat about its quadratic surface (within 1.5 times the noise variance at its level
-    either way); none when atoms reach the frame."""
+    either way); where atoms reach the frame, the same read from the frame pixels they leave
+    alone (:func:`gaussian_atoms_method.physics.noise.clipped_frame`)."""
     psf: Literal["learned", "none"] = "learned"
     """The microscope's point-spread function: ``learned``, a radially symmetric kernel of unit
     integral shared by every view (Gaussians of 1, 2 and 4 Å weighted by learned weights,
