@@ -28,7 +28,7 @@ class Simulate:
     """au, fept, apd, hea, carbon, asi, film (amorphous Pd, 110 x 40 x 20 Å: give --field-of-view-A),
     sphere (an fcc sphere of --element, --radius-A) or a structure file."""
     scale: Optional[float] = None
-    """Linear size factor (atom count ~ scale^3) for small versions of the named particles (default 1)."""
+    """Linear size factor (atom count ~ scale^3) of the named particles (default 1): the generated ones grow or shrink, au and structure files are cut (at most 1)."""
     element: Optional[str] = None
     """Element of the fcc sphere (--particle sphere; default Au)."""
     radius_A: Optional[float] = None

@@ -123,3 +123,13 @@ def test_film_wider_than_the_field_is_projected_whole_and_cropped():
     direct = project_gaussians(torch.from_numpy(film.positions), torch.from_numpy(sigmas), torch.from_numpy(amplitudes),
                                torch.from_numpy(detector_axes_from_tilts(angles, "y")), coords, coords).numpy()  # fmt: skip
     np.testing.assert_allclose(sim.projections, direct, rtol=0, atol=1e-6 * direct.max())
+
+
+def test_generated_particles_grow_and_cut_ones_refuse_to():
+    from gaussian_atoms_method.harness.particles import make_particle
+
+    # Atom count ~ scale^3 for a generated particle (16,000 a-Pd atoms at scale 1); a particle
+    # cut from a structure file cannot hold more atoms than the file.
+    assert len(make_particle("apd", 1.1).positions) == round(16000 * 1.1**3)
+    with pytest.raises(ValueError, match="at most 1"):
+        make_particle("au", 1.1)

@@ -32,9 +32,14 @@ PARTICLES = ("au", "fept", "apd", "hea", "carbon", "asi", "film")
 
 
 def make_particle(name_or_path: str, scale: float = 1.0, seed: int = 0) -> AtomSet:
-    """A named test particle, or atoms read from a structure file; centred on its centroid."""
-    if not (0 < scale <= 1.0):
-        raise ValueError(f"scale must be in (0, 1], got {scale}")
+    """A named test particle, or atoms read from a structure file; centred on its centroid.
+
+    ``scale`` is the linear size factor: the generated particles (all but ``au`` and files) grow
+    or shrink, a particle read from a file is cut to a smaller sphere (``scale`` at most 1)."""
+    if not scale > 0:
+        raise ValueError(f"scale must be positive, got {scale}")
+    if scale > 1.0 and (name_or_path == "au" or name_or_path not in PARTICLES):
+        raise ValueError(f"scale must be at most 1 for {name_or_path!r} (cut from a structure file), got {scale}")
     rng = np.random.default_rng(seed)
     if name_or_path == "au":
         atoms = _cut_sphere(read_atoms(DATA_DIR / "Au_NP.xyz"), scale)
