@@ -59,6 +59,12 @@ indistinguishable from nothing (:meth:`DensityControl.prune`)."""
 Optimizers = Mapping[str, torch.optim.Optimizer]
 
 
+SPLIT_MASS = 1.5
+"""A Gaussian holding more than this many typical atoms' mass may hold two atoms: halfway
+between one and two (:meth:`DensityControl.split_heavy_gaussians`; the final likelihood merge
+decides)."""
+
+
 def widths(params: Mapping[str, torch.Tensor], min_log_sigma: float) -> torch.Tensor:
     """(N,) widths ``exp(log_sigma)`` floored at ``exp(min_log_sigma)``; with three widths (the
     anisotropic ablation) their geometric mean (same volume, same mass)."""
@@ -95,6 +101,7 @@ class DensityControl:
     false_alarm_rate: float = 0.05
     false_discovery_rate: float = 0.001
     add_from_residuals: bool = True
+    split_heavy: bool = True
     noise: object | None = None
     """The pixel noise (:class:`~gaussian_atoms_method.physics.noise.NoiseModel`, normalised data
     units); None: unknown, the mass-fraction prune applies."""
@@ -128,6 +135,8 @@ class DensityControl:
     """(N,) step at which each Gaussian was made (0 for the start); fresh ones are not merged."""
     step: int = 0
     residual_clean: bool = False
+    heavy_split: bool = False
+    """The heavy Gaussians were split (:meth:`split_heavy_gaussians`: once a run)."""
     """A residual check found nothing to add: the later ones are skipped."""
     clamp_counts: torch.Tensor | None = None
     """(4,) Gaussian-steps held at the width floor, the width ceiling, the amplitude ceiling and
@@ -294,6 +303,54 @@ class DensityControl:
                     value[n:] = 0
         self.born[n:] = self.step
         return k
+
+    @torch.no_grad()
+    def split_heavy_gaussians(self, params: Params, optimizers: Optimizers, param_lists=None) -> int:
+        """Split every settled atom-like Gaussian inside the volume that holds more than
+        :data:`SPLIT_MASS` typical atoms' mass (:meth:`typical_atom_mass`) into two of half its
+        mass, the material's shortest distance apart (:meth:`shortest_distance`) along the
+        direction the views resolve worst (the beam directions' mean square: the missing wedge's
+        axis), each of the typical atom's width; training then settles them, and the final stage
+        merges back any pair the data prefer as one (:meth:`merge_by_likelihood`).  Once a run.
+
+        Why: in a thick particle two atoms along the beam are told apart by the high tilts alone,
+        and one Gaussian can settle on one of them holding both masses, with nothing left in the
+        residual to say so.  On the 54,000-atom a-Pd particle (limited tilts) 94% of the 1,004
+        missed atoms lay beside such a Gaussian: matched to a neighbour 1.75 Å away (median),
+        mostly along the beam, holding a median 1.78 typical masses, 30% wider than the rest.
+        Returns how many were split."""
+        if self.heavy_split or not self.split_heavy or self.view_dirs is None or not self.isotropic:
+            return 0
+        self.heavy_split = True
+        closest, _ = self.shortest_distance(params)
+        if not math.isfinite(closest) or closest <= 0:
+            return 0
+        sig = widths(params, self.min_log_sigma).detach()
+        mass = gaussian_mass(sig, amplitudes(params).detach())
+        atom_like = self.atom_width(sig) & self.inside(params["means"])
+        typical = self.typical_atom_mass(params)
+        heavy = atom_like & (mass > SPLIT_MASS * typical) & ~self.fresh(len(mass)).to(mass.device)
+        single = atom_like & ~heavy
+        if typical <= 0 or not bool(heavy.any()) or not bool(single.any()):
+            return 0
+        u = self.view_dirs.detach().double().cpu()
+        u = u / u.norm(dim=1, keepdim=True)
+        _, vectors = torch.linalg.eigh(u.T @ u)
+        axis = vectors[:, -1].to(params["means"])  # the direction the beams point along most
+        idx = torch.nonzero(heavy).flatten().cpu()
+        n = params["means"].shape[0]
+        s_atom = float(sig[single].median())
+        half_amp = 0.5 * mass[idx.to(mass.device)] / (2.0 * math.pi * s_atom**2) ** 1.5
+        self.remap(params, optimizers, *duplicate_remap(n, idx), param_lists=param_lists)
+        dev = params["means"].device
+        both = torch.cat([idx, torch.arange(n, n + len(idx))]).to(dev)
+        params["means"].data[idx.to(dev)] += 0.5 * closest * axis
+        params["means"].data[n:] -= 0.5 * closest * axis
+        params["log_sigmas"].data[both] = math.log(s_atom)
+        params["log_amplitudes"].data[both, 0] = torch.log(torch.cat([half_amp, half_amp])).to(dev, params["log_amplitudes"].dtype)
+        self.born[idx] = self.step
+        self.born[n:] = self.step
+        return len(idx)
 
     @torch.no_grad()
     def typical_atom_mass(self, params: Mapping[str, torch.Tensor]) -> float:

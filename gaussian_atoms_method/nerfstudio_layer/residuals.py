@@ -67,7 +67,11 @@ def add_missing_atoms(model) -> int:
     added = model.density.add(model.gauss_params, model.optimizers, means, sigma_A * ls, torch.as_tensor(masses * ls**2), model._param_lists())
     if added:
         CONSOLE.print(f"gaussian-atoms: step {model.step}: {added} Gaussians added where the residuals hold unexplained mass")
-    return added
+    split = model.density.split_heavy_gaussians(model.gauss_params, model.optimizers, model._param_lists())
+    if split:
+        model.density.residual_clean = False  # train on and search again
+        CONSOLE.print(f"gaussian-atoms: step {model.step}: {split} Gaussians holding two atoms' mass split in two along the least-resolved direction")
+    return added + split
 
 
 def residual_correlations(model, means: torch.Tensor, sigmas: torch.Tensor) -> np.ndarray | None:
