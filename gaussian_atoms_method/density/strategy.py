@@ -135,9 +135,9 @@ class DensityControl:
     """(N,) step at which each Gaussian was made (0 for the start); fresh ones are not merged."""
     step: int = 0
     residual_clean: bool = False
+    """A residual check found nothing to add: the later ones are skipped."""
     heavy_split: bool = False
     """The heavy Gaussians were split (:meth:`split_heavy_gaussians`: once a run)."""
-    """A residual check found nothing to add: the later ones are skipped."""
     clamp_counts: torch.Tensor | None = None
     """(4,) Gaussian-steps held at the width floor, the width ceiling, the amplitude ceiling and
     the edge of the position box (kept on the parameters' device: no sync per step)."""

@@ -220,6 +220,12 @@ def frame_mask(shape: tuple[int, int], frame_fraction: float = 0.08) -> np.ndarr
     return mask
 
 
+def quadratic_basis(shape: tuple[int, int]) -> np.ndarray:
+    """(6, H, W): 1, r, c, r^2, r c, c^2 over the pixel indices scaled to [-1, 1]."""
+    r, c = np.meshgrid(np.linspace(-1.0, 1.0, shape[0]), np.linspace(-1.0, 1.0, shape[1]), indexing="ij")
+    return np.stack([np.ones_like(r), r, c, r * r, r * c, c * c])
+
+
 def frame_surfaces(projections: np.ndarray, frame_fraction: float = 0.08) -> tuple[np.ndarray, float]:
     """A smooth floor under every view, read where the views hold only background.
 
@@ -235,10 +241,8 @@ def frame_surfaces(projections: np.ndarray, frame_fraction: float = 0.08) -> tup
         floor when the frame is smooth background, far more when atoms reach it.
     """
     p = np.asarray(projections, dtype=np.float64)
-    n, h, w = p.shape
-    r, c = np.meshgrid(np.linspace(-1.0, 1.0, h), np.linspace(-1.0, 1.0, w), indexing="ij")
-    basis = np.stack([np.ones_like(r), r, c, r * r, r * c, c * c])  # (6, H, W)
-    mask = frame_mask((h, w), frame_fraction)
+    basis = quadratic_basis(p.shape[-2:])
+    mask = frame_mask(p.shape[-2:], frame_fraction)
     coef, *_ = np.linalg.lstsq(basis[:, mask].T, p[:, mask].T, rcond=None)  # (6, N)
     surfaces = np.einsum("kn,khw->nhw", coef, basis)
     return surfaces, float((p[:, mask] - surfaces[:, mask]).var())
@@ -271,10 +275,9 @@ def clipped_frame(projections: np.ndarray, noise_std: float, frame_fraction: flo
         The kept pixels' variance about their view's mean, and about their view's surface.
     """
     p = np.asarray(projections, dtype=np.float64)
-    n, h, w = p.shape
-    r, c = np.meshgrid(np.linspace(-1.0, 1.0, h), np.linspace(-1.0, 1.0, w), indexing="ij")
-    mask = frame_mask((h, w), frame_fraction)
-    full_basis = np.stack([np.ones_like(r), r, c, r * r, r * c, c * c])  # (6, H, W)
+    n = len(p)
+    mask = frame_mask(p.shape[-2:], frame_fraction)
+    full_basis = quadratic_basis(p.shape[-2:])  # (6, H, W)
     basis = full_basis[:, mask].T  # (F, 6)
     values = p[:, mask]  # (N, F)
     keep = np.ones_like(values, dtype=bool)
@@ -282,14 +285,15 @@ def clipped_frame(projections: np.ndarray, noise_std: float, frame_fraction: flo
     for _ in range(max_rounds):
         for v in range(n):
             coef[v] = np.linalg.lstsq(basis[keep[v]], values[v, keep[v]], rcond=None)[0]
-        new_keep = values - coef @ basis.T <= CLIP_Z * noise_std
+        residual = values - coef @ basis.T
+        new_keep = residual <= CLIP_Z * noise_std
         if (new_keep == keep).all():
             break
         keep = new_keep
     kept = [values[v, keep[v]] for v in range(n)]
     means = np.array([k.mean() for k in kept])
     about_mean = np.concatenate([k - m for k, m in zip(kept, means)])
-    about_surface = (values - coef @ basis.T)[keep]
+    about_surface = residual[keep]
     surfaces = np.einsum("nk,khw->nhw", coef, full_basis)
     frame_var = float(about_mean.var())
     return surfaces, float(np.median(means)), float(np.sqrt(frame_var / about_mean.size)), frame_var, float(about_surface.var())
