@@ -10,7 +10,7 @@ reasons are given here, where ``--help`` shows them.  Where each option takes ef
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, Tuple
 
 from nerfstudio.models.splatfacto import SplatfactoModelConfig
 
@@ -138,12 +138,17 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
     if it is flat about its quadratic surface (within 1.5 times the noise variance at its level
     either way); where atoms reach the frame, the same read from the frame pixels they leave
     alone (:func:`gaussian_atoms_method.physics.noise.clipped_frame`)."""
-    psf: Literal["learned", "none"] = "learned"
+    psf: Literal["learned", "fixed", "none"] = "learned"
     """The microscope's point-spread function: ``learned``, a radially symmetric kernel of unit
     integral shared by every view (Gaussians of 1, 2 and 4 Å weighted by learned weights,
     :mod:`gaussian_atoms_method.physics.psf`) convolves the projections, so a probe's tails and
-    rings are not explained by extra faint, wide Gaussians; ``none``: the blur is in the atoms'
-    widths alone (the paper's model)."""
+    rings are not explained by extra faint, wide Gaussians; ``fixed``: the kernel of
+    ``psf_weights``, held (a probe measured, or chosen on held-out views with
+    ``scripts/held_out_views.py``); ``none``: the blur is in the atoms' widths alone (the
+    paper's model)."""
+    psf_weights: Tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """The kernel's intensity fractions in its Gaussians of 1, 2 and 4 Å (the rest in the delta,
+    that is in the atoms' own widths): held with ``psf fixed``, the start with ``psf learned``."""
     extended_object: Literal["auto", "on", "off"] = "auto"
     """An object wider than the field of view (a film): Gaussians also fill the slab beyond the
     detector across the tilt axis, as far as the rays that reach the detector travel, so the
@@ -205,6 +210,10 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
             raise OptionError(f"--pipeline.model.false-alarm-rate must lie in (0, 1), got {self.false_alarm_rate}")
         if not 0 < self.false_discovery_rate < 1:
             raise OptionError(f"--pipeline.model.false-discovery-rate must lie in (0, 1), got {self.false_discovery_rate}")
+        from gaussian_atoms_method.physics.psf import KERNEL_WIDTHS_A
+
+        if len(self.psf_weights) != len(KERNEL_WIDTHS_A) or min(self.psf_weights) < 0 or sum(self.psf_weights) >= 1:
+            raise OptionError(f"--pipeline.model.psf-weights takes {len(KERNEL_WIDTHS_A)} non-negative fractions (at {', '.join(f'{w:g}' for w in KERNEL_WIDTHS_A)} Å) summing to less than 1, got {' '.join(f'{w:g}' for w in self.psf_weights)}")
         if self.merge_threshold_A < 0 or self.prune_mass_fraction < 0 or self.coarse_steps < 0 or self.snapshot_every < 0:
             raise OptionError("--pipeline.model.merge-threshold-A, prune-mass-fraction, coarse-steps and snapshot-every must not be negative")
 

@@ -91,8 +91,9 @@ def view_parameters(cfg, n_views: int, floor: float | None, surfaces, series, le
     if background != "none":
         params["background"] = Parameter(torch.zeros(n_views, 3 if background == "plane" else 1))
         params["background"].data[:, 0] = floor or 0.0
-    if cfg.psf == "learned":  # one kernel for every view: the microscope's
-        params["psf"] = Parameter(torch.zeros(len(KERNEL_WIDTHS_A)))  # the identity: no kernel until the data ask
+    if cfg.psf != "none":  # one kernel for every view: the microscope's
+        # learned from psf_weights (zeros: the identity, no kernel until the data ask), or held there
+        params["psf"] = Parameter(torch.tensor(cfg.psf_weights, dtype=torch.float32), requires_grad=cfg.psf == "learned")
         buffers["psf_widths"] = torch.tensor(KERNEL_WIDTHS_A) * length_scale
     if cfg.refine_alignment:
         params["view_shifts"] = Parameter(torch.zeros(n_views, 2))

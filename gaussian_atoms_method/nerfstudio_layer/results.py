@@ -63,7 +63,7 @@ def write_results(model, run_dir: Path) -> dict | None:
         from gaussian_atoms_method.physics.psf import KERNEL_WIDTHS_A
 
         weights = ", ".join(f"{w:.3f} at {s:g} Å" for w, s in zip(model.view_params["psf"].detach().cpu().clamp(min=0.0).tolist(), KERNEL_WIDTHS_A))
-        CONSOLE.print(f"gaussian-atoms: point-spread function learned: intensity fractions {weights} (the rest in the atoms' own widths)")
+        CONSOLE.print(f"gaussian-atoms: point-spread function ({model.config.psf}): intensity fractions {weights} (the rest in the atoms' own widths)")
     atoms = model.atoms()
     precision = model_position_std_A(model, atoms)
     if precision is not None:

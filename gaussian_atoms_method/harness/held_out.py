@@ -1,0 +1,88 @@
+"""How well a fit predicts views it never saw: two-fold cross-validation over a tilt series.
+
+A measured series has no truth to score against, and a fit's own residual always prefers more
+parameters: extra Gaussians beside the atoms explain a probe's tails as well as a kernel does.
+Views held out of the fit tell them apart.  :func:`split_views` writes the even and the odd
+views as two tilt series; a fit of one predicts the other (:func:`predicted_views`: the fit's
+Gaussians, atoms and non-atoms, projected and convolved with its kernel), and
+:func:`held_out_rms` scores it with one constant per view fitted on the held-out view itself
+(the fit's learned backgrounds belong to the views it saw).
+
+On the Ta film (area 23) the published model with 33% of the intensity in a 3 Å halo predicts
+the odd views from parameters fitted on the even ones at 2794 (rms, input units); our fit of the
+even views with no kernel, at 2842.  Pure numpy and torch.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from gaussian_atoms_method.atoms.atom_set import AtomSet
+from gaussian_atoms_method.physics.geometry import detector_axes_from_tilts, pixel_centres
+from gaussian_atoms_method.physics.projector import project_gaussians
+from gaussian_atoms_method.physics.psf import KERNEL_WIDTHS_A, apply_kernel
+
+
+def split_views(series, out_dir: str | Path) -> tuple[Path, Path]:
+    """Write the even-indexed and the odd-indexed views of ``series`` (a
+    :class:`dataparsers.tilt_series_format.TiltSeries`) as two tilt-series directories under
+    ``out_dir`` (``even``, ``odd``), with its geometry and truth; returns their paths."""
+    from dataparsers.tilt_series_format import write_tilt_series
+    from gaussian_atoms_method.atoms.atom_set import read_atoms
+
+    truth = read_atoms(series.truth_path) if series.truth_path is not None else None
+    out = []
+    for name, start in (("even", 0), ("odd", 1)):
+        out.append(write_tilt_series(Path(out_dir) / name, series.projections[start::2], series.angles_deg[start::2], series.pixel_size_A, truth=truth,
+                                     origin_A=series.origin_A, tilt_axis=series.tilt_axis, centre_px=series.centre_px, tilt_axis_angle_deg=series.tilt_axis_angle_deg))  # fmt: skip
+    return out[0], out[1]
+
+
+def predicted_views(atoms: AtomSet, series, kernel_weights=None, chunk: int = 4) -> np.ndarray:
+    """(V, H, W) projections of ``atoms`` (with ``sigmas`` and ``amplitudes``, Å in the series'
+    output frame) in the views of ``series``, through the kernel of ``kernel_weights`` (fractions
+    at :data:`..physics.psf.KERNEL_WIDTHS_A`; None: none), in the series' data units."""
+    if atoms.sigmas is None or atoms.amplitudes is None:
+        raise ValueError("atoms need sigmas and amplitudes (a run's atoms.xyz) to be projected")
+    _, h, w = series.projections.shape
+    centre = series.centre_px if series.centre_px is not None else ((h - 1) / 2.0, (w - 1) / 2.0)
+    rows = torch.as_tensor(pixel_centres(h, series.pixel_size_A, centre[0]))
+    cols = torch.as_tensor(pixel_centres(w, series.pixel_size_A, centre[1]))
+    axes = torch.as_tensor(detector_axes_from_tilts(series.angles_deg, series.tilt_axis, series.tilt_axis_angle_deg))
+    means = torch.as_tensor(np.asarray(atoms.positions, dtype=np.float64) - np.asarray(series.origin_A, dtype=np.float64))
+    sigmas, amps = torch.as_tensor(atoms.sigmas, dtype=torch.float64), torch.as_tensor(atoms.amplitudes, dtype=torch.float64)
+    weights = torch.as_tensor(np.zeros(len(KERNEL_WIDTHS_A)) if kernel_weights is None else np.asarray(kernel_weights, dtype=np.float64))
+    widths = torch.as_tensor(KERNEL_WIDTHS_A, dtype=torch.float64)
+    out = []
+    for start in range(0, len(axes), chunk):  # bounded memory: (chunk, H, N) at a time
+        images = project_gaussians(means, sigmas, amps, axes[start : start + chunk], rows, cols)
+        out.append(apply_kernel(images, series.pixel_size_A, widths, weights))
+    return torch.cat(out).numpy()
+
+
+def held_out_rms(atoms: AtomSet, series, kernel_weights=None, interior_px: tuple[int, int] = (0, 0)) -> float:
+    """Root-mean-square of measured minus :func:`predicted_views` over the views of ``series``,
+    after one constant per view (least squares on that view), over the detector's interior
+    (``interior_px`` rows and columns in from each edge), data units."""
+    measured = np.asarray(series.projections, dtype=np.float64)
+    residual = measured - predicted_views(atoms, series, kernel_weights)
+    r0, c0 = interior_px
+    residual = residual[:, r0 : residual.shape[1] - r0, c0 : residual.shape[2] - c0]
+    residual = residual - residual.mean(axis=(1, 2), keepdims=True)
+    return float(np.sqrt(np.mean(residual**2)))
+
+
+def run_gaussians(run_dir: str | Path) -> AtomSet:
+    """Every Gaussian a finished run fitted: its ``atoms.xyz`` and, where written, ``non_atoms.xyz``
+    (the film beyond the field, the non-atoms: they explain the views as much as the atoms do)."""
+    from gaussian_atoms_method.atoms.atom_set import read_atoms
+
+    parts = [read_atoms(Path(run_dir) / "atoms.xyz")]
+    if (Path(run_dir) / "non_atoms.xyz").is_file():
+        parts.append(read_atoms(Path(run_dir) / "non_atoms.xyz"))
+    parts = [p for p in parts if len(p)]
+    return AtomSet(positions=np.concatenate([p.positions for p in parts]).reshape(-1, 3), sigmas=np.concatenate([p.sigmas for p in parts]),
+                   amplitudes=np.concatenate([p.amplitudes for p in parts]))  # fmt: skip
