@@ -152,6 +152,7 @@ def write_population_png(masses: np.ndarray, sigmas_A: np.ndarray, classificatio
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     from gaussian_atoms_method.atoms.atom_set import _atomic_write
 
@@ -165,6 +166,10 @@ def write_population_png(masses: np.ndarray, sigmas_A: np.ndarray, classificatio
     if np.any(~atoms):
         ax.scatter(masses[~atoms], sigmas_A[~atoms], s=18, marker="x", c="k", label=f"outside the support ({int((~atoms).sum())})")
     ax.set(xscale="log", yscale="log", xlabel="mass (input units x Å²)", ylabel="width σ (Å)", title="Fitted Gaussians: atoms by class, and non-atoms")
+    for axis in (ax.xaxis, ax.yaxis):  # a decade or less: label 1, 2 and 5 times powers of ten, not every minor tick (they overlapped)
+        axis.set_major_locator(matplotlib.ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
+        axis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda value, _: f"{value:g}"))
+        axis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     ax.legend(fontsize=7, markerscale=2)
     fig.tight_layout()
     _atomic_write(path, lambda tmp: fig.savefig(tmp, format="png"))
