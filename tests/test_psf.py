@@ -66,3 +66,76 @@ def test_kernel_is_recovered_from_a_simulated_series(tmp_path):
     freq2 = torch.linspace(0.0, (0.5 / sim.pixel_size_A) ** 2, 200, dtype=torch.float64)
     assert float((kernel_transfer(freq2, widths, learned) - kernel_transfer(freq2, widths, true_weights)).abs().max()) < 0.03
     assert abs(float(learned[1]) - 0.3) < 0.05
+
+
+@pytest.mark.parametrize("kind", ["l2", "huber", "poisson"])
+def test_kernel_weights_are_read_from_views_under_each_data_term(kind):
+    """``fit_kernel_weights``: views blurred by a kernel with 5%, 20% and 10% of the intensity at
+    1, 2 and 4 Å, on a floor, with noise at 1% of an atom's peak: the weights come back to 0.01
+    under the least-squares, Huber and Poisson terms (the noise's own scatter of the weights, over
+    23 views of 66 atoms, is a few thousandths), and a kernel-free series reads no kernel."""
+    from gaussian_atoms_method.physics.data_terms import data_term
+    from gaussian_atoms_method.physics.psf import fit_kernel_weights
+
+    gen = torch.Generator().manual_seed(0)
+    spacing, widths = 0.3, torch.tensor(KERNEL_WIDTHS_A, dtype=torch.float64)
+    sites = torch.zeros(23, 151, 77, dtype=torch.float64)
+    sites[:, 20:130:9, 10:70:7] = 1.0
+    atoms = apply_kernel(sites, spacing, torch.tensor([0.5], dtype=torch.float64), torch.tensor([1.0], dtype=torch.float64))
+    peak, floor, true = float(atoms.max()), 0.3, torch.tensor([0.05, 0.2, 0.1], dtype=torch.float64)
+    noise = 0.01 * peak
+    gain = 1.0 if kind == "l2" else noise**2 / (floor + 0.5 * peak)  # Poisson-like: the noise at mid signal
+    blurred = apply_kernel(atoms, spacing, widths, true) + floor
+
+    def loss(p, m):
+        return data_term(p, m, kind, gain, noise**2 if kind == "l2" else 0.0)
+
+    measured = blurred + noise * torch.randn(blurred.shape, generator=gen, dtype=torch.float64)
+    read = fit_kernel_weights(atoms, torch.tensor(floor, dtype=torch.float64), measured, spacing, widths, loss)
+    assert float((read - true).abs().max()) < 0.01, read
+    plain = atoms + floor + noise * torch.randn(blurred.shape, generator=gen, dtype=torch.float64)
+    assert float(fit_kernel_weights(atoms, torch.tensor(floor, dtype=torch.float64), plain, spacing, widths, loss).max()) < 0.01
+
+
+def test_held_out_views_teach_the_kernel_not_the_atoms(tmp_path):
+    """``psf held-out``: a step on an odd view leaves the atoms without a gradient (none, not a
+    zero one: Adam and the densify statistics would count that), a step on an even view gives
+    them one; with the atoms at the truth, the kernel read on the odd views (30% of the intensity
+    in a 2 Å tail, noise-free) comes back to 0.02, and after ``stop_split_at`` every view teaches
+    the atoms with the kernel held."""
+    from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
+    from dataparsers.tilt_series_format import write_tilt_series
+    from gaussian_atoms_method.harness.simulate import gaussian_potential_parameters, simulate_gaussian_tilt_series, spherical_particle
+    from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
+
+    atoms = spherical_particle("Au", radius_A=4.0)
+    angles = np.linspace(-60, 60, 7)
+    sim = simulate_gaussian_tilt_series(atoms, angles, noise_std=0.0, margin_A=10.0)
+    true_weights = torch.tensor([0.0, 0.3, 0.0], dtype=torch.float64)
+    proj = apply_kernel(torch.as_tensor(sim.projections, dtype=torch.float64), sim.pixel_size_A, torch.tensor(KERNEL_WIDTHS_A, dtype=torch.float64), true_weights).numpy()
+    write_tilt_series(tmp_path, proj.astype(np.float32), angles, sim.pixel_size_A, truth=sim.truth)
+    outputs = TiltSeriesDataParserConfig(data=tmp_path).setup().get_dataparser_outputs("train")
+    model = GaussianAtomsModelConfig(num_random=len(atoms), init="random", coarse_steps=0, background="none", loss="l2", psf="held-out").setup(
+        scene_box=outputs.scene_box, num_train_data=len(outputs.image_filenames), metadata=outputs.metadata)  # fmt: skip
+    norm = model.normalisation
+    with torch.no_grad():
+        model.gauss_params["means"].copy_(torch.as_tensor(norm.positions_from_A(atoms.positions), dtype=torch.float32))
+        model.gauss_params["log_sigmas"].fill_(math.log(sim.truth.sigmas[0] * norm.length_scale))
+        sigmas, peaks = gaussian_potential_parameters(atoms.species, 0.35)  # the simulation's atoms, blurred to the truth's widths
+        peaks = peaks * (sigmas / sim.truth.sigmas) ** 3
+        model.gauss_params["log_amplitudes"].copy_(torch.log(torch.as_tensor(peaks * norm.data_scale / norm.length_scale, dtype=torch.float32))[:, None])
+    model.train()
+    model.step = model.density.warmup_length
+    targets = [outputs.metadata["projections"][v][..., None] for v in range(len(angles))]
+    for view, teaches in ((1, False), (2, True)):
+        for p in model.gauss_params.values():
+            p.grad = None
+        model.get_loss_dict(model.get_outputs(outputs.cameras[view : view + 1]), {"image": targets[view]})["main_loss"].backward()
+        assert (model.means.grad is not None) == teaches
+    model.kernel_reading.read(model, model.step)
+    read = model.view_params["psf"].detach().double()
+    assert float((read - true_weights).abs().max()) < 0.02, read
+    model.step = model.density.stop_split_at
+    model.kernel_reading.read(model, model.step)
+    assert model.kernel_reading.settled and not model.kernel_reading.holds_out(1, model.step)
+    assert torch.equal(model.view_params["psf"].detach().double(), read)

@@ -36,6 +36,7 @@ from gaussian_atoms_method.density.strategy import DensityControl, amplitudes, w
 from gaussian_atoms_method.nerfstudio_layer import rendering as R
 from gaussian_atoms_method.nerfstudio_layer.checkpoints import allow_numpy_scalars_in_checkpoints
 from gaussian_atoms_method.nerfstudio_layer.convergence import ConvergenceCheck
+from gaussian_atoms_method.nerfstudio_layer.kernel_reading import HeldOutKernel
 from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions, OptionError
 from gaussian_atoms_method.nerfstudio_layer.noise_reading import judge_after_fit, measure_noise, read_field_of_view, read_noise
 from gaussian_atoms_method.nerfstudio_layer.refit import refit
@@ -97,7 +98,8 @@ class GaussianAtomsModel(SplatfactoCompat):
         self._setup_view_params(metadata, series, floor, surfaces)
         if self.noise_read is not None and metadata.get("pixel_size_A"):  # the prune judges masses against this noise
             self.density.set_noise(self.noise_read, floor or 0.0, metadata["pixel_size_A"] * ls, self.view_c2w.shape[0], self.data_term, self.view_c2w[:, :3, 2])
-        self.step, self.optimizers, self._optimizers_obj = 0, {}, None
+        self.step, self.optimizers, self._optimizers_obj, self._held_out_step = 0, {}, None, False
+        self.kernel_reading = HeldOutKernel(self.view_c2w.shape[0], self.density.stop_split_at, cfg.psf == "held-out")
         self.crop_box, self.background_color, self.atoms_in_viewer = None, torch.zeros(3), AtomsInViewer(self._viewer_atoms)  # the atoms as points in the viewer
 
     def _setup_view_params(self, metadata: dict, series, floor: float | None, surfaces=None) -> None:
@@ -142,18 +144,20 @@ class GaussianAtomsModel(SplatfactoCompat):
         return {"dense": project_gaussians, "tiled": project_gaussians_tiled, "gsplat": project_gaussians_gsplat}[choice]
 
     # ------------------------------------------------------------------ rendering
-    def get_outputs(self, camera: Cameras) -> Dict[str, torch.Tensor]:
-        """Project the Gaussians for one camera: ``rgb`` (H, W, 3) in [0, 1] for the viewer,
-        ``projection`` (H, W, 1) in normalised data units, ``depth``; with views_per_step > 1
-        also the other views of the step (``extra_projection``, ``extra_views``)."""
+    def get_outputs(self, camera: Cameras, background: bool = True) -> Dict[str, torch.Tensor]:
+        """Project the Gaussians for one camera: ``rgb`` (H, W, 3) in [0, 1] for the viewer, ``projection``
+        (H, W, 1) in normalised data units (``background=False``: without the view's), ``depth``; with
+        views_per_step > 1 also the other views of the step (``extra_projection``, ``extra_views``)."""
         if camera.shape[0] != 1:
             raise ValueError("GaussianAtomsModel renders one camera at a time")
         dev, dt = self.means.device, self.means.dtype
         c2w = camera.camera_to_worlds[0].to(dt)
         (rows_dir, cols_dir), t = R.detector_axes(c2w), c2w[:, 3]
         rows, cols = R.pixel_coordinates(camera, c2w, self.training and self.step < self.config.coarse_steps, dev, dt)
-        batching = self.training and self.config.views_per_step > 1
-        view = R.view_index(self.view_c2w, camera) if len(self.view_params) or batching else None
+        view = R.view_index(self.view_c2w, camera) if len(self.view_params) or self.config.views_per_step > 1 else None
+        self._held_out_step = self.training and self.kernel_reading.holds_out(view, self.step)  # psf held-out: it teaches the kernel, not the atoms
+        batching = self.training and self.config.views_per_step > 1 and not self._held_out_step
+        means, sigmas, amps = [x.detach() if self._held_out_step else x for x in (self.means, self.sigmas, self.amplitudes)]
         if view is not None and "view_tilts" in self.view_params:
             tilts = self.view_params["view_tilts"]  # the error relative to the mean (a common one rotates the particle)
             rows_dir, cols_dir, t = R.rotate_about([rows_dir, cols_dir, t], self.tilt_axis_vector.to(dev, dt), (tilts[view, 0] - tilts[:, 0].mean()).to(dt))
@@ -164,18 +168,18 @@ class GaussianAtomsModel(SplatfactoCompat):
             rows, cols = rows - s[0], cols - s[1]
         extra = {}
         if batching and view is not None:  # cameras on their beam axes through the tilt centre: no offset
-            others = R.other_views(view, self.view_c2w.shape[0], self.config.views_per_step, self.generator)
+            others = self.kernel_reading.other_views(view, self.config.views_per_step, self.generator, self.step)
             axes = torch.cat([axes, R.detector_axes(self.view_c2w[others].to(dev, dt))])
-            images = R.blur(self, self._projector(dev)(self.means, self.sigmas, self.amplitudes, axes, rows, cols), rows)
-            if "background" in self.view_params:
+            images = R.blur(self, self._projector(dev)(means, sigmas, amps, axes, rows, cols), rows)
+            if "background" in self.view_params and background:
                 images = torch.stack([R.add_view_background(self, im, v, rows, cols) for im, v in zip(images, [view, *others.tolist()])])
             image, extra = images[0], {"extra_projection": images[1:, :, :, None], "extra_views": others}
         elif self.config.isotropic:
-            image = R.blur(self, self._projector(dev)(self.means - t, self.sigmas, self.amplitudes, axes, rows, cols), rows)[0]
+            image = R.blur(self, self._projector(dev)(means - t, sigmas, amps, axes, rows, cols), rows)[0]
         else:
             cov = covariances_from_scales_quats(self._log_scales(), self.gauss_params["quats"])
             image = R.blur(self, project_anisotropic_gaussians(self.means - t, cov, self.amplitudes, axes, rows, cols), rows)[0]
-        if view is not None and "background" in self.view_params and not extra:
+        if view is not None and "background" in self.view_params and not extra and background:
             image = R.add_view_background(self, image, view, rows, cols)
         projection = image[..., None]
         h, w = image.shape
@@ -195,13 +199,9 @@ class GaussianAtomsModel(SplatfactoCompat):
         return {"l1": torch.abs(outputs["projection"] - gt).mean().detach(), "gaussian_count": torch.tensor(float(self.num_points))}
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
-        pred, gt = outputs["projection"], self._measured(outputs, batch)
-        if "extra_projection" in outputs:  # the other views of this step: one loss over all their pixels
-            extra = outputs["extra_projection"]
-            extra_gt = torch.stack([R.binned_like(m[..., None], extra[0]) for m in self.train_projections[outputs["extra_views"]]]).to(extra)
-            pred, gt = torch.cat([pred[None], extra]), torch.cat([gt[None], extra_gt])
-        noise = self.noise_read  # + 0 x means: differentiable even when every Gaussian was pruned
-        loss = data_term(pred, gt, self.data_term, noise.gain if noise else 1.0, noise.read_var if noise else 0.0) + 0.0 * self.means.sum()
+        pred, gt = R.with_other_views(outputs, self._measured(outputs, batch), self.train_projections)  # one loss over all the step's views
+        noise = self.noise_read  # + 0 x means: differentiable even when every Gaussian was pruned (a held-out view: no gradient, HeldOutKernel.differentiable)
+        loss = self.kernel_reading.differentiable(data_term(pred, gt, self.data_term, noise.gain if noise else 1.0, noise.read_var if noise else 0.0), self.means, self._held_out_step)
         R.check_finite(loss, self.gauss_params, gt, self.step)
         return {"main_loss": loss}
 
@@ -238,6 +238,7 @@ class GaussianAtomsModel(SplatfactoCompat):
         """Clamp, accumulate the positional gradient and every refine_every steps duplicate and prune."""
         if "psf" in self.view_params:
             project_weights(self.view_params["psf"].data)  # a non-negative kernel (physics/psf.py)
+            self.kernel_reading.read(self, step, self.density.warmup_length, self.config.refine_every)
         if self.density.step_post_backward(self.gauss_params, self.optimizers, step, self._param_lists()):
             self.atoms_in_viewer.refresh()
 
@@ -259,9 +260,8 @@ class GaussianAtomsModel(SplatfactoCompat):
     @torch.no_grad()
     def atoms(self) -> AtomSet:
         """The current Gaussians as atoms in Å, in the frame of the input's truth file."""
-        norm = self.normalisation
-        return AtomSet(positions=norm.positions_to_A(self.means.detach().cpu().double().numpy()), sigmas=norm.sigmas_to_A(self.sigmas.detach().cpu().double().numpy()),
-                       amplitudes=norm.amplitudes_to_physical(self.amplitudes.detach().cpu().double().numpy()))  # fmt: skip
+        norm, host = self.normalisation, lambda t: t.detach().cpu().double().numpy()
+        return AtomSet(positions=norm.positions_to_A(host(self.means)), sigmas=norm.sigmas_to_A(host(self.sigmas)), amplitudes=norm.amplitudes_to_physical(host(self.amplitudes)))
 
     def position_std_A(self, atoms: AtomSet, noise: float | None = None):
         """Each atom's position precision (N, 3) in Å and the pixel noise assumed (:mod:`.results`)."""
@@ -284,7 +284,7 @@ class GaussianAtomsModel(SplatfactoCompat):
         searches once): add Gaussians where the residuals hold mass (:mod:`.residuals`) and
         train on; settled with nothing to add: stop."""
         search, last_search = self.density.residual_check_open(step), step == min(self.density.stop_split_at, last_step) - self.config.refine_every
-        settled = step < last_step and (self.config.stop_when_converged or search) and self.converged(step)
+        settled = step < last_step and (self.config.stop_when_converged or search) and self.kernel_reading.settled and self.converged(step)  # not on half the views
         if search and (settled or last_search) and add_missing_atoms(self):
             self.atoms_in_viewer.refresh()
         elif settled and self.config.stop_when_converged:

@@ -138,13 +138,15 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
     if it is flat about its quadratic surface (within 1.5 times the noise variance at its level
     either way); where atoms reach the frame, the same read from the frame pixels they leave
     alone (:func:`gaussian_atoms_method.physics.noise.clipped_frame`)."""
-    psf: Literal["learned", "fixed", "none"] = "learned"
+    psf: Literal["learned", "held-out", "fixed", "none"] = "learned"
     """The microscope's point-spread function: ``learned``, a radially symmetric kernel of unit
     integral shared by every view (Gaussians of 1, 2 and 4 Å weighted by learned weights,
     :mod:`gaussian_atoms_method.physics.psf`) convolves the projections, so a probe's tails and
     rings are not explained by extra faint, wide Gaussians; ``fixed``: the kernel of
     ``psf_weights``, held (a probe measured, or chosen on held-out views with
-    ``scripts/held_out_views.py``); ``none``: the blur is in the atoms' widths alone (the
+    ``scripts/held_out_views.py``); ``held-out``: the kernel is read on the odd views while the
+    atoms learn from the even ones, then held (:mod:`.kernel_reading`: learned with the atoms, a
+    probe's tails can go to extra Gaussians instead); ``none``: the blur is in the atoms' widths alone (the
     paper's model)."""
     psf_weights: Tuple[float, float, float] = (0.0, 0.0, 0.0)
     """The kernel's intensity fractions in its Gaussians of 1, 2 and 4 Å (the rest in the delta,

@@ -109,7 +109,7 @@ def blur(model, images: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
     """(V, H, W) projections through the model's learned point-spread function, if it has one."""
     if "psf" not in model.view_params or len(rows) < 2:
         return images
-    return apply_kernel(images, float(rows[1] - rows[0]), model.psf_widths.to(images), model.view_params["psf"].to(images))  # kept non-negative by project_weights after each step
+    return apply_kernel(images, float(rows[1] - rows[0]), model.psf_widths.to(images), model.view_params["psf"].to(images))  # read, not learned, with psf held-out  # kept non-negative by project_weights after each step
 
 
 def add_view_background(model, image: torch.Tensor, view: int, rows: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:
@@ -146,6 +146,18 @@ def check_view_batches(views_per_step: int, projections, view_c2w: torch.Tensor)
     if float(off_axis) > 1e-5:
         raise OptionError("--pipeline.model.views-per-step > 1 needs every camera on its beam axis through the tilt centre")
     return torch.as_tensor(projections, dtype=torch.float32)
+
+
+def with_other_views(outputs: dict, measured: torch.Tensor, train_projections: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The step's predicted and ``measured`` (H, W, 1) projections, with its other views'
+    (``extra_projection``, ``extra_views``; measured from ``train_projections``) stacked on a
+    leading axis when it has them."""
+    pred = outputs["projection"]
+    if "extra_projection" not in outputs:
+        return pred, measured
+    extra = outputs["extra_projection"]
+    extra_gt = torch.stack([binned_like(m[..., None], extra[0]) for m in train_projections[outputs["extra_views"]]]).to(extra)
+    return torch.cat([pred[None], extra]), torch.cat([measured[None], extra_gt])
 
 
 def other_views(view: int, n_views: int, views_per_step: int, generator: torch.Generator) -> torch.Tensor:

@@ -62,8 +62,11 @@ def write_results(model, run_dir: Path) -> dict | None:
     if "psf" in model.view_params:
         from gaussian_atoms_method.physics.psf import KERNEL_WIDTHS_A
 
-        weights = ", ".join(f"{w:.3f} at {s:g} Å" for w, s in zip(model.view_params["psf"].detach().cpu().clamp(min=0.0).tolist(), KERNEL_WIDTHS_A))
+        fractions = model.view_params["psf"].detach().cpu().clamp(min=0.0).tolist()
+        weights = ", ".join(f"{w:.3f} at {s:g} Å" for w, s in zip(fractions, KERNEL_WIDTHS_A))
         CONSOLE.print(f"gaussian-atoms: point-spread function ({model.config.psf}): intensity fractions {weights} (the rest in the atoms' own widths)")
+        run_dir.mkdir(parents=True, exist_ok=True)  # hold it in a later run: --pipeline.model.psf fixed --pipeline.model.psf-weights ...
+        (run_dir / "psf.json").write_text(json.dumps({"psf": model.config.psf, "widths_A": list(KERNEL_WIDTHS_A), "intensity_fractions": [round(w, 4) for w in fractions]}) + "\n")
     atoms = model.atoms()
     precision = model_position_std_A(model, atoms)
     if precision is not None:
