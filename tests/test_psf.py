@@ -29,12 +29,9 @@ def test_kernel_of_one_gaussian_blurs_a_gaussian_exactly_and_keeps_mass():
     assert float(kernel_transfer(torch.zeros(1), torch.tensor([1.0]), torch.tensor([0.7]))) == 1.0
 
 
-def test_kernel_is_recovered_from_a_simulated_series(tmp_path):
-    """Projections blurred by a kernel with 30% of the intensity in a 2 Å tail (the ladder's
-    middle width): with the atoms known, the weights learned with the amplitudes (Adam, 800
-    steps, noise-free) give back the kernel: its transfer function (the microscope's MTF) to 0.03
-    at every frequency up to the detector's Nyquist, and the 2 Å tail's weight to 0.05 (the
-    ladder's neighbours, 1 and 4 Å, take up a few per cent of it: they overlap over a small image)."""
+def _blurred_series_and_model(tmp_path, true_weights: torch.Tensor, **options):
+    """An Au sphere's (4 Å radius) 7 noise-free views (-60..60 deg) through the kernel ``true_weights``,
+    and a model of as many Gaussians on them (no background, least squares)."""
     from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
     from dataparsers.tilt_series_format import write_tilt_series
     from gaussian_atoms_method.harness.simulate import simulate_gaussian_tilt_series, spherical_particle
@@ -43,12 +40,22 @@ def test_kernel_is_recovered_from_a_simulated_series(tmp_path):
     atoms = spherical_particle("Au", radius_A=4.0)
     angles = np.linspace(-60, 60, 7)
     sim = simulate_gaussian_tilt_series(atoms, angles, noise_std=0.0, margin_A=10.0)
-    true_weights = torch.tensor([0.0, 0.3, 0.0], dtype=torch.float64)
     proj = apply_kernel(torch.as_tensor(sim.projections, dtype=torch.float64), sim.pixel_size_A, torch.tensor(KERNEL_WIDTHS_A, dtype=torch.float64), true_weights).numpy()
     write_tilt_series(tmp_path, proj.astype(np.float32), angles, sim.pixel_size_A, truth=sim.truth)
     outputs = TiltSeriesDataParserConfig(data=tmp_path).setup().get_dataparser_outputs("train")
-    model = GaussianAtomsModelConfig(num_random=len(atoms), init="random", coarse_steps=0, background="none", loss="l2").setup(
+    model = GaussianAtomsModelConfig(num_random=len(atoms), init="random", coarse_steps=0, background="none", loss="l2", **options).setup(
         scene_box=outputs.scene_box, num_train_data=len(outputs.image_filenames), metadata=outputs.metadata)  # fmt: skip
+    return atoms, sim, angles, outputs, model
+
+
+def test_kernel_is_recovered_from_a_simulated_series(tmp_path):
+    """Projections blurred by a kernel with 30% of the intensity in a 2 Å tail (the ladder's
+    middle width): with the atoms known, the weights learned with the amplitudes (Adam, 800
+    steps, noise-free) give back the kernel: its transfer function (the microscope's MTF) to 0.03
+    at every frequency up to the detector's Nyquist, and the 2 Å tail's weight to 0.05 (the
+    ladder's neighbours, 1 and 4 Å, take up a few per cent of it: they overlap over a small image)."""
+    true_weights = torch.tensor([0.0, 0.3, 0.0], dtype=torch.float64)
+    atoms, sim, angles, outputs, model = _blurred_series_and_model(tmp_path, true_weights)
     norm = model.normalisation
     with torch.no_grad():
         model.gauss_params["means"].copy_(torch.as_tensor(norm.positions_from_A(atoms.positions), dtype=torch.float32))
@@ -103,20 +110,10 @@ def test_held_out_views_teach_the_kernel_not_the_atoms(tmp_path):
     them one; with the atoms at the truth, the kernel read on the odd views (30% of the intensity
     in a 2 Å tail, noise-free) comes back to 0.02, and after ``stop_split_at`` every view teaches
     the atoms with the kernel held."""
-    from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
-    from dataparsers.tilt_series_format import write_tilt_series
-    from gaussian_atoms_method.harness.simulate import gaussian_potential_parameters, simulate_gaussian_tilt_series, spherical_particle
-    from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
+    from gaussian_atoms_method.harness.simulate import gaussian_potential_parameters
 
-    atoms = spherical_particle("Au", radius_A=4.0)
-    angles = np.linspace(-60, 60, 7)
-    sim = simulate_gaussian_tilt_series(atoms, angles, noise_std=0.0, margin_A=10.0)
     true_weights = torch.tensor([0.0, 0.3, 0.0], dtype=torch.float64)
-    proj = apply_kernel(torch.as_tensor(sim.projections, dtype=torch.float64), sim.pixel_size_A, torch.tensor(KERNEL_WIDTHS_A, dtype=torch.float64), true_weights).numpy()
-    write_tilt_series(tmp_path, proj.astype(np.float32), angles, sim.pixel_size_A, truth=sim.truth)
-    outputs = TiltSeriesDataParserConfig(data=tmp_path).setup().get_dataparser_outputs("train")
-    model = GaussianAtomsModelConfig(num_random=len(atoms), init="random", coarse_steps=0, background="none", loss="l2", psf="held-out").setup(
-        scene_box=outputs.scene_box, num_train_data=len(outputs.image_filenames), metadata=outputs.metadata)  # fmt: skip
+    atoms, sim, angles, outputs, model = _blurred_series_and_model(tmp_path, true_weights, psf="held-out")
     norm = model.normalisation
     with torch.no_grad():
         model.gauss_params["means"].copy_(torch.as_tensor(norm.positions_from_A(atoms.positions), dtype=torch.float32))
