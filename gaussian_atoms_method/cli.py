@@ -290,14 +290,11 @@ class BenchmarkFilm:
     device: Literal["cpu", "cuda"] = "cpu"
     train_args: str = ""
     """Further ns-train options, given with "=", e.g. --train-args="--pipeline.model.background plane"."""
-    read_kernel: bool = False
-    """Two runs per sub-area: the first reads the point-spread function on its held-out views
-    (``--pipeline.model.psf held-out``), the scored one holds it (``psf fixed``)."""
 
     def main(self) -> None:
         from gaussian_atoms_method.harness.film_benchmark import FilmBenchmark
 
-        FilmBenchmark(self.data, self.output, self.areas, self.iterations, self.device, tuple(shlex.split(self.train_args)), self.read_kernel).run()
+        FilmBenchmark(self.data, self.output, self.areas, self.iterations, self.device, tuple(shlex.split(self.train_args))).run()
         print(f"wrote {self.output / 'results.md'} and results.csv")
 
 

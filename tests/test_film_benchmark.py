@@ -44,17 +44,3 @@ def test_a_sub_area_is_written_as_a_tilt_series(tmp_path):
     assert series.angles_deg.min() == pytest.approx(-63.0, abs=0.01) and series.angles_deg.max() == pytest.approx(55.9, abs=0.01)
     assert tuple(series.centre_px) == (65.0, 30.0)
 
-
-def test_the_kernel_read_by_a_first_run_is_held_in_the_scored_one(tmp_path):
-    """``--read-kernel``: the first run's ``psf.json`` (its kernel read on the held-out views)
-    becomes the scored run's ``psf fixed`` options, weights as written; a first run already made
-    is not made again (resumable, like the scored runs)."""
-    import json
-
-    from gaussian_atoms_method.harness.film_benchmark import kernel_read_first
-
-    psf = tmp_path / "kernel" / "ours" / "gaussian-atoms" / "run" / "psf.json"
-    psf.parent.mkdir(parents=True)
-    psf.write_text(json.dumps({"psf": "held-out", "widths_A": [1.0, 2.0, 4.0], "intensity_fractions": [0.0, 0.295, 0.008]}))
-    flags = kernel_read_first(tmp_path / "no-data-needed", tmp_path / "kernel", 3000, "cpu", ())
-    assert flags == ("--pipeline.model.psf", "fixed", "--pipeline.model.psf-weights", "0", "0.295", "0.008")

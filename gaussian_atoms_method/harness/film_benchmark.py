@@ -124,18 +124,6 @@ def score_area(pred_A: np.ndarray, model_A: np.ndarray, shape_px: tuple[int, int
     }
 
 
-def kernel_read_first(data: Path, run_dir: Path, iterations: int, device: str, flags: tuple[str, ...]) -> tuple[str, ...]:
-    """The options that hold the kernel a first run reads on its held-out views
-    (``--pipeline.model.psf held-out``, its ``psf.json``), for the run that is scored."""
-    from gaussian_atoms_method.harness.benchmark import train_ours
-
-    psf = run_dir / "ours" / "gaussian-atoms" / "run" / "psf.json"
-    if not psf.is_file():
-        train_ours(data, run_dir, iterations, device, flags + ("--pipeline.model.psf", "held-out"))
-    fractions = json.loads(psf.read_text())["intensity_fractions"]
-    return ("--pipeline.model.psf", "fixed", "--pipeline.model.psf-weights", *(f"{w:g}" for w in fractions))
-
-
 @dataclass
 class FilmBenchmark:
     """Reconstruct each sub-area with ``ns-train gaussian-atoms`` (the defaults) and score it."""
@@ -146,7 +134,6 @@ class FilmBenchmark:
     iterations: int = 3000
     device: str = "cpu"
     flags: tuple[str, ...] = ()
-    read_kernel: bool = False
 
     def run(self) -> list[dict]:
         from gaussian_atoms_method.harness.benchmark import scored_run
@@ -159,9 +146,8 @@ class FilmBenchmark:
         rows = []
         for area in self.areas:
             run_dir = self.output / "runs" / f"area{area}"
-            flags = self.flags + (kernel_read_first(prepare_area(self.data_dir, self.output / "data", area), run_dir / "kernel", self.iterations, self.device, self.flags) if self.read_kernel else ())
             s = scored_run(run_dir / "film_scores.json", run_dir, lambda: prepare_area(self.data_dir, self.output / "data", area),
-                           lambda data, atoms: score(area, data, atoms), self.iterations, self.device, flags)  # fmt: skip
+                           lambda data, atoms: score(area, data, atoms), self.iterations, self.device, self.flags)  # fmt: skip
             rows.append({"area": area, **s})
             print(f"Ta film area {area}: found {s['found']:.3f} of {s['n_model']} model atoms, extra {s['extra_per_model_atom']:.3f} per model atom, RMSD {s['rmsd_pm']:.1f} pm, {s['seconds']:.0f} s", flush=True)
         self.write(rows)

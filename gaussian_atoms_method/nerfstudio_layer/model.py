@@ -98,8 +98,7 @@ class GaussianAtomsModel(SplatfactoCompat):
         self._setup_view_params(metadata, series, floor, surfaces)
         if self.noise_read is not None and metadata.get("pixel_size_A"):  # the prune judges masses against this noise
             self.density.set_noise(self.noise_read, floor or 0.0, metadata["pixel_size_A"] * ls, self.view_c2w.shape[0], self.data_term, self.view_c2w[:, :3, 2])
-        self.step, self.optimizers, self._optimizers_obj, self._held_out_step = 0, {}, None, False
-        self.kernel_reading = HeldOutKernel(self.view_c2w.shape[0], self.density.stop_split_at, cfg.psf == "held-out")
+        self.step, self.optimizers, self._optimizers_obj, self._held_out_step, self.kernel_reading = 0, {}, None, False, HeldOutKernel(self.view_c2w.shape[0], self.density.stop_split_at, cfg.psf == "held-out")
         self.crop_box, self.background_color, self.atoms_in_viewer = None, torch.zeros(3), AtomsInViewer(self._viewer_atoms)  # the atoms as points in the viewer
 
     def _setup_view_params(self, metadata: dict, series, floor: float | None, surfaces=None) -> None:
@@ -276,15 +275,18 @@ class GaussianAtomsModel(SplatfactoCompat):
         return write_results(self, Path(run_dir))
 
     def _write_results_at(self, last_step: int, run_dir: Path, step: int) -> None:
-        if step == last_step:
+        if step == last_step and not self.kernel_reading.first_pass:
             self.write_results(Path(run_dir))
 
     def _stop_if_converged(self, trainer, last_step: int, step: int) -> None:
         """Once the atoms are settled (and at the last refine before stop_split_at, so every run
         searches once): add Gaussians where the residuals hold mass (:mod:`.residuals`) and
         train on; settled with nothing to add: stop."""
+        if self.kernel_reading.first_pass:  # psf held-out: the reading ends once the kernel is held (.kernel_reading.restart_with_kernel_held)
+            trainer.stop_training = self.kernel_reading.settled
+            return
         search, last_search = self.density.residual_check_open(step), step == min(self.density.stop_split_at, last_step) - self.config.refine_every
-        settled = step < last_step and (self.config.stop_when_converged or search) and self.kernel_reading.settled and self.converged(step)  # not on half the views
+        settled = step < last_step and (self.config.stop_when_converged or search) and self.converged(step)
         if search and (settled or last_search) and add_missing_atoms(self):
             self.atoms_in_viewer.refresh()
         elif settled and self.config.stop_when_converged:

@@ -144,9 +144,10 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
     :mod:`gaussian_atoms_method.physics.psf`) convolves the projections, so a probe's tails and
     rings are not explained by extra faint, wide Gaussians; ``fixed``: the kernel of
     ``psf_weights``, held (a probe measured, or chosen on held-out views with
-    ``scripts/held_out_views.py``); ``held-out``: the kernel is read on the odd views while the
-    atoms learn from the even ones, then held (:mod:`.kernel_reading`: learned with the atoms, a
-    probe's tails can go to extra Gaussians instead); ``none``: the blur is in the atoms' widths alone (the
+    ``scripts/held_out_views.py``); ``held-out``: a first pass reads the kernel on the odd views
+    while the atoms learn from the even ones, then the run starts again with it held
+    (:mod:`.kernel_reading`: learned with the atoms, a probe's tails can go to extra Gaussians
+    instead; twice the time); ``none``: the blur is in the atoms' widths alone (the
     paper's model)."""
     psf_weights: Tuple[float, float, float] = (0.0, 0.0, 0.0)
     """The kernel's intensity fractions in its Gaussians of 1, 2 and 4 Å (the rest in the delta,

@@ -71,11 +71,17 @@ class GaussianAtomsTrainerConfig(TrainerConfig):
 
 
 class GaussianAtomsTrainer(Trainer):
-    """nerfstudio's Trainer; a failure during training ends in one line naming its step and cause."""
+    """nerfstudio's Trainer; a failure during training ends in one line naming its step and cause.
+    With ``psf held-out`` it trains twice: a pass that reads the point-spread function, then the
+    run with it held (:func:`.kernel_reading.restart_with_kernel_held`)."""
 
     def train(self) -> None:
+        from gaussian_atoms_method.nerfstudio_layer.kernel_reading import restart_with_kernel_held
+
         try:
             super().train()
+            if restart_with_kernel_held(self):
+                super().train()
         except FloatingPointError as exc:  # the model names the step and the cause
             fail(str(exc), 1)
         except KeyboardInterrupt:
