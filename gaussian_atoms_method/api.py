@@ -200,6 +200,7 @@ def _train(config, seed: int, progress: bool) -> Path:
     from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
     from nerfstudio.engine.trainer import Trainer
 
+    from gaussian_atoms_method.nerfstudio_layer.kernel_reading import restart_with_kernel_held
     from gaussian_atoms_method.nerfstudio_layer.train import make_trainer
 
     config.machine.seed = seed
@@ -210,9 +211,14 @@ def _train(config, seed: int, progress: bool) -> Path:
         from tqdm.auto import tqdm
 
         bar = tqdm(total=config.max_num_iterations, desc="gaussian-atoms", unit="step")
-        trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], lambda step: bar.update(step + 1 - bar.n)))
     try:
-        Trainer.train(trainer)  # nerfstudio's loop, without the CLI's exit on failure
+        for _ in range(2):  # psf="held-out": a pass that reads the kernel, then the run with it held
+            if bar is not None:
+                bar.reset()
+                trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], lambda step: bar.update(step + 1 - bar.n)))
+            Trainer.train(trainer)  # nerfstudio's loop, without the CLI's exit on failure
+            if not restart_with_kernel_held(trainer):
+                break
     finally:
         if bar is not None:
             bar.close()
