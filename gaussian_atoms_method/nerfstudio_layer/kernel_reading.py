@@ -22,6 +22,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from gaussian_atoms_method.physics.data_terms import data_term
 from gaussian_atoms_method.physics.psf import fit_kernel_weights
 
+
 class HeldOutKernel:
     """The schedule and the readings: which views teach the atoms, and when the kernel is read
     (``readings``: the weights read at each refine step, for the record).  Inactive (any other
@@ -77,7 +78,7 @@ class HeldOutKernel:
     def _settle(self, model, step: int) -> None:
         self.settled = True
         fractions = ", ".join(f"{w:.3f}" for w in model.view_params["psf"].detach().cpu().tolist())
-        CONSOLE.print(f"gaussian-atoms: step {step}: the point-spread function read on the held-out views is held at {fractions} (1, 2, 4 Å); every view now teaches the atoms")
+        CONSOLE.print(f"gaussian-atoms: step {step}: the point-spread function read on the held-out views is held at {fractions} (1, 2, 4 Å)")
 
 
 def read_kernel(model, views) -> torch.Tensor | None:
