@@ -147,7 +147,8 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
     ``scripts/held_out_views.py``); ``held-out``: a first pass reads the kernel on the odd views
     while the atoms learn from the even ones, then the run starts again with it held
     (:mod:`.kernel_reading`: learned with the atoms, a probe's tails can go to extra Gaussians
-    instead; twice the time); ``none``: the blur is in the atoms' widths alone (the
+    instead; twice the time; where half the views fit poorly the reading is too wide: a dense
+    54,000-atom particle without tails read 53% at 2 Å); ``none``: the blur is in the atoms' widths alone (the
     paper's model)."""
     psf_weights: Tuple[float, float, float] = (0.0, 0.0, 0.0)
     """The kernel's intensity fractions in its Gaussians of 1, 2 and 4 Å (the rest in the delta,
