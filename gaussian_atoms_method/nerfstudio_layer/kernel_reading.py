@@ -28,15 +28,13 @@ from gaussian_atoms_method.physics.psf import fit_kernel_weights
 
 
 class HeldOutKernel:
-    """The schedule and the readings: which views teach the atoms, and when the kernel is read
-    (``readings``: the weights read at each refine step, for the record).  Inactive (any other
-    ``psf``): every view teaches the atoms and nothing is read."""
+    """The schedule: which views teach the atoms, and when the kernel is read.  Inactive (any
+    other ``psf``): every view teaches the atoms and nothing is read."""
 
     def __init__(self, n_views: int, stop_at: int, active: bool = True):
         self.n_views, self.stop_at = n_views, stop_at
         self.settled = not active or n_views < 2  # a single view has nothing to hold out
         self.first_pass = not self.settled  # the reading pass: its atoms are not reported
-        self.readings: list[list[float]] = []
 
     def splitting(self, step: int) -> bool:
         """True while the odd views are held out of the atoms' fit."""
@@ -77,7 +75,6 @@ class HeldOutKernel:
         fitted = read_kernel(model, range(1, self.n_views, 2))
         if fitted is not None:
             model.view_params["psf"].data.copy_(fitted.to(model.view_params["psf"]))
-            self.readings.append(fitted.tolist())
 
     def _settle(self, model, step: int) -> None:
         self.settled = True
@@ -100,11 +97,11 @@ def read_kernel(model, views) -> torch.Tensor | None:
         with training_views(model) as cameras:
             if cameras is None:
                 return None
+            weights.data.zero_()  # the kernel-free rendering, its background apart
             for v in views:
-                weights.data.zero_()  # the kernel-free rendering, background included
-                with_background = model.get_outputs(cameras[v : v + 1])["projection"][..., 0]
-                images.append(model.get_outputs(cameras[v : v + 1], background=False)["projection"][..., 0])
-                backgrounds.append(with_background - images[-1])
+                out = model.get_outputs(cameras[v : v + 1], background=False)
+                images.append(out["projection"][..., 0])
+                backgrounds.append(out["background"][..., 0] if "background" in out else torch.zeros_like(images[-1]))
     finally:
         weights.data.copy_(held)
     images, backgrounds = torch.stack(images), torch.stack(backgrounds)

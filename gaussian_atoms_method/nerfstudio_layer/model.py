@@ -145,8 +145,8 @@ class GaussianAtomsModel(SplatfactoCompat):
     # ------------------------------------------------------------------ rendering
     def get_outputs(self, camera: Cameras, background: bool = True) -> Dict[str, torch.Tensor]:
         """Project the Gaussians for one camera: ``rgb`` (H, W, 3) in [0, 1] for the viewer, ``projection``
-        (H, W, 1) in normalised data units (``background=False``: without the view's), ``depth``; with
-        views_per_step > 1 also the other views of the step (``extra_projection``, ``extra_views``)."""
+        (H, W, 1) in normalised data units (``background=False``: the view's learned background apart, in
+        ``background``), ``depth``; with views_per_step > 1 the step's other views (``extra_projection``, ``extra_views``)."""
         if camera.shape[0] != 1:
             raise ValueError("GaussianAtomsModel renders one camera at a time")
         dev, dt = self.means.device, self.means.dtype
@@ -170,7 +170,7 @@ class GaussianAtomsModel(SplatfactoCompat):
             others = self.kernel_reading.other_views(view, self.config.views_per_step, self.generator, self.step)
             axes = torch.cat([axes, R.detector_axes(self.view_c2w[others].to(dev, dt))])
             images = R.blur(self, self._projector(dev)(means, sigmas, amps, axes, rows, cols), rows)
-            if "background" in self.view_params and background:
+            if "background" in self.view_params:
                 images = torch.stack([R.add_view_background(self, im, v, rows, cols) for im, v in zip(images, [view, *others.tolist()])])
             image, extra = images[0], {"extra_projection": images[1:, :, :, None], "extra_views": others}
         elif self.config.isotropic:
@@ -178,12 +178,12 @@ class GaussianAtomsModel(SplatfactoCompat):
         else:
             cov = covariances_from_scales_quats(self._log_scales(), self.gauss_params["quats"])
             image = R.blur(self, project_anisotropic_gaussians(self.means - t, cov, self.amplitudes, axes, rows, cols), rows)[0]
-        if view is not None and "background" in self.view_params and not extra and background:
-            image = R.add_view_background(self, image, view, rows, cols)
+        if view is not None and "background" in self.view_params and not extra:
+            with_floor = R.add_view_background(self, image, view, rows, cols)
+            image, extra = (with_floor, extra) if background else (image, {"background": (with_floor - image)[..., None]})
         projection = image[..., None]
         h, w = image.shape
-        # A line integral has no depth; the viewer composites its scene (atom points, frustums)
-        # with our image by depth: put the image behind everything.
+        # A line integral has no depth: the image goes behind the viewer's scene (atom points, frustums).
         depth = torch.full((1, 1, 1), 1e3, device=dev, dtype=dt).expand(h, w, 1)
         return {"rgb": (projection / DATA_RANGE).clamp(0.0, 1.0).expand(h, w, 3), "projection": projection, "depth": depth, **extra}
 

@@ -109,7 +109,7 @@ def blur(model, images: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
     """(V, H, W) projections through the model's learned point-spread function, if it has one."""
     if "psf" not in model.view_params or len(rows) < 2:
         return images
-    return apply_kernel(images, float(rows[1] - rows[0]), model.psf_widths.to(images), model.view_params["psf"].to(images))  # read, not learned, with psf held-out  # kept non-negative by project_weights after each step
+    return apply_kernel(images, float(rows[1] - rows[0]), model.psf_widths.to(images), model.view_params["psf"].to(images))  # kept non-negative by project_weights after each step (psf held-out: read, not learned)
 
 
 def add_view_background(model, image: torch.Tensor, view: int, rows: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:
