@@ -71,7 +71,7 @@ def test_a_too_close_pair_needs_the_prior_odds_to_stay_two(monkeypatch):
     control.noise, control.pixel_size, control.n_views = NoiseModel(1e-9, 0.0), 0.003, 40
     control.view_dirs = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)
     distance, prior = control.shortest_distance(params)
-    assert 2.2 <= distance / 0.01 <= 2.5 and prior > 5.0  # one pair in 345 atoms is that close
+    assert 2.2 <= distance / 0.01 <= 2.5 and prior(np.array([0.012]))[0] > 5.0  # one pair in 345 atoms is that close
     level = chi2.isf(control.false_alarm_rate / control.cells(), df=5)
 
     def change(pairs):  # a test pair's merge costs the usual level + 1; any other pair far more
@@ -83,3 +83,27 @@ def test_a_too_close_pair_needs_the_prior_odds_to_stay_two(monkeypatch):
     left = params["means"].detach().numpy() / 0.01
     assert np.min(np.linalg.norm(left - (lattice[0] + [0, 0, 1.2]), axis=1)) > 0.5  # the close pair became one
     assert np.min(np.linalg.norm(left - (lattice[-1] + [0, 0, 2.4]), axis=1)) < 1e-9  # the far one stayed two
+
+
+def test_a_pair_half_a_bond_apart_is_rarer_than_one_just_under_the_onset():
+    """A fit that split 3% of an a-Pd particle's atoms into halves 1.0 Å apart reads the split
+    halves' share at the onset; following the first shell's low side, a pair 1.0 Å apart is as
+    rare as one in the particle's atoms (the shell holds none that close), while one just under
+    the onset keeps at least half the measured share.  Where most atoms have their nearest
+    neighbour far below the main peak (carbon at scale 0.5: its C-C bonds under the 2.4 Å
+    second-neighbour peak) the share stays as measured at every distance."""
+    from gaussian_atoms_method.atoms.pair_distribution import first_shell
+
+    positions = make_particle("apd", scale=0.5).positions
+    rng = np.random.default_rng(0)
+    split = rng.choice(len(positions), 60, replace=False)
+    halves = np.concatenate([np.delete(positions, split, axis=0), positions[split], positions[split] + [0.0, 0.0, 1.0]])
+    shell = first_shell(halves)
+    assert 2.2 <= shell.onset < shell.peak <= 2.9 and shell.share >= 120 / len(halves) and shell.inner_share < 0.5
+    f = shell.share_closer(np.array([1.0, shell.onset - 0.01, shell.onset]))
+    assert f[0] == pytest.approx(1.0 / len(halves))
+    assert 0.5 * shell.share <= f[1] <= shell.share and f[2] == shell.share
+
+    carbon = first_shell(make_particle("carbon", scale=0.5).positions)
+    assert carbon.onset > 2.0 and carbon.inner_share > 0.9
+    assert np.all(carbon.share_closer(np.array([1.0, 1.4])) == carbon.share)

@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Mapping, MutableMapping
+from typing import Callable, Mapping, MutableMapping
 
 import numpy as np
 import torch
@@ -597,8 +597,8 @@ class DensityControl:
         to 0.9943, before the refit.
 
         A pair closer than the material's shortest distance (:meth:`shortest_distance`) stays two
-        only where the likelihood demands it: its level is raised by the prior odds against so
-        close a pair."""
+        only where the likelihood demands it: its level is raised by the prior odds against a
+        pair at its distance, the closer the more."""
         from scipy.stats import chi2
 
         level = chi2.isf(self.false_alarm_rate / self.cells(), df=5)
@@ -613,8 +613,8 @@ class DensityControl:
             change = self.likelihood_change(params, pairs, correlations) if len(pairs) else None
             if change is None:
                 return np.zeros((0, 2), dtype=np.int64)
-            too_close = np.linalg.norm(pos[pairs[:, 0]] - pos[pairs[:, 1]], axis=1) < closest
-            margin = change - (level + np.where(too_close, prior, 0.0))
+            distance = np.linalg.norm(pos[pairs[:, 0]] - pos[pairs[:, 1]], axis=1)
+            margin = change - (level + np.where(distance < closest, prior(distance), 0.0))
             order = np.argsort(margin, kind="stable")
             return pairs[order[margin[order] < 0]]
 
@@ -655,22 +655,34 @@ class DensityControl:
             removed += self._merge_labels(params, optimizers, *disjoint_pair_labels(params["means"].shape[0], pairs), param_lists)
         return removed
 
-    def shortest_distance(self, params: Mapping[str, torch.Tensor]) -> tuple[float, float]:
+    def shortest_distance(self, params: Mapping[str, torch.Tensor]) -> tuple[float, Callable[[np.ndarray], np.ndarray]]:
         """The material's shortest interatomic distance (normalised), read from the pair
         distribution of the confident atoms (atom-like, in the field, significant at
-        :meth:`significance_threshold`; :func:`..atoms.pair_distribution.shortest_distance`),
-        and the chi-square a pair closer than that must gain over one Gaussian beyond the usual
-        level: twice the log prior odds ``(1 - f) / f`` against it, with ``f`` the share of
-        confident atoms that close (a pair that is rare among the confident atoms needs that
-        much more evidence).  (inf, 0) with too few confident atoms or no noise model."""
-        from gaussian_atoms_method.atoms.pair_distribution import shortest_distance
+        :meth:`significance_threshold`; :func:`..atoms.pair_distribution.first_shell`), and the
+        chi-square a pair closer than that must gain over one Gaussian beyond the usual level, as
+        a function of the (K,) pair distances: twice the log prior odds ``(1 - f) / f`` against
+        it, with ``f`` the share of confident atoms with a neighbour that close
+        (:meth:`..atoms.pair_distribution.FirstShell.share_closer`: a pair that is rare among the confident
+        atoms needs that much more evidence).  (inf, no prior) with too few confident atoms or no
+        noise model."""
+        from gaussian_atoms_method.atoms.pair_distribution import first_shell
+
+        def no_prior(distance: np.ndarray) -> np.ndarray:
+            return np.zeros(np.shape(distance))
 
         if not self.noise_known():
-            return math.inf, 0.0
+            return math.inf, no_prior
         sigmas = widths(params, self.min_log_sigma)
         confident = self.atom_width(sigmas) & self.in_field(params["means"]) & (self.mass_significance(params) >= self.significance_threshold())
-        distance, share = shortest_distance(params["means"].detach()[confident].double().cpu().numpy())
-        return distance, max(2.0 * math.log((1.0 - share) / share), 0.0) if share < 1.0 else 0.0
+        shell = first_shell(params["means"].detach()[confident].double().cpu().numpy())
+        if not math.isfinite(shell.onset):
+            return shell.onset, no_prior
+
+        def prior(distance: np.ndarray) -> np.ndarray:
+            f = shell.share_closer(distance)
+            return np.maximum(2.0 * np.log(np.maximum(1.0 - f, 1e-300) / f), 0.0)
+
+        return shell.onset, prior
 
     def shortest_bond(self, means: torch.Tensor, strong: torch.Tensor) -> float:
         """The 5th percentile of the nearest-neighbour distances among the ``strong`` (N,) bool
