@@ -87,3 +87,24 @@ def test_a_fixed_kernel_is_held_and_bad_weights_are_named(tmp_path):
     for weights in ((0.5, 0.6, 0.0), (-0.1, 0.0, 0.0)):
         with pytest.raises(OptionError, match="psf-weights"):
             GaussianAtomsOptions(psf_weights=weights).check()
+
+
+def test_merge_costs_keep_a_demanded_pair_and_drop_a_split_atom(tmp_path):
+    """Noise-free views of two atoms 2.6 Å apart, split into even and odd views.  Read as two
+    Gaussians (the truth), merging them costs on both halves, in proportion to the views each
+    holds (to 25%: the halves see the pair at different angles).  An atom read as two halves of
+    its mass 0.2 Å apart is better merged on both halves (the merged Gaussian is the atom), by
+    far less than the real pair costs."""
+    from dataparsers.tilt_series_format import load_tilt_series
+    from gaussian_atoms_method.harness.held_out import pair_merge_costs, predicted_views, split_views
+
+    series = _series(tmp_path, n_views=8)
+    truth = AtomSet(positions=np.array([[0.0, 0.0, 0.0], [2.6, 0.0, 0.0], [-3.0, 3.0, 1.0]]), sigmas=np.array([0.5, 0.5, 0.5]), amplitudes=np.array([40.0, 40.0, 40.0]))
+    series.projections = predicted_views(truth, series).astype(np.float32)
+    even, odd = (load_tilt_series(p) for p in split_views(series, tmp_path / "views"))
+    costs = pair_merge_costs(truth, np.array([[0, 1]]), even, odd)[0]
+    assert costs[0] > 0 and costs[1] == pytest.approx(costs[0], rel=0.25)
+
+    halves = AtomSet(positions=np.array([[2.5, 0.0, 0.0], [2.7, 0.0, 0.0], [0.0, 0.0, 0.0], [-3.0, 3.0, 1.0]]), sigmas=np.full(4, 0.5), amplitudes=np.array([20.0, 20.0, 40.0, 40.0]))
+    split = pair_merge_costs(halves, np.array([[0, 1]]), even, odd)[0]
+    assert np.all(split < 0) and np.all(-split < 0.01 * costs.min())
