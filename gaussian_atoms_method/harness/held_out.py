@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from gaussian_atoms_method.atoms.atom_set import AtomSet
+from gaussian_atoms_method.atoms.merge import merged_values
 from gaussian_atoms_method.physics.geometry import detector_axes_from_tilts, pixel_centres
 from gaussian_atoms_method.physics.projector import project_gaussians
 from gaussian_atoms_method.physics.psf import KERNEL_WIDTHS_A, apply_kernel
@@ -116,22 +117,20 @@ def pair_merge_costs(atoms: AtomSet, pairs: np.ndarray, fitted, held, kernel_wei
         images = images[:, r0 : images.shape[1] - r0, c0 : images.shape[2] - c0]
         return images - images.mean(axis=(1, 2), keepdims=True)
 
-    residuals = []
-    for series in (fitted, held):
-        residuals.append(interior(np.asarray(series.projections, dtype=np.float64) - predicted_views(atoms, series, kernel_weights)))
-    pos, sig, amp = np.asarray(atoms.positions, dtype=np.float64), np.asarray(atoms.sigmas, dtype=np.float64), np.asarray(atoms.amplitudes, dtype=np.float64)
-    mass = amp * (2.0 * np.pi * sig**2) ** 1.5
+    residuals = [interior(np.asarray(series.projections, dtype=np.float64) - predicted_views(atoms, series, kernel_weights)) for series in (fitted, held)]
+    squares = [float((residual**2).sum()) for residual in residuals]
+    pos, sig, amp = (torch.as_tensor(np.asarray(v, dtype=np.float64)) for v in (atoms.positions, atoms.sigmas, atoms.amplitudes))
+    one_cluster = torch.zeros(2, dtype=torch.long)
     costs = np.zeros((len(pairs), 2))
-    for k, (i, j) in enumerate(np.asarray(pairs, dtype=np.int64).reshape(-1, 2)):
-        w = mass[[i, j]] / mass[[i, j]].sum()
-        width = float(w @ sig[[i, j]])
-        merged = AtomSet(positions=(w @ pos[[i, j]])[None], sigmas=np.array([width]), amplitudes=np.array([mass[[i, j]].sum() / (2.0 * np.pi * width**2) ** 1.5]))
-        pair = AtomSet(positions=pos[[i, j]], sigmas=sig[[i, j]], amplitudes=amp[[i, j]])
+    for k, ij in enumerate(np.asarray(pairs, dtype=np.int64).reshape(-1, 2)):
+        pair = AtomSet(positions=pos[ij].numpy(), sigmas=sig[ij].numpy(), amplitudes=amp[ij].numpy())
+        centre, width, height = merged_values(pos[ij], sig[ij], amp[ij], one_cluster, 1)  # mass-weighted, mass kept
+        merged = AtomSet(positions=centre.numpy(), sigmas=width.numpy(), amplitudes=height.numpy())
         scale = None
         for col, (series, residual) in enumerate(zip((fitted, held), residuals)):
             without = residual + interior(predicted_views(pair, series, kernel_weights))  # the residual with the pair taken out
             one = interior(predicted_views(merged, series, kernel_weights))
             if scale is None:
                 scale = float((without * one).sum() / max((one * one).sum(), 1e-300))
-            costs[k, col] = float(((without - scale * one) ** 2).sum() - (residual**2).sum())
+            costs[k, col] = float(((without - scale * one) ** 2).sum()) - squares[col]
     return costs
