@@ -25,7 +25,7 @@ shell.  Pure numpy.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -136,6 +136,5 @@ def first_shell(positions: np.ndarray) -> FirstShell:
         density += (np.exp(-0.5 * ((grid[:, None] - d[None, chunk]) / bandwidth) ** 2) / d[None, chunk] ** 2).sum(axis=1)
     peak = int(np.argmax(density))
     below = np.nonzero(density[: peak + 1] < 0.5 * density[peak])[0]
-    onset, top = (float(grid[below[-1]]) if len(below) else 0.0), float(grid[peak])
-    inner = top - INNER_WIDTHS * max(top - onset, 1e-12) / HALF_MAXIMUM_Z
-    return FirstShell(onset, top, max(float(np.mean(nearest < onset)), 1.0 / n), float(np.mean(nearest < inner)), n)
+    shell = FirstShell(float(grid[below[-1]]) if len(below) else 0.0, float(grid[peak]), 1.0, 0.0, n)
+    return replace(shell, share=max(float(np.mean(nearest < shell.onset)), 1.0 / n), inner_share=float(np.mean(nearest < shell.peak - INNER_WIDTHS * shell.width)))
