@@ -91,8 +91,10 @@ import torch
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from gaussian_atoms_method.atoms import volume_filters
 from gaussian_atoms_method.atoms.deconvolution import matched_response, peak_sharpness, remainder_sites
-from gaussian_atoms_method.atoms.peaks import random_field_threshold, separated_maxima
+from gaussian_atoms_method.atoms.peaks import random_field_threshold
+from gaussian_atoms_method.atoms.volume_filters import separated_maxima
 from gaussian_atoms_method.atoms.point_response import backprojected_atom, clean_peaks, point_response
 from gaussian_atoms_method.physics.noise import NoiseModel, noise_from_projections
 from gaussian_atoms_method.physics.reconstruction import Volume, reconstruct
@@ -224,38 +226,47 @@ def backprojection_candidates(
         start = int(volume.origin_index[2]) - depth // 2
         volume = Volume(np.ascontiguousarray(volume.data[:, :, max(start, 0) : start + depth]), volume.spacing_A, volume.origin_index - np.array([0.0, 0.0, max(start, 0)]))
     sigma_vox = smoothing_A / volume.spacing_A
+    # The filters and the maxima run on ``device`` in float32 (the back-projection's noise is
+    # far above float32's rounding); only peak indices and values come back to the host.
+    field = volume_filters.as_volume(volume.data, device, torch.float32)
+
+    def on_host(filtered):  # a filter of tensors applied to a (small) host array: the noise sample
+        return lambda v: filtered(volume_filters.as_volume(v, device, torch.float32)).cpu().numpy()
 
     def smooth(v):  # the matched filter: the data and the noise sample go through the same one
-        return ndimage.gaussian_filter(v, sigma_vox) if smoothing_A > 0 else v
+        return volume_filters.gaussian_filter(v, sigma_vox) if smoothing_A > 0 else v
 
-    data = smooth(volume.data)
+    data = smooth(field)
     level = -math.inf
     if max_count is None:  # as many as stand above the back-projected noise
         sample, variance = backprojected_noise(projections, angles_deg, pixel_size_A, tilt_axis, device, noise=noise)
-        level = noise_level(sample, math.sqrt(float(variance.mean())), smooth, false_alarm_rate, data.size)
+        level = noise_level(sample, math.sqrt(float(variance.mean())), on_host(smooth), false_alarm_rate, data.numel())
     # strongest first, so a maximum above the level is only ever suppressed by a stronger one
     positions = separated_maxima(data, volume.spacing_A, min_distance_A, level)
     if max_count is None:
         if len(positions):  # one candidate per atom, not one per maximum of its ridge (step 3)
             response, centre = point_response(projections.shape, angles_deg, pixel_size_A, smoothing_A, tilt_axis, smoothing_A, tilt_axis_angle_deg, device)
-            positions = positions[clean_peaks(positions, data[tuple(positions.T)], response, centre, level)[0]]
+            positions = positions[clean_peaks(positions, volume_filters.values_at(data, positions), response, centre, level)[0]]
     positions = positions[:max_count]
     if shoulders and smoothing_A > 0 and (max_count is None or len(positions) < max_count):
-        laplacian = -ndimage.gaussian_laplace(volume.data, sigma_vox)
-        extra = separated_maxima(laplacian, volume.spacing_A, min_distance_A)
+        laplacian = -volume_filters.gaussian_laplace(field, sigma_vox)
+        # Only maxima above the strength cut can be kept, and one is only ever suppressed by a
+        # stronger one, so the search starts at the cut (a few thousand voxels, not half the volume).
+        strength = shoulder_strength * np.percentile(volume_filters.values_at(laplacian, positions), 90) if len(positions) else -math.inf
+        extra = separated_maxima(laplacian, volume.spacing_A, min_distance_A, strength)
         if len(positions) and len(extra):
             distance, _ = cKDTree(positions * volume.spacing_A).query(extra * volume.spacing_A)
-            strong = np.percentile(laplacian[tuple(positions.T)], 90)
-            extra = extra[(distance > min_distance_A) & (laplacian[tuple(extra.T)] >= shoulder_strength * strong)]
+            extra = extra[(distance > min_distance_A) & (volume_filters.values_at(laplacian, extra) >= strength)]
+        del laplacian
         positions = np.concatenate([positions, extra])[:max_count]
     if max_count is None and len(positions) and fine_scale_A != 0:  # step 5: the finest scale the detector samples
         fine_vox = max(fine_scale_A / volume.spacing_A, 1.0) if fine_scale_A is not None else 1.0
 
         def fine_filter(v):  # the data and the noise sample through the same Laplacian
-            return -ndimage.gaussian_laplace(v, fine_vox)
+            return -volume_filters.gaussian_laplace(v, fine_vox)
 
-        fine = fine_filter(volume.data.astype(np.float32))  # float32: half the time, same maxima
-        fine_level = noise_level(sample, math.sqrt(float(np.percentile(variance, BRIGHT_PIXELS_PERCENTILE))), fine_filter, false_alarm_rate, data.size)
+        fine = fine_filter(field)
+        fine_level = noise_level(sample, math.sqrt(float(np.percentile(variance, BRIGHT_PIXELS_PERCENTILE))), on_host(fine_filter), false_alarm_rate, data.numel())
         maxima = separated_maxima(fine, volume.spacing_A, fine_min_distance_A, fine_level)
         resolved = np.zeros((0, 3), dtype=np.int64)  # step 5's additions
         if len(maxima):
@@ -263,14 +274,15 @@ def backprojection_candidates(
             resolved = maxima[distance > fine_min_distance_A]
             positions = np.concatenate([positions, resolved])
         if deconvolve and len(resolved):  # step 6: what the candidates' responses leave unexplained
+            fine = fine.cpu().numpy()
             narrow_A = max(0.3, 0.7 * pixel_size_A)  # sampled by the detector
             narrow = backprojected_atom(projections.shape, angles_deg, pixel_size_A, narrow_A, tilt_axis, tilt_axis_angle_deg, device).data
             sharpness = float(np.median(peak_sharpness(fine, maxima[: max(len(maxima) // 4, 1)])))  # the strongest quarter: atoms
-            response, centre, _ = matched_response(narrow, narrow_A, volume.spacing_A, fine_filter, sharpness)
+            response, centre, _ = matched_response(narrow, narrow_A, volume.spacing_A, on_host(fine_filter), sharpness)
             extra = remainder_sites(fine, positions, response, centre, volume.spacing_A, fine_min_distance_A, fine_level)
             positions = np.concatenate([positions, extra])
     positions_A = volume.index_to_A(positions)
-    return (positions_A, data[tuple(positions.T)]) if return_values else positions_A
+    return (positions_A, volume_filters.values_at(data, positions)) if return_values else positions_A
 
 
 def starting_positions(

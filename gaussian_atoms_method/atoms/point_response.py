@@ -77,19 +77,22 @@ def clean_peaks(peaks: np.ndarray, values: np.ndarray, response: np.ndarray, cen
     shape = np.array(response.shape)
     if len(peaks) == 0:
         return np.zeros(0, dtype=np.int64), amounts
-    # Only peaks within the response's box can take anything off one another: the neighbours
-    # of each from one k-d tree query, instead of every accepted peak (20,000 atoms: 17 s).
+    # Only peaks within the response's box can take anything off one another: every such pair
+    # (an earlier peak j, a later i) and its response weight from one k-d tree query, so the
+    # visit itself is one short dot product per peak (10,438 Au candidates: 0.1 s, not 2.7 s).
     reach = float(np.linalg.norm(np.maximum(centre, shape - 1 - centre)))
-    neighbours = cKDTree(peaks).query_ball_point(peaks, reach)
+    pairs = cKDTree(peaks).query_pairs(reach, output_type="ndarray")
+    later, earlier = pairs.max(axis=1), pairs.min(axis=1)
+    offsets = peaks[later] - peaks[earlier] + centre
+    inside = np.all((offsets >= 0) & (offsets < shape), axis=1)
+    later, earlier, weights = later[inside], earlier[inside], response[tuple(offsets[inside].T)]
+    order = np.argsort(later, kind="stable")
+    earlier, weights = earlier[order], weights[order]
+    bounds = np.searchsorted(later[order], np.arange(len(peaks) + 1))
     for i in range(len(peaks)):
-        value = float(values[i])
-        near = np.asarray(neighbours[i], dtype=np.int64)
-        near = near[accepted[near]]
-        if len(near):
-            offsets = peaks[i] - peaks[near] + centre
-            inside = np.all((offsets >= 0) & (offsets < shape), axis=1)
-            value -= float(np.dot(amounts[near][inside], response[tuple(offsets[inside].T)]))
-        if value > level:
+        lo, hi = bounds[i], bounds[i + 1]
+        value = float(values[i]) - (float(np.dot(amounts[earlier[lo:hi]], weights[lo:hi])) if hi > lo else 0.0)
+        if value > level:  # amounts of peaks not accepted stay 0, so they take nothing off
             accepted[i], amounts[i] = True, value
     index = np.nonzero(accepted)[0]
     return index, amounts[index]

@@ -14,8 +14,10 @@
 from __future__ import annotations
 
 import numpy as np
+import torch
 
-from gaussian_atoms_method.atoms.peaks import local_maxima, parabola_vertex, suppress_within
+from gaussian_atoms_method.atoms import volume_filters
+from gaussian_atoms_method.atoms.peaks import parabola_vertex, suppress_within
 
 
 def otsu_threshold(values: np.ndarray) -> float:
@@ -28,18 +30,20 @@ def otsu_threshold(values: np.ndarray) -> float:
     return float(threshold_otsu(values))
 
 
-def subvoxel_refine(volume: np.ndarray, peaks: np.ndarray) -> np.ndarray:
+def subvoxel_refine(volume, peaks: np.ndarray) -> np.ndarray:
     """(M, 3) fractional indices: per axis, the vertex of a parabola through the logarithms of
     each peak and its two neighbours (exact for Gaussian peaks), or through the values
-    themselves where one of them is not positive."""
+    themselves where one of them is not positive.  ``volume``: an array or a tensor (read on
+    its device, only the 7 values around each peak copied back)."""
+    field = volume if isinstance(volume, torch.Tensor) else volume_filters.as_volume(volume)
     peaks = np.asarray(peaks, dtype=np.int64)
     out = peaks.astype(np.float64)
-    f0 = volume[tuple(peaks.T)]
+    f0 = volume_filters.values_at(field, peaks)
     for axis in range(3):
         step = np.zeros(3, dtype=np.int64)
         step[axis] = 1
-        fm = volume[tuple((peaks - step).T)]
-        fp = volume[tuple((peaks + step).T)]
+        fm = volume_filters.values_at(field, peaks - step)
+        fp = volume_filters.values_at(field, peaks + step)
         positive = (fm > 0) & (fp > 0) & (f0 > 0)
         with np.errstate(divide="ignore", invalid="ignore"):
             lm, l0, lp = np.log(np.where(positive, fm, 1)), np.log(np.where(positive, f0, 1)), np.log(np.where(positive, fp, 1))
@@ -47,12 +51,12 @@ def subvoxel_refine(volume: np.ndarray, peaks: np.ndarray) -> np.ndarray:
     return out
 
 
-def trace_atoms(volume: np.ndarray, spacing_A: float, min_distance_A: float = 2.0, threshold_scale: float = 1.0, threshold: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+def trace_atoms(volume, spacing_A: float, min_distance_A: float = 2.0, threshold_scale: float = 1.0, threshold: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Trace atoms in a volume.
 
     Parameters
     ----------
-    volume : (X, Y, Z) array
+    volume : (X, Y, Z) array, or tensor (traced on its device: a GPU's SIRT volume stays there)
     spacing_A : float
         Voxel size, Å.
     min_distance_A : float
@@ -67,14 +71,14 @@ def trace_atoms(volume: np.ndarray, spacing_A: float, min_distance_A: float = 2.
     indices : (M, 3) float array of fractional voxel indices of the atoms
     intensities : (M,) peak values
     """
-    volume = np.asarray(volume, dtype=np.float64)
-    peaks = local_maxima(volume)
+    field = volume if isinstance(volume, torch.Tensor) else volume_filters.as_volume(volume)
+    peaks = volume_filters.local_maxima(field)
     if len(peaks) == 0:
         return np.zeros((0, 3)), np.zeros(0)
-    values = volume[tuple(peaks.T)]
+    values = volume_filters.values_at(field, peaks)
     thr = threshold if threshold is not None else threshold_scale * otsu_threshold(values)
     strong = values >= thr
     peaks, values = peaks[strong], values[strong]
     order = np.argsort(-values, kind="stable")
     keep = suppress_within(peaks * spacing_A, order, min_distance_A)
-    return subvoxel_refine(volume, peaks[keep]), values[keep]
+    return subvoxel_refine(field, peaks[keep]), values[keep]

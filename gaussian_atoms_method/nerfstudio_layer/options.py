@@ -12,9 +12,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal, Tuple
 
-from nerfstudio.models.splatfacto import SplatfactoModelConfig
-
 from gaussian_atoms_method.density.strategy import DensityControl
+from gaussian_atoms_method.nerfstudio_layer.lazy_compile import import_splatfacto
+
+SplatfactoModelConfig = import_splatfacto().SplatfactoModelConfig
 
 
 class OptionError(ValueError):

@@ -13,11 +13,15 @@ from typing import Dict, List
 
 import numpy as np
 import torch
-from nerfstudio.models.splatfacto import SplatfactoModel
 from torch.nn import Parameter
+
+from gaussian_atoms_method.nerfstudio_layer.lazy_compile import import_splatfacto
 
 from gaussian_atoms_method.nerfstudio_layer.viewer import mass_colours
 from gaussian_atoms_method.physics.projector import gaussian_mass
+
+
+SplatfactoModel = import_splatfacto().SplatfactoModel
 
 
 class SplatfactoCompat(SplatfactoModel):

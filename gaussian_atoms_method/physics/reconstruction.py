@@ -188,6 +188,7 @@ def reconstruct(
     angles_deg : (N,) array
     pixel_size_A : float
     method : {"fbp", "sart"}
+        (SIRT on any device: :func:`sirt`.)
     tilt_axis : {"y", "x"}
     centre_px : (2,) floats, optional
         Detector (row, col) of the tilt centre; default the middle.
@@ -215,13 +216,7 @@ def reconstruct(
 
     if method not in ("fbp", "sart"):
         raise ValueError(f"method must be 'fbp' or 'sart', got {method!r}")
-    projections = to_nominal_axis(np.asarray(projections, dtype=np.float64), tilt_axis_angle_deg, centre_px)
-    _, h, w = projections.shape
-    ci, cj = ((h - 1) / 2, (w - 1) / 2) if centre_px is None else centre_px
-    # Slices are perpendicular to the tilt axis: for "y" each detector column j is one slice
-    # whose in-plane detector coordinate runs along the rows (x), and vice versa.
-    slice_axis, in_plane_centre, axis_centre = (2, ci, cj) if tilt_axis == "y" else (1, cj, ci)
-    sino, length = _centred_sinograms(projections, in_plane_centre, slice_axis)
+    sino, length, axis_centre = slice_sinograms(projections, tilt_axis, centre_px, tilt_axis_angle_deg)
     theta = np.asarray(angles_deg, dtype=np.float64)
     size = length if slice_size_px is None or method != "fbp" else max(int(slice_size_px) | 1, length)  # odd: centre at size // 2
     if method == "fbp":
@@ -233,11 +228,87 @@ def reconstruct(
             for _ in range(max(1, sart_iterations)):
                 rec = iradon_sart(s, theta=theta, image=rec)
             recs.append(rec)
-    vol = np.swapaxes(np.asarray(recs), 1, 2) / pixel_size_A  # (slice, in-plane, depth)
+    return slices_to_volume(np.asarray(recs), pixel_size_A, tilt_axis, axis_centre)
+
+
+def slice_sinograms(projections: np.ndarray, tilt_axis: str = "y", centre_px=None, tilt_axis_angle_deg: float = 0.0) -> tuple[np.ndarray, int, float]:
+    """The (S, L, N) sinograms of the slices perpendicular to the tilt axis, each padded to odd
+    length ``L`` with the tilt centre at ``L // 2`` (the layout :func:`filtered_backprojection`,
+    :func:`sirt` and scikit-image take), and the detector index of the tilt centre along the
+    axis.  ``projections`` (N, H, W) are first resampled so that the tilt axis lies along the
+    detector direction ``tilt_axis`` names (:mod:`.geometry`)."""
+    projections = to_nominal_axis(np.asarray(projections, dtype=np.float64), tilt_axis_angle_deg, centre_px)
+    _, h, w = projections.shape
+    ci, cj = ((h - 1) / 2, (w - 1) / 2) if centre_px is None else centre_px
+    # Slices are perpendicular to the tilt axis: for "y" each detector column j is one slice
+    # whose in-plane detector coordinate runs along the rows (x), and vice versa.
+    slice_axis, in_plane_centre, axis_centre = (2, ci, cj) if tilt_axis == "y" else (1, cj, ci)
+    sino, length = _centred_sinograms(projections, in_plane_centre, slice_axis)
+    return sino, length, float(axis_centre)
+
+
+def slices_to_volume(recs, pixel_size_A: float, tilt_axis: str, axis_centre: float) -> Volume:
+    """A :class:`Volume` (values per Å) from (S, size, size) reconstructed slices in
+    scikit-image's orientation (``rec[depth, in-plane]``); an array stays an array, a tensor a
+    tensor on its device."""
+    size = recs.shape[-1]
+    vol = recs.swapaxes(1, 2) / pixel_size_A  # (slice, in-plane, depth)
     if tilt_axis == "y":
-        data = np.moveaxis(vol, 0, 1)  # (x, y, z)
+        data = vol.swapaxes(0, 1)  # (x, y, z)
         origin = np.array([size // 2, axis_centre, size // 2], dtype=np.float64)
     else:
         data = vol  # (x, y, z) with x the slice axis
         origin = np.array([axis_centre, size // 2, size // 2], dtype=np.float64)
-    return Volume(np.ascontiguousarray(data), float(pixel_size_A), origin)
+    data = data.contiguous() if hasattr(data, "contiguous") else np.ascontiguousarray(data)
+    return Volume(data, float(pixel_size_A), origin)
+
+
+def sirt(sinograms: np.ndarray, angles_deg: np.ndarray, iterations, device: str = "cpu", min_value: float | None = 0.0):
+    """SIRT (simultaneous iterative reconstruction) of a stack of sinograms at once, on
+    ``device``: ``x <- x + C A^T R (b - A x)``, with ``R`` and ``C`` the inverse row and column
+    sums of the projector ``A``.
+
+    ``A`` is the transpose of :func:`backprojection_matrix` (the linear-interpolation
+    back-projection FBP uses): each pixel's value is spread over the two detector samples either
+    side of its ray, which is the adjoint of that interpolation.  So SIRT and FBP share one
+    sparse matrix, built once on the device; each iteration is two sparse x dense products over
+    every slice at once.  ASTRA's SIRT3D is the same iteration with a ray-driven projector.
+
+    Parameters
+    ----------
+    sinograms : (S, L, N) array
+        As :func:`slice_sinograms` gives them.
+    angles_deg : (N,) array
+    iterations : iterable of int
+        Yield the reconstruction after each of these iteration counts (increasing).
+    device : torch device
+    min_value : float, optional
+        Clip every iterate below at this (0: a potential is not negative, ASTRA's
+        ``MinConstraint``); None: no constraint.
+
+    Yields
+    ------
+    (iteration, (S, L, L) float32 tensor on ``device``), in scikit-image's slice orientation.
+    """
+    import torch
+
+    sino = torch.as_tensor(np.asarray(sinograms, dtype=np.float32), device=device)
+    n_slices, length, n_angles = sino.shape
+    backproject = backprojection_matrix(angles_deg, length, length).to(device=device, dtype=torch.float32)
+    project = backproject.to_sparse_coo().t().coalesce().to_sparse_csr()  # A = B^T
+    measured = torch.nn.functional.pad(sino.permute(2, 1, 0), (0, 0, 0, 1)).reshape(n_angles * (length + 1), n_slices)
+    ones = torch.ones(length * length, 1, device=device)
+    rays = project @ ones  # each detector sample's sum of weights (A's row sums)
+    rays[length :: length + 1] = 0.0  # the zero sample after each angle's detector is not a ray
+    inv_rays = torch.where(rays > 0, 1.0 / rays.clamp_min(1e-12), torch.zeros_like(rays))
+    hits = backproject @ torch.ones(n_angles * (length + 1), 1, device=device)  # A's column sums
+    inv_hits = torch.where(hits > 0, 1.0 / hits.clamp_min(1e-12), torch.zeros_like(hits))
+    x = torch.zeros(length * length, n_slices, device=device)
+    done = 0
+    for target in iterations:
+        for _ in range(int(target) - done):
+            x += inv_hits * (backproject @ (inv_rays * (measured - project @ x)))
+            if min_value is not None:
+                x.clamp_(min=min_value)
+        done = max(done, int(target))
+        yield done, x.T.reshape(n_slices, length, length)
