@@ -310,7 +310,10 @@ class Benchmark:
     snapshot_every: int = 100
     """Score our atoms every this many training steps."""
     device: Literal["cpu", "cuda"] = "cpu"
-    baselines: tuple[Literal["fbp", "sart"], ...] = ("fbp", "sart")
+    baselines: tuple[Literal["fbp", "sart", "sirt", "astra-fbp", "astra-sirt", "astra-cuda-fbp", "astra-cuda-sirt"], ...] = ()
+    """Classical reconstructions + tracing in the same run; none given: FBP, scikit-image's SART
+    and ASTRA's CPU FBP and SIRT on the CPU, FBP, SIRT on the GPU and ASTRA's CUDA FBP and SIRT on
+    cuda (ASTRA's rows are skipped, with a line, without astra-toolbox or its CUDA libraries)."""
     train_args: str = ""
     """Further ns-train options for our run, given with "=", e.g. --train-args="--pipeline.model.coarse-steps 500"."""
     launcher: Literal["gaussian-atoms", "ns-train"] = "gaussian-atoms"

@@ -80,8 +80,10 @@ def clean_peaks(peaks: np.ndarray, values: np.ndarray, response: np.ndarray, cen
     # Only peaks within the response's box can take anything off one another: every such pair
     # (an earlier peak j, a later i) and its response weight from one k-d tree query, so the
     # visit itself is one short dot product per peak (10,438 Au candidates: 0.1 s, not 2.7 s).
-    reach = float(np.linalg.norm(np.maximum(centre, shape - 1 - centre)))
-    pairs = cKDTree(peaks).query_pairs(reach, output_type="ndarray")
+    # (Chebyshev distance: exact on integer voxels, where the box's Euclidean half-diagonal
+    # lost corner pairs to rounding.)
+    reach = float(np.max(np.maximum(centre, shape - 1 - centre)))
+    pairs = cKDTree(peaks).query_pairs(reach, p=np.inf, output_type="ndarray").reshape(-1, 2)
     later, earlier = pairs.max(axis=1), pairs.min(axis=1)
     offsets = peaks[later] - peaks[earlier] + centre
     inside = np.all((offsets >= 0) & (offsets < shape), axis=1)

@@ -20,6 +20,16 @@ from pathlib import Path
 
 import numpy as np
 
+CLASSICAL = ("fbp", "sart", "sirt", "astra-fbp", "astra-sirt", "astra-cuda-fbp", "astra-cuda-sirt")
+"""Classical reconstructions + tracing: scikit-image's FBP (our sparse-matrix form, on the run's
+device) and SART (one sweep, CPU); SIRT with our FBP's sparse matrix on the run's device
+(:func:`~gaussian_atoms_method.physics.reconstruction.sirt`); ASTRA's FBP and SIRT on the CPU
+and with its CUDA algorithms (:mod:`.astra_rows`, optional)."""
+
+SIRT_ITERATIONS = (10, 25, 50, 100, 200)
+"""SIRT's rows: traced after this many iterations (each row's time is the iterations' so far
+plus its own tracing), so the table shows SIRT's best, wherever it falls."""
+
 FIELDS = ["method", "step", "seconds", "tpr", "fp_per_true_atom", "rmsd_pm", "n_pred", "gaussians", "peak_rss_GB", "peak_gpu_GB"]
 
 
@@ -30,31 +40,27 @@ class TimeToAccuracy:
     iterations: int = 3000
     snapshot_every: int = 100
     device: str = "cpu"
-    baselines: tuple[str, ...] = ("fbp", "sart")
+    baselines: tuple[str, ...] = ()
+    """Classical rows (:data:`CLASSICAL`); empty: :func:`default_baselines` for the device."""
     extra_args: tuple[str, ...] = ()
     launcher: str = "gaussian-atoms"
 
     def run(self) -> list[dict]:
         from gaussian_atoms_method.atoms.atom_set import read_atoms
-        from gaussian_atoms_method.physics.reconstruction import reconstruct
+        from gaussian_atoms_method.atoms.matching import score_atoms
         from gaussian_atoms_method.harness.benchmark import train_ours
         from gaussian_atoms_method.harness.evaluation import load_reference
-        from gaussian_atoms_method.atoms.matching import score_atoms
-        from gaussian_atoms_method.harness.tracing import trace_atoms
 
         series, truth, _, _ = load_reference(self.data)
         # FBP runs in torch: its import (seconds) is this process's start-up, not the baseline's.
         import torch  # noqa: F401
 
         rows = []
-        for method in self.baselines:
-            start = time.perf_counter()
-            vol = reconstruct(series.projections, series.angles_deg, series.pixel_size_A, method, series.tilt_axis, series.centre_px, tilt_axis_angle_deg=series.tilt_axis_angle_deg)
-            idx, _ = trace_atoms(vol.data, vol.spacing_A)
-            seconds = time.perf_counter() - start
-            s = score_atoms(vol.index_to_A(idx) + series.origin_A, truth.positions)
-            rows.append(self._row(method, "", seconds, s, rss_gb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6))
-            print(self._line(rows[-1]), flush=True)
+        for method in self.baselines or default_baselines(self.device):
+            for step, seconds, positions in classical_rows(series, method, self.device):
+                s = score_atoms(positions, truth.positions)
+                rows.append(self._row(method, step, seconds, s, rss_gb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6))
+                print(self._line(rows[-1]), flush=True)
         run_dir = self.output / "run"
         launch = time.time()
         train_ours(self.data, run_dir, self.iterations, self.device, ("--pipeline.model.snapshot-every", str(self.snapshot_every), *self.extra_args), launcher=self.launcher)
@@ -95,6 +101,65 @@ class TimeToAccuracy:
         plot_time_to_accuracy(rows, self.output / "time_to_accuracy.png")
 
 
+def default_baselines(device: str) -> tuple[str, ...]:
+    """The classical rows a benchmark on ``device`` runs: FBP everywhere; on the CPU
+    scikit-image's SART and ASTRA's CPU FBP and SIRT; on a GPU SIRT on the device and ASTRA's
+    CUDA FBP and SIRT (ASTRA's rows are skipped, with a line, where it cannot run)."""
+    if device == "cpu":
+        return ("fbp", "sart", "astra-fbp", "astra-sirt")
+    return ("fbp", "sirt", "astra-cuda-fbp", "astra-cuda-sirt")
+
+
+def classical_rows(series, method: str, device: str = "cpu"):
+    """Reconstruct ``series`` with ``method`` (:data:`CLASSICAL`) and trace atoms; yields
+    (step, seconds, (M, 3) positions in Å) per result: one for FBP and SART, one per
+    :data:`SIRT_ITERATIONS` for SIRT (step: the iterations).  Seconds: from the data in memory
+    to traced atoms, the device synchronised.  An ASTRA method that cannot run here yields
+    nothing and prints one line saying why."""
+    import torch
+
+    from gaussian_atoms_method.harness.astra_rows import astra_slices, astra_unavailable
+    from gaussian_atoms_method.harness.tracing import trace_atoms
+    from gaussian_atoms_method.physics.reconstruction import reconstruct, sirt, slice_sinograms, slices_to_volume
+
+    if method not in CLASSICAL:
+        raise ValueError(f"unknown classical method {method!r}; expected one of {', '.join(CLASSICAL)}")
+
+    def synchronise():
+        if torch.cuda.is_available() and device != "cpu":
+            torch.cuda.synchronize()
+
+    def traced(volume):
+        idx, _ = trace_atoms(volume.data, volume.spacing_A)
+        return volume.index_to_A(idx) + series.origin_A
+
+    start = time.perf_counter()
+    if method in ("fbp", "sart"):
+        volume = reconstruct(series.projections, series.angles_deg, series.pixel_size_A, method, series.tilt_axis, series.centre_px, device=device, tilt_axis_angle_deg=series.tilt_axis_angle_deg)
+        positions = traced(volume)
+        yield "", time.perf_counter() - start, positions
+        return
+    if method.startswith("astra"):
+        gpu = method.startswith("astra-cuda")
+        reason = astra_unavailable(gpu)
+        if reason:
+            print(reason, flush=True)
+            return
+    sino, _, axis_centre = slice_sinograms(series.projections, series.tilt_axis, series.centre_px, series.tilt_axis_angle_deg)
+    if method == "sirt":
+        iterates = sirt(sino, series.angles_deg, SIRT_ITERATIONS, device)
+    else:
+        iterates = astra_slices(sino, series.angles_deg, method.rsplit("-", 1)[-1], SIRT_ITERATIONS, gpu)
+    tracing = 0.0  # earlier rows' tracing is not part of later rows' time
+    for step, slices in iterates:
+        synchronise()
+        traced_at = time.perf_counter()
+        positions = traced(slices_to_volume(slices, series.pixel_size_A, series.tilt_axis, axis_centre))
+        now = time.perf_counter()
+        yield ("" if method.endswith("fbp") else step), now - start - tracing, positions
+        tracing += now - traced_at
+
+
 def plot_time_to_accuracy(rows: list[dict], path: Path) -> None:
     import matplotlib
 
@@ -105,8 +170,9 @@ def plot_time_to_accuracy(rows: list[dict], path: Path) -> None:
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
     for ax, key, label in zip(axes, ("tpr", "fp_per_true_atom", "rmsd_pm"), ("TPR", "false positives per atom", "RMSD (pm)")):
         ax.plot([r["seconds"] for r in ours], [r[key] for r in ours], "o-", ms=3, label="ours (during training)")
-        for r, marker in zip([r for r in rows if r["method"] != "ours"], "s^v"):
-            ax.plot([r["seconds"]], [r[key]], marker, ms=8, label=f"{r['method']} + tracing")
+        for method, marker in zip(dict.fromkeys(r["method"] for r in rows if r["method"] != "ours"), "s^vDPX*"):
+            points = [r for r in rows if r["method"] == method]
+            ax.plot([r["seconds"] for r in points], [r[key] for r in points], marker + ("--" if len(points) > 1 else ""), ms=7, label=f"{method} + tracing")
         ax.set_xlabel("wall time (s)")
         ax.set_ylabel(label)
         if key == "fp_per_true_atom":

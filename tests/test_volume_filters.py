@@ -1,0 +1,64 @@
+"""The start's filters and maxima in torch against scipy's and numpy's references (float64)."""
+
+import numpy as np
+import pytest
+import torch
+from scipy import ndimage
+from scipy.spatial import cKDTree
+
+from gaussian_atoms_method.atoms import peaks, volume_filters
+from gaussian_atoms_method.atoms.point_response import clean_peaks
+
+
+@pytest.mark.parametrize("sigma_vox", [0.8, 2.0, 3.5])
+def test_gaussian_filter_and_laplace_equal_scipy(sigma_vox):
+    """Same kernels and scipy's reflect boundary, also where the kernel is longer than an axis
+    (sigma 3.5: radius 14 on a 9-voxel axis): equal to float64 rounding."""
+    volume = np.random.default_rng(0).standard_normal((23, 9, 31))
+    tensor = torch.from_numpy(volume)
+    for ours, theirs in ((volume_filters.gaussian_filter, ndimage.gaussian_filter), (volume_filters.gaussian_laplace, ndimage.gaussian_laplace)):
+        expected = theirs(volume, sigma_vox)
+        np.testing.assert_allclose(ours(tensor, sigma_vox).numpy(), expected, rtol=0, atol=1e-12 * np.abs(expected).max())
+
+
+def test_pooled_maxima_equal_the_numpy_search():
+    """The maximum-pool search (what a GPU runs) finds the voxels the numpy search finds, at a
+    level and without one, and the strongest-first suppression keeps the same ones."""
+    field = ndimage.gaussian_filter(np.random.default_rng(1).standard_normal((30, 26, 28)), 1.5)
+    tensor = torch.from_numpy(field)
+    for level in (0.0, 0.05):
+        expected = peaks.local_maxima(field, level)
+        np.testing.assert_array_equal(volume_filters.local_maxima(tensor, level, pooled=True), expected)
+        np.testing.assert_array_equal(volume_filters.local_maxima(tensor, level), expected)
+    np.testing.assert_array_equal(volume_filters.separated_maxima(tensor, 0.25, 1.0, 0.02), peaks.separated_maxima(field, 0.25, 1.0, 0.02))
+
+
+def _clean_reference(found, values, response, centre, level):
+    """CLEAN as a plain loop: each peak less every accepted earlier peak's response there."""
+    accepted, amounts = [], []
+    for i in range(len(found)):
+        value = values[i]
+        for j, amount in zip(accepted, amounts):
+            offset = found[i] - found[j] + centre
+            if np.all(offset >= 0) and np.all(offset < response.shape):
+                value -= amount * response[tuple(offset)]
+        if value > level:
+            accepted.append(i)
+            amounts.append(value)
+    return np.array(accepted, dtype=np.int64), np.array(amounts)
+
+
+def test_clean_peaks_equals_the_plain_loop():
+    rng = np.random.default_rng(2)
+    found = rng.integers(0, 40, (300, 3))
+    found = found[np.unique(found, axis=0, return_index=True)[1]]
+    values = np.sort(rng.uniform(0.5, 2.0, len(found)))[::-1]
+    grid = np.indices((9, 9, 9)) - 4
+    response = np.exp(-(grid**2).sum(axis=0) / 8.0)
+    centre = np.array([4, 4, 4])
+    index, amounts = clean_peaks(found, values, response, centre, 0.6)
+    expected_index, expected_amounts = _clean_reference(found, values, response, centre, 0.6)
+    assert 0 < len(expected_index) < len(found)  # some are taken off by a neighbour
+    np.testing.assert_array_equal(index, expected_index)
+    np.testing.assert_allclose(amounts, expected_amounts, rtol=1e-12)
+    assert len(cKDTree(found).query_pairs(4 * np.sqrt(3))) > 0  # neighbours within reach exist
