@@ -319,13 +319,17 @@ class Benchmark:
     launcher: Literal["gaussian-atoms", "ns-train"] = "gaussian-atoms"
     """Start our run with `gaussian-atoms train` or `ns-train gaussian-atoms` (same training,
     longer start-up): the time since launch includes it."""
+    sirt_iterations: tuple[int, ...] = (10, 25, 50, 100, 200)
+    """SIRT rows (ours and ASTRA's): trace after this many iterations (increasing)."""
 
     def main(self) -> None:
         from gaussian_atoms_method.harness.time_to_accuracy import TimeToAccuracy
 
         if self.snapshot_every <= 0:
             raise ValueError(f"--snapshot-every must be positive, got {self.snapshot_every}")
-        TimeToAccuracy(self.data, self.output, self.iterations, self.snapshot_every, self.device, self.baselines, tuple(shlex.split(self.train_args)), self.launcher).run()
+        if not self.sirt_iterations or any(b <= a for a, b in zip((0,) + self.sirt_iterations, self.sirt_iterations)):
+            raise ValueError(f"--sirt-iterations must be positive and increasing, got {' '.join(map(str, self.sirt_iterations))}")
+        TimeToAccuracy(self.data, self.output, self.iterations, self.snapshot_every, self.device, self.baselines, tuple(shlex.split(self.train_args)), self.launcher, self.sirt_iterations).run()
         print(f"wrote {self.output / 'time_to_accuracy.md'}, .csv and .png")
 
 

@@ -34,7 +34,7 @@ def test_sirt_reduces_the_residual_and_agrees_with_fbp():
     assert np.corrcoef(last.ravel(), fbp.ravel())[0, 1] > 0.8
 
 
-def test_classical_rows_trace_atoms_where_the_truth_is(monkeypatch):
+def test_classical_rows_trace_atoms_where_the_truth_is():
     """SIRT + tracing finds the cluster's atoms at every checkpoint, rows in iteration order."""
     atoms, sim = _series()
 
@@ -42,8 +42,7 @@ def test_classical_rows_trace_atoms_where_the_truth_is(monkeypatch):
         projections, angles_deg, pixel_size_A, tilt_axis = sim.projections, sim.angles_deg, sim.pixel_size_A, "y"
         centre_px, tilt_axis_angle_deg, origin_A = None, 0.0, np.zeros(3)
 
-    monkeypatch.setattr(time_to_accuracy, "SIRT_ITERATIONS", (20, 60))
-    rows = list(time_to_accuracy.classical_rows(Series, "sirt"))
+    rows = list(time_to_accuracy.classical_rows(Series, "sirt", sirt_iterations=(20, 60)))
     assert [step for step, _, _ in rows] == [20, 60] and all(seconds > 0 for _, seconds, _ in rows)
     for _, _, positions in rows:
         s = score_atoms(positions, atoms.positions)

@@ -82,13 +82,18 @@ def write_results(model, run_dir: Path) -> dict | None:
             + ", ".join(f"{a} {v * 100:.1f} pm" for a, v in zip("xyz", np.median(atoms.position_std_A, axis=0)))
         )
     # atoms() lists the Gaussians in the model's order: the density control's own test of the field
-    atoms, non_atoms = split_atoms(atoms, model.density.in_field(model.means.detach()).cpu().numpy(), run_dir / "classes.png")
+    # The atoms are written first and the pictures after them (matplotlib's import, and on a
+    # fresh machine its font cache, are not on the way to the result).
+    atoms, non_atoms, draw_classes = split_atoms(atoms, model.density.in_field(model.means.detach()).cpu().numpy(), run_dir / "classes.png")
     write_atoms(atoms, run_dir / "atoms.xyz")
     write_atoms(atoms, run_dir / "atoms.csv")
     write_atoms(non_atoms, run_dir / "non_atoms.xyz")
     CONSOLE.print(f"[bold]gaussian-atoms[/bold]: wrote {len(atoms)} atoms to {run_dir / 'atoms.xyz'} and {len(non_atoms)} non-atoms to non_atoms.xyz")
     truth = read_atoms(model.truth_path) if model.truth_path is not None else None
     scores = score_atoms(atoms.positions, truth.positions) if truth is not None else None
+    if scores is not None:
+        (run_dir / "evaluation.json").write_text(json.dumps(scores, indent=2) + "\n")
+    draw_classes()
     if len(atoms):
         title = f"{len(atoms)} atoms" + (
             f"; against the truth: TPR {scores['tpr']:.4f}, FP/atom {scores['fp_per_true_atom']:.4f}, RMSD {scores['rmsd_pm']:.1f} pm" if scores else ""
@@ -96,15 +101,16 @@ def write_results(model, run_dir: Path) -> dict | None:
         write_slices_png(atoms, run_dir / "slices.png", truth, title=title)
     if scores is None:
         return None
-    (run_dir / "evaluation.json").write_text(json.dumps(scores, indent=2) + "\n")
     CONSOLE.print(f"[bold]gaussian-atoms[/bold]: against {model.truth_path}: {json.dumps(scores)}")
     return scores
 
 
-def split_atoms(gaussians: AtomSet, in_field: np.ndarray, figure: Path | None = None) -> tuple[AtomSet, AtomSet]:
+def split_atoms(gaussians: AtomSet, in_field: np.ndarray, figure: Path | None = None):
     """The Gaussians as atoms and non-atoms: beyond the field of view, or in the field but
     outside the support (:func:`gaussian_atoms_method.atoms.classification.classify_gaussians`);
-    prints the counts (atoms per class) and, with ``figure``, draws the population there."""
+    prints the counts (atoms per class).  Returns the atoms, the non-atoms and a function of no
+    arguments that draws the population into ``figure`` (nothing without one), to call once the
+    atoms are written."""
     field = gaussians.subset(in_field)
     classes = classify_gaussians(field.masses, field.sigmas, field.positions)
     reported = np.zeros(len(gaussians), dtype=bool)
@@ -117,10 +123,13 @@ def split_atoms(gaussians: AtomSet, in_field: np.ndarray, figure: Path | None = 
     per_class = ", ".join(f"{v} in {k}" for k, v in counts.items()) if len(counts) > 1 else ""
     CONSOLE.print(f"gaussian-atoms: {int(reported.sum())} atoms{f' ({per_class}, by mass and width)' if per_class else ''}; "
                   f"{outside + beyond} non-atoms: {outside} outside the support (no neighbour within the material's distances), {beyond} beyond the field of view")  # fmt: skip
-    if figure is not None and len(field):
-        others = gaussians.subset(~in_field)
-        write_population_png(field.masses, field.sigmas, classes, figure, (others.masses, others.sigmas))
-    return gaussians.subset(reported), gaussians.subset(~reported)
+    others = gaussians.subset(~in_field)
+
+    def draw() -> None:
+        if figure is not None and len(field):
+            write_population_png(field.masses, field.sigmas, classes, figure, (others.masses, others.sigmas))
+
+    return gaussians.subset(reported), gaussians.subset(~reported), draw
 
 
 def write_snapshot(atoms: AtomSet, directory: Path, step: int, n_gaussians: int, peak_gpu_bytes: int) -> None:
