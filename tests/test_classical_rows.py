@@ -74,3 +74,13 @@ def test_astra_fbp_slice_has_our_orientation():
     (_, slices), = astra_slices(sino, sim.angles_deg, "fbp")
     ours = filtered_backprojection(sino, sim.angles_deg)
     assert np.corrcoef(slices.ravel(), ours.ravel())[0, 1] > 0.95
+
+
+def test_benchmark_refuses_sirt_iterations_out_of_order_in_one_line(tmp_path, capsys):
+    from gaussian_atoms_method.cli import entrypoint
+
+    with pytest.raises(SystemExit) as info:
+        entrypoint(["benchmark", "--data", str(tmp_path / "series"), "--output", str(tmp_path / "out"), "--sirt-iterations", "25", "10"])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and err.count("\n") == 1 and "--sirt-iterations" in err
+    assert not (tmp_path / "out").exists()

@@ -124,3 +124,11 @@ def test_the_floor_under_a_frame_atoms_reach_is_read_from_the_pixels_they_leave(
     assert plain - 10.0 > 1.0 and plain_var > 5.0
     assert abs(floor - 10.0) < 0.25 and se < 0.05
     assert 0.9 < smooth_var < 1.5
+
+
+def test_stable_order_equals_numpy_stable_argsort():
+    """Ties (counts take few values) keep their index order, as numpy's stable sort."""
+    from gaussian_atoms_method.physics.noise import stable_order
+
+    values = np.random.default_rng(3).poisson(2.0, 100_000).astype(np.float64)
+    np.testing.assert_array_equal(stable_order(values), np.argsort(values, kind="stable"))

@@ -94,6 +94,17 @@ def inflated(noise: NoiseModel, factor: float) -> NoiseModel:
     return NoiseModel(noise.read_var * f, noise.gain * f, noise.offset, noise.read_var_se * f, noise.gain_se * f, noise.misfit * f)
 
 
+def stable_order(values: np.ndarray) -> np.ndarray:
+    """``np.argsort(values, kind="stable")``, sorted by torch on a GPU where there is one (as the
+    start's back-projection runs there): the same order (both stable), and the series' millions
+    of pixels sort in milliseconds there instead of 0.5 s on the H100 machine's CPU (the start's
+    largest host cost after the filters moved to the GPU)."""
+    import torch
+
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    return torch.sort(torch.as_tensor(values, device=device), stable=True).indices.cpu().numpy()
+
+
 def binned_variance(residuals: np.ndarray, predicted: np.ndarray, bins: int = 16, min_count: int = 200, robust: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Residual variance in bins of the predicted value: robust, ``(1.4826 MAD)^2``, or the
     plain sample variance (``robust=False``: for counts of a few electrons, whose residuals
@@ -108,7 +119,7 @@ def binned_variance(residuals: np.ndarray, predicted: np.ndarray, bins: int = 16
     """
     r = np.asarray(residuals, dtype=np.float64).ravel()
     m = np.asarray(predicted, dtype=np.float64).ravel()
-    order = np.argsort(m, kind="stable")
+    order = stable_order(m)
     centres, variances, counts = [], [], []
     for chunk in np.array_split(order, bins):
         if len(chunk) < min_count:
