@@ -1,13 +1,15 @@
-"""Time to accuracy: our method evaluated during training against FBP and SART with tracing,
-on the same data in the same run (``gaussian-atoms benchmark``).
+"""Time to accuracy: our method evaluated during training against the classical
+reconstructions with tracing (:data:`CLASSICAL`: FBP, SART, SIRT, ASTRA's), on the same data in
+the same run (``gaussian-atoms benchmark``).
 
 Ours runs as ``gaussian-atoms train`` (or ``ns-train gaussian-atoms``: ``launcher``) with
 ``--pipeline.model.snapshot-every K``: every K steps the model writes its current atoms and
 the wall-clock time; each snapshot is scored against the truth, so every row is (seconds since
 the training process was launched, TPR, FP per atom, RMSD).  Launch time counts (nerfstudio's
-start-up and our back-projection start are part of what a user waits for).  FBP and SART (one
-sweep) are timed from reading the data to traced atoms.  Peak memory: the largest resident set of the training process (CPU) and the GPU's
-largest allocation when on CUDA.
+start-up and our back-projection start are part of what a user waits for).  The classical
+rows are timed from the data in memory to traced atoms (:func:`classical_rows`).  Peak memory:
+the largest resident set of the training process (CPU) and the GPU's largest allocation when
+on CUDA.
 """
 
 from __future__ import annotations
