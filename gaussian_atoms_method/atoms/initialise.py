@@ -188,7 +188,8 @@ def backprojection_candidates(
         Keep only Laplacian maxima at least this fraction of the 90th percentile of the
         Laplacian at the smoothed peaks (about a heavy atom's response).
     device : str
-        "cuda" runs the back-projection on the GPU (seconds less of start-up).
+        Where the back-projection, its filters and the search for maxima run ("cuda": the GPU;
+        :mod:`.volume_filters`).
     tilt_axis_angle_deg : float
         Angle of the tilt axis in the images (:mod:`gaussian_atoms_method.physics.geometry`).
     return_values : bool
