@@ -227,12 +227,12 @@ def backprojection_candidates(
         start = int(volume.origin_index[2]) - depth // 2
         volume = Volume(np.ascontiguousarray(volume.data[:, :, max(start, 0) : start + depth]), volume.spacing_A, volume.origin_index - np.array([0.0, 0.0, max(start, 0)]))
     sigma_vox = smoothing_A / volume.spacing_A
-    # The filters and the maxima run on ``device`` in float32 (the back-projection's noise is
-    # far above float32's rounding); only peak indices and values come back to the host.
-    field = volume_filters.as_volume(volume.data, device, torch.float32)
+    # The filters and the maxima run on ``device``; only peak indices and values come back to
+    # the host.  float64 as before: the candidates' order and starting masses are unchanged.
+    field = volume_filters.as_volume(volume.data, device)
 
     def on_host(filtered):  # a filter of tensors applied to a (small) host array: the noise sample
-        return lambda v: filtered(volume_filters.as_volume(v, device, torch.float32)).cpu().numpy()
+        return lambda v: filtered(volume_filters.as_volume(v, device, None)).cpu().numpy()
 
     def smooth(v):  # the matched filter: the data and the noise sample go through the same one
         return volume_filters.gaussian_filter(v, sigma_vox) if smoothing_A > 0 else v
@@ -266,7 +266,7 @@ def backprojection_candidates(
         def fine_filter(v):  # the data and the noise sample through the same Laplacian
             return -volume_filters.gaussian_laplace(v, fine_vox)
 
-        fine = fine_filter(field)
+        fine = fine_filter(field.float())  # float32: half the time, same maxima
         fine_level = noise_level(sample, math.sqrt(float(np.percentile(variance, BRIGHT_PIXELS_PERCENTILE))), on_host(fine_filter), false_alarm_rate, data.numel())
         maxima = separated_maxima(fine, volume.spacing_A, fine_min_distance_A, fine_level)
         resolved = np.zeros((0, 3), dtype=np.int64)  # step 5's additions
