@@ -20,6 +20,12 @@ from scipy import ndimage
 from gaussian_atoms_method.atoms import peaks
 
 
+def _off_cpu(volume: torch.Tensor, choice: bool | None) -> bool:
+    """``choice``, or by default whether ``volume`` lies off the CPU (where torch's kernels are
+    the fast ones)."""
+    return volume.device.type != "cpu" if choice is None else choice
+
+
 def gaussian_kernel1d(sigma: float, order: int = 0, truncate: float = 4.0) -> np.ndarray:
     """scipy's sampled 1D Gaussian (``order`` 0) or its second derivative (``order`` 2), of
     radius ``int(truncate * sigma + 0.5)`` samples, normalised as scipy does (the Gaussian
@@ -64,7 +70,7 @@ def gaussian_filter(volume: torch.Tensor, sigma_vox: float, in_torch: bool | Non
         Filter in torch (default: off the CPU).  On the CPU scipy itself runs (one core, as
         fast as torch's two here, and the start's values stay exactly what they were).
     """
-    if not (volume.device.type != "cpu" if in_torch is None else in_torch):
+    if not _off_cpu(volume, in_torch):
         return torch.from_numpy(ndimage.gaussian_filter(volume.numpy(), sigma_vox))
     kernel = gaussian_kernel1d(sigma_vox)
     for axis in range(volume.ndim):
@@ -75,9 +81,9 @@ def gaussian_filter(volume: torch.Tensor, sigma_vox: float, in_torch: bool | Non
 def gaussian_laplace(volume: torch.Tensor, sigma_vox: float, in_torch: bool | None = None) -> torch.Tensor:
     """scipy's ``ndimage.gaussian_laplace(volume, sigma_vox)`` of a 3D tensor: the sum over
     axes of the Gaussian's second derivative along that axis and the Gaussian along the
-    others.  The along-axis smoothings are shared: two of the three filters of each term are
-    applied once for two terms (six 1D passes, not nine).  ``in_torch``: as :func:`gaussian_filter`."""
-    if not (volume.device.type != "cpu" if in_torch is None else in_torch):
+    others.  The smoothings along x, and along x then y, are shared between terms (eight 1D
+    passes, not nine).  ``in_torch``: as :func:`gaussian_filter`."""
+    if not _off_cpu(volume, in_torch):
         return torch.from_numpy(ndimage.gaussian_laplace(volume.numpy(), sigma_vox))
     smooth, second = gaussian_kernel1d(sigma_vox), gaussian_kernel1d(sigma_vox, 2)
     x = _filter_axis(volume, smooth, 0)
@@ -94,7 +100,7 @@ def local_maxima(volume: torch.Tensor, level: float = 0.0, pooled: bool | None =
     :func:`gaussian_atoms_method.atoms.peaks.local_maxima` on the tensor's device, only the
     indices copied back.  ``pooled`` (default: off the CPU) compares every voxel with a 3x3x3
     maximum pool; on the CPU the numpy search of only the voxels above the level is faster."""
-    if not (volume.device.type != "cpu" if pooled is None else pooled):
+    if not _off_cpu(volume, pooled):
         return peaks.local_maxima(volume.numpy(), level)
     neighbourhood = torch.nn.functional.max_pool3d(volume[None, None], 3, stride=1, padding=1)[0, 0]
     peak = (volume >= neighbourhood) & (volume > max(float(level), 0.0))
