@@ -107,3 +107,31 @@ def test_a_pair_half_a_bond_apart_is_rarer_than_one_just_under_the_onset():
     carbon = first_shell(make_particle("carbon", scale=0.5).positions)
     assert carbon.onset > 2.0 and carbon.inner_share > 0.9
     assert np.all(carbon.share_closer(np.array([1.0, 1.4])) == carbon.share)
+
+
+def test_binned_kernel_density_stays_within_its_binning_bound_of_the_direct_sum():
+    """Binning moves each distance by at most half a bin, so each weighted kernel moves by at
+    most its weight times the Gaussian's steepest slope (exp(-1/2) / h) times that: the density
+    stays within that bound of the direct float64 sum everywhere, and the shell read from the
+    a-Pd particle's pair distances is the same."""
+    from scipy.spatial import cKDTree
+
+    from gaussian_atoms_method.atoms.pair_distribution import (
+        BINS_PER_GRID_STEP,
+        GRID_POINTS,
+        kernel_density_reference,
+        weighted_kernel_density,
+    )
+
+    positions = make_particle("apd", scale=0.5).positions
+    pairs = cKDTree(positions).query_pairs(5.0, output_type="ndarray")
+    d = np.linalg.norm(positions[pairs[:, 0]] - positions[pairs[:, 1]], axis=1)
+    w = 1.0 / d**2
+    grid = np.linspace(0.0, d.max(), GRID_POINTS)
+    for h in (0.01, 0.05, 0.2):
+        fast, slow = weighted_kernel_density(d, w, grid, h), kernel_density_reference(d, w, grid, h)
+        half_bin = 0.5 * (grid[1] - grid[0]) / BINS_PER_GRID_STEP
+        assert np.max(np.abs(fast - slow)) <= math.exp(-0.5) / h * half_bin * w.sum()
+        assert np.argmax(fast) == np.argmax(slow)
+        onset = lambda density: np.nonzero(density[: np.argmax(density) + 1] < 0.5 * density.max())[0][-1]  # noqa: E731
+        assert onset(fast) == onset(slow)

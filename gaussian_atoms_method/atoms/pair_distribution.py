@@ -95,6 +95,39 @@ class FirstShell:
         return np.where(distance < self.onset, np.clip(self.share * tail, 1.0 / self.n, self.share), self.share)
 
 
+GRID_POINTS = 512
+"""Points of the grid (0 to the longest pair distance) on which the pair distribution is read."""
+BINS_PER_GRID_STEP = 16
+"""The distances are binned this finely before the kernel sum (:func:`weighted_kernel_density`)."""
+
+
+def weighted_kernel_density(values: np.ndarray, weights: np.ndarray, grid: np.ndarray, bandwidth: float) -> np.ndarray:
+    """(G,) the Gaussian kernel density ``sum_i w_i exp(-(g - v_i)^2 / 2 h^2)`` of (K,) ``values``
+    with (K,) ``weights`` on the evenly spaced (G,) ``grid``, the values first binned at
+    1 / :data:`BINS_PER_GRID_STEP` of the grid's step.
+
+    Binning moves each value by at most half a bin (1/32 of a grid step), far below the grid's
+    own resolution of the onset, and makes the cost the grid times the bins rather than the grid
+    times the pairs: on the 54,000-atom a-Pd particle (1.6 million pairs) the direct sum took
+    6 s per call (:func:`kernel_density_reference`)."""
+    values, weights, grid = (np.asarray(a, dtype=np.float64) for a in (values, weights, grid))
+    step = (grid[-1] - grid[0]) / max(len(grid) - 1, 1) / BINS_PER_GRID_STEP
+    if not step > 0:
+        return kernel_density_reference(values, weights, grid, bandwidth)
+    index = np.clip(np.rint((values - grid[0]) / step).astype(np.int64), 0, None)
+    mass = np.bincount(index, weights=weights)
+    occupied = np.nonzero(mass)[0]
+    return kernel_density_reference(grid[0] + occupied * step, mass[occupied], grid, bandwidth)
+
+
+def kernel_density_reference(values: np.ndarray, weights: np.ndarray, grid: np.ndarray, bandwidth: float) -> np.ndarray:
+    """The direct sum of :func:`weighted_kernel_density`, in chunks of 4,096 values (bounded memory)."""
+    density = np.zeros(len(grid))
+    for chunk in np.array_split(np.arange(len(values)), max(1, len(values) // 4096)):
+        density += (np.exp(-0.5 * ((grid[:, None] - values[None, chunk]) / bandwidth) ** 2) * weights[None, chunk]).sum(axis=1)
+    return density
+
+
 def shortest_distance(positions: np.ndarray) -> tuple[float, float]:
     """The shortest interatomic distance of (N, 3) ``positions`` and the share of them closer
     (:func:`first_shell`'s onset and share)."""
@@ -130,10 +163,8 @@ def first_shell(positions: np.ndarray) -> FirstShell:
         return none
     q25, q75 = np.percentile(d, [25, 75])
     bandwidth = 0.9 * max(min(float(d.std()), (q75 - q25) / 1.349), 1e-6 * float(np.median(d))) * len(d) ** (-0.2)
-    grid = np.linspace(0.0, float(d.max()), 512)
-    density = np.zeros_like(grid)
-    for chunk in np.array_split(np.arange(len(d)), max(1, len(d) // 4096)):  # bounded memory
-        density += (np.exp(-0.5 * ((grid[:, None] - d[None, chunk]) / bandwidth) ** 2) / d[None, chunk] ** 2).sum(axis=1)
+    grid = np.linspace(0.0, float(d.max()), GRID_POINTS)
+    density = weighted_kernel_density(d, 1.0 / d**2, grid, bandwidth)
     peak = int(np.argmax(density))
     below = np.nonzero(density[: peak + 1] < 0.5 * density[peak])[0]
     shell = FirstShell(float(grid[below[-1]]) if len(below) else 0.0, float(grid[peak]), 1.0, 0.0, n)
