@@ -17,14 +17,17 @@ The classical pipeline classifies every traced peak (k-means into species and "n
   or one another.  The fence alone is too tight for a narrow bond distribution: on a
   simulated carbon particle it cut five real atoms 1.7-1.8 Å from their nearest found neighbour.
 
-Pure numpy.
+numpy, and torch for the mixture (:func:`gaussian_mixture`).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import math
+
 import numpy as np
+import torch
 from scipy.spatial import cKDTree
 
 from gaussian_atoms_method.atoms.pair_distribution import nearest_neighbour_distances
@@ -59,18 +62,63 @@ class Classification:
         return out
 
 
-def gaussian_mixture(x: np.ndarray, k: int, iterations: int = 200, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-    """EM for a ``k``-component Gaussian mixture with full covariances on (N, D) ``x``.
-
-    Starts from k-means++ seeds; covariances are regularised by 1e-6 of the data's variance.
-    Returns the weights (k,), means (k, D), covariances (k, D, D) and the log-likelihood."""
-    n, d = x.shape
+def _seeds(x: np.ndarray, k: int, seed: int) -> np.ndarray:
+    """(k, D) k-means++ seeds of (N, D) ``x``."""
+    n = len(x)
     rng = np.random.default_rng(seed)
     centres = [x[rng.integers(n)]]
     for _ in range(1, k):
         d2 = np.min([((x - c) ** 2).sum(axis=1) for c in centres], axis=0)
         centres.append(x[rng.choice(n, p=d2 / d2.sum())] if d2.sum() > 0 else x[rng.integers(n)])
-    means = np.array(centres)
+    return np.array(centres)
+
+
+def gaussian_mixture(x: np.ndarray, k: int, iterations: int = 200, seed: int = 0, device: str | torch.device = "cpu") -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """EM for a ``k``-component Gaussian mixture with full covariances on (N, D) ``x``, in
+    float64 torch on ``device``.
+
+    Starts from k-means++ seeds; covariances are regularised by 1e-6 of the data's variance;
+    stops when an iteration raises the log-likelihood by less than 1e-8 of it.  Returns the
+    weights (k,), means (k, D), covariances (k, D, D) and the log-likelihood.  The same
+    iterations as :func:`gaussian_mixture_reference` (numpy); torch because numpy's ``exp`` and
+    reductions over four components took 10 s for k = 1..4 on 54,000 Gaussians on the 2-core
+    machine, the final stage's largest cost after the pair distribution."""
+    n, d = x.shape
+    X = torch.as_tensor(np.asarray(x, dtype=np.float64), device=device)
+    Xt = X.T.contiguous()  # (D, N): N the long, contiguous axis of every product (4-10x faster on a CPU)
+    means = torch.as_tensor(_seeds(np.asarray(x, dtype=np.float64), k, seed), device=device)
+    ridge = 1e-6 * torch.diag(torch.atleast_1d(X.var(dim=0, unbiased=False) + 1e-12))
+    covs = (torch.cov(Xt).reshape(d, d) + ridge).expand(k, d, d).clone()
+    weights = torch.full((k,), 1.0 / k, dtype=torch.float64, device=device)
+    previous = -math.inf
+    for _ in range(iterations):
+        log_p = _log_normals(Xt, means, covs) + weights.log()[:, None]
+        log_total = torch.logsumexp(log_p, dim=0)
+        resp = torch.exp(log_p - log_total)
+        likelihood = float(log_total.sum())
+        nk = resp.sum(dim=1) + 1e-12
+        weights = nk / n
+        means = (resp @ X) / nk[:, None]
+        diff = Xt[None] - means[:, :, None]
+        covs = (resp[:, None, :] * diff) @ diff.transpose(1, 2) / nk[:, None, None] + ridge
+        if likelihood - previous < 1e-8 * abs(likelihood):
+            break
+        previous = likelihood
+    return weights.cpu().numpy(), means.cpu().numpy(), covs.cpu().numpy(), likelihood
+
+
+def _log_normals(Xt: torch.Tensor, means: torch.Tensor, covs: torch.Tensor) -> torch.Tensor:
+    """(k, N) the log density of each of k normals (means (k, D), covariances (k, D, D)) at the
+    N points of (D, N) ``Xt``."""
+    diff = Xt[None] - means[:, :, None]
+    maha = ((torch.linalg.inv(covs) @ diff) * diff).sum(dim=1)
+    return -0.5 * (maha + torch.linalg.slogdet(covs)[1][:, None] + Xt.shape[0] * math.log(2 * math.pi))
+
+
+def gaussian_mixture_reference(x: np.ndarray, k: int, iterations: int = 200, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """:func:`gaussian_mixture` in numpy, one component at a time (the tests' reference)."""
+    n, d = x.shape
+    means = _seeds(x, k, seed)
     ridge = 1e-6 * np.diag(np.atleast_1d(x.var(axis=0) + 1e-12))
     covs = np.array([np.cov(x.T).reshape(d, d) + ridge for _ in range(k)])
     weights = np.full(k, 1.0 / k)
@@ -98,7 +146,7 @@ def _log_normal(x: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> np.ndarray:
     return -0.5 * (np.einsum("ni,ij,nj->n", diff, np.linalg.inv(cov), diff) + logdet + d * np.log(2 * np.pi))
 
 
-def classify_gaussians(masses: np.ndarray, sigmas_A: np.ndarray, positions_A: np.ndarray, max_classes: int = MAX_CLASSES) -> Classification:
+def classify_gaussians(masses: np.ndarray, sigmas_A: np.ndarray, positions_A: np.ndarray, max_classes: int = MAX_CLASSES, device: str | torch.device = "cpu") -> Classification:
     """Classes and support of N fitted Gaussians (module docstring).
 
     Parameters
@@ -109,6 +157,8 @@ def classify_gaussians(masses: np.ndarray, sigmas_A: np.ndarray, positions_A: np
         Widths, Å.
     positions_A : (N, 3)
         Å.
+    device : str or torch.device
+        Where the mixture is fitted (:func:`gaussian_mixture`).
     """
     masses, sigmas = np.asarray(masses, dtype=np.float64), np.asarray(sigmas_A, dtype=np.float64)
     positions = np.asarray(positions_A, dtype=np.float64).reshape(-1, 3)
@@ -118,13 +168,13 @@ def classify_gaussians(masses: np.ndarray, sigmas_A: np.ndarray, positions_A: np
     x = np.stack([np.log(np.maximum(masses, 1e-300)), np.log(np.maximum(sigmas, 1e-300))], axis=1)
     best, bic = None, {}
     for k in range(1, min(max_classes, max(n // 10, 1)) + 1):  # ten Gaussians a class at least
-        weights, means, covs, likelihood = gaussian_mixture(x, k)
+        weights, means, covs, likelihood = gaussian_mixture(x, k, device=device)
         parameters = k * (2 + 3) + (k - 1)
         bic[k] = -2.0 * likelihood + parameters * np.log(n)
         if best is None or bic[k] < bic[best[0]]:
             best = (k, weights, means, covs)
     k, weights, means, covs = best
-    log_p = np.stack([_log_normal(x, means[j], covs[j]) for j in range(k)], axis=1) + np.log(weights)
+    log_p = (_log_normals(torch.as_tensor(x.T.copy()), torch.as_tensor(means), torch.as_tensor(covs)).numpy() + np.log(weights)[:, None]).T
     order = np.argsort(means[:, 0])
     rank = np.empty(k, dtype=np.int64)
     rank[order] = np.arange(1, k + 1)

@@ -84,7 +84,7 @@ def write_results(model, run_dir: Path) -> dict | None:
     # atoms() lists the Gaussians in the model's order: the density control's own test of the field
     # The atoms are written first and the pictures after them (matplotlib's import, and on a
     # fresh machine its font cache, are not on the way to the result).
-    atoms, non_atoms, draw_classes = split_atoms(atoms, model.density.in_field(model.means.detach()).cpu().numpy(), run_dir / "classes.png")
+    atoms, non_atoms, draw_classes = split_atoms(atoms, model.density.in_field(model.means.detach()).cpu().numpy(), run_dir / "classes.png", model.means.device)
     write_atoms(atoms, run_dir / "atoms.xyz")
     write_atoms(atoms, run_dir / "atoms.csv")
     write_atoms(non_atoms, run_dir / "non_atoms.xyz")
@@ -105,14 +105,14 @@ def write_results(model, run_dir: Path) -> dict | None:
     return scores
 
 
-def split_atoms(gaussians: AtomSet, in_field: np.ndarray, figure: Path | None = None):
+def split_atoms(gaussians: AtomSet, in_field: np.ndarray, figure: Path | None = None, device="cpu"):
     """The Gaussians as atoms and non-atoms: beyond the field of view, or in the field but
     outside the support (:func:`gaussian_atoms_method.atoms.classification.classify_gaussians`);
     prints the counts (atoms per class).  Returns the atoms, the non-atoms and a function of no
     arguments that draws the population into ``figure`` (nothing without one), to call once the
-    atoms are written."""
+    atoms are written.  The classes' mixture is fitted on ``device`` (the run's)."""
     field = gaussians.subset(in_field)
-    classes = classify_gaussians(field.masses, field.sigmas, field.positions)
+    classes = classify_gaussians(field.masses, field.sigmas, field.positions, device=device)
     reported = np.zeros(len(gaussians), dtype=bool)
     reported[np.flatnonzero(in_field)[classes.atoms]] = True
     labels = np.zeros(len(gaussians), dtype=np.int64)  # 0: a non-atom
