@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from gaussian_atoms_method.atoms.point_response import clean_peaks, point_response
+from gaussian_atoms_method.atoms.point_response import CLEAN_BLOCK, clean_peaks, clean_peaks_reference, point_response
 
 
 def test_clean_drops_a_maximum_on_an_atoms_ridge_and_keeps_a_true_neighbour():
@@ -35,3 +35,39 @@ def test_point_response_is_one_at_its_peak_and_the_cut_detector_changes_nothing_
     a = full[c[0] - h : c[0] + h + 1, c[1] - h : c[1] + h + 1, c[2] - h : c[2] + h + 1]
     b = cut[cc[0] - h : cc[0] + h + 1, cc[1] - h : cc[1] + h + 1, cc[2] - h : cc[2] + h + 1]
     assert np.abs(a - b).max() < 1e-3
+
+
+def _clean_by_definition(peaks, values, response, centre, level):
+    """CLEAN as defined, with no pair search: each peak's value less every earlier accepted
+    peak's amount times the response at their offset, where the offset lies in the box."""
+    amounts = np.zeros(len(peaks))
+    shape = np.array(response.shape)
+    for i in range(len(peaks)):
+        offsets = peaks[i] - peaks[:i] + centre
+        inside = np.all((offsets >= 0) & (offsets < shape), axis=1) & (amounts[:i] != 0)
+        value = values[i] - float(np.dot(amounts[:i][inside], response[tuple(offsets[inside].T)]))
+        if value > level:
+            amounts[i] = value
+    index = np.nonzero(amounts)[0]
+    return index, amounts[index]
+
+
+def test_clean_in_blocks_equals_clean_by_definition():
+    """The blocked sparse visit and the per-peak reference accept the same peaks with the same
+    amounts (to float64 rounding) as CLEAN written out pair by pair: more peaks than a block,
+    packed so that most lie in one another's box, a response with negative lobes and its peak
+    off the box's middle (so some pairs within reach fall outside the box)."""
+    rng = np.random.default_rng(5)
+    grid = np.indices((15, 13, 17)).astype(float)
+    centre = np.array([6, 7, 8])
+    r2 = ((grid - centre[:, None, None, None]) ** 2 * np.array([1.0, 1.0, 0.3])[:, None, None, None]).sum(axis=0)
+    response = np.exp(-r2 / 6) - 0.15 * np.exp(-r2 / 30)
+    response /= response[tuple(centre)]
+    peaks = np.unique(rng.integers(0, 40, (3 * CLEAN_BLOCK // 2, 3)), axis=0)
+    peaks = peaks[rng.permutation(len(peaks))]
+    values = np.sort(rng.uniform(0.5, 10.0, len(peaks)))[::-1]
+    expected = _clean_by_definition(peaks, values, response, centre, 2.0)
+    assert CLEAN_BLOCK < len(peaks) and 0.2 * len(peaks) < len(expected[0]) < len(peaks)
+    for accepted, amounts in (clean_peaks(peaks, values, response, centre, 2.0), clean_peaks_reference(peaks, values, response, centre, 2.0)):
+        assert accepted.tolist() == expected[0].tolist()
+        np.testing.assert_allclose(amounts, expected[1], rtol=1e-12)

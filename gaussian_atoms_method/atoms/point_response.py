@@ -13,7 +13,7 @@ does not.  Used by the start (:mod:`.initialise`) and the search of the residual
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
+from scipy import ndimage, sparse
 from scipy.spatial import cKDTree
 
 from gaussian_atoms_method.physics.reconstruction import reconstruct
@@ -72,29 +72,74 @@ def clean_peaks(peaks: np.ndarray, values: np.ndarray, response: np.ndarray, cen
     accepted : (K,) int array, indices into ``peaks``
     amounts : (K,) array, their values after the subtraction
     """
-    accepted = np.zeros(len(peaks), dtype=bool)
-    amounts = np.zeros(len(peaks))
-    shape = np.array(response.shape)
     if len(peaks) == 0:
-        return np.zeros(0, dtype=np.int64), amounts
-    # Only peaks within the response's box can take anything off one another: every such pair
-    # (an earlier peak j, a later i) and its response weight from one k-d tree query, so the
-    # visit itself is one short dot product per peak (10,438 Au candidates: 0.1 s, not 2.7 s).
-    # (Chebyshev distance: exact on integer voxels, where the box's Euclidean half-diagonal
-    # lost corner pairs to rounding.)
+        return np.zeros(0, dtype=np.int64), np.zeros(0)
+    later, earlier, weights = _response_pairs(peaks, response, centre)
+    # Row i of W holds the weights of the peaks visited before i.  In blocks of the visit order:
+    # what the earlier blocks' accepted peaks take off is one sparse product (amounts of peaks
+    # not yet visited are still 0), and only the pairs inside a block are visited one by one,
+    # in plain Python (77k a-Pd candidates, 15 million pairs: 11.7 s per-peak numpy, 4 s now).
+    n = len(peaks)
+    W = sparse.csr_matrix((weights, (later, earlier)), shape=(n, n))
+    amounts = np.zeros(n)
+    for start in range(0, n, CLEAN_BLOCK):
+        stop = min(start + CLEAN_BLOCK, n)
+        rows = W[start:stop]
+        remaining = (np.asarray(values[start:stop], dtype=np.float64) - rows @ amounts).tolist()
+        inside = rows[:, start:stop].tocsr()
+        indptr, columns, w = inside.indptr.tolist(), inside.indices.tolist(), inside.data.tolist()
+        block = [0.0] * (stop - start)
+        for r in range(stop - start):
+            value = remaining[r]
+            for t in range(indptr[r], indptr[r + 1]):
+                value -= block[columns[t]] * w[t]
+            if value > level:  # amounts of peaks not accepted stay 0, so they take nothing off
+                block[r] = value
+        amounts[start:stop] = block
+    index = np.nonzero(amounts)[0]
+    return index, amounts[index]
+
+
+CLEAN_BLOCK = 1024
+"""Peaks per block of :func:`clean_peaks`' visit (a cost trade-off only: the result is the same)."""
+
+
+def _response_pairs(peaks: np.ndarray, response: np.ndarray, centre: np.ndarray):
+    """Every pair of (M, 3) voxel ``peaks`` within the response's box: the later one's index,
+    the earlier one's, and the earlier one's response weight at the later one.  Only such
+    pairs can take anything off one another; Chebyshev distance is exact on integer voxels,
+    where the box's Euclidean half-diagonal lost corner pairs to rounding."""
+    shape = np.array(response.shape)
     reach = float(np.max(np.maximum(centre, shape - 1 - centre)))
     pairs = cKDTree(peaks).query_pairs(reach, p=np.inf, output_type="ndarray").reshape(-1, 2)
-    later, earlier = pairs.max(axis=1), pairs.min(axis=1)
-    offsets = peaks[later] - peaks[earlier] + centre
-    inside = np.all((offsets >= 0) & (offsets < shape), axis=1)
-    later, earlier, weights = later[inside], earlier[inside], response[tuple(offsets[inside].T)]
+    earlier, later = pairs[:, 0], pairs[:, 1]  # query_pairs gives i < j
+    # The offset's flat index into the response, one axis at a time in int32 (15 million a-Pd
+    # pairs: 1.3 s, against 3.4 s for (K, 3) int64 offsets).
+    flat, inside, stride = np.zeros(len(pairs), dtype=np.int64), np.ones(len(pairs), dtype=bool), 1
+    for axis in (2, 1, 0):
+        coordinate = np.ascontiguousarray(peaks[:, axis], dtype=np.int32)
+        offset = coordinate[later]
+        offset -= coordinate[earlier]
+        offset += int(centre[axis])
+        inside &= (offset >= 0) & (offset < shape[axis])
+        flat += offset * stride
+        stride *= int(shape[axis])
+    return later[inside], earlier[inside], np.take(response.ravel(), flat[inside])
+
+
+def clean_peaks_reference(peaks: np.ndarray, values: np.ndarray, response: np.ndarray, centre: np.ndarray, level: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`clean_peaks` one peak at a time in numpy (the tests' reference)."""
+    amounts = np.zeros(len(peaks))
+    if len(peaks) == 0:
+        return np.zeros(0, dtype=np.int64), amounts
+    later, earlier, weights = _response_pairs(peaks, response, centre)
     order = np.argsort(later, kind="stable")
     earlier, weights = earlier[order], weights[order]
     bounds = np.searchsorted(later[order], np.arange(len(peaks) + 1))
     for i in range(len(peaks)):
         lo, hi = bounds[i], bounds[i + 1]
         value = float(values[i]) - (float(np.dot(amounts[earlier[lo:hi]], weights[lo:hi])) if hi > lo else 0.0)
-        if value > level:  # amounts of peaks not accepted stay 0, so they take nothing off
-            accepted[i], amounts[i] = True, value
-    index = np.nonzero(accepted)[0]
+        if value > level:
+            amounts[i] = value
+    index = np.nonzero(amounts)[0]
     return index, amounts[index]
