@@ -21,15 +21,34 @@ def test_convergence_needs_two_settled_checks_in_a_row():
         return np.full((4, 3), 0.1), 7.0
 
     check = ConvergenceCheck(warmup_length=100, refine_every=100)
-    positions = torch.zeros(4, 3)
     length_scale = 0.01  # normalised per Å: 1 Å = 0.01
+    positions = torch.arange(4.0)[:, None] * torch.tensor([0.03, 0.0, 0.0])  # 3 Å apart
     assert not check.update(50, positions, length_scale, precision)  # not a check step
     assert not check.update(100, positions, length_scale, precision)  # nothing to compare with
     assert not check.update(200, positions + 0.0001, length_scale, precision)  # settled once
     assert check.update(300, positions + 0.0002, length_scale, precision)  # twice
     assert not check.update(400, positions + 0.0102, length_scale, precision)  # moved 1 Å
-    assert not check.update(500, torch.zeros(3, 3), length_scale, precision)  # one Gaussian fewer
+    assert not check.update(500, positions[:3] + 0.0102, length_scale, precision)  # one Gaussian fewer
     assert seen[0] is None and set(seen[1:]) == {7.0}
+
+
+def test_convergence_matches_atoms_not_indices_and_tolerates_its_share_of_changes():
+    """The same atoms in another order are the same atoms (a prune and a densify reorder the
+    Gaussians); with changed_fraction 0.25, one Gaussian of four added or removed still counts
+    as settled, two do not."""
+
+    def precision(noise):
+        return np.full((4, 3), 0.1), 7.0
+
+    positions = torch.arange(4.0)[:, None] * torch.tensor([0.03, 0.0, 0.0])
+    check = ConvergenceCheck(warmup_length=0, refine_every=1, changed_fraction=0.25, match_distance=0.007)
+    assert not check.update(1, positions, 0.01, precision)
+    assert not check.update(2, positions[[2, 0, 3, 1]], 0.01, precision)
+    assert check.update(3, positions[[3, 1, 0]], 0.01, precision)  # one went: settled twice
+    assert not check.update(4, positions[[3]], 0.01, precision)  # two went
+    moved = ConvergenceCheck(warmup_length=0, refine_every=1, changed_fraction=0.25, match_distance=0.007)
+    assert not moved.update(1, positions, 0.01, precision) and not moved.update(2, positions, 0.01, precision)
+    assert not moved.update(3, positions + torch.tensor([0.008, 0.0, 0.0]), 0.01, precision)  # farther than the match distance: all new
 
 
 def test_convergence_without_a_tilt_series_never_stops():

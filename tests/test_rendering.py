@@ -86,6 +86,20 @@ def test_view_batches_refuse_what_they_cannot_do_by_name():
     assert R.check_view_batches(4, np.ones((3, 2, 2)), poses).shape == (3, 2, 2)
 
 
+def test_auto_views_per_step_counts_the_projectors_memory_and_keeps_one_view_off_a_gpu():
+    """The dense projector keeps (N, H) and (N, W) float32 tensors per view: the measured bytes
+    per view grow linearly in the Gaussians (the same from samples of 256 and 2,048), lie
+    between one and eight such pairs, and on a CPU auto is one view per step."""
+    from gaussian_atoms_method.physics.projector import project_gaussians
+
+    rows, cols = torch.arange(60.0) - 29.5, torch.arange(40.0) - 19.5
+    small, large = (R.projector_bytes_per_view(project_gaussians, 10_000, rows, cols, sample=s) for s in (256, 2048))
+    assert small == pytest.approx(large, rel=1e-3)
+    pair = 10_000 * (60 + 40) * 4
+    assert pair <= small <= 8 * pair
+    assert R.auto_views_per_step(project_gaussians, 10_000, 47, rows, cols) == 1
+
+
 @pytest.mark.parametrize(
     "options, named",
     [({"views_per_step": 0}, "views-per-step"), ({"views_per_step": 4, "refine_tilts": True}, "--pipeline.model.refine-tilts"),

@@ -93,7 +93,7 @@ class GaussianAtomsModel(SplatfactoCompat):
         max_log_amp = math.log(1000.0 * max(n, 1) * amp0 * (sigma0 / (cfg.min_sigma_A * ls)) ** 3)
         self.density = DensityControl(ls, max_log_amp, self.generator, half_extent=half_extent, field_half_extent=self.field_half_extent if half_extent != self.field_half_extent else None, **{f.name: getattr(cfg, f.name) for f in fields(DensityControl) if hasattr(cfg, f.name)})
         self.density.reset(n)
-        self.convergence = ConvergenceCheck(cfg.warmup_length, cfg.refine_every, cfg.converged_fraction)
+        self.convergence = ConvergenceCheck(cfg.warmup_length, cfg.refine_every, cfg.converged_fraction, cfg.false_discovery_rate, cfg.merge_threshold_A * ls)
         self.noise_read, self.data_term, floor, surfaces = read_noise(metadata.get("projections"), cfg.loss, cfg.background, measured)
         self._setup_view_params(metadata, series, floor, surfaces)
         if self.noise_read is not None and metadata.get("pixel_size_A"):  # the prune judges masses against this noise
@@ -110,7 +110,30 @@ class GaussianAtomsModel(SplatfactoCompat):
         for name, value in buffers.items():
             self.register_buffer(name, value, persistent=False)
         self.view_params = torch.nn.ParameterDict(view_params)
-        self.register_buffer("train_projections", R.check_view_batches(cfg.views_per_step, metadata.get("projections"), self.view_c2w), persistent=False)
+        self._views_per_step = None if cfg.views_per_step == "auto" else cfg.views_per_step  # auto: resolved at the first training step, on its device
+        if cfg.views_per_step == "auto" and not (cfg.isotropic and not cfg.refine_alignment and not cfg.refine_tilts):
+            self._views_per_step = 1  # per-view parameters: one view per step
+        try:
+            batches = R.check_view_batches(R.MAX_VIEWS_PER_STEP if self._views_per_step is None else self._views_per_step, metadata.get("projections"), self.view_c2w)
+        except OptionError:
+            if self._views_per_step is not None:
+                raise
+            batches, self._views_per_step = torch.zeros(0, 1, 1), 1  # auto without a tilt series' cameras: one view
+        self.register_buffer("train_projections", batches, persistent=False)
+
+    @property
+    def views_per_step(self) -> int:
+        """Views fitted per training step (``views_per_step``; auto is resolved at the first
+        training step, :func:`.rendering.auto_views_per_step`)."""
+        if self._views_per_step is None:
+            if not self.training:
+                return 1
+            _, h, w = self.train_projections.shape
+            dev, dt = self.means.device, self.means.dtype
+            rows, cols = torch.arange(h, device=dev, dtype=dt) - 0.5 * (h - 1), torch.arange(w, device=dev, dtype=dt) - 0.5 * (w - 1)
+            self._views_per_step = R.auto_views_per_step(self._projector(dev), self.means.shape[0], self.view_c2w.shape[0], rows, cols)
+            CONSOLE.print(f"gaussian-atoms: {self._views_per_step} views per step (auto, {self.projector_name(dev)} projector on {dev.type})")
+        return self._views_per_step
 
     # ------------------------------------------------------------------ parameters
     @property
@@ -153,9 +176,9 @@ class GaussianAtomsModel(SplatfactoCompat):
         c2w = camera.camera_to_worlds[0].to(dt)
         (rows_dir, cols_dir), t = R.detector_axes(c2w), c2w[:, 3]
         rows, cols = R.pixel_coordinates(camera, c2w, self.training and self.step < self.config.coarse_steps, dev, dt)
-        view = R.view_index(self.view_c2w, camera) if len(self.view_params) or self.config.views_per_step > 1 else None
+        view = R.view_index(self.view_c2w, camera) if len(self.view_params) or self.views_per_step > 1 else None
         self._held_out_step = self.training and self.kernel_reading.holds_out(view, self.step)  # psf held-out: it teaches the kernel, not the atoms
-        batching = self.training and self.config.views_per_step > 1 and not self._held_out_step
+        batching = self.training and self.views_per_step > 1 and not self._held_out_step
         means, sigmas, amps = [x.detach() if self._held_out_step else x for x in (self.means, self.sigmas, self.amplitudes)]
         if view is not None and "view_tilts" in self.view_params:
             tilts = self.view_params["view_tilts"]  # the error relative to the mean (a common one rotates the particle)
@@ -167,7 +190,7 @@ class GaussianAtomsModel(SplatfactoCompat):
             rows, cols = rows - s[0], cols - s[1]
         extra = {}
         if batching and view is not None:  # cameras on their beam axes through the tilt centre: no offset
-            others = self.kernel_reading.other_views(view, self.config.views_per_step, self.generator, self.step)
+            others = self.kernel_reading.other_views(view, self.views_per_step, self.generator, self.step)
             axes = torch.cat([axes, R.detector_axes(self.view_c2w[others].to(dev, dt))])
             images = R.blur(self, self._projector(dev)(means, sigmas, amps, axes, rows, cols), rows)
             if "background" in self.view_params:

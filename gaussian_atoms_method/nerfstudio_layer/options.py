@@ -10,7 +10,7 @@ reasons are given here, where ``--help`` shows them.  Where each option takes ef
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal, Tuple
+from typing import Literal, Tuple, Union
 
 from gaussian_atoms_method.density.strategy import DensityControl
 from gaussian_atoms_method.nerfstudio_layer.lazy_compile import import_splatfacto
@@ -172,22 +172,27 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
     Au particle that reaches the accuracy targets 7-9 s sooner on a CPU with the same final
     result (docs/performance.md, skips)."""
     stop_when_converged: bool = True
-    """End training early once the atoms are settled: the Gaussian count unchanged and the RMS
-    step of the positions over a refine interval below ``converged_fraction`` of the atoms'
-    noise-limited precision (:mod:`gaussian_atoms_method.atoms.uncertainty`) at two checks in a row.
-    Further steps would move the atoms by less than the data can tell apart."""
+    """End training early once the atoms are settled: over a refine interval at most
+    false_discovery_rate of the Gaussians added or removed, and the RMS step of the others
+    (matched within merge_threshold_A) below ``converged_fraction`` of the atoms' noise-limited
+    precision (:mod:`gaussian_atoms_method.atoms.uncertainty`), at two checks in a row
+    (:mod:`.convergence`).  Further steps would move the atoms by less than the data can tell
+    apart."""
     converged_fraction: float = 1.0
     """See stop_when_converged."""
     refine_tilts: bool = False
     """Learn a per-projection tilt-angle offset (about the tilt axis) with the atoms: errors of
     the goniometer readings.  Offsets are taken relative to their mean (a common offset is the
     same as rotating the particle).  Single-axis tilt series only."""
-    views_per_step: int = 1
+    views_per_step: Union[int, Literal["auto"]] = "auto"
     """Training views fitted per step: the view nerfstudio hands the model and this many minus
     one others drawn at random, rendered in one projector call, one loss over all.  On a GPU a
     batch of views costs about one view's kernel launches and the averaged gradient is smoother
-    (docs/performance.md: several views per step); on a CPU each view costs its own time.  Not
-    with refine-alignment, refine-tilts or anisotropic Gaussians."""
+    (docs/performance.md: several views per step); on a CPU each view costs its own time.
+    ``auto``: on a GPU as many as fit (:func:`.rendering.auto_views_per_step`: at most 8, within
+    half the free GPU memory by the projector's measured bytes per Gaussian and view), else 1;
+    1 with refine-alignment, refine-tilts or anisotropic Gaussians (per-view parameters), which
+    a number above 1 cannot be combined with."""
     snapshot_every: int = 0
     """Every this many steps (0: never) write the current atoms to ``snapshots/`` in the run
     directory with the wall-clock time, for time-to-accuracy benchmarks."""
@@ -197,9 +202,9 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
     def check(self) -> None:
         """Raise :class:`OptionError` naming the option for settings that cannot work together,
         before anything is built (the model checks what needs the data when it is built)."""
-        if self.views_per_step < 1:
-            raise OptionError(f"--pipeline.model.views-per-step must be at least 1, got {self.views_per_step}")
-        if self.views_per_step > 1:
+        if self.views_per_step != "auto" and not (isinstance(self.views_per_step, int) and self.views_per_step >= 1):
+            raise OptionError(f"--pipeline.model.views-per-step must be auto or at least 1, got {self.views_per_step}")
+        if self.views_per_step != "auto" and self.views_per_step > 1:
             per_view = [name for name, on in (("refine-alignment", self.refine_alignment), ("refine-tilts", self.refine_tilts),
                         ("isotropic False", not self.isotropic)) if on]  # fmt: skip
             if per_view:

@@ -148,6 +148,51 @@ def check_view_batches(views_per_step: int, projections, view_c2w: torch.Tensor)
     return torch.as_tensor(projections, dtype=torch.float32)
 
 
+MAX_VIEWS_PER_STEP = 8
+"""``views_per_step auto`` never batches more views than this: on the H100, Au noise 200 and 50,
+8 and 16 views per step reached the same precision and the convergence stop at the same step
+(docs/performance.md, several views per step); 16 took 50% more GPU memory."""
+MEMORY_SHARE = 0.5
+"""``auto`` spends at most this share of the free GPU memory on a step's views; the rest stays
+for the start's leftovers, the residual search's back-projections and the final stage."""
+
+
+def projector_bytes_per_view(projector, n_gaussians: int, rows: torch.Tensor, cols: torch.Tensor, sample: int = 1024) -> float:
+    """Bytes autograd keeps for one view of ``n_gaussians`` through ``projector`` on the
+    detector (``rows``, ``cols``) and device of the coordinates: measured on ``sample`` Gaussians
+    in two views (the tensors saved for the backward pass, each storage once) and scaled to
+    ``n_gaussians``.  The dense projector keeps a few (N, H) and (N, W) float32 tensors per view."""
+    device, dtype = rows.device, rows.dtype
+    generator = torch.Generator().manual_seed(0)
+    extent = float(max(rows.abs().max(), cols.abs().max()))
+    means = ((torch.rand(sample, 3, generator=generator) - 0.5) * extent).to(device, dtype).requires_grad_()
+    sigmas = torch.full((sample,), 0.01 * extent, device=device, dtype=dtype, requires_grad=True)
+    amplitudes = torch.ones(sample, device=device, dtype=dtype, requires_grad=True)
+    axes = torch.eye(3, device=device, dtype=dtype)[None, :2].expand(2, 2, 3)
+    storages: dict[int, int] = {}
+
+    def keep(t: torch.Tensor):
+        storages[t.untyped_storage().data_ptr()] = t.untyped_storage().nbytes()
+        return t
+
+    with torch.autograd.graph.saved_tensors_hooks(keep, lambda t: t):
+        projector(means, sigmas, amplitudes, axes, rows, cols).sum()
+    return sum(storages.values()) / 2 * n_gaussians / sample
+
+
+def auto_views_per_step(projector, n_gaussians: int, n_views: int, rows: torch.Tensor, cols: torch.Tensor) -> int:
+    """``views_per_step auto``: 1 off a GPU (each view costs its own time there); on a GPU the
+    most views, up to :data:`MAX_VIEWS_PER_STEP` and the series' own, whose projector memory
+    (:func:`projector_bytes_per_view`) fits in :data:`MEMORY_SHARE` of the free GPU memory
+    (the caching allocator's unused blocks counted free)."""
+    device = rows.device
+    if device.type != "cuda":
+        return 1
+    free = torch.cuda.mem_get_info(device)[0] + torch.cuda.memory_reserved(device) - torch.cuda.memory_allocated(device)
+    fits = int(MEMORY_SHARE * free // max(projector_bytes_per_view(projector, n_gaussians, rows, cols), 1.0))
+    return max(1, min(MAX_VIEWS_PER_STEP, n_views, fits))
+
+
 def with_other_views(outputs: dict, measured: torch.Tensor, train_projections: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The step's predicted and ``measured`` (H, W, 1) projections, with its other views'
     (``extra_projection``, ``extra_views``; measured from ``train_projections``) stacked on a
