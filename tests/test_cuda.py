@@ -67,3 +67,16 @@ def test_filtered_backprojection_on_cuda_matches_cpu():
     cpu = filtered_backprojection(sino, theta, "hann", 41)
     gpu = filtered_backprojection(sino, theta, "hann", 41, device="cuda", max_matrix_entries=300 * 34)
     np.testing.assert_allclose(gpu, cpu, rtol=0, atol=1e-10 * np.abs(cpu).max())
+
+
+@cuda
+def test_auto_views_per_step_on_a_gpu_stays_within_its_memory_share():
+    """On a GPU auto picks 1 to 8 views, never more than half the free memory holds by the
+    projector's measured bytes per view (:func:`.rendering.auto_views_per_step`)."""
+    from gaussian_atoms_method.nerfstudio_layer import rendering as R
+
+    coords = torch.arange(128.0, device="cuda") - 63.5
+    views = R.auto_views_per_step(project_gaussians, 3000, 47, coords, coords)
+    free = torch.cuda.mem_get_info()[0] + torch.cuda.memory_reserved() - torch.cuda.memory_allocated()
+    assert 1 <= views <= R.MAX_VIEWS_PER_STEP
+    assert views * R.projector_bytes_per_view(project_gaussians, 3000, coords, coords) <= R.MEMORY_SHARE * free or views == 1

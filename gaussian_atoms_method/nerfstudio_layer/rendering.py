@@ -16,6 +16,8 @@ Each is a small function on tensors; :meth:`GaussianAtomsModel.get_outputs
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
@@ -152,6 +154,13 @@ MAX_VIEWS_PER_STEP = 8
 """``views_per_step auto`` never batches more views than this: on the H100, Au noise 200 and 50,
 8 and 16 views per step reached the same precision and the convergence stop at the same step
 (docs/performance.md, several views per step); 16 took 50% more GPU memory."""
+STEP_COST_RATIO = 2.0
+"""``auto`` batches views only while the projector's forward and backward pass over them costs
+at most this many times one view's: where a view's work is small beside a step's fixed costs
+(kernel launches), extra views are nearly free.  On the H100, Au noise 200, 8 views per step
+reached the convergence stop in 800 steps instead of 2,100 (2.6 times fewer), so a step at
+most twice as dear never costs more time than the steps it saves; the 54,000-atom a-Pd
+particle's steps cost 3 times as much with 8 views (37 against 12 ms) and took 157 s instead of 100 s."""
 MEMORY_SHARE = 0.5
 """``auto`` spends at most this share of the free GPU memory on a step's views; the rest stays
 for the start's leftovers, the residual search's back-projections and the final stage."""
@@ -184,13 +193,49 @@ def auto_views_per_step(projector, n_gaussians: int, n_views: int, rows: torch.T
     """``views_per_step auto``: 1 off a GPU (each view costs its own time there); on a GPU the
     most views, up to :data:`MAX_VIEWS_PER_STEP` and the series' own, whose projector memory
     (:func:`projector_bytes_per_view`) fits in :data:`MEMORY_SHARE` of the free GPU memory
-    (the caching allocator's unused blocks counted free)."""
+    (the caching allocator's unused blocks counted free), doubled from one while the
+    projector's time for them (:func:`projector_seconds`) stays within :data:`STEP_COST_RATIO`
+    of one view's."""
     device = rows.device
     if device.type != "cuda":
         return 1
     free = torch.cuda.mem_get_info(device)[0] + torch.cuda.memory_reserved(device) - torch.cuda.memory_allocated(device)
     fits = int(MEMORY_SHARE * free // max(projector_bytes_per_view(projector, n_gaussians, rows, cols), 1.0))
-    return max(1, min(MAX_VIEWS_PER_STEP, n_views, fits))
+    most = max(1, min(MAX_VIEWS_PER_STEP, n_views, fits))
+    one, best, views = projector_seconds(projector, n_gaussians, 1, rows, cols), 1, 2
+    while views <= most:  # 2, 4, 8: while a batch costs at most STEP_COST_RATIO one view's
+        if projector_seconds(projector, n_gaussians, views, rows, cols) > STEP_COST_RATIO * one:
+            break
+        best, views = views, 2 * views
+    return best
+
+
+def projector_seconds(projector, n_gaussians: int, views: int, rows: torch.Tensor, cols: torch.Tensor, repeats: int = 3) -> float:
+    """Median wall time of the projector's forward and backward pass for ``n_gaussians`` random
+    Gaussians in ``views`` views on the coordinates' device (synchronised; after one untimed call)."""
+    device, dtype = rows.device, rows.dtype
+    generator = torch.Generator().manual_seed(0)
+    extent = float(max(rows.abs().max(), cols.abs().max()))
+    means = ((torch.rand(n_gaussians, 3, generator=generator) - 0.5) * extent).to(device, dtype).requires_grad_()
+    sigmas = torch.full((n_gaussians,), 0.01 * extent, device=device, dtype=dtype, requires_grad=True)
+    amplitudes = torch.ones(n_gaussians, device=device, dtype=dtype, requires_grad=True)
+    angles = torch.linspace(-1.0, 1.0, views, dtype=dtype)
+    axes = torch.stack([torch.stack([torch.zeros_like(angles), torch.ones_like(angles), torch.zeros_like(angles)], -1),
+                        torch.stack([torch.cos(angles), torch.zeros_like(angles), torch.sin(angles)], -1)], 1).to(device)  # fmt: skip
+    times = []
+    for _ in range(repeats + 1):
+        synchronise(device)
+        start = time.perf_counter()
+        projector(means, sigmas, amplitudes, axes, rows, cols).square().sum().backward()
+        synchronise(device)
+        times.append(time.perf_counter() - start)
+    return float(np.median(times[1:]))
+
+
+def synchronise(device: torch.device) -> None:
+    """Wait for the device's queued work (a no-op off CUDA)."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
 
 
 def with_other_views(outputs: dict, measured: torch.Tensor, train_projections: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
