@@ -171,13 +171,7 @@ def projector_bytes_per_view(projector, n_gaussians: int, rows: torch.Tensor, co
     detector (``rows``, ``cols``) and device of the coordinates: measured on ``sample`` Gaussians
     in two views (the tensors saved for the backward pass, each storage once) and scaled to
     ``n_gaussians``.  The dense projector keeps a few (N, H) and (N, W) float32 tensors per view."""
-    device, dtype = rows.device, rows.dtype
-    generator = torch.Generator().manual_seed(0)
-    extent = float(max(rows.abs().max(), cols.abs().max()))
-    means = ((torch.rand(sample, 3, generator=generator) - 0.5) * extent).to(device, dtype).requires_grad_()
-    sigmas = torch.full((sample,), 0.01 * extent, device=device, dtype=dtype, requires_grad=True)
-    amplitudes = torch.ones(sample, device=device, dtype=dtype, requires_grad=True)
-    axes = torch.eye(3, device=device, dtype=dtype)[None, :2].expand(2, 2, 3)
+    means, sigmas, amplitudes, axes = _probe_scene(sample, 2, rows, cols)
     storages: dict[int, int] = {}
 
     def keep(t: torch.Tensor):
@@ -213,6 +207,21 @@ def auto_views_per_step(projector, n_gaussians: int, n_views: int, rows: torch.T
 def projector_seconds(projector, n_gaussians: int, views: int, rows: torch.Tensor, cols: torch.Tensor, repeats: int = 3) -> float:
     """Median wall time of the projector's forward and backward pass for ``n_gaussians`` random
     Gaussians in ``views`` views on the coordinates' device (synchronised; after one untimed call)."""
+    device = rows.device
+    means, sigmas, amplitudes, axes = _probe_scene(n_gaussians, views, rows, cols)
+    times = []
+    for _ in range(repeats + 1):
+        synchronise(device)
+        start = time.perf_counter()
+        projector(means, sigmas, amplitudes, axes, rows, cols).square().sum().backward()
+        synchronise(device)
+        times.append(time.perf_counter() - start)
+    return float(np.median(times[1:]))
+
+
+def _probe_scene(n_gaussians: int, views: int, rows: torch.Tensor, cols: torch.Tensor):
+    """``n_gaussians`` random Gaussians over the detector's extent (learnable, on the
+    coordinates' device and dtype) and the detector axes of ``views`` views tilted about y."""
     device, dtype = rows.device, rows.dtype
     generator = torch.Generator().manual_seed(0)
     extent = float(max(rows.abs().max(), cols.abs().max()))
@@ -222,14 +231,7 @@ def projector_seconds(projector, n_gaussians: int, views: int, rows: torch.Tenso
     angles = torch.linspace(-1.0, 1.0, views, dtype=dtype)
     axes = torch.stack([torch.stack([torch.zeros_like(angles), torch.ones_like(angles), torch.zeros_like(angles)], -1),
                         torch.stack([torch.cos(angles), torch.zeros_like(angles), torch.sin(angles)], -1)], 1).to(device)  # fmt: skip
-    times = []
-    for _ in range(repeats + 1):
-        synchronise(device)
-        start = time.perf_counter()
-        projector(means, sigmas, amplitudes, axes, rows, cols).square().sum().backward()
-        synchronise(device)
-        times.append(time.perf_counter() - start)
-    return float(np.median(times[1:]))
+    return means, sigmas, amplitudes, axes
 
 
 def synchronise(device: torch.device) -> None:
