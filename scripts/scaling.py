@@ -37,8 +37,9 @@ def time_iterations(n_atoms: int, device: str, iterations: int = 30, warmup: int
     from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
     from dataparsers.tilt_series_format import write_tilt_series
     from gaussian_atoms_method.nerfstudio_layer.config import gaussian_atoms_trainer_config
-    from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
     from gaussian_atoms_method.harness.simulate import parse_tilts
+    from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
+    from gaussian_atoms_method.nerfstudio_layer.rendering import projector_name
 
     side = detector_pixels(n_atoms)
     angles = parse_tilts("limited")
@@ -75,7 +76,7 @@ def time_iterations(n_atoms: int, device: str, iterations: int = 30, warmup: int
         "s_per_iter": float(np.median(times)),
         "gpu_GB": torch.cuda.max_memory_allocated() / 1e9 if device == "cuda" else float("nan"),
         "rss_GB": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6,
-        "projector": model.projector_name(torch.device(device)),
+        "projector": projector_name(model.config.projector, torch.device(device)),
     }
 
 

@@ -37,7 +37,7 @@ from gaussian_atoms_method.nerfstudio_layer import rendering as R
 from gaussian_atoms_method.nerfstudio_layer.checkpoints import allow_numpy_scalars_in_checkpoints
 from gaussian_atoms_method.nerfstudio_layer.convergence import ConvergenceCheck
 from gaussian_atoms_method.nerfstudio_layer.kernel_reading import HeldOutKernel
-from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions, OptionError
+from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions
 from gaussian_atoms_method.nerfstudio_layer.noise_reading import judge_after_fit, measure_noise, read_field_of_view, read_noise
 from gaussian_atoms_method.nerfstudio_layer.refit import refit
 from gaussian_atoms_method.nerfstudio_layer.residuals import add_missing_atoms, residual_correlations
@@ -46,7 +46,7 @@ from gaussian_atoms_method.nerfstudio_layer.splatfacto_compat import SplatfactoC
 from gaussian_atoms_method.nerfstudio_layer.viewer import AtomsInViewer
 from gaussian_atoms_method.physics.data_terms import data_term
 from gaussian_atoms_method.physics.psf import project_weights
-from gaussian_atoms_method.physics.projector import covariances_from_scales_quats, project_anisotropic_gaussians, project_gaussians, project_gaussians_gsplat, project_gaussians_tiled
+from gaussian_atoms_method.physics.projector import covariances_from_scales_quats, project_anisotropic_gaussians
 from gaussian_atoms_method.physics.units import DATA_RANGE, Normalisation
 
 
@@ -110,30 +110,15 @@ class GaussianAtomsModel(SplatfactoCompat):
         for name, value in buffers.items():
             self.register_buffer(name, value, persistent=False)
         self.view_params = torch.nn.ParameterDict(view_params)
-        self._views_per_step = None if cfg.views_per_step == "auto" else cfg.views_per_step  # auto: resolved at the first training step, on its device
-        if cfg.views_per_step == "auto" and not (cfg.isotropic and not cfg.refine_alignment and not cfg.refine_tilts):
-            self._views_per_step = 1  # per-view parameters: one view per step
-        try:
-            batches = R.check_view_batches(R.MAX_VIEWS_PER_STEP if self._views_per_step is None else self._views_per_step, metadata.get("projections"), self.view_c2w)
-        except OptionError:
-            if self._views_per_step is not None:
-                raise
-            batches, self._views_per_step = torch.zeros(0, 1, 1), 1  # auto without a tilt series' cameras: one view
+        batches, self._views_per_step = R.view_batches(cfg, metadata.get("projections"), self.view_c2w)
         self.register_buffer("train_projections", batches, persistent=False)
 
     @property
     def views_per_step(self) -> int:
-        """Views fitted per training step (``views_per_step``; auto is resolved at the first
-        training step, :func:`.rendering.auto_views_per_step`)."""
-        if self._views_per_step is None:
-            if not self.training:
-                return 1
-            _, h, w = self.train_projections.shape
-            dev, dt = self.means.device, self.means.dtype
-            rows, cols = torch.arange(h, device=dev, dtype=dt) - 0.5 * (h - 1), torch.arange(w, device=dev, dtype=dt) - 0.5 * (w - 1)
-            self._views_per_step = R.auto_views_per_step(self._projector(dev), self.means.shape[0], self.view_c2w.shape[0], rows, cols)
-            CONSOLE.print(f"gaussian-atoms: {self._views_per_step} views per step (auto, {self.projector_name(dev)} projector on {dev.type})")
-        return self._views_per_step
+        """Views fitted per training step (auto: resolved at the first training step, :func:`.rendering.first_step_views`)."""
+        if self._views_per_step is None and self.training:
+            self._views_per_step = R.first_step_views(self)
+        return self._views_per_step or 1
 
     # ------------------------------------------------------------------ parameters
     @property
@@ -154,16 +139,6 @@ class GaussianAtomsModel(SplatfactoCompat):
 
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
         return self.get_gaussian_param_groups() | {name: [param] for name, param in self.view_params.items()}
-
-    def projector_name(self, device: torch.device) -> str:
-        """The projector ``projector`` names on ``device`` ("auto": dense on CUDA, else tiled)."""
-        return ("dense" if device.type == "cuda" else "tiled") if self.config.projector == "auto" else self.config.projector
-
-    def _projector(self, device: torch.device):
-        choice = self.projector_name(device)
-        if choice == "gsplat" and device.type != "cuda":
-            raise OptionError("--pipeline.model.projector gsplat needs a CUDA device; use auto, tiled or dense on CPU")
-        return {"dense": project_gaussians, "tiled": project_gaussians_tiled, "gsplat": project_gaussians_gsplat}[choice]
 
     # ------------------------------------------------------------------ rendering
     def get_outputs(self, camera: Cameras, background: bool = True) -> Dict[str, torch.Tensor]:
@@ -192,12 +167,12 @@ class GaussianAtomsModel(SplatfactoCompat):
         if batching and view is not None:  # cameras on their beam axes through the tilt centre: no offset
             others = self.kernel_reading.other_views(view, self.views_per_step, self.generator, self.step)
             axes = torch.cat([axes, R.detector_axes(self.view_c2w[others].to(dev, dt))])
-            images = R.blur(self, self._projector(dev)(means, sigmas, amps, axes, rows, cols), rows)
+            images = R.blur(self, R.projector_for(self.config.projector, dev)(means, sigmas, amps, axes, rows, cols), rows)
             if "background" in self.view_params:
                 images = torch.stack([R.add_view_background(self, im, v, rows, cols) for im, v in zip(images, [view, *others.tolist()])])
             image, extra = images[0], {"extra_projection": images[1:, :, :, None], "extra_views": others}
         elif self.config.isotropic:
-            image = R.blur(self, self._projector(dev)(means - t, sigmas, amps, axes, rows, cols), rows)[0]
+            image = R.blur(self, R.projector_for(self.config.projector, dev)(means - t, sigmas, amps, axes, rows, cols), rows)[0]
         else:
             cov = covariances_from_scales_quats(self._log_scales(), self.gauss_params["quats"])
             image = R.blur(self, project_anisotropic_gaussians(self.means - t, cov, self.amplitudes, axes, rows, cols), rows)[0]

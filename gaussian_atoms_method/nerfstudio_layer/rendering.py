@@ -24,6 +24,7 @@ from nerfstudio.cameras.cameras import Cameras, CameraType
 from torch.nn import Parameter
 
 from gaussian_atoms_method.nerfstudio_layer.options import OptionError
+from gaussian_atoms_method.physics.projector import project_gaussians, project_gaussians_gsplat, project_gaussians_tiled
 from gaussian_atoms_method.physics.psf import KERNEL_WIDTHS_A, apply_kernel
 
 
@@ -148,6 +149,46 @@ def check_view_batches(views_per_step: int, projections, view_c2w: torch.Tensor)
     if float(off_axis) > 1e-5:
         raise OptionError("--pipeline.model.views-per-step > 1 needs every camera on its beam axis through the tilt centre")
     return torch.as_tensor(projections, dtype=torch.float32)
+
+
+def projector_name(option: str, device: torch.device) -> str:
+    """The projector the ``projector`` option names on ``device`` ("auto": dense on CUDA, else tiled)."""
+    return ("dense" if device.type == "cuda" else "tiled") if option == "auto" else option
+
+
+def projector_for(option: str, device: torch.device):
+    """The projector function the ``projector`` option names on ``device``; OptionError for gsplat off CUDA."""
+    choice = projector_name(option, device)
+    if choice == "gsplat" and device.type != "cuda":
+        raise OptionError("--pipeline.model.projector gsplat needs a CUDA device; use auto, tiled or dense on CPU")
+    return {"dense": project_gaussians, "tiled": project_gaussians_tiled, "gsplat": project_gaussians_gsplat}[choice]
+
+
+def view_batches(cfg, projections, view_c2w: torch.Tensor) -> tuple[torch.Tensor, int | None]:
+    """The measured projections a step's extra views are fitted to (:func:`check_view_batches`)
+    and the views per step: the option's number, None for ``auto`` (resolved at the first
+    training step, :func:`first_step_views`), 1 for ``auto`` with per-view parameters
+    (refine-alignment, refine-tilts, anisotropic Gaussians) or without a tilt series' cameras."""
+    views = cfg.views_per_step
+    if views == "auto" and not (cfg.isotropic and not cfg.refine_alignment and not cfg.refine_tilts):
+        views = 1
+    try:
+        return check_view_batches(MAX_VIEWS_PER_STEP if views == "auto" else views, projections, view_c2w), (None if views == "auto" else views)
+    except OptionError:
+        if views != "auto":
+            raise
+        return torch.zeros(0, 1, 1), 1
+
+
+def first_step_views(model) -> int:
+    """``auto``'s views per step for ``model`` at its first training step: its Gaussians,
+    detector and projector on its device (:func:`auto_views_per_step`); printed."""
+    _, h, w = model.train_projections.shape
+    dev, dt = model.means.device, model.means.dtype
+    rows, cols = torch.arange(h, device=dev, dtype=dt) - 0.5 * (h - 1), torch.arange(w, device=dev, dtype=dt) - 0.5 * (w - 1)
+    views = auto_views_per_step(projector_for(model.config.projector, dev), model.means.shape[0], model.view_c2w.shape[0], rows, cols)
+    print(f"gaussian-atoms: {views} views per step (auto, {projector_name(model.config.projector, dev)} projector on {dev.type})", flush=True)
+    return views
 
 
 MAX_VIEWS_PER_STEP = 8
