@@ -22,9 +22,8 @@ numpy, and torch for the mixture (:func:`gaussian_mixture`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import torch

@@ -199,14 +199,18 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
     seed: int = 0
     """Seed of the random initialisation and duplications."""
 
+    def per_view_options(self) -> list[str]:
+        """The options on that give each view its own parameters (one view per step only)."""
+        return [name for name, on in (("refine-alignment", self.refine_alignment), ("refine-tilts", self.refine_tilts),
+                ("isotropic False", not self.isotropic)) if on]  # fmt: skip
+
     def check(self) -> None:
         """Raise :class:`OptionError` naming the option for settings that cannot work together,
         before anything is built (the model checks what needs the data when it is built)."""
         if self.views_per_step != "auto" and not (isinstance(self.views_per_step, int) and self.views_per_step >= 1):
             raise OptionError(f"--pipeline.model.views-per-step must be auto or at least 1, got {self.views_per_step}")
         if self.views_per_step != "auto" and self.views_per_step > 1:
-            per_view = [name for name, on in (("refine-alignment", self.refine_alignment), ("refine-tilts", self.refine_tilts),
-                        ("isotropic False", not self.isotropic)) if on]  # fmt: skip
+            per_view = self.per_view_options()
             if per_view:
                 raise OptionError(f"--pipeline.model.views-per-step {self.views_per_step} cannot be combined with --pipeline.model.{per_view[0]} (per-view parameters); use 1")
         positive = {"num-random": self.num_random, "init-sigma-A": self.init_sigma_A, "min-sigma-A": self.min_sigma_A, "max-sigma-A": self.max_sigma_A,

@@ -38,7 +38,7 @@ def refit(model, max_passes: int = 10) -> int:
         with torch.inference_mode(False), torch.enable_grad():
             for _ in range(max_passes):
                 before = model.means.detach().clone()
-                steps += _refit_pass(model, cameras, projections, names, getattr(model, "views_per_step", 1))
+                steps += _refit_pass(model, cameras, projections, names, model.views_per_step)
                 moved_A = (model.means.detach() - before).norm(dim=1).cpu().numpy() / model.normalisation.length_scale
                 result = model.position_std_A(model.atoms(), noise)
                 if result is None:
@@ -55,8 +55,8 @@ def _refit_pass(model, cameras, projections, names, views_per_step: int = 1) -> 
     training's one loss over a step's views); returns the steps taken."""
     # Views in random order, as training draws them: in tilt order neighbouring views pull
     # alike and Adam's momentum carries the atoms along (the aPd noise-200 RMSD rose 1.2 pm).
-    order = torch.randperm(len(cameras), generator=model.generator).tolist()
-    batches = [order[i : i + max(int(views_per_step), 1)] for i in range(0, len(order), max(int(views_per_step), 1))]
+    order, size = torch.randperm(len(cameras), generator=model.generator).tolist(), max(int(views_per_step), 1)
+    batches = [order[i : i + size] for i in range(0, len(order), size)]
     for batch in batches:
         for n in names:
             model.optimizers[n].zero_grad()

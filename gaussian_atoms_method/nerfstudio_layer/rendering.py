@@ -21,6 +21,7 @@ import time
 import numpy as np
 import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
+from nerfstudio.utils.rich_utils import CONSOLE
 from torch.nn import Parameter
 
 from gaussian_atoms_method.nerfstudio_layer.options import OptionError
@@ -169,9 +170,7 @@ def view_batches(cfg, projections, view_c2w: torch.Tensor) -> tuple[torch.Tensor
     and the views per step: the option's number, None for ``auto`` (resolved at the first
     training step, :func:`first_step_views`), 1 for ``auto`` with per-view parameters
     (refine-alignment, refine-tilts, anisotropic Gaussians) or without a tilt series' cameras."""
-    views = cfg.views_per_step
-    if views == "auto" and not (cfg.isotropic and not cfg.refine_alignment and not cfg.refine_tilts):
-        views = 1
+    views = 1 if cfg.views_per_step == "auto" and cfg.per_view_options() else cfg.views_per_step
     try:
         return check_view_batches(MAX_VIEWS_PER_STEP if views == "auto" else views, projections, view_c2w), (None if views == "auto" else views)
     except OptionError:
@@ -187,7 +186,7 @@ def first_step_views(model) -> int:
     dev, dt = model.means.device, model.means.dtype
     rows, cols = torch.arange(h, device=dev, dtype=dt) - 0.5 * (h - 1), torch.arange(w, device=dev, dtype=dt) - 0.5 * (w - 1)
     views = auto_views_per_step(projector_for(model.config.projector, dev), model.means.shape[0], model.view_c2w.shape[0], rows, cols)
-    print(f"gaussian-atoms: {views} views per step (auto, {projector_name(model.config.projector, dev)} projector on {dev.type})", flush=True)
+    CONSOLE.print(f"gaussian-atoms: {views} views per step (auto, {projector_name(model.config.projector, dev)} projector on {dev.type})")
     return views
 
 
