@@ -11,6 +11,9 @@ from gaussian_atoms_method.atoms.atom_set import AtomSet
 from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
 from gaussian_atoms_method.nerfstudio_layer.refit import refit
 
+TOLERANCE_A = 0.15
+"""A refitted atom's distance from the truth (test_refit_passes_until_a_merged_atom_is_back says why)."""
+
 
 def test_refit_passes_until_a_merged_atom_is_back(tmp_path):
     """Two atoms 3 Å apart; the data are their projections plus noise of 20% of the peak
@@ -18,19 +21,21 @@ def test_refit_passes_until_a_merged_atom_is_back(tmp_path):
     with a fragment leaves it (a median 0.51 Å at Au noise 500).  At a step of 0.03 Å one pass
     of the four views moves it at most 0.12 Å, so one pass (the refit's old length) cannot
     bring it back; the refit keeps passing until no atom moves more than its own Cramér-Rao
-    precision twice in a row: it ends within 0.1 Å (measured 0.077) of where it belongs, in
-    more than one pass (measured 6) and before the cap of 10."""
+    precision twice in a row: it ends within 0.15 Å (measured 0.077) of where it belongs, in
+    more than one pass (measured 6) and before the cap of 10.  0.15 Å: a 3D error of 0.07 Å RMS
+    (0.04 Å an axis) exceeds 4.03 axis sigmas (chi with 3 degrees of freedom) once in 1,000
+    runs; the 0.5 Å start is 12 of them away."""
     model, truth, ls = _two_atoms_one_off(tmp_path)
     steps = refit(model, max_passes=10)
     error_A = (model.means.detach() - truth).norm(dim=1) / ls
     assert steps % 4 == 0 and 4 < steps < 40
-    assert float(error_A.max()) < 0.1
+    assert float(error_A.max()) < TOLERANCE_A
 
 
 def test_refit_takes_as_many_views_per_step_as_training(tmp_path):
     """A model that trained on two views per step refits on two per step: two optimiser steps
     per pass of the four views, each on the mean of two views' losses; the atom still comes
-    back within 0.1 Å."""
+    back within TOLERANCE_A."""
     from gaussian_atoms_method.nerfstudio_layer import refit as R
 
     model, truth, ls = _two_atoms_one_off(tmp_path)
@@ -43,7 +48,7 @@ def test_refit_takes_as_many_views_per_step_as_training(tmp_path):
     finally:
         R._refit_pass = original
     assert seen and set(seen) == {2}
-    assert float(((model.means.detach() - truth).norm(dim=1) / ls).max()) < 0.1
+    assert float(((model.means.detach() - truth).norm(dim=1) / ls).max()) < TOLERANCE_A
 
 
 def _two_atoms_one_off(tmp_path):

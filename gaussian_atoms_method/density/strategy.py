@@ -33,7 +33,9 @@ noise reaches, :mod:`..atoms.resolution`) becomes one, so an atom the fit shared
 Gaussians along the missing wedge is judged whole; then the prune, so a noise blob the data do
 resolve is not merged into an atom; then the distance merge; the model then refits briefly.
 
-Every step the parameters are clamped to physical ranges (:meth:`DensityControl.clamp`).
+Every step the parameters are clamped to physical ranges (:meth:`DensityControl.clamp`) and
+added to the refine interval's mean, which replaces them when the interval closes
+(``average_iterates``, :mod:`.averaging`).
 No nerfstudio import: unit-tested on plain parameter dicts.
 """
 
@@ -48,6 +50,7 @@ import torch
 
 from gaussian_atoms_method.atoms.merge import cluster_labels, disjoint_pair_labels, merged_values
 from gaussian_atoms_method.atoms.resolution import candidate_pairs, merge_energy, merged_moments
+from gaussian_atoms_method.density.averaging import IterateAverage
 from gaussian_atoms_method.density.remap import apply_remap, duplicate_remap, keep_remap, merge_remap
 from gaussian_atoms_method.physics.data_terms import HUBER_EFFICIENCY
 from gaussian_atoms_method.physics.projector import gaussian_mass, typical_mass
@@ -119,6 +122,9 @@ class DensityControl:
     merge_threshold_A: float = 0.7
     merge_amplitude: str = "mass"
     isotropic: bool = True
+    average_iterates: bool = True
+    """Write the mean of each refine interval's iterates into the parameters when it closes (before
+    the refine acts) and at the end (:mod:`.averaging`)."""
     half_extent: tuple[float, float, float] = (0.5, 0.5, 0.5)
     """Half-sides of the reconstruction volume (normalised units): the cube the detector's longer
     side spans, or wider across the tilt axis for an object wider than the field of view
@@ -131,6 +137,8 @@ class DensityControl:
     grad_accum: torch.Tensor = field(default_factory=lambda: torch.zeros(0, 3))
     """(N, 3) sum of the means' gradient vectors since the last refine (CPU)."""
     grad_count: int = 0
+    average: IterateAverage = field(default_factory=IterateAverage)
+    """The iterates of the open refine interval (:mod:`.averaging`)."""
     born: torch.Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.long))
     """(N,) step at which each Gaussian was made (0 for the start); fresh ones are not merged."""
     step: int = 0
@@ -181,6 +189,10 @@ class DensityControl:
         ``refine_every`` steps after the warm-up, duplicate and prune.  Returns the counts."""
         self.step = step
         self.clamp(params)
+        if self.average_iterates:
+            self.average.add(params)
+            if step % self.refine_every == 0:  # the interval closes before the refine changes the set
+                self.average.close(params)
         grad = params["means"].grad
         if grad is not None:
             if self.grad_accum.shape[0] != grad.shape[0]:
@@ -211,6 +223,8 @@ class DensityControl:
         then those they cannot resolve, prune, then merge (fresh Gaussians too), so the result
         holds one Gaussian per atom; returns how many Gaussians went (the model refits when any
         did)."""
+        if self.average_iterates:  # the last interval's mean: the estimate the final rules judge
+            self.average.close(params)
         self.born = torch.zeros_like(self.born)  # at the end every Gaussian is judged
         removed = 0
         if self.cluster_merge:

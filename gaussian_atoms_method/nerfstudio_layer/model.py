@@ -255,10 +255,10 @@ class GaussianAtomsModel(SplatfactoCompat):
 
     # ------------------------------------------------------------------ results
     @torch.no_grad()
-    def atoms(self) -> AtomSet:
-        """The current Gaussians as atoms in Å, in the frame of the input's truth file."""
-        norm, host = self.normalisation, lambda t: t.detach().cpu().double().numpy()
-        return AtomSet(positions=norm.positions_to_A(host(self.means)), sigmas=norm.sigmas_to_A(host(self.sigmas)), amplitudes=norm.amplitudes_to_physical(host(self.amplitudes)))
+    def atoms(self, params=None) -> AtomSet:
+        """The current Gaussians (or ``params``, a dict like ``gauss_params``) as atoms in Å, in the frame of the input's truth file."""
+        norm, host, p = self.normalisation, lambda t: t.detach().cpu().double().numpy(), params or self.gauss_params
+        return AtomSet(positions=norm.positions_to_A(host(p["means"])), sigmas=norm.sigmas_to_A(host(widths(p, self.density.min_log_sigma))), amplitudes=norm.amplitudes_to_physical(host(amplitudes(p))))
 
     def position_std_A(self, atoms: AtomSet, noise: float | None = None):
         """Each atom's position precision (N, 3) in Å and the pixel noise assumed (:mod:`.results`)."""
@@ -294,4 +294,4 @@ class GaussianAtomsModel(SplatfactoCompat):
 
     def _snapshot_after_step(self, directory: Path, step: int) -> None:  # after step k*N-1, k*N steps are done
         if (step + 1) % self.config.snapshot_every == 0:
-            write_snapshot(self.atoms(), directory, step + 1, self.num_points, torch.cuda.max_memory_allocated() if self.means.is_cuda else 0)
+            write_snapshot(self.atoms(self.density.average.mean(self.gauss_params) if self.config.average_iterates else None), directory, step + 1, self.num_points, torch.cuda.max_memory_allocated() if self.means.is_cuda else 0)

@@ -107,6 +107,11 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
     survivors take up what the removed Gaussians carried (:mod:`.refit`)."""
     isotropic: bool = DensityControl.isotropic
     """One width per Gaussian (the isotropy prior).  False: three widths and a rotation each."""
+    average_iterates: bool = DensityControl.average_iterates
+    """The Gaussians' estimate is the mean of the optimiser's iterates over each refine interval,
+    written into them when it closes and at the end (Polyak-Ruppert averaging,
+    :mod:`gaussian_atoms_method.density.averaging`): one-view steps jitter the atoms by more than
+    the data's precision, and the mean cancels that.  False: the last iterate."""
     cluster_merge: bool = DensityControl.cluster_merge
     """Merge Gaussians closer than merge_threshold_A (the minimum-distance prior)."""
     merge_every: int = DensityControl.merge_every

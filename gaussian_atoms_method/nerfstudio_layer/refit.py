@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from gaussian_atoms_method.density.averaging import IterateAverage
 from gaussian_atoms_method.nerfstudio_layer.residuals import training_views
 
 
@@ -15,7 +16,9 @@ def refit(model, max_passes: int = 10) -> int:
     step after training on eight, the refit's own jitter took the 54,000-atom a-Pd particle's
     RMSD from 7.5 to 12.1 pm on the H100), updating the Gaussians with the model's own optimisers
     (their learning rates where training left them) and no density control, until the atoms
-    settle: no atom moves by more than its own Cramér-Rao precision over a pass, two passes in
+    settle: no atom's mean over a pass (``average_iterates``,
+    :mod:`gaussian_atoms_method.density.averaging`; the last iterate without) moves by more than
+    its own Cramér-Rao precision from the last pass's, two passes in
     a row (the training's stop, :mod:`.convergence`, per atom rather than as an RMS: after the
     merge only the merged atoms still move), at most ``max_passes``.  Returns the steps taken
     (0 without the tilt series).
@@ -36,10 +39,13 @@ def refit(model, max_passes: int = 10) -> int:
             return 0
         # Called where results are written: possibly under no_grad or inference mode.
         with torch.inference_mode(False), torch.enable_grad():
+            before = model.means.detach().clone()
             for _ in range(max_passes):
-                before = model.means.detach().clone()
-                steps += _refit_pass(model, cameras, projections, names, model.views_per_step)
-                moved_A = (model.means.detach() - before).norm(dim=1).cpu().numpy() / model.normalisation.length_scale
+                average = IterateAverage() if model.density.average_iterates else None
+                steps += _refit_pass(model, cameras, projections, names, model.views_per_step, average)
+                now = average.mean(model.gauss_params)["means"] if average is not None else model.means.detach().clone()
+                moved_A = (now - before).norm(dim=1).cpu().numpy() / model.normalisation.length_scale
+                before = now
                 result = model.position_std_A(model.atoms(), noise)
                 if result is None:
                     break
@@ -47,12 +53,15 @@ def refit(model, max_passes: int = 10) -> int:
                 settled = settled + 1 if np.all(moved_A <= np.sqrt((std**2).sum(axis=1))) else 0
                 if settled >= 2:
                     break
+            if average is not None:  # the last pass's mean is the estimate
+                average.close(model.gauss_params)
     return steps
 
 
-def _refit_pass(model, cameras, projections, names, views_per_step: int = 1) -> int:
+def _refit_pass(model, cameras, projections, names, views_per_step: int = 1, average: IterateAverage | None = None) -> int:
     """One pass over the views, ``views_per_step`` per step (the mean of their losses, as
-    training's one loss over a step's views); returns the steps taken."""
+    training's one loss over a step's views), each iterate added to ``average``; returns the
+    steps taken."""
     # Views in random order, as training draws them: in tilt order neighbouring views pull
     # alike and Adam's momentum carries the atoms along (the aPd noise-200 RMSD rose 1.2 pm).
     order, size = torch.randperm(len(cameras), generator=model.generator).tolist(), max(int(views_per_step), 1)
@@ -66,4 +75,6 @@ def _refit_pass(model, cameras, projections, names, views_per_step: int = 1) -> 
             model.optimizers[n].step()
         with torch.no_grad():
             model.density.clamp(model.gauss_params)
+        if average is not None:
+            average.add(model.gauss_params)
     return len(batches)
