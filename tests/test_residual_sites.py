@@ -1,6 +1,8 @@
 """A missing atom is found from the residual (atoms/residual_sites.py)."""
 
 import numpy as np
+import pytest
+import torch
 from scipy.spatial import cKDTree
 
 from gaussian_atoms_method.atoms.atom_set import AtomSet
@@ -57,3 +59,28 @@ def test_sites_keep_clear_of_existing_gaussians():
     bond = np.vstack([others.positions, target + [1.42, 0.0, 0.0]])
     sites, _ = unexplained_sites(residuals, sim.angles_deg, sim.pixel_size_A, bond, sigma_A=0.6)
     assert len(sites) == 1 and np.linalg.norm(sites[0] - target) < 0.5
+
+
+def test_the_random_field_level_of_a_tensor_is_that_of_its_array():
+    """The residual search reads the level on the run's device: the same three gradient
+    variances in float64, so the same level to float64 rounding."""
+    import torch
+
+    from gaussian_atoms_method.atoms.peaks import random_field_threshold
+    from gaussian_atoms_method.atoms.volume_filters import gaussian_filter
+
+    field = gaussian_filter(torch.randn(40, 48, 36, generator=torch.Generator().manual_seed(4), dtype=torch.float64), 1.5).numpy()
+    assert abs(random_field_threshold(torch.from_numpy(field), 0.05) - random_field_threshold(field, 0.05)) < 1e-9
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_the_search_on_cuda_finds_the_cpu_sites():
+    """On a GPU the filter, the noise reading (numpy's median, by two order statistics) and the
+    maxima run on the device: the same site to a voxel, the same mass to float32's back-projection
+    rounding (1e-4)."""
+    atoms, missing, others, sim, residuals = _missing_one(noise_std=20.0)
+    found = [unexplained_sites(residuals, sim.angles_deg, sim.pixel_size_A, others.positions, float(sim.truth.sigmas[0]), device=d) for d in ("cpu", "cuda")]
+    (cpu_sites, cpu_masses), (gpu_sites, gpu_masses) = found
+    assert cpu_sites.shape == gpu_sites.shape == (1, 3)
+    assert np.abs(cpu_sites - gpu_sites).max() <= sim.pixel_size_A + 1e-9
+    assert np.allclose(cpu_masses, gpu_masses, rtol=1e-4)

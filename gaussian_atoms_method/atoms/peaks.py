@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import torch
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
@@ -71,11 +72,18 @@ def random_field_threshold(field: np.ndarray, false_alarm_rate: float = 0.05, n_
     elements, is the volume over the product of the field's FWHMs along each axis, each read
     from the field itself as ``sqrt(4 ln 2 var(f) / var(df/dx))`` (voxels; exact for smoothed
     white noise).  ``n_voxels``: the size of the volume the threshold is for, when ``field``
-    is a sample of the same noise on a smaller grid.
+    is a sample of the same noise on a smaller grid.  ``field``: an array, or a tensor (read
+    on its device).
     """
-    f = np.asarray(field, dtype=np.float64)
-    f = (f - f.mean()) / max(f.std(), 1e-300)
-    fwhm = [math.sqrt(4 * math.log(2) / max(float(np.var(np.diff(f, axis=a))), 1e-300)) for a in range(f.ndim)]
+    if isinstance(field, torch.Tensor):  # on its device: only the three variances come back
+        f = field.double()
+        scale = max(float(f.std(unbiased=False)), 1e-300)
+        variances = [float(torch.diff(f, dim=a).var(unbiased=False)) / scale**2 for a in range(f.ndim)]
+    else:
+        f = np.asarray(field, dtype=np.float64)
+        f = (f - f.mean()) / max(f.std(), 1e-300)
+        variances = [float(np.var(np.diff(f, axis=a))) for a in range(f.ndim)]
+    fwhm = [math.sqrt(4 * math.log(2) / max(v, 1e-300)) for v in variances]
     resels = max(float(np.prod(f.shape) if n_voxels is None else n_voxels) / float(np.prod(fwhm)), 1.0)
     density = (4 * math.log(2)) ** 1.5 / (2 * math.pi) ** 2
 

@@ -32,11 +32,13 @@ limited tilt range lowers the peak, so the mass is a start the fit corrects.
 from __future__ import annotations
 
 import math
+
 import numpy as np
-from scipy import ndimage
+import torch
 from scipy.spatial import cKDTree
 
-from gaussian_atoms_method.atoms.peaks import random_field_threshold, separated_maxima
+from gaussian_atoms_method.atoms import volume_filters
+from gaussian_atoms_method.atoms.peaks import random_field_threshold
 from gaussian_atoms_method.atoms.point_response import clean_peaks, point_response
 from gaussian_atoms_method.physics.reconstruction import reconstruct
 
@@ -76,13 +78,14 @@ def unexplained_sites(
         Integrated mass of each, residual units x Å^2.
     """
     volume = reconstruct(residuals, angles_deg, pixel_size_A, "fbp", tilt_axis, centre_px, filter_name="hann", device=device, tilt_axis_angle_deg=tilt_axis_angle_deg)
-    data = ndimage.gaussian_filter(volume.data, smoothing_A / volume.spacing_A)
-    noise = 1.4826 * float(np.median(np.abs(data - np.median(data))))
+    # The filter, the noise reading and the maxima on ``device`` (the start's, .volume_filters); only sites come back.
+    data = volume_filters.gaussian_filter(volume_filters.as_volume(volume.data, device), smoothing_A / volume.spacing_A)
+    noise = 1.4826 * float(_median((data - _median(data)).abs()))
     level = random_field_threshold(data, false_alarm_rate) * noise
-    peaks = separated_maxima(data, volume.spacing_A, min_distance_A, level) if noise > 0 else np.zeros((0, 3), dtype=np.int64)
+    peaks = volume_filters.separated_maxima(data, volume.spacing_A, min_distance_A, level) if noise > 0 else np.zeros((0, 3), dtype=np.int64)
     if len(peaks) == 0:
         return np.zeros((0, 3)), np.zeros(0)
-    values = data[tuple(peaks.T)]
+    values = volume_filters.values_at(data, peaks)
     response, centre = point_response(residuals.shape, angles_deg, pixel_size_A, sigma_A, tilt_axis, smoothing_A, tilt_axis_angle_deg, device)
     accepted, values = clean_peaks(peaks, values, response, centre, level)
     positions_A = volume.index_to_A(peaks[accepted])
@@ -90,4 +93,15 @@ def unexplained_sites(
         distance, _ = cKDTree(np.asarray(existing_A, dtype=np.float64)).query(positions_A)
         positions_A, values = positions_A[distance > min_distance_A], values[distance > min_distance_A]
     return positions_A, values * (2 * math.pi * (sigma_A**2 + smoothing_A**2)) ** 1.5
+
+
+def _median(values: torch.Tensor) -> float:
+    """numpy's median (the mean of the two middle values of an even count) of a tensor: numpy's
+    own on the CPU, else on its device (torch's median is the lower of the two middle values)."""
+    if values.device.type == "cpu":
+        return float(np.median(values.numpy()))
+    flat = values.reshape(-1)
+    n = flat.numel()
+    middle = torch.kthvalue(flat, n // 2 + 1).values if n % 2 else 0.5 * (torch.kthvalue(flat, n // 2).values + torch.kthvalue(flat, n // 2 + 1).values)
+    return float(middle)
 

@@ -60,7 +60,7 @@ def add_missing_atoms(model) -> int:
     sigma_A = float(model.sigmas.median()) / ls
     sites_A, masses = unexplained_sites(
         projections.cpu().numpy() - predicted, series.angles_deg, series.pixel_size_A, model.means.detach().cpu().double().numpy() / ls, sigma_A,
-        series.tilt_axis, series.centre_px, false_alarm_rate=model.config.false_alarm_rate, tilt_axis_angle_deg=series.tilt_axis_angle_deg,
+        series.tilt_axis, series.centre_px, false_alarm_rate=model.config.false_alarm_rate, tilt_axis_angle_deg=series.tilt_axis_angle_deg, device=str(model.means.device),
     )  # fmt: skip
     means = torch.as_tensor(sites_A * ls, dtype=model.means.dtype).reshape(-1, 3)
     # With no site, add() notes that the residuals are clean (no more searches).
