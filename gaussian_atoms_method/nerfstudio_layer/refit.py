@@ -16,11 +16,16 @@ def refit(model, max_passes: int = 10) -> int:
     step after training on eight, the refit's own jitter took the 54,000-atom a-Pd particle's
     RMSD from 7.5 to 12.1 pm on the H100), updating the Gaussians with the model's own optimisers
     (their learning rates where training left them) and no density control, until the atoms
-    settle: no atom's mean over a pass (``average_iterates``,
-    :mod:`gaussian_atoms_method.density.averaging`; the last iterate without) moves by more than
-    its own Cramér-Rao precision from the last pass's, two passes in
-    a row (the training's stop, :mod:`.convergence`, per atom rather than as an RMS: after the
-    merge only the merged atoms still move), at most ``max_passes``.  Returns the steps taken
+    settle: no more than the false discovery rate's share of the atoms move by more than their
+    own Cramér-Rao precision from one pass to the next (their means over a pass,
+    ``average_iterates``, :mod:`gaussian_atoms_method.density.averaging`; the last iterate
+    without), two passes in a row (the training's stop, :mod:`.convergence`, per atom rather
+    than as an RMS: after the merge only the merged atoms still move), at most ``max_passes``;
+    the positions are then the mean over those passes and the one before, or, unsettled, over
+    the second half of the passes (the first half the transient).  After a stop at step 1,200
+    on Au noise 200 (CPU) the passes' means still moved by more than the precision (6.5 pm) for
+    more atoms than that share, and ending on the last pass's mean left the atoms 0.8 pm less
+    precise than without the refit.  Returns the steps taken
     (0 without the tilt series).
 
     Why more than one pass: a merged atom sits at its members' mass-weighted mean, which is
@@ -39,7 +44,7 @@ def refit(model, max_passes: int = 10) -> int:
             return 0
         # Called where results are written: possibly under no_grad or inference mode.
         with torch.inference_mode(False), torch.enable_grad():
-            before = model.means.detach().clone()
+            before, streak, passes = model.means.detach().clone(), [], []
             for _ in range(max_passes):
                 average = IterateAverage() if model.density.average_iterates else None
                 steps += _refit_pass(model, cameras, projections, names, model.views_per_step, average)
@@ -50,11 +55,14 @@ def refit(model, max_passes: int = 10) -> int:
                 if result is None:
                     break
                 std, noise = result
-                settled = settled + 1 if np.all(moved_A <= np.sqrt((std**2).sum(axis=1))) else 0
+                moving = int(np.count_nonzero(moved_A > np.sqrt((std**2).sum(axis=1))))
+                settled = settled + 1 if moving <= model.config.false_discovery_rate * len(moved_A) else 0
+                streak = streak + [now] if settled else [now]
+                passes.append(now)
                 if settled >= 2:
                     break
-            if average is not None:  # the last pass's mean is the estimate
-                average.close(model.gauss_params)
+            if average is not None and passes:  # the mean over the settled passes and the one before, or over the second half
+                model.gauss_params["means"].data.copy_(torch.stack(streak if settled >= 2 else passes[len(passes) // 2 :]).mean(dim=0))
     return steps
 
 
