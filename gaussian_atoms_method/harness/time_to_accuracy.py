@@ -77,6 +77,11 @@ class TimeToAccuracy:
             s = score_atoms(atoms.positions, truth.positions)
             rows.append(self._row("ours", int(step), stamp - launch, s, gaussians=int(gaussians), rss_gb=rss_gb, gpu_gb=gpu_bytes / 1e9))
             print(self._line(rows[-1]), flush=True)
+        written = snapshots.parent / "atoms.xyz"  # the result, after the final stage: a run that stops early has no snapshot of it
+        if written.is_file():
+            atoms = read_atoms(written)
+            rows.append(self._row("ours-final", "", written.stat().st_mtime - launch, score_atoms(atoms.positions, truth.positions), rss_gb=rss_gb, gpu_gb=rows[-1]["peak_gpu_GB"] if times.size else float("nan")))
+            print(self._line(rows[-1]), flush=True)
         self.write(rows)
         return rows
 
@@ -175,7 +180,9 @@ def plot_time_to_accuracy(rows: list[dict], path: Path) -> None:
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
     for ax, key, label in zip(axes, ("tpr", "fp_per_true_atom", "rmsd_pm"), ("TPR", "false positives per atom", "RMSD (pm)")):
         ax.plot([r["seconds"] for r in ours], [r[key] for r in ours], "o-", ms=3, label="ours (during training)")
-        for method, marker in zip(dict.fromkeys(r["method"] for r in rows if r["method"] != "ours"), "s^vDPX*"):
+        final = [r for r in rows if r["method"] == "ours-final"]
+        ax.plot([r["seconds"] for r in final], [r[key] for r in final], "*", ms=11, color="C0", label="ours (written atoms)")
+        for method, marker in zip(dict.fromkeys(r["method"] for r in rows if r["method"] not in ("ours", "ours-final")), "s^vDPX*"):
             points = [r for r in rows if r["method"] == method]
             ax.plot([r["seconds"] for r in points], [r[key] for r in points], marker + ("--" if len(points) > 1 else ""), ms=7, label=f"{method} + tracing")
         ax.set_xlabel("wall time (s)")
