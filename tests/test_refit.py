@@ -73,3 +73,23 @@ def _two_atoms_one_off(tmp_path):
     model.optimizers = {"means": torch.optim.Adam([model.gauss_params["means"]], lr=0.03 * ls)}
     return model, truth, ls
 
+
+
+def test_drifting_tells_scatter_from_travel():
+    """Pass means that scatter about fixed positions by about the precision (the refit after an
+    early stop: RMS 7 pm between passes against 6.5 pm) are not drifting, on 20 seeds; the same
+    with 1% of the atoms travelling two precisions a pass (merged atoms on their way) are, on every
+    seed: their 3 |v|^2 = 12 precisions squared over 1% of 6,700 atoms is 0.12 against a standard
+    error of about 0.03."""
+    from gaussian_atoms_method.nerfstudio_layer.refit import drifting
+
+    n, precision = 6700, np.full(6700, 0.065)
+    false_drift = 0
+    for seed in range(20):
+        rng = np.random.default_rng(seed)
+        fixed = rng.uniform(-10, 10, (n, 3))
+        older, previous, now = (fixed + rng.normal(0, 0.065 / math.sqrt(6), (n, 3)) for _ in range(3))
+        false_drift += drifting(older, previous, now, precision)
+        travelling, step = rng.random(n) < 0.01, np.array([2 * 0.065, 0.0, 0.0])
+        assert drifting(older, previous + travelling[:, None] * step, now + 2 * travelling[:, None] * step, precision)
+    assert false_drift <= 3  # one-sided 2.3% a seed: more than 3 of 20 has a chance of 0.14%
