@@ -74,7 +74,6 @@ def _two_atoms_one_off(tmp_path):
     return model, truth, ls
 
 
-
 def test_drifting_tells_scatter_from_travel():
     """Pass means that scatter about fixed positions by about the precision (the refit after an
     early stop: RMS 7 pm between passes against 6.5 pm) are not drifting, on 20 seeds; the same

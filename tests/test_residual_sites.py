@@ -64,8 +64,6 @@ def test_sites_keep_clear_of_existing_gaussians():
 def test_the_random_field_level_of_a_tensor_is_that_of_its_array():
     """The residual search reads the level on the run's device: the same three gradient
     variances in float64, so the same level to float64 rounding."""
-    import torch
-
     from gaussian_atoms_method.atoms.peaks import random_field_threshold
     from gaussian_atoms_method.atoms.volume_filters import gaussian_filter
 

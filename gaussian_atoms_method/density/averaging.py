@@ -42,12 +42,16 @@ class IterateAverage:
         self._origin: dict[str, torch.Tensor] = {}
         self._sum: dict[str, torch.Tensor] = {}
 
+    def _holds(self, params: Mapping[str, torch.Tensor]) -> bool:
+        """Whether the open window holds iterates of ``params``' Gaussians (the same tensors)."""
+        members = tuple(params[n] for n in self.names if n in params)
+        return self.count > 0 and len(members) == len(self._members) and all(a is b for a, b in zip(members, self._members))
+
     @torch.no_grad()
     def add(self, params: Mapping[str, torch.Tensor]) -> None:
         """Add the current iterate; opens a new window when the set of Gaussians changed."""
-        members = tuple(params[n] for n in self.names if n in params)
-        if self.count == 0 or len(members) != len(self._members) or any(a is not b for a, b in zip(members, self._members)):
-            self._members, self.count = members, 0
+        if not self._holds(params):
+            self._members, self.count = tuple(params[n] for n in self.names if n in params), 0
             self._origin = {n: params[n].detach().clone() for n in self.names if n in params}
             self._sum = {n: torch.zeros_like(v) for n, v in self._origin.items()}
         for n, total in self._sum.items():
@@ -58,7 +62,7 @@ class IterateAverage:
         """name -> the window's mean where the window holds ``params``' Gaussians, else their
         current value (every parameter of ``params``, detached)."""
         out = {n: p.detach() for n, p in params.items()}
-        if self.count and all(params.get(n) is m for n, m in zip(self._sum, self._members)):
+        if self._holds(params):
             out.update({n: self._origin[n] + self._sum[n] / self.count for n in self._sum})
         return out
 
@@ -66,7 +70,7 @@ class IterateAverage:
     def close(self, params: Mapping[str, torch.Tensor]) -> int:
         """Write the window's mean into ``params`` (when the window holds them) and open a new
         window; returns the iterates averaged (0: nothing written)."""
-        count = self.count if self.count and all(params.get(n) is m for n, m in zip(self._sum, self._members)) else 0
+        count = self.count if self._holds(params) else 0
         if count > 1:
             for n, value in self.mean(params).items():
                 if n in self._sum:

@@ -47,27 +47,26 @@ def refit(model, max_passes: int = 10) -> int:
             return 0
         # Called where results are written: possibly under no_grad or inference mode.
         with torch.inference_mode(False), torch.enable_grad():
-            before, streak, passes = model.means.detach().clone(), [], []
+            passes, first = [model.means.detach().clone()], 1  # the start, then each pass's mean; the streak from passes[first]
             for _ in range(max_passes):
                 average = IterateAverage() if model.density.average_iterates else None
                 steps += _refit_pass(model, cameras, projections, names, model.views_per_step, average)
                 now = average.mean(model.gauss_params)["means"] if average is not None else model.means.detach().clone()
-                moved_A = (now - before).norm(dim=1).cpu().numpy() / model.normalisation.length_scale
-                before = now
+                moved_A = (now - passes[-1]).norm(dim=1).cpu().numpy() / model.normalisation.length_scale
                 result = model.position_std_A(model.atoms(), noise)
                 if result is None:
                     break
                 std, noise = result
                 precision_A = np.sqrt((std**2).sum(axis=1))
                 moving = int(np.count_nonzero(moved_A > precision_A))
-                jitter_only = len(passes) >= 2 and not drifting(*(m.cpu().double().numpy() / model.normalisation.length_scale for m in (passes[-2], passes[-1], now)), precision_A)
+                jitter_only = len(passes) >= 3 and not drifting(*(m.cpu().double().numpy() / model.normalisation.length_scale for m in (passes[-2], passes[-1], now)), precision_A)
                 settled = settled + 1 if moving <= model.config.false_discovery_rate * len(moved_A) or jitter_only else 0
-                streak = streak + [now] if settled else [now]
+                first = first if settled else len(passes)
                 passes.append(now)
                 if settled >= 2:
                     break
-            if average is not None and passes:  # the mean over the settled passes and the one before, or over the second half
-                model.gauss_params["means"].data.copy_(torch.stack(streak if settled >= 2 else passes[len(passes) // 2 :]).mean(dim=0))
+            if average is not None and len(passes) > 1:  # the mean over the settled passes and the one before, or over the second half
+                model.gauss_params["means"].data.copy_(torch.stack(passes[first:] if settled >= 2 else passes[1:][(len(passes) - 1) // 2 :]).mean(dim=0))
     return steps
 
 
