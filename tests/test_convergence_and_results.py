@@ -65,3 +65,39 @@ def test_snapshots_hold_the_atoms_and_a_time_line_per_step(tmp_path):
     lines = (tmp_path / "snapshots" / "times.csv").read_text().splitlines()
     assert [line.split(",")[0] for line in lines] == ["100", "200"] and lines[1].endswith(",5,123")
     assert float(lines[1].split(",")[1]) == pytest.approx(time.time(), abs=60)
+
+
+def _precision(noise):
+    return np.full((4, 3), 0.1), 7.0  # 0.17 Å in 3D
+
+
+def test_each_check_reports_positions_set_and_scatter_apart():
+    """The positions can settle while the set churns (a Gaussian of four goes each check): the
+    check is not settled, but says positions_settled and churning.  Removals count by the atoms
+    they hold: a fragment of a tenth of an atom removed is within a tolerance of 0.25 atoms,
+    a whole atom is not.  Positions that only scatter about fixed places read scatter_only,
+    positions that travel do not."""
+    x = torch.arange(6.0)[:, None] * torch.tensor([0.03, 0.0, 0.0])  # 3 Å apart, 1 Å = 0.01
+    check = ConvergenceCheck(warmup_length=0, refine_every=1, changed_fraction=0.05, match_distance=0.007)
+    for step, n in enumerate((6, 5, 4), start=1):
+        settled = check.update(step, x[:n], 0.01, lambda noise: (np.full((n, 3), 0.1), 7.0))
+    assert not settled and check.positions_settled == 2 and check.churning == 2
+    check.restart(x[:4])
+    assert check.positions_settled == check.churning == 0 and not check.update(4, x[:4], 0.01, _precision)
+    weighted = ConvergenceCheck(warmup_length=0, refine_every=1, changed_fraction=0.25 / 4, match_distance=0.007)
+    worth = torch.tensor([1.0, 1.0, 1.0, 0.1])
+    weighted.update(1, x[:4], 0.01, _precision, worth)
+    weighted.update(2, x[:3], 0.01, _precision, worth[:3])  # the fragment went
+    assert weighted.changed == pytest.approx(0.1) and weighted.churning == 0
+    weighted.update(3, x[:2], 0.01, _precision, worth[:2])  # an atom went
+    assert weighted.changed == pytest.approx(1.0) and weighted.churning == 1
+
+    rng = np.random.default_rng(0)
+    many = torch.as_tensor(rng.uniform(-0.5, 0.5, (400, 3)))  # spread wider than the match distance
+    precision = lambda noise: (np.full((400, 3), 0.1), 7.0)  # noqa: E731
+    scatter = ConvergenceCheck(warmup_length=0, refine_every=1, match_distance=0.007)
+    travel = ConvergenceCheck(warmup_length=0, refine_every=1, match_distance=0.007)
+    for step in range(1, 4):
+        scatter.update(step, many + torch.as_tensor(rng.normal(0, 0.001, (400, 3))), 0.01, precision)  # 0.1 Å per axis about fixed places
+        travel.update(step, many + step * 0.002 + torch.as_tensor(rng.normal(0, 0.001, (400, 3))), 0.01, precision)  # and 0.2 Å per axis a check
+    assert scatter.scatter_only and not travel.scatter_only

@@ -398,3 +398,20 @@ def test_a_gaussian_holding_two_atoms_is_split_along_the_missing_wedge():
     assert widths(params, control.min_log_sigma)[[heavy, 343]].detach().numpy() == pytest.approx([0.006, 0.006], rel=1e-9)
     assert opts["means"].state[params["means"]]["exp_avg"].shape == (344, 3)
     assert control.split_heavy_gaussians(params, opts) == 0  # once a run
+
+
+def test_settling_mid_run_applies_the_final_prune_but_spares_fresh_additions():
+    """``settle`` (the final rules mid-run): a noise blob at 2 sigma goes, an atom at 110 stays,
+    and a Gaussian a residual search added this interval (as faint) is left its interval; what
+    is left of that search is counted by ``descendants``."""
+    params, opts, control = _setup([[0.0, 0.0, 0.0], [0.2, 0.0, 0.0]], sigma_A=0.006)
+    control.length_scale = 0.01
+    _with_noise(control, pixel_size=0.0025)
+    z_unit = float(control.mass_significance(params)[0])
+    with torch.no_grad():
+        params["log_amplitudes"][:] = torch.log(torch.tensor([[110.0 / z_unit], [2.0 / z_unit]], dtype=torch.float64))
+    control.step = 700
+    control.add(params, opts, torch.tensor([[-0.2, 0.0, 0.0]], dtype=torch.float64), 0.006, _mass(params, control)[1:2].detach().clone())
+    assert control.descendants(700) == 1
+    assert control.settle(params, opts) == 1 and params["means"].shape[0] == 2
+    assert control.descendants(700) == 1 and control.descendants(0) == 0

@@ -80,7 +80,7 @@ def test_drifting_tells_scatter_from_travel():
     with 1% of the atoms travelling two precisions a pass (merged atoms on their way) are, on every
     seed: their 3 |v|^2 = 12 precisions squared over 1% of 6,700 atoms is 0.12 against a standard
     error of about 0.03."""
-    from gaussian_atoms_method.nerfstudio_layer.refit import drifting
+    from gaussian_atoms_method.nerfstudio_layer.convergence import drifting
 
     n, precision = 6700, np.full(6700, 0.065)
     false_drift = 0

@@ -144,6 +144,10 @@ class DensityControl:
     step: int = 0
     residual_clean: bool = False
     """A residual check found nothing to add: the later ones are skipped."""
+    searched_at: int = 0
+    """The step of the last residual search that added Gaussians (0: none yet)."""
+    settled_since_search: bool = False
+    """The final rules were applied mid-run since that search (:meth:`settle`)."""
     heavy_split: bool = False
     """The heavy Gaussians were split (:meth:`split_heavy_gaussians`: once a run)."""
     clamp_counts: torch.Tensor | None = None
@@ -226,14 +230,27 @@ class DensityControl:
         if self.average_iterates:  # the last interval's mean: the estimate the final rules judge
             self.average.close(params)
         self.born = torch.zeros_like(self.born)  # at the end every Gaussian is judged
+        return self.settle(params, optimizers, param_lists, correlations)
+
+    @torch.no_grad()
+    def settle(self, params: Params, optimizers: Optimizers, param_lists=None, correlations=None) -> int:
+        """The final rules of :meth:`finalize` (merges by likelihood and resolution, the final
+        prune, the distance merge) on the Gaussians as they stand; fresh ones keep their interval.
+        Called mid-run once the positions have settled but the set has not (:mod:`..nerfstudio_layer.stopping`).
+        Returns how many Gaussians went."""
         removed = 0
         if self.cluster_merge:
             removed += self.merge_by_likelihood(params, optimizers, param_lists, correlations) if correlations is not None else 0
             removed += self.merge_unresolved(params, optimizers, param_lists)
         removed += self.prune(params, optimizers, param_lists, final=True)
         if self.cluster_merge:
-            removed += self.merge(params, optimizers, param_lists)
+            removed += self.merge(params, optimizers, param_lists, protect_fresh=True)
         return removed
+
+    def descendants(self, step: int) -> int:
+        """How many Gaussians were made at ``step`` (or merged from one made then): what is left
+        of the Gaussians a residual search added at ``step``."""
+        return int((self.born == step).sum()) if step > 0 else 0
 
     # ------------------------------------------------------------------ the rules
     @torch.no_grad()
@@ -379,6 +396,11 @@ class DensityControl:
         sigmas = widths(params, self.min_log_sigma)
         atom_like = self.atom_width(sigmas)
         return typical_mass(gaussian_mass(sigmas, amplitudes(params))[atom_like])
+
+    def atoms_worth(self, params: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        """(N,) each Gaussian's mass in typical atoms (:meth:`typical_atom_mass`)."""
+        mass = gaussian_mass(widths(params, self.min_log_sigma), amplitudes(params))
+        return mass / max(self.typical_atom_mass(params), 1e-300)
 
     def atom_width(self, sigmas: torch.Tensor) -> torch.Tensor:
         """(N,) bool: no wider than ``max_atom_sigma_A`` (the widest an atom can be)."""

@@ -27,8 +27,14 @@ Precision = Callable[[float | None], "tuple[np.ndarray, float] | None"]
 
 @dataclass
 class ConvergenceCheck:
-    """State of the convergence test: the positions at the last check, the settled checks in a
-    row and the pixel noise (estimated from the residuals at the first check, then kept)."""
+    """State of the convergence test: the positions at the last two checks, the settled checks
+    in a row and the pixel noise (estimated from the residuals at the first check, then kept).
+
+    Besides the verdict, each check leaves what the run can act on while unsettled
+    (:mod:`.stopping`): ``positions_settled``, the checks in a row at which the matched positions
+    moved less than their precision whatever the set did; ``changed`` and ``tolerated``, the
+    atoms' worth of Gaussians added or removed and the share allowed, and ``churning``; ``scatter_only``, whether the positions
+    over the last three checks only scatter about fixed places (:func:`drifting`)."""
 
     warmup_length: int
     refine_every: int
@@ -41,10 +47,29 @@ class ConvergenceCheck:
     """Normalised: a Gaussian now and one at the last check are the same atom when each is the
     other's nearest and they are closer than this (the model passes the merge distance)."""
     previous: torch.Tensor | None = None
+    previous_weights: torch.Tensor | None = None
     settled_checks: int = 0
     noise: float | None = None
+    positions_settled: int = 0
+    churning: int = 0
+    """Checks in a row at which more Gaussians were added or removed than ``tolerated``."""
+    changed: float = 0.0
+    tolerated: float = 0.0
+    scatter_only: bool = False
+    older: torch.Tensor | None = None
+    """The positions at the check before ``previous``, and ``link``: the (older, previous) index
+    pairs matched then."""
+    link: tuple[np.ndarray, np.ndarray] | None = None
+    noise_read_settled: bool = False
+    """Whether ``noise`` was read at a check where the positions had settled.  The first
+    check's reading (step 300) still holds the fit's misfit, which loosens the precision; when
+    the positions look settled under it, the noise is read again once and then kept."""
 
-    def update(self, step: int, positions: torch.Tensor, length_scale: float, precision: Precision) -> bool:
+    def checks(self, step: int) -> bool:
+        """Whether ``step`` is a check (a refine step after the warm-up)."""
+        return step >= self.warmup_length and step % self.refine_every == 0
+
+    def update(self, step: int, positions: torch.Tensor, length_scale: float, precision: Precision, atoms: torch.Tensor | None = None) -> bool:
         """True once the atoms are settled.
 
         Parameters
@@ -56,26 +81,70 @@ class ConvergenceCheck:
         precision : callable
             ``precision(noise)`` -> ((N, 3) position precision in Å, the noise it assumed), or
             None when it cannot be computed (no tilt series).
+        atoms : (N,) tensor, optional
+            Each Gaussian's mass in typical atoms: a Gaussian added or removed counts as that
+            many atoms changed (default one each).  The training prune takes fragments of atoms
+            (lighter than ``prune_mass_fraction`` of an atom) one by one as their mass fades: on
+            the 20,000-atom a-Si 30-60 of them an interval until step 2,300, each worth a
+            fraction of an atom.
         """
-        if step < self.warmup_length or step % self.refine_every != 0:
+        if not self.checks(step):
             return False
         positions = positions.detach().double().cpu().clone()
-        previous, self.previous = self.previous, positions
+        weights = torch.ones(len(positions), dtype=torch.float64) if atoms is None else atoms.detach().double().cpu().flatten()
+        previous_weights, self.previous_weights = self.previous_weights, weights
+        older, link = self.older, self.link
+        self.older, previous, self.previous, self.scatter_only = self.previous, self.previous, positions, False
+        self.link = None
         if previous is None or len(previous) == 0 or len(positions) == 0:
-            self.settled_checks = 0
+            self.settled_checks = self.positions_settled = 0
             return False
         before, now = mutual_nearest(previous.numpy(), positions.numpy(), self.match_distance)
-        if len(previous) + len(positions) - 2 * len(now) > self.changed_fraction * max(len(previous), len(positions)):
-            self.settled_checks = 0
-            return False
+        self.link = (before, now)
+        self.changed = float(previous_weights.sum() - previous_weights[torch.as_tensor(before)].sum() + weights.sum() - weights[torch.as_tensor(now)].sum())
+        self.tolerated = self.changed_fraction * max(len(previous), len(positions))
         step_A = float((positions[now] - previous[before]).square().sum(dim=1).mean().sqrt()) / length_scale
-        result = precision(self.noise)
-        if result is None:
-            return False
-        std, self.noise = result
-        precision_A = float(np.median(np.sqrt((std**2).sum(axis=1))))
-        self.settled_checks = self.settled_checks + 1 if step_A < self.fraction * precision_A else 0
+        read_here = self.noise is None  # the first reading is this check's
+        for again in (False, True):
+            result = precision(None if again else self.noise)
+            if result is None:
+                return False
+            std, self.noise = result
+            precision_A = np.sqrt((std**2).sum(axis=1))
+            moved_less = step_A < self.fraction * float(np.median(precision_A))
+            if again or not moved_less or read_here or self.noise_read_settled:
+                break
+        self.noise_read_settled |= moved_less or again
+        self.positions_settled = self.positions_settled + 1 if moved_less else 0
+        if older is not None and link is not None:  # atoms matched over all three checks
+            older_of = np.full(len(previous), -1)
+            older_of[link[1]] = link[0]
+            chained = older_of[before] >= 0
+            if chained.any():
+                a, b, c = (x.numpy() / length_scale for x in (older[older_of[before[chained]]], previous[before[chained]], positions[now[chained]]))
+                self.scatter_only = not drifting(a, b, c, precision_A[now[chained]])
+        set_settled = self.changed <= self.tolerated
+        self.churning = 0 if set_settled else self.churning + 1
+        self.settled_checks = self.settled_checks + 1 if set_settled and self.positions_settled else 0
         return self.settled_checks >= 2
+
+    def restart(self, positions: torch.Tensor, atoms: torch.Tensor | None = None) -> None:
+        """Compare the next check with ``positions`` (the set was changed on purpose: its
+        removals are not churn), from no settled checks."""
+        self.previous, self.older, self.link = positions.detach().double().cpu().clone(), None, None
+        self.previous_weights = torch.ones(len(positions), dtype=torch.float64) if atoms is None else atoms.detach().double().cpu().flatten()
+        self.settled_checks = self.positions_settled = self.churning = 0
+
+
+def drifting(older_A: np.ndarray, previous_A: np.ndarray, now_A: np.ndarray, precision_A: np.ndarray, z: float = 2.0) -> bool:
+    """Whether three successive (N, 3) estimates of the positions (checks' or passes' means)
+    still drift, rather than scatter about fixed positions.  Scattering alone, the step over two
+    intervals is as large as over one; an atom that moves by v an interval adds 3 |v|^2 to the
+    first's square over the second's.  So each atom's difference of the two squared steps, in
+    units of its (N,) precision squared, has mean zero when nothing drifts: drifting when their
+    mean exceeds ``z`` standard errors (one-sided, 2.3% at z = 2)."""
+    d = (((now_A - older_A) ** 2).sum(axis=1) - ((now_A - previous_A) ** 2).sum(axis=1)) / np.maximum(precision_A, 1e-12) ** 2
+    return bool(d.mean() > z * d.std() / math.sqrt(max(len(d), 1)))
 
 
 def mutual_nearest(a: np.ndarray, b: np.ndarray, within: float = math.inf) -> tuple[np.ndarray, np.ndarray]:

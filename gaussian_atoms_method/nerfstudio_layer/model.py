@@ -40,9 +40,10 @@ from gaussian_atoms_method.nerfstudio_layer.kernel_reading import HeldOutKernel
 from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions
 from gaussian_atoms_method.nerfstudio_layer.noise_reading import judge_after_fit, measure_noise, read_field_of_view, read_noise
 from gaussian_atoms_method.nerfstudio_layer.refit import refit
-from gaussian_atoms_method.nerfstudio_layer.residuals import add_missing_atoms, residual_correlations
+from gaussian_atoms_method.nerfstudio_layer.residuals import residual_correlations
 from gaussian_atoms_method.nerfstudio_layer.results import model_position_std_A, write_results, write_snapshot
 from gaussian_atoms_method.nerfstudio_layer.splatfacto_compat import SplatfactoCompat
+from gaussian_atoms_method.nerfstudio_layer.stopping import at_check, set_position_rate
 from gaussian_atoms_method.nerfstudio_layer.viewer import AtomsInViewer
 from gaussian_atoms_method.physics.data_terms import data_term
 from gaussian_atoms_method.physics.psf import project_weights
@@ -224,6 +225,8 @@ class GaussianAtomsModel(SplatfactoCompat):
         return cbs
 
     def step_cb(self, optimizers, step: int) -> None:
+        if optimizers is not self._optimizers_obj:
+            set_position_rate(self, optimizers)
         self.step, self._optimizers_obj, self.optimizers = step, optimizers, optimizers.optimizers
 
     def _param_lists(self):  # nerfstudio's second registry of the parameters (Optimizers.parameters), kept in step
@@ -265,7 +268,8 @@ class GaussianAtomsModel(SplatfactoCompat):
 
     def converged(self, step: int) -> bool:
         """True once the atoms are settled (:mod:`.convergence`)."""
-        return self.convergence.update(step, self.means, self.normalisation.length_scale, lambda noise: self.position_std_A(self.atoms(), noise))
+        worth = self.density.atoms_worth(self.gauss_params) if self.convergence.checks(step) else None
+        return self.convergence.update(step, self.means, self.normalisation.length_scale, lambda noise: self.position_std_A(self.atoms(), noise), worth)
 
     def write_results(self, run_dir: Path) -> dict | None:
         """atoms.xyz, atoms.csv, slices.png and evaluation.json (:func:`.results.write_results`)."""
@@ -276,20 +280,10 @@ class GaussianAtomsModel(SplatfactoCompat):
             self.write_results(Path(run_dir))
 
     def _stop_if_converged(self, trainer, last_step: int, step: int) -> None:
-        """Once the atoms are settled (and at the last refine before stop_split_at, so every run
-        searches once): add Gaussians where the residuals hold mass (:mod:`.residuals`) and
-        train on; settled with nothing to add: stop.  A search that adds no more Gaussians than the
-        settled test lets change (``changed_fraction``) is the last (Au noise 200: four searches
-        added 1-6 of 6,700, most pruned again, each 3.7 s on the H100)."""
+        """At each check: stop once the atoms are settled, else search, settle the set or slow the positions (:mod:`.stopping`)."""
         if self.kernel_reading.first_pass:  # psf held-out: the reading ends once the kernel is held (.kernel_reading.restart_with_kernel_held)
             trainer.stop_training = self.kernel_reading.settled
-            return
-        search, last_search = self.density.residual_check_open(step), step == min(self.density.stop_split_at, last_step) - self.config.refine_every
-        settled = step < last_step and (self.config.stop_when_converged or search) and self.converged(step)
-        if search and (settled or last_search) and (added := add_missing_atoms(self)):
-            self.atoms_in_viewer.refresh()
-            self.density.residual_clean = settled and added <= self.convergence.changed_fraction * self.num_points
-        elif settled and self.config.stop_when_converged:
+        elif at_check(self, step, last_step):
             CONSOLE.print(f"gaussian-atoms: converged at step {step}: stopping early")
             self.write_results(Path(trainer.base_dir))
             trainer.stop_training = True  # nerfstudio's loop ends before the next step

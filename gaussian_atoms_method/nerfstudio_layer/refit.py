@@ -3,12 +3,11 @@ the survivors take up what the removed Gaussians carried."""
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import torch
 
 from gaussian_atoms_method.density.averaging import IterateAverage
+from gaussian_atoms_method.nerfstudio_layer.convergence import drifting
 from gaussian_atoms_method.nerfstudio_layer.residuals import training_views
 
 
@@ -21,7 +20,7 @@ def refit(model, max_passes: int = 10) -> int:
     settle: no more than the false discovery rate's share of the atoms move by more than their
     own Cramér-Rao precision from one pass to the next (their means over a pass,
     ``average_iterates``, :mod:`gaussian_atoms_method.density.averaging`; the last iterate
-    without), or the passes' means only scatter, no longer drift (:func:`drifting`), two passes in a row (the training's stop, :mod:`.convergence`, per atom rather
+    without), or the passes' means only scatter, no longer drift (:func:`.convergence.drifting`), two passes in a row (the training's stop, :mod:`.convergence`, per atom rather
     than as an RMS: after the merge only the merged atoms still move), at most ``max_passes``;
     the positions are then the mean over those passes and the one before, or, unsettled, over
     the second half of the passes (the first half the transient).  After a stop at step 1,200
@@ -68,17 +67,6 @@ def refit(model, max_passes: int = 10) -> int:
             if average is not None and len(passes) > 1:  # the mean over the settled passes and the one before, or over the second half
                 model.gauss_params["means"].data.copy_(torch.stack(passes[first:] if settled >= 2 else passes[1:][(len(passes) - 1) // 2 :]).mean(dim=0))
     return steps
-
-
-def drifting(older_A: np.ndarray, previous_A: np.ndarray, now_A: np.ndarray, precision_A: np.ndarray, z: float = 2.0) -> bool:
-    """Whether three successive (N, 3) pass means still drift, rather than scatter about fixed
-    positions.  Scattering alone, the step over two passes is as large as over one; an atom that
-    moves by v a pass adds 3 |v|^2 to the first's square over the second's.  So each atom's
-    difference of the two squared steps, in units of its (N,) precision squared, has mean zero
-    when nothing drifts: drifting when their mean exceeds ``z`` standard errors (one-sided, 2.3%
-    at z = 2)."""
-    d = (((now_A - older_A) ** 2).sum(axis=1) - ((now_A - previous_A) ** 2).sum(axis=1)) / np.maximum(precision_A, 1e-12) ** 2
-    return bool(d.mean() > z * d.std() / math.sqrt(max(len(d), 1)))
 
 
 def _refit_pass(model, cameras, projections, names, views_per_step: int = 1, average: IterateAverage | None = None) -> int:

@@ -1,0 +1,111 @@
+"""What a run does at each convergence check (:mod:`.convergence`): stop once the atoms are
+settled; until then, search the residuals for missing atoms, apply the final merges and prune
+early when only the set still churns, and slow the positions when they only scatter.
+
+Two things kept large particles training to the last step (H100, 3,000 steps, ``.convergence``'s
+numbers at each check):
+
+* **the set churned after the positions had settled.**  A 20,000-atom a-Si particle starts from
+  43,000 candidates; the positions moved less than their precision from step 700 on, but the
+  training prune and merge still removed 30-200 weak or shared Gaussians per interval against the
+  20 the check tolerates, until the final stage removed the last 600 at once.  Those are the final
+  rules' to remove, so once the positions have settled and the set churned at two checks in a
+  row they are applied then (:meth:`~gaussian_atoms_method.density.strategy.DensityControl.settle`),
+  once per search.
+* **the positions scattered by more than their precision.**  Adam's steps are about the learning
+  rate whatever the gradient's noise, so with one view per step the positions keep scattering at
+  the schedule's rate: on a 54,000-atom a-Pd particle the checks' means moved 17 pm per interval
+  at step 1,000 against a precision of 4 pm, and below it only at step 2,900.  Once the checks
+  show scatter and no drift (:func:`.convergence.drifting`), the positions' rate is halved, down
+  to the schedule's final rate (:func:`slow_positions`).
+
+A residual search that adds more than the tolerated change is followed by another once the atoms
+settle again; when less than that is left of the previous search's additions at the next one
+(the prune took them back: at 8 views per step on the H100 every search on Au noise 200 added 8-11
+Gaussians and the next prune removed most), the search is over.
+"""
+
+from __future__ import annotations
+
+from gaussian_atoms_method.nerfstudio_layer.residuals import add_missing_atoms, residual_correlations
+
+POSITIONS = "means"
+
+
+def at_check(model, step: int, last_step: int) -> bool:
+    """Act on the convergence check after ``step`` (the refine and merge callbacks have run);
+    True when the run should stop.  Every run searches the residuals at least once, at the last
+    refine before ``stop_split_at``."""
+    cfg, density, check = model.config, model.density, model.convergence
+    search, last_search = density.residual_check_open(step), step == min(density.stop_split_at, last_step) - cfg.refine_every
+    if step >= last_step or not (cfg.stop_when_converged or search):
+        return False
+    settled = model.converged(step)
+    tolerated = check.changed_fraction * model.num_points
+    if search and (settled or last_search):
+        if settled and density.searched_at and density.descendants(density.searched_at) <= tolerated:
+            density.residual_clean = True  # the last search's additions did not survive: searching is over
+        elif added := add_missing_atoms(model):
+            model.atoms_in_viewer.refresh()
+            density.residual_clean = settled and added <= tolerated
+            density.searched_at, density.settled_since_search = step, False
+            return False
+    if settled:
+        return cfg.stop_when_converged
+    if check.checks(step) and check.positions_settled >= 2 and check.churning >= 2 and not density.settled_since_search:
+        settle_set(model)
+    elif check.checks(step) and check.scatter_only and not check.positions_settled:
+        slow_positions(model)
+    return False
+
+
+def settle_set(model) -> int:
+    """Apply the final merges and prune now (:meth:`~gaussian_atoms_method.density.strategy.DensityControl.settle`)
+    and compare the next check with what is left; returns how many Gaussians went."""
+    removed = model.density.settle(model.gauss_params, model.optimizers, model._param_lists(), lambda m, s: residual_correlations(model, m, s))
+    model.density.settled_since_search = True
+    model.convergence.restart(model.means, model.density.atoms_worth(model.gauss_params))
+    if removed:
+        model.atoms_in_viewer.refresh()
+    return removed
+
+
+def set_position_rate(model, optimizers) -> bool:
+    """Rescale the positions' learning rate (their optimiser's rate and its scheduler's base) to
+    ``position_rate_px`` detector pixels, once per optimiser (the mark travels in its state dict:
+    a resumed run is not rescaled twice).  Returns whether it was rescaled."""
+    rate_px, pixel_A = model.config.position_rate_px, (model.kwargs.get("metadata", {}) or {}).get("pixel_size_A")
+    optimizer = getattr(optimizers, "optimizers", {}).get(POSITIONS)
+    if rate_px is None or not pixel_A or optimizer is None or optimizer.param_groups[0].get("rate_px"):
+        return False
+    group = optimizer.param_groups[0]
+    factor = rate_px * pixel_A * model.normalisation.length_scale / group.get("initial_lr", group["lr"])
+    for g in optimizer.param_groups:
+        g["lr"] *= factor
+        if "initial_lr" in g:
+            g["initial_lr"] *= factor
+        g["rate_px"] = rate_px
+    scheduler = optimizers.schedulers.get(POSITIONS)
+    if scheduler is not None and hasattr(scheduler, "base_lrs"):
+        scheduler.base_lrs = [b * factor for b in scheduler.base_lrs]
+    return True
+
+
+def slow_positions(model) -> bool:
+    """Halve the positions' learning rate (their optimiser's rate and its scheduler's base),
+    unless that would take it below the schedule's final rate; a rate without a scheduler is the
+    user's constant and stays.  Returns whether it was halved."""
+    optimizers = model._optimizers_obj
+    scheduler = getattr(optimizers, "schedulers", {}).get(POSITIONS)
+    if scheduler is None or not hasattr(scheduler, "lr_lambdas"):
+        return False
+    group = optimizers.optimizers[POSITIONS].param_groups[0]
+    final = group.get("initial_lr", group["lr"]) / group.get("rate_factor", 1.0) * scheduler.lr_lambdas[0](10**9)
+    if group["lr"] * 0.5 < final:
+        return False
+    for g in optimizers.optimizers[POSITIONS].param_groups:  # rate_factor travels in the optimiser's state dict (checkpoints)
+        g["lr"] *= 0.5
+        g["initial_lr"] = g.get("initial_lr", g["lr"] * 2.0) * 0.5
+        g["rate_factor"] = g.get("rate_factor", 1.0) * 0.5
+    scheduler.base_lrs = [b * 0.5 for b in scheduler.base_lrs]
+    return True
