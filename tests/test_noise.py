@@ -132,3 +132,21 @@ def test_stable_order_equals_numpy_stable_argsort():
 
     values = np.random.default_rng(3).poisson(2.0, 100_000).astype(np.float64)
     np.testing.assert_array_equal(stable_order(values), np.argsort(values, kind="stable"))
+
+
+def test_masked_least_squares_equals_lstsq_per_view():
+    """The floor's fits of all views at once equal np.linalg.lstsq view by view, on a frame with
+    a third of its pixels clipped, and on a view left with too few pixels for a quadratic."""
+    from gaussian_atoms_method.physics.noise import frame_mask, masked_least_squares, quadratic_basis
+
+    rng = np.random.default_rng(0)
+    mask = frame_mask((97, 81), 0.08)
+    basis = quadratic_basis((97, 81))[:, mask].T
+    values = rng.normal(size=(5, len(basis))) + (basis @ rng.normal(size=(6, 5))).T
+    keep = rng.random(values.shape) > 0.33
+    keep[4] = False
+    keep[4, :3] = True  # three pixels: an underdetermined fit
+    fitted = masked_least_squares(basis, values, keep)
+    for v in range(5):
+        expected = np.linalg.lstsq(basis[keep[v]], values[v, keep[v]], rcond=None)[0]
+        np.testing.assert_allclose(fitted[v], expected, rtol=1e-10 if v < 4 else 1e-6, atol=1e-10 if v < 4 else 1e-6)

@@ -265,6 +265,19 @@ background (:func:`clipped_frame`): a chance of 0.13% for a pixel of Gaussian no
 clipping leaves the floor's mean within 0.01 standard deviations of the truth."""
 
 
+def masked_least_squares(basis: np.ndarray, values: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """(N, K) least-squares coefficients of each row of ``values`` (N, F) on the (F, K)
+    ``basis``, over the pixels ``keep`` (N, F) marks, for all rows at once: the normal equations,
+    solved by pseudo-inverse (a row with too few pixels gets the minimum-norm fit, as
+    ``np.linalg.lstsq``).  The quadratic basis on [-1, 1] is well conditioned, so this equals
+    lstsq per row to 1e-10 (test_noise); at 497 x 497 pixels and 47 views the per-view lstsq took
+    1.9 s of the floor's 3.5 s."""
+    w = keep.astype(np.float64)
+    k = basis.shape[1]
+    gram = (w @ (basis[:, :, None] * basis[:, None, :]).reshape(len(basis), k * k)).reshape(-1, k, k)
+    return (np.linalg.pinv(gram, hermitian=True) @ ((w * values) @ basis)[..., None])[..., 0]
+
+
 def clipped_frame(projections: np.ndarray, noise_std: float, frame_fraction: float = 0.08, max_rounds: int = 10) -> tuple[np.ndarray, float, float, float, float]:
     """The floor read from the frame pixels that hold only background, where atoms reach the frame.
 
@@ -292,10 +305,8 @@ def clipped_frame(projections: np.ndarray, noise_std: float, frame_fraction: flo
     basis = full_basis[:, mask].T  # (F, 6)
     values = p[:, mask]  # (N, F)
     keep = np.ones_like(values, dtype=bool)
-    coef = np.zeros((n, basis.shape[1]))
     for _ in range(max_rounds):
-        for v in range(n):
-            coef[v] = np.linalg.lstsq(basis[keep[v]], values[v, keep[v]], rcond=None)[0]
+        coef = masked_least_squares(basis, values, keep)
         residual = values - coef @ basis.T
         new_keep = residual <= CLIP_Z * noise_std
         if (new_keep == keep).all():
