@@ -49,8 +49,8 @@ def at_check(model, step: int, last_step: int) -> bool:
             density.residual_clean = settled and added <= tolerated
             density.searched_at, density.settled_since_search = step, False
             return False
-    if settled:
-        return cfg.stop_when_converged
+    if settled or not cfg.stop_when_converged:  # a run told to train on keeps its schedule and its set
+        return settled and cfg.stop_when_converged
     if check.checks(step) and check.positions_settled >= 2 and check.churning >= 2 and not density.settled_since_search:
         settle_set(model)
     elif check.checks(step) and check.scatter_only and not check.positions_settled:
