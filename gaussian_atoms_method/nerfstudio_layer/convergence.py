@@ -85,7 +85,7 @@ class ConvergenceCheck:
             Each Gaussian's mass in typical atoms: a Gaussian added or removed counts as that
             many atoms changed (default one each), so a fragment the prune takes counts as the
             fraction of an atom it holds.  On the 54,000-atom a-Pd (H100) the last checks saw
-            51-74 Gaussians change (56 tolerated) holding 23-26 atoms' worth: the run stopped at
+            68-74 Gaussians change (56 tolerated) holding 23-26 atoms' worth: the run stopped at
             step 2,700 instead of training to 3,000.
         """
         if not self.checks(step):
