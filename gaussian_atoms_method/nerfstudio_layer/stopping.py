@@ -26,6 +26,8 @@ Each rule, and what decided it (H100 unless said; the check's inputs printed at 
 
 from __future__ import annotations
 
+from nerfstudio.utils.rich_utils import CONSOLE
+
 from gaussian_atoms_method.nerfstudio_layer.residuals import add_missing_atoms, residual_correlations
 
 POSITIONS = "means"
@@ -52,9 +54,9 @@ def at_check(model, step: int, last_step: int) -> bool:
     if settled or not cfg.stop_when_converged:  # a run told to train on keeps its schedule and its set
         return settled and cfg.stop_when_converged
     if check.checks(step) and check.positions_settled >= 2 and check.churning >= 2 and not density.settled_since_search:
-        settle_set(model)
-    elif check.checks(step) and check.scatter_only and not check.positions_settled:
-        slow_positions(model)
+        CONSOLE.print(f"gaussian-atoms: step {step}: the positions have settled but the set has not: the final merges and prune removed {settle_set(model)} Gaussians")
+    elif check.checks(step) and check.scatter_only and not check.positions_settled and slow_positions(model):
+        CONSOLE.print(f"gaussian-atoms: step {step}: the positions only scatter: their learning rate is halved")
     return False
 
 
