@@ -104,17 +104,23 @@ class ConvergenceCheck:
         self.changed = float(previous_weights.sum() - previous_weights[torch.as_tensor(before)].sum() + weights.sum() - weights[torch.as_tensor(now)].sum())
         self.tolerated = self.changed_fraction * max(len(previous), len(positions))
         step_A = float((positions[now] - previous[before]).square().sum(dim=1).mean().sqrt()) / length_scale
-        read_here = self.noise is None  # the first reading is this check's
-        for again in (False, True):
-            result = precision(None if again else self.noise)
+
+        def judged(noise):  # each atom's precision under ``noise`` (None: read it now), and whether the positions moved less
+            result = precision(noise)
             if result is None:
-                return False
+                return None, False
             std, self.noise = result
             precision_A = np.sqrt((std**2).sum(axis=1))
-            moved_less = step_A < self.fraction * float(np.median(precision_A))
-            if again or not moved_less or read_here or self.noise_read_settled:
-                break
-        self.noise_read_settled |= moved_less or again
+            return precision_A, step_A < self.fraction * float(np.median(precision_A))
+
+        read_here = self.noise is None  # the first reading is this check's
+        precision_A, moved_less = judged(self.noise)
+        if moved_less and not (read_here or self.noise_read_settled):  # settled under an early reading: read the noise again, once
+            precision_A, moved_less = judged(None)
+            self.noise_read_settled = True
+        if precision_A is None:
+            return False
+        self.noise_read_settled |= moved_less
         self.positions_settled = self.positions_settled + 1 if moved_less else 0
         if older is not None and link is not None:  # atoms matched over all three checks
             older_of = np.full(len(previous), -1)

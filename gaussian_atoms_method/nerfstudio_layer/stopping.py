@@ -51,11 +51,11 @@ def at_check(model, step: int, last_step: int) -> bool:
             density.residual_clean = settled and added <= tolerated
             density.searched_at, density.settled_since_search = step, False
             return False
-    if settled or not cfg.stop_when_converged:  # a run told to train on keeps its schedule and its set
+    if settled or not cfg.stop_when_converged or not check.checks(step):  # a run told to train on keeps its schedule and its set
         return settled and cfg.stop_when_converged
-    if check.checks(step) and check.positions_settled >= 2 and check.churning >= 2 and not density.settled_since_search:
+    if check.positions_settled >= 2 and check.churning >= 2 and not density.settled_since_search:
         CONSOLE.print(f"gaussian-atoms: step {step}: the positions have settled but the set has not: the final merges and prune removed {settle_set(model)} Gaussians")
-    elif check.checks(step) and check.scatter_only and not check.positions_settled and slow_positions(model):
+    elif check.scatter_only and not check.positions_settled and slow_positions(model):
         CONSOLE.print(f"gaussian-atoms: step {step}: the positions only scatter: their learning rate is halved")
     return False
 
@@ -80,15 +80,7 @@ def set_position_rate(model, optimizers) -> bool:
     if rate_px is None or not pixel_A or optimizer is None or optimizer.param_groups[0].get("rate_px"):
         return False
     group = optimizer.param_groups[0]
-    factor = rate_px * pixel_A * model.normalisation.length_scale / group.get("initial_lr", group["lr"])
-    for g in optimizer.param_groups:
-        g["lr"] *= factor
-        if "initial_lr" in g:
-            g["initial_lr"] *= factor
-        g["rate_px"] = rate_px
-    scheduler = optimizers.schedulers.get(POSITIONS)
-    if scheduler is not None and hasattr(scheduler, "base_lrs"):
-        scheduler.base_lrs = [b * factor for b in scheduler.base_lrs]
+    _scale_rate(optimizers, rate_px * pixel_A * model.normalisation.length_scale / group.get("initial_lr", group["lr"]), rate_px=rate_px)
     return True
 
 
@@ -104,9 +96,19 @@ def slow_positions(model) -> bool:
     final = group.get("initial_lr", group["lr"]) / group.get("rate_factor", 1.0) * scheduler.lr_lambdas[0](10**9)
     if group["lr"] * 0.5 < final:
         return False
-    for g in optimizers.optimizers[POSITIONS].param_groups:  # rate_factor travels in the optimiser's state dict (checkpoints)
-        g["lr"] *= 0.5
-        g["initial_lr"] = g.get("initial_lr", g["lr"] * 2.0) * 0.5
-        g["rate_factor"] = g.get("rate_factor", 1.0) * 0.5
-    scheduler.base_lrs = [b * 0.5 for b in scheduler.base_lrs]
+    _scale_rate(optimizers, 0.5, rate_factor=group.get("rate_factor", 1.0) * 0.5)
     return True
+
+
+def _scale_rate(optimizers, factor: float, **marks) -> None:
+    """Scale the positions' learning rate by ``factor``: their optimiser's rate, the base its
+    scheduler scales (``initial_lr`` and ``base_lrs``), and set ``marks`` on its parameter groups
+    (they travel in the optimiser's state dict, so a resumed run keeps them)."""
+    for g in optimizers.optimizers[POSITIONS].param_groups:
+        g["lr"] *= factor
+        if "initial_lr" in g:
+            g["initial_lr"] *= factor
+        g.update(marks)
+    scheduler = optimizers.schedulers.get(POSITIONS)
+    if scheduler is not None and hasattr(scheduler, "base_lrs"):
+        scheduler.base_lrs = [b * factor for b in scheduler.base_lrs]
