@@ -150,3 +150,22 @@ def test_masked_least_squares_equals_lstsq_per_view():
     for v in range(5):
         expected = np.linalg.lstsq(basis[keep[v]], values[v, keep[v]], rcond=None)[0]
         np.testing.assert_allclose(fitted[v], expected, rtol=1e-10 if v < 4 else 1e-6, atol=1e-10 if v < 4 else 1e-6)
+
+
+def test_medians_on_a_device_are_numpys():
+    """The noise reading's medians in torch (a GPU's path, run here on the CPU) equal numpy's,
+    for odd and even counts, and the binned robust variances with them, to float64 rounding."""
+    import torch
+
+    from gaussian_atoms_method.physics.noise import binned_variance, binned_variance_on_device, median_on_device
+
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 7, 1000):
+        x = rng.standard_normal(n)
+        assert float(median_on_device(torch.as_tensor(x))) == np.median(x)
+    predicted = rng.uniform(0.0, 50.0, 20001)
+    residuals = rng.standard_normal(20001) * np.sqrt(4.0 + 0.5 * predicted)
+    expected = binned_variance(residuals, predicted)  # numpy's path: no GPU here
+    got = binned_variance_on_device(residuals, predicted, 16, 200, "cpu")
+    for a, b in zip(got, expected):
+        np.testing.assert_allclose(a, b, rtol=1e-12)

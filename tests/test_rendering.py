@@ -66,6 +66,50 @@ def test_view_index_finds_the_training_pose():
     assert R.view_index(torch.zeros(0, 3, 4), _camera(poses[0])) is None
 
 
+def test_view_geometry_reads_a_training_camera_once():
+    """A training camera (``cam_idx``) is read once and then served from the cache; the viewer's
+    cameras (no index) and evaluation (not training) are read each time."""
+    poses = torch.stack([torch.eye(4)[:3] + 0.1 * i for i in range(4)])
+    geometry, camera = R.ViewGeometry(), _camera(poses[2])
+    camera.metadata = {"cam_idx": 2}
+    first = geometry.read(camera, poses[2], False, poses, True, "cpu", torch.float64)
+    rows, cols = R.pixel_coordinates(camera, poses[2], False, "cpu", torch.float64)
+    assert torch.equal(first[0], rows) and torch.equal(first[1], cols) and first[2] == pytest.approx(0.1) and first[3] == 2
+    assert geometry.read(camera, poses[2], False, poses, True, "cpu", torch.float64) is first
+    assert geometry.read(camera, poses[2], True, poses, True, "cpu", torch.float64)[0].shape == (3,)  # the coarse phase: its own entry
+    viewer = _camera(poses[1] + 0.01)
+    assert geometry.read(viewer, poses[1] + 0.01, False, poses, True, "cpu", torch.float64)[3] is None
+    assert geometry.read(camera, poses[2], False, poses, False, "cpu", torch.float64) is not first
+
+
+def test_finite_watch_names_the_first_bad_step_and_its_cause():
+    """On the CPU a non-finite parameter stops at its own step; a finite step passes."""
+    watch = R.FiniteWatch()
+    params = {"means": torch.zeros(4, 3), "log_sigmas": torch.zeros(4, 1)}
+    measured = torch.zeros(2, 2)
+    watch.check(torch.tensor(1.0), params, measured, 5)
+    params["log_sigmas"][1, 0] = float("inf")
+    with pytest.raises(FloatingPointError, match=r"step 6: .* cause: 1 Gaussian\(s\) with non-finite log_sigmas"):
+        watch.check(torch.tensor(float("nan")), params, measured, 6)
+    with pytest.raises(FloatingPointError, match="measured projection holds NaN"):
+        watch.check(torch.tensor(float("nan")), {"means": torch.zeros(4, 3)}, torch.full((2, 2), float("nan")), 7)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_finite_watch_on_a_gpu_judges_a_step_later_under_its_own_number():
+    """On a GPU a step's counts are judged at the next step (or the flush), still naming the step
+    and counting the Gaussians as they were then."""
+    watch = R.FiniteWatch()
+    params = {"means": torch.zeros(4, 3, device="cuda")}
+    measured = torch.zeros(2, 2, device="cuda")
+    watch.check(torch.tensor(1.0, device="cuda"), params, measured, 5)
+    params["means"][1, 0] = float("nan")
+    watch.check(torch.tensor(float("nan"), device="cuda"), params, measured, 6)  # queued, not judged yet
+    params["means"][:] = float("nan")  # the next optimiser step spreads it
+    with pytest.raises(FloatingPointError, match=r"step 6: .* cause: 1 Gaussian\(s\) with non-finite means"):
+        watch.flush()
+
+
 def test_other_views_are_distinct_and_never_the_view_itself():
     generator = torch.Generator().manual_seed(0)
     for view in range(5):

@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from gaussian_atoms_method.physics.noise import mad_std
+
 #: Variance of the L1 (median) estimator over the least-squares one under Gaussian noise.
 L1_EFFICIENCY_FACTOR = np.pi / 2
 
@@ -32,11 +34,10 @@ L1_EFFICIENCY_FACTOR = np.pi / 2
 def robust_noise_std(residuals: np.ndarray) -> float:
     """Standard deviation of Gaussian noise from residuals, ``1.4826 * MAD`` (robust to the
     few pixels where the model is wrong)."""
-    r = np.asarray(residuals, dtype=np.float64).ravel()
-    r = r[np.isfinite(r)]
-    if r.size == 0:
-        raise ValueError("no finite residuals to estimate the noise from")
-    return float(1.4826 * np.median(np.abs(r - np.median(r))))
+    try:
+        return mad_std(residuals)
+    except ValueError:
+        raise ValueError("no finite residuals to estimate the noise from") from None
 
 
 def position_std_A(

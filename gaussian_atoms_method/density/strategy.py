@@ -154,6 +154,7 @@ class DensityControl:
     """(4,) Gaussian-steps held at the width floor, the width ceiling, the amplitude ceiling and
     the edge of the position box (kept on the parameters' device: no sync per step)."""
     pruned_outside: int = 0
+    _boxes: dict = field(default_factory=dict, repr=False)
     """Gaussians pruned for leaving the reconstruction volume ..."""
     pruned_outside_atom_like: int = 0
     """... of which heavy and narrow enough to be atoms (real atoms lost if centre_px is off)."""
@@ -163,9 +164,18 @@ class DensityControl:
     def min_log_sigma(self) -> float:
         return math.log(self.min_sigma_A * self.length_scale)
 
-    def reset(self, n: int) -> None:
-        """Forget the accumulated gradients, for ``n`` Gaussians."""
-        self.grad_accum = torch.zeros(n, 3)
+    def _box(self, half_extent, like: torch.Tensor) -> torch.Tensor:
+        """(3,) ``half_extent`` as a tensor on ``like``'s device and dtype, made once (a copy to
+        the GPU at every step's clamp waited for it)."""
+        key = (tuple(half_extent), like.device, like.dtype)
+        if key not in self._boxes:
+            self._boxes[key] = torch.as_tensor(half_extent, device=like.device, dtype=like.dtype)
+        return self._boxes[key]
+
+    def reset(self, n: int, device: torch.device | str | None = None) -> None:
+        """Forget the accumulated gradients, for ``n`` Gaussians (kept on ``device``, default
+        where they were: the parameters' device, so accumulating costs no copy to the host)."""
+        self.grad_accum = torch.zeros(n, 3, device=self.grad_accum.device if device is None else device)
         self.grad_count = 0
         self._births(n)
 
@@ -182,8 +192,9 @@ class DensityControl:
         Gaussian is as young as its youngest member)."""
         dev, n_in = params["means"].device, params["means"].shape[0]
         apply_remap(params, optimizers, src.to(dev), dst.to(dev), n_out, new_values, param_lists)
+        at = self.grad_accum.device
+        self.grad_accum = torch.zeros(n_out, 3, device=at).index_add_(0, dst.to(at), self.grad_accum[src.to(at)])
         src, dst = src.cpu(), dst.cpu()
-        self.grad_accum = torch.zeros(n_out, 3).index_add_(0, dst, self.grad_accum[src])
         self.born = torch.zeros(n_out, dtype=torch.long).scatter_reduce_(0, dst, self._births(n_in)[src], reduce="amax", include_self=False)
 
     # ------------------------------------------------------------------ called by the training loop
@@ -199,12 +210,12 @@ class DensityControl:
                 self.average.close(params)
         grad = params["means"].grad
         if grad is not None:
-            if self.grad_accum.shape[0] != grad.shape[0]:
-                self.reset(grad.shape[0])
+            if self.grad_accum.shape[0] != grad.shape[0] or self.grad_accum.device != grad.device:
+                self.reset(grad.shape[0], grad.device)
             # Sum the gradient vectors, not their norms: with an L1 loss the per-step gradient of
             # a well-fitted Gaussian is noise that cancels, a persistent pull towards unexplained
             # signal does not.
-            self.grad_accum += grad.detach().cpu()
+            self.grad_accum += grad.detach()
             self.grad_count += 1
         if step < self.warmup_length or step % self.refine_every != 0:
             return {}
@@ -261,11 +272,11 @@ class DensityControl:
         ls = self.length_scale
         lo, hi = math.log(self.min_sigma_A * ls), math.log(self.max_sigma_A * ls)
         log_sigmas, log_amps, means = params["log_sigmas"].data, params["log_amplitudes"].data, params["means"].data
-        held = torch.stack([(log_sigmas < lo).any(-1).sum(), (log_sigmas > hi).any(-1).sum(), (log_amps > self.max_log_amplitude).sum(), (means.abs() > 2.0 * torch.as_tensor(self.half_extent, device=means.device, dtype=means.dtype)).any(-1).sum()])
+        bound = 2.0 * self._box(self.half_extent, means)
+        held = torch.stack([(log_sigmas < lo).any(-1).sum(), (log_sigmas > hi).any(-1).sum(), (log_amps > self.max_log_amplitude).sum(), (means.abs() > bound).any(-1).sum()])
         self.clamp_counts = held if self.clamp_counts is None else self.clamp_counts + held.to(self.clamp_counts.device)
         log_sigmas.clamp_(lo, hi)
         log_amps.clamp_(max=self.max_log_amplitude)
-        bound = 2.0 * torch.as_tensor(self.half_extent, device=means.device, dtype=means.dtype)
         means.copy_(torch.maximum(torch.minimum(means, bound), -bound))
 
     def report(self) -> list[str]:
@@ -410,11 +421,11 @@ class DensityControl:
         """(N,) bool: inside the reported field (``field_half_extent``; the volume without one)."""
         if self.field_half_extent is None:
             return self.inside(means)
-        return (means.abs() <= torch.as_tensor(self.field_half_extent, device=means.device, dtype=means.dtype)).all(dim=-1)
+        return (means.abs() <= self._box(self.field_half_extent, means)).all(dim=-1)
 
     def inside(self, means: torch.Tensor) -> torch.Tensor:
         """(N,) bool: inside the reconstruction volume (``half_extent``, normalised units)."""
-        return (means.abs() <= torch.as_tensor(self.half_extent, device=means.device, dtype=means.dtype)).all(dim=-1)
+        return (means.abs() <= self._box(self.half_extent, means)).all(dim=-1)
 
     def set_noise(self, noise, floor: float, pixel_size: float, n_views: int, data_term: str, view_dirs: torch.Tensor | None = None) -> None:
         """The measured noise (normalised units) the prune judges masses against, the floor the

@@ -101,6 +101,7 @@ class GaussianAtomsModel(SplatfactoCompat):
             self.density.set_noise(self.noise_read, floor or 0.0, metadata["pixel_size_A"] * ls, self.view_c2w.shape[0], self.data_term, self.view_c2w[:, :3, 2])
         self.step, self.optimizers, self._optimizers_obj, self._held_out_step, self.kernel_reading = 0, {}, None, False, HeldOutKernel(self.view_c2w.shape[0], self.density.stop_split_at, cfg.psf == "held-out")
         self.crop_box, self.background_color, self.atoms_in_viewer = None, torch.zeros(3), AtomsInViewer(self._viewer_atoms)  # the atoms as points in the viewer
+        self.view_geometry, self.finite_watch = R.ViewGeometry(), R.FiniteWatch()  # read once per view; judged without waiting for the GPU
 
     def _setup_view_params(self, metadata: dict, series, floor: float | None, surfaces=None) -> None:
         """Per-view parameters and the views-per-step batches; a learned background starts at
@@ -151,8 +152,7 @@ class GaussianAtomsModel(SplatfactoCompat):
         dev, dt = self.means.device, self.means.dtype
         c2w = camera.camera_to_worlds[0].to(dt)
         (rows_dir, cols_dir), t = R.detector_axes(c2w), c2w[:, 3]
-        rows, cols = R.pixel_coordinates(camera, c2w, self.training and self.step < self.config.coarse_steps, dev, dt)
-        view = R.view_index(self.view_c2w, camera) if len(self.view_params) or self.views_per_step > 1 else None
+        rows, cols, pitch, view = self.view_geometry.read(camera, c2w, self.training and self.step < self.config.coarse_steps, self.view_c2w, self.training, dev, dt)
         self._held_out_step = self.training and self.kernel_reading.holds_out(view, self.step)  # psf held-out: it teaches the kernel, not the atoms
         batching = self.training and self.views_per_step > 1 and not self._held_out_step
         means, sigmas, amps = [x.detach() if self._held_out_step else x for x in (self.means, self.sigmas, self.amplitudes)]
@@ -168,15 +168,15 @@ class GaussianAtomsModel(SplatfactoCompat):
         if batching and view is not None:  # cameras on their beam axes through the tilt centre: no offset
             others = self.kernel_reading.other_views(view, self.views_per_step, self.generator, self.step)
             axes = torch.cat([axes, R.detector_axes(self.view_c2w[others].to(dev, dt))])
-            images = R.blur(self, R.projector_for(self.config.projector, dev)(means, sigmas, amps, axes, rows, cols), rows)
+            images = R.blur(self, R.projector_for(self.config.projector, dev)(means, sigmas, amps, axes, rows, cols), pitch)
             if "background" in self.view_params:
                 images = torch.stack([R.add_view_background(self, im, v, rows, cols) for im, v in zip(images, [view, *others.tolist()])])
             image, extra = images[0], {"extra_projection": images[1:, :, :, None], "extra_views": others}
         elif self.config.isotropic:
-            image = R.blur(self, R.projector_for(self.config.projector, dev)(means - t, sigmas, amps, axes, rows, cols), rows)[0]
+            image = R.blur(self, R.projector_for(self.config.projector, dev)(means - t, sigmas, amps, axes, rows, cols), pitch)[0]
         else:
             cov = covariances_from_scales_quats(self._log_scales(), self.gauss_params["quats"])
-            image = R.blur(self, project_anisotropic_gaussians(self.means - t, cov, self.amplitudes, axes, rows, cols), rows)[0]
+            image = R.blur(self, project_anisotropic_gaussians(self.means - t, cov, self.amplitudes, axes, rows, cols), pitch)[0]
         if view is not None and "background" in self.view_params and not extra:
             with_floor = R.add_view_background(self, image, view, rows, cols)
             image, extra = (with_floor, extra) if background else (image, {"background": (with_floor - image)[..., None]})
@@ -200,7 +200,7 @@ class GaussianAtomsModel(SplatfactoCompat):
         pred, gt = R.with_other_views(outputs, self._measured(outputs, batch), self.train_projections)  # one loss over all the step's views
         noise = self.noise_read  # + 0 x means: differentiable even when every Gaussian was pruned (a held-out view: no gradient, HeldOutKernel.differentiable)
         loss = self.kernel_reading.differentiable(data_term(pred, gt, self.data_term, noise.gain if noise else 1.0, noise.read_var if noise else 0.0), self.means, self._held_out_step)
-        R.check_finite(loss, self.gauss_params, gt, self.step)
+        self.finite_watch.check(loss, self.gauss_params, gt, self.step)
         return {"main_loss": loss}
 
     def get_image_metrics_and_images(self, outputs, batch) -> Tuple[Dict[str, float], Dict[str, torch.Tensor]]:
@@ -250,6 +250,7 @@ class GaussianAtomsModel(SplatfactoCompat):
     @torch.no_grad()
     def finalize(self) -> None:
         """Last merges and prune (one Gaussian per atom; the residual read by :func:`.residuals.residual_correlations`), then a short refit if they changed anything."""
+        self.finite_watch.flush()
         judge_after_fit(self)
         if self.density.finalize(self.gauss_params, self.optimizers, self._param_lists(), lambda m, s: residual_correlations(self, m, s)) and self.optimizers and self.config.final_refit:
             refit(self)

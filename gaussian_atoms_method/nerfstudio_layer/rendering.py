@@ -16,6 +16,7 @@ Each is a small function on tensors; :meth:`GaussianAtomsModel.get_outputs
 
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
@@ -109,11 +110,14 @@ def view_parameters(cfg, n_views: int, floor: float | None, surfaces, series, le
     return params, buffers
 
 
-def blur(model, images: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
-    """(V, H, W) projections through the model's learned point-spread function, if it has one."""
-    if "psf" not in model.view_params or len(rows) < 2:
+def blur(model, images: torch.Tensor, spacing: float | None) -> torch.Tensor:
+    """(V, H, W) projections through the model's learned point-spread function, if it has one
+    (``spacing``: the pixel pitch, normalised lengths; None for a single row)."""
+    if "psf" not in model.view_params or spacing is None:
         return images
-    return apply_kernel(images, float(rows[1] - rows[0]), model.psf_widths.to(images), model.view_params["psf"].to(images))  # kept non-negative by project_weights after each step (psf held-out: read, not learned)
+    if getattr(model, "psf_widest", None) is None:  # read once: a read from the GPU waits for it
+        model.psf_widest = float(model.psf_widths.max()) if len(model.psf_widths) else None
+    return apply_kernel(images, spacing, model.psf_widths.to(images), model.view_params["psf"].to(images), model.psf_widest)  # kept non-negative by project_weights after each step (psf held-out: read, not learned)
 
 
 def add_view_background(model, image: torch.Tensor, view: int, rows: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:
@@ -123,6 +127,30 @@ def add_view_background(model, image: torch.Tensor, view: int, rows: torch.Tenso
     if len(model.background_surfaces):
         image = image + binned_like(model.background_surfaces[view][..., None], image[..., None])[..., 0].to(image)
     return image
+
+
+class ViewGeometry:
+    """What a training step reads from its camera that stays fixed for the run: the view's
+    index among the model's views, its pixel coordinates and their pitch.  Reading a GPU
+    camera's size or pose waits for the GPU (six waits a step, which kept the CPU from queueing
+    the next step's work), so each training camera is read once and then served from here,
+    keyed by the index nerfstudio's datamanager gives it (``metadata["cam_idx"]``).  Other
+    cameras (the viewer's, evaluation's) are read each time."""
+
+    def __init__(self) -> None:
+        self._seen: dict = {}
+
+    def read(self, camera: Cameras, c2w: torch.Tensor, coarse: bool, view_c2w: torch.Tensor, training: bool, device, dtype):
+        """(rows, cols, pitch, view): :func:`pixel_coordinates`, the pitch of the rows as a float
+        (None for a single row) and :func:`view_index` of ``camera``."""
+        key = (camera.metadata or {}).get("cam_idx") if training else None
+        if key is not None and (key, coarse, str(device), dtype) in self._seen:
+            return self._seen[(key, coarse, str(device), dtype)]
+        rows, cols = pixel_coordinates(camera, c2w, coarse, device, dtype)
+        found = (rows, cols, float(rows[1] - rows[0]) if len(rows) > 1 else None, view_index(view_c2w, camera))
+        if key is not None:
+            self._seen[(key, coarse, str(device), dtype)] = found
+        return found
 
 
 def view_index(view_c2w: torch.Tensor, camera: Cameras) -> int | None:
@@ -299,13 +327,48 @@ def other_views(view: int, n_views: int, views_per_step: int, generator: torch.G
     return others + (others >= view).long()  # skip ``view`` itself
 
 
-def check_finite(loss: torch.Tensor, params, measured: torch.Tensor, step: int) -> None:
-    """Raise FloatingPointError naming the step and the cause when the loss or a parameter is
-    not finite (parameters are checked too: the tiled projector skips a Gaussian whose centre
-    is NaN, so the loss alone would not show it)."""
-    if torch.isfinite(loss) and all(bool(torch.isfinite(p).all()) for p in params.values()):
-        return
-    bad = {k: int((~torch.isfinite(p)).any(dim=-1).sum()) for k, p in params.items()}
-    cause = ", ".join(f"{v} Gaussian(s) with non-finite {k}" for k, v in bad.items() if v) or (
-        "the measured projection holds NaN/Inf" if not torch.isfinite(measured).all() else "the projection overflowed (amplitudes too large for float32?)")  # fmt: skip
-    raise FloatingPointError(f"gaussian-atoms: step {step}: the loss is {float(loss)} and training cannot go on; cause: {cause}. Lower the learning rates or check the input.")
+class FiniteWatch:
+    """Stops training with FloatingPointError naming the step and the cause when the loss or a
+    parameter is not finite (parameters are checked too: the tiled projector skips a Gaussian
+    whose centre is NaN, so the loss alone would not show it).
+
+    On the CPU each step is judged at once.  On a GPU, reading a flag waits for the GPU's
+    queued work, so each step's counts are copied to the host without waiting and judged at
+    the next step, once that copy has landed (:meth:`flush` judges the last one): a
+    non-finite step still stops the run a step later, under its own step number."""
+
+    def __init__(self) -> None:
+        self._pending = None
+
+    def check(self, loss: torch.Tensor, params, measured: torch.Tensor, step: int) -> None:
+        """Judge (CPU) or queue (GPU) this step's loss and ``params`` (name -> (N, ...) tensor);
+        ``measured`` is read only to name the cause."""
+        names = list(params)
+        # the loss, then each parameter's count of Gaussians whose values are all finite: ten small operations a step
+        counts = torch.stack([loss.detach().reshape(()).float()] + [torch.isfinite(p.detach()).flatten(1).all(-1).sum(dtype=torch.float32) for p in params.values()])
+        rows = [len(p) for p in params.values()]
+        if counts.device.type == "cpu":
+            return self._judge(counts.tolist(), names, rows, measured, step)
+        host = torch.empty(counts.shape, dtype=counts.dtype, pin_memory=True)
+        host.copy_(counts, non_blocking=True)
+        landed = torch.cuda.Event()
+        landed.record()
+        self.flush()
+        self._pending = (host, landed, names, rows, measured, step)
+
+    def flush(self) -> None:
+        """Judge the step still queued, if any."""
+        if self._pending is not None:
+            host, landed, names, rows, measured, step = self._pending
+            self._pending = None
+            landed.synchronize()
+            self._judge(host.tolist(), names, rows, measured, step)
+
+    @staticmethod
+    def _judge(counts: list[float], names: list[str], rows: list[int], measured: torch.Tensor, step: int) -> None:
+        loss, bad = counts[0], [n - int(finite) for n, finite in zip(rows, counts[1:])]
+        if math.isfinite(loss) and not any(bad):
+            return
+        cause = ", ".join(f"{v} Gaussian(s) with non-finite {k}" for k, v in zip(names, bad) if v) or (
+            "the measured projection holds NaN/Inf" if not bool(torch.isfinite(measured).all()) else "the projection overflowed (amplitudes too large for float32?)")  # fmt: skip
+        raise FloatingPointError(f"gaussian-atoms: step {step}: the loss is {loss} and training cannot go on; cause: {cause}. Lower the learning rates or check the input.")

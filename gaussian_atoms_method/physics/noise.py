@@ -109,7 +109,8 @@ def binned_variance(residuals: np.ndarray, predicted: np.ndarray, bins: int = 16
     """Residual variance in bins of the predicted value: robust, ``(1.4826 MAD)^2``, or the
     plain sample variance (``robust=False``: for counts of a few electrons, whose residuals
     take a handful of discrete values and whose MAD is quantised: on Poisson counts of mean
-    1-2 the MAD read the variance 1.3-2x too high).
+    1-2 the MAD read the variance 1.3-2x too high).  On a GPU, where there is one, the bins'
+    medians are taken there (:func:`median_on_device`).
 
     Returns
     -------
@@ -119,6 +120,8 @@ def binned_variance(residuals: np.ndarray, predicted: np.ndarray, bins: int = 16
     """
     r = np.asarray(residuals, dtype=np.float64).ravel()
     m = np.asarray(predicted, dtype=np.float64).ravel()
+    if robust and _gpu() is not None:
+        return binned_variance_on_device(r, m, bins, min_count, _gpu())
     order = stable_order(m)
     centres, variances, counts = [], [], []
     for chunk in np.array_split(order, bins):
@@ -129,6 +132,57 @@ def binned_variance(residuals: np.ndarray, predicted: np.ndarray, bins: int = 16
         variances.append(float(np.var(rc)) if not robust else (MAD_TO_STD * np.median(np.abs(rc - np.median(rc)))) ** 2)
         counts.append(len(chunk))
     return np.array(centres), np.array(variances), np.array(counts)
+
+
+def _gpu():
+    """The CUDA device if there is one, else None."""
+    import torch
+
+    return torch.device("cuda") if torch.cuda.is_available() else None
+
+
+def median_on_device(values):
+    """numpy's median of a 1D tensor (the mean of the two middle values for an even count), on
+    the tensor's device: a sort, where numpy partitions on one CPU core (the residuals' robust
+    spread, 7.5 million pixels at 20,000 atoms, took 1 s a reading on the H100 machine's CPU)."""
+    ordered = values.sort().values
+    n = len(ordered)
+    return ordered[n // 2] if n % 2 else 0.5 * (ordered[n // 2 - 1] + ordered[n // 2])
+
+
+def mad_std(values: np.ndarray) -> float:
+    """``1.4826 * MAD`` of the finite ``values``: on a GPU where there is one
+    (:func:`median_on_device`), else numpy's median (linear time on the CPU)."""
+    v = np.asarray(values, dtype=np.float64).ravel()
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        raise ValueError("no finite values to estimate a spread from")
+    device = _gpu()
+    if device is None:
+        return float(MAD_TO_STD * np.median(np.abs(v - np.median(v))))
+    import torch
+
+    t = torch.as_tensor(v, device=device)
+    return float(MAD_TO_STD * median_on_device((t - median_on_device(t)).abs()))
+
+
+def binned_variance_on_device(r: np.ndarray, m: np.ndarray, bins: int, min_count: int, device):
+    """:func:`binned_variance` (robust) of flat float64 ``r`` and ``m``, with the sort and the
+    medians on ``device``."""
+    import torch
+
+    rt, mt = torch.as_tensor(r, device=device), torch.as_tensor(m, device=device)
+    centres, variances, counts = [], [], []
+    for chunk in torch.tensor_split(torch.sort(mt, stable=True).indices, bins):
+        if len(chunk) < min_count:
+            continue
+        rc = rt[chunk]
+        centres.append(mt[chunk].mean())
+        variances.append((MAD_TO_STD * median_on_device((rc - median_on_device(rc)).abs())) ** 2)
+        counts.append(len(chunk))
+    if not counts:
+        return np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.int64)
+    return torch.stack(centres).cpu().numpy(), torch.stack(variances).cpu().numpy(), np.array(counts)
 
 
 def _solve(matrix: np.ndarray, rhs: np.ndarray) -> np.ndarray:

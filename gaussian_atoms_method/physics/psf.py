@@ -48,14 +48,16 @@ def kernel_transfer(freq2: torch.Tensor, widths: torch.Tensor, weights: torch.Te
     return 1.0 + ((gauss - 1.0) * weights.to(freq2)).sum(dim=-1)
 
 
-def apply_kernel(images: torch.Tensor, spacing: float, widths: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+def apply_kernel(images: torch.Tensor, spacing: float, widths: torch.Tensor, weights: torch.Tensor, widest: float | None = None) -> torch.Tensor:
     """(..., H, W) images convolved with the kernel (pixel ``spacing`` in the widths' unit),
     zero-padded by three of the widest width so nothing wraps around; same shape.  All weights
-    zero and no gradient wanted for them: the images themselves (no transform)."""
+    zero and no gradient wanted for them: the images themselves (no transform).  ``widest``:
+    ``widths.max()`` if already known (reading it from a GPU tensor waits for the GPU)."""
     if not (weights.requires_grad and torch.is_grad_enabled()) and not bool((weights != 0).any()):
         return images
     h, w = images.shape[-2:]
-    pad = int(math.ceil(3.0 * float(widths.max()) / spacing)) if len(widths) else 0
+    widest = float(widths.max()) if widest is None and len(widths) else widest
+    pad = int(math.ceil(3.0 * widest / spacing)) if len(widths) else 0
     ph, pw = h + 2 * pad, w + 2 * pad
     fy = torch.fft.fftfreq(ph, d=spacing, device=images.device, dtype=images.dtype)
     fx = torch.fft.rfftfreq(pw, d=spacing, device=images.device, dtype=images.dtype)
