@@ -40,6 +40,7 @@ from scipy.spatial import cKDTree
 from gaussian_atoms_method.atoms import volume_filters
 from gaussian_atoms_method.atoms.peaks import random_field_threshold
 from gaussian_atoms_method.atoms.point_response import clean_peaks, point_response
+from gaussian_atoms_method.physics.noise import median_on_device
 from gaussian_atoms_method.physics.reconstruction import reconstruct
 
 
@@ -97,11 +98,7 @@ def unexplained_sites(
 
 def _median(values: torch.Tensor) -> float:
     """numpy's median (the mean of the two middle values of an even count) of a tensor: numpy's
-    own on the CPU, else on its device (torch's median is the lower of the two middle values)."""
+    own on the CPU, else on its device (:func:`~gaussian_atoms_method.physics.noise.median_on_device`)."""
     if values.device.type == "cpu":
         return float(np.median(values.numpy()))
-    flat = values.reshape(-1)
-    n = flat.numel()
-    middle = torch.kthvalue(flat, n // 2 + 1).values if n % 2 else 0.5 * (torch.kthvalue(flat, n // 2).values + torch.kthvalue(flat, n // 2 + 1).values)
-    return float(middle)
-
+    return float(median_on_device(values.reshape(-1)))

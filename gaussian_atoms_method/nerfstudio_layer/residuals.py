@@ -38,13 +38,14 @@ def training_views(model):
 
 
 @torch.no_grad()
-def render_training_views(model) -> np.ndarray | None:
-    """(V, H, W) the model's projections of its training views (normalised data units), or
-    None without the tilt series."""
+def render_training_views(model, on_device: bool = False) -> np.ndarray | torch.Tensor | None:
+    """(V, H, W) the model's projections of its training views (normalised data units): an
+    array, or with ``on_device`` a tensor on the model's device; None without the tilt series."""
     with training_views(model) as cameras:
         if cameras is None:
             return None
-        return np.stack([model.get_outputs(cameras[i : i + 1])["projection"][..., 0].cpu().numpy() for i in range(len(cameras))])
+        views = torch.stack([model.get_outputs(cameras[i : i + 1])["projection"][..., 0] for i in range(len(cameras))])
+        return views if on_device else views.cpu().numpy()
 
 
 @torch.no_grad()
@@ -100,11 +101,11 @@ def residual_correlations(model, means: torch.Tensor, sigmas: torch.Tensor) -> n
             "log_amplitudes": torch.nn.Parameter(torch.zeros(len(means), 1, dtype=own["means"].dtype, device=own["means"].device)),
         }
     )
-    predicted = render_training_views(model)
+    predicted = render_training_views(model, on_device=True)  # on the run's device throughout: one copy back, of the (P,) sums
     if predicted is None:
         return None
-    weighted = (projections.cpu().numpy() - predicted) / np.maximum(noise.variance(predicted), 1e-30)  # w r
-    total = torch.zeros(len(means), dtype=torch.float64)
+    weighted = (torch.as_tensor(projections).to(predicted.device) - predicted) / noise.variance(predicted).clamp_min(1e-30)  # w r
+    total = torch.zeros(len(means), dtype=torch.float64, device=predicted.device)
     with training_views(model) as cameras, torch.inference_mode(False), torch.enable_grad():
         for v in range(len(cameras)):
             model.gauss_params = probe
@@ -112,6 +113,6 @@ def residual_correlations(model, means: torch.Tensor, sigmas: torch.Tensor) -> n
                 image = model.get_outputs(cameras[v : v + 1])["projection"][..., 0]
             finally:
                 model.gauss_params = own
-            (grad,) = torch.autograd.grad((image * torch.as_tensor(weighted[v]).to(image)).sum(), probe["log_amplitudes"])
-            total += grad[:, 0].detach().double().cpu()
-    return total.numpy()
+            (grad,) = torch.autograd.grad((image * weighted[v].to(image)).sum(), probe["log_amplitudes"])
+            total += grad[:, 0].detach().double()
+    return total.cpu().numpy()

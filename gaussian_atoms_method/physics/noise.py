@@ -56,9 +56,13 @@ class NoiseModel:
         additive = self.read_var > 3 * self.read_var_se
         return "mixed" if poisson and additive else ("poisson" if poisson else "additive")
 
-    def variance(self, mean: np.ndarray) -> np.ndarray:
-        """Expected variance of a pixel whose noise-free value is ``mean``."""
-        x = np.maximum(np.asarray(mean, dtype=np.float64) - self.offset, 0.0)
+    def variance(self, mean):
+        """Expected variance of a pixel whose noise-free value is ``mean`` (an array, or a tensor:
+        then float64 on its device)."""
+        if not isinstance(mean, np.ndarray) and hasattr(mean, "clamp_min"):  # a tensor
+            x = (mean.double() - self.offset).clamp_min(0.0)
+        else:
+            x = np.maximum(np.asarray(mean, dtype=np.float64) - self.offset, 0.0)
         return self.read_var + self.gain * x + self.misfit * x**2
 
 
