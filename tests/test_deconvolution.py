@@ -82,3 +82,28 @@ def test_matched_response_reads_the_atom_width():
     narrow = backprojected_atom(shape, angles, 0.32, 0.3, half_width_A=8.0).data
     _, _, width = matched_response(narrow, 0.3, 0.32, sharp, float(peak_sharpness(field, peak)[0]))
     assert abs(width - 0.6) < 0.03
+
+
+def test_the_fit_on_a_device_is_the_hosts():
+    """fit_amplitudes_on_device (the GPU's path, run here on the CPU in torch) gives the host's
+    amplitudes and model to float32 rounding, and remainder_sites the same sites from a tensor."""
+    import torch
+
+    from gaussian_atoms_method.atoms.deconvolution import fit_amplitudes, fit_amplitudes_on_device, remainder_sites
+
+    rng = np.random.default_rng(5)
+    response = np.exp(-0.5 * np.sum((np.indices((9, 9, 9)) - 4.0) ** 2, axis=0) / 1.2**2).astype(np.float32)
+    positions = rng.uniform(4, 27, size=(40, 3))
+    field = np.zeros((33, 31, 29), dtype=np.float32)
+    for p, a in zip(positions, rng.uniform(0.5, 2.0, 40)):
+        field += a * np.exp(-0.5 * np.sum((np.indices(field.shape) - p[:, None, None, None]) ** 2, axis=0) / 1.2**2).astype(np.float32)
+    field += 0.01 * rng.standard_normal(field.shape).astype(np.float32)
+    a_host, m_host = fit_amplitudes(field, positions, response, (4, 4, 4), iterations=3)
+    a_dev, m_dev = fit_amplitudes_on_device(torch.as_tensor(field), positions, response, (4, 4, 4), iterations=3)
+    np.testing.assert_allclose(a_dev, a_host, rtol=1e-4, atol=1e-4 * np.abs(a_host).max())
+    np.testing.assert_allclose(m_dev.numpy(), m_host, atol=1e-4 * np.abs(m_host).max())
+    indices = np.rint(positions[:30]).astype(np.int64)  # ten atoms left unexplained
+    host = remainder_sites(field, indices, response, (4, 4, 4), 1.0, 1.5, 0.1)
+    device = remainder_sites(torch.as_tensor(field), indices, response, (4, 4, 4), 1.0, 1.5, 0.1)
+    np.testing.assert_array_equal(device, host)
+    assert len(host) > 0

@@ -275,7 +275,7 @@ def backprojection_candidates(
             resolved = maxima[distance > fine_min_distance_A]
             positions = np.concatenate([positions, resolved])
         if deconvolve and len(resolved):  # step 6: what the candidates' responses leave unexplained
-            fine = fine.cpu().numpy()
+            fine = fine.numpy() if fine.device.type == "cpu" else fine  # off the CPU the fit and its maxima stay on the device
             narrow_A = max(0.3, 0.7 * pixel_size_A)  # sampled by the detector
             narrow = backprojected_atom(projections.shape, angles_deg, pixel_size_A, narrow_A, tilt_axis, tilt_axis_angle_deg, device).data
             sharpness = float(np.median(peak_sharpness(fine, maxima[: max(len(maxima) // 4, 1)])))  # the strongest quarter: atoms
