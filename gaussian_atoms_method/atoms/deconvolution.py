@@ -149,6 +149,24 @@ def _trilinear_corners(positions_vox: np.ndarray, field_shape, shape) -> tuple[n
     return np.concatenate(flat), np.concatenate(weights)
 
 
+def _conjugate_gradients(amplitudes, gradient, normal, iterations: int) -> None:
+    """``iterations`` conjugate-gradient steps on the normal equations ``A^T A a = A^T b``, in
+    place on ``amplitudes`` (and ``gradient``, ``A^T (b - A a)`` at the start); ``normal``
+    applies ``A^T A``.  Arrays or tensors alike (:func:`fit_amplitudes`, :func:`fit_amplitudes_on_device`)."""
+    direction = gradient.copy() if isinstance(gradient, np.ndarray) else gradient.clone()
+    norm = float(gradient @ gradient)
+    for _ in range(iterations):
+        image = normal(direction)
+        curvature = float(direction @ image)
+        if norm == 0.0 or curvature <= 0.0:
+            break
+        step = norm / curvature
+        amplitudes += step * direction
+        gradient -= step * image
+        new_norm = float(gradient @ gradient)
+        direction, norm = gradient + new_norm / norm * direction, new_norm
+
+
 def fit_amplitudes(field: np.ndarray, positions_vox: np.ndarray, response: np.ndarray, centre, iterations: int = 2) -> tuple[np.ndarray, np.ndarray]:
     """Amplitudes of ``response`` (peak 1 at voxel ``centre``) placed at each of the (M, 3)
     sub-voxel ``positions_vox`` (trilinear weights) that fit ``field`` best in least squares,
@@ -182,17 +200,7 @@ def fit_amplitudes(field: np.ndarray, positions_vox: np.ndarray, response: np.nd
     padded[tuple(slice(0, n) for n in field.shape)] = field
     amplitudes = np.asarray(field[tuple(np.rint(positions_vox).astype(np.int64).clip(0, last).T)], dtype=np.float64)
     gradient = sample(fft.rfftn(padded, workers=-1) * np.conj(spectrum)) - normal(amplitudes)
-    direction, norm = gradient.copy(), float(gradient @ gradient)
-    for _ in range(iterations):
-        image = normal(direction)
-        curvature = float(direction @ image)
-        if norm == 0.0 or curvature <= 0.0:
-            break
-        step = norm / curvature
-        amplitudes += step * direction
-        gradient -= step * image
-        new_norm = float(gradient @ gradient)
-        direction, norm = gradient + new_norm / norm * direction, new_norm
+    _conjugate_gradients(amplitudes, gradient, normal, iterations)
     model = fft.irfftn(splat(amplitudes) * spectrum, s=shape, workers=-1)
     return amplitudes, model[tuple(slice(0, n) for n in field.shape)]
 
@@ -229,17 +237,7 @@ def fit_amplitudes_on_device(field, positions_vox: np.ndarray, response: np.ndar
     nearest = torch.as_tensor(np.rint(positions_vox).astype(np.int64), device=dev).clamp(min=torch.zeros_like(last), max=last)
     amplitudes = field[nearest[:, 0], nearest[:, 1], nearest[:, 2]].double()
     gradient = sample(torch.fft.rfftn(padded) * spectrum.conj()) - normal(amplitudes)
-    direction, norm = gradient.clone(), float(gradient @ gradient)
-    for _ in range(iterations):
-        image = normal(direction)
-        curvature = float(direction @ image)
-        if norm == 0.0 or curvature <= 0.0:
-            break
-        step = norm / curvature
-        amplitudes += step * direction
-        gradient -= step * image
-        new_norm = float(gradient @ gradient)
-        direction, norm = gradient + new_norm / norm * direction, new_norm
+    _conjugate_gradients(amplitudes, gradient, normal, iterations)
     model = torch.fft.irfftn(splat(amplitudes) * spectrum, s=shape)
     return amplitudes.cpu().numpy(), model[tuple(slice(0, n) for n in field.shape)]
 
