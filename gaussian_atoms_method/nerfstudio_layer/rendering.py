@@ -332,10 +332,11 @@ class FiniteWatch:
     parameter is not finite (parameters are checked too: the tiled projector skips a Gaussian
     whose centre is NaN, so the loss alone would not show it).
 
-    On the CPU each step is judged at once.  On a GPU, reading a flag waits for the GPU's
-    queued work, so each step's counts are copied to the host without waiting and judged at
-    the next step, once that copy has landed (:meth:`flush` judges the last one): a
-    non-finite step still stops the run a step later, under its own step number."""
+    On the CPU (and devices other than CUDA) each step is judged at once.  On a CUDA GPU,
+    reading a flag waits for the GPU's queued work, so each step's counts are copied to the
+    host without waiting and judged at the next step, once that copy has landed (:meth:`flush`
+    judges the last one): a non-finite step still stops the run a step later, under its own
+    step number."""
 
     def __init__(self) -> None:
         self._pending = None
@@ -347,7 +348,7 @@ class FiniteWatch:
         # the loss, then each parameter's count of Gaussians whose values are all finite: ten small operations a step
         counts = torch.stack([loss.detach().reshape(()).float()] + [torch.isfinite(p.detach()).flatten(1).all(-1).sum(dtype=torch.float32) for p in params.values()])
         rows = [len(p) for p in params.values()]
-        if counts.device.type == "cpu":
+        if counts.device.type != "cuda":  # the CPU (or another device): judged at once
             return self._judge(counts.tolist(), names, rows, measured, step)
         host = torch.empty(counts.shape, dtype=counts.dtype, pin_memory=True)
         host.copy_(counts, non_blocking=True)
