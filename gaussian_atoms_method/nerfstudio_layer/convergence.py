@@ -158,7 +158,7 @@ def mutual_nearest(a: np.ndarray, b: np.ndarray, within: float = math.inf) -> tu
     other's nearest neighbour and closer than ``within``."""
     if len(a) == 0 or len(b) == 0:
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-    distance, nearest_in_b = cKDTree(b).query(a)
-    _, nearest_in_a = cKDTree(a).query(b)
+    distance, nearest_in_b = cKDTree(b).query(a, workers=-1)  # every core: 0.16 s a check at 54,000 atoms on one
+    _, nearest_in_a = cKDTree(a).query(b, workers=-1)
     i = np.nonzero((nearest_in_a[nearest_in_b] == np.arange(len(a))) & (distance < within))[0]
     return i, nearest_in_b[i]
