@@ -110,8 +110,12 @@ def _log_normals(Xt: torch.Tensor, means: torch.Tensor, covs: torch.Tensor) -> t
     """(k, N) the log density of each of k normals (means (k, D), covariances (k, D, D)) at the
     N points of (D, N) ``Xt``."""
     diff = Xt[None] - means[:, :, None]
-    maha = ((torch.linalg.inv(covs) @ diff) * diff).sum(dim=1)
-    return -0.5 * (maha + torch.linalg.slogdet(covs)[1][:, None] + Xt.shape[0] * math.log(2 * math.pi))
+    # The k small (D, D) inverses and determinants on the host: a GPU's solver took 3.5 ms a
+    # call (1.25 s of the 54,000-atom a-Pd's results on the H100), LAPACK microseconds.
+    small = covs.cpu()
+    inverse, logdet = torch.linalg.inv(small).to(covs.device), torch.linalg.slogdet(small)[1].to(covs.device)
+    maha = ((inverse @ diff) * diff).sum(dim=1)
+    return -0.5 * (maha + logdet[:, None] + Xt.shape[0] * math.log(2 * math.pi))
 
 
 def gaussian_mixture_reference(x: np.ndarray, k: int, iterations: int = 200, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
