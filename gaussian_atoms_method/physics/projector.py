@@ -242,20 +242,36 @@ def project_gaussians_tiled(
     return _separable_tiles(u, v, sigmas, amplitudes, used, index, rows_px, cols_px, grid, tile, row_coords, col_coords, dr, dc, h, w)
 
 
+TILE_GROUPS = 4
+"""The tiles are evaluated in this many groups of similar occupancy (equal counts of tiles,
+fullest first), each padded to its own fullest tile rather than all to the fullest of all: on
+the Au series (6,679 atoms, 271 x 271 pixels, tiles of 32) the tiles hold 1-730 Gaussians, and
+one padding computed 2.3 times the needed exponentials and products, four groups 1.29 times."""
+
+
 def _separable_tiles(u, v, sigmas, amplitudes, used, index, rows_px, cols_px, grid, tile, row_coords, col_coords, dr, dc, h, w):
-    """Evaluate isotropic Gaussians on the listed tiles (see :func:`tile_pairs`) and assemble."""
+    """Evaluate isotropic Gaussians on the listed tiles (see :func:`tile_pairs`) and assemble,
+    in :data:`TILE_GROUPS` groups of tiles of similar occupancy (each tile's list holds its
+    Gaussians first, then the sentinel)."""
     n_views, n = u.shape
     dt = u.dtype
     per_view = lambda x: x[None, :].expand(n_views, n)
-    U, Vc = _pad_gather(u, index), _pad_gather(v, index)  # (T, K)
-    P = _pad_gather(per_view(projected_peak(sigmas, amplitudes)), index)
-    S = _pad_gather(per_view(0.5 / sigmas**2), index, pad=1.0)
+    peak, spread = per_view(projected_peak(sigmas, amplitudes)), per_view(0.5 / sigmas**2)
     # (T, tile) pixel coordinates: the given ones, extrapolated past the last tile's edge.
-    row_c = _extend(row_coords.to(dt), grid[0] * tile, dr)[rows_px]
-    col_c = _extend(col_coords.to(dt), grid[1] * tile, dc)[cols_px]
-    g_rows = torch.exp(-((row_c[:, :, None] - U[:, None, :]) ** 2) * S[:, None, :]) * P[:, None, :]  # (T, tile, K)
-    g_cols = torch.exp(-((col_c[:, None, :] - Vc[:, :, None]) ** 2) * S[:, :, None])  # (T, K, tile)
-    return _assemble(torch.bmm(g_rows, g_cols), used, n_views, grid, tile, h, w)
+    row_all = _extend(row_coords.to(dt), grid[0] * tile, dr)[rows_px]
+    col_all = _extend(col_coords.to(dt), grid[1] * tile, dc)[cols_px]
+    held = (index < n_views * n).sum(dim=1)
+    groups = [g for g in torch.tensor_split(torch.argsort(held, descending=True, stable=True), min(TILE_GROUPS, len(held))) if len(g)]
+    blocks = []
+    for group in groups:
+        part = index[group, : max(int(held[group[0]]), 1)]
+        U, Vc = _pad_gather(u, part), _pad_gather(v, part)  # (T_g, K_g)
+        P, S = _pad_gather(peak, part), _pad_gather(spread, part, pad=1.0)
+        row_c, col_c = row_all[group], col_all[group]
+        g_rows = torch.exp(-((row_c[:, :, None] - U[:, None, :]) ** 2) * S[:, None, :]) * P[:, None, :]  # (T_g, tile, K_g)
+        g_cols = torch.exp(-((col_c[:, None, :] - Vc[:, :, None]) ** 2) * S[:, :, None])  # (T_g, K_g, tile)
+        blocks.append(torch.bmm(g_rows, g_cols))
+    return _assemble(torch.cat(blocks), used[torch.cat(groups)], n_views, grid, tile, h, w)
 
 
 @torch.no_grad()
