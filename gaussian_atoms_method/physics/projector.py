@@ -262,9 +262,10 @@ def _separable_tiles(u, v, sigmas, amplitudes, used, index, rows_px, cols_px, gr
     col_all = _extend(col_coords.to(dt), grid[1] * tile, dc)[cols_px]
     held = (index < n_views * n).sum(dim=1)
     groups = [g for g in torch.tensor_split(torch.argsort(held, descending=True, stable=True), min(TILE_GROUPS, len(held))) if len(g)]
+    fullest = held[torch.stack([g[0] for g in groups])].tolist()  # one read of the device for all groups
     blocks = []
-    for group in groups:
-        part = index[group, : max(int(held[group[0]]), 1)]
+    for group, k in zip(groups, fullest):
+        part = index[group, : max(int(k), 1)]
         U, Vc = _pad_gather(u, part), _pad_gather(v, part)  # (T_g, K_g)
         P, S = _pad_gather(peak, part), _pad_gather(spread, part, pad=1.0)
         row_c, col_c = row_all[group], col_all[group]
