@@ -36,6 +36,7 @@ import numpy as np
 from scipy import fft, ndimage
 from scipy.spatial import cKDTree
 
+from gaussian_atoms_method.atoms import volume_filters
 from gaussian_atoms_method.atoms.peaks import parabola_vertex, separated_maxima
 from gaussian_atoms_method.atoms.point_response import peak_normalised
 
@@ -53,9 +54,7 @@ def _reader(field):
     indexing, or for a tensor a gather on its device (:func:`.volume_filters.values_at`)."""
     if isinstance(field, np.ndarray):
         return lambda indices: field[tuple(indices.T)]
-    from gaussian_atoms_method.atoms.volume_filters import values_at
-
-    return lambda indices: values_at(field, indices)
+    return lambda indices: volume_filters.values_at(field, indices)
 
 
 def _face_neighbours(field, indices: np.ndarray):
@@ -280,19 +279,14 @@ def remainder_sites(field: np.ndarray, indices: np.ndarray, response: np.ndarray
     def apart(peaks):  # more than min_distance_A from every candidate
         return peaks[tree.query(peaks * spacing_A)[0] > min_distance_A] if len(peaks) else peaks
 
-    if isinstance(field, np.ndarray):
-        _, model = fit_amplitudes(field, subvoxel_peaks(field, indices), response, centre, iterations)
-        remainder = field - model
-        sites = apart(separated_maxima(remainder, spacing_A, min_distance_A, noise_level))
-        decoys = apart(separated_maxima(-remainder, spacing_A, min_distance_A, noise_level))
-        heights, decoy_heights = remainder[tuple(sites.T)], -remainder[tuple(decoys.T)]
-    else:  # a tensor: the fit and the maxima on its device (the same maxima, .volume_filters); only peaks come back
-        from gaussian_atoms_method.atoms import volume_filters
-
-        _, model = fit_amplitudes_on_device(field, subvoxel_peaks(field, indices), response, centre, iterations)
-        remainder = field - model
-        del model
-        sites = apart(volume_filters.separated_maxima(remainder, spacing_A, min_distance_A, noise_level))
-        decoys = apart(volume_filters.separated_maxima(-remainder, spacing_A, min_distance_A, noise_level))
-        heights, decoy_heights = volume_filters.values_at(remainder, sites), -volume_filters.values_at(remainder, decoys)
-    return sites[heights >= decoy_level(heights, decoy_heights, false_discovery_rate)]
+    # an array on the host; a tensor on its device (the same fit and maxima, .volume_filters): only peaks come back
+    on_host = isinstance(field, np.ndarray)
+    fit, maxima = (fit_amplitudes, separated_maxima) if on_host else (fit_amplitudes_on_device, volume_filters.separated_maxima)
+    _, model = fit(field, subvoxel_peaks(field, indices), response, centre, iterations)
+    remainder = field - model
+    del model
+    sites = apart(maxima(remainder, spacing_A, min_distance_A, noise_level))
+    decoys = apart(maxima(-remainder, spacing_A, min_distance_A, noise_level))
+    read = _reader(remainder)
+    heights = read(sites)
+    return sites[heights >= decoy_level(heights, -read(decoys), false_discovery_rate)]

@@ -34,13 +34,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import torch
 from scipy.spatial import cKDTree
 
 from gaussian_atoms_method.atoms import volume_filters
 from gaussian_atoms_method.atoms.peaks import random_field_threshold
 from gaussian_atoms_method.atoms.point_response import clean_peaks, point_response
-from gaussian_atoms_method.physics.noise import median_on_device
+from gaussian_atoms_method.physics.noise import mad_std
 from gaussian_atoms_method.physics.reconstruction import reconstruct
 
 
@@ -81,7 +80,7 @@ def unexplained_sites(
     volume = reconstruct(residuals, angles_deg, pixel_size_A, "fbp", tilt_axis, centre_px, filter_name="hann", device=device, tilt_axis_angle_deg=tilt_axis_angle_deg)
     # The filter, the noise reading and the maxima on ``device`` (the start's, .volume_filters); only sites come back.
     data = volume_filters.gaussian_filter(volume_filters.as_volume(volume.data, device), smoothing_A / volume.spacing_A)
-    noise = 1.4826 * float(_median((data - _median(data)).abs()))
+    noise = mad_std(data)
     level = random_field_threshold(data, false_alarm_rate) * noise
     peaks = volume_filters.separated_maxima(data, volume.spacing_A, min_distance_A, level) if noise > 0 else np.zeros((0, 3), dtype=np.int64)
     if len(peaks) == 0:
@@ -94,11 +93,3 @@ def unexplained_sites(
         distance, _ = cKDTree(np.asarray(existing_A, dtype=np.float64)).query(positions_A)
         positions_A, values = positions_A[distance > min_distance_A], values[distance > min_distance_A]
     return positions_A, values * (2 * math.pi * (sigma_A**2 + smoothing_A**2)) ** 1.5
-
-
-def _median(values: torch.Tensor) -> float:
-    """numpy's median (the mean of the two middle values of an even count) of a tensor: numpy's
-    own on the CPU, else on its device (:func:`~gaussian_atoms_method.physics.noise.median_on_device`)."""
-    if values.device.type == "cpu":
-        return float(np.median(values.numpy()))
-    return float(median_on_device(values.reshape(-1)))

@@ -154,10 +154,11 @@ class DensityControl:
     """(4,) Gaussian-steps held at the width floor, the width ceiling, the amplitude ceiling and
     the edge of the position box (kept on the parameters' device: no sync per step)."""
     pruned_outside: int = 0
-    _boxes: dict = field(default_factory=dict, repr=False)
     """Gaussians pruned for leaving the reconstruction volume ..."""
     pruned_outside_atom_like: int = 0
     """... of which heavy and narrow enough to be atoms (real atoms lost if centre_px is off)."""
+    _boxes: dict = field(default_factory=dict, repr=False)
+    """The position boxes as tensors, per device and dtype (:meth:`_box`)."""
 
     # ------------------------------------------------------------------ helpers
     @property

@@ -112,11 +112,10 @@ def view_parameters(cfg, n_views: int, floor: float | None, surfaces, series, le
 
 def blur(model, images: torch.Tensor, spacing: float | None) -> torch.Tensor:
     """(V, H, W) projections through the model's learned point-spread function, if it has one
-    (``spacing``: the pixel pitch, normalised lengths; None for a single row)."""
+    (``spacing``: the pixel pitch, normalised lengths; None for a single row; the kernel's widest
+    width is the model's ``psf_widest``, read once when its buffers were made)."""
     if "psf" not in model.view_params or spacing is None:
         return images
-    if getattr(model, "psf_widest", None) is None:  # read once: a read from the GPU waits for it
-        model.psf_widest = float(model.psf_widths.max()) if len(model.psf_widths) else None
     return apply_kernel(images, spacing, model.psf_widths.to(images), model.view_params["psf"].to(images), model.psf_widest)  # kept non-negative by project_weights after each step (psf held-out: read, not learned)
 
 
@@ -143,13 +142,14 @@ class ViewGeometry:
     def read(self, camera: Cameras, c2w: torch.Tensor, coarse: bool, view_c2w: torch.Tensor, training: bool, device, dtype):
         """(rows, cols, pitch, view): :func:`pixel_coordinates`, the pitch of the rows as a float
         (None for a single row) and :func:`view_index` of ``camera``."""
-        key = (camera.metadata or {}).get("cam_idx") if training else None
-        if key is not None and (key, coarse, str(device), dtype) in self._seen:
-            return self._seen[(key, coarse, str(device), dtype)]
+        index = (camera.metadata or {}).get("cam_idx") if training else None
+        key = None if index is None else (index, coarse, str(device), dtype)
+        if key in self._seen:
+            return self._seen[key]
         rows, cols = pixel_coordinates(camera, c2w, coarse, device, dtype)
         found = (rows, cols, float(rows[1] - rows[0]) if len(rows) > 1 else None, view_index(view_c2w, camera))
         if key is not None:
-            self._seen[(key, coarse, str(device), dtype)] = found
+            self._seen[key] = found
         return found
 
 

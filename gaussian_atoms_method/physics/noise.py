@@ -109,12 +109,12 @@ def stable_order(values: np.ndarray) -> np.ndarray:
     return torch.sort(torch.as_tensor(values, device=device), stable=True).indices.cpu().numpy()
 
 
-def binned_variance(residuals: np.ndarray, predicted: np.ndarray, bins: int = 16, min_count: int = 200, robust: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def binned_variance(residuals: np.ndarray, predicted: np.ndarray, bins: int = 16, min_count: int = 200, robust: bool = True, device=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Residual variance in bins of the predicted value: robust, ``(1.4826 MAD)^2``, or the
     plain sample variance (``robust=False``: for counts of a few electrons, whose residuals
     take a handful of discrete values and whose MAD is quantised: on Poisson counts of mean
-    1-2 the MAD read the variance 1.3-2x too high).  On a GPU, where there is one, the bins'
-    medians are taken there (:func:`median_on_device`).
+    1-2 the MAD read the variance 1.3-2x too high).  The bins' medians are :func:`mad_std`'s, on
+    ``device`` (default: a GPU where there is one).
 
     Returns
     -------
@@ -124,8 +124,6 @@ def binned_variance(residuals: np.ndarray, predicted: np.ndarray, bins: int = 16
     """
     r = np.asarray(residuals, dtype=np.float64).ravel()
     m = np.asarray(predicted, dtype=np.float64).ravel()
-    if robust and _gpu() is not None:
-        return binned_variance_on_device(r, m, bins, min_count, _gpu())
     order = stable_order(m)
     centres, variances, counts = [], [], []
     for chunk in np.array_split(order, bins):
@@ -133,7 +131,7 @@ def binned_variance(residuals: np.ndarray, predicted: np.ndarray, bins: int = 16
             continue
         rc = r[chunk]
         centres.append(m[chunk].mean())
-        variances.append(float(np.var(rc)) if not robust else (MAD_TO_STD * np.median(np.abs(rc - np.median(rc)))) ** 2)
+        variances.append(float(np.var(rc)) if not robust else mad_std(rc, device) ** 2)
         counts.append(len(chunk))
     return np.array(centres), np.array(variances), np.array(counts)
 
@@ -154,39 +152,25 @@ def median_on_device(values):
     return ordered[n // 2] if n % 2 else 0.5 * (ordered[n // 2 - 1] + ordered[n // 2])
 
 
-def mad_std(values: np.ndarray) -> float:
-    """``1.4826 * MAD`` of the finite ``values``: on a GPU where there is one
-    (:func:`median_on_device`), else numpy's median (linear time on the CPU)."""
-    v = np.asarray(values, dtype=np.float64).ravel()
-    v = v[np.isfinite(v)]
-    if v.size == 0:
-        raise ValueError("no finite values to estimate a spread from")
-    device = _gpu()
+def mad_std(values, device=None) -> float:
+    """``1.4826 * MAD`` of the finite ``values`` (an array or a tensor).  The medians are taken
+    in torch on ``device`` (default: a tensor's own device off the CPU, else a GPU where there is
+    one; :func:`median_on_device`), else by numpy's median (linear time on the CPU)."""
+    import torch
+
     if device is None:
+        device = values.device if isinstance(values, torch.Tensor) and values.device.type != "cpu" else _gpu()
+    if device is None:
+        v = np.asarray(values, dtype=np.float64).ravel()
+        v = v[np.isfinite(v)]
+        if v.size == 0:
+            raise ValueError("no finite values to estimate a spread from")
         return float(MAD_TO_STD * np.median(np.abs(v - np.median(v))))
-    import torch
-
-    t = torch.as_tensor(v, device=device)
+    t = torch.as_tensor(values, dtype=torch.float64, device=device).reshape(-1)
+    t = t[torch.isfinite(t)]
+    if t.numel() == 0:
+        raise ValueError("no finite values to estimate a spread from")
     return float(MAD_TO_STD * median_on_device((t - median_on_device(t)).abs()))
-
-
-def binned_variance_on_device(r: np.ndarray, m: np.ndarray, bins: int, min_count: int, device):
-    """:func:`binned_variance` (robust) of flat float64 ``r`` and ``m``, with the sort and the
-    medians on ``device``."""
-    import torch
-
-    rt, mt = torch.as_tensor(r, device=device), torch.as_tensor(m, device=device)
-    centres, variances, counts = [], [], []
-    for chunk in torch.tensor_split(torch.sort(mt, stable=True).indices, bins):
-        if len(chunk) < min_count:
-            continue
-        rc = rt[chunk]
-        centres.append(mt[chunk].mean())
-        variances.append((MAD_TO_STD * median_on_device((rc - median_on_device(rc)).abs())) ** 2)
-        counts.append(len(chunk))
-    if not counts:
-        return np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.int64)
-    return torch.stack(centres).cpu().numpy(), torch.stack(variances).cpu().numpy(), np.array(counts)
 
 
 def _solve(matrix: np.ndarray, rhs: np.ndarray) -> np.ndarray:
