@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from gaussian_atoms_method.physics.psf import KERNEL_WIDTHS_A, apply_kernel, kernel_transfer, project_weights
+from gaussian_atoms_method.physics.psf import KERNEL_WIDTHS_A, apply_kernel, fast_fft_length, kernel_transfer, project_weights
 
 
 def test_kernel_of_one_gaussian_blurs_a_gaussian_exactly_and_keeps_mass():
@@ -27,6 +27,30 @@ def test_kernel_of_one_gaussian_blurs_a_gaussian_exactly_and_keeps_mass():
     assert torch.equal(apply_kernel(image[None], spacing, torch.tensor(KERNEL_WIDTHS_A), torch.zeros(3))[0], image)  # zero weights: identity
     assert float(mixed.sum()) == pytest.approx(float(image.sum()), rel=1e-6)
     assert float(kernel_transfer(torch.zeros(1), torch.tensor([1.0]), torch.tensor([0.7]))) == 1.0
+
+
+def test_kernel_from_host_widths_equals_the_tensor_form_with_its_gradient():
+    """A training step gives the widths as host floats (the transfer's Gaussian factors kept per
+    image grid): the same blurred images and weight gradient as the tensor form, in float64 to
+    rounding (1e-12 of the image's peak), on two grids in turn (the coarse and full phases)."""
+    spacing = 0.25
+    for n in (64, 32, 64):
+        image = torch.rand(2, n, n + 3, dtype=torch.float64, generator=torch.Generator().manual_seed(n))
+        results = []
+        for widths in (torch.tensor(KERNEL_WIDTHS_A, dtype=torch.float64), tuple(KERNEL_WIDTHS_A)):
+            weights = torch.tensor([0.3, 0.1, 0.2], dtype=torch.float64, requires_grad=True)
+            blurred = apply_kernel(image, spacing, widths, weights)
+            (grad,) = torch.autograd.grad((blurred * image).sum(), weights)
+            results.append((blurred.detach(), grad))
+        assert float((results[0][0] - results[1][0]).abs().max()) < 1e-12 * float(image.max())
+        assert torch.allclose(results[0][1], results[1][1], rtol=1e-12, atol=0.0)
+
+
+def test_fast_fft_length_is_the_smallest_product_of_twos_and_threes_not_below_n():
+    """Brute force over 1..3000: every length a product of 2s and 3s, none smaller that is."""
+    smooth = sorted({2**a * 3**b for a in range(13) for b in range(9)})
+    for n in range(1, 3001):
+        assert fast_fft_length(n) == next(m for m in smooth if m >= n)
 
 
 def _blurred_series_and_model(tmp_path, true_weights: torch.Tensor, **options):

@@ -111,7 +111,7 @@ class GaussianAtomsModel(SplatfactoCompat):
         view_params, buffers = R.view_parameters(cfg, self.view_c2w.shape[0], floor, surfaces, series, self.normalisation.length_scale)
         for name, value in buffers.items():
             self.register_buffer(name, value, persistent=False)
-        self.psf_widest = float(buffers["psf_widths"].max()) if len(buffers.get("psf_widths", ())) else None  # read here, on the host: a read from the GPU each step waited for it
+        self.psf_widths_host = tuple(buffers["psf_widths"].tolist()) if "psf_widths" in buffers else ()  # read here, on the host: a read from the GPU each step waited for it
         self.view_params = torch.nn.ParameterDict(view_params)
         batches, self._views_per_step = R.view_batches(cfg, metadata.get("projections"), self.view_c2w)
         self.register_buffer("train_projections", batches, persistent=False)

@@ -112,11 +112,11 @@ def view_parameters(cfg, n_views: int, floor: float | None, surfaces, series, le
 
 def blur(model, images: torch.Tensor, spacing: float | None) -> torch.Tensor:
     """(V, H, W) projections through the model's learned point-spread function, if it has one
-    (``spacing``: the pixel pitch, normalised lengths; None for a single row; the kernel's widest
-    width is the model's ``psf_widest``, read once when its buffers were made)."""
+    (``spacing``: the pixel pitch, normalised lengths; None for a single row; the kernel's
+    widths are the model's ``psf_widths_host``, read once when its buffers were made)."""
     if "psf" not in model.view_params or spacing is None:
         return images
-    return apply_kernel(images, spacing, model.psf_widths.to(images), model.view_params["psf"].to(images), model.psf_widest)  # kept non-negative by project_weights after each step (psf held-out: read, not learned)
+    return apply_kernel(images, spacing, model.psf_widths_host, model.view_params["psf"].to(images))  # kept non-negative by project_weights after each step (psf held-out: read, not learned)
 
 
 def add_view_background(model, image: torch.Tensor, view: int, rows: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:
