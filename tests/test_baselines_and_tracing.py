@@ -1,6 +1,7 @@
 """Voxel baselines (FBP, SART) and atom tracing."""
 
 import numpy as np
+import torch
 import pytest
 
 from gaussian_atoms_method.physics.reconstruction import reconstruct
@@ -97,5 +98,9 @@ def test_batched_filtered_backprojection_equals_scikit_image():
         np.testing.assert_allclose(filtered_backprojection(sino, theta, output_size=size), expected, rtol=0, atol=1e-12)
         blocks = filtered_backprojection(sino, theta, output_size=size, max_matrix_entries=7 * 2 * len(theta))
         np.testing.assert_allclose(blocks, expected, rtol=0, atol=1e-12)
+    # float32, kept as a tensor (the start's): iradon's values to float32 rounding (1e-6 of the largest)
+    single = filtered_backprojection(sino, theta, output_size=57, dtype=torch.float32, as_tensor=True)
+    assert isinstance(single, torch.Tensor) and single.dtype == torch.float32
+    np.testing.assert_allclose(single.numpy(), expected, rtol=0, atol=1e-6 * np.abs(expected).max())
     with pytest.raises(ValueError, match="angles"):
         filtered_backprojection(sino, theta[:-1])

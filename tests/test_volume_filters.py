@@ -19,7 +19,31 @@ def test_gaussian_filter_and_laplace_equal_scipy(sigma_vox):
     for ours, theirs in ((volume_filters.gaussian_filter, ndimage.gaussian_filter), (volume_filters.gaussian_laplace, ndimage.gaussian_laplace)):
         expected = theirs(volume, sigma_vox)
         np.testing.assert_allclose(ours(tensor, sigma_vox, in_torch=True).numpy(), expected, rtol=0, atol=1e-12 * np.abs(expected).max())
-        np.testing.assert_array_equal(ours(tensor, sigma_vox).numpy(), expected)  # on the CPU: scipy itself
+        np.testing.assert_array_equal(ours(tensor, sigma_vox).numpy(), expected)  # on the CPU: scipy's own passes
+    for in_torch in (True, False):
+        smooth, laplace = volume_filters.gaussian_filter_and_laplace(tensor, sigma_vox, in_torch)
+        np.testing.assert_array_equal(smooth.numpy(), volume_filters.gaussian_filter(tensor, sigma_vox, in_torch).numpy())
+        np.testing.assert_array_equal(laplace.numpy(), volume_filters.gaussian_laplace(tensor, sigma_vox, in_torch).numpy())
+
+
+@pytest.mark.parametrize("shape", [(40, 37, 45), (3, 1, 50), (1, 60, 2)])
+def test_host_passes_in_threads_are_scipys_bit_for_bit(shape):
+    """scipy's 1-D filters over slabs in threads (two threads here, more slabs than some axes
+    hold) give scipy's own values exactly, in float32 and float64: Gaussian, its Laplacian, and
+    the 3 x 3 x 3 maximum."""
+    from gaussian_atoms_method.atoms import host_filters
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        for dtype in (np.float32, np.float64):
+            volume = np.random.default_rng(2).standard_normal(shape).astype(dtype)
+            tensor = torch.from_numpy(volume)
+            np.testing.assert_array_equal(volume_filters.gaussian_filter(tensor, 1.3).numpy(), ndimage.gaussian_filter(volume, 1.3))
+            np.testing.assert_array_equal(volume_filters.gaussian_laplace(tensor, 1.3).numpy(), ndimage.gaussian_laplace(volume, 1.3))
+            np.testing.assert_array_equal(host_filters.maximum_filter3(volume), ndimage.maximum_filter(volume, size=3, mode="nearest"))
+    finally:
+        torch.set_num_threads(threads)
 
 
 def test_pooled_maxima_equal_the_numpy_search():

@@ -8,8 +8,9 @@ import math
 
 import numpy as np
 import torch
-from scipy import ndimage
 from scipy.spatial import cKDTree
+
+from gaussian_atoms_method.atoms import host_filters
 
 
 def local_maxima(volume: np.ndarray, level: float = 0.0) -> np.ndarray:
@@ -21,7 +22,7 @@ def local_maxima(volume: np.ndarray, level: float = 0.0) -> np.ndarray:
     above = volume > max(level, 0.0)
     above[[0, -1], :, :] = above[:, [0, -1], :] = above[:, :, [0, -1]] = False
     if np.count_nonzero(above) > volume.size // 100:  # many: one pass of the maximum filter is cheaper
-        return np.argwhere(above & (volume == ndimage.maximum_filter(volume, size=3, mode="nearest")))
+        return np.argwhere(above & (volume == host_filters.maximum_filter3(volume)))
     peaks = np.argwhere(above)
     value = volume[tuple(peaks.T)]
     keep = np.ones(len(peaks), dtype=bool)

@@ -6,7 +6,8 @@ volume: 20 million voxels) several times; scipy's ``ndimage`` did that on one CP
 GPU run waited for it.  Off the CPU these are the same separable filters as scipy's
 ``gaussian_filter`` and ``gaussian_laplace`` (the same sampled kernels, ``truncate`` 4, and scipy's default
 ``reflect`` boundary: the edge sample repeated, ``d c b a | a b c d | d c b a``), so they give
-scipy's values to float rounding (tests compare them in float64), on any device.
+scipy's values to float rounding (tests compare them in float64), on any device.  On the CPU
+scipy's own 1-D passes run, over slabs in threads (:mod:`.host_filters`).
 """
 
 from __future__ import annotations
@@ -15,9 +16,8 @@ import math
 
 import numpy as np
 import torch
-from scipy import ndimage
 
-from gaussian_atoms_method.atoms import peaks
+from gaussian_atoms_method.atoms import host_filters, peaks
 
 
 def _off_cpu(volume: torch.Tensor, choice: bool | None) -> bool:
@@ -58,8 +58,16 @@ def _filter_axis(volume: torch.Tensor, kernel: np.ndarray, axis: int) -> torch.T
     return out
 
 
+def _pass(volume: torch.Tensor, sigma_vox: float, axis: int, order: int, in_torch: bool) -> torch.Tensor:
+    """One 1-D Gaussian (``order`` 0) or second-derivative (``order`` 2) pass along ``axis``: in
+    torch (:func:`_filter_axis`), or scipy's own in threads (:mod:`.host_filters`)."""
+    if in_torch:
+        return _filter_axis(volume, gaussian_kernel1d(sigma_vox, order), axis)
+    return torch.from_numpy(host_filters.gaussian_pass(volume.numpy(), sigma_vox, axis, order))
+
+
 def gaussian_filter(volume: torch.Tensor, sigma_vox: float, in_torch: bool | None = None) -> torch.Tensor:
-    """scipy's ``ndimage.gaussian_filter(volume, sigma_vox)`` of a 3D tensor, on its device.
+    """scipy's ``ndimage.gaussian_filter(volume, sigma_vox)`` of a tensor, on its device.
 
     Parameters
     ----------
@@ -67,31 +75,44 @@ def gaussian_filter(volume: torch.Tensor, sigma_vox: float, in_torch: bool | Non
     sigma_vox : float
         Standard deviation of the Gaussian along every axis, voxels.
     in_torch : bool, optional
-        Filter in torch (default: off the CPU).  On the CPU scipy itself runs (one core, as
-        fast as torch's two here, and the start's values stay exactly what they were).
+        Filter in torch (default: off the CPU).  On the CPU scipy's own 1-D passes run, over
+        slabs in threads (:mod:`.host_filters`): scipy's values bit for bit.
     """
-    if not _off_cpu(volume, in_torch):
-        return torch.from_numpy(ndimage.gaussian_filter(volume.numpy(), sigma_vox))
-    kernel = gaussian_kernel1d(sigma_vox)
+    in_torch = _off_cpu(volume, in_torch)
     for axis in range(volume.ndim):
-        volume = _filter_axis(volume, kernel, axis)
+        volume = _pass(volume, sigma_vox, axis, 0, in_torch)
     return volume
+
+
+def _laplace(volume: torch.Tensor, x: torch.Tensor, xy: torch.Tensor, sigma_vox: float, in_torch: bool) -> torch.Tensor:
+    """scipy's ``gaussian_laplace`` from the volume and its smoothings along x and x then y:
+    the d2/dx2, d2/dy2, d2/dz2 terms summed in scipy's order."""
+    p = lambda v, axis, order: _pass(v, sigma_vox, axis, order, in_torch)  # noqa: E731
+    d2z = p(xy, 2, 2)
+    d2y = p(p(x, 1, 2), 2, 0)
+    out = p(p(p(volume, 0, 2), 1, 0), 2, 0)  # d2/dx2
+    out += d2y
+    out += d2z
+    return out
 
 
 def gaussian_laplace(volume: torch.Tensor, sigma_vox: float, in_torch: bool | None = None) -> torch.Tensor:
     """scipy's ``ndimage.gaussian_laplace(volume, sigma_vox)`` of a 3D tensor: the sum over
     axes of the Gaussian's second derivative along that axis and the Gaussian along the
-    others.  The smoothings along x, and along x then y, are shared between terms (eight 1D
-    passes, not nine).  ``in_torch``: as :func:`gaussian_filter`."""
-    if not _off_cpu(volume, in_torch):
-        return torch.from_numpy(ndimage.gaussian_laplace(volume.numpy(), sigma_vox))
-    smooth, second = gaussian_kernel1d(sigma_vox), gaussian_kernel1d(sigma_vox, 2)
-    x = _filter_axis(volume, smooth, 0)
-    xy = _filter_axis(x, smooth, 1)
-    out = _filter_axis(xy, second, 2)  # d2/dz2
-    out += _filter_axis(_filter_axis(x, second, 1), smooth, 2)  # d2/dy2
-    out += _filter_axis(_filter_axis(_filter_axis(volume, second, 0), smooth, 1), smooth, 2)  # d2/dx2
-    return out
+    others.  The smoothing along x is shared between two terms (eight 1D passes, not nine).
+    ``in_torch``: as :func:`gaussian_filter`."""
+    in_torch = _off_cpu(volume, in_torch)
+    x = _pass(volume, sigma_vox, 0, 0, in_torch)
+    return _laplace(volume, x, _pass(x, sigma_vox, 1, 0, in_torch), sigma_vox, in_torch)
+
+
+def gaussian_filter_and_laplace(volume: torch.Tensor, sigma_vox: float, in_torch: bool | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`gaussian_filter` and :func:`gaussian_laplace` of a 3D tensor at one width, the
+    smoothings along x and x then y made once for both (nine 1D passes, not twelve)."""
+    in_torch = _off_cpu(volume, in_torch)
+    x = _pass(volume, sigma_vox, 0, 0, in_torch)
+    xy = _pass(x, sigma_vox, 1, 0, in_torch)
+    return _pass(xy, sigma_vox, 2, 0, in_torch), _laplace(volume, x, xy, sigma_vox, in_torch)
 
 
 def local_maxima(volume: torch.Tensor, level: float = 0.0, pooled: bool | None = None) -> np.ndarray:

@@ -63,7 +63,7 @@ def _centred_sinograms(projections: np.ndarray, centre_index: float, axis: int) 
     return sino, length
 
 
-def backprojection_matrix(angles_deg: np.ndarray, length: int, size: int, rows: slice | None = None):
+def backprojection_matrix(angles_deg: np.ndarray, length: int, size: int, rows: slice | None = None, dtype=None, device="cpu"):
     """scikit-image's linear-interpolation back-projection as a sparse matrix.
 
     Output pixel ``p = i * size + j`` of a ``size x size`` slice (centre ``size // 2``) reads,
@@ -71,6 +71,9 @@ def backprojection_matrix(angles_deg: np.ndarray, length: int, size: int, rows: 
     ``i0`` and ``i0 + 1`` with weights ``1 - w`` and ``w``: two entries per pixel and angle.
     Columns index ``k * (length + 1) + detector``; the extra last detector sample of each angle
     is a zero that pixels whose ray misses the detector read (``np.interp(left=0, right=0)``).
+    Built in torch on ``device`` (the Au series' 6.9 million entries: 0.4 s in numpy on the
+    2-core CPU, then a copy to a GPU); the angles' cosines and sines are numpy's, so the
+    entries are the same on every device.
 
     Parameters
     ----------
@@ -81,33 +84,35 @@ def backprojection_matrix(angles_deg: np.ndarray, length: int, size: int, rows: 
         Side of the output slice, pixels.
     rows : slice, optional
         Only these output pixels (rows of the matrix); default all ``size**2``.
+    dtype : torch dtype, optional
+        Of the weights (default float64).
+    device : torch device
 
     Returns
     -------
-    torch.sparse_csr_tensor, float64, shape (rows, N * (length + 1))
+    torch.sparse_csr_tensor, shape (rows, N * (length + 1)), on ``device``
     """
     import torch
 
-    pixels = np.arange(size * size)[rows if rows is not None else slice(None)]
+    start, stop, _ = (rows if rows is not None else slice(None)).indices(size * size)
+    pixels = torch.arange(start, stop, device=device)
     radius = size // 2
-    x = (pixels // size - radius).astype(np.float64)[:, None]  # output row
-    y = (pixels % size - radius).astype(np.float64)[:, None]  # output column
-    angles = np.deg2rad(np.asarray(angles_deg, dtype=np.float64))[None, :]
-    t = y * np.cos(angles) - x * np.sin(angles) + length // 2  # (P, N) detector position
+    x = (pixels // size - radius).double()[:, None]  # output row
+    y = (pixels % size - radius).double()[:, None]  # output column
+    angles = np.deg2rad(np.asarray(angles_deg, dtype=np.float64))
+    cos, sin = (torch.as_tensor(f(angles), device=device)[None, :] for f in (np.cos, np.sin))
+    t = y * cos - x * sin + length // 2  # (P, N) detector position
     inside = (t >= 0) & (t <= length - 1)
-    i0 = np.where(inside, np.floor(t), length).astype(np.int64)  # misses read the zero sample
-    w = np.where(inside, t - np.floor(t), 0.0)
-    block = np.arange(len(angles_deg), dtype=np.int64)[None, :] * (length + 1)
-    cols = np.stack([block + i0, block + np.minimum(i0 + 1, length)], axis=-1)  # (P, N, 2), sorted
-    vals = np.stack([1.0 - w, w], axis=-1)
-    per_row = 2 * len(angles_deg)
-    crow = np.arange(len(pixels) + 1, dtype=np.int64) * per_row
+    floor = torch.floor(t)
+    i0 = torch.where(inside, floor, float(length)).long()  # misses read the zero sample
+    w = torch.where(inside, t - floor, 0.0)
+    block = torch.arange(len(angles), device=device)[None, :] * (length + 1)
+    cols = torch.stack([block + i0, block + torch.clamp(i0 + 1, max=length)], dim=-1)  # (P, N, 2), sorted
+    vals = torch.stack([1.0 - w, w], dim=-1).to(dtype or torch.float64)
+    crow = torch.arange(len(pixels) + 1, device=device) * (2 * len(angles))
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", "Sparse CSR tensor support is in beta", UserWarning)
-        return torch.sparse_csr_tensor(
-            torch.from_numpy(crow), torch.from_numpy(cols.reshape(-1)), torch.from_numpy(vals.reshape(-1)),
-            size=(len(pixels), len(angles_deg) * (length + 1)), check_invariants=False,
-        )  # fmt: skip
+        return torch.sparse_csr_tensor(crow, cols.reshape(-1), vals.reshape(-1), size=(len(pixels), len(angles) * (length + 1)), check_invariants=False)
 
 
 def filtered_backprojection(
@@ -117,7 +122,9 @@ def filtered_backprojection(
     output_size: int | None = None,
     device: str = "cpu",
     max_matrix_entries: int = 1 << 24,
-) -> np.ndarray:
+    dtype=None,
+    as_tensor: bool = False,
+):
     """scikit-image's ``iradon`` (``circle=False``, linear interpolation) for a stack of
     sinograms at once, in torch.
 
@@ -139,14 +146,21 @@ def filtered_backprojection(
     max_matrix_entries : int
         Build the matrix in blocks of output pixels with at most this many entries (16 bytes
         each).
+    dtype : torch dtype, optional
+        Of the product and the result (default float64, ``iradon``'s to rounding).  float32
+        halves the time of the 271^3 Au volume's product and copies (0.45 -> 0.16 s for the
+        product on the 2-core CPU), for a start that only looks for its maxima.
+    as_tensor : bool
+        Return the tensor on ``device`` rather than a host array.
 
     Returns
     -------
-    (S, output_size, output_size) float64 array, equal to ``iradon`` of each slice.
+    (S, output_size, output_size) array (or tensor), equal to ``iradon`` of each slice.
     """
     import torch
     from skimage.transform.radon_transform import _get_fourier_filter
 
+    dtype = dtype or torch.float64
     sino = torch.as_tensor(np.asarray(sinograms, dtype=np.float64), device=device)
     n_slices, length, n_angles = sino.shape
     if n_angles != len(angles_deg):
@@ -155,16 +169,17 @@ def filtered_backprojection(
     padded = max(64, int(2 ** np.ceil(np.log2(2 * length))))
     fourier_filter = torch.as_tensor(_get_fourier_filter(padded, filter_name)[:, 0], device=device)
     spectrum = torch.fft.fft(torch.nn.functional.pad(sino.permute(2, 1, 0), (0, 0, 0, padded - length)), dim=1)
-    filtered = torch.fft.ifft(spectrum * fourier_filter[:, None], dim=1).real[:, :length]  # (N, L, S)
+    # iradon's scale taken on the (small) filtered projections, not on the volume
+    filtered = torch.fft.ifft(spectrum * fourier_filter[:, None], dim=1).real[:, :length] * (np.pi / (2 * n_angles))  # (N, L, S)
     # One zero sample after each angle's detector (read by rays that miss it).
-    filtered = torch.nn.functional.pad(filtered, (0, 0, 0, 1)).reshape(n_angles * (length + 1), n_slices)
-    out = torch.empty(size * size, n_slices, dtype=torch.float64, device=device)
+    filtered = torch.nn.functional.pad(filtered, (0, 0, 0, 1)).reshape(n_angles * (length + 1), n_slices).to(dtype)
+    out = torch.empty(size * size, n_slices, dtype=dtype, device=device)
     block = max(1, max_matrix_entries // (2 * n_angles))  # output pixels per block
     for start in range(0, size * size, block):
         rows = slice(start, min(start + block, size * size))
-        out[rows] = backprojection_matrix(angles_deg, length, size, rows).to(device) @ filtered
-    out = out.T.reshape(n_slices, size, size) * (np.pi / (2 * n_angles))
-    return out.cpu().numpy()
+        out[rows] = backprojection_matrix(angles_deg, length, size, rows, dtype, device) @ filtered
+    out = out.T.reshape(n_slices, size, size)
+    return out if as_tensor else out.cpu().numpy()
 
 
 def reconstruct(
@@ -179,6 +194,8 @@ def reconstruct(
     device: str = "cpu",
     tilt_axis_angle_deg: float = 0.0,
     slice_size_px: int | None = None,
+    dtype=None,
+    as_tensor: bool = False,
 ) -> Volume:
     """FBP or SART reconstruction of a single-axis tilt series.
 
@@ -206,6 +223,9 @@ def reconstruct(
         detector's length across the axis; larger for an object wider than the field of view
         (:mod:`.field_of_view`), whose voxels beyond the detector see only the views whose rays
         reach them.
+    dtype, as_tensor
+        FBP only: the precision, and the volume as a tensor on ``device``
+        (:func:`filtered_backprojection`).
 
     Returns
     -------
@@ -220,7 +240,7 @@ def reconstruct(
     theta = np.asarray(angles_deg, dtype=np.float64)
     size = length if slice_size_px is None or method != "fbp" else max(int(slice_size_px) | 1, length)  # odd: centre at size // 2
     if method == "fbp":
-        recs = filtered_backprojection(sino, theta, filter_name, size, device)
+        recs = filtered_backprojection(sino, theta, filter_name, size, device, dtype=dtype, as_tensor=as_tensor)
     else:
         recs = []
         for s in sino:
@@ -228,7 +248,8 @@ def reconstruct(
             for _ in range(max(1, sart_iterations)):
                 rec = iradon_sart(s, theta=theta, image=rec)
             recs.append(rec)
-    return slices_to_volume(np.asarray(recs), pixel_size_A, tilt_axis, axis_centre)
+        recs = np.asarray(recs)
+    return slices_to_volume(recs, pixel_size_A, tilt_axis, axis_centre)
 
 
 def slice_sinograms(projections: np.ndarray, tilt_axis: str = "y", centre_px=None, tilt_axis_angle_deg: float = 0.0) -> tuple[np.ndarray, int, float]:
@@ -252,15 +273,26 @@ def slices_to_volume(recs, pixel_size_A: float, tilt_axis: str, axis_centre: flo
     scikit-image's orientation (``rec[depth, in-plane]``); an array stays an array, a tensor a
     tensor on its device."""
     size = recs.shape[-1]
-    vol = recs.swapaxes(1, 2) / pixel_size_A  # (slice, in-plane, depth)
+    vol = recs.swapaxes(1, 2)  # (slice, in-plane, depth)
     if tilt_axis == "y":
-        data = vol.swapaxes(0, 1)  # (x, y, z)
+        view = vol.swapaxes(0, 1)  # (x, y, z)
         origin = np.array([size // 2, axis_centre, size // 2], dtype=np.float64)
     else:
-        data = vol  # (x, y, z) with x the slice axis
+        view = vol  # (x, y, z) with x the slice axis
         origin = np.array([axis_centre, size // 2, size // 2], dtype=np.float64)
-    data = data.contiguous() if hasattr(data, "contiguous") else np.ascontiguousarray(data)
+    # one pass: divided into a contiguous volume of the final layout
+    if isinstance(view, np.ndarray):
+        data = np.divide(view, pixel_size_A, out=np.empty(view.shape, dtype=view.dtype))
+    else:
+        data = _divide_contiguous(view, pixel_size_A)
     return Volume(data, float(pixel_size_A), origin)
+
+
+def _divide_contiguous(view, divisor: float):
+    """``view / divisor`` as a new contiguous tensor, in one pass."""
+    import torch
+
+    return torch.div(view, divisor, out=torch.empty(view.shape, dtype=view.dtype, device=view.device))
 
 
 def sirt(sinograms: np.ndarray, angles_deg: np.ndarray, iterations, device: str = "cpu", min_value: float | None = 0.0):
@@ -294,7 +326,7 @@ def sirt(sinograms: np.ndarray, angles_deg: np.ndarray, iterations, device: str 
 
     sino = torch.as_tensor(np.asarray(sinograms, dtype=np.float32), device=device)
     n_slices, length, n_angles = sino.shape
-    backproject = backprojection_matrix(angles_deg, length, length).to(device=device, dtype=torch.float32)
+    backproject = backprojection_matrix(angles_deg, length, length, dtype=torch.float32, device=device)
     project = backproject.to_sparse_coo().t().coalesce().to_sparse_csr()  # A = B^T
     measured = torch.nn.functional.pad(sino.permute(2, 1, 0), (0, 0, 0, 1)).reshape(n_angles * (length + 1), n_slices)
     ones = torch.ones(length * length, 1, device=device)
