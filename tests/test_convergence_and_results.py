@@ -67,6 +67,20 @@ def test_snapshots_hold_the_atoms_and_a_time_line_per_step(tmp_path):
     assert float(lines[1].split(",")[1]) == pytest.approx(time.time(), abs=60)
 
 
+def test_snapshots_hold_what_the_run_would_report_as_atoms(tmp_path):
+    # A 3 x 3 x 3 lattice of 2.5 Å (every atom has neighbours within twice the bond), one blob
+    # 30 Å out in vacuum (no neighbour: outside the support) and one lattice site beyond the
+    # field of view: the snapshot holds the 26 others, as atoms.xyz would.
+    grid = np.stack(np.meshgrid(*[np.arange(3) * 2.5] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    positions = np.vstack([grid, [[30.0, 30.0, 30.0]]])
+    atoms = AtomSet(positions, sigmas=np.full(28, 0.6), amplitudes=np.ones(28))
+    in_field = np.ones(28, dtype=bool)
+    in_field[0] = False
+    write_snapshot(atoms, tmp_path / "snapshots", 100, 28, 0, in_field)
+    back = read_atoms(tmp_path / "snapshots" / "step-000100.csv")
+    np.testing.assert_allclose(back.positions, grid[1:])
+
+
 def _precision(noise):
     return np.full((4, 3), 0.1), 7.0  # 0.17 Å in 3D
 
