@@ -211,7 +211,9 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
     a number above 1 cannot be combined with."""
     snapshot_every: int = 0
     """Every this many steps (0: never) write the current atoms to ``snapshots/`` in the run
-    directory with the wall-clock time, for time-to-accuracy benchmarks."""
+    directory with the wall-clock time, for time-to-accuracy benchmarks: the Gaussians the run
+    would report as atoms were it stopped there (in the field of view and the support, as
+    ``atoms.xyz``), before the final merges and prune."""
     seed: int = 0
     """Seed of the random initialisation and duplications."""
 
