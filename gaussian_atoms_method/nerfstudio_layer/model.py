@@ -293,5 +293,5 @@ class GaussianAtomsModel(SplatfactoCompat):
     def _snapshot_after_step(self, directory: Path, step: int) -> None:  # after step k*N-1, k*N steps are done
         if (step + 1) % self.config.snapshot_every == 0:
             params = self.density.average.mean(self.gauss_params)
-            in_field = self.density.in_field(params["means"].detach()).cpu().numpy()
+            in_field = self.density.in_field(params["means"]).cpu().numpy()  # the mean is detached
             write_snapshot(self.atoms(params), directory, step + 1, self.num_points, torch.cuda.max_memory_allocated() if self.means.is_cuda else 0, in_field)

@@ -130,8 +130,7 @@ def split_atoms(gaussians: AtomSet, in_field: np.ndarray, figure: Path | None = 
     atoms are written.  The classes' mixture is fitted on ``device`` (the run's)."""
     field = gaussians.subset(in_field)
     classes = classify_gaussians(field.masses, field.sigmas, field.positions, device=device)
-    reported = np.zeros(len(gaussians), dtype=bool)
-    reported[np.flatnonzero(in_field)[classes.atoms]] = True
+    reported = reported_as_atoms(gaussians.positions, in_field, classes.atoms)
     labels = np.zeros(len(gaussians), dtype=np.int64)  # 0: a non-atom
     labels[np.flatnonzero(in_field)] = np.where(classes.atoms, classes.classes, 0)
     gaussians = AtomSet(gaussians.positions, gaussians.sigmas, gaussians.amplitudes, gaussians.species, dict(gaussians.info), gaussians.position_std_A, labels)
@@ -149,12 +148,13 @@ def split_atoms(gaussians: AtomSet, in_field: np.ndarray, figure: Path | None = 
     return gaussians.subset(reported), gaussians.subset(~reported), draw
 
 
-def reported_as_atoms(positions_A: np.ndarray, in_field: np.ndarray) -> np.ndarray:
+def reported_as_atoms(positions_A: np.ndarray, in_field: np.ndarray, support: np.ndarray | None = None) -> np.ndarray:
     """(N,) bool: the Gaussians a run reports as atoms: in the field of view and, among those,
-    in the support (:func:`gaussian_atoms_method.atoms.classification.in_support`), as
-    :func:`split_atoms` selects them."""
+    in the support (``support``, one per Gaussian in the field, if already known, e.g. from
+    :func:`gaussian_atoms_method.atoms.classification.classify_gaussians`; else
+    :func:`gaussian_atoms_method.atoms.classification.in_support` of their positions)."""
     reported = np.zeros(len(in_field), dtype=bool)
-    reported[np.flatnonzero(in_field)] = in_support(np.asarray(positions_A)[in_field])
+    reported[np.flatnonzero(in_field)] = in_support(np.asarray(positions_A)[in_field]) if support is None else support
     return reported
 
 
