@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from gaussian_atoms_method.atoms.resolution import candidate_pairs, merge_energy, merged_moments
+from gaussian_atoms_method.atoms.resolution import SEARCH_WIDTHS, candidate_pairs, merge_energy, merged_moments
 
 
 def _project(positions, sigmas, masses, direction, grid):
@@ -66,3 +66,18 @@ def test_merge_energy_in_chunks_equals_all_at_once():
     dirs = rng.normal(size=(9, 3))
     whole = merge_energy(positions, sigmas, masses, pairs, dirs, chunk=len(pairs))
     assert np.array_equal(merge_energy(positions, sigmas, masses, pairs, dirs, chunk=100), whole)
+
+
+def test_candidate_pairs_with_a_few_wide_gaussians_are_every_pair_within_reach():
+    """A dense set of atom-wide Gaussians and 3% up to three times wider (the search splits
+    them off): the same pairs as testing every pair, each once with i < j."""
+    rng = np.random.default_rng(3)
+    positions = rng.uniform(0.0, 12.0, (600, 3))
+    sigmas = rng.uniform(0.55, 0.7, 600)
+    wide = rng.random(600) < 0.03
+    sigmas[wide] = rng.uniform(1.0, 2.0, wide.sum())
+    i, j = np.triu_indices(600, k=1)
+    within = np.linalg.norm(positions[i] - positions[j], axis=1) <= SEARCH_WIDTHS * np.hypot(sigmas[i], sigmas[j])
+    pairs = candidate_pairs(positions, sigmas)
+    assert (pairs[:, 0] < pairs[:, 1]).all()
+    assert sorted(map(tuple, pairs.tolist())) == list(zip(i[within].tolist(), j[within].tolist()))

@@ -36,19 +36,38 @@ would only merge a negligible mass (the prune's business) into a distant atom.""
 
 
 def candidate_pairs(positions: np.ndarray, sigmas: np.ndarray) -> np.ndarray:
-    """(K, 2) index pairs closer than :data:`SEARCH_WIDTHS` combined widths.
+    """(K, 2) index pairs ``i < j`` closer than :data:`SEARCH_WIDTHS` combined widths.
 
     Parameters
     ----------
     positions : (N, 3) array
     sigmas : (N,) array, same length unit
+
+    The search radius of a pair of the narrower 95% is set by their widest; each of the widest
+    5% is searched on its own radius (when they are more than 1.25 times wider).  One search at
+    the widest width of all returned 29-53 times more pairs than it kept on the 20,000-atom a-Si
+    at steps 700 and 1,000, where Gaussians growing in the vacuum reach 2 Å against the atoms'
+    0.6 Å (0.14-0.20 s a search on this CPU, now 0.04 s; the same pairs).
     """
     if len(positions) < 2:
         return np.zeros((0, 2), dtype=np.int64)
-    radius = SEARCH_WIDTHS * np.sqrt(2.0) * float(sigmas.max())
-    pairs = cKDTree(positions).query_pairs(radius, output_type="ndarray").astype(np.int64)
-    if len(pairs) == 0:
-        return pairs.reshape(0, 2)
+    tree = cKDTree(positions)
+    cut = float(np.percentile(sigmas, 95))
+    if sigmas.max() <= 1.25 * cut:  # the widest no wider than the rest: one search at its radius is cheaper
+        cut = float(sigmas.max())
+    wide = np.flatnonzero(sigmas > cut)
+    found = [tree.query_pairs(SEARCH_WIDTHS * np.sqrt(2.0) * cut, output_type="ndarray").astype(np.int64).reshape(-1, 2)]
+    if len(wide):
+        reach = SEARCH_WIDTHS * np.sqrt(sigmas[wide] ** 2 + float(sigmas.max()) ** 2)
+        near = tree.query_ball_point(positions[wide], reach)
+        i = np.repeat(wide, [len(n) for n in near])
+        j = np.concatenate([np.asarray(n, dtype=np.int64) for n in near])
+        found.append(np.stack([np.minimum(i, j), np.maximum(i, j)], axis=1)[i != j])
+    pairs = found[0]
+    if len(found) > 1:
+        n = len(positions)
+        key = np.unique(np.concatenate([f[:, 0] * n + f[:, 1] for f in found]))  # each pair once
+        pairs = np.stack([key // n, key % n], axis=1)
     d = np.linalg.norm(positions[pairs[:, 0]] - positions[pairs[:, 1]], axis=1)
     return pairs[d <= SEARCH_WIDTHS * np.hypot(sigmas[pairs[:, 0]], sigmas[pairs[:, 1]])]
 
