@@ -57,6 +57,24 @@ def test_background_constant_and_plane():
     assert float(R.add_background(image, torch.tensor([2.0], dtype=torch.float64), rows, cols).max()) == 2.0
     plane = R.add_background(image, torch.tensor([2.0, 0.5, -1.0], dtype=torch.float64), rows, cols)
     np.testing.assert_allclose(plane.numpy(), 2.0 + 0.5 * rows.numpy()[:, None] - cols.numpy()[None, :])
+    r, c = rows.numpy()[:, None], cols.numpy()[None, :]
+    quadratic = R.add_background(image, torch.tensor([2.0, 0.5, -1.0, 0.3, -0.2, 0.7], dtype=torch.float64), rows, cols)
+    np.testing.assert_allclose(quadratic.numpy(), 2.0 + 0.5 * r - c + 0.3 * r**2 - 0.2 * r * c + 0.7 * c**2, rtol=1e-15, atol=1e-15)
+
+
+def test_a_floor_varying_within_the_views_learns_a_quadratic_correction_from_its_frame_surface():
+    """With the frame's surfaces (a smooth floor) the background has six terms per view, the
+    constant at the floor and the correction at zero (the fit starts on the frame's surface);
+    a flat floor keeps its one constant and the plane option its three."""
+    from types import SimpleNamespace
+
+    surfaces = np.zeros((5, 8, 8))
+    cfg = SimpleNamespace(background="auto", psf="none", refine_alignment=False, refine_tilts=False)
+    params, buffers = R.view_parameters(cfg, 5, 1.5, surfaces, None, 1.0)
+    assert params["background"].shape == (5, 6) and buffers["background_surfaces"].shape == (5, 8, 8)
+    assert (params["background"][:, 0] == 1.5).all() and (params["background"][:, 1:] == 0).all()
+    assert R.view_parameters(cfg, 5, 1.5, None, None, 1.0)[0]["background"].shape == (5, 1)
+    assert R.view_parameters(SimpleNamespace(**{**vars(cfg), "background": "plane"}), 5, None, None, None, 1.0)[0]["background"].shape == (5, 3)
 
 
 def test_view_index_finds_the_training_pose():

@@ -76,11 +76,14 @@ def rotate_about(vectors: list[torch.Tensor], axis: torch.Tensor, angle: torch.T
 
 
 def add_background(image: torch.Tensor, coefficients: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:
-    """(H, W) ``image`` plus a view's background: a constant (1 coefficient) or a plane over
-    the detector in normalised coordinates (3: constant, row slope, column slope)."""
+    """(H, W) ``image`` plus a view's background: a constant (1 coefficient), a plane over the
+    detector in normalised coordinates (3: constant, row slope, column slope) or a quadratic
+    surface (6: those and the row^2, row x column and column^2 terms)."""
     image = image + coefficients[0]
-    if len(coefficients) == 3:
+    if len(coefficients) >= 3:
         image = image + coefficients[1] * rows[:, None] + coefficients[2] * cols[None, :]
+    if len(coefficients) == 6:
+        image = image + (coefficients[3] * rows[:, None] + coefficients[4] * cols[None, :]) * rows[:, None] + coefficients[5] * (cols * cols)[None, :]
     return image
 
 
@@ -94,7 +97,14 @@ def view_parameters(cfg, n_views: int, floor: float | None, surfaces, series, le
     params, buffers = {}, {"background_surfaces": torch.as_tensor(surfaces if surfaces is not None else np.zeros((0, 1, 1)), dtype=torch.float32)}
     background = cfg.background if cfg.background != "auto" else ("constant" if floor is not None else "none")
     if background != "none":
-        params["background"] = Parameter(torch.zeros(n_views, 3 if background == "plane" else 1))
+        # A floor that varies within the views starts on its frame's quadratic surface and
+        # learns a quadratic correction over the whole detector: a surface read from a frame
+        # the object reaches holds the object's tails (on the 20,000-atom a-Si the frame's
+        # upper 3-sigma tail held 4 times its lower), and held fixed it left a misfit that
+        # Gaussians in the vacuum took up until the width bound pruned them, so the set never
+        # settled (docs/performance.md).
+        terms = 3 if background == "plane" else 6 if surfaces is not None else 1
+        params["background"] = Parameter(torch.zeros(n_views, terms))
         params["background"].data[:, 0] = floor or 0.0
     if cfg.psf != "none":  # one kernel for every view: the microscope's
         # learned from psf_weights (zeros: the identity, no kernel until the data ask), or held there
