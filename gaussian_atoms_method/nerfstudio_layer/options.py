@@ -138,9 +138,10 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
     detector offset, a phase image's floor): a constant, a plane over the detector, or
     ``smooth``: each view's floor starting as its outer frame shows it (the frame's least-squares
     quadratic surface, :func:`gaussian_atoms_method.physics.noise.frame_surfaces`) with a learned
-    constant and quadratic correction (a frame the object reaches holds its tails).  ``auto``: when the projections' outer frame sits significantly off zero (more than
-    5 standard errors of its mean, :func:`gaussian_atoms_method.physics.noise.detector_floor`:
-    the peer's aSi-208 counts sit on 1.0 count), a constant if the frame is flat and ``smooth``
+    constant and quadratic correction (a frame the object reaches holds its tails).  ``auto``:
+    when the projections' outer frame sits significantly off zero (more than 5 standard errors
+    of its mean, :func:`gaussian_atoms_method.physics.noise.detector_floor`: the peer's aSi-208
+    counts sit on 1.0 count), a constant if the frame is flat and ``smooth``
     if it is flat about its quadratic surface (within 1.5 times the noise variance at its level
     either way); where atoms reach the frame, the same read from the frame pixels they leave
     alone (:func:`gaussian_atoms_method.physics.noise.clipped_frame`)."""
