@@ -394,3 +394,16 @@ def test_built_model_loads_checkpoints_with_numpy_scalars(tmp_path):
     path = tmp_path / "step.ckpt"
     torch.save({"lr": np.float64(1e-3), "dtype": np.dtype("float32")}, path)
     assert torch.load(path, weights_only=True)["lr"] == pytest.approx(1e-3)
+
+
+def test_a_smooth_floor_loads_a_checkpoint_saved_with_one_background_term(tmp_path):
+    """Runs saved before the smooth floor learned its quadratic correction hold one background
+    term a view; they load with the correction at zero (the fixed frame surface they had)."""
+    _series(tmp_path)
+    model, _ = _model(tmp_path, num_random=3, init="random", background="smooth")
+    assert model.view_params["background"].shape == (4, 6)
+    state = model.state_dict()
+    old = {**state, "view_params.background": torch.arange(4.0)[:, None]}
+    model.view_params["background"].data.fill_(7.0)
+    model.load_state_dict(old)
+    torch.testing.assert_close(model.view_params["background"].data, torch.cat([torch.arange(4.0)[:, None], torch.zeros(4, 5)], dim=1))
