@@ -6,6 +6,8 @@ nerfstudio's learning-rate schedulers leave in every checkpoint (so ``ns-viewer
 model before it loads a checkpoint (``Trainer.setup`` and ``eval_setup`` alike), so the model
 calls :func:`allow_numpy_scalars_in_checkpoints` when it is built: the allowance is made where
 checkpoints are loaded, not as a side effect of importing anything.
+
+Checkpoints of earlier versions load too: :func:`with_background_terms`.
 """
 
 from __future__ import annotations
@@ -26,3 +28,14 @@ def allow_numpy_scalars_in_checkpoints() -> None:
     add = getattr(torch.serialization, "add_safe_globals", None)
     if add is not None:
         add(numpy_checkpoint_globals())
+
+
+def with_background_terms(state_dict: dict, background: torch.Tensor | None) -> dict:
+    """``state_dict`` with a run's one background term a view widened to ``background``'s
+    (V, 6): a smooth floor saved before it learned its quadratic correction had only its
+    constant, and the correction it lacks is zero (its fixed frame surface)."""
+    key = "view_params.background"
+    old = state_dict.get(key)
+    if background is None or old is None or old.shape[1] != 1 or background.shape[1] == 1:
+        return state_dict
+    return {**state_dict, key: torch.cat([old, old.new_zeros(old.shape[0], background.shape[1] - 1)], dim=1)}

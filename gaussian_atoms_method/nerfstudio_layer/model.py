@@ -273,14 +273,6 @@ class GaussianAtomsModel(SplatfactoCompat):
         worth = self.density.atoms_worth(self.gauss_params) if self.convergence.checks(step) else None
         return self.convergence.update(step, self.means, self.normalisation.length_scale, lambda noise: self.position_std_A(self.atoms(), noise), worth)
 
-    def load_state_dict(self, state_dict, **kwargs):  # type: ignore[override]
-        # A run saved before the smooth floor learned its quadratic correction holds one
-        # background term a view: the correction it lacks is zero (its fixed frame surface).
-        key, own = "view_params.background", self.view_params["background"] if "background" in self.view_params else None
-        if own is not None and key in state_dict and state_dict[key].shape[1] == 1 < own.shape[1]:
-            state_dict = {**state_dict, key: torch.cat([state_dict[key], state_dict[key].new_zeros(own.shape[0], own.shape[1] - 1)], dim=1)}
-        return super().load_state_dict(state_dict, **kwargs)
-
     def write_results(self, run_dir: Path) -> dict | None:
         """atoms.xyz, atoms.csv, slices.png and evaluation.json (:func:`.results.write_results`)."""
         return write_results(self, Path(run_dir))
