@@ -87,7 +87,8 @@ def gaussian_atoms_trainer_config(max_iterations: int = MAX_ITERATIONS) -> Gauss
             "log_amplitudes": {"optimizer": AdamConfig(lr=2e-2, eps=1e-15), "scheduler": None},
             # Only with --pipeline.model.isotropic False (the ablation).
             "quats": {"optimizer": AdamConfig(lr=1e-3, eps=1e-15), "scheduler": None},
-            # Only with --pipeline.model.background constant|plane (projection units, normalised).
+            # With a background: solved in closed form (floors.py), not by this optimiser, whose
+            # group stays so that checkpoints with its state load.
             "background": {"optimizer": AdamConfig(lr=1e-1, eps=1e-15), "scheduler": None},
             # The point-spread function's weights (--pipeline.model.psf learned, physics/psf.py):
             # shared by every view, so they move every step; Adam's step is about the rate, so

@@ -6,7 +6,7 @@ extra Gaussians (more parameters) always fit the views they were fitted to at le
 Views they were not fitted to tell the two apart.  So until the kernel settles the atoms learn
 from the even views only and, every ``refine_every`` steps, the kernel is fitted to the odd
 views (the Gaussians held; :func:`gaussian_atoms_method.physics.psf.fit_kernel_weights` under
-the run's data term, least squares for L1; the views' backgrounds are learned on every view:
+the run's data term, least squares for L1; the views' backgrounds are fitted on every view:
 they are the views' own).  The reading grows as the atoms sharpen (Ta film area 23: no kernel
 at step 300, 14% of the intensity in the tails at 1,400, 31% at 2,400), so it is not judged
 settled early: at ``stop_split_at`` the kernel is held, and the atoms start again from the

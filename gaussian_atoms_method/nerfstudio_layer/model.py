@@ -36,6 +36,7 @@ from gaussian_atoms_method.density.strategy import DensityControl, amplitudes, w
 from gaussian_atoms_method.nerfstudio_layer import rendering as R
 from gaussian_atoms_method.nerfstudio_layer.checkpoints import allow_numpy_scalars_in_checkpoints
 from gaussian_atoms_method.nerfstudio_layer.convergence import ConvergenceCheck
+from gaussian_atoms_method.nerfstudio_layer.floors import FloorSolver
 from gaussian_atoms_method.nerfstudio_layer.kernel_reading import HeldOutKernel
 from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions
 from gaussian_atoms_method.nerfstudio_layer.noise_reading import judge_after_fit, measure_noise, read_field_of_view, read_noise
@@ -101,11 +102,11 @@ class GaussianAtomsModel(SplatfactoCompat):
             self.density.set_noise(self.noise_read, floor or 0.0, metadata["pixel_size_A"] * ls, self.view_c2w.shape[0], self.data_term, self.view_c2w[:, :3, 2])
         self.step, self.optimizers, self._optimizers_obj, self._held_out_step, self.kernel_reading = 0, {}, None, False, HeldOutKernel(self.view_c2w.shape[0], self.density.stop_split_at, cfg.psf == "held-out")
         self.crop_box, self.background_color, self.atoms_in_viewer = None, torch.zeros(3), AtomsInViewer(self._viewer_atoms)  # the atoms as points in the viewer
-        self.view_geometry, self.finite_watch = R.ViewGeometry(), R.FiniteWatch()  # read once per view; judged without waiting for the GPU
+        self.view_geometry, self.finite_watch, self.floors = R.ViewGeometry(), R.FiniteWatch(), FloorSolver()  # read once per view; judged without waiting for the GPU
 
     def _setup_view_params(self, metadata: dict, series, floor: float | None, surfaces=None) -> None:
-        """Per-view parameters and the views-per-step batches; a learned background starts at
-        ``floor``, on the (V, H, W) ``surfaces`` of a floor that varies within the views."""
+        """Per-view parameters and the views-per-step batches; a background (solved in closed form,
+        :mod:`.floors`) starts at ``floor``, on the (V, H, W) ``surfaces`` of a floor that varies within the views."""
         cfg, view_c2w = self.config, metadata.get("view_c2w")
         self.register_buffer("view_c2w", view_c2w.float() if view_c2w is not None else torch.zeros(0, 3, 4), persistent=False)
         view_params, buffers = R.view_parameters(cfg, self.view_c2w.shape[0], floor, surfaces, series, self.normalisation.length_scale)
@@ -146,7 +147,7 @@ class GaussianAtomsModel(SplatfactoCompat):
     # ------------------------------------------------------------------ rendering
     def get_outputs(self, camera: Cameras, background: bool = True) -> Dict[str, torch.Tensor]:
         """Project the Gaussians for one camera: ``rgb`` (H, W, 3) in [0, 1] for the viewer, ``projection``
-        (H, W, 1) in normalised data units (``background=False``: the view's learned background apart, in
+        (H, W, 1) in normalised data units (``background=False``: the view's background apart, in
         ``background``), ``depth``; with views_per_step > 1 the step's other views (``extra_projection``, ``extra_views``)."""
         if camera.shape[0] != 1:
             raise ValueError("GaussianAtomsModel renders one camera at a time")
@@ -154,7 +155,7 @@ class GaussianAtomsModel(SplatfactoCompat):
         c2w = camera.camera_to_worlds[0].to(dt)
         (rows_dir, cols_dir), t = R.detector_axes(c2w), c2w[:, 3]
         rows, cols, pitch, view = self.view_geometry.read(camera, c2w, self.training and self.step < self.config.coarse_steps, self.view_c2w, self.training, dev, dt)
-        self._held_out_step = self.training and self.kernel_reading.holds_out(view, self.step)  # psf held-out: it teaches the kernel, not the atoms
+        self._held_out_step, self.rendered_floors = self.training and self.kernel_reading.holds_out(view, self.step), None  # psf held-out: it teaches the kernel, not the atoms
         batching = self.training and self.views_per_step > 1 and not self._held_out_step
         means, sigmas, amps = [x.detach() if self._held_out_step else x for x in (self.means, self.sigmas, self.amplitudes)]
         if view is not None and "view_tilts" in self.view_params:
@@ -172,6 +173,7 @@ class GaussianAtomsModel(SplatfactoCompat):
             images = R.blur(self, R.projector_for(self.config.projector, dev)(means, sigmas, amps, axes, rows, cols), pitch)
             if "background" in self.view_params:
                 images = torch.stack([R.add_view_background(self, im, v, rows, cols) for im, v in zip(images, [view, *others.tolist()])])
+                self.rendered_floors = ([view, *others.tolist()], rows, cols)
             image, extra = images[0], {"extra_projection": images[1:, :, :, None], "extra_views": others}
         elif self.config.isotropic:
             image = R.blur(self, R.projector_for(self.config.projector, dev)(means - t, sigmas, amps, axes, rows, cols), pitch)[0]
@@ -179,10 +181,9 @@ class GaussianAtomsModel(SplatfactoCompat):
             cov = covariances_from_scales_quats(self._log_scales(), self.gauss_params["quats"])
             image = R.blur(self, project_anisotropic_gaussians(self.means - t, cov, self.amplitudes, axes, rows, cols), pitch)[0]
         if view is not None and "background" in self.view_params and not extra:
-            with_floor = R.add_view_background(self, image, view, rows, cols)
+            with_floor, self.rendered_floors = R.add_view_background(self, image, view, rows, cols), ([view], rows, cols)
             image, extra = (with_floor, extra) if background else (image, {"background": (with_floor - image)[..., None]})
-        projection = image[..., None]
-        h, w = image.shape
+        projection, (h, w) = image[..., None], image.shape
         # A line integral has no depth: the image goes behind the viewer's scene (atom points, frustums).
         depth = torch.full((1, 1, 1), 1e3, device=dev, dtype=dt).expand(h, w, 1)
         return {"rgb": (projection / DATA_RANGE).clamp(0.0, 1.0).expand(h, w, 3), "projection": projection, "depth": depth, **extra}
@@ -194,11 +195,11 @@ class GaussianAtomsModel(SplatfactoCompat):
         return R.binned_like(batch["image"].to(outputs["projection"]), outputs["projection"])
 
     def get_metrics_dict(self, outputs, batch) -> Dict[str, torch.Tensor]:
-        gt = self._measured(outputs, batch)
-        return {"l1": torch.abs(outputs["projection"] - gt).mean().detach(), "gaussian_count": torch.tensor(float(self.num_points))}
+        return {"l1": torch.abs(outputs["projection"] - self._measured(outputs, batch)).mean().detach(), "gaussian_count": torch.tensor(float(self.num_points))}
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
         pred, gt = R.with_other_views(outputs, self._measured(outputs, batch), self.train_projections)  # one loss over all the step's views
+        self.floors.accumulate(self, pred, gt)  # the rendered views' floors, in closed form
         noise = self.noise_read  # + 0 x means: differentiable even when every Gaussian was pruned (a held-out view: no gradient, HeldOutKernel.differentiable)
         loss = self.kernel_reading.differentiable(data_term(pred, gt, self.data_term, noise.gain if noise else 1.0, noise.read_var if noise else 0.0), self.means, self._held_out_step)
         self.finite_watch.check(loss, self.gauss_params, gt, self.step)
@@ -239,6 +240,7 @@ class GaussianAtomsModel(SplatfactoCompat):
         if "psf" in self.view_params:
             project_weights(self.view_params["psf"].data)  # a non-negative kernel (physics/psf.py)
             self.kernel_reading.read(self, step, self.density.warmup_length, self.config.refine_every)
+        self.floors.decide(self, step)  # every refine_every steps: one floor for all views, or one each
         if self.density.step_post_backward(self.gauss_params, self.optimizers, step, self._param_lists()):
             self.atoms_in_viewer.refresh()
 

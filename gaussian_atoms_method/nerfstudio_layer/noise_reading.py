@@ -17,7 +17,7 @@ from gaussian_atoms_method.physics.noise import NoiseModel, atom_scale_excess, c
 
 FLOOR_Z = 5.0
 """A frame level this many standard errors off zero is a real offset: a one-in-3.5-million
-false alarm for Gaussian noise, and a learned constant that starts at zero costs nothing when
+false alarm for Gaussian noise, and a fitted constant that starts at zero costs nothing when
 the alarm is false."""
 FLAT_FRAME_RATIO = 1.5
 """The frame counts as empty background when its pixels vary by at most this many times the
@@ -82,7 +82,7 @@ def read_noise(projections, loss: str, background: str, measured: NoiseModel | N
     said = f"{noise.kind} (read variance {noise.read_var:.3g}, gain {noise.gain:.3g} per count, normalised units)"
     shape = "a floor that varies smoothly within each view (its frame's quadratic surface) and a constant" if surfaces is not None else "a constant background"
     where = " (its pixels that no atom reaches)" if clipped else ""
-    bg = f"; frame level{where} {floor:.3g} ± {floor_se:.1g}: learning {shape} per view from it" if found and background == "auto" else ""
+    bg = f"; frame level{where} {floor:.3g} ± {floor_se:.1g}: fitting {shape} per view from it" if found and background == "auto" else ""
     CONSOLE.print(f"gaussian-atoms: noise read from the projections: {said}; data term {term}{bg}")
     return noise, term, (floor if found else None), surfaces
 

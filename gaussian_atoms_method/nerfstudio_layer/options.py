@@ -134,11 +134,13 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
     L1 beyond: additive noise, robust to the model's misfit); or force ``l1`` (the paper's),
     ``l2``, ``huber`` or ``poisson``.  Every run prints the noise it read and the term it chose."""
     background: Literal["auto", "none", "constant", "plane", "smooth"] = "auto"
-    """A per-projection background learned with the atoms (carbon support, contamination, a
+    """A per-projection background fitted with the atoms (carbon support, contamination, a
     detector offset, a phase image's floor): a constant, a plane over the detector, or
     ``smooth``: each view's floor starting as its outer frame shows it (the frame's least-squares
-    quadratic surface, :func:`gaussian_atoms_method.physics.noise.frame_surfaces`) with a learned
-    constant and quadratic correction (a frame the object reaches holds its tails).  ``auto``:
+    quadratic surface, :func:`gaussian_atoms_method.physics.noise.frame_surfaces`) with a
+    constant and quadratic correction (a frame the object reaches holds its tails).  Each is
+    solved in closed form on the pixels the Gaussians leave empty, each time its view is
+    rendered, and shared by all views while their fits agree (:mod:`.floors`).  ``auto``:
     when the projections' outer frame sits significantly off zero (more than 5 standard errors
     of its mean, :func:`gaussian_atoms_method.physics.noise.detector_floor`: the peer's aSi-208
     counts sit on 1.0 count), a constant if the frame is flat and ``smooth``

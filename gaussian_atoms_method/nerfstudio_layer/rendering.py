@@ -87,9 +87,22 @@ def add_background(image: torch.Tensor, coefficients: torch.Tensor, rows: torch.
     return image
 
 
+FLOOR_TERMS = ((0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2))
+"""The powers of the row and column coordinates each background coefficient multiplies, in
+:func:`add_background`'s order (test_floors checks the two agree)."""
+
+
+def floor_moments(weights: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor, max_power: int) -> torch.Tensor:
+    """(V, max_power + 1, max_power + 1): ``sum over pixels of weights * row^a * col^b`` of each
+    (V, H, W) ``weights`` image: two small matrix products, not one image per term."""
+    row_powers = torch.stack([rows**a for a in range(max_power + 1)])  # (A, H)
+    col_powers = torch.stack([cols**b for b in range(max_power + 1)])  # (B, W)
+    return row_powers @ weights @ col_powers.T
+
+
 def view_parameters(cfg, n_views: int, floor: float | None, surfaces, series, length_scale: float) -> tuple[dict, dict]:
-    """The model's per-view parameters (name -> Parameter) and the buffers they need: a learned
-    background starting at ``floor`` (on the (V, H, W) ``surfaces`` of a floor that varies within
+    """The model's per-view parameters (name -> Parameter) and the buffers they need: a
+    background (solved in closed form, :mod:`.floors`) starting at ``floor`` (on the (V, H, W) ``surfaces`` of a floor that varies within
     the views), the point-spread function's weights, shifts and tilt errors, as the options ask."""
     import numpy as np
     from torch.nn import Parameter
@@ -97,14 +110,12 @@ def view_parameters(cfg, n_views: int, floor: float | None, surfaces, series, le
     params, buffers = {}, {"background_surfaces": torch.as_tensor(surfaces if surfaces is not None else np.zeros((0, 1, 1)), dtype=torch.float32)}
     background = cfg.background if cfg.background != "auto" else ("constant" if floor is not None else "none")
     if background != "none":
-        # A floor that varies within the views starts on its frame's quadratic surface and
-        # learns a quadratic correction over the whole detector: a surface read from a frame
-        # the object reaches holds the object's tails (on the 20,000-atom a-Si the frame's
-        # upper 3-sigma tail held 4 times its lower), and held fixed its misfit went to
-        # Gaussians in the vacuum; learned, that run's false atoms fell from 0.0011 to 0.0004
-        # per atom (H100, docs/performance.md).
+        # A floor that varies within the views starts on its frame's quadratic surface and gets
+        # a quadratic correction over the whole detector: a surface read from a frame the object
+        # reaches holds the object's tails (on the 20,000-atom a-Si the frame's upper 3-sigma
+        # tail held 4 times its lower), and held fixed its misfit went to Gaussians in the vacuum.
         terms = 3 if background == "plane" else 6 if surfaces is not None else 1
-        params["background"] = Parameter(torch.zeros(n_views, terms))
+        params["background"] = Parameter(torch.zeros(n_views, terms), requires_grad=False)  # solved, not learned (.floors)
         params["background"].data[:, 0] = floor or 0.0
     if cfg.psf != "none":  # one kernel for every view: the microscope's
         # learned from psf_weights (zeros: the identity, no kernel until the data ask), or held there
@@ -130,7 +141,7 @@ def blur(model, images: torch.Tensor, spacing: float | None) -> torch.Tensor:
 
 
 def add_view_background(model, image: torch.Tensor, view: int, rows: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:
-    """``image`` plus the view's learned background and, for a floor that varies within the
+    """``image`` plus the view's background and, for a floor that varies within the
     views, its surface (binned like the image in the coarse phase)."""
     image = add_background(image, model.view_params["background"][view].to(image.dtype), rows, cols)
     if len(model.background_surfaces):
