@@ -42,3 +42,27 @@ def test_benchmark_accuracy_tiny(tmp_path):
     evaluation.write_text(evaluation.read_text().replace('"tpr"', '"tpr_marker": 1, "tpr"'))
     again = bench.run()  # finished runs are read back, not recomputed
     assert again[0]["tpr"] == rows[0]["tpr"] and "tpr_marker" in evaluation.read_text()
+
+
+def test_train_ours_removes_the_previous_run_of_its_fixed_name(tmp_path, monkeypatch):
+    """The harness's runs have a fixed name (``ours/gaussian-atoms/run``): a rerun into the same
+    directory starts from an empty one, so a previous run's snapshots (whose times
+    ``benchmark`` reads) are not mixed with its own."""
+    import subprocess
+
+    from gaussian_atoms_method.atoms.atom_set import write_atoms
+    from gaussian_atoms_method.harness import benchmark
+
+    run = tmp_path / "ours" / "gaussian-atoms" / "run"
+    (run / "snapshots").mkdir(parents=True)
+    (run / "snapshots" / "times.csv").write_text("50,1.0,10,0\n")
+
+    def fake_run(cmd, **kwargs):  # the training subprocess: writes only its atoms
+        assert not (run / "snapshots").exists()
+        run.mkdir(parents=True)
+        write_atoms(AtomSet(positions=np.zeros((1, 3)), sigmas=np.ones(1), amplitudes=np.ones(1)), run / "atoms.xyz")
+        return subprocess.CompletedProcess(cmd, 0, "", "")
+
+    monkeypatch.setattr(benchmark.subprocess, "run", fake_run)
+    atoms, _ = benchmark.train_ours(tmp_path / "data", tmp_path)
+    assert len(atoms) == 1 and not (run / "snapshots").exists()

@@ -11,6 +11,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -161,6 +162,8 @@ def train_ours(
 
     Returns the predicted :class:`~.atoms.AtomSet` (read from the run's ``atoms.xyz``) and the
     wall time in seconds, start-up included; the run's output is kept in ``run_dir/train.log``.
+    A previous run in ``run_dir`` (its fixed name) is removed first: its snapshots' times would
+    otherwise be read as this run's (a rerun of ``benchmark`` into the same output scored both).
     """
     from gaussian_atoms_method.atoms.atom_set import read_atoms
 
@@ -170,6 +173,7 @@ def train_ours(
         command = [str(Path(sys.executable).parent / "ns-train"), "gaussian-atoms"]
     else:
         raise ValueError(f"launcher must be 'gaussian-atoms' or 'ns-train', got {launcher!r}")
+    shutil.rmtree(run_dir / "ours" / "gaussian-atoms" / "run", ignore_errors=True)
     start = time.perf_counter()
     cmd = [
         *command, "--machine.device-type", device, "--vis", "tensorboard",
