@@ -8,8 +8,8 @@ from types import SimpleNamespace
 import numpy as np
 import torch
 
-from gaussian_atoms_method.nerfstudio_layer.floors import FloorSolver, agree
-from gaussian_atoms_method.nerfstudio_layer.rendering import FLOOR_TERMS, add_background, floor_moments
+from gaussian_atoms_method.nerfstudio_layer.floors import FloorSolver, agree, floor_moments
+from gaussian_atoms_method.nerfstudio_layer.rendering import FLOOR_TERMS, add_background
 from gaussian_atoms_method.physics.noise import NoiseModel
 
 

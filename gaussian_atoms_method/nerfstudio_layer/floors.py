@@ -27,7 +27,15 @@ import torch
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from gaussian_atoms_method.nerfstudio_layer.noise_reading import FLOOR_Z
-from gaussian_atoms_method.nerfstudio_layer.rendering import FLOOR_TERMS, binned_like, floor_moments
+from gaussian_atoms_method.nerfstudio_layer.rendering import FLOOR_TERMS, binned_like
+
+
+def floor_moments(weights: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor, max_power: int) -> torch.Tensor:
+    """(V, max_power + 1, max_power + 1): ``sum over pixels of weights * row^a * col^b`` of each
+    (V, H, W) ``weights`` image: two small matrix products, not one image per term."""
+    row_powers = torch.stack([rows**a for a in range(max_power + 1)])  # (A, H)
+    col_powers = torch.stack([cols**b for b in range(max_power + 1)])  # (B, W)
+    return row_powers @ weights @ col_powers.T
 
 
 def _solve(gram: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
@@ -80,7 +88,7 @@ class FloorSolver:
     (their sum), so one view's noise moves it by a share of the views', not all of it.  Every
     ``refine_every`` steps :meth:`decide` tests whether the views' fits agree.  The equations
     are the weights' and the weighted residual's moments in the detector coordinates
-    (:func:`.rendering.floor_moments`): 1-2 ms a step on this CPU at 271 x 271 pixels, on the
+    (:func:`floor_moments`): 1-2 ms a step on this CPU at 271 x 271 pixels, on the
     run's device without waiting for it."""
 
     def __init__(self) -> None:

@@ -92,14 +92,6 @@ FLOOR_TERMS = ((0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2))
 :func:`add_background`'s order (test_floors checks the two agree)."""
 
 
-def floor_moments(weights: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor, max_power: int) -> torch.Tensor:
-    """(V, max_power + 1, max_power + 1): ``sum over pixels of weights * row^a * col^b`` of each
-    (V, H, W) ``weights`` image: two small matrix products, not one image per term."""
-    row_powers = torch.stack([rows**a for a in range(max_power + 1)])  # (A, H)
-    col_powers = torch.stack([cols**b for b in range(max_power + 1)])  # (B, W)
-    return row_powers @ weights @ col_powers.T
-
-
 def view_parameters(cfg, n_views: int, floor: float | None, surfaces, series, length_scale: float) -> tuple[dict, dict]:
     """The model's per-view parameters (name -> Parameter) and the buffers they need: a
     background (solved in closed form, :mod:`.floors`) starting at ``floor`` (on the (V, H, W) ``surfaces`` of a floor that varies within
