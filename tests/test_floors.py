@@ -107,3 +107,16 @@ def test_the_floor_terms_are_add_backgrounds_and_their_moments_the_pixel_sums():
     for a in range(5):
         for b in range(5):
             torch.testing.assert_close(moments[:, a, b], (weights * rows[:, None] ** a * cols[None, :] ** b).sum(dim=(1, 2)), rtol=1e-12, atol=1e-15)
+
+
+def test_a_view_the_object_fills_keeps_its_floor():
+    """Where the Gaussians put more than OBJECT_FREE noise deviations on every pixel (a film
+    wider than the field of view) the view's floor is not identified apart from the object: it
+    keeps its value, finite."""
+    rows, cols = torch.linspace(-0.5, 0.5, 40, dtype=torch.float64), torch.linspace(-0.6, 0.6, 48, dtype=torch.float64)
+    model = _model(np.array([[2.5]]), 1.0)
+    model.floors = FloorSolver()
+    film = torch.full((1, 40, 48, 1), 30.0, dtype=torch.float64)
+    model.rendered_floors = ([0], rows, cols)
+    model.floors.accumulate(model, film + 2.5, film + 4.0)
+    assert model.view_params["background"].data[0, 0].item() == 2.5
