@@ -94,8 +94,9 @@ FLOOR_TERMS = ((0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2))
 
 def view_parameters(cfg, n_views: int, floor: float | None, surfaces, series, length_scale: float) -> tuple[dict, dict]:
     """The model's per-view parameters (name -> Parameter) and the buffers they need: a
-    background (solved in closed form, :mod:`.floors`) starting at ``floor`` (on the (V, H, W) ``surfaces`` of a floor that varies within
-    the views), the point-spread function's weights, shifts and tilt errors, as the options ask."""
+    background (solved in closed form, :mod:`.floors`) starting at ``floor`` (on the (V, H, W)
+    ``surfaces`` of a floor that varies within the views), the point-spread function's weights,
+    shifts and tilt errors, as the options ask."""
     import numpy as np
     from torch.nn import Parameter
 
