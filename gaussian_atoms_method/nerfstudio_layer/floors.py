@@ -27,7 +27,7 @@ import torch
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from gaussian_atoms_method.nerfstudio_layer.noise_reading import FLOOR_Z
-from gaussian_atoms_method.nerfstudio_layer.rendering import FLOOR_TERMS, binned_like
+from gaussian_atoms_method.nerfstudio_layer.rendering import FLOOR_TERMS, add_view_background
 
 
 def floor_moments(weights: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor, max_power: int) -> torch.Tensor:
@@ -113,12 +113,8 @@ class FloorSolver:
         index = torch.as_tensor(views, device=dev)
         current = coefficients.data.to(dev)[index].double()  # (V, K)
         powers = torch.tensor(FLOOR_TERMS[:k], device=dev)  # (K, 2)
-        terms = torch.zeros(len(views), 3, 3, dtype=predicted.dtype, device=dev)
-        terms[:, powers[:, 0], powers[:, 1]] = current.to(predicted.dtype)  # each view's floor as powers of rows and columns
-        row_powers, col_powers = torch.stack([rows**a for a in range(3)]), torch.stack([cols**b for b in range(3)])
-        floors = row_powers.T @ terms @ col_powers
-        if len(model.background_surfaces):
-            floors = floors + torch.stack([binned_like(model.background_surfaces[v][..., None], predicted[0][..., None])[..., 0] for v in views]).to(floors)
+        zero = torch.zeros(h, w, dtype=predicted.dtype, device=dev)
+        floors = torch.stack([add_view_background(model, zero, v, rows, cols) for v in views])  # as rendered
         weight = background_weights(model, predicted, floors)
         gram_moments = floor_moments(weight, rows, cols, 4).double()  # (V, 5, 5)
         rhs_moments = floor_moments(weight * (measured - predicted), rows, cols, 2).double()  # (V, 3, 3)
