@@ -80,3 +80,39 @@ def test_auto_views_per_step_on_a_gpu_stays_within_its_memory_share():
     free = torch.cuda.mem_get_info()[0] + torch.cuda.memory_reserved() - torch.cuda.memory_allocated()
     assert 1 <= views <= R.MAX_VIEWS_PER_STEP
     assert views * R.projector_bytes_per_view(project_gaussians, 3000, coords, coords) <= R.MEMORY_SHARE * free or views == 1
+
+
+@cuda
+def test_a_training_step_never_waits_for_the_gpu(tmp_path):
+    """A training step (batched views, a floor solved in closed form) queues its work without
+    waiting for the GPU: under ``torch.cuda.set_sync_debug_mode("error")`` any synchronising
+    call raises.  Each wait lets the GPU run dry while the host prepares the next kernels."""
+    from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
+    from dataparsers.tilt_series_format import write_tilt_series
+    from gaussian_atoms_method.atoms.atom_set import AtomSet
+    from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
+
+    rng = np.random.default_rng(0)
+    write_tilt_series(tmp_path, rng.uniform(0, 10, size=(5, 30, 36)).astype(np.float32), np.array([-50.0, -10.0, 0.0, 25.0, 60.0]), 0.3, truth=AtomSet(np.zeros((1, 3)), species=["Au"]))
+    outputs = TiltSeriesDataParserConfig(data=tmp_path).setup().get_dataparser_outputs("train")
+    model = GaussianAtomsModelConfig(num_random=50, views_per_step=3, background="constant", coarse_steps=0).setup(scene_box=outputs.scene_box, num_train_data=5, metadata=outputs.metadata).to("cuda")
+    model.train()
+    images = torch.as_tensor(outputs.metadata["projections"], device="cuda")
+    cameras = [outputs.cameras[v : v + 1].to("cuda") for v in range(5)]  # as the datamanager serves them
+    for v, camera in enumerate(cameras):
+        camera.metadata = {"cam_idx": v}
+
+    def step(v):
+        loss = model.get_loss_dict(model.get_outputs(cameras[v]), {"image": images[v][..., None]})["main_loss"]
+        loss.backward()
+
+    for v in range(5):  # each camera is read from the GPU once, then served from the model's cache
+        step(v)
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        for v in range(5):
+            step(v)
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    model.finite_watch.flush()

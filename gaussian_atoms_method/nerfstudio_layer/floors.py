@@ -27,7 +27,7 @@ import torch
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from gaussian_atoms_method.nerfstudio_layer.noise_reading import FLOOR_Z
-from gaussian_atoms_method.nerfstudio_layer.rendering import FLOOR_TERMS, add_view_background
+from gaussian_atoms_method.nerfstudio_layer.rendering import FLOOR_TERMS, add_view_background, index_on
 
 
 def floor_moments(weights: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor, max_power: int) -> torch.Tensor:
@@ -110,9 +110,9 @@ class FloorSolver:
         h, w = predicted.shape[-3:-1]
         predicted, measured = predicted.detach().reshape(-1, h, w), measured.to(predicted).reshape(-1, h, w)
         dev = predicted.device
-        index = torch.as_tensor(views, device=dev)
+        index = index_on(views, dev)
         current = coefficients.data.to(dev)[index].double()  # (V, K)
-        powers = torch.tensor(FLOOR_TERMS[:k], device=dev)  # (K, 2)
+        powers = index_on(FLOOR_TERMS[:k], dev)  # (K, 2)
         zero = torch.zeros(h, w, dtype=predicted.dtype, device=dev)
         floors = torch.stack([add_view_background(model, zero, v, rows, cols) for v in views])  # as rendered
         weight = background_weights(model, predicted, floors)
@@ -129,7 +129,7 @@ class FloorSolver:
         if self.shared:
             coefficients.data[:] = self._pooled().to(coefficients)
         else:  # a view with no background pixel keeps its floor
-            coefficients.data[index.to(coefficients.device)] = (current + _solve(gram, rhs)).to(coefficients)
+            coefficients.data[index_on(views, coefficients.device)] = (current + _solve(gram, rhs)).to(coefficients)
 
     def _seen(self) -> torch.Tensor:
         return self.gram.diagonal(dim1=1, dim2=2)[:, 0] > 0

@@ -169,7 +169,7 @@ class GaussianAtomsModel(SplatfactoCompat):
         extra = {}
         if batching and view is not None:  # cameras on their beam axes through the tilt centre: no offset
             others = self.kernel_reading.other_views(view, self.views_per_step, self.generator, self.step)
-            axes = torch.cat([axes, R.detector_axes(self.view_c2w[others].to(dev, dt))])
+            axes = torch.cat([axes, R.detector_axes(self.view_c2w[R.index_on(others, self.view_c2w.device)].to(dev, dt))])
             images = R.blur(self, R.projector_for(self.config.projector, dev)(means, sigmas, amps, axes, rows, cols), pitch)
             if "background" in self.view_params:
                 images = torch.stack([R.add_view_background(self, im, v, rows, cols) for im, v in zip(images, [view, *others.tolist()])])

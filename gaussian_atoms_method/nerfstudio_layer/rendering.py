@@ -316,6 +316,17 @@ def _probe_scene(n_gaussians: int, views: int, rows: torch.Tensor, cols: torch.T
     return means, sigmas, amplitudes, axes
 
 
+def index_on(index, device: torch.device) -> torch.Tensor:
+    """A host index (a list or a CPU tensor) as a tensor on ``device``, copied without waiting for
+    the device: through pinned memory, asynchronously.  A plain copy to the GPU (``torch.tensor``
+    of a list, or indexing a GPU tensor by a CPU one) waits for every queued kernel first; the
+    floors' solve did that twice a step (``torch.cuda.set_sync_debug_mode``)."""
+    index = torch.as_tensor(index, dtype=torch.long)
+    if torch.device(device).type != "cuda":
+        return index.to(device)
+    return index.pin_memory().to(device, non_blocking=True)
+
+
 def synchronise(device: torch.device) -> None:
     """Wait for the device's queued work (a no-op off CUDA)."""
     if device.type == "cuda":
@@ -330,7 +341,7 @@ def with_other_views(outputs: dict, measured: torch.Tensor, train_projections: t
     if "extra_projection" not in outputs:
         return pred, measured
     extra = outputs["extra_projection"]
-    extra_gt = torch.stack([binned_like(m[..., None], extra[0]) for m in train_projections[outputs["extra_views"]]]).to(extra)
+    extra_gt = torch.stack([binned_like(m[..., None], extra[0]) for m in train_projections[index_on(outputs["extra_views"], train_projections.device)]]).to(extra)
     return torch.cat([pred[None], extra]), torch.cat([measured[None], extra_gt])
 
 
