@@ -95,6 +95,7 @@ class FloorSolver:
         self.gram: torch.Tensor | None = None  # (V, K, K): each view's latest normal matrix
         self.target: torch.Tensor | None = None  # (V, K): gram @ (its floor's fit)
         self.shared = False
+        self._powers: dict = {}  # (terms, device) -> the terms' (K, 2) powers there
 
     @torch.no_grad()
     def accumulate(self, model, predicted: torch.Tensor, measured: torch.Tensor) -> None:
@@ -112,7 +113,9 @@ class FloorSolver:
         dev = predicted.device
         index = index_on(views, dev)
         current = coefficients.data.to(dev)[index].double()  # (V, K)
-        powers = index_on(FLOOR_TERMS[:k], dev)  # (K, 2)
+        powers = self._powers.get((k, dev))
+        if powers is None:  # (K, 2), made once per device
+            powers = self._powers[(k, dev)] = index_on(FLOOR_TERMS[:k], dev)
         zero = torch.zeros(h, w, dtype=predicted.dtype, device=dev)
         floors = torch.stack([add_view_background(model, zero, v, rows, cols) for v in views])  # as rendered
         weight = background_weights(model, predicted, floors)
@@ -129,7 +132,7 @@ class FloorSolver:
         if self.shared:
             coefficients.data[:] = self._pooled().to(coefficients)
         else:  # a view with no background pixel keeps its floor
-            coefficients.data[index_on(views, coefficients.device)] = (current + _solve(gram, rhs)).to(coefficients)
+            coefficients.data[index.to(coefficients.device)] = (current + _solve(gram, rhs)).to(coefficients)
 
     def _seen(self) -> torch.Tensor:
         return self.gram.diagonal(dim1=1, dim2=2)[:, 0] > 0
