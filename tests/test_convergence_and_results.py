@@ -90,7 +90,7 @@ def test_each_check_reports_positions_set_and_scatter_apart():
     check is not settled, but says positions_settled and churning.  Removals count by the atoms
     they hold: a fragment of a tenth of an atom removed is within a tolerance of 0.25 atoms,
     a whole atom is not.  Positions that only scatter about fixed places read scatter_only,
-    positions that travel do not."""
+    positions that travel do not, and each check's drift per interval says by how much."""
     x = torch.arange(6.0)[:, None] * torch.tensor([0.03, 0.0, 0.0])  # 3 Å apart, 1 Å = 0.01
     check = ConvergenceCheck(warmup_length=0, refine_every=1, changed_fraction=0.05, match_distance=0.007)
     for step, n in enumerate((6, 5, 4), start=1):
@@ -115,3 +115,8 @@ def test_each_check_reports_positions_set_and_scatter_apart():
         scatter.update(step, many + torch.as_tensor(rng.normal(0, 0.001, (400, 3))), 0.01, precision)  # 0.1 Å per axis about fixed places
         travel.update(step, many + step * 0.002 + torch.as_tensor(rng.normal(0, 0.001, (400, 3))), 0.01, precision)  # and 0.2 Å per axis a check
     assert scatter.scatter_only and not travel.scatter_only
+    # The drift per interval with the scatter taken out: 0.2 Å per axis a check is 0.35 Å in 3D;
+    # scatter alone reads near zero (its estimate's spread over 400 atoms: about 0.03 Å).
+    assert travel.drift_A == pytest.approx(0.2 * np.sqrt(3), rel=0.1) and scatter.drift_A < 0.06
+    assert travel.precision_A == pytest.approx(0.1 * np.sqrt(3)) and travel.step_A == pytest.approx(np.sqrt(3 * (0.2**2 + 2 * 0.1**2)), rel=0.1)
+    assert "drifting 0.3" in travel.summary() and "precision of 0.173 Å" in travel.summary()

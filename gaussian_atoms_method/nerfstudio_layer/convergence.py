@@ -60,6 +60,12 @@ class ConvergenceCheck:
     """The positions at the check before ``previous``, and ``link``: the (older, previous) index
     pairs matched then."""
     link: tuple[np.ndarray, np.ndarray] | None = None
+    step_A: float = math.nan
+    """The last check's RMS step of the matched positions, Å; ``precision_A`` their median
+    precision, Å; ``drift_A`` their drift per interval with the scatter taken out, Å
+    (:func:`drift_per_interval`, NaN before three checks): what :meth:`summary` reports."""
+    precision_A: float = math.nan
+    drift_A: float = math.nan
     noise_read_settled: bool = False
     """Whether ``noise`` was read at a check where the positions had settled.  The first
     check's reading (step 300) still holds the fit's misfit, which loosens the precision; when
@@ -114,12 +120,14 @@ class ConvergenceCheck:
             return precision_A, step_A < self.fraction * float(np.median(precision_A))
 
         read_here = self.noise is None  # the first reading is this check's
+        self.step_A, self.drift_A = step_A, math.nan
         precision_A, moved_less = judged(self.noise)
         if moved_less and not (read_here or self.noise_read_settled):  # settled under an early reading: read the noise again, once
             precision_A, moved_less = judged(None)
             self.noise_read_settled = True
         if precision_A is None:
             return False
+        self.precision_A = float(np.median(precision_A))
         self.noise_read_settled |= moved_less
         self.positions_settled = self.positions_settled + 1 if moved_less else 0
         if older is not None and link is not None:  # atoms matched over all three checks
@@ -129,10 +137,18 @@ class ConvergenceCheck:
             if chained.any():
                 a, b, c = (x.numpy() / length_scale for x in (older[older_of[before[chained]]], previous[before[chained]], positions[now[chained]]))
                 self.scatter_only = not drifting(a, b, c, precision_A[now[chained]])
+                self.drift_A = drift_per_interval(a, b, c)
         set_settled = self.changed <= self.tolerated
         self.churning = 0 if set_settled else self.churning + 1
         self.settled_checks = self.settled_checks + 1 if set_settled and self.positions_settled else 0
         return self.settled_checks >= 2
+
+    def summary(self) -> str:
+        """The last check's figures in words: the positions' step and drift against their
+        precision, and the set's change against the tolerated."""
+        drift = f", drifting {self.drift_A:.3f} Å" if math.isfinite(self.drift_A) else ""
+        return (f"the positions moved {self.step_A:.3f} Å RMS over the last interval{drift}, against a median precision of "
+                f"{self.precision_A:.3f} Å; the set changed by {self.changed:.0f} atoms' worth ({self.tolerated:.0f} tolerated)")
 
     def restart(self, positions: torch.Tensor, atoms: torch.Tensor | None = None) -> None:
         """Compare the next check with ``positions`` (the set was changed on purpose: its
@@ -151,6 +167,15 @@ def drifting(older_A: np.ndarray, previous_A: np.ndarray, now_A: np.ndarray, pre
     mean exceeds ``z`` standard errors (one-sided, 2.3% at z = 2)."""
     d = (((now_A - older_A) ** 2).sum(axis=1) - ((now_A - previous_A) ** 2).sum(axis=1)) / np.maximum(precision_A, 1e-12) ** 2
     return bool(d.mean() > z * d.std() / math.sqrt(max(len(d), 1)))
+
+
+def drift_per_interval(older_A: np.ndarray, previous_A: np.ndarray, now_A: np.ndarray) -> float:
+    """RMS drift per interval of three successive (N, 3) estimates of the positions, Å, with
+    their scatter taken out: a drift of v an interval makes the step over two intervals' square
+    exceed the step over one's by 3 |v|^2, and scatter adds the same to both (:func:`drifting`).
+    Zero when the difference's mean is not positive."""
+    d = ((now_A - older_A) ** 2).sum(axis=1) - ((now_A - previous_A) ** 2).sum(axis=1)
+    return math.sqrt(max(float(d.mean()), 0.0) / 3.0) if len(d) else math.nan
 
 
 def mutual_nearest(a: np.ndarray, b: np.ndarray, within: float = math.inf) -> tuple[np.ndarray, np.ndarray]:

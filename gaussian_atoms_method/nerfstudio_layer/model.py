@@ -288,7 +288,7 @@ class GaussianAtomsModel(SplatfactoCompat):
         if self.kernel_reading.first_pass:  # psf held-out: the reading ends once the kernel is held (.kernel_reading.restart_with_kernel_held)
             trainer.stop_training = self.kernel_reading.settled
         elif at_check(self, step, last_step):
-            CONSOLE.print(f"gaussian-atoms: converged at step {step}: stopping early")
+            CONSOLE.print(f"gaussian-atoms: converged at step {step}: stopping early ({self.convergence.summary()})")
             self.write_results(Path(trainer.base_dir))
             trainer.stop_training = True  # nerfstudio's loop ends before the next step
 
