@@ -82,10 +82,10 @@ def project_gaussians(
             f"sigmas and amplitudes must have shape ({n},), got {tuple(sigmas.shape)} and {tuple(amplitudes.shape)}"
         )
     u, v = _detector_coordinates(detector_axes, means)  # (V, N) each
-    inv_two_var = 0.5 / sigmas**2  # (N,)
+    rate = -0.5 / sigmas**2  # (N,), negative: the exponent's factor on the (N,) side, not negated per pixel
     peak = projected_peak(sigmas, amplitudes)  # (N,)
-    g_rows = torch.exp(-((row_coords[None, :, None] - u[:, None, :]) ** 2) * inv_two_var)  # (V, H, N)
-    g_cols = torch.exp(-((col_coords[None, None, :] - v[:, :, None]) ** 2) * inv_two_var[:, None])  # (V, N, W)
+    g_rows = torch.exp((row_coords[None, :, None] - u[:, None, :]).square() * rate)  # (V, H, N)
+    g_cols = torch.exp((col_coords[None, None, :] - v[:, :, None]).square() * rate[:, None])  # (V, N, W)
     return torch.bmm(g_rows * peak, g_cols)
 
 
@@ -256,7 +256,7 @@ def _separable_tiles(u, v, sigmas, amplitudes, used, index, rows_px, cols_px, gr
     n_views, n = u.shape
     dt = u.dtype
     per_view = lambda x: x[None, :].expand(n_views, n)
-    peak, spread = per_view(projected_peak(sigmas, amplitudes)), per_view(0.5 / sigmas**2)
+    peak, rate = per_view(projected_peak(sigmas, amplitudes)), per_view(-0.5 / sigmas**2)  # the exponent's (negative) factor
     # (T, tile) pixel coordinates: the given ones, extrapolated past the last tile's edge.
     row_all = _extend(row_coords.to(dt), grid[0] * tile, dr)[rows_px]
     col_all = _extend(col_coords.to(dt), grid[1] * tile, dc)[cols_px]
@@ -267,10 +267,13 @@ def _separable_tiles(u, v, sigmas, amplitudes, used, index, rows_px, cols_px, gr
     for group, k in zip(groups, fullest):
         part = index[group, : max(int(k), 1)]
         U, Vc = _pad_gather(u, part), _pad_gather(v, part)  # (T_g, K_g)
-        P, S = _pad_gather(peak, part), _pad_gather(spread, part, pad=1.0)
+        P, S = _pad_gather(peak, part), _pad_gather(rate, part, pad=-1.0)
         row_c, col_c = row_all[group], col_all[group]
-        g_rows = torch.exp(-((row_c[:, :, None] - U[:, None, :]) ** 2) * S[:, None, :]) * P[:, None, :]  # (T_g, tile, K_g)
-        g_cols = torch.exp(-((col_c[:, None, :] - Vc[:, :, None]) ** 2) * S[:, :, None])  # (T_g, K_g, tile)
+        # The sign sits in the (T_g, K_g) factor, not in a negation of each (T_g, tile, K_g)
+        # term: one pass over the largest tensors fewer, forward and backward (the same bits;
+        # 8% of the projector's forward and backward at the Au series' size on this CPU).
+        g_rows = torch.exp((row_c[:, :, None] - U[:, None, :]).square() * S[:, None, :]) * P[:, None, :]  # (T_g, tile, K_g)
+        g_cols = torch.exp((col_c[:, None, :] - Vc[:, :, None]).square() * S[:, :, None])  # (T_g, K_g, tile)
         blocks.append(torch.bmm(g_rows, g_cols))
     return _assemble(torch.cat(blocks), used[torch.cat(groups)], n_views, grid, tile, h, w)
 
