@@ -170,3 +170,16 @@ def test_auto_views_per_step_counts_the_projectors_memory_and_keeps_one_view_off
 def test_option_conflicts_are_named_before_anything_is_built(options, named):
     with pytest.raises(OptionError, match=named):
         GaussianAtomsOptions(**options).check()
+
+
+def test_index_on_a_device_keeps_values_and_order():
+    """A host index (list, tuple of pairs or CPU tensor) arrives as the same long tensor; a
+    tensor already off the host is moved, never pinned (the CUDA path, pinned and asynchronous,
+    is run by test_cuda.py's step without waits)."""
+    assert torch.equal(R.index_on([3, 0, 2], "cpu"), torch.tensor([3, 0, 2]))
+    assert torch.equal(R.index_on(R.FLOOR_TERMS[:3], torch.device("cpu")), torch.tensor([[0, 0], [1, 0], [0, 1]]))
+    got = R.index_on(torch.tensor([1, 1], dtype=torch.int32), "cpu")
+    assert got.dtype == torch.long and got.tolist() == [1, 1]
+    if torch.cuda.is_available():
+        on_gpu = torch.tensor([4, 5], device="cuda")
+        assert torch.equal(R.index_on(on_gpu, "cuda"), on_gpu) and R.index_on([4, 5], "cuda").tolist() == [4, 5]

@@ -322,7 +322,7 @@ def index_on(index, device: torch.device) -> torch.Tensor:
     of a list, or indexing a GPU tensor by a CPU one) waits for every queued kernel first; the
     floors' solve did that twice a step (``torch.cuda.set_sync_debug_mode``)."""
     index = torch.as_tensor(index, dtype=torch.long)
-    if torch.device(device).type != "cuda":
+    if torch.device(device).type != "cuda" or index.device.type != "cpu":  # nothing to pin: a plain move
         return index.to(device)
     return index.pin_memory().to(device, non_blocking=True)
 
