@@ -117,7 +117,8 @@ class ConvergenceCheck:
                 return None, False
             std, self.noise = result
             precision_A = np.sqrt((std**2).sum(axis=1))
-            return precision_A, step_A < self.fraction * float(np.median(precision_A))
+            self.precision_A = float(np.median(precision_A))
+            return precision_A, step_A < self.fraction * self.precision_A
 
         read_here = self.noise is None  # the first reading is this check's
         self.step_A, self.drift_A = step_A, math.nan
@@ -127,7 +128,6 @@ class ConvergenceCheck:
             self.noise_read_settled = True
         if precision_A is None:
             return False
-        self.precision_A = float(np.median(precision_A))
         self.noise_read_settled |= moved_less
         self.positions_settled = self.positions_settled + 1 if moved_less else 0
         if older is not None and link is not None:  # atoms matched over all three checks
@@ -165,8 +165,14 @@ def drifting(older_A: np.ndarray, previous_A: np.ndarray, now_A: np.ndarray, pre
     first's square over the second's.  So each atom's difference of the two squared steps, in
     units of its (N,) precision squared, has mean zero when nothing drifts: drifting when their
     mean exceeds ``z`` standard errors (one-sided, 2.3% at z = 2)."""
-    d = (((now_A - older_A) ** 2).sum(axis=1) - ((now_A - previous_A) ** 2).sum(axis=1)) / np.maximum(precision_A, 1e-12) ** 2
+    d = step_excess(older_A, previous_A, now_A) / np.maximum(precision_A, 1e-12) ** 2
     return bool(d.mean() > z * d.std() / math.sqrt(max(len(d), 1)))
+
+
+def step_excess(older_A: np.ndarray, previous_A: np.ndarray, now_A: np.ndarray) -> np.ndarray:
+    """(N,) each position's squared step over the last two intervals less its squared step over
+    the last one: 3 |v|^2 on average for a drift of v an interval, zero for scatter alone."""
+    return ((now_A - older_A) ** 2).sum(axis=1) - ((now_A - previous_A) ** 2).sum(axis=1)
 
 
 def drift_per_interval(older_A: np.ndarray, previous_A: np.ndarray, now_A: np.ndarray) -> float:
@@ -174,7 +180,7 @@ def drift_per_interval(older_A: np.ndarray, previous_A: np.ndarray, now_A: np.nd
     their scatter taken out: a drift of v an interval makes the step over two intervals' square
     exceed the step over one's by 3 |v|^2, and scatter adds the same to both (:func:`drifting`).
     Zero when the difference's mean is not positive."""
-    d = ((now_A - older_A) ** 2).sum(axis=1) - ((now_A - previous_A) ** 2).sum(axis=1)
+    d = step_excess(older_A, previous_A, now_A)
     return math.sqrt(max(float(d.mean()), 0.0) / 3.0) if len(d) else math.nan
 
 
