@@ -148,7 +148,7 @@ class GaussianAtomsModel(SplatfactoCompat):
     def get_outputs(self, camera: Cameras, background: bool = True) -> Dict[str, torch.Tensor]:
         """Project the Gaussians for one camera: ``rgb`` (H, W, 3) in [0, 1] for the viewer, ``projection``
         (H, W, 1) in normalised data units (``background=False``: the view's background apart, in
-        ``background``), ``depth``; with views_per_step > 1 the step's other views (``extra_projection``, ``extra_views``)."""
+        ``background``), ``depth``; with views_per_step > 1 the step's other views (``extra_projection``, ``extra_views``: on the model's device)."""
         if camera.shape[0] != 1:
             raise ValueError("GaussianAtomsModel renders one camera at a time")
         dev, dt = self.means.device, self.means.dtype
@@ -169,12 +169,12 @@ class GaussianAtomsModel(SplatfactoCompat):
         extra = {}
         if batching and view is not None:  # cameras on their beam axes through the tilt centre: no offset
             others = self.kernel_reading.other_views(view, self.views_per_step, self.generator, self.step)
-            axes = torch.cat([axes, R.detector_axes(self.view_c2w[R.index_on(others, self.view_c2w.device)].to(dev, dt))])
+            others_on, views = R.index_on(others, self.view_c2w.device), [view, *others.tolist()]  # copied to the device once a step
+            axes = torch.cat([axes, R.detector_axes(self.view_c2w[others_on].to(dev, dt))])
             images = R.blur(self, R.projector_for(self.config.projector, dev)(means, sigmas, amps, axes, rows, cols), pitch)
             if "background" in self.view_params:
-                images = torch.stack([R.add_view_background(self, im, v, rows, cols) for im, v in zip(images, [view, *others.tolist()])])
-                self.rendered_floors = ([view, *others.tolist()], rows, cols)
-            image, extra = images[0], {"extra_projection": images[1:, :, :, None], "extra_views": others}
+                images, self.rendered_floors = torch.stack([R.add_view_background(self, im, v, rows, cols) for im, v in zip(images, views)]), (views, rows, cols)
+            image, extra = images[0], {"extra_projection": images[1:, :, :, None], "extra_views": others_on}
         elif self.config.isotropic:
             image = R.blur(self, R.projector_for(self.config.projector, dev)(means - t, sigmas, amps, axes, rows, cols), pitch)[0]
         else:

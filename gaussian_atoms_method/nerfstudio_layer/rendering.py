@@ -335,8 +335,8 @@ def synchronise(device: torch.device) -> None:
 
 def with_other_views(outputs: dict, measured: torch.Tensor, train_projections: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The step's predicted and ``measured`` (H, W, 1) projections, with its other views'
-    (``extra_projection``, ``extra_views``; measured from ``train_projections``) stacked on a
-    leading axis when it has them."""
+    (``extra_projection``, ``extra_views``; measured from ``train_projections``, whose device the
+    model's index is already on) stacked on a leading axis when it has them."""
     pred = outputs["projection"]
     if "extra_projection" not in outputs:
         return pred, measured
