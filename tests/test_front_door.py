@@ -73,3 +73,21 @@ def test_training_failure_is_one_line_with_step_and_cause(monkeypatch, capsys):
         trainer.train()
     err = capsys.readouterr().err
     assert info.value.code == 1 and err.count("\n") == 1 and "step 17" in err and "non-finite means" in err
+
+
+def test_the_default_device_is_one_this_machine_has():
+    """Without --machine.device-type a run goes to the GPU where torch sees one, else the CPU
+    (nerfstudio's own default, CUDA, stopped a CPU-only machine with a traceback)."""
+    assert gaussian_atoms_trainer_config().machine.device_type == ("cuda" if torch.cuda.is_available() else "cpu")
+
+
+def test_a_device_this_machine_lacks_is_named_in_one_line(monkeypatch, tmp_path):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    config = gaussian_atoms_trainer_config()
+    config.pipeline.datamanager.data = ODD[next(iter(ODD))](tmp_path / "series")
+    config.machine.device_type = "cuda"
+    with pytest.raises(INPUT_ERRORS) as info:
+        check_input(config)
+    assert "--machine.device-type cuda" in str(info.value) and "\n" not in str(info.value)
+    config.machine.device_type = "cpu"
+    check_input(config)

@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from nerfstudio.configs.base_config import ViewerConfig
+from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
 from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanager, FullImageDatamanagerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
@@ -23,6 +23,12 @@ from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfi
 from gaussian_atoms_method.nerfstudio_layer.trainer import GaussianAtomsTrainerConfig
 
 MAX_ITERATIONS = 3000
+
+
+def available_device() -> str:
+    """The run's default device: the GPU where torch sees one, else the CPU (nerfstudio's own
+    default, CUDA, stops a CPU-only machine with a traceback at the model's first ``.to``)."""
+    return "cuda" if torch.cuda.is_available() else "cpu"
 
 
 @dataclass
@@ -68,6 +74,7 @@ def gaussian_atoms_trainer_config(max_iterations: int = MAX_ITERATIONS) -> Gauss
         steps_per_eval_all_images=100000,
         max_num_iterations=max_iterations,
         mixed_precision=False,
+        machine=MachineConfig(device_type=available_device()),
         pipeline=VanillaPipelineConfig(
             datamanager=FullImageDatamanagerConfig(
                 _target=TiltSeriesDatamanager,

@@ -37,6 +37,7 @@ def check_input(config: TrainerConfig) -> None:
     """Raise one of :data:`INPUT_ERRORS`, naming the file or option, for input that cannot
     train: the model options, the tilt series (read and validated as the dataparser will) and
     its truth file."""
+    check_device(config.machine.device_type)
     model = config.pipeline.model
     if isinstance(model, GaussianAtomsOptions):
         model.check()
@@ -47,6 +48,15 @@ def check_input(config: TrainerConfig) -> None:
         series = dataparser.load(data)
         if series.truth_path is not None:
             read_atoms(series.truth_path)
+
+
+def check_device(device_type: str) -> None:
+    """Raise :class:`OptionError` for a ``--machine.device-type`` this machine's torch cannot use."""
+    import torch
+
+    usable = {"cpu": True, "cuda": torch.cuda.is_available(), "mps": torch.backends.mps.is_available()}
+    if not usable.get(device_type, False):
+        raise OptionError(f"--machine.device-type {device_type}: torch sees no such device here; use --machine.device-type cpu (the default where no GPU is seen)")
 
 
 @dataclass
