@@ -324,7 +324,8 @@ def test_likelihood_change_matches_the_pixel_chi_square_and_tells_a_split_atom_f
     way the change equals the float64 pixel sum
     ``sum w [(r + p - s)^2 - r^2]`` to 1e-6 of the merge's energy (the energy is an integral;
     on pixels 2.4 times finer than the width the pixel sum of a Gaussian matches it to far
-    better than that)."""
+    better than that).  Mid-run (``settle`` without the residual, as the run's checks call it)
+    the pair stays two either way: the likelihood test waits for the end."""
     from gaussian_atoms_method.physics.projector import project_gaussians
 
     ls = 0.05  # normalised units per Å: the 16 Å field inside the volume
@@ -359,6 +360,7 @@ def test_likelihood_change_matches_the_pixel_chi_square_and_tells_a_split_atom_f
         from scipy.stats import chi2
 
         assert change > chi2.isf(control.false_alarm_rate / control.cells(), df=5)
+    assert control.settle(params, opts) == 0 and params["means"].shape[0] == 2
     # finalize with the residual: the split atom becomes one Gaussian with the whole mass at the
     # pair's centre; the two atoms stay two.
     total = float(_mass(params, control).sum())

@@ -247,8 +247,9 @@ class DensityControl:
     @torch.no_grad()
     def settle(self, params: Params, optimizers: Optimizers, param_lists=None, correlations=None) -> int:
         """The final rules of :meth:`finalize` (merges by likelihood and resolution, the final
-        prune, the distance merge) on the Gaussians as they stand; fresh ones keep their interval.
-        Called mid-run once the positions have settled but the set has not (:mod:`..nerfstudio_layer.stopping`).
+        prune, the distance merge) on the Gaussians as they stand; fresh ones keep their interval;
+        the merge by likelihood only with ``correlations``.  Called mid-run, without them, once
+        the positions have settled but the set has not (:func:`..nerfstudio_layer.stopping.settle_set`).
         Returns how many Gaussians went."""
         removed = 0
         if self.cluster_merge:
