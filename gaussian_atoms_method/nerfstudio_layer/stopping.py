@@ -56,7 +56,7 @@ def at_check(model, step: int, last_step: int) -> bool:
     if settled or not cfg.stop_when_converged or not check.checks(step):  # a run told to train on keeps its schedule and its set
         return settled and cfg.stop_when_converged
     if check.positions_settled >= 2 and check.churning >= 2 and not density.settled_since_search:
-        CONSOLE.print(f"gaussian-atoms: step {step}: the positions have settled but the set has not: the final merges and prune removed {settle_set(model)} Gaussians")
+        CONSOLE.print(f"gaussian-atoms: step {step}: the positions have settled but the set has not: the merge of unresolved pairs and the final prune removed {settle_set(model)} Gaussians (the merge by likelihood waits for the end)")
     elif check.scatter_only and not check.positions_settled and slow_positions(model):
         CONSOLE.print(f"gaussian-atoms: step {step}: the positions only scatter: their learning rate is halved")
     return False
