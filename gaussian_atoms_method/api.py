@@ -89,8 +89,10 @@ def _device(device: str) -> str:
 
     if device not in DEVICES:
         raise TiltSeriesError(f"device must be one of {DEVICES}, got {device!r}")
-    if device == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
+    if device == "auto":  # the same default as ns-train gaussian-atoms without --machine.device-type
+        from gaussian_atoms_method.nerfstudio_layer.config import available_device
+
+        return available_device()
     if device == "cuda" and not torch.cuda.is_available():
         raise TiltSeriesError("device 'cuda': torch sees no CUDA device here; use device='cpu' or 'auto'")
     return device
