@@ -16,7 +16,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Optional, Tuple, Type
 
-import numpy as np
 import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserConfig, DataparserOutputs
@@ -24,7 +23,7 @@ from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.plugins.registry_dataparser import DataParserSpecification
 
 from gaussian_atoms_method.physics.geometry import detector_axes_from_tilts
-from gaussian_atoms_method.physics.units import Normalisation
+from gaussian_atoms_method.physics.units import Normalisation, normalised_projections
 
 from .errors import TiltSeriesError
 from .tilt_series_format import TiltSeries, load_tilt_series
@@ -105,8 +104,8 @@ class TiltSeriesDataParser(DataParser):
             # As nerfstudio's own dataparsers do: say what is wrong and exit (ns-viewer, eval).
             print(f"gaussian-atoms: error: {exc}", file=sys.stderr)
             raise SystemExit(2) from None
-        norm = Normalisation.for_tilt_series(series.projections, series.pixel_size_A, series.origin_A)
-        projections = torch.from_numpy(series.projections * np.float32(norm.data_scale))
+        norm, scaled = normalised_projections(series)
+        projections = torch.from_numpy(scaled)
         cameras = cameras_from_tilt_series(series, norm)
         # Tomography has no held-out views: every split serves all projections.
         return DataparserOutputs(

@@ -477,6 +477,9 @@ def entrypoint(argv: list[str] | None = None) -> None:
 
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["train"]:
+        from gaussian_atoms_method.start_ahead import begin_for
+
+        begin_for(argv[1:])  # the start computed in a thread while nerfstudio loads
         from gaussian_atoms_method.nerfstudio_layer.train import run as train_run
         from gaussian_atoms_method.nerfstudio_layer.trainer import INPUT_ERRORS
 

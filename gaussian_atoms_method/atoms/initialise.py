@@ -85,6 +85,7 @@ noise: the fit drives their mass down and the prune removes them.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -96,8 +97,10 @@ from gaussian_atoms_method.atoms.deconvolution import matched_response, peak_sha
 from gaussian_atoms_method.atoms.peaks import random_field_threshold
 from gaussian_atoms_method.atoms.volume_filters import separated_maxima
 from gaussian_atoms_method.atoms.point_response import backprojected_atom, clean_peaks, point_response
-from gaussian_atoms_method.physics.noise import NoiseModel, noise_from_projections
+from gaussian_atoms_method.physics.field_of_view import FieldOfView, field_of_view
+from gaussian_atoms_method.physics.noise import NoiseModel, measure_noise, noise_from_projections
 from gaussian_atoms_method.physics.reconstruction import Volume, reconstruct
+from gaussian_atoms_method.physics.units import Normalisation
 
 
 BRIGHT_PIXELS_PERCENTILE = 99.0
@@ -346,3 +349,40 @@ def starting_amplitude(projections, pixel_size_A: float | None, length_scale: fl
     mass_each = max(mass, 1e-12) / max(n, 1)
     return mass_each / (2 * math.pi * sigma**2) ** 1.5
 
+
+EDGE_MARGIN_WIDTHS = 3.0
+"""Along the tilt axis a film goes on past the detector: the volume reaches this many of the
+widest atom's widths (``max_atom_sigma_A``) beyond it, where an atom still reaches the
+detector's edge (99.7% of a Gaussian lies within three widths)."""
+
+
+@dataclass
+class Start:
+    """What a run starts from: the measured noise of the normalised projections (None without
+    data), the field of view, and the (n, 3) starting positions (normalised units) with their
+    (n,) weights (None for a random start)."""
+
+    noise: NoiseModel | None
+    field: FieldOfView
+    means: torch.Tensor
+    weights: torch.Tensor | None
+
+
+def compute_start(
+    series, projections, normalisation: Normalisation, extended_object: str, max_atom_sigma_A: float, from_backprojection: bool = True,
+    count: int = 0, extent: float = 1.0, generator: torch.Generator | None = None,
+) -> Start:  # fmt: skip
+    """The start for a tilt series (``series``: :class:`~dataparsers.tilt_series_format.TiltSeries`,
+    or None) with (V, H, W) ``projections`` in normalised data units: the noise measured once
+    (the start and the data term share it), the field of view
+    (:func:`~gaussian_atoms_method.physics.field_of_view.field_of_view`, ``extended_object`` its
+    option) and the starting positions (:func:`~gaussian_atoms_method.atoms.initialise.starting_positions`:
+    back-projection candidates, or ``count`` random ones in a cube of side ``extent`` drawn
+    with ``generator``)."""
+    ls = normalisation.length_scale
+    noise = measure_noise(projections)
+    fov = field_of_view(series, projections, ls, extended_object, EDGE_MARGIN_WIDTHS * max_atom_sigma_A)
+    generator = generator if generator is not None else torch.Generator()
+    in_series_units = noise.scaled(1.0 / normalisation.data_scale) if noise is not None else None
+    means, weights = starting_positions(series, ls, count, extent, generator, from_backprojection, in_series_units, fov.slice_px)
+    return Start(noise, fov, means, weights)

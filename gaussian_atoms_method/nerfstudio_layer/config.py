@@ -6,7 +6,9 @@ decays tenfold over the run so that atoms settle to pm precision.
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
@@ -19,10 +21,16 @@ from nerfstudio.plugins.types import MethodSpecification
 from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
 from dataparsers.tilt_series_dataset import TiltSeriesDataset
 
+from gaussian_atoms_method.start_ahead import begin_for
 from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
 from gaussian_atoms_method.nerfstudio_layer.trainer import GaussianAtomsTrainerConfig
 
 MAX_ITERATIONS = 3000
+
+if Path(sys.argv[0]).name == "ns-train" and sys.argv[1:2] == ["gaussian-atoms"]:
+    # ns-train imports this module while it loads every method it knows, before it parses the
+    # command line: the start of the run it was asked for begins now, in a thread (start_ahead).
+    begin_for(sys.argv[2:])
 
 
 def available_device() -> str:

@@ -31,7 +31,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch.nn import Parameter
 
 from gaussian_atoms_method.atoms.atom_set import AtomSet
-from gaussian_atoms_method.atoms.initialise import starting_amplitude, starting_positions
+from gaussian_atoms_method.atoms.initialise import compute_start, starting_amplitude
 from gaussian_atoms_method.density.strategy import DensityControl, amplitudes, widths
 from gaussian_atoms_method.nerfstudio_layer import rendering as R
 from gaussian_atoms_method.nerfstudio_layer.checkpoints import allow_numpy_scalars_in_checkpoints
@@ -39,7 +39,7 @@ from gaussian_atoms_method.nerfstudio_layer.convergence import ConvergenceCheck
 from gaussian_atoms_method.nerfstudio_layer.floors import FloorSolver
 from gaussian_atoms_method.nerfstudio_layer.kernel_reading import HeldOutKernel
 from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions
-from gaussian_atoms_method.nerfstudio_layer.noise_reading import judge_after_fit, measure_noise, read_field_of_view, read_noise
+from gaussian_atoms_method.nerfstudio_layer.noise_reading import judge_after_fit, read_noise, say_start
 from gaussian_atoms_method.nerfstudio_layer.refit import refit
 from gaussian_atoms_method.nerfstudio_layer.residuals import residual_correlations
 from gaussian_atoms_method.nerfstudio_layer.results import model_position_std_A, write_results, write_snapshot
@@ -50,6 +50,7 @@ from gaussian_atoms_method.physics.data_terms import data_term
 from gaussian_atoms_method.physics.psf import project_weights
 from gaussian_atoms_method.physics.projector import covariances_from_scales_quats, project_anisotropic_gaussians
 from gaussian_atoms_method.physics.units import DATA_RANGE, Normalisation
+from gaussian_atoms_method.start_ahead import take as take_start
 
 
 @dataclass
@@ -76,14 +77,13 @@ class GaussianAtomsModel(SplatfactoCompat):
         ls, series = self.normalisation.length_scale, metadata.get("tilt_series")
         self.truth_path: Path | None = Path(metadata["truth_path"]) if metadata.get("truth_path") is not None else None
         self.generator = torch.Generator().manual_seed(cfg.seed)
-        measured = measure_noise(metadata.get("projections"))  # read once: the start (in the input's units) and the data term share it
-        # Along the tilt axis the film goes on past the detector: atoms within three of the widest atom's widths still reach its edge.
-        half_extent, self.field_half_extent, slice_px = read_field_of_view(series, metadata.get("projections"), ls, cfg.extended_object, 3.0 * cfg.max_atom_sigma_A)
-        means, weights = starting_positions(series, ls, cfg.num_random, cfg.init_extent, self.generator, cfg.init == "backprojection", measured and measured.scaled(1.0 / self.normalisation.data_scale), slice_px)
-        if weights is not None:
-            CONSOLE.print(f"gaussian-atoms: {len(means)} Gaussians start at back-projection maxima")
+        projections, start_options = metadata.get("projections"), (self.normalisation, cfg.extended_object, cfg.max_atom_sigma_A)
+        ahead = take_start(series, projections, *start_options) if cfg.init == "backprojection" else None  # begun while the launcher loaded
+        start = ahead or compute_start(series, projections, *start_options, cfg.init == "backprojection", cfg.num_random, cfg.init_extent, self.generator)
+        say_start(start, ls, cfg.extended_object, ahead is not None)
+        measured, means, weights, half_extent, self.field_half_extent = start.noise, start.means, start.weights, start.field.half_extent, start.field.field_half_extent
         n, sigma0 = means.shape[0], cfg.init_sigma_A * ls
-        amp0 = starting_amplitude(metadata.get("projections"), metadata.get("pixel_size_A"), ls if metadata.get("normalisation") else None, n, sigma0, DATA_RANGE)
+        amp0 = starting_amplitude(projections, metadata.get("pixel_size_A"), ls if metadata.get("normalisation") else None, n, sigma0, DATA_RANGE)
         log_amps = torch.full((n, 1), math.log(amp0))
         if weights is not None and cfg.init_mass == "backprojection":
             log_amps += torch.log(weights)[:, None]

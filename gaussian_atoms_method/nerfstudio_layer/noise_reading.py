@@ -11,9 +11,9 @@ from __future__ import annotations
 import numpy as np
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from gaussian_atoms_method.atoms.initialise import Start
 from gaussian_atoms_method.physics.data_terms import choose_data_term
-from gaussian_atoms_method.physics.field_of_view import film_evidence, slab_half_width
-from gaussian_atoms_method.physics.noise import NoiseModel, atom_scale_excess, clipped_frame, detector_floor, frame_mask, frame_surfaces, inflated, noise_from_projections
+from gaussian_atoms_method.physics.noise import NoiseModel, as_array, atom_scale_excess, clipped_frame, detector_floor, frame_mask, frame_surfaces, inflated, measure_noise
 
 FLOOR_Z = 5.0
 """A frame level this many standard errors off zero is a real offset: a one-in-3.5-million
@@ -24,19 +24,6 @@ FLAT_FRAME_RATIO = 1.5
 noise variance at its level: a variance estimate from the thousands of frame pixels is good to
 a few per cent, the pre-fit noise model to 10-20% (:func:`~gaussian_atoms_method.physics.noise.noise_from_projections`);
 atoms reaching the frame (a film, a crowded field) add far more."""
-
-
-def _as_array(projections) -> np.ndarray:
-    return np.asarray(projections.detach().cpu().double() if hasattr(projections, "detach") else projections, dtype=np.float64)
-
-
-def measure_noise(projections) -> NoiseModel | None:
-    """The noise of the (V, H, W) projections as measured (:func:`~gaussian_atoms_method.physics.noise.noise_from_projections`),
-    in their units; None without data or with images under 5 x 5 pixels.  Read once: the start
-    (:mod:`gaussian_atoms_method.atoms.initialise`) and :func:`read_noise` share it."""
-    if projections is None or min(projections.shape[-2:]) < 5:
-        return None
-    return noise_from_projections(_as_array(projections))
 
 
 def read_noise(projections, loss: str, background: str, measured: NoiseModel | None = None) -> tuple[NoiseModel | None, str, float | None, np.ndarray | None]:
@@ -57,7 +44,7 @@ def read_noise(projections, loss: str, background: str, measured: NoiseModel | N
     noise = measured if measured is not None else measure_noise(projections)
     if noise is None:
         return None, ("l1" if loss == "auto" else loss), None, None
-    data = _as_array(projections)
+    data = as_array(projections)
     term = choose_data_term(noise, float(np.percentile(data, 99.9))) if loss == "auto" else loss
     if term == "poisson" and noise.gain <= 0:
         # Forced on additive noise: the Poisson term needs a gain; one count per noise variance
@@ -99,34 +86,16 @@ def _floor_shape(noise: NoiseModel, floor: float, frame_var: float, smooth_var: 
     return frame_var <= limit, False
 
 
-def read_field_of_view(series, projections, length_scale: float, option: str, edge_margin_A: float = 0.0) -> tuple[tuple[float, float, float], tuple[float, float, float], int | None]:
-    """The volume the Gaussians fill and the field whose Gaussians are reported (half-sides,
-    normalised units) and the start's slice size across the tilt axis (None: the detector's).
-
-    Both are the cube the detector's longer side spans unless the object is wider than the field
-    of view (``option`` "on", or "auto" and :func:`~gaussian_atoms_method.physics.field_of_view.film_evidence`
-    says so): then the volume reaches across the tilt axis as far as the rays that reach the
-    detector travel through the cube's depth, and along it ``edge_margin_A`` beyond the detector
-    (the film goes on there too, and an atom just beyond the edge still puts part of itself on
-    the detector's last pixels in every view); the field is the detector."""
-    cube = (0.5, 0.5, 0.5)
-    if series is None or projections is None or option == "off":
-        return cube, cube, None
-    evidence = film_evidence(_as_array(projections), series.angles_deg)
-    if option == "auto" and not evidence.extended:
-        return cube, cube, None
-    across = 0 if series.tilt_axis == "y" else 1
-    n_across = series.projections.shape[1 + across]
-    detector_half = 0.5 * n_across * series.pixel_size_A * length_scale
-    reach = slab_half_width(detector_half, 0.5, series.angles_deg)
-    along_half = 0.5 * series.projections.shape[2 - across] * series.pixel_size_A * length_scale
-    half, field = list(cube), list(cube)
-    half[across], field[across] = max(reach, 0.5), detector_half
-    half[1 - across], field[1 - across] = along_half + edge_margin_A * length_scale, along_half
-    slice_px = 2 * int(np.ceil(reach / (series.pixel_size_A * length_scale))) + 1
-    why = f"the views' projected mass grows like 1/cos(tilt) ({evidence.z:.1f} standard errors, {evidence.outside_fraction:.0%} of the zero-tilt mass)" if option == "auto" else "extended-object on"
-    CONSOLE.print(f"gaussian-atoms: an object wider than the field of view: {why}; Gaussians fill {2 * reach / length_scale:.0f} Å across the tilt axis, those above the detector are reported as atoms")
-    return tuple(half), tuple(field), slice_px
+def say_start(start: Start, length_scale: float, option: str, ahead: bool = False) -> None:
+    """Say on one line each when the object is wider than the field of view (``start.field``,
+    ``option`` the extended-object option) and why, and where the Gaussians start (``ahead``:
+    found by :mod:`gaussian_atoms_method.start_ahead` while the launcher loaded)."""
+    field = start.field
+    if field.slice_px is not None:
+        why = f"the views' projected mass grows like 1/cos(tilt) ({field.evidence.z:.1f} standard errors, {field.evidence.outside_fraction:.0%} of the zero-tilt mass)" if option == "auto" else "extended-object on"
+        CONSOLE.print(f"gaussian-atoms: an object wider than the field of view: {why}; Gaussians fill {2 * field.reach / length_scale:.0f} Å across the tilt axis, those above the detector are reported as atoms")
+    if start.weights is not None:
+        CONSOLE.print(f"gaussian-atoms: {len(start.means)} Gaussians start at back-projection maxima" + (" (found while the launcher loaded)" if ahead else ""))
 
 
 def noise_after_fit(before: NoiseModel, measured: np.ndarray, predicted: np.ndarray, sigma_px: float) -> tuple[NoiseModel, float]:

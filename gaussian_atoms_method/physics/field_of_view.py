@@ -23,6 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from gaussian_atoms_method.physics.noise import as_array
+
 FILM_Z = 3.0
 """``b`` (the mass growing like 1/cos theta) counts when it is this many standard errors above
 zero: a one-in-700 false alarm for Gaussian scatter.  The four Ta film sub-areas read 5.5-24;
@@ -91,3 +93,45 @@ def slab_half_width(detector_half_width: float, half_thickness: float, angles_de
         return float(detector_half_width)
     reach = (detector_half_width + half_thickness * np.sin(theta)) / np.cos(theta)
     return float(max(reach.max(), detector_half_width))
+
+
+@dataclass(frozen=True)
+class FieldOfView:
+    """The volume the Gaussians fill and the field whose Gaussians are reported (half-sides,
+    normalised units), and the start's slice size across the tilt axis (None: the detector's)."""
+
+    half_extent: tuple[float, float, float]
+    field_half_extent: tuple[float, float, float]
+    slice_px: int | None = None
+    evidence: FilmEvidence | None = None
+    """The fit that decided it (None when not read: no data, or ``option`` "off")."""
+    reach: float = 0.5
+    """How far across the tilt axis the rays that reach the detector travel (normalised)."""
+
+
+def field_of_view(series, projections, length_scale: float, option: str, edge_margin_A: float = 0.0) -> FieldOfView:
+    """The volume and the reported field for a tilt series (``series``: angles, pixel size, tilt
+    axis and (V, H, W) projections' shape; ``projections`` the (V, H, W) data, array or tensor).
+
+    Both are the cube the detector's longer side spans unless the object is wider than the field
+    of view (``option`` "on", or "auto" and :func:`film_evidence` says so): then the volume
+    reaches across the tilt axis as far as the rays that reach the detector travel through the
+    cube's depth (:func:`slab_half_width`), and along it ``edge_margin_A`` beyond the detector
+    (the film goes on there too, and an atom just beyond the edge still puts part of itself on
+    the detector's last pixels in every view); the field is the detector."""
+    cube = (0.5, 0.5, 0.5)
+    if series is None or projections is None or option == "off":
+        return FieldOfView(cube, cube)
+    evidence = film_evidence(as_array(projections), series.angles_deg)
+    if option == "auto" and not evidence.extended:
+        return FieldOfView(cube, cube, evidence=evidence)
+    across = 0 if series.tilt_axis == "y" else 1
+    n_across = series.projections.shape[1 + across]
+    detector_half = 0.5 * n_across * series.pixel_size_A * length_scale
+    reach = slab_half_width(detector_half, 0.5, series.angles_deg)
+    along_half = 0.5 * series.projections.shape[2 - across] * series.pixel_size_A * length_scale
+    half, field = list(cube), list(cube)
+    half[across], field[across] = max(reach, 0.5), detector_half
+    half[1 - across], field[1 - across] = along_half + edge_margin_A * length_scale, along_half
+    slice_px = 2 * int(np.ceil(reach / (series.pixel_size_A * length_scale))) + 1
+    return FieldOfView(tuple(half), tuple(field), slice_px, evidence, reach)

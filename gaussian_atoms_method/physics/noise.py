@@ -225,6 +225,20 @@ it; for independent pixels of locally constant variance the filtered value has 3
 pixel variance (the sum of the squared weights)."""
 
 
+def as_array(projections) -> np.ndarray:
+    """(V, H, W) projections, a torch tensor (any device) or array-like, as a float64 array."""
+    return np.asarray(projections.detach().cpu().double() if hasattr(projections, "detach") else projections, dtype=np.float64)
+
+
+def measure_noise(projections) -> NoiseModel | None:
+    """The noise of the (V, H, W) projections as measured (:func:`noise_from_projections`), in
+    their units; None without data or with images under 5 x 5 pixels.  Read once: the start
+    (:mod:`gaussian_atoms_method.atoms.initialise`) and the data term share it."""
+    if projections is None or min(projections.shape[-2:]) < 5:
+        return None
+    return noise_from_projections(as_array(projections))
+
+
 def noise_from_projections(projections: np.ndarray, offset: float = 0.0, smoothing_px: float = 2.0, z_min: float = 3.0) -> NoiseModel:
     """The noise model read from the projections alone, before any fit.
 

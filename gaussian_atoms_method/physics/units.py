@@ -54,3 +54,10 @@ class Normalisation:
 
     def to_dict(self) -> dict:
         return {"length_scale": self.length_scale, "data_scale": self.data_scale, "origin_A": list(self.origin_A)}
+
+
+def normalised_projections(series) -> tuple[Normalisation, np.ndarray]:
+    """A tilt series' normalisation (:meth:`Normalisation.for_tilt_series`) and its (V, H, W)
+    projections in normalised data units (float32): what the dataparser hands the model."""
+    normalisation = Normalisation.for_tilt_series(series.projections, series.pixel_size_A, series.origin_A)
+    return normalisation, series.projections * np.float32(normalisation.data_scale)

@@ -1,0 +1,106 @@
+"""The start begun in a thread while the launcher loads: the model gets the same start as its own,
+only where the inputs are the same; the command line's scan; both launchers use it."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from dataparsers.tilt_series_format import load_tilt_series, write_tilt_series
+from gaussian_atoms_method import start_ahead
+from gaussian_atoms_method.atoms.initialise import compute_start
+from gaussian_atoms_method.harness.input_cases import valid_series
+from gaussian_atoms_method.harness.simulate import simulate_tilt_series, spherical_particle
+from gaussian_atoms_method.physics.units import normalised_projections
+
+BIN = Path(sys.executable).parent
+
+
+@pytest.fixture(scope="module")
+def series_dir(tmp_path_factory) -> Path:
+    """A 43-atom Au sphere, 15 tilts, the model's own physics: a start with candidates."""
+    truth = spherical_particle("Au", radius_A=5.0)
+    sim = simulate_tilt_series(truth, np.arange(-70.0, 71.0, 10.0), potential="gaussian", noise_std=20.0, seed=0)
+    return write_tilt_series(tmp_path_factory.mktemp("ahead") / "series", sim.projections, sim.angles_deg, sim.pixel_size_A, truth=truth)
+
+
+def _inputs(data: Path):
+    series = load_tilt_series(data)
+    normalisation, scaled = normalised_projections(series)
+    return series, torch.from_numpy(scaled), normalisation
+
+
+def test_the_start_begun_ahead_is_the_one_computed_in_line(series_dir):
+    series, projections, normalisation = _inputs(series_dir)
+    start_ahead.begin(series_dir)
+    ahead = start_ahead.take(series, projections, normalisation, "auto", 1.5)
+    in_line = compute_start(series, projections, normalisation, "auto", 1.5)
+    assert ahead is not None and len(in_line.means) > 0
+    # The same functions on the same data: the same bits, whichever thread ran them.
+    assert torch.equal(ahead.means, in_line.means) and torch.equal(ahead.weights, in_line.weights)
+    assert ahead.noise == in_line.noise and ahead.field == in_line.field
+    assert start_ahead.take(series, projections, normalisation, "auto", 1.5) is None  # handed out once
+
+
+@pytest.mark.parametrize("change", ["option", "width", "normalisation", "pixel size", "projections"])
+def test_a_start_for_other_inputs_is_not_taken(series_dir, change):
+    series, projections, normalisation = _inputs(series_dir)
+    option, width = "auto", 1.5
+    start_ahead.begin(series_dir)
+    if change == "option":
+        option = "on"
+    elif change == "width":
+        width = 1.2
+    elif change == "normalisation":
+        normalisation = type(normalisation)(normalisation.length_scale * 2, normalisation.data_scale)
+    elif change == "pixel size":
+        series.pixel_size_A *= 1.01
+    else:
+        projections = projections.clone()
+        projections[0, 0, 0] += 1.0
+    assert start_ahead.take(series, projections, normalisation, option, width) is None
+
+
+def test_a_start_for_another_file_is_not_waited_for(series_dir, tmp_path):
+    other = write_tilt_series(tmp_path / "other", np.load(series_dir / "projections.npy"), load_tilt_series(series_dir).angles_deg, 0.25)
+    series, projections, normalisation = _inputs(other)
+    start_ahead.begin(series_dir)
+    assert start_ahead.take(series, projections, normalisation, "auto", 1.5) is None
+
+
+def test_an_unreadable_series_leaves_the_run_to_report_it(tmp_path):
+    start_ahead.begin(tmp_path / "missing")
+    ahead = start_ahead._ahead
+    ahead.thread.join(timeout=60)
+    assert ahead.read.is_set() and ahead.series is None and ahead.start is None
+    series, projections, normalisation = _inputs(valid_series(tmp_path / "valid"))
+    assert start_ahead.take(series, projections, normalisation, "auto", 1.5) is None
+
+
+@pytest.mark.parametrize(
+    "argv, expected",
+    [
+        (["--vis", "tensorboard", "tilt-series", "--data", "d"], {"data": Path("d")}),
+        (["--data", "d", "--max-num-iterations", "2"], {"data": Path("d")}),
+        (["--pipeline.model.extended_object", "on", "--pipeline.model.max-atom-sigma-a=2", "tilt-series", "--data=d"], {"data": Path("d"), "extended_object": "on", "max_atom_sigma_A": 2.0}),
+        (["tilt-series", "--data", "d", "--pixel-size-A", "0.3"], None),  # the series read with options of its own
+        (["--help", "tilt-series", "--data", "d"], None),
+        (["--pipeline.model.init", "random", "tilt-series", "--data", "d"], None),
+        (["--load-config", "c.yml"], None),
+        (["tilt-series"], None),
+        (["--pipeline.model.max-atom-sigma-A", "wide", "--data", "d"], None),
+    ],
+)
+def test_the_command_line_names_the_start(argv, expected):
+    assert start_ahead.requested_start(argv) == expected
+
+
+@pytest.mark.parametrize("launcher", [["ns-train", "gaussian-atoms"], ["gaussian-atoms", "train"]])
+def test_both_launchers_start_ahead(launcher, series_dir, tmp_path):
+    cmd = [str(BIN / launcher[0]), *launcher[1:], "--max-num-iterations", "2", "--machine.device-type", "cpu", "--vis", "tensorboard", "--output-dir", str(tmp_path), "tilt-series", "--data", str(series_dir)]
+    run = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert "start at back-projection maxima (found while the launcher loaded)" in run.stdout
