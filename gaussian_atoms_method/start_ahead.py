@@ -6,7 +6,7 @@ A launcher spends seconds importing nerfstudio and parsing its command line (Pyt
 core, holding the interpreter's lock) before the model asks for its start.  The start needs only
 the tilt series, and on the CPU its work is in large NumPy, SciPy and torch operations that
 release that lock.  So :func:`begin` reads the tilt series a command line names (the reader's
-defaults) and computes its start in a daemon thread; the model asks :func:`take` with the
+defaults) and computes its start in a thread; the model asks :func:`take` with the
 series, the normalisation and the options it has, and gets the thread's start only where every
 input is the same; otherwise None, and it computes its own.  A run's result never depends on
 whether the thread ran.  No nerfstudio import: the thread must not wait for the imports it
@@ -56,8 +56,11 @@ _ahead: _Ahead | None = None
 
 def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float = DensityControl.max_atom_sigma_A) -> None:
     """Read the tilt series in ``data`` (a directory or manifest, the reader's defaults) and
-    compute its back-projection start in a daemon thread, for :func:`take`.  Errors are left
-    to the run, which reads the series again and reports them in its own way."""
+    compute its back-projection start in a thread, for :func:`take`.  Errors are left to the
+    run, which reads the series again and reports them in its own way.  Not a daemon: a process
+    that exits while a daemon thread is inside a torch operation aborts ("terminate called
+    without an active exception", seen on the H100), so a run that stops early (a bad option)
+    waits for the start to end."""
     global _ahead
     ahead = _Ahead(Path(data), extended_object, float(max_atom_sigma_A))
 
@@ -73,7 +76,7 @@ def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float = D
         except Exception:  # noqa: BLE001 - the run computes its own start and reports the error there
             ahead.start = None
 
-    ahead.thread = threading.Thread(target=work, name="gaussian-atoms start", daemon=True)
+    ahead.thread = threading.Thread(target=work, name="gaussian-atoms start", daemon=False)
     _ahead = ahead
     ahead.thread.start()
 

@@ -12,7 +12,7 @@ import torch
 from dataparsers.tilt_series_format import load_tilt_series, write_tilt_series
 from gaussian_atoms_method import start_ahead
 from gaussian_atoms_method.atoms.initialise import compute_start
-from gaussian_atoms_method.harness.input_cases import valid_series
+from gaussian_atoms_method.harness.input_cases import own_lines, valid_series
 from gaussian_atoms_method.harness.simulate import simulate_tilt_series, spherical_particle
 from gaussian_atoms_method.physics.units import normalised_projections
 
@@ -111,3 +111,11 @@ def test_both_launchers_start_ahead(launcher, series_dir, tmp_path):
     run = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stderr[-2000:]
     assert "start at back-projection maxima (found while the launcher loaded)" in run.stdout
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="on a GPU the start is not begun ahead")
+def test_a_run_stopped_by_a_bad_option_while_the_start_runs_ends_in_one_line(series_dir, tmp_path):
+    cmd = [str(BIN / "gaussian-atoms"), "train", "--pipeline.model.min-sigma-A", "-1", "--machine.device-type", "cpu", "--vis", "tensorboard", "--output-dir", str(tmp_path / "out"), "tilt-series", "--data", str(series_dir)]
+    run = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 2 and own_lines(run.stdout + run.stderr) == ["gaussian-atoms: error: --pipeline.model.min-sigma-A must be positive, got -1.0"]
+    assert "terminate called" not in run.stderr and not (tmp_path / "out").exists()
