@@ -12,12 +12,12 @@ input is the same; otherwise None, and it computes its own.  A run's result neve
 whether the thread ran.  No nerfstudio import: the thread must not wait for the imports it
 overlaps.
 
-Measured (Au noise 200, `gaussian-atoms train`, step 50's time after launch, runs alternated):
-this 2-core CPU 8.2-8.3 s against 9.1-9.9 s without it (the first pair 9.8 against 9.4).  Not on
-a GPU: there the start is many small operations, each of which waited for the lock in a thread
-(H100: 8.8 s against 8.7 s), and a process of its own pays CUDA's first-use costs the run pays
-again (9.3 s both); on this CPU such a process, importing torch beside the launcher on two cores,
-was no sooner either (9.8-10.9 s against 9.4-10.8 s).
+Measured (Au noise 200, `gaussian-atoms train`, step 50's time after launch, seven pairs of
+runs alternated on the 2-core CPU): 8.2-8.7 s against 9.1-10.4 s without it.  Not on a GPU: there
+the start is many small operations, each of which waited for the lock in a thread (H100: 8.8 s
+against 8.7 s).  A thread and not a process: one of its own imports torch again beside the
+launcher (this CPU: no sooner) and pays CUDA's first-use costs that the run pays again (H100:
+9.3 s both).
 """
 
 from __future__ import annotations
@@ -87,14 +87,13 @@ def take(series, projections, normalisation: Normalisation, extended_object: str
     otherwise, or when none was begun.  Waits for the thread when it read the same file; handed
     out once."""
     global _ahead
-    ahead = _ahead
+    ahead, _ahead = _ahead, None
     if ahead is None or series is None or projections is None:
         return None
     ahead.read.wait()
     if ahead.series is None or ahead.series.source is None or series.source is None or Path(series.source).resolve() != Path(ahead.series.source).resolve():
         return None  # another file: not waited for
     ahead.thread.join()
-    _ahead = None
     if ahead.start is None or not same_start_inputs(ahead, series, projections, normalisation, extended_object, max_atom_sigma_A):
         return None
     return ahead.start
@@ -125,10 +124,10 @@ NOT_AHEAD = {"-h", "--help", "--load-config", "--load-dir", "--load-checkpoint",
 
 def requested_start(argv: list[str]) -> dict | None:
     """:func:`begin`'s arguments for a training command line (``ns-train gaussian-atoms`` or
-    ``gaussian-atoms train`` options: ``--data DIR``, before or after ``tilt-series``), or None
-    where it names no tilt-series directory, or
-    where the series would be read with options of its own (any after ``tilt-series`` but
-    ``--data``) or the start would not be the back-projection's (:data:`NOT_AHEAD`)."""
+    ``gaussian-atoms train`` options: ``--data DIR``, before or after ``tilt-series``); None where
+    it names no tilt-series directory, where the series would be read with options of its own
+    (any after ``tilt-series`` but ``--data``), or where the start would not be the
+    back-projection's (:data:`NOT_AHEAD`)."""
     cut = argv.index("tilt-series") if "tilt-series" in argv else len(argv)
     found: dict = {}
     for tokens, known, others_allowed in ((argv[:cut], TRAIN_OPTIONS, True), (argv[cut + 1 :], {"--data": "data"}, False)):
