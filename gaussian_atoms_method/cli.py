@@ -477,16 +477,22 @@ def entrypoint(argv: list[str] | None = None) -> None:
 
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["train"]:
-        from gaussian_atoms_method.start_ahead import begin_for
+        from gaussian_atoms_method.start_ahead import begin_for, end_now
 
         begin_for(argv[1:])  # the start computed in a thread while nerfstudio loads
         from gaussian_atoms_method.nerfstudio_layer.train import run as train_run
         from gaussian_atoms_method.nerfstudio_layer.trainer import INPUT_ERRORS
 
         try:
-            return train_run(parse(argv))
+            config = parse(argv)
+        except SystemExit as exc:  # the command line's own errors (and --help), said by tyro
+            end_now(exc.code if isinstance(exc.code, int) else 2)
+            raise
+        try:
+            return train_run(config)
         except INPUT_ERRORS as exc:
             print(f"gaussian-atoms train: error: {exc}", file=sys.stderr)
+            end_now(2)
             raise SystemExit(2) from None
     command = parse(argv)
     try:

@@ -22,6 +22,8 @@ launcher (this CPU: no sooner) and pays CUDA's first-use costs that the run pays
 
 from __future__ import annotations
 
+import os
+import sys
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -59,8 +61,8 @@ def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float = D
     compute its back-projection start in a thread, for :func:`take`.  Errors are left to the
     run, which reads the series again and reports them in its own way.  Not a daemon: a process
     that exits while a daemon thread is inside a torch operation aborts ("terminate called
-    without an active exception", seen on the H100), so a run that stops early (a bad option)
-    waits for the start to end."""
+    without an active exception", seen on the H100); a run stopped by its input ends at once
+    through :func:`end_now`."""
     global _ahead
     ahead = _Ahead(Path(data), extended_object, float(max_atom_sigma_A))
 
@@ -97,6 +99,18 @@ def take(series, projections, normalisation: Normalisation, extended_object: str
     if ahead.start is None or not same_start_inputs(ahead, series, projections, normalisation, extended_object, max_atom_sigma_A):
         return None
     return ahead.start
+
+
+def end_now(status: int) -> None:
+    """End the process with ``status`` at once where a start begun ahead is still being
+    computed: a run stopped by its input (a bad option or file) before anything was written,
+    which would otherwise wait for the thread (a thread cannot be stopped); the console is
+    flushed first.  Returns where no start is running."""
+    ahead = _ahead
+    if ahead is not None and ahead.thread is not None and ahead.thread.is_alive():
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(status)
 
 
 def same_start_inputs(ahead: _Ahead, series, projections, normalisation: Normalisation, extended_object: str, max_atom_sigma_A: float) -> bool:

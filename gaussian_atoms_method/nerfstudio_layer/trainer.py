@@ -22,14 +22,17 @@ from dataparsers.errors import TiltSeriesError
 from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
 from gaussian_atoms_method.atoms.atom_set import AtomFileError, read_atoms
 from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions, OptionError
+from gaussian_atoms_method.start_ahead import end_now
 
 INPUT_ERRORS = (TiltSeriesError, AtomFileError, OptionError)
 """Errors in what the user gave: reported in one line, exit status 2."""
 
 
 def fail(message: str, status: int) -> None:
-    """Print ``message`` as one line on stderr and exit with ``status`` (no traceback)."""
+    """Print ``message`` as one line on stderr and exit with ``status`` (no traceback; at once
+    where a start begun ahead is still running, :func:`~gaussian_atoms_method.start_ahead.end_now`)."""
     print(" ".join(str(message).split()), file=sys.stderr)
+    end_now(status)
     raise SystemExit(status)
 
 
