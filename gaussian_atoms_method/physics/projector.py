@@ -268,14 +268,68 @@ def _separable_tiles(u, v, sigmas, amplitudes, used, index, rows_px, cols_px, gr
         part = index[group, : max(int(k), 1)]
         U, Vc = _pad_gather(u, part), _pad_gather(v, part)  # (T_g, K_g)
         P, S = _pad_gather(peak, part), _pad_gather(rate, part, pad=-1.0)
-        row_c, col_c = row_all[group], col_all[group]
-        # The sign sits in the (T_g, K_g) factor, not in a negation of each (T_g, tile, K_g)
-        # term: one pass over the largest tensors fewer, forward and backward (the same bits;
-        # 8% of the projector's forward and backward at the Au series' size on this CPU).
-        g_rows = torch.exp((row_c[:, :, None] - U[:, None, :]).square() * S[:, None, :]) * P[:, None, :]  # (T_g, tile, K_g)
-        g_cols = torch.exp((col_c[:, None, :] - Vc[:, :, None]).square() * S[:, :, None])  # (T_g, K_g, tile)
-        blocks.append(torch.bmm(g_rows, g_cols))
+        blocks.append(tile_blocks(U, Vc, P, S, row_all[group], col_all[group]))
     return _assemble(torch.cat(blocks), used[torch.cat(groups)], n_views, grid, tile, h, w)
+
+
+def tile_blocks_reference(U, Vc, P, S, row_c, col_c):
+    """The (T, tile, tile) images of the tiles' Gaussians: tile ``t`` holds Gaussians of row
+    and column centres ``U[t]``, ``Vc[t]`` (T, K), peaks ``P[t]`` and exponent factors ``S[t]``
+    (``-1 / (2 sigma^2)``) on the pixel coordinates ``row_c[t]``, ``col_c[t]`` (T, tile): one
+    separable product per tile, differentiated by autograd (the tests' reference for
+    :func:`tile_blocks`)."""
+    g_rows = torch.exp((row_c[:, :, None] - U[:, None, :]).square() * S[:, None, :]) * P[:, None, :]  # (T, tile, K)
+    g_cols = torch.exp((col_c[:, None, :] - Vc[:, :, None]).square() * S[:, :, None])  # (T, K, tile)
+    return torch.bmm(g_rows, g_cols)
+
+
+EXPONENT_FLOOR = -87.0
+"""The tiles' exponents are raised to this before the exponential: ``exp(-87)``, 1.6e-38, is
+float32's smallest normal number, and a term that small is nothing beside any peak.  A tile holds
+the Gaussians whose windows reach it, so most of its terms lie far below that (a window's far
+edge is 17 widths from an Au atom's centre, across a 32-pixel tile), and torch's CPU exponential
+takes 10 times as long on inputs that underflow (2.3 against 0.22 ms for 410,000 values)."""
+
+
+class _TileBlocks(torch.autograd.Function):
+    """:func:`tile_blocks_reference` with its backward written out: the gradients of the
+    exponents ``S d^2`` reduced over each tile's pixels in a few passes over the (T, tile, K)
+    products, where autograd keeps and walks a node for every elementwise step (the exponent's
+    difference, square, factor, exponential and the peak's product, on both axes)."""
+
+    @staticmethod
+    def forward(ctx, U, Vc, P, S, row_c, col_c):
+        e_rows = (row_c[:, :, None] - U[:, None, :]).square_().mul_(S[:, None, :]).clamp_(min=EXPONENT_FLOOR).exp_()  # (T, tile, K)
+        g_cols = (col_c[:, None, :] - Vc[:, :, None]).square_().mul_(S[:, :, None]).clamp_(min=EXPONENT_FLOOR).exp_()  # (T, K, tile)
+        ctx.save_for_backward(U, Vc, P, S, row_c, col_c, e_rows, g_cols)
+        return torch.bmm(e_rows * P[:, None, :], g_cols)
+
+    @staticmethod
+    def backward(ctx, grad):
+        U, Vc, P, S, row_c, col_c, e_rows, g_cols = ctx.saved_tensors
+        grad = grad.contiguous()
+        # d(blocks)/d(e_rows P) = grad @ g_cols^T; times e_rows: the gradient of the rows' exponent over P
+        rows = torch.bmm(grad, g_cols.transpose(1, 2)).mul_(e_rows)  # (T, tile, K)
+        # d(blocks)/d(g_cols) = (e_rows P)^T @ grad; times g_cols: the columns' exponent's over P
+        cols = torch.bmm(e_rows.transpose(1, 2), grad).mul_(g_cols)  # (T, K, tile)
+        grad_P = rows.sum(dim=1)  # (T, K)
+        d_rows = row_c[:, :, None] - U[:, None, :]
+        d_cols = col_c[:, None, :] - Vc[:, :, None]
+        rows.mul_(d_rows)
+        cols.mul_(d_cols)
+        first_rows, first_cols = rows.sum(dim=1), cols.sum(dim=2)  # sums of (gradient of the exponent / P) * d
+        second = rows.mul_(d_rows).sum(dim=1) + cols.mul_(d_cols).sum(dim=2)  # ... * d^2
+        grad_U = first_rows.mul_(-2.0 * S * P)  # the exponent S d^2 with d = pixel - centre
+        grad_V = first_cols.mul_(-2.0 * S * P)
+        return grad_U, grad_V, grad_P, second.mul_(P), None, None
+
+
+def tile_blocks(U, Vc, P, S, row_c, col_c):
+    """:func:`tile_blocks_reference`, with a hand-written backward (:class:`_TileBlocks`) and
+    the exponents floored (:data:`EXPONENT_FLOOR`): the tiled projector's forward and backward
+    of one view of the Au series' 6,679 atoms (0.67 Å, 271 x 271 pixels of 0.25 Å) on the 2-core
+    CPU, alternated in one process, 41-43 ms with the reference, 20-24 ms with this."""
+    return _TileBlocks.apply(U, Vc, P, S, row_c, col_c)
 
 
 @torch.no_grad()
