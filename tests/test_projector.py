@@ -189,6 +189,17 @@ def test_tile_blocks_backward_matches_autograd():
     assert torch.autograd.gradcheck(lambda *a: tile_blocks(*a, pixels, pixels), inputs)
 
 
+def test_tile_order_is_torchs_stable_order():
+    """The tiles' sort (numpy's radix sort of 16-bit indices on the CPU) lists the pairs in
+    torch's stable order, with many ties, and past 16 bits too (torch's own sort there)."""
+    from gaussian_atoms_method.physics.projector import tile_order
+
+    gen = torch.Generator().manual_seed(2)
+    for n_tiles in (81, 40_000):
+        tile_id = torch.randint(0, n_tiles, (5000,), generator=gen)
+        assert torch.equal(tile_order(tile_id, n_tiles), torch.argsort(tile_id, stable=True))
+
+
 def test_tiled_empty_and_invisible():
     """No Gaussians, or none reaching the detector, give an all-zero image of the right shape."""
     from gaussian_atoms_method.physics.projector import project_gaussians_tiled
