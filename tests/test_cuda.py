@@ -116,3 +116,21 @@ def test_a_training_step_never_waits_for_the_gpu(tmp_path):
     finally:
         torch.cuda.set_sync_debug_mode("default")
     model.finite_watch.flush()
+
+
+@cuda
+def test_clean_with_pairs_found_on_cuda_equals_the_hosts():
+    """CLEAN with its pairs found on the GPU accepts the same peaks with the same amounts (to
+    float64 rounding: the visit sums each peak's pairs in another order) as the host's."""
+    from gaussian_atoms_method.atoms.point_response import clean_peaks
+
+    rng = np.random.default_rng(3)
+    grid = np.indices((21, 21, 31)) - np.array([10, 10, 15])[:, None, None, None]
+    response = np.exp(-(grid[0] ** 2 + grid[1] ** 2) / 8 - grid[2] ** 2 / 60) - 0.1 * np.exp(-(grid**2).sum(axis=0) / 90)
+    peaks = np.unique(rng.integers(0, 80, (6000, 3)), axis=0)
+    peaks = peaks[rng.permutation(len(peaks))]
+    values = np.sort(rng.uniform(0.5, 10.0, len(peaks)))[::-1]
+    host, gpu = clean_peaks(peaks, values, response, np.array([10, 10, 15]), 2.0), clean_peaks(peaks, values, response, np.array([10, 10, 15]), 2.0, "cuda")
+    assert 0.2 * len(peaks) < len(host[0]) < len(peaks)
+    assert host[0].tolist() == gpu[0].tolist()
+    np.testing.assert_allclose(gpu[1], host[1], rtol=1e-12)

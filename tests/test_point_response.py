@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from gaussian_atoms_method.atoms.point_response import CLEAN_BLOCK, clean_peaks, clean_peaks_reference, point_response
+from gaussian_atoms_method.atoms.point_response import CLEAN_BLOCK, _response_pairs, clean_peaks, clean_peaks_reference, point_response, response_pairs_on_device
 
 
 def test_clean_drops_a_maximum_on_an_atoms_ridge_and_keeps_a_true_neighbour():
@@ -71,3 +71,23 @@ def test_clean_in_blocks_equals_clean_by_definition():
     for accepted, amounts in (clean_peaks(peaks, values, response, centre, 2.0), clean_peaks_reference(peaks, values, response, centre, 2.0)):
         assert accepted.tolist() == expected[0].tolist()
         np.testing.assert_allclose(amounts, expected[1], rtol=1e-12)
+
+
+def test_pairs_found_on_a_device_are_the_k_d_trees():
+    """The binned search (torch, run here on the CPU) lists exactly the k-d tree's pairs within
+    the response's reach, with the same weights: peaks packed so that most pairs lie within
+    reach, some beyond the box on its short side (the peak off the box's middle), in chunks
+    smaller than one peak's candidates and in one."""
+    rng = np.random.default_rng(7)
+    response = rng.uniform(-0.2, 1.0, (9, 11, 7))
+    centre = np.array([3, 6, 2])
+    peaks = np.unique(rng.integers(0, 30, (2000, 3)), axis=0)
+    peaks = peaks[rng.permutation(len(peaks))]
+    later, earlier, weights = _response_pairs(peaks, response, centre)
+    order = np.lexsort((earlier, later))
+    for chunk in (50, 1 << 26):
+        got = response_pairs_on_device(peaks, response, centre, "cpu", max_candidates=chunk)
+        assert len(later) > 10 * len(peaks)
+        np.testing.assert_array_equal(got[0], later[order])
+        np.testing.assert_array_equal(got[1], earlier[order])
+        np.testing.assert_array_equal(got[2], weights[order])

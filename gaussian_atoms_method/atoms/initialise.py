@@ -256,7 +256,7 @@ def backprojection_candidates(
     if max_count is None:
         if len(positions):  # one candidate per atom, not one per maximum of its ridge (step 3)
             response, centre = point_response(projections.shape, angles_deg, pixel_size_A, smoothing_A, tilt_axis, smoothing_A, tilt_axis_angle_deg, device)
-            positions = positions[clean_peaks(positions, volume_filters.values_at(data, positions), response, centre, level)[0]]
+            positions = positions[clean_peaks(positions, volume_filters.values_at(data, positions), response, centre, level, device)[0]]
     positions = positions[:max_count]
     if shoulders and smoothing_A > 0 and (max_count is None or len(positions) < max_count):
         if laplacian is None:

@@ -13,6 +13,7 @@ does not.  Used by the start (:mod:`.initialise`) and the search of the residual
 from __future__ import annotations
 
 import numpy as np
+import torch
 from scipy import ndimage, sparse
 from scipy.spatial import cKDTree
 
@@ -55,7 +56,7 @@ def peak_normalised(response: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return response / response[tuple(centre)], centre
 
 
-def clean_peaks(peaks: np.ndarray, values: np.ndarray, response: np.ndarray, centre: np.ndarray, level: float) -> tuple[np.ndarray, np.ndarray]:
+def clean_peaks(peaks: np.ndarray, values: np.ndarray, response: np.ndarray, centre: np.ndarray, level: float, device=None) -> tuple[np.ndarray, np.ndarray]:
     """Accept peaks strongest first, each judged on its value less the responses of those
     accepted before it.
 
@@ -66,6 +67,9 @@ def clean_peaks(peaks: np.ndarray, values: np.ndarray, response: np.ndarray, cen
     response : 3D array, one atom's response scaled to 1 at voxel ``centre`` (:func:`point_response`)
     centre : (3,) int array
     level : float, what a remaining value must exceed
+    device : torch device, optional
+        Off the CPU, the pairs within the response's box are found there
+        (:func:`response_pairs_on_device`); the visit stays on the host.  The same result.
 
     Returns
     -------
@@ -74,7 +78,8 @@ def clean_peaks(peaks: np.ndarray, values: np.ndarray, response: np.ndarray, cen
     """
     if len(peaks) == 0:
         return np.zeros(0, dtype=np.int64), np.zeros(0)
-    later, earlier, weights = _response_pairs(peaks, response, centre)
+    on_device = device is not None and torch.device(device).type != "cpu"
+    later, earlier, weights = response_pairs_on_device(peaks, response, centre, device) if on_device else _response_pairs(peaks, response, centre)
     # Row i of W holds the weights of the peaks visited before i.  In blocks of the visit order:
     # what the earlier blocks' accepted peaks take off is one sparse product (amounts of peaks
     # not yet visited are still 0), and only the pairs inside a block are visited one by one,
@@ -126,6 +131,57 @@ def _response_pairs(peaks: np.ndarray, response: np.ndarray, centre: np.ndarray)
         flat += offset * stride
         stride *= int(shape[axis])
     return later[inside], earlier[inside], np.take(response.ravel(), flat[inside])
+
+
+def response_pairs_on_device(peaks: np.ndarray, response: np.ndarray, centre: np.ndarray, device, max_candidates: int = 1 << 26):
+    """:func:`_response_pairs` found on ``device`` in torch, sorted by (later, earlier): the same
+    pairs and weights.  The voxels are binned in cubes of the response's reach plus one, so
+    two peaks within reach lie in the same or neighbouring cubes; each peak's candidates are
+    the peaks of the 27 cubes about its own (sorted by cube, found by binary search), at most
+    ``max_candidates`` of them at a time.  On the H100 machine the host's k-d tree search took
+    3.9 s of the 54,000-atom a-Pd's start (96,995 peaks, 15 million pairs)."""
+    shape = np.array(response.shape)
+    reach = int(np.max(np.maximum(centre, shape - 1 - centre)))
+    dev = torch.device(device)
+    points = torch.as_tensor(np.asarray(peaks, dtype=np.int64).reshape(-1, 3), device=dev)
+    n = len(points)
+    cube = (points - points.min(dim=0).values) // (reach + 1) + 1  # a margin of one cube on every side
+    sizes = cube.max(dim=0).values + 2
+    stride = torch.stack([sizes[1] * sizes[2], sizes[2], torch.ones_like(sizes[2])])
+    key = (cube * stride).sum(dim=1)
+    order = torch.argsort(key)
+    sorted_key = key[order]
+    moves = torch.as_tensor(np.array(list(np.ndindex(3, 3, 3))) - 1, device=dev)
+    neighbours = key[:, None] + (moves * stride).sum(dim=1)[None, :]  # (M, 27)
+    lo = torch.searchsorted(sorted_key, neighbours)
+    counts = (torch.searchsorted(sorted_key, neighbours, right=True) - lo).reshape(-1)
+    lo = lo.reshape(-1)
+    response_t = torch.as_tensor(response, device=dev).reshape(-1)
+    box, centre_t = torch.as_tensor(shape, device=dev), torch.as_tensor(np.asarray(centre), device=dev)
+    found = []
+    per_peak = counts.reshape(n, 27).sum(dim=1)
+    bounds = torch.cumsum(per_peak, 0)
+    start = 0
+    while start < n:  # peaks in chunks of at most max_candidates candidate pairs (at least one peak)
+        stop = max(int(torch.searchsorted(bounds, bounds[start] - per_peak[start] + max_candidates, right=True)), start + 1)
+        rows = slice(27 * start, 27 * min(stop, n))
+        c = counts[rows]
+        slot = torch.repeat_interleave(torch.arange(len(c), device=dev), c)
+        offset = torch.arange(int(c.sum()), device=dev) - (torch.cumsum(c, 0) - c)[slot]
+        first = order[lo[rows][slot] + offset]  # a candidate from a neighbouring cube
+        second = start + slot // 27  # the peak whose cube it neighbours
+        earlier, later = torch.minimum(first, second), torch.maximum(first, second)
+        keep = (first < second) & ((points[later] - points[earlier]).abs().max(dim=1).values <= reach)
+        earlier, later = earlier[keep], later[keep]
+        offset3 = points[later] - points[earlier] + centre_t
+        inside = ((offset3 >= 0) & (offset3 < box)).all(dim=1)
+        earlier, later, offset3 = earlier[inside], later[inside], offset3[inside]
+        flat = (offset3[:, 0] * box[1] + offset3[:, 1]) * box[2] + offset3[:, 2]
+        found.append((later, earlier, response_t[flat]))
+        start = stop
+    later, earlier, weights = (torch.cat(parts) for parts in zip(*found))
+    pair_order = torch.argsort(later * n + earlier)
+    return tuple(x[pair_order].cpu().numpy() for x in (later, earlier, weights))
 
 
 def clean_peaks_reference(peaks: np.ndarray, values: np.ndarray, response: np.ndarray, centre: np.ndarray, level: float) -> tuple[np.ndarray, np.ndarray]:

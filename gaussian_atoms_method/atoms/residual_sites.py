@@ -87,7 +87,7 @@ def unexplained_sites(
         return np.zeros((0, 3)), np.zeros(0)
     values = volume_filters.values_at(data, peaks)
     response, centre = point_response(residuals.shape, angles_deg, pixel_size_A, sigma_A, tilt_axis, smoothing_A, tilt_axis_angle_deg, device)
-    accepted, values = clean_peaks(peaks, values, response, centre, level)
+    accepted, values = clean_peaks(peaks, values, response, centre, level, device)
     positions_A = volume.index_to_A(peaks[accepted])
     if len(existing_A):
         distance, _ = cKDTree(np.asarray(existing_A, dtype=np.float64)).query(positions_A)
