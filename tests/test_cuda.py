@@ -134,3 +134,17 @@ def test_clean_with_pairs_found_on_cuda_equals_the_hosts():
     assert 0.2 * len(peaks) < len(host[0]) < len(peaks)
     assert host[0].tolist() == gpu[0].tolist()
     np.testing.assert_allclose(gpu[1], host[1], rtol=1e-12)
+
+
+@cuda
+def test_separated_maxima_on_cuda_equal_the_hosts():
+    """The maxima and their strongest-first suppression on the GPU keep the voxels the host's
+    search keeps, in the same order."""
+    from scipy import ndimage
+
+    from gaussian_atoms_method.atoms import peaks, volume_filters
+
+    field = ndimage.gaussian_filter(np.random.default_rng(6).standard_normal((60, 50, 70)), 1.2)
+    expected = peaks.separated_maxima(field, 0.25, 1.0, 0.01)
+    assert len(expected) > 100
+    np.testing.assert_array_equal(volume_filters.separated_maxima(torch.as_tensor(field, device="cuda"), 0.25, 1.0, 0.01), expected)

@@ -58,6 +58,21 @@ def test_pooled_maxima_equal_the_numpy_search():
     np.testing.assert_array_equal(volume_filters.separated_maxima(tensor, 0.25, 1.0, 0.02), peaks.separated_maxima(field, 0.25, 1.0, 0.02))
 
 
+def test_suppression_on_a_device_keeps_what_the_greedy_visit_keeps():
+    """The suppression in rounds (torch, run here on the CPU) keeps the points the host's
+    strongest-first visit keeps, in its order: points packed at a few voxels' spacing, values
+    with ties, at a dyadic and a non-dyadic spacing, a distance a whole number of voxels
+    (pairs exactly at it suppress) and one between."""
+    rng = np.random.default_rng(4)
+    points = np.unique(rng.integers(0, 40, (4000, 3)), axis=0)
+    values = np.round(rng.uniform(0, 5, len(points)), 1)  # many ties
+    for spacing_A, min_distance_A in ((0.25, 1.0), (0.25, 0.7), (0.32, 1.0)):
+        expected = peaks.suppress_within(points * spacing_A, np.argsort(-values, kind="stable"), min_distance_A)
+        got = volume_filters.suppress_within_on_device(torch.as_tensor(points), values, spacing_A, min_distance_A)
+        assert 20 < len(expected) < len(points) // 2
+        np.testing.assert_array_equal(got, expected)
+
+
 def _clean_reference(found, values, response, centre, level):
     """CLEAN as a plain loop: each peak less every accepted earlier peak's response there."""
     accepted, amounts = [], []

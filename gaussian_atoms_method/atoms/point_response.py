@@ -17,6 +17,7 @@ import torch
 from scipy import ndimage, sparse
 from scipy.spatial import cKDTree
 
+from gaussian_atoms_method.atoms.voxel_pairs import pairs_within
 from gaussian_atoms_method.physics.reconstruction import reconstruct
 
 
@@ -134,53 +135,25 @@ def _response_pairs(peaks: np.ndarray, response: np.ndarray, centre: np.ndarray)
 
 
 def response_pairs_on_device(peaks: np.ndarray, response: np.ndarray, centre: np.ndarray, device, max_candidates: int = 1 << 26):
-    """:func:`_response_pairs` found on ``device`` in torch, sorted by (later, earlier): the same
-    pairs and weights.  The voxels are binned in cubes of the response's reach plus one, so
-    two peaks within reach lie in the same or neighbouring cubes; each peak's candidates are
-    the peaks of the 27 cubes about its own (sorted by cube, found by binary search), at most
-    ``max_candidates`` of them at a time.  On the H100 machine the host's k-d tree search took
-    3.9 s of the 54,000-atom a-Pd's start (96,995 peaks, 15 million pairs)."""
+    """:func:`_response_pairs` found on ``device`` in torch (:func:`.voxel_pairs.pairs_within`),
+    sorted by (later, earlier): the same pairs and weights.  On the H100 machine the host's k-d
+    tree search took 3.9 s of the 54,000-atom a-Pd's start (96,995 peaks, 15 million pairs)."""
     shape = np.array(response.shape)
     reach = int(np.max(np.maximum(centre, shape - 1 - centre)))
     dev = torch.device(device)
     points = torch.as_tensor(np.asarray(peaks, dtype=np.int64).reshape(-1, 3), device=dev)
-    n = len(points)
-    cube = (points - points.min(dim=0).values) // (reach + 1) + 1  # a margin of one cube on every side
-    sizes = cube.max(dim=0).values + 2
-    stride = torch.stack([sizes[1] * sizes[2], sizes[2], torch.ones_like(sizes[2])])
-    key = (cube * stride).sum(dim=1)
-    order = torch.argsort(key)
-    sorted_key = key[order]
-    moves = torch.as_tensor(np.array(list(np.ndindex(3, 3, 3))) - 1, device=dev)
-    neighbours = key[:, None] + (moves * stride).sum(dim=1)[None, :]  # (M, 27)
-    lo = torch.searchsorted(sorted_key, neighbours)
-    counts = (torch.searchsorted(sorted_key, neighbours, right=True) - lo).reshape(-1)
-    lo = lo.reshape(-1)
     response_t = torch.as_tensor(response, device=dev).reshape(-1)
     box, centre_t = torch.as_tensor(shape, device=dev), torch.as_tensor(np.asarray(centre), device=dev)
     found = []
-    per_peak = counts.reshape(n, 27).sum(dim=1)
-    bounds = torch.cumsum(per_peak, 0)
-    start = 0
-    while start < n:  # peaks in chunks of at most max_candidates candidate pairs (at least one peak)
-        stop = max(int(torch.searchsorted(bounds, bounds[start] - per_peak[start] + max_candidates, right=True)), start + 1)
-        rows = slice(27 * start, 27 * min(stop, n))
-        c = counts[rows]
-        slot = torch.repeat_interleave(torch.arange(len(c), device=dev), c)
-        offset = torch.arange(int(c.sum()), device=dev) - (torch.cumsum(c, 0) - c)[slot]
-        first = order[lo[rows][slot] + offset]  # a candidate from a neighbouring cube
-        second = start + slot // 27  # the peak whose cube it neighbours
-        earlier, later = torch.minimum(first, second), torch.maximum(first, second)
-        keep = (first < second) & ((points[later] - points[earlier]).abs().max(dim=1).values <= reach)
-        earlier, later = earlier[keep], later[keep]
-        offset3 = points[later] - points[earlier] + centre_t
-        inside = ((offset3 >= 0) & (offset3 < box)).all(dim=1)
-        earlier, later, offset3 = earlier[inside], later[inside], offset3[inside]
-        flat = (offset3[:, 0] * box[1] + offset3[:, 1]) * box[2] + offset3[:, 2]
-        found.append((later, earlier, response_t[flat]))
-        start = stop
+    for earlier, later in pairs_within(points, reach, max_candidates):
+        offset = points[later] - points[earlier] + centre_t
+        inside = ((offset >= 0) & (offset < box)).all(dim=1)
+        earlier, later, offset = earlier[inside], later[inside], offset[inside]
+        found.append((later, earlier, response_t[(offset[:, 0] * box[1] + offset[:, 1]) * box[2] + offset[:, 2]]))
+    if not found:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0)
     later, earlier, weights = (torch.cat(parts) for parts in zip(*found))
-    pair_order = torch.argsort(later * n + earlier)
+    pair_order = torch.argsort(later * len(points) + earlier)
     return tuple(x[pair_order].cpu().numpy() for x in (later, earlier, weights))
 
 
