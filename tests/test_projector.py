@@ -180,13 +180,15 @@ def test_tile_blocks_backward_matches_autograd():
     S = (-0.5 / (torch.rand(n_tiles, k, generator=gen, dtype=torch.float64) * 3 + 0.3) ** 2).detach()
     P[:, -1], S[:, -1] = 0.0, -1.0  # a padded slot, as the tiled projector fills them
     P.requires_grad_(), S.requires_grad_()
-    inputs = (U, V, P, S)
+    rows, cols = (pixels + 0.3).requires_grad_(), (pixels - 0.2).requires_grad_()  # a view's shift moves the pixels
+    inputs = (U, V, P, S, rows, cols)
     weights = torch.randn(n_tiles, tile, tile, generator=gen, dtype=torch.float64)
-    fast, plain = tile_blocks(*inputs, pixels, pixels), tile_blocks_reference(*inputs, pixels, pixels)
+    fast, plain = tile_blocks(*inputs), tile_blocks_reference(*inputs)
     assert float((fast - plain).detach().abs().max()) <= k * math.exp(-87.0)
     for got, want in zip(torch.autograd.grad((fast * weights).sum(), inputs), torch.autograd.grad((plain * weights).sum(), inputs)):
         assert float((got - want).abs().max()) <= 1e-12 * max(float(want.abs().max()), 1.0)
-    assert torch.autograd.gradcheck(lambda *a: tile_blocks(*a, pixels, pixels), inputs)
+    assert torch.autograd.gradcheck(tile_blocks, inputs)
+    assert torch.autograd.gradcheck(lambda *a: tile_blocks(*a, pixels, pixels), inputs[:4])  # fixed pixels: no gradient asked for them
 
 
 def test_tile_order_is_torchs_stable_order():
