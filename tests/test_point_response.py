@@ -91,3 +91,5 @@ def test_pairs_found_on_a_device_are_the_k_d_trees():
         np.testing.assert_array_equal(got[0], later[order])
         np.testing.assert_array_equal(got[1], earlier[order])
         np.testing.assert_array_equal(got[2], weights[order])
+    for few in (peaks[:0], peaks[:1]):  # no pair to find
+        assert all(len(x) == 0 for x in response_pairs_on_device(few, response, centre, "cpu"))

@@ -71,6 +71,9 @@ def test_suppression_on_a_device_keeps_what_the_greedy_visit_keeps():
         got = volume_filters.suppress_within_on_device(torch.as_tensor(points), values, spacing_A, min_distance_A)
         assert 20 < len(expected) < len(points) // 2
         np.testing.assert_array_equal(got, expected)
+    one, none = torch.zeros((1, 3), dtype=torch.long), torch.zeros((0, 3), dtype=torch.long)
+    assert volume_filters.suppress_within_on_device(one, np.ones(1), 0.25, 1.0).tolist() == [0]
+    assert volume_filters.suppress_within_on_device(none, np.zeros(0), 0.25, 1.0).tolist() == []
 
 
 def _clean_reference(found, values, response, centre, level):
