@@ -123,8 +123,8 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
     projector: Literal["auto", "tiled", "dense", "gsplat"] = "auto"
     """Projection backend (all exact to float32; docs/performance.md): ``dense``, the full-image
     separable matmul (fastest on a GPU: 1.4-3 ms per 280x280 view for 1k-50k Gaussians on an
-    H100); ``tiled``, each Gaussian only on the tiles it reaches (about 4x faster than dense on
-    a CPU); ``gsplat``, tiled with stock gsplat's tile intersection (CUDA only; correct but
+    H100); ``tiled``, each Gaussian only on the tiles it reaches (about 6x faster than dense on
+    a CPU at 7k-17k Gaussians); ``gsplat``, tiled with stock gsplat's tile intersection (CUDA only; correct but
     slower than dense at these sizes).  ``auto``: dense on CUDA, tiled on CPU."""
     loss: Literal["auto", "l1", "l2", "huber", "poisson"] = "auto"
     """Data term (:mod:`gaussian_atoms_method.physics.data_terms`): ``auto`` reads the noise
