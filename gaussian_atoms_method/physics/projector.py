@@ -324,14 +324,15 @@ class _TileBlocks(torch.autograd.Function):
         # d(blocks)/d(g_cols) = (e_rows P)^T @ grad; times g_cols: the columns' exponent's over P
         cols = torch.bmm(e_rows.transpose(1, 2), grad).mul_(g_cols)  # (T, K, tile)
         grad_P = rows.sum(dim=1)  # (T, K)
-        rows.mul_(row_c[:, :, None] - U[:, None, :])  # times d = pixel - centre
-        cols.mul_(col_c[:, None, :] - Vc[:, :, None])
+        d_rows, d_cols = row_c[:, :, None] - U[:, None, :], col_c[:, None, :] - Vc[:, :, None]  # d = pixel - centre
+        rows.mul_(d_rows)
+        cols.mul_(d_cols)
         slope = 2.0 * S * P  # the exponent S d^2 changes by 2 S d per unit of d; P from "over P"
         # the pixels' coordinates (a view's shift moves them): + slope d, summed over the Gaussians
         grad_rows = (rows * slope[:, None, :]).sum(dim=2) if ctx.needs_input_grad[4] else None
         grad_cols = (cols * slope[:, :, None]).sum(dim=1) if ctx.needs_input_grad[5] else None
         first_rows, first_cols = rows.sum(dim=1), cols.sum(dim=2)
-        second = rows.mul_(row_c[:, :, None] - U[:, None, :]).sum(dim=1) + cols.mul_(col_c[:, None, :] - Vc[:, :, None]).sum(dim=2)  # ... d^2
+        second = rows.mul_(d_rows).sum(dim=1) + cols.mul_(d_cols).sum(dim=2)  # ... d^2
         return first_rows.mul_(-slope), first_cols.mul_(-slope), grad_P, second.mul_(P), grad_rows, grad_cols
 
 
