@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from gaussian_atoms_method.nerfstudio_layer.floors import FloorSolver, agree, floor_moments
-from gaussian_atoms_method.nerfstudio_layer.rendering import FLOOR_TERMS, add_background
+from gaussian_atoms_method.nerfstudio_layer.rendering import FLOOR_TERMS, add_background, coordinate_powers, floor_images
 from gaussian_atoms_method.physics.noise import NoiseModel
 
 
@@ -33,9 +33,10 @@ def _fit(model, measured, blob, rows, cols, per_step: int = 1) -> None:
     coefficients = model.view_params["background"]
     for start in range(0, len(measured), per_step):
         views = list(range(start, min(start + per_step, len(measured))))
-        predicted = torch.stack([add_background(blob, coefficients.data[v].double(), rows, cols) for v in views])[..., None]
-        model.rendered_floors = (views, rows, cols)
-        model.floors.accumulate(model, predicted, measured[views])
+        powers = coordinate_powers(rows, cols)
+        floors = floor_images(coefficients.data[views].double(), powers)
+        model.rendered_floors = (views, powers, floors)
+        model.floors.accumulate(model, (blob + floors)[..., None], measured[views])
     model.floors.decide(model, 10)
 
 
@@ -103,7 +104,7 @@ def test_the_floor_terms_are_add_backgrounds_and_their_moments_the_pixel_sums():
         unit[k] = 1.0
         torch.testing.assert_close(add_background(torch.zeros(7, 9, dtype=torch.float64), unit, rows, cols), rows[:, None] ** a * cols[None, :] ** b, rtol=0, atol=1e-15)
     weights = torch.as_tensor(np.random.default_rng(2).uniform(0, 1, (2, 7, 9)))
-    moments = floor_moments(weights, rows, cols, 4)
+    moments = floor_moments(weights, *coordinate_powers(rows, cols))
     for a in range(5):
         for b in range(5):
             torch.testing.assert_close(moments[:, a, b], (weights * rows[:, None] ** a * cols[None, :] ** b).sum(dim=(1, 2)), rtol=1e-12, atol=1e-15)
@@ -117,6 +118,6 @@ def test_a_view_the_object_fills_keeps_its_floor():
     model = _model(np.array([[2.5]]), 1.0)
     model.floors = FloorSolver()
     film = torch.full((1, 40, 48, 1), 30.0, dtype=torch.float64)
-    model.rendered_floors = ([0], rows, cols)
+    model.rendered_floors = ([0], coordinate_powers(rows, cols), torch.full((1, 40, 48), 2.5, dtype=torch.float64))
     model.floors.accumulate(model, film + 2.5, film + 4.0)
     assert model.view_params["background"].data[0, 0].item() == 2.5

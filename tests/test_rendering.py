@@ -67,6 +67,35 @@ def test_background_constant_and_plane():
     np.testing.assert_allclose(quadratic.numpy(), 2.0 + 0.5 * r - c + 0.3 * r**2 - 0.2 * r * c + 0.7 * c**2, rtol=1e-15, atol=1e-15)
 
 
+def test_floor_images_are_every_views_terms_summed_and_view_floors_add_the_binned_surfaces():
+    """floor_images, a step's views in two matrix products, equals each view's terms
+    coefficient x row^a x col^b summed one by one (float64); view_floors adds each view's frame
+    surface, binned 2 x 2 like the image in the coarse phase, and indexes one view or several."""
+    from types import SimpleNamespace
+
+    rows, cols = torch.linspace(-0.7, 0.4, 9, dtype=torch.float64), torch.linspace(-0.3, 0.9, 12, dtype=torch.float64)
+    coefficients = torch.randn(4, 6, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    for k in (1, 3, 6):
+        expected = torch.stack([sum(c[i] * rows[:, None] ** a * cols[None, :] ** b for i, (a, b) in enumerate(R.FLOOR_TERMS[:k])) for c in coefficients[:, :k]])
+        torch.testing.assert_close(R.floor_images(coefficients[:, :k], R.coordinate_powers(rows, cols)), expected, rtol=0, atol=1e-13)
+    surfaces = torch.rand(4, 18, 24, generator=torch.Generator().manual_seed(4), dtype=torch.float64)
+    model = SimpleNamespace(view_params={"background": coefficients}, background_surfaces=surfaces, view_geometry=R.ViewGeometry())
+    coarse = R.coordinate_powers(rows, cols)  # a 9 x 12 detector: the 18 x 24 surfaces binned
+    floors = R.view_floors(model, [2, 0], coarse, torch.float64)
+    for floor, v in zip(floors, (2, 0)):
+        torch.testing.assert_close(floor, R.floor_images(coefficients[v : v + 1], coarse)[0] + surfaces[v].reshape(9, 2, 12, 2).mean(dim=(1, 3)), rtol=0, atol=1e-13)
+    torch.testing.assert_close(R.view_floors(model, [1], coarse, torch.float64)[0], R.view_floors(model, [1, 3], coarse, torch.float64)[0], rtol=0, atol=1e-13)
+    assert model.view_geometry.surfaces(surfaces, 9, 12) is model.view_geometry.surfaces(surfaces, 9, 12)  # binned once per size
+
+
+def test_binned_views_bins_each_view_as_binned_like_does():
+    views = torch.rand(3, 271, 273, generator=torch.Generator().manual_seed(2)) * 256
+    binned = R.binned_views(views, 135, 136)
+    for view, b in zip(views, binned):
+        assert torch.equal(b, R.binned_like(view[..., None], torch.zeros(135, 136, 1))[..., 0])
+    assert R.binned_views(views, 271, 273) is views
+
+
 def test_a_floor_varying_within_the_views_learns_a_quadratic_correction_from_its_frame_surface():
     """With the frame's surfaces (a smooth floor) the background has six terms per view, the
     constant at the floor and the correction at zero (the fit starts on the frame's surface);
@@ -103,6 +132,11 @@ def test_view_geometry_reads_a_training_camera_once():
     viewer = _camera(poses[1] + 0.01)
     assert geometry.read(viewer, poses[1] + 0.01, False, poses, True, "cpu", torch.float64)[3] is None
     assert geometry.read(camera, poses[2], False, poses, False, "cpu", torch.float64) is not first
+    # the floors' coordinate powers: kept for the coordinates read kept, made each time for others
+    powers = geometry.powers(first[0], first[1])
+    assert geometry.powers(first[0], first[1]) is powers and all(torch.equal(p, q) for p, q in zip(powers, R.coordinate_powers(rows, cols)))
+    shifted = first[0] - 0.1
+    assert geometry.powers(shifted, first[1]) is not geometry.powers(shifted, first[1])
 
 
 def test_finite_watch_names_the_first_bad_step_and_its_cause():

@@ -27,14 +27,13 @@ import torch
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from gaussian_atoms_method.nerfstudio_layer.noise_reading import FLOOR_Z
-from gaussian_atoms_method.nerfstudio_layer.rendering import FLOOR_TERMS, add_view_background, index_on
+from gaussian_atoms_method.nerfstudio_layer.rendering import FLOOR_TERMS, index_on
 
 
-def floor_moments(weights: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor, max_power: int) -> torch.Tensor:
-    """(V, max_power + 1, max_power + 1): ``sum over pixels of weights * row^a * col^b`` of each
-    (V, H, W) ``weights`` image: two small matrix products, not one image per term."""
-    row_powers = torch.stack([rows**a for a in range(max_power + 1)])  # (A, H)
-    col_powers = torch.stack([cols**b for b in range(max_power + 1)])  # (B, W)
+def floor_moments(weights: torch.Tensor, row_powers: torch.Tensor, col_powers: torch.Tensor) -> torch.Tensor:
+    """(V, A, B): ``sum over pixels of weights * row^a * col^b`` of each (V, H, W) ``weights``
+    image, for the (A, H) and (B, W) powers of the coordinates (:func:`.rendering.coordinate_powers`):
+    two small matrix products, not one image per term."""
     return row_powers @ weights @ col_powers.T
 
 
@@ -95,17 +94,18 @@ class FloorSolver:
         self.gram: torch.Tensor | None = None  # (V, K, K): each view's latest normal matrix
         self.target: torch.Tensor | None = None  # (V, K): gram @ (its floor's fit)
         self.shared = False
-        self._powers: dict = {}  # (terms, device) -> the terms' (K, 2) powers there
+        self._terms: dict = {}  # (terms, device) -> the terms' powers and their pairs' sums there
 
     @torch.no_grad()
     def accumulate(self, model, predicted: torch.Tensor, measured: torch.Tensor) -> None:
         """Replace the normal equations of the views the model last rendered with their floors
-        (``model.rendered_floors``: their indices, rows and columns; in training only) by those
+        (``model.rendered_floors``: their indices, the detector's :func:`.rendering.coordinate_powers`
+        and the (V, H, W) floors as rendered; in training only) by those
         of ``predicted`` and ``measured`` (V, H, W, 1) or (H, W, 1), and move the floors to
         their fit."""
         if not model.training or model.rendered_floors is None:
             return
-        views, rows, cols = model.rendered_floors
+        views, (row_powers, col_powers), floors = model.rendered_floors
         coefficients = model.view_params["background"]
         n_views, k = coefficients.shape
         h, w = predicted.shape[-3:-1]
@@ -113,17 +113,14 @@ class FloorSolver:
         dev = predicted.device
         index = index_on(views, dev)
         current = coefficients.data.to(dev)[index].double()  # (V, K)
-        powers = self._powers.get((k, dev))
-        if powers is None:  # (K, 2), made once per device
-            powers = self._powers[(k, dev)] = index_on(FLOOR_TERMS[:k], dev)
-        zero = torch.zeros(h, w, dtype=predicted.dtype, device=dev)
-        floors = torch.stack([add_view_background(model, zero, v, rows, cols) for v in views])  # as rendered
-        weight = background_weights(model, predicted, floors)
-        gram_moments = floor_moments(weight, rows, cols, 4).double()  # (V, 5, 5)
-        rhs_moments = floor_moments(weight * (measured - predicted), rows, cols, 2).double()  # (V, 3, 3)
-        exponent_sums = powers[:, None, :] + powers[None, :, :]  # (K, K, 2)
-        gram = gram_moments[:, exponent_sums[..., 0], exponent_sums[..., 1]]  # (V, K, K)
-        rhs = rhs_moments[:, powers[:, 0], powers[:, 1]]  # (V, K)
+        terms = self._terms.get((k, dev))
+        if terms is None:  # made once per device: the terms' powers (K, 2) and their pairs' sums (K, K, 2)
+            powers = index_on(FLOOR_TERMS[:k], dev)
+            terms = self._terms[(k, dev)] = (powers[:, 0], powers[:, 1], *(powers[:, None, :] + powers[None, :, :]).unbind(-1))
+        row_terms, col_terms, row_pairs, col_pairs = terms
+        weight = background_weights(model, predicted, floors.reshape(-1, h, w))  # the floors as rendered
+        gram = floor_moments(weight, row_powers, col_powers).double()[:, row_pairs, col_pairs]  # (V, K, K)
+        rhs = floor_moments(weight * (measured - predicted), row_powers[:3], col_powers[:3]).double()[:, row_terms, col_terms]  # (V, K)
         if self.gram is None or self.gram.shape[:2] != (n_views, k) or self.gram.device != dev:
             self.gram = torch.zeros(n_views, k, k, dtype=torch.float64, device=dev)
             self.target = torch.zeros(n_views, k, dtype=torch.float64, device=dev)

@@ -172,8 +172,7 @@ class GaussianAtomsModel(SplatfactoCompat):
             others_on, views = R.index_on(others, self.view_c2w.device), [view, *others.tolist()]  # copied to the device once a step
             axes = torch.cat([axes, R.detector_axes(self.view_c2w[others_on].to(dev, dt))])
             images = R.blur(self, R.projector_for(self.config.projector, dev)(means, sigmas, amps, axes, rows, cols), pitch)
-            if "background" in self.view_params:
-                images, self.rendered_floors = torch.stack([R.add_view_background(self, im, v, rows, cols) for im, v in zip(images, views)]), (views, rows, cols)
+            images = R.add_view_floors(self, images, views, rows, cols)[0] if "background" in self.view_params else images
             image, extra = images[0], {"extra_projection": images[1:, :, :, None], "extra_views": others_on}
         elif self.config.isotropic:
             image = R.blur(self, R.projector_for(self.config.projector, dev)(means - t, sigmas, amps, axes, rows, cols), pitch)[0]
@@ -181,8 +180,8 @@ class GaussianAtomsModel(SplatfactoCompat):
             cov = covariances_from_scales_quats(self._log_scales(), self.gauss_params["quats"])
             image = R.blur(self, project_anisotropic_gaussians(self.means - t, cov, self.amplitudes, axes, rows, cols), pitch)[0]
         if view is not None and "background" in self.view_params and not extra:
-            with_floor, self.rendered_floors = R.add_view_background(self, image, view, rows, cols), ([view], rows, cols)
-            image, extra = (with_floor, extra) if background else (image, {"background": (with_floor - image)[..., None]})
+            with_floor, floors = R.add_view_floors(self, image[None], [view], rows, cols)
+            image, extra = (with_floor[0], extra) if background else (image, {"background": floors[0, ..., None]})
         projection, (h, w) = image[..., None], image.shape
         # A line integral has no depth: the image goes behind the viewer's scene (atom points, frustums).
         depth = torch.full((1, 1, 1), 1e3, device=dev, dtype=dt).expand(h, w, 1)
@@ -191,8 +190,9 @@ class GaussianAtomsModel(SplatfactoCompat):
     # ------------------------------------------------------------------ losses and metrics
     @staticmethod
     def _measured(outputs, batch) -> torch.Tensor:
-        """The measured projection, binned 2 x 2 when the rendering is (coarse phase)."""
-        return R.binned_like(batch["image"].to(outputs["projection"]), outputs["projection"])
+        """The measured projection, binned 2 x 2 when the rendering is (coarse phase); made once
+        per step (the metrics and the loss both read it) and kept in ``outputs``."""
+        return outputs["measured"] if "measured" in outputs else outputs.setdefault("measured", R.binned_like(batch["image"].to(outputs["projection"]), outputs["projection"]))
 
     def get_metrics_dict(self, outputs, batch) -> Dict[str, torch.Tensor]:
         return {"l1": torch.abs(outputs["projection"] - self._measured(outputs, batch)).mean().detach(), "gaussian_count": torch.tensor(float(self.num_points))}

@@ -37,15 +37,23 @@ def detector_axes(c2w: torch.Tensor) -> torch.Tensor:
 
 
 def binned_like(image: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
-    """(H, W, C) ``image`` as is, or averaged over 2 x 2 blocks to the (H/2, W/2) of ``like``.
-    The four strided quarters summed in pairs: the values of a reshaped ``mean`` over the
-    blocks, to the bit in the tests, at a twentieth of its time on the CPU (0.08 against 1.7 ms
-    for a 271 x 271 view; a coarse training step bins four times)."""
+    """(H, W, C) ``image`` as is, or averaged over 2 x 2 blocks to the (H/2, W/2) of ``like``
+    (:func:`binned_views` on its first two axes)."""
     h, w = like.shape[:2]
     if image.shape[:2] != (h, w):
-        x = image[: 2 * h, : 2 * w]
-        image = ((x[0::2, 0::2] + x[0::2, 1::2]) + (x[1::2, 0::2] + x[1::2, 1::2])) * 0.25
+        image = binned_views(image.movedim(-1, 0), h, w).movedim(0, -1)
     return image
+
+
+def binned_views(images: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """(..., H, W) ``images`` as they are, or averaged over 2 x 2 blocks to (..., h, w) = (H/2,
+    W/2), every view in one go.  The four strided quarters summed in pairs: the values of a
+    reshaped ``mean`` over the blocks, to the bit in the tests, at a twentieth of its time on the
+    CPU (0.08 against 1.7 ms for a 271 x 271 view; a coarse training step bins four times)."""
+    if images.shape[-2:] == (h, w):
+        return images
+    x = images[..., : 2 * h, : 2 * w]
+    return ((x[..., 0::2, 0::2] + x[..., 0::2, 1::2]) + (x[..., 1::2, 0::2] + x[..., 1::2, 1::2])) * 0.25
 
 
 def pixel_coordinates(camera: Cameras, c2w: torch.Tensor, coarse: bool, device, dtype) -> tuple[torch.Tensor, torch.Tensor]:
@@ -82,18 +90,54 @@ def rotate_about(vectors: list[torch.Tensor], axis: torch.Tensor, angle: torch.T
 def add_background(image: torch.Tensor, coefficients: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:
     """(H, W) ``image`` plus a view's background: a constant (1 coefficient), a plane over the
     detector in normalised coordinates (3: constant, row slope, column slope) or a quadratic
-    surface (6: those and the row^2, row x column and column^2 terms)."""
-    image = image + coefficients[0]
-    if len(coefficients) >= 3:
-        image = image + coefficients[1] * rows[:, None] + coefficients[2] * cols[None, :]
-    if len(coefficients) == 6:
-        image = image + (coefficients[3] * rows[:, None] + coefficients[4] * cols[None, :]) * rows[:, None] + coefficients[5] * (cols * cols)[None, :]
-    return image
+    surface (6: those and the row^2, row x column and column^2 terms), :func:`floor_images`."""
+    return image + floor_images(coefficients[None], coordinate_powers(rows, cols))[0]
 
 
 FLOOR_TERMS = ((0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2))
 """The powers of the row and column coordinates each background coefficient multiplies, in
 :func:`add_background`'s order (test_floors checks the two agree)."""
+
+MAX_POWER = 4
+"""The highest power of a coordinate the floors need: their terms go to 2, the products of two
+terms in their normal equations (:mod:`.floors`) to 4."""
+
+
+def coordinate_powers(rows: torch.Tensor, cols: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(5, H) and (5, W): the powers 0 to :data:`MAX_POWER` of the (H,) ``rows`` and (W,) ``cols``."""
+
+    def powers(x):
+        out = [torch.ones_like(x), x]
+        while len(out) <= MAX_POWER:
+            out.append(out[-1] * x)
+        return torch.stack(out)
+
+    return powers(rows), powers(cols)
+
+
+def floor_images(coefficients: torch.Tensor, powers: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
+    """(V, H, W) the floors of (V, K) ``coefficients`` (K of :data:`FLOOR_TERMS`' terms) over the
+    detector whose :func:`coordinate_powers` are ``powers``: ``rows^a M cols^b`` summed, with
+    each view's coefficients placed in a 3 x 3 matrix M.  Two matrix products for all of a step's
+    views: the term-by-term sums took about 25 operations a view, each a kernel launch on a GPU."""
+    row_powers, col_powers = powers
+    k = coefficients.shape[-1]
+    m = (coefficients @ _term_matrix(k, coefficients.device, coefficients.dtype)).view(-1, 3, 3)
+    return row_powers[:3].T @ m @ col_powers[:3]
+
+
+_TERM_MATRICES: dict = {}
+
+
+def _term_matrix(k: int, device, dtype) -> torch.Tensor:
+    """(K, 9): coefficient i to the entry (a, b) of the flattened 3 x 3 matrix, FLOOR_TERMS[i] = (a, b); made once per device."""
+    key = (k, torch.device(device), dtype)
+    if key not in _TERM_MATRICES:
+        m = torch.zeros(k, 9, dtype=dtype)
+        for i, (a, b) in enumerate(FLOOR_TERMS[:k]):
+            m[i, 3 * a + b] = 1.0
+        _TERM_MATRICES[key] = m.to(device)
+    return _TERM_MATRICES[key]
 
 
 def view_parameters(cfg, n_views: int, floor: float | None, surfaces, series, length_scale: float) -> tuple[dict, dict]:
@@ -137,13 +181,26 @@ def blur(model, images: torch.Tensor, spacing: float | None) -> torch.Tensor:
     return apply_kernel(images, spacing, model.psf_widths_host, model.view_params["psf"].to(images))  # kept non-negative by project_weights after each step (psf held-out: read, not learned)
 
 
-def add_view_background(model, image: torch.Tensor, view: int, rows: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:
-    """``image`` plus the view's background and, for a floor that varies within the
-    views, its surface (binned like the image in the coarse phase)."""
-    image = add_background(image, model.view_params["background"][view].to(image.dtype), rows, cols)
+def view_floors(model, views: list[int], powers: tuple[torch.Tensor, torch.Tensor], dtype) -> torch.Tensor:
+    """(V, H, W) the floors of the model's ``views`` (training view indices) on the detector of
+    :func:`coordinate_powers` ``powers``: each view's background and, for a floor that varies
+    within the views, its surface (binned like the image in the coarse phase)."""
+    coefficients = model.view_params["background"]
+    index = slice(views[0], views[0] + 1) if len(views) == 1 else index_on(views, coefficients.device)
+    floors = floor_images(coefficients[index].to(dtype), powers)
     if len(model.background_surfaces):
-        image = image + binned_like(model.background_surfaces[view][..., None], image[..., None])[..., 0].to(image)
-    return image
+        floors = floors + model.view_geometry.surfaces(model.background_surfaces, *floors.shape[-2:])[index].to(dtype)
+    return floors
+
+
+def add_view_floors(model, images: torch.Tensor, views: list[int], rows: torch.Tensor, cols: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(V, H, W) ``images`` of the model's ``views`` plus their floors (:func:`view_floors`), and
+    the floors; what was rendered is kept for the floors' closed-form solve
+    (``model.rendered_floors``: the views, the detector's coordinate powers and the floors)."""
+    powers = model.view_geometry.powers(rows, cols)
+    floors = view_floors(model, views, powers, images.dtype)
+    model.rendered_floors = (views, powers, floors.detach())
+    return images + floors, floors
 
 
 class ViewGeometry:
@@ -156,6 +213,8 @@ class ViewGeometry:
 
     def __init__(self) -> None:
         self._seen: dict = {}
+        self._powers: dict = {}  # id(rows), id(cols) -> (rows, cols, their coordinate_powers)
+        self._surfaces: dict = {}  # (h, w) -> the floors' surfaces binned to (V, h, w)
 
     def read(self, camera: Cameras, c2w: torch.Tensor, coarse: bool, view_c2w: torch.Tensor, training: bool, device, dtype):
         """(rows, cols, pitch, view): :func:`pixel_coordinates`, the pitch of the rows as a float
@@ -169,6 +228,23 @@ class ViewGeometry:
         if key is not None:
             self._seen[key] = found
         return found
+
+    def powers(self, rows: torch.Tensor, cols: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """:func:`coordinate_powers` of ``rows`` and ``cols``, kept for the coordinates :meth:`read`
+        keeps (others, a shifted view's or the viewer's, are computed each time)."""
+        hit = self._powers.get((id(rows), id(cols)))
+        if hit is not None and hit[0] is rows and hit[1] is cols:
+            return hit[2]
+        powers = coordinate_powers(rows, cols)
+        if any(found[0] is rows and found[1] is cols for found in self._seen.values()):
+            self._powers[(id(rows), id(cols))] = (rows, cols, powers)
+        return powers
+
+    def surfaces(self, surfaces: torch.Tensor, h: int, w: int) -> torch.Tensor:
+        """The (V, H, W) ``surfaces`` binned to (V, h, w) (:func:`binned_views`), once per size."""
+        if (h, w) not in self._surfaces:
+            self._surfaces[(h, w)] = binned_views(surfaces, h, w)
+        return self._surfaces[(h, w)]
 
 
 def view_index(view_c2w: torch.Tensor, camera: Cameras) -> int | None:
@@ -345,7 +421,7 @@ def with_other_views(outputs: dict, measured: torch.Tensor, train_projections: t
     if "extra_projection" not in outputs:
         return pred, measured
     extra = outputs["extra_projection"]
-    extra_gt = torch.stack([binned_like(m[..., None], extra[0]) for m in train_projections[index_on(outputs["extra_views"], train_projections.device)]]).to(extra)
+    extra_gt = binned_views(train_projections[index_on(outputs["extra_views"], train_projections.device)], *extra.shape[1:3])[..., None].to(extra)
     return torch.cat([pred[None], extra]), torch.cat([measured[None], extra_gt])
 
 
