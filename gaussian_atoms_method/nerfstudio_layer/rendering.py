@@ -130,13 +130,14 @@ _TERM_MATRICES: dict = {}
 
 
 def _term_matrix(k: int, device, dtype) -> torch.Tensor:
-    """(K, 9): coefficient i to the entry (a, b) of the flattened 3 x 3 matrix, FLOOR_TERMS[i] = (a, b); made once per device."""
+    """(K, 9): coefficient i to the entry (a, b) of the flattened 3 x 3 matrix, FLOOR_TERMS[i] = (a, b); made
+    once per device, copied there without waiting for it (through pinned memory, as :func:`index_on`)."""
     key = (k, torch.device(device), dtype)
     if key not in _TERM_MATRICES:
         m = torch.zeros(k, 9, dtype=dtype)
         for i, (a, b) in enumerate(FLOOR_TERMS[:k]):
             m[i, 3 * a + b] = 1.0
-        _TERM_MATRICES[key] = m.to(device)
+        _TERM_MATRICES[key] = m.pin_memory().to(key[1], non_blocking=True) if key[1].type == "cuda" else m.to(key[1])
     return _TERM_MATRICES[key]
 
 
