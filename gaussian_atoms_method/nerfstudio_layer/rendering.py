@@ -131,13 +131,13 @@ _TERM_MATRICES: dict = {}
 
 def _term_matrix(k: int, device, dtype) -> torch.Tensor:
     """(K, 9): coefficient i to the entry (a, b) of the flattened 3 x 3 matrix, FLOOR_TERMS[i] = (a, b); made
-    once per device, copied there without waiting for it (through pinned memory, as :func:`index_on`)."""
+    once per device, copied there without waiting for it (:func:`to_device_without_waiting`)."""
     key = (k, torch.device(device), dtype)
     if key not in _TERM_MATRICES:
         m = torch.zeros(k, 9, dtype=dtype)
         for i, (a, b) in enumerate(FLOOR_TERMS[:k]):
             m[i, 3 * a + b] = 1.0
-        _TERM_MATRICES[key] = m.pin_memory().to(key[1], non_blocking=True) if key[1].type == "cuda" else m.to(key[1])
+        _TERM_MATRICES[key] = to_device_without_waiting(m, key[1])
     return _TERM_MATRICES[key]
 
 
@@ -402,10 +402,15 @@ def index_on(index, device: torch.device) -> torch.Tensor:
     the device: through pinned memory, asynchronously.  A plain copy to the GPU (``torch.tensor``
     of a list, or indexing a GPU tensor by a CPU one) waits for every queued kernel first; the
     floors' solve did that twice a step (``torch.cuda.set_sync_debug_mode``)."""
-    index = torch.as_tensor(index, dtype=torch.long)
-    if torch.device(device).type != "cuda" or index.device.type != "cpu":  # nothing to pin: a plain move
-        return index.to(device)
-    return index.pin_memory().to(device, non_blocking=True)
+    return to_device_without_waiting(torch.as_tensor(index, dtype=torch.long), device)
+
+
+def to_device_without_waiting(tensor: torch.Tensor, device: torch.device) -> torch.Tensor:
+    """``tensor`` on ``device``; a host tensor bound for a GPU goes through pinned memory,
+    asynchronously (:func:`index_on`), other moves are plain."""
+    if torch.device(device).type != "cuda" or tensor.device.type != "cpu":  # nothing to pin: a plain move
+        return tensor.to(device)
+    return tensor.pin_memory().to(device, non_blocking=True)
 
 
 def synchronise(device: torch.device) -> None:
