@@ -37,11 +37,11 @@ def pairs_within(points: torch.Tensor, reach: int, max_candidates: int = 1 << 26
     lo, counts = lo.reshape(-1), counts.reshape(-1)
     start = 0
     while start < n:
-        before = bounds[start] - int(per_point[start])
+        before = bounds[start - 1] if start else 0  # candidates of the points before ``start``, read from the host's list
         stop = max(int(np.searchsorted(bounds, before + max_candidates, side="right")), start + 1)
         c = counts[27 * start : 27 * stop]
-        slot = torch.repeat_interleave(torch.arange(len(c), device=dev), c)
-        offset = torch.arange(int(c.sum()), device=dev) - (torch.cumsum(c, 0) - c)[slot]
+        slot = torch.repeat_interleave(torch.arange(len(c), device=dev), c, output_size=bounds[stop - 1] - before)
+        offset = torch.arange(bounds[stop - 1] - before, device=dev) - (torch.cumsum(c, 0) - c)[slot]
         other = order[lo[27 * start : 27 * stop][slot] + offset]  # a point of a neighbouring cube
         this = start + slot // 27
         keep = (other < this) & ((points[this] - points[other]).abs().max(dim=1).values <= reach)
