@@ -148,3 +148,43 @@ def test_separated_maxima_on_cuda_equal_the_hosts():
     expected = peaks.separated_maxima(field, 0.25, 1.0, 0.01)
     assert len(expected) > 100
     np.testing.assert_array_equal(volume_filters.separated_maxima(torch.as_tensor(field, device="cuda"), 0.25, 1.0, 0.01), expected)
+
+
+def _train(data, out, graphs: bool, steps: int, views: int):
+    """A short run on the GPU through nerfstudio's trainer; returns the model."""
+    from gaussian_atoms_method.nerfstudio_layer.train import build_config, make_trainer
+
+    config = build_config(["--machine.device-type", "cuda", "--vis", "tensorboard", "--output-dir", str(out), "--timestamp", "run", "--max-num-iterations", str(steps),
+                           "--pipeline.model.cuda-graphs", str(graphs), "--pipeline.model.views-per-step", str(views), "--pipeline.model.coarse-steps", "20",
+                           "--pipeline.model.warmup-length", "30", "--pipeline.model.refine-every", "20", "--pipeline.model.merge-every", "20",
+                           "--pipeline.model.stop-when-converged", "False", "tilt-series", "--data", str(data)])  # fmt: skip
+    trainer = make_trainer(config)
+    trainer.train()
+    return trainer.pipeline.model
+
+
+@cuda
+@pytest.mark.parametrize("views", [1, 3])
+def test_steps_replayed_as_a_cuda_graph_train_as_eager_steps(tmp_path, views):
+    """Captured and replayed (:mod:`.step_graph`), a run's steps do the arithmetic of the eager
+    ones: through the coarse phase's end, refines and merges (each captured again), the same
+    Gaussians, positions to float32 rounding carried over 70 Adam steps (1e-4 of the 0.5 Å
+    pixel, in normalised units), the same floors and kernel."""
+    from dataparsers.tilt_series_format import write_tilt_series
+    from gaussian_atoms_method.harness.simulate import simulate_tilt_series, spherical_particle
+
+    truth = spherical_particle("Au", radius_A=5.0)
+    sim = simulate_tilt_series(truth, np.arange(-70.0, 71.0, 10.0), potential="gaussian", noise_std=20.0, floor_fraction=0.05, seed=0)
+    data = write_tilt_series(tmp_path / "series", sim.projections, sim.angles_deg, sim.pixel_size_A, truth=truth)
+    eager = _train(data, tmp_path / "eager", False, 70, views)
+    graphed = _train(data, tmp_path / "graphed", True, 70, views)
+    assert graphed.step_graph._off == "" and eager.step_graph._off == "--pipeline.model.cuda-graphs False"
+    # Captured again at the coarse phase's end, the floors' sharing and each refine; the other steps replayed.
+    assert graphed.step_graph.captures >= 3 and graphed.step_graph.replays >= 50 and eager.step_graph.replays == 0
+    assert graphed.num_points == eager.num_points
+    pixel = 1.0 / max(sim.projections.shape[1:])
+    torch.testing.assert_close(graphed.means, eager.means, rtol=0, atol=1e-4 * pixel)
+    for name in ("log_sigmas", "log_amplitudes"):
+        torch.testing.assert_close(graphed.gauss_params[name], eager.gauss_params[name], rtol=0, atol=1e-4)
+    for name, param in eager.view_params.items():
+        torch.testing.assert_close(graphed.view_params[name], param, rtol=1e-4, atol=1e-6)

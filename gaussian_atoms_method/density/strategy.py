@@ -309,7 +309,7 @@ class DensityControl:
         room = self.max_gaussians - n
         if room <= 0 or len(idx) == 0:
             return 0
-        idx = idx[torch.argsort(mean_grad[idx], descending=True)[:room]]
+        idx = idx[torch.argsort(mean_grad[idx], descending=True)[:room]].cpu()  # on the host, as the birth steps (the sums lie on the parameters' device)
         self.remap(params, optimizers, *duplicate_remap(n, idx), param_lists=param_lists)
         # Halve both amplitudes and move the pair apart by one sigma in a random direction.
         dev = params["means"].device

@@ -44,11 +44,11 @@ from gaussian_atoms_method.nerfstudio_layer.refit import refit
 from gaussian_atoms_method.nerfstudio_layer.residuals import residual_correlations
 from gaussian_atoms_method.nerfstudio_layer.results import model_position_std_A, write_results, write_snapshot
 from gaussian_atoms_method.nerfstudio_layer.splatfacto_compat import SplatfactoCompat
+from gaussian_atoms_method.nerfstudio_layer.step_graph import StepGraph
 from gaussian_atoms_method.nerfstudio_layer.stopping import at_check, set_position_rate
 from gaussian_atoms_method.nerfstudio_layer.viewer import AtomsInViewer
 from gaussian_atoms_method.physics.data_terms import data_term
 from gaussian_atoms_method.physics.psf import project_weights
-from gaussian_atoms_method.physics.projector import covariances_from_scales_quats, project_anisotropic_gaussians
 from gaussian_atoms_method.physics.units import DATA_RANGE, Normalisation
 from gaussian_atoms_method.start_ahead import take as take_start
 
@@ -102,7 +102,7 @@ class GaussianAtomsModel(SplatfactoCompat):
             self.density.set_noise(self.noise_read, floor or 0.0, metadata["pixel_size_A"] * ls, self.view_c2w.shape[0], self.data_term, self.view_c2w[:, :3, 2])
         self.step, self.optimizers, self._optimizers_obj, self._held_out_step, self.kernel_reading = 0, {}, None, False, HeldOutKernel(self.view_c2w.shape[0], self.density.stop_split_at, cfg.psf == "held-out")
         self.crop_box, self.background_color, self.atoms_in_viewer = None, torch.zeros(3), AtomsInViewer(self._viewer_atoms)  # the atoms as points in the viewer
-        self.view_geometry, self.finite_watch, self.floors = R.ViewGeometry(), R.FiniteWatch(), FloorSolver()  # read once per view; judged without waiting for the GPU
+        self.view_geometry, self.finite_watch, self.floors, self.step_graph = R.ViewGeometry(), R.FiniteWatch(), FloorSolver(), StepGraph()  # read once per view; judged without waiting for the GPU; a step as a CUDA graph
 
     def _setup_view_params(self, metadata: dict, series, floor: float | None, surfaces=None) -> None:
         """Per-view parameters and the views-per-step batches; a background (solved in closed form,
@@ -115,6 +115,7 @@ class GaussianAtomsModel(SplatfactoCompat):
         self.psf_widths_host = tuple(buffers["psf_widths"].tolist()) if "psf_widths" in buffers else ()  # read here, on the host: a read from the GPU each step waited for it
         self.view_params = torch.nn.ParameterDict(view_params)
         batches, self._views_per_step = R.view_batches(cfg, metadata.get("projections"), self.view_c2w)
+        self.indexed_views = not cfg.per_view_options() and R.on_beam_axes(self.view_c2w)  # a training step's views by one device index (get_outputs)
         self.register_buffer("train_projections", batches, persistent=False)
 
     @property
@@ -153,35 +154,21 @@ class GaussianAtomsModel(SplatfactoCompat):
             raise ValueError("GaussianAtomsModel renders one camera at a time")
         dev, dt = self.means.device, self.means.dtype
         c2w = camera.camera_to_worlds[0].to(dt)
-        (rows_dir, cols_dir), t = R.detector_axes(c2w), c2w[:, 3]
         rows, cols, pitch, view = self.view_geometry.read(camera, c2w, self.training and self.step < self.config.coarse_steps, self.view_c2w, self.training, dev, dt)
         self._held_out_step, self.rendered_floors = self.training and self.kernel_reading.holds_out(view, self.step), None  # psf held-out: it teaches the kernel, not the atoms
-        batching = self.training and self.views_per_step > 1 and not self._held_out_step
+        indexed = background and self.training and view is not None and self.indexed_views and not self._held_out_step  # the step's views by one device index
         means, sigmas, amps = [x.detach() if self._held_out_step else x for x in (self.means, self.sigmas, self.amplitudes)]
-        if view is not None and "view_tilts" in self.view_params:
-            tilts = self.view_params["view_tilts"]  # the error relative to the mean (a common one rotates the particle)
-            rows_dir, cols_dir, t = R.rotate_about([rows_dir, cols_dir, t], self.tilt_axis_vector.to(dev, dt), (tilts[view, 0] - tilts[:, 0].mean()).to(dt))
-        axes = torch.stack([rows_dir, cols_dir])[None]
-        if view is not None and "view_shifts" in self.view_params:  # the content sits shifted by s: evaluate at x - s
-            shifts = self.view_params["view_shifts"]
-            s = (shifts[view] - shifts.mean(dim=0)).to(dt)
-            rows, cols = rows - s[0], cols - s[1]
         extra = {}
-        if batching and view is not None:  # cameras on their beam axes through the tilt centre: no offset
-            others = self.kernel_reading.other_views(view, self.views_per_step, self.generator, self.step)
-            others_on, views = R.index_on(others, self.view_c2w.device), [view, *others.tolist()]  # copied to the device once a step
-            axes = torch.cat([axes, R.detector_axes(self.view_c2w[others_on].to(dev, dt))])
-            images = R.blur(self, R.projector_for(self.config.projector, dev)(means, sigmas, amps, axes, rows, cols), pitch)
-            images = R.add_view_floors(self, images, views, rows, cols)[0] if "background" in self.view_params else images
-            image, extra = images[0], {"extra_projection": images[1:, :, :, None], "extra_views": others_on}
-        elif self.config.isotropic:
-            image = R.blur(self, R.projector_for(self.config.projector, dev)(means - t, sigmas, amps, axes, rows, cols), pitch)[0]
+        if indexed:  # cameras on their beam axes through the tilt centre: no offset (R.step_index; a CUDA graph's replays refill it, .step_graph)
+            index = R.step_index(self, view, dev)
+            images = R.blur(self, R.projector_for(self.config.projector, dev)(means, sigmas, amps, R.detector_axes(self.view_c2w[index].to(dev, dt)), rows, cols), pitch)
+            images = R.add_view_floors(self, images, index, rows, cols)[0] if "background" in self.view_params else images
+            image, extra = images[0], ({"extra_projection": images[1:, :, :, None], "extra_views": index[1:]} if len(images) > 1 else {})
         else:
-            cov = covariances_from_scales_quats(self._log_scales(), self.gauss_params["quats"])
-            image = R.blur(self, project_anisotropic_gaussians(self.means - t, cov, self.amplitudes, axes, rows, cols), pitch)[0]
-        if view is not None and "background" in self.view_params and not extra:
-            with_floor, floors = R.add_view_floors(self, image[None], [view], rows, cols)
-            image, extra = (with_floor[0], extra) if background else (image, {"background": floors[0, ..., None]})
+            image = R.one_view(self, c2w, view, rows, cols, pitch, means, sigmas, amps)
+            if view is not None and "background" in self.view_params:
+                with_floor, floors = R.add_view_floors(self, image[None], [view], rows, cols)
+                image, extra = (with_floor[0], extra) if background else (image, {"background": floors[0, ..., None]})
         projection, (h, w) = image[..., None], image.shape
         # A line integral has no depth: the image goes behind the viewer's scene (atom points, frustums).
         depth = torch.full((1, 1, 1), 1e3, device=dev, dtype=dt).expand(h, w, 1)

@@ -212,6 +212,12 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
     half the free GPU memory by the projector's measured bytes per Gaussian and view), else 1;
     1 with refine-alignment, refine-tilts or anisotropic Gaussians (per-view parameters), which
     a number above 1 cannot be combined with."""
+    cuda_graphs: bool = True
+    """On a CUDA GPU, capture a training step's tensor work (the projection, the floors, the
+    loss and its gradients) once as a CUDA graph and replay it each step, captured again when the
+    Gaussians change (:mod:`.step_graph`): at 20,000 atoms and more a step is bound by the
+    host's dispatch of its ~300 small operations, not by the GPU.  False: every operation
+    dispatched from Python, as nerfstudio does (the same arithmetic)."""
     snapshot_every: int = 0
     """Every this many steps (0: never) write the current atoms to ``snapshots/`` in the run
     directory with the wall-clock time, for time-to-accuracy benchmarks: the Gaussians the run

@@ -26,7 +26,8 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch.nn import Parameter
 
 from gaussian_atoms_method.nerfstudio_layer.options import OptionError
-from gaussian_atoms_method.physics.projector import project_gaussians, project_gaussians_gsplat, project_gaussians_tiled
+from gaussian_atoms_method.physics.projector import (covariances_from_scales_quats, project_anisotropic_gaussians, project_gaussians,
+                                                     project_gaussians_gsplat, project_gaussians_tiled)
 from gaussian_atoms_method.physics.psf import KERNEL_WIDTHS_A, apply_kernel
 
 
@@ -182,19 +183,40 @@ def blur(model, images: torch.Tensor, spacing: float | None) -> torch.Tensor:
     return apply_kernel(images, spacing, model.psf_widths_host, model.view_params["psf"].to(images))  # kept non-negative by project_weights after each step (psf held-out: read, not learned)
 
 
-def view_floors(model, views: list[int], powers: tuple[torch.Tensor, torch.Tensor], dtype) -> torch.Tensor:
-    """(V, H, W) the floors of the model's ``views`` (training view indices) on the detector of
+def one_view(model, c2w: torch.Tensor, view: int | None, rows: torch.Tensor, cols: torch.Tensor, pitch: float | None, means, sigmas, amplitudes) -> torch.Tensor:
+    """(H, W) the model's projection for one camera from its own (3, 4) pose ``c2w`` (the
+    viewer's, evaluation's, or a training view's with a learned shift or tilt error, or
+    anisotropic Gaussians), blurred by the model's kernel."""
+    dev, dt = means.device, means.dtype
+    (rows_dir, cols_dir), t = detector_axes(c2w), c2w[:, 3]
+    if view is not None and "view_tilts" in model.view_params:
+        tilts = model.view_params["view_tilts"]  # the error relative to the mean (a common one rotates the particle)
+        rows_dir, cols_dir, t = rotate_about([rows_dir, cols_dir, t], model.tilt_axis_vector.to(dev, dt), (tilts[view, 0] - tilts[:, 0].mean()).to(dt))
+    axes = torch.stack([rows_dir, cols_dir])[None]
+    if view is not None and "view_shifts" in model.view_params:  # the content sits shifted by s: evaluate at x - s
+        shifts = model.view_params["view_shifts"]
+        s = (shifts[view] - shifts.mean(dim=0)).to(dt)
+        rows, cols = rows - s[0], cols - s[1]
+    if model.config.isotropic:
+        return blur(model, projector_for(model.config.projector, dev)(means - t, sigmas, amplitudes, axes, rows, cols), pitch)[0]
+    cov = covariances_from_scales_quats(model._log_scales(), model.gauss_params["quats"])
+    return blur(model, project_anisotropic_gaussians(model.means - t, cov, model.amplitudes, axes, rows, cols), pitch)[0]
+
+
+def view_floors(model, views, powers: tuple[torch.Tensor, torch.Tensor], dtype) -> torch.Tensor:
+    """(V, H, W) the floors of the model's ``views`` (training view indices: a list, or a (V,)
+    tensor on the model's device, :func:`step_index`) on the detector of
     :func:`coordinate_powers` ``powers``: each view's background and, for a floor that varies
     within the views, its surface (binned like the image in the coarse phase)."""
     coefficients = model.view_params["background"]
-    index = slice(views[0], views[0] + 1) if len(views) == 1 else index_on(views, coefficients.device)
+    index = views if torch.is_tensor(views) else slice(views[0], views[0] + 1) if len(views) == 1 else index_on(views, coefficients.device)
     floors = floor_images(coefficients[index].to(dtype), powers)
     if len(model.background_surfaces):
         floors = floors + model.view_geometry.surfaces(model.background_surfaces, *floors.shape[-2:])[index].to(dtype)
     return floors
 
 
-def add_view_floors(model, images: torch.Tensor, views: list[int], rows: torch.Tensor, cols: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def add_view_floors(model, images: torch.Tensor, views, rows: torch.Tensor, cols: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(V, H, W) ``images`` of the model's ``views`` plus their floors (:func:`view_floors`), and
     the floors; what was rendered is kept for the floors' closed-form solve
     (``model.rendered_floors``: the views, the detector's coordinate powers and the floors)."""
@@ -267,12 +289,36 @@ def check_view_batches(views_per_step: int, projections, view_c2w: torch.Tensor)
         return torch.zeros(0, 1, 1)
     if projections is None or view_c2w.shape[0] < 2:
         raise OptionError("--pipeline.model.views-per-step > 1 needs a tilt series from the tilt-series dataparser (its projections and view poses)")
-    # One call projects the same means for every view: each camera must sit on its beam axis
-    # through the tilt centre (true of the dataparser's cameras).
-    off_axis = torch.stack([(view_c2w[:, :, 3] * view_c2w[:, :, 0]).sum(-1), (view_c2w[:, :, 3] * view_c2w[:, :, 1]).sum(-1)]).abs().max()
-    if float(off_axis) > 1e-5:
+    if not on_beam_axes(view_c2w):
         raise OptionError("--pipeline.model.views-per-step > 1 needs every camera on its beam axis through the tilt centre")
     return torch.as_tensor(projections, dtype=torch.float32)
+
+
+def on_beam_axes(view_c2w: torch.Tensor) -> bool:
+    """Whether every camera of the (V, 3, 4) poses sits on its beam axis through the tilt centre
+    (true of the dataparser's): then one call projects the same means for every view, with no
+    camera offset (:func:`step_index`)."""
+    if view_c2w.shape[0] == 0:
+        return False
+    off_axis = torch.stack([(view_c2w[:, :, 3] * view_c2w[:, :, 0]).sum(-1), (view_c2w[:, :, 3] * view_c2w[:, :, 1]).sum(-1)]).abs().max()
+    return float(off_axis) <= 1e-5
+
+
+def step_index(model, view: int, device: torch.device) -> torch.Tensor:
+    """(V,) on ``device``: the training step's views, ``view`` and ``views_per_step - 1`` others
+    drawn at random (none for one view a step); one index the projection, the floors, the
+    measured views and the floors' solve all read.  While a step is captured as a CUDA graph,
+    the graph's own index, which each replay refills (:mod:`.step_graph`)."""
+    in_use = model.step_graph.index_in_use
+    return in_use if in_use is not None else index_on(step_views(model, view), device)
+
+
+def step_views(model, view: int) -> list[int]:
+    """The training step's views (host indices): ``view`` and the others
+    (:meth:`.kernel_reading.HeldOutKernel.other_views`, drawn from the model's generator)."""
+    if model.views_per_step <= 1:
+        return [view]
+    return [view, *model.kernel_reading.other_views(view, model.views_per_step, model.generator, model.step).tolist()]
 
 
 def projector_name(option: str, device: torch.device) -> str:
@@ -451,6 +497,7 @@ class FiniteWatch:
 
     def __init__(self) -> None:
         self._pending = None
+        self.captured = None  # (counts, names, rows, measured) of a step being captured
 
     def check(self, loss: torch.Tensor, params, measured: torch.Tensor, step: int) -> None:
         """Judge (CPU) or queue (GPU) this step's loss and ``params`` (name -> (N, ...) tensor);
@@ -461,6 +508,14 @@ class FiniteWatch:
         rows = [len(p) for p in params.values()]
         if counts.device.type != "cuda":  # the CPU (or another device): judged at once
             return self._judge(counts.tolist(), names, rows, measured, step)
+        if torch.cuda.is_current_stream_capturing():  # a step captured as a CUDA graph: each replay queues them (.step_graph)
+            self.captured = (counts, names, rows, measured)
+            return None
+        return self.queue(counts, names, rows, measured, step)
+
+    def queue(self, counts: torch.Tensor, names: list[str], rows: list[int], measured: torch.Tensor, step: int) -> None:
+        """Copy a GPU step's ``counts`` (:meth:`check`) to the host without waiting, to be judged
+        at the next step (the last one's step judged first)."""
         host = torch.empty(counts.shape, dtype=counts.dtype, pin_memory=True)
         host.copy_(counts, non_blocking=True)
         landed = torch.cuda.Event()

@@ -84,9 +84,18 @@ class GaussianAtomsTrainerConfig(TrainerConfig):
 
 
 class GaussianAtomsTrainer(Trainer):
-    """nerfstudio's Trainer; a failure during training ends in one line naming its step and cause.
-    With ``psf held-out`` it trains twice: a pass that reads the point-spread function, then the
-    run with it held (:func:`.kernel_reading.restart_with_kernel_held`)."""
+    """nerfstudio's Trainer; a failure during training ends in one line naming its step and cause;
+    on a GPU its steps are replays of a CUDA graph (:mod:`.step_graph`).  With ``psf held-out``
+    it trains twice: a pass that reads the point-spread function, then the run with it held
+    (:func:`.kernel_reading.restart_with_kernel_held`)."""
+
+    def train_iteration(self, step: int):
+        # On a GPU a replay of the step captured as a CUDA graph where the model's step graph serves it (.step_graph).
+        from gaussian_atoms_method.nerfstudio_layer.step_graph import detached
+
+        graph = getattr(self.pipeline.model, "step_graph", None)
+        done = graph.train_iteration(self, step) if graph is not None else None
+        return done if done is not None else detached(*super().train_iteration(step))  # the loop holds them while the next step runs
 
     def train(self) -> None:
         from gaussian_atoms_method.nerfstudio_layer.kernel_reading import restart_with_kernel_held
