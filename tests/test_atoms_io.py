@@ -71,3 +71,45 @@ def test_write_is_atomic(tmp_path, monkeypatch):
     with pytest.raises(RuntimeError):
         write_atoms(_atoms(), tmp_path / "atoms.csv")
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("optional", [True, False])
+def test_xyz_and_csv_are_the_bytes_ase_and_csv_write(tmp_path, optional):
+    """The one-pass writers give exactly what ASE's extended XYZ writer and csv.writer give
+    (the formats every reader of these files has seen), with and without the optional columns."""
+    import csv
+
+    a = _atoms()
+    if optional:
+        a.position_std_A = np.random.default_rng(4).uniform(0, 0.01, (len(a), 3))
+        a.species = np.array(["Au", "Pt", "X", "Au", "O", "Pt", "Au"])
+    else:
+        a = AtomSet(a.positions)
+    write_atoms(a, tmp_path / "ours.xyz")
+    ase.io.write(tmp_path / "ase.xyz", a.to_ase(), format="extxyz")
+    assert (tmp_path / "ours.xyz").read_bytes() == (tmp_path / "ase.xyz").read_bytes()
+    write_atoms(a, tmp_path / "ours.csv")
+    n = len(a)
+    columns = {"species": a.species if a.species is not None else np.full(n, "X"), "x_A": a.positions[:, 0], "y_A": a.positions[:, 1], "z_A": a.positions[:, 2],
+               "sigma_A": a.sigmas if a.sigmas is not None else np.full(n, np.nan), "amplitude": a.amplitudes if a.amplitudes is not None else np.full(n, np.nan)}  # fmt: skip
+    if a.position_std_A is not None:
+        columns.update({f"std_{axis}_A": a.position_std_A[:, k] for k, axis in enumerate("xyz")})
+    if a.atom_class is not None:
+        columns["class"] = a.atom_class
+    with open(tmp_path / "csv.csv", "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(columns.keys())
+        for i in range(n):
+            writer.writerow([columns["species"][i]] + [str(int(columns[k][i])) if k == "class" else repr(float(columns[k][i])) for k in list(columns)[1:]])
+    assert (tmp_path / "ours.csv").read_bytes() == (tmp_path / "csv.csv").read_bytes()
+
+
+def test_a_file_read_twice_is_read_as_it_stands(tmp_path):
+    """Reads of an unchanged file give equal atoms, each the caller's own; a rewritten file is read anew."""
+    path = write_atoms(_atoms(), tmp_path / "atoms.xyz")
+    first, second = read_atoms(path), read_atoms(path)
+    np.testing.assert_array_equal(first.positions, second.positions)
+    first.positions[0] = 99.0
+    assert read_atoms(path).positions[0, 0] != 99.0
+    write_atoms(AtomSet(np.ones((2, 3))), path)
+    assert len(read_atoms(path)) == 2

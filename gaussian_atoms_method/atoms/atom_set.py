@@ -9,7 +9,9 @@ complete result or does not exist.
 
 from __future__ import annotations
 
+import copy
 import csv
+import functools
 import os
 import tempfile
 from dataclasses import dataclass, field
@@ -144,9 +146,7 @@ def write_atoms(atoms: AtomSet, path: str | Path) -> Path:
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix in (".xyz", ".extxyz"):
-        import ase.io
-
-        _atomic_write(path, lambda p: ase.io.write(p, atoms.to_ase(), format="extxyz"))
+        _atomic_write(path, lambda p: _write_extxyz(atoms, p))
     elif suffix == ".cif":
         import ase.io
 
@@ -160,6 +160,31 @@ def write_atoms(atoms: AtomSet, path: str | Path) -> Path:
     else:
         raise ValueError(f"{path}: unknown atom file type {suffix!r}; expected .xyz, .extxyz, .csv or .cif")
     return path
+
+
+def _extxyz_columns(atoms: AtomSet) -> list[tuple[str, np.ndarray, str]]:
+    """(name, (N, k) values, ASE's type letter) of each per-atom array after the species, in the
+    order :meth:`AtomSet.to_ase` adds them."""
+    n, columns = len(atoms), [("pos", atoms.positions, "R")]
+    for name, values, kind in (("sigma_A", atoms.sigmas, "R"), ("amplitude", atoms.amplitudes, "R"), ("position_std_A", atoms.position_std_A, "R"), ("atom_class", atoms.atom_class, "I")):
+        if values is not None:
+            columns.append((name, values.reshape(n, -1), kind))
+    return columns
+
+
+def _write_extxyz(atoms: AtomSet, path: Path) -> None:
+    """Extended XYZ, the bytes ASE's writer gives :meth:`AtomSet.to_ase` (tests/test_atoms_io.py):
+    its formats (``%-2s``, ``%16.8f``, ``%8d``) applied a row at a time in one pass, where ASE
+    formats column by column through its own machinery (2.0 against 0.3 s for 54,000 atoms on the
+    2-core CPU)."""
+    n, columns = len(atoms), _extxyz_columns(atoms)
+    species = (atoms.species if atoms.species is not None else np.full(n, "X")).tolist()
+    properties = ":".join(["species:S:1"] + [f"{name}:{kind}:{values.shape[1]}" for name, values, kind in columns])
+    row = "%-2s" + "".join((" %16.8f" if kind == "R" else " %8d") * values.shape[1] for _, values, kind in columns) + "\n"
+    numbers = np.hstack([values.astype(np.float64) for _, values, _ in columns]).tolist()
+    with open(path, "w") as f:
+        f.write(f'{n}\nProperties={properties} pbc="F F F"\n')
+        f.writelines(row % (s, *r) for s, r in zip(species, numbers))
 
 
 def _write_csv(atoms: AtomSet, path: Path) -> None:
@@ -177,11 +202,15 @@ def _write_csv(atoms: AtomSet, path: Path) -> None:
             columns[f"std_{axis}_A"] = atoms.position_std_A[:, k]
     if atoms.atom_class is not None:
         columns["class"] = atoms.atom_class
+    # Each value as csv.writer writes repr(float) and str(int), a row at a time (csv.writer's
+    # own loop took 1.15 s for 54,000 atoms on the 2-core CPU); species with a comma or a quote
+    # go through csv's quoting.
+    species = [f'"{x.replace(chr(34), chr(34) * 2)}"' if ("," in x or '"' in x) else x for x in np.asarray(columns["species"]).astype(str).tolist()]
+    floats = np.stack([np.asarray(columns[k], dtype=np.float64) for k in list(columns)[1:] if k != "class"], axis=1).tolist()
+    classes = [str(int(c)) for c in columns["class"]] if "class" in columns else None
     with open(path, "w", newline="") as f:
-        writer = csv.writer(f)
-        writer.writerow(columns.keys())
-        for i in range(n):
-            writer.writerow([columns["species"][i]] + [str(int(columns[k][i])) if k == "class" else repr(float(columns[k][i])) for k in list(columns)[1:]])
+        f.write(",".join(columns.keys()) + "\r\n")
+        f.writelines(",".join([s, *map(repr, r)] + ([classes[i]] if classes else [])) + "\r\n" for i, (s, r) in enumerate(zip(species, floats)))
 
 
 def read_atoms(path: str | Path) -> AtomSet:
@@ -193,6 +222,16 @@ def read_atoms(path: str | Path) -> AtomSet:
     path = Path(path)
     if not path.is_file():
         raise AtomFileError(f"{path}: atom file not found")
+    stat = path.stat()
+    return copy.deepcopy(_read_unchanged(path.resolve(), stat.st_ino, stat.st_mtime_ns, stat.st_size))  # the caller's own arrays
+
+
+@functools.lru_cache(maxsize=4)
+def _read_unchanged(path: Path, inode: int, mtime_ns: int, size: int) -> AtomSet:
+    """:func:`read_atoms` of a file as it stands (its inode, modification time and size: an
+    atomic write makes a new inode): a run reads
+    its truth file when it checks the input and again when it scores (0.5 s each through ASE for
+    54,000 atoms on the 2-core CPU)."""
     suffix = path.suffix.lower()
     try:
         if suffix == ".csv":
