@@ -92,3 +92,17 @@ def test_drifting_tells_scatter_from_travel():
         travelling, step = rng.random(n) < 0.01, np.array([2 * 0.065, 0.0, 0.0])
         assert drifting(older, previous + travelling[:, None] * step, now + 2 * travelling[:, None] * step, precision)
     assert false_drift <= 3  # one-sided 2.3% a seed: more than 3 of 20 has a chance of 0.14%
+
+
+def test_refit_steps_render_their_views_together_as_one_by_one(tmp_path):
+    """A refit step's views rendered in one projector call (:func:`.rendering.render_views`) and
+    its loss the data term's mean over all their pixels: the same passes and positions as each
+    view through its own camera with the views' losses averaged, to float32 rounding carried
+    over the passes (1e-3 Å)."""
+    results = []
+    for together in (True, False):
+        model, truth, ls = _two_atoms_one_off(tmp_path / str(together))
+        model._views_per_step, model.indexed_views = 2, together
+        results.append((refit(model, max_passes=10), model.means.detach().clone() / ls))
+    assert results[0][0] == results[1][0]
+    torch.testing.assert_close(results[0][1], results[1][1], rtol=0, atol=1e-3)

@@ -222,3 +222,30 @@ def test_index_on_a_device_keeps_values_and_order():
     if torch.cuda.is_available():
         on_gpu = torch.tensor([4, 5], device="cuda")
         assert torch.equal(R.index_on(on_gpu, "cuda"), on_gpu) and R.index_on([4, 5], "cuda").tolist() == [4, 5]
+
+
+def test_training_views_rendered_in_chunks_are_the_views_rendered_one_by_one(tmp_path, monkeypatch):
+    """Every training view in one projector call per chunk (:func:`.rendering.render_views`) gives
+    each camera's own rendering (floors and the kernel included) to float32 rounding, and the
+    residual correlations of probe Gaussians that the final likelihood merge reads the same sums;
+    chunks of one view and of all views alike."""
+    from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
+    from dataparsers.tilt_series_format import write_tilt_series
+    from gaussian_atoms_method.harness.simulate import simulate_tilt_series, spherical_particle
+    from gaussian_atoms_method.nerfstudio_layer import residuals
+    from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
+
+    truth = spherical_particle("Au", radius_A=4.0)
+    sim = simulate_tilt_series(truth, np.arange(-60.0, 61.0, 20.0), potential="gaussian", noise_std=5.0, floor_fraction=0.05, seed=0)
+    outputs = TiltSeriesDataParserConfig(data=write_tilt_series(tmp_path, sim.projections, sim.angles_deg, sim.pixel_size_A, truth=truth)).setup().get_dataparser_outputs("train")
+    model = GaussianAtomsModelConfig(background="constant", psf_weights=(0.1, 0.05, 0.0)).setup(scene_box=outputs.scene_box, num_train_data=len(sim.angles_deg), metadata=outputs.metadata)
+    model.view_params["background"].data[:, 0] = torch.linspace(0.5, 1.5, len(sim.angles_deg))  # a floor of its own per view
+    probes = model.means.detach()[:5] + 0.01, model.sigmas.detach()[:5]
+    model.indexed_views = False  # each view through its own camera
+    one_by_one, correlations = residuals.render_training_views(model), residuals.residual_correlations(model, *probes)
+    model.indexed_views = True
+    for size in (1, 100):
+        monkeypatch.setattr(residuals, "view_chunks", lambda n, *_: [list(range(i, min(i + size, n))) for i in range(0, n, size)])
+        chunked = residuals.render_training_views(model)
+        np.testing.assert_allclose(chunked, one_by_one, rtol=0, atol=2e-5 * np.abs(one_by_one).max())
+        np.testing.assert_allclose(residuals.residual_correlations(model, *probes), correlations, rtol=1e-4, atol=1e-6 * np.abs(correlations).max())

@@ -157,14 +157,13 @@ class GaussianAtomsModel(SplatfactoCompat):
         rows, cols, pitch, view = self.view_geometry.read(camera, c2w, self.training and self.step < self.config.coarse_steps, self.view_c2w, self.training, dev, dt)
         self._held_out_step, self.rendered_floors = self.training and self.kernel_reading.holds_out(view, self.step), None  # psf held-out: it teaches the kernel, not the atoms
         indexed = background and self.training and view is not None and self.indexed_views and not self._held_out_step  # the step's views by one device index
-        means, sigmas, amps = [x.detach() if self._held_out_step else x for x in (self.means, self.sigmas, self.amplitudes)]
         extra = {}
         if indexed:  # cameras on their beam axes through the tilt centre: no offset (R.step_index; a CUDA graph's replays refill it, .step_graph)
             index = R.step_index(self, view, dev)
-            images = R.blur(self, R.projector_for(self.config.projector, dev)(means, sigmas, amps, R.detector_axes(self.view_c2w[index].to(dev, dt)), rows, cols), pitch)
-            images = R.add_view_floors(self, images, index, rows, cols)[0] if "background" in self.view_params else images
+            images = R.render_views(self, index, rows, cols, pitch)
             image, extra = images[0], ({"extra_projection": images[1:, :, :, None], "extra_views": index[1:]} if len(images) > 1 else {})
         else:
+            means, sigmas, amps = [x.detach() if self._held_out_step else x for x in (self.means, self.sigmas, self.amplitudes)]
             image = R.one_view(self, c2w, view, rows, cols, pitch, means, sigmas, amps)
             if view is not None and "background" in self.view_params:
                 with_floor, floors = R.add_view_floors(self, image[None], [view], rows, cols)

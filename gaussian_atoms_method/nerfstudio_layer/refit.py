@@ -8,7 +8,8 @@ import torch
 
 from gaussian_atoms_method.density.averaging import IterateAverage
 from gaussian_atoms_method.nerfstudio_layer.convergence import drifting
-from gaussian_atoms_method.nerfstudio_layer.residuals import training_views
+from gaussian_atoms_method.nerfstudio_layer.rendering import render_views
+from gaussian_atoms_method.nerfstudio_layer.residuals import in_chunks, training_views
 
 
 def refit(model, max_passes: int = 10) -> int:
@@ -77,11 +78,16 @@ def _refit_pass(model, cameras, projections, names, views_per_step: int = 1, ave
     # alike and Adam's momentum carries the atoms along (the aPd noise-200 RMSD rose 1.2 pm).
     order, size = torch.randperm(len(cameras), generator=model.generator).tolist(), max(int(views_per_step), 1)
     batches = [order[i : i + size] for i in range(0, len(order), size)]
+    together = in_chunks(model, cameras)  # a step's views in one projector call, where the cameras allow it
     for batch in batches:
         for n in names:
             model.optimizers[n].zero_grad()
-        loss = sum(model.get_loss_dict(model.get_outputs(cameras[v : v + 1]), {"image": projections[v].to(model.means.device)[..., None]})["main_loss"] for v in batch)
-        (loss / len(batch)).backward()
+        if together is not None:  # the data term's mean over all the step's pixels: the mean of its views' (one size)
+            measured = projections[batch].to(model.means.device)[..., None]
+            loss = model.get_loss_dict({"projection": render_views(model, batch, *together[:3])[..., None]}, {"image": measured})["main_loss"]
+        else:
+            loss = sum(model.get_loss_dict(model.get_outputs(cameras[v : v + 1]), {"image": projections[v].to(model.means.device)[..., None]})["main_loss"] for v in batch) / len(batch)
+        loss.backward()
         for n in names:
             model.optimizers[n].step()
         with torch.no_grad():

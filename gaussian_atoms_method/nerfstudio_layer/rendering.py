@@ -304,6 +304,30 @@ def on_beam_axes(view_c2w: torch.Tensor) -> bool:
     return float(off_axis) <= 1e-5
 
 
+def render_views(model, index, rows: torch.Tensor, cols: torch.Tensor, pitch: float | None, floors: bool = True) -> torch.Tensor:
+    """(V, H, W) the model's projections of its training ``views`` (a list, or a (V,) index on the
+    model's device) in one projector call, on the detector of ``rows`` and ``cols``: the cameras
+    on their beam axes through the tilt centre (``model.indexed_views``), blurred by the model's
+    kernel, with their floors (``floors``)."""
+    dev, dt = model.means.device, model.means.dtype
+    index = index_on(index, dev)
+    images = blur(model, projector_for(model.config.projector, dev)(model.means, model.sigmas, model.amplitudes, detector_axes(model.view_c2w[index].to(dev, dt)), rows, cols), pitch)
+    return add_view_floors(model, images, index, rows, cols)[0] if floors and "background" in model.view_params else images
+
+
+RENDER_MEMORY_SHARE = 0.25
+""":func:`view_chunks` spends at most this share of the free GPU memory (1 GiB on a CPU) on a
+chunk of views rendered at once; the rest stays for what the run holds."""
+
+
+def view_chunks(n_views: int, n_gaussians: int, h: int, w: int, device: torch.device) -> list[list[int]]:
+    """The views 0..n_views-1 in consecutive chunks that :func:`render_views` can render at once:
+    the dense projector holds about three (N, H + W) float32 arrays a view."""
+    budget = RENDER_MEMORY_SHARE * torch.cuda.mem_get_info(device)[0] if device.type == "cuda" else 2.0**30
+    size = max(1, int(budget // (12.0 * max(n_gaussians, 1) * (h + w))))
+    return [list(range(i, min(i + size, n_views))) for i in range(0, n_views, size)]
+
+
 def step_index(model, view: int, device: torch.device) -> torch.Tensor:
     """(V,) on ``device``: the training step's views, ``view`` and ``views_per_step - 1`` others
     drawn at random (none for one view a step); one index the projection, the floors, the
