@@ -73,14 +73,17 @@ def test_write_is_atomic(tmp_path, monkeypatch):
     assert list(tmp_path.iterdir()) == []
 
 
-@pytest.mark.parametrize("optional", [True, False])
+@pytest.mark.parametrize("optional", [True, False, "none"])
 def test_xyz_and_csv_are_the_bytes_ase_and_csv_write(tmp_path, optional):
     """The one-pass writers give exactly what ASE's extended XYZ writer and csv.writer give
-    (the formats every reader of these files has seen), with and without the optional columns."""
+    (the formats every reader of these files has seen), with and without the optional columns,
+    and for no atoms (a run's non_atoms.xyz)."""
     import csv
 
     a = _atoms()
-    if optional:
+    if optional == "none":
+        a = a.subset(np.zeros(len(a), dtype=bool))
+    elif optional:
         a.position_std_A = np.random.default_rng(4).uniform(0, 0.01, (len(a), 3))
         a.species = np.array(["Au", "Pt", "X", "Au", "O", "Pt", "Au"])
     else:

@@ -44,3 +44,38 @@ def test_an_imported_package_is_left_alone():
     from gaussian_atoms_method.nerfstudio_layer.deferred_imports import defer_imports
 
     assert "matplotlib" not in defer_imports() and sys.modules["matplotlib"] is matplotlib
+
+
+def test_tensorly_and_dynamo_wait_until_something_uses_them():
+    """In a fresh interpreter: splatfacto's import (the bilateral grid sets tensorly's backend)
+    and an optimiser's set-up, steps and state leave tensorly and torch's dynamo unimported;
+    tensorly's first use brings the real package with the backend nerfstudio set, and once
+    dynamo is imported the optimiser's methods take its disabled form, as torch gives them."""
+    code = textwrap.dedent(
+        """
+        import sys
+        import gaussian_atoms_method.nerfstudio_layer
+        import nerfstudio.models.splatfacto
+        import torch
+        from gaussian_atoms_method.nerfstudio_layer.config import Adam
+        assert "tensorly" in sys.modules and "torch._dynamo" not in sys.modules
+        p, q = torch.nn.Parameter(torch.ones(3)), torch.nn.Parameter(torch.ones(3))
+        opt, stock = Adam([p], lr=0.1), torch.optim.Adam([q], lr=0.1)
+        for _ in range(3):
+            (p * torch.arange(3.0)).sum().backward(); opt.step(); opt.zero_grad()
+        opt.load_state_dict(opt.state_dict())
+        assert "torch._dynamo" not in sys.modules and float(p[1]) < 1.0
+        for _ in range(3):  # the stock step (it imports dynamo): the same update, to the bit
+            (q * torch.arange(3.0)).sum().backward(); stock.step(); stock.zero_grad()
+        assert torch.equal(p, q) and "torch._dynamo" in sys.modules
+        (p * torch.arange(3.0)).sum().backward(); opt.step()  # now through the stock step's graph breaks
+        from nerfstudio.model_components import lib_bilagrid
+        assert lib_bilagrid.tl.get_backend() == "pytorch"
+        opt.add_param_group({"params": [torch.nn.Parameter(torch.ones(2))]})
+        fn = torch.optim.Optimizer.add_param_group.__wrapped__
+        assert fn.__dynamo_disable.__module__.startswith("torch._dynamo") or "_dynamo" in repr(fn.__dynamo_disable)
+        print("ok")
+        """
+    )
+    run = subprocess.run([sys.executable, "-W", "ignore", "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert run.returncode == 0 and run.stdout.strip().endswith("ok"), run.stderr[-2000:]

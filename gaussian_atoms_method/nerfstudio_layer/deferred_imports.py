@@ -6,6 +6,13 @@ something first reads them.
   (dynamo, through ``torchvision.ops``).
 * ``matplotlib``: nerfstudio's colour maps, imported through its COLMAP reader; this method's
   pictures (written after the atoms) import it when they are drawn.
+* ``tensorly``: nerfstudio's bilateral grid (a splatfacto option this method does not build)
+  imports it and sets its backend at import; the stand-in keeps the backend for the real
+  package (0.45 s on the H100 machine, 0.7 s on the 2-core CPU).
+* torch's compiler front end (``torch._dynamo``): ``torch.optim.Optimizer`` imports it the first
+  time one of its methods runs (``torch._disable_dynamo``, which keeps the compiler out of those
+  methods); :func:`defer_dynamo` leaves it unimported until something else imports it (0.7 s on
+  the H100 machine, 2.8 s on the 2-core CPU, at the optimisers' set-up).
 
 Importing ``gaussian-atoms train`` took 8.9 s on the 2-core CPU, 3.0 s of it torchvision and
 0.5 s matplotlib (``python -X importtime``); on the lent H200, 4.0-4.9 -> 2.6-3.6 s with
@@ -22,7 +29,7 @@ import importlib.util
 import sys
 import types
 
-DEFERRED = {"torchvision": ("utils",), "matplotlib": ()}
+DEFERRED = {"torchvision": ("utils",), "matplotlib": (), "tensorly": ()}
 """Each deferred package and the submodules nerfstudio imports by name (``import
 torchvision.utils as vutils`` reads the attribute of a stand-in parent)."""
 
@@ -36,13 +43,25 @@ class DeferredModule(types.ModuleType):
         return getattr(load_deferred(self.__name__), attr)
 
 
+class DeferredTensorly(DeferredModule):
+    """tensorly's stand-in: ``set_backend`` (what nerfstudio calls at import) is kept and applied
+    to the real package when it is imported."""
+
+    def set_backend(self, backend, local_threadsafe: bool = False) -> None:
+        self.__dict__["_backend"] = (backend, local_threadsafe)
+
+
 def load_deferred(name: str) -> types.ModuleType:
     """Import the real module ``name`` in place of its package's stand-ins."""
     package = name.partition(".")[0]
+    pending = []
     for stand_in in [package, *(f"{package}.{sub}" for sub in DEFERRED.get(package, ()))]:
         if isinstance(sys.modules.get(stand_in), DeferredModule):
-            del sys.modules[stand_in]
-    return importlib.import_module(name)
+            pending.append(sys.modules.pop(stand_in).__dict__.get("_backend"))
+    module = importlib.import_module(name)
+    for backend in filter(None, pending):
+        importlib.import_module(package).set_backend(*backend)
+    return module
 
 
 def defer_imports() -> list[str]:
@@ -52,9 +71,42 @@ def defer_imports() -> list[str]:
     for package, submodules in DEFERRED.items():
         if package in sys.modules or importlib.util.find_spec(package) is None:
             continue
-        parent = sys.modules[package] = DeferredModule(package)
+        parent = sys.modules[package] = (DeferredTensorly if package == "tensorly" else DeferredModule)(package)
         for sub in submodules:
             child = sys.modules[f"{package}.{sub}"] = DeferredModule(f"{package}.{sub}")
             setattr(parent, sub, child)
         deferred.append(package)
     return deferred
+
+
+def defer_dynamo() -> int:
+    """Let ``torch.optim.Optimizer``'s methods run without importing ``torch._dynamo`` while no
+    one else has imported it: each method ``torch._disable_dynamo`` wrapped calls its function
+    as it is until then (nothing is being compiled without dynamo), and takes dynamo's disabled
+    form, as torch would, once dynamo is imported.  Returns the methods changed (none where
+    torch wraps them otherwise)."""
+    import torch
+    import torch._compile
+
+    inner = torch._compile._disable_dynamo(lambda: None).__code__
+    changed = 0
+    for method in vars(torch.optim.Optimizer).values():
+        fn = getattr(method, "__wrapped__", None)
+        if getattr(method, "__code__", None) is not inner or fn is None or getattr(fn, "__dynamo_disable", None) is not None:
+            continue
+        fn.__dynamo_disable = _until_dynamo(fn, method)
+        changed += 1
+    return changed
+
+
+def _until_dynamo(fn, method):
+    """``fn`` itself while ``torch._dynamo`` is not imported; from then on torch's own
+    ``method`` (which makes and caches dynamo's disabled ``fn``)."""
+
+    def call(*args, **kwargs):
+        if "torch._dynamo" not in sys.modules:
+            return fn(*args, **kwargs)
+        del fn.__dynamo_disable
+        return method(*args, **kwargs)
+
+    return call
