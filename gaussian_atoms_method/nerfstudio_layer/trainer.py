@@ -22,6 +22,7 @@ from dataparsers.errors import TiltSeriesError
 from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
 from gaussian_atoms_method.atoms.atom_set import AtomFileError, read_atoms
 from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions, OptionError
+from gaussian_atoms_method.nerfstudio_layer.step_graph import detached
 from gaussian_atoms_method.start_ahead import end_now
 
 INPUT_ERRORS = (TiltSeriesError, AtomFileError, OptionError)
@@ -91,8 +92,6 @@ class GaussianAtomsTrainer(Trainer):
 
     def train_iteration(self, step: int):
         # On a GPU a replay of the step captured as a CUDA graph where the model's step graph serves it (.step_graph).
-        from gaussian_atoms_method.nerfstudio_layer.step_graph import detached
-
         graph = getattr(self.pipeline.model, "step_graph", None)
         done = graph.train_iteration(self, step) if graph is not None else None
         return done if done is not None else detached(*super().train_iteration(step))  # the loop holds them while the next step runs
