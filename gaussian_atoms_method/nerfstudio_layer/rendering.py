@@ -209,7 +209,7 @@ def view_floors(model, views, powers: tuple[torch.Tensor, torch.Tensor], dtype) 
     :func:`coordinate_powers` ``powers``: each view's background and, for a floor that varies
     within the views, its surface (binned like the image in the coarse phase)."""
     coefficients = model.view_params["background"]
-    index = views if torch.is_tensor(views) else slice(views[0], views[0] + 1) if len(views) == 1 else index_on(views, coefficients.device)
+    index = index_on(views, coefficients.device)  # a device index passes as it is
     floors = floor_images(coefficients[index].to(dtype), powers)
     if len(model.background_surfaces):
         floors = floors + model.view_geometry.surfaces(model.background_surfaces, *floors.shape[-2:])[index].to(dtype)
