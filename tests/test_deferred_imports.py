@@ -79,3 +79,41 @@ def test_tensorly_and_dynamo_wait_until_something_uses_them():
     )
     run = subprocess.run([sys.executable, "-W", "ignore", "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert run.returncode == 0 and run.stdout.strip().endswith("ok"), run.stderr[-2000:]
+
+
+def test_broadcast_shapes_of_plain_ints_match_torchs_own_without_sympy():
+    """In a fresh interpreter: the plugin's import, nerfstudio's cameras built and indexed leave
+    torch's symbolic shapes (and sympy) unimported; the plain-int broadcast agrees with torch's
+    own function on every pair and triple of small shapes, and shapes that do not broadcast get
+    torch's own error."""
+    code = textwrap.dedent(
+        """
+        import itertools, sys
+        import torch
+        import gaussian_atoms_method.nerfstudio_layer
+        from gaussian_atoms_method.nerfstudio_layer.deferred_imports import _plain_broadcast
+        from nerfstudio.cameras.cameras import Cameras, CameraType
+        cams = Cameras(camera_to_worlds=torch.eye(4)[:3].expand(5, 3, 4), fx=1.0, fy=1.0, cx=4.0, cy=4.0, width=8, height=8, camera_type=CameraType.ORTHOPHOTO)
+        cams[2:4], cams[torch.tensor([1])]
+        assert "sympy" not in sys.modules and "torch.fx.experimental.symbolic_shapes" not in sys.modules
+        shapes = [(), (0,), (1,), (3,), (1, 1), (2, 1), (1, 3), (2, 3), (0, 3), (4, 1, 3)]
+        checked = 0
+        for combo in itertools.chain(itertools.product(shapes, repeat=2), itertools.product(shapes, repeat=3)):
+            mine = _plain_broadcast(combo)
+            try:
+                expected = list(torch.broadcast_tensors(*(torch.empty(s) for s in combo))[0].shape)
+            except RuntimeError:
+                expected = None
+            assert mine == expected, (combo, mine, expected)
+            checked += mine is not None
+        assert checked > 500
+        try:
+            torch.broadcast_shapes((2,), (3,))
+            raise SystemExit("no error")
+        except RuntimeError as e:
+            assert "broadcast" in str(e)
+        print("ok")
+        """
+    )
+    run = subprocess.run([sys.executable, "-W", "ignore", "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert run.returncode == 0 and run.stdout.strip().endswith("ok"), run.stderr[-2000:]

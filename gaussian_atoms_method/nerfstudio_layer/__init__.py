@@ -7,9 +7,10 @@ viewer's atom cloud (:mod:`.viewer`) and checkpoint loading (:mod:`.checkpoints`
 The only modules of :mod:`gaussian_atoms_method` that import nerfstudio (with the
 dataparser and dataset in :mod:`dataparsers`)."""
 
-from gaussian_atoms_method.nerfstudio_layer.deferred_imports import defer_dynamo, defer_imports
+from gaussian_atoms_method.nerfstudio_layer.deferred_imports import defer_dynamo, defer_imports, defer_symbolic_shapes
 from gaussian_atoms_method.nerfstudio_layer.lazy_compile import import_splatfacto
 
 defer_imports()  # before nerfstudio imports them
 defer_dynamo()
+defer_symbolic_shapes()
 import_splatfacto()  # first, so that nerfstudio's own imports of it (trainer, viewer) find it made

@@ -13,6 +13,10 @@ something first reads them.
   time one of its methods runs (``torch._disable_dynamo``, which keeps the compiler out of those
   methods); :func:`defer_dynamo` leaves it unimported until something else imports it (0.7 s on
   the H100 machine, 2.8 s on the 2-core CPU, at the optimisers' set-up).
+* torch's symbolic shapes (``torch.fx.experimental.symbolic_shapes``, and sympy with it):
+  ``torch.broadcast_shapes`` imports them on its first call, which nerfstudio's cameras make
+  each time one is built or indexed; :func:`defer_symbolic_shapes` broadcasts plain integer
+  shapes without them (0.8 s of the start on the 2-core CPU).
 
 Importing ``gaussian-atoms train`` took 8.9 s on the 2-core CPU, 3.0 s of it torchvision and
 0.5 s matplotlib (``python -X importtime``); on the lent H200, 4.0-4.9 -> 2.6-3.6 s with
@@ -97,6 +101,51 @@ def defer_dynamo() -> int:
         fn.__dynamo_disable = _until_dynamo(fn, method)
         changed += 1
     return changed
+
+
+def defer_symbolic_shapes() -> bool:
+    """Let ``torch.broadcast_shapes`` broadcast shapes of plain ``int`` sizes without importing
+    torch's symbolic shapes (and sympy): the same result, by the same rule; anything else
+    (symbolic or nested sizes, a negative size, shapes that do not broadcast) goes to torch's own
+    function, which raises its own errors.  Returns whether it was put in place."""
+    import torch._refs
+
+    original = torch._refs._broadcast_shapes
+    if getattr(original, "_plain_ints", False):
+        return False
+
+    def broadcast(*shapes):
+        common = _plain_broadcast(shapes)
+        return original(*shapes) if common is None else common
+
+    broadcast._plain_ints = True
+    torch._refs._broadcast_shapes = broadcast
+    return True
+
+
+def _plain_broadcast(shapes) -> list[int] | None:
+    """The broadcast of ``shapes`` (ints or sequences of ints, None entries skipped) as a list,
+    where every size is a non-negative plain ``int`` and they broadcast; None otherwise (and
+    for no shapes, which torch answers itself)."""
+    sizes = []
+    for shape in shapes:
+        if shape is None:
+            continue
+        shape = (shape,) if type(shape) is int else shape  # torch.Size is a tuple
+        if not isinstance(shape, (tuple, list)) or any(type(n) is not int or n < 0 for n in shape):
+            return None
+        sizes.append(shape)
+    if not sizes:
+        return None
+    common = [1] * max(len(s) for s in sizes)
+    for shape in sizes:
+        for i in range(-1, -1 - len(shape), -1):
+            if shape[i] == common[i] or shape[i] == 1:
+                continue
+            if common[i] != 1:
+                return None  # incompatible: torch's own function says so
+            common[i] = shape[i]
+    return common
 
 
 def _until_dynamo(fn, method):
