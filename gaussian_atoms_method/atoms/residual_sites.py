@@ -77,8 +77,10 @@ def unexplained_sites(
     masses : (M,) array
         Integrated mass of each, residual units x Å^2.
     """
-    volume = reconstruct(residuals, angles_deg, pixel_size_A, "fbp", tilt_axis, centre_px, filter_name="hann", device=device, tilt_axis_angle_deg=tilt_axis_angle_deg)
-    # The filter, the noise reading and the maxima on ``device`` (the start's, .volume_filters); only sites come back.
+    # The back-projection stays on ``device`` (a host copy of the 401^3 float64 volume and back
+    # took 0.45 s a search at 20,000 atoms on the H100 machine), as do the filter, the noise
+    # reading and the maxima (the start's, .volume_filters); only sites come back.
+    volume = reconstruct(residuals, angles_deg, pixel_size_A, "fbp", tilt_axis, centre_px, filter_name="hann", device=device, tilt_axis_angle_deg=tilt_axis_angle_deg, as_tensor=True)
     data = volume_filters.gaussian_filter(volume_filters.as_volume(volume.data, device), smoothing_A / volume.spacing_A)
     noise = mad_std(data)
     level = random_field_threshold(data, false_alarm_rate) * noise
