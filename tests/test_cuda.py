@@ -70,6 +70,26 @@ def test_filtered_backprojection_on_cuda_matches_cpu():
 
 
 @cuda
+def test_noise_readings_on_cuda_equal_the_hosts():
+    """The pre-fit noise model, the fitted one and the excess over an atom read on the GPU (what
+    a run there does) equal those read on the CPU in float64 (which test_noise holds to numpy's)."""
+    from dataclasses import astuple
+
+    from gaussian_atoms_method.physics.noise import atom_scale_excess, fit_noise_model, noise_from_projections
+
+    rng = np.random.default_rng(2)
+    rows, cols = np.arange(120)[:, None], np.arange(101)[None]
+    mean = np.broadcast_to(3.0 + 40.0 * np.exp(-((rows - 60) ** 2 + (cols - 50) ** 2) / 300.0), (11, 120, 101)).copy()
+    data = rng.poisson(mean).astype(np.float64)
+    for a, b in zip(astuple(noise_from_projections(data, device="cpu")), astuple(noise_from_projections(torch.tensor(data, device="cuda")))):
+        assert b == pytest.approx(a, rel=1e-9, abs=1e-12)
+    r, m = torch.tensor(data - mean, device="cuda"), torch.tensor(mean, device="cuda")
+    for a, b in zip(astuple(fit_noise_model(data - mean, mean, device="cpu")), astuple(fit_noise_model(r, m))):
+        assert b == pytest.approx(a, rel=1e-9, abs=1e-12)
+    assert atom_scale_excess(r, m, 1.5) == pytest.approx(atom_scale_excess(data - mean, mean, 1.5, device="cpu"), rel=1e-9)
+
+
+@cuda
 def test_auto_views_per_step_on_a_gpu_stays_within_its_memory_share():
     """On a GPU auto picks 1 to 8 views, never more than half the free memory holds by the
     projector's measured bytes per view (:func:`.rendering.auto_views_per_step`)."""

@@ -4,6 +4,8 @@
 error of about sqrt(2 / (0.37 * 12,500)) = 2%, the fitted line about 1%; 5% tolerances are
 several standard errors."""
 
+from dataclasses import astuple
+
 import numpy as np
 import pytest
 
@@ -126,12 +128,29 @@ def test_the_floor_under_a_frame_atoms_reach_is_read_from_the_pixels_they_leave(
     assert 0.9 < smooth_var < 1.5
 
 
-def test_stable_order_equals_numpy_stable_argsort():
-    """Ties (counts take few values) keep their index order, as numpy's stable sort."""
-    from gaussian_atoms_method.physics.noise import stable_order
+@pytest.mark.parametrize("kind", ["additive", "counts"])
+def test_readings_in_torch_are_numpys(kind):
+    """The torch path (what a GPU run takes; here on the CPU in float64) gives numpy's readings
+    to rounding: the pre-fit noise model, the binned variances (ties, as counts take few values,
+    in the same stable order), the fitted model and the excess over an atom."""
+    import torch
 
-    values = np.random.default_rng(3).poisson(2.0, 100_000).astype(np.float64)
-    np.testing.assert_array_equal(stable_order(values), np.argsort(values, kind="stable"))
+    from gaussian_atoms_method.physics.noise import atom_scale_excess, binned_variance, noise_from_projections
+
+    rng = np.random.default_rng(5)
+    rows, cols = np.arange(90)[:, None], np.arange(77)[None]
+    mean = np.broadcast_to(4.0 + 30.0 * np.exp(-((rows - 45) ** 2 + (cols - 38) ** 2) / 200.0), (9, 90, 77))
+    data = mean + rng.normal(0.0, 2.0, mean.shape) if kind == "additive" else rng.poisson(mean).astype(np.float64)
+    residuals = data - mean
+    host, device = noise_from_projections(data), noise_from_projections(torch.tensor(data), device="cpu")
+    for a, b in zip(astuple(host), astuple(device)):
+        assert b == pytest.approx(a, rel=1e-9, abs=1e-12)
+    for a, b in zip(binned_variance(residuals, mean, robust=kind == "additive"), binned_variance(torch.tensor(residuals), torch.tensor(mean.copy()), robust=kind == "additive", device="cpu")):
+        np.testing.assert_allclose(b, a, rtol=1e-12)
+    for a, b in zip(astuple(fit_noise_model(residuals, mean)), astuple(fit_noise_model(torch.tensor(residuals), torch.tensor(mean.copy()), device="cpu"))):
+        assert b == pytest.approx(a, rel=1e-9, abs=1e-12)
+    variance = host.variance(mean)
+    assert atom_scale_excess(torch.tensor(residuals), torch.tensor(variance), 1.6, device="cpu") == pytest.approx(atom_scale_excess(residuals, variance, 1.6), rel=1e-12)
 
 
 def test_masked_least_squares_equals_lstsq_per_view():

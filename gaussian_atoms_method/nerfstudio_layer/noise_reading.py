@@ -98,13 +98,14 @@ def say_start(start: Start, length_scale: float, option: str, ahead: bool = Fals
         CONSOLE.print(f"gaussian-atoms: {len(start.means)} Gaussians start at back-projection maxima" + (" (found while the launcher loaded)" if ahead else ""))
 
 
-def noise_after_fit(before: NoiseModel, measured: np.ndarray, predicted: np.ndarray, sigma_px: float) -> tuple[NoiseModel, float]:
+def noise_after_fit(before: NoiseModel, measured, predicted, sigma_px: float) -> tuple[NoiseModel, float]:
     """The noise the final tests judge in: ``before`` (read before training) scaled by how much
     more the fit's residuals vary over an atom than it says
     (:func:`~gaussian_atoms_method.physics.noise.atom_scale_excess`), never scaled down.  Where
     the data match the forward model the residual is that noise and the factor is about 1; on
     real data (a denoised film, a probe's tails) the fit leaves structure that no Gaussian should
-    be kept or split for.  Returns the scaled model and the factor."""
+    be kept or split for.  ``measured``, ``predicted``: (V, H, W) arrays, or tensors on one
+    device (read there).  Returns the scaled model and the factor."""
     factor = max(atom_scale_excess(measured - predicted, before.variance(predicted), sigma_px), 1.0)
     return inflated(before, factor), factor
 
@@ -118,9 +119,9 @@ def judge_after_fit(model) -> None:
     projections = (model.kwargs.get("metadata", {}) or {}).get("projections")
     if model.density.noise is None or projections is None or model.num_points == 0 or not model.config.judge_after_fit:
         return
-    predicted = render_training_views(model)
+    predicted = render_training_views(model, on_device=True)  # read on the model's device
     sigma_px = float(model.sigmas.median()) / model.density.pixel_size
-    judged, factor = noise_after_fit(model.density.noise, projections.cpu().numpy(), predicted, sigma_px)
+    judged, factor = noise_after_fit(model.density.noise, projections.to(predicted.device), predicted, sigma_px)
     if factor > 1.0:
         CONSOLE.print(f"gaussian-atoms: over an atom the fit's residuals vary {factor:.3g} times as much as the noise read before training; the final merges and prune judge in that")
     model.density.noise = judged

@@ -30,16 +30,16 @@ from gaussian_atoms_method.physics.noise import fit_noise_model
 
 
 @torch.no_grad()
-def residual_noise(model) -> tuple[float, np.ndarray, np.ndarray] | None:
+def residual_noise(model) -> tuple[float, torch.Tensor, torch.Tensor] | None:
     """The pixel noise of the fit's residuals over the training views (robust standard
     deviation, input units), with the residuals and the predicted projections (V, H, W) in
-    normalised data units (``model.normalisation.data_scale`` per input unit); None without
-    the tilt series."""
+    normalised data units (``model.normalisation.data_scale`` per input unit), tensors on the
+    model's device (the noise readings run there); None without the tilt series."""
     projections = (model.kwargs.get("metadata", {}) or {}).get("projections")
-    predicted = render_training_views(model) if projections is not None else None
+    predicted = render_training_views(model, on_device=True) if projections is not None else None
     if predicted is None:
         return None
-    residuals = predicted - projections.cpu().numpy()
+    residuals = predicted - projections.to(predicted.device)
     return robust_noise_std(residuals) / model.normalisation.data_scale, residuals, predicted
 
 

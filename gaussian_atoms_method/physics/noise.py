@@ -17,8 +17,11 @@ a weighted straight line through the bins gives ``read_var`` and ``gain`` with t
 errors, and the Poisson part counts only when its slope is significant (``z_min`` standard
 errors; 3: a one-in-700 false alarm for Gaussian errors).
 
-This module is the measurement only (torch-free numpy): what the fit does with it (the data
-term, thresholds in units of the noise) is density control's and the model's.
+This module is the measurement only: what the fit does with it (the data term, thresholds in
+units of the noise) is density control's and the model's.  Arrays are read with numpy on a
+machine without a GPU; with one (or given tensors on one) the filters, sorts and medians run in
+torch there (:func:`compute_device`), since a series of millions of pixels took about a second
+a reading on the H100 machine's CPU.
 """
 
 from __future__ import annotations
@@ -66,7 +69,7 @@ class NoiseModel:
         return self.read_var + self.gain * x + self.misfit * x**2
 
 
-def atom_scale_excess(residuals: np.ndarray, variance: np.ndarray, sigma_px: float) -> float:
+def atom_scale_excess(residuals: np.ndarray, variance: np.ndarray, sigma_px: float, device=None) -> float:
     """How much more the (V, H, W) ``residuals`` vary over an atom than the noise model says:
     ``Var(g * (r / sqrt(v))) / sum g^2`` for ``g`` the Gaussian of ``sigma_px`` and ``v`` the
     model's per-pixel ``variance`` (a robust variance, 1.4826 MAD squared, of the filtered field
@@ -76,12 +79,15 @@ def atom_scale_excess(residuals: np.ndarray, variance: np.ndarray, sigma_px: flo
     1-5 pixels); what a fit leaves on real data is larger and correlated over an atom
     (denoised projections, a probe's tails, the model's misfit), and every chi-square over
     pixels that treats it as the model's noise overstates a difference at the atom's scale by
-    this factor."""
+    this factor.  ``device``: where it runs (default :func:`compute_device`)."""
     from scipy import ndimage
 
+    radius = int(np.ceil(4.0 * sigma_px))
+    device = compute_device(residuals, device)
+    if device is not None:
+        return _atom_scale_excess_torch(residuals, variance, sigma_px, radius, device)
     w = np.asarray(residuals, dtype=np.float64) / np.sqrt(np.maximum(np.asarray(variance, dtype=np.float64), 1e-300))
     w = w.reshape((-1,) + w.shape[-2:])
-    radius = int(np.ceil(4.0 * sigma_px))
     impulse = np.zeros((2 * radius + 1,) * 2)
     impulse[radius, radius] = 1.0
     g2 = float((ndimage.gaussian_filter(impulse, sigma_px, mode="constant", truncate=radius / sigma_px) ** 2).sum())
@@ -92,29 +98,80 @@ def atom_scale_excess(residuals: np.ndarray, variance: np.ndarray, sigma_px: flo
     return float(spread**2 / g2)
 
 
+def _atom_scale_excess_torch(residuals, variance, sigma_px: float, radius: int, device) -> float:
+    """:func:`atom_scale_excess` in torch on ``device``: the same sampled Gaussian, zero outside
+    the images (scipy's ``constant`` mode), the same crop and robust spread."""
+    import torch
+
+    w = _as_float64(residuals, device) / _as_float64(variance, device).clamp_min(1e-300).sqrt()
+    w = w.reshape((-1,) + tuple(w.shape[-2:]))
+    taps = gaussian_taps(sigma_px, radius)
+    g2 = float((taps**2).sum()) ** 2  # the squared filter's sum: the impulse's response is the kernel's outer product
+    padded = torch.nn.functional.pad(w, (radius, radius, radius, radius))
+    filtered = separable_correlate(padded, taps, taps)
+    if min(w.shape[-2:]) > 2 * radius + 4:
+        filtered = filtered[:, radius:-radius, radius:-radius]
+    spread = MAD_TO_STD * median_on_device((filtered - median_on_device(filtered.reshape(-1))).abs().reshape(-1))
+    return float(spread**2 / g2)
+
+
+def gaussian_taps(sigma_px: float, radius: int) -> np.ndarray:
+    """(2 radius + 1,) scipy's sampled Gaussian of ``sigma_px`` (``gaussian_filter`` with
+    ``truncate = radius / sigma_px``), summing to one."""
+    x = np.arange(-radius, radius + 1, dtype=np.float64)
+    phi = np.exp(-0.5 * x**2 / float(sigma_px) ** 2)
+    return phi / phi.sum()
+
+
+def separable_correlate(padded, taps_rows: np.ndarray, taps_cols: np.ndarray):
+    """The valid correlation of (V, H + 2a, W + 2b) ``padded`` with the outer product of the
+    (2a + 1,) ``taps_rows`` and (2b + 1,) ``taps_cols``: (V, H, W), as weighted sums of shifted
+    slices (one pass per axis)."""
+    h, w = padded.shape[-2] - len(taps_rows) + 1, padded.shape[-1] - len(taps_cols) + 1
+    rows = sum(float(t) * padded[:, k : k + h, :] for k, t in enumerate(taps_rows))
+    return sum(float(t) * rows[:, :, k : k + w] for k, t in enumerate(taps_cols))
+
+
+def compute_device(values, device=None):
+    """Where the noise readings of ``values`` run: ``device`` if given, else a tensor's own
+    device off the CPU, else a GPU where there is one; None: numpy on the host."""
+    import torch
+
+    if device is not None:
+        return torch.device(device)
+    if isinstance(values, torch.Tensor) and values.device.type != "cpu":
+        return values.device
+    return _gpu()
+
+
+def _as_float64(values, device):
+    """``values`` (an array or tensor) as a float64 tensor on ``device``."""
+    import torch
+
+    if isinstance(values, torch.Tensor):
+        return values.to(device, torch.float64)
+    values = np.asarray(values, dtype=np.float64)
+    return torch.as_tensor(values if values.flags.writeable else values.copy(), device=device)
+
+
+def _host(values) -> np.ndarray:
+    """``values`` (an array or a tensor on any device) as a float64 array."""
+    return as_array(values)
+
+
 def inflated(noise: NoiseModel, factor: float) -> NoiseModel:
     """``noise`` with every variance term times ``factor`` (standard errors alike)."""
     f = float(factor)
     return NoiseModel(noise.read_var * f, noise.gain * f, noise.offset, noise.read_var_se * f, noise.gain_se * f, noise.misfit * f)
 
 
-def stable_order(values: np.ndarray) -> np.ndarray:
-    """``np.argsort(values, kind="stable")``, sorted by torch on a GPU where there is one (as the
-    start's back-projection runs there): the same order (both stable), and the series' millions
-    of pixels sort in milliseconds there instead of 0.5 s on the H100 machine's CPU (the start's
-    largest host cost after the filters moved to the GPU)."""
-    import torch
-
-    device = "cuda" if torch.cuda.is_available() else "cpu"
-    return torch.sort(torch.as_tensor(values, device=device), stable=True).indices.cpu().numpy()
-
-
 def binned_variance(residuals: np.ndarray, predicted: np.ndarray, bins: int = 16, min_count: int = 200, robust: bool = True, device=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Residual variance in bins of the predicted value: robust, ``(1.4826 MAD)^2``, or the
     plain sample variance (``robust=False``: for counts of a few electrons, whose residuals
     take a handful of discrete values and whose MAD is quantised: on Poisson counts of mean
-    1-2 the MAD read the variance 1.3-2x too high).  The bins' medians are :func:`mad_std`'s, on
-    ``device`` (default: a GPU where there is one).
+    1-2 the MAD read the variance 1.3-2x too high).  The sort and the bins are read in torch on
+    ``device`` (default :func:`compute_device`: at 20,000 atoms the host's sort, gathers and
+    copies took 0.6 s a reading on the H100 machine), else with numpy.
 
     Returns
     -------
@@ -122,9 +179,11 @@ def binned_variance(residuals: np.ndarray, predicted: np.ndarray, bins: int = 16
     variances : (B,) (1.4826 * MAD)^2 of the residuals in the bin
     counts : (B,) pixels per bin (bins with fewer than ``min_count`` are dropped)
     """
-    r = np.asarray(residuals, dtype=np.float64).ravel()
-    m = np.asarray(predicted, dtype=np.float64).ravel()
-    order = stable_order(m)
+    device = compute_device(residuals, device)
+    if device is not None:
+        return _binned_variance_torch(residuals, predicted, bins, min_count, robust, device)
+    r, m = _host(residuals).ravel(), _host(predicted).ravel()
+    order = np.argsort(m, kind="stable")
     centres, variances, counts = [], [], []
     for chunk in np.array_split(order, bins):
         if len(chunk) < min_count:
@@ -133,6 +192,27 @@ def binned_variance(residuals: np.ndarray, predicted: np.ndarray, bins: int = 16
         centres.append(m[chunk].mean())
         variances.append(float(np.var(rc)) if not robust else mad_std(rc, device) ** 2)
         counts.append(len(chunk))
+    return np.array(centres), np.array(variances), np.array(counts)
+
+
+def _binned_variance_torch(residuals, predicted, bins: int, min_count: int, robust: bool, device):
+    """:func:`binned_variance` in torch on ``device``: the same stable order and bins
+    (``np.array_split``'s sizes), each bin's mean and variance there."""
+    import torch
+
+    r, m = _as_float64(residuals, device).reshape(-1), _as_float64(predicted, device).reshape(-1)
+    order = torch.sort(m, stable=True).indices
+    m, r = m[order], r[order]
+    n = len(m)
+    sizes = [n // bins + 1] * (n % bins) + [n // bins] * (bins - n % bins)
+    centres, variances, counts, start = [], [], [], 0
+    for size in sizes:
+        if size >= min_count:
+            rc = r[start : start + size]
+            centres.append(float(m[start : start + size].mean()))
+            variances.append(mad_std(rc, device) ** 2 if robust else float(rc.var(unbiased=False)))
+            counts.append(size)
+        start += size
     return np.array(centres), np.array(variances), np.array(counts)
 
 
@@ -182,7 +262,7 @@ def _solve(matrix: np.ndarray, rhs: np.ndarray) -> np.ndarray:
         return np.linalg.lstsq(matrix, rhs, rcond=None)[0]
 
 
-def fit_noise_model(residuals: np.ndarray, predicted: np.ndarray, offset: float = 0.0, bins: int = 16, z_min: float = 3.0, robust: bool = True, quadratic: bool = True) -> NoiseModel:
+def fit_noise_model(residuals: np.ndarray, predicted: np.ndarray, offset: float = 0.0, bins: int = 16, z_min: float = 3.0, robust: bool = True, quadratic: bool = True, device=None) -> NoiseModel:
     """Fit ``Var = read_var + gain * x + misfit * x^2`` (``x = max(m - offset, 0)``) to the
     binned robust variances.
 
@@ -192,11 +272,12 @@ def fit_noise_model(residuals: np.ndarray, predicted: np.ndarray, offset: float 
     ``z_min`` standard errors; ``read_var`` is floored at 0.  ``quadratic=False`` leaves out
     the misfit term (before any fit there is no fit error to take up, and over the narrow
     range of means of low-dose counts, 0.8-2 counts, ``x`` and ``x^2`` are nearly collinear:
-    the quadratic took the Poisson slope of the aSi-208 data at dose 8e3).
+    the quadratic took the Poisson slope of the aSi-208 data at dose 8e3).  ``device``: where
+    the bins are read (:func:`binned_variance`).
     """
-    centres, variances, counts = binned_variance(residuals, predicted, bins, robust=robust)
+    centres, variances, counts = binned_variance(residuals, predicted, bins, robust=robust, device=device)
     if len(centres) < 2:
-        var = float(variances[0]) if len(variances) else float(np.var(residuals))
+        var = float(variances[0]) if len(variances) else float(np.var(_host(residuals)))
         return NoiseModel(max(var, 0.0), 0.0, offset)
     x = np.maximum(centres - offset, 0.0)
     # Noiseless data (tests, simulations without noise) give zero variances: weights stay finite.
@@ -236,10 +317,10 @@ def measure_noise(projections) -> NoiseModel | None:
     (:mod:`gaussian_atoms_method.atoms.initialise`) and the data term share it."""
     if projections is None or min(projections.shape[-2:]) < 5:
         return None
-    return noise_from_projections(as_array(projections))
+    return noise_from_projections(projections if hasattr(projections, "detach") else as_array(projections))
 
 
-def noise_from_projections(projections: np.ndarray, offset: float = 0.0, smoothing_px: float = 2.0, z_min: float = 3.0) -> NoiseModel:
+def noise_from_projections(projections: np.ndarray, offset: float = 0.0, smoothing_px: float = 2.0, z_min: float = 3.0, device=None) -> NoiseModel:
     """The noise model read from the projections alone, before any fit.
 
     Each pixel's noise is seen through :data:`IMMERKAER_KERNEL` (divided by 6 to give pixel
@@ -257,12 +338,19 @@ def noise_from_projections(projections: np.ndarray, offset: float = 0.0, smoothi
         The tilt series, in any units (read_var and gain come out in the same units).
     offset : float
         Signal level below which no Poisson noise grows (a detector's dark level).
+    device : torch device, optional
+        Where the filters and the fit's bins run (default :func:`compute_device`).
     """
     from scipy import ndimage
 
-    p = np.asarray(projections, dtype=np.float64)
-    if p.ndim != 3 or min(p.shape[1:]) < 5:
-        raise ValueError(f"need (N, H, W) projections at least 5 x 5, got shape {p.shape}")
+    projections = projections if hasattr(projections, "shape") else np.asarray(projections, dtype=np.float64)
+    shape = tuple(projections.shape)
+    if len(shape) != 3 or min(shape[1:]) < 5:
+        raise ValueError(f"need (N, H, W) projections at least 5 x 5, got shape {shape}")
+    device = compute_device(projections, device)
+    if device is not None:
+        return _noise_from_projections_torch(projections, offset, smoothing_px, z_min, device)
+    p = as_array(projections)
     filtered = ndimage.correlate(p, IMMERKAER_KERNEL[None], mode="nearest")[:, 1:-1, 1:-1] / 6.0
     # The local mean from a ring around the 3 x 3 pixels the filter reads: from the same pixels
     # it would share their noise, and binning by it would select low-noise pixels into low
@@ -275,6 +363,22 @@ def noise_from_projections(projections: np.ndarray, offset: float = 0.0, smoothi
     smooth = ndimage.gaussian_filter(p, (0, smoothing_px, smoothing_px), mode="nearest", truncate=radius / smoothing_px)
     mean = ((smooth - ndimage.correlate(p, centre[None], mode="nearest")) / (1.0 - centre.sum()))[:, 1:-1, 1:-1]
     # Plain variances: counts of a few electrons take a handful of values and defeat the MAD.
+    return fit_noise_model(filtered, mean, offset=offset, z_min=z_min, robust=False, quadratic=False)
+
+
+def _noise_from_projections_torch(projections, offset: float, smoothing_px: float, z_min: float, device) -> NoiseModel:
+    """:func:`noise_from_projections` in torch on ``device``: the same filters (separable; the
+    edge pixel repeated, scipy's ``nearest``) on the interior pixels it keeps."""
+    import torch
+
+    p = _as_float64(projections, device)
+    radius = int(np.ceil(4 * smoothing_px))
+    g = np.exp(-np.arange(-1, 2) ** 2 / (2 * smoothing_px**2))
+    g = g / np.exp(-np.arange(-radius, radius + 1) ** 2 / (2 * smoothing_px**2)).sum()  # the normalised Gaussian's 3 taps
+    second = np.array([1.0, -2.0, 1.0])
+    filtered = separable_correlate(p, second, second) / 6.0
+    smooth = separable_correlate(torch.nn.functional.pad(p[None], (radius,) * 4, mode="replicate")[0], *(gaussian_taps(smoothing_px, radius),) * 2)
+    mean = (smooth[:, 1:-1, 1:-1] - separable_correlate(p, g, g)) / (1.0 - g.sum() ** 2)
     return fit_noise_model(filtered, mean, offset=offset, z_min=z_min, robust=False, quadratic=False)
 
 
