@@ -90,6 +90,19 @@ def test_noise_readings_on_cuda_equal_the_hosts():
 
 
 @cuda
+def test_clusters_on_cuda_equal_the_hosts():
+    """The training merge's clusters found on the GPU equal the host k-d tree's, numbering included."""
+    from gaussian_atoms_method.atoms.merge import cluster_labels, cluster_labels_on_device
+
+    rng = np.random.default_rng(4)
+    pos = (rng.random((20000, 3)) * 40.0).astype(np.float32)
+    mergeable = rng.random(20000) > 0.1
+    labels, count = cluster_labels_on_device(torch.tensor(pos, device="cuda"), 0.6, torch.tensor(mergeable, device="cuda"))
+    expected = cluster_labels(pos, 0.6, mergeable)
+    assert count == expected[1] < 20000 and np.array_equal(labels, expected[0])
+
+
+@cuda
 def test_auto_views_per_step_on_a_gpu_stays_within_its_memory_share():
     """On a GPU auto picks 1 to 8 views, never more than half the free memory holds by the
     projector's measured bytes per view (:func:`.rendering.auto_views_per_step`)."""

@@ -109,3 +109,21 @@ def test_disjoint_pairs_never_chain():
     labels, n = disjoint_pair_labels(4, np.array([[1, 2], [0, 1], [2, 3]]))
     assert n == 3 and labels[1] == labels[2] and len({labels[0], labels[1], labels[3]}) == 3
     assert disjoint_pair_labels(3, np.zeros((0, 2), dtype=np.int64))[1] == 3
+
+
+def test_clusters_found_in_torch_are_the_k_d_trees():
+    """:func:`cluster_labels_on_device` (what a GPU run takes; here on the CPU) gives the k-d
+    tree's clusters with scipy's numbering, on random clouds of chains and lone points, with and
+    without a mergeable mask."""
+    import torch
+
+    from gaussian_atoms_method.atoms.merge import cluster_labels_on_device
+
+    rng = np.random.default_rng(7)
+    for n, side, threshold in ((1, 1.0, 0.3), (400, 4.0, 0.35), (2500, 12.0, 0.5), (2500, 6.0, 0.4)):
+        pos = (rng.random((n, 3)) * side).astype(np.float32)
+        mergeable = rng.random(n) > 0.25
+        for mask in (None, mergeable):
+            expected = cluster_labels(pos, threshold, mask)
+            labels, count = cluster_labels_on_device(torch.tensor(pos), threshold, None if mask is None else torch.tensor(mask))
+            assert count == expected[1] and np.array_equal(labels, expected[0])

@@ -49,6 +49,43 @@ def cluster_labels(positions: np.ndarray, threshold: float, mergeable: np.ndarra
     return labels.astype(np.int64), int(n_clusters)
 
 
+def cluster_labels_on_device(positions: torch.Tensor, threshold: float, mergeable: torch.Tensor | None = None) -> tuple[np.ndarray, int]:
+    """:func:`cluster_labels` of an (N, 3) tensor, found on its device: the same pairs (at
+    most ``threshold`` apart, in float64; candidates from cubes of side ``threshold``,
+    :func:`..atoms.voxel_pairs.pairs_within`) and the same labels (every point takes the
+    lowest index of its cluster, by propagation along the pairs with pointer jumping, and the
+    clusters are numbered in the order of their lowest index, as scipy's
+    ``connected_components`` numbers them).  On the H100 machine the host's k-d tree took 54 ms
+    a merge at 54,000 Gaussians (1.5 s of a run); only the labels come back."""
+    from gaussian_atoms_method.atoms.voxel_pairs import pairs_within
+
+    n, dev = len(positions), positions.device
+    if n == 0:
+        return np.zeros(0, dtype=np.int64), 0
+    pos = positions.detach().double()
+    cells = torch.floor((pos - pos.min(dim=0).values) / threshold).long()
+    firsts, seconds = [], []
+    for a, b in pairs_within(cells, 1):
+        close = ((pos[a] - pos[b]) ** 2).sum(dim=1) <= threshold**2
+        if mergeable is not None:
+            close &= mergeable[a] & mergeable[b]
+        firsts.append(a[close])
+        seconds.append(b[close])
+    a, b = (torch.cat(firsts), torch.cat(seconds)) if firsts else (torch.zeros(0, dtype=torch.long, device=dev),) * 2
+    if len(a) == 0:
+        return np.arange(n, dtype=np.int64), n
+    labels = torch.arange(n, device=dev)
+    while True:
+        low = torch.minimum(labels[a], labels[b])
+        joined = labels.scatter_reduce(0, a, low, "amin").scatter_reduce(0, b, low, "amin")
+        joined = joined[joined]  # pointer jumping: a label's own label
+        if torch.equal(joined, labels):
+            break
+        labels = joined
+    clusters, numbered = torch.unique(labels, return_inverse=True)
+    return numbered.cpu().numpy(), len(clusters)
+
+
 def scatter_mean(values: torch.Tensor, src: torch.Tensor, dst: torch.Tensor, n_out: int) -> torch.Tensor:
     """``out[j] = mean of values[src[k]] over k with dst[k] == j``; ``values`` is (N, ...)."""
     gathered = values[src]

@@ -48,7 +48,7 @@ from typing import Callable, Mapping, MutableMapping
 import numpy as np
 import torch
 
-from gaussian_atoms_method.atoms.merge import cluster_labels, disjoint_pair_labels, merged_values
+from gaussian_atoms_method.atoms.merge import cluster_labels, cluster_labels_on_device, disjoint_pair_labels, merged_values
 from gaussian_atoms_method.atoms.resolution import candidate_pairs, merge_energy, merged_moments
 from gaussian_atoms_method.density.averaging import IterateAverage
 from gaussian_atoms_method.density.remap import apply_remap, duplicate_remap, keep_remap, merge_remap
@@ -624,7 +624,11 @@ class DensityControl:
         means = params["means"]
         n = means.shape[0]
         mature = ~self.fresh(n) if protect_fresh else torch.ones(n, dtype=torch.bool)
-        labels, n_clusters = cluster_labels(means.detach().cpu().numpy(), self.merge_threshold_A * self.length_scale, mature.numpy())
+        threshold = self.merge_threshold_A * self.length_scale
+        if means.device.type == "cpu":
+            labels, n_clusters = cluster_labels(means.detach().numpy(), threshold, mature.numpy())
+        else:
+            labels, n_clusters = cluster_labels_on_device(means, threshold, mature.to(means.device))
         return self._merge_labels(params, optimizers, labels, n_clusters, param_lists)
 
     @torch.no_grad()
