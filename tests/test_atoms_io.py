@@ -116,3 +116,36 @@ def test_a_file_read_twice_is_read_as_it_stands(tmp_path):
     assert read_atoms(path).positions[0, 0] != 99.0
     write_atoms(AtomSet(np.ones((2, 3))), path)
     assert len(read_atoms(path)) == 2
+
+
+def test_plain_extended_xyz_is_read_as_ase_reads_it(tmp_path):
+    """The reader of plain one-frame extended XYZ (this package's files, simulations' truth)
+    gives ASE's arrays to the bit, every column included; a file it does not take (a cell, two
+    frames, an unknown species) is read by ASE as before, or refused by it."""
+    import ase.io
+
+    from gaussian_atoms_method.atoms.atom_set import _read_plain_extxyz
+
+    rng = np.random.default_rng(3)
+    n = 300
+    full = AtomSet(rng.normal(size=(n, 3)) * 12.3456789, rng.random(n) + 0.3, rng.random(n) * 5, np.array(["Au", "Si", "O"] * 100), position_std_A=rng.random((n, 3)) * 0.1, atom_class=rng.integers(0, 3, n))
+    for atoms in (full, AtomSet(full.positions, species=full.species)):
+        path = write_atoms(atoms, tmp_path / "a.xyz")
+        mine, theirs = _read_plain_extxyz(path), AtomSet.from_ase(ase.io.read(path))
+        for name in ("positions", "sigmas", "amplitudes", "species", "position_std_A", "atom_class"):
+            a, b = getattr(mine, name), getattr(theirs, name)
+            assert (a is None and b is None) or (np.array_equal(a, b) and a.dtype == b.dtype), name
+    text = (tmp_path / "a.xyz").read_text()
+    others = {
+        "cell.xyz": text.replace('pbc="F F F"', 'Lattice="20 0 0 0 20 0 0 0 20" pbc="T T T"'),
+        "frames.xyz": text + text,
+        "unknown.xyz": text.replace("\nAu ", "\nQq ", 1),
+    }
+    for name, content in others.items():
+        (tmp_path / name).write_text(content)
+        assert _read_plain_extxyz(tmp_path / name) is None
+    written = read_atoms(tmp_path / "a.xyz").positions
+    assert np.array_equal(read_atoms(tmp_path / "cell.xyz").positions, written)
+    assert np.array_equal(read_atoms(tmp_path / "frames.xyz").positions, written)
+    with pytest.raises(AtomFileError, match="unknown.xyz"):
+        read_atoms(tmp_path / "unknown.xyz")
