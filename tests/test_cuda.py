@@ -90,6 +90,23 @@ def test_noise_readings_on_cuda_equal_the_hosts():
 
 
 @cuda
+def test_backprojected_noise_variance_on_cuda_equals_the_hosts():
+    """The start's per-pixel noise variance, filtered on the GPU, equals the host's scipy filter;
+    so do its mean and its 99th percentile, the levels' scales."""
+    from gaussian_atoms_method.atoms.initialise import backprojected_noise, percentile
+    from gaussian_atoms_method.physics.noise import NoiseModel
+
+    rng = np.random.default_rng(6)
+    projections = rng.gamma(2.0, 10.0, (9, 70, 61))
+    angles, noise = np.linspace(-60.0, 60.0, 9), NoiseModel(4.0, 0.7)
+    sample_host, host = backprojected_noise(projections, angles, 0.4, "y", "cpu", noise=noise)
+    sample_gpu, gpu = backprojected_noise(projections, angles, 0.4, "y", "cuda", noise=noise)
+    np.testing.assert_allclose(gpu.cpu().numpy(), host, rtol=1e-12)
+    assert float(gpu.mean()) == pytest.approx(float(host.mean()), rel=1e-12)
+    assert percentile(gpu, 99.0) == pytest.approx(percentile(host, 99.0), rel=1e-12)
+
+
+@cuda
 def test_clusters_on_cuda_equal_the_hosts():
     """The training merge's clusters found on the GPU equal the host k-d tree's, numbering included."""
     from gaussian_atoms_method.atoms.merge import cluster_labels, cluster_labels_on_device

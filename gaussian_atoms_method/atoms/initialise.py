@@ -117,7 +117,8 @@ def backprojected_noise(projections: np.ndarray, angles_deg: np.ndarray, pixel_s
     """A sample of the Hann back-projection of the projections' noise alone: the volume of unit
     white noise on a ``size_px`` detector of the same pixels and tilts, and the (V, H, W) noise
     variance of each pixel of the projections, which scales it (:func:`noise_level` filters the
-    sample as the data are filtered and reads the level).
+    sample as the data are filtered and reads the level; an array, or off the CPU a float64
+    tensor on ``device``).
 
     The noise is read from the projections (:func:`gaussian_atoms_method.physics.noise.noise_from_projections`:
     additive, Poisson or both; each pixel's variance at its smoothed value), unless ``noise``
@@ -127,11 +128,27 @@ def backprojected_noise(projections: np.ndarray, angles_deg: np.ndarray, pixel_s
     (and the smoothness) of the full one's noise at a fraction of the cost."""
     p = np.asarray(projections, dtype=np.float64)
     noise = noise_from_projections(p) if noise is None else noise
-    variance = np.clip(noise.variance(ndimage.gaussian_filter(p, (0, 2.0, 2.0))), 0.0, None)
+    if torch.device(device).type == "cpu":
+        variance = np.clip(noise.variance(ndimage.gaussian_filter(p, (0, 2.0, 2.0))), 0.0, None)
+    else:  # the same filter on the device (0.45 s on the host at 20,000 atoms on the H100 machine); a float64 tensor there
+        variance = noise.variance(volume_filters.gaussian_filter(volume_filters.as_volume(p, device), 2.0, axes=(1, 2))).clamp_min(0.0)
     h, w = min(size_px, p.shape[1]), min(size_px, p.shape[2])
     draw = np.random.default_rng(seed).standard_normal((p.shape[0], h, w))
     volume = reconstruct(draw, angles_deg, pixel_size_A, "fbp", tilt_axis, None, filter_name="hann", device=device)
     return volume.data, variance
+
+
+def percentile(values, q: float) -> float:
+    """``np.percentile(values, q)`` (linear interpolation) of an array, or of a tensor on its
+    device (one sort there)."""
+    if not isinstance(values, torch.Tensor):
+        return float(np.percentile(values, q))
+    ordered = values.reshape(-1).sort().values
+    position = q / 100.0 * (len(ordered) - 1)
+    lo = int(math.floor(position))
+    hi = min(lo + 1, len(ordered) - 1)
+    a, b = float(ordered[lo]), float(ordered[hi])
+    return a + (b - a) * (position - lo)
 
 
 def noise_level(sample: np.ndarray, scale: float, filtered, false_alarm_rate: float, n_voxels: int) -> float:
@@ -277,7 +294,7 @@ def backprojection_candidates(
             return -volume_filters.gaussian_laplace(v, fine_vox)
 
         fine = fine_filter(field)
-        fine_level = noise_level(sample, math.sqrt(float(np.percentile(variance, BRIGHT_PIXELS_PERCENTILE))), on_host(fine_filter), false_alarm_rate, data.numel())
+        fine_level = noise_level(sample, math.sqrt(percentile(variance, BRIGHT_PIXELS_PERCENTILE)), on_host(fine_filter), false_alarm_rate, data.numel())
         maxima = separated_maxima(fine, volume.spacing_A, fine_min_distance_A, fine_level)
         resolved = np.zeros((0, 3), dtype=np.int64)  # step 5's additions
         if len(maxima):

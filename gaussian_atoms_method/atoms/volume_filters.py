@@ -67,7 +67,7 @@ def _pass(volume: torch.Tensor, sigma_vox: float, axis: int, order: int, in_torc
     return torch.from_numpy(host_filters.gaussian_pass(volume.numpy(), sigma_vox, axis, order))
 
 
-def gaussian_filter(volume: torch.Tensor, sigma_vox: float, in_torch: bool | None = None) -> torch.Tensor:
+def gaussian_filter(volume: torch.Tensor, sigma_vox: float, in_torch: bool | None = None, axes: tuple[int, ...] | None = None) -> torch.Tensor:
     """scipy's ``ndimage.gaussian_filter(volume, sigma_vox)`` of a tensor, on its device.
 
     Parameters
@@ -78,9 +78,11 @@ def gaussian_filter(volume: torch.Tensor, sigma_vox: float, in_torch: bool | Non
     in_torch : bool, optional
         Filter in torch (default: off the CPU).  On the CPU scipy's own 1-D passes run, over
         slabs in threads (:mod:`.host_filters`): scipy's values bit for bit.
+    axes : tuple of int, optional
+        Filter along these axes only (scipy's sigma 0 along the others); default every axis.
     """
     in_torch = _off_cpu(volume, in_torch)
-    for axis in range(volume.ndim):
+    for axis in range(volume.ndim) if axes is None else axes:
         volume = _pass(volume, sigma_vox, axis, 0, in_torch)
     return volume
 
