@@ -107,6 +107,19 @@ def test_backprojected_noise_variance_on_cuda_equals_the_hosts():
 
 
 @cuda
+def test_slice_planes_on_cuda_equal_the_hosts():
+    """The slices picture's planes, multiplied out on the GPU in float64, equal numpy's."""
+    from gaussian_atoms_method.atoms.atom_set import AtomSet
+    from gaussian_atoms_method.atoms.slices import potential_on_plane
+
+    rng = np.random.default_rng(8)
+    atoms = AtomSet(rng.uniform(-9, 9, (500, 3)), sigmas=rng.uniform(0.3, 0.8, 500), amplitudes=rng.uniform(1, 3, 500))
+    coords = np.linspace(-10, 10, 301)
+    host = potential_on_plane(atoms, 2, 0.5, 0, 1, coords, coords)
+    np.testing.assert_allclose(potential_on_plane(atoms, 2, 0.5, 0, 1, coords, coords, device="cuda"), host, rtol=1e-10, atol=1e-12 * host.max())
+
+
+@cuda
 def test_clusters_on_cuda_equal_the_hosts():
     """The training merge's clusters found on the GPU equal the host k-d tree's, numbering included."""
     from gaussian_atoms_method.atoms.merge import cluster_labels, cluster_labels_on_device

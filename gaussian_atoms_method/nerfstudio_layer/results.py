@@ -115,7 +115,7 @@ def write_results(model, run_dir: Path) -> dict | None:
         title = f"{len(atoms)} atoms" + (
             f"; against the truth: TPR {scores['tpr']:.4f}, FP/atom {scores['fp_per_true_atom']:.4f}, RMSD {scores['rmsd_pm']:.1f} pm" if scores else ""
         )
-        write_slices_png(atoms, run_dir / "slices.png", truth, title=title)
+        write_slices_png(atoms, run_dir / "slices.png", truth, title=title, device=model.means.device)
     if scores is None:
         return None
     CONSOLE.print(f"[bold]gaussian-atoms[/bold]: against {model.truth_path}: {json.dumps(scores)}")
