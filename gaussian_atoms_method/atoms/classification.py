@@ -194,7 +194,7 @@ def in_support(positions_A: np.ndarray) -> np.ndarray:
     d = nearest_neighbour_distances(positions)
     q1, q3 = np.percentile(d, [25, 75])
     radius = max(q3 + FENCE_IQR * (q3 - q1), 2.0 * float(np.median(d)))
-    return cKDTree(positions).query_ball_point(positions, radius, return_length=True) >= 3  # itself and two more
+    return cKDTree(positions).query_ball_point(positions, radius, return_length=True, workers=-1) >= 3  # itself and two more
 
 
 def write_population_png(masses: np.ndarray, sigmas_A: np.ndarray, classification: Classification, path, beyond_field: tuple[np.ndarray, np.ndarray] | None = None) -> None:

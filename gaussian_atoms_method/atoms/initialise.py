@@ -283,7 +283,7 @@ def backprojection_candidates(
         strength = shoulder_strength * np.percentile(volume_filters.values_at(laplacian, positions), 90) if len(positions) else -math.inf
         extra = separated_maxima(laplacian, volume.spacing_A, min_distance_A, strength)
         if len(positions) and len(extra):
-            distance, _ = cKDTree(positions * volume.spacing_A).query(extra * volume.spacing_A)
+            distance, _ = cKDTree(positions * volume.spacing_A).query(extra * volume.spacing_A, workers=-1)
             extra = extra[(distance > min_distance_A) & (volume_filters.values_at(laplacian, extra) >= strength)]
         del laplacian
         positions = np.concatenate([positions, extra])[:max_count]
@@ -298,7 +298,7 @@ def backprojection_candidates(
         maxima = separated_maxima(fine, volume.spacing_A, fine_min_distance_A, fine_level)
         resolved = np.zeros((0, 3), dtype=np.int64)  # step 5's additions
         if len(maxima):
-            distance, _ = cKDTree(positions * volume.spacing_A).query(maxima * volume.spacing_A)
+            distance, _ = cKDTree(positions * volume.spacing_A).query(maxima * volume.spacing_A, workers=-1)
             resolved = maxima[distance > fine_min_distance_A]
             positions = np.concatenate([positions, resolved])
         if deconvolve and len(resolved):  # step 6: what the candidates' responses leave unexplained

@@ -54,11 +54,10 @@ def match_atoms(pred_A: np.ndarray, true_A: np.ndarray, radius_A: float = 0.75) 
     p, t, d, comp = p[order], t[order], d[order], comp[order]
     starts = np.flatnonzero(np.r_[True, comp[1:] != comp[:-1]])
     ends = np.r_[starts[1:], len(comp)]
-    out_p, out_t = [], []
+    alone = starts[ends - starts == 1]  # the common case, taken at once: an isolated pair
+    out_p, out_t = [p[alone]], [t[alone]]
     for s, e in zip(starts, ends):
-        if e - s == 1:  # the common case: an isolated pair
-            out_p.append(p[s : s + 1])
-            out_t.append(t[s : s + 1])
+        if e - s == 1:
             continue
         up, ip = np.unique(p[s:e], return_inverse=True)
         ut, it = np.unique(t[s:e], return_inverse=True)
@@ -75,10 +74,16 @@ def match_atoms(pred_A: np.ndarray, true_A: np.ndarray, radius_A: float = 0.75) 
 
 
 def _coincident_pairs(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    pairs = cKDTree(a).query_ball_tree(cKDTree(b), 0.0)
-    pa = [i for i, js in enumerate(pairs) for _ in js]
-    pb = [j for js in pairs for j in js]
-    return np.asarray(pa, dtype=np.int64), np.asarray(pb, dtype=np.int64)
+    """Every pair of a point of ``a`` and one of ``b`` at exactly the same place: the points of
+    ``a`` whose nearest in ``b`` is at distance zero, then all of theirs (a list per point of
+    ``a`` for every point took 0.2 s at 54,000 atoms)."""
+    tree = cKDTree(b)
+    distance, _ = tree.query(a, workers=-1)
+    hit = np.flatnonzero(distance == 0.0)
+    if len(hit) == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    found = tree.query_ball_point(a[hit], 0.0)
+    return np.repeat(hit, [len(js) for js in found]).astype(np.int64), np.asarray([j for js in found for j in js], dtype=np.int64)
 
 
 def global_shift(pred_A: np.ndarray, true_A: np.ndarray, radius_A: float = 0.75, max_iterations: int = 50) -> np.ndarray:

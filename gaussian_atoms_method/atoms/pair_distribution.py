@@ -37,7 +37,7 @@ MIN_ATOMS = 20
 
 def nearest_neighbour_distances(positions: np.ndarray) -> np.ndarray:
     """(N,) each position's distance to its nearest other one (N >= 2)."""
-    distance, _ = cKDTree(positions).query(positions, k=2)
+    distance, _ = cKDTree(positions).query(positions, k=2, workers=-1)
     return distance[:, 1]
 
 

@@ -92,6 +92,6 @@ def unexplained_sites(
     accepted, values = clean_peaks(peaks, values, response, centre, level, device)
     positions_A = volume.index_to_A(peaks[accepted])
     if len(existing_A):
-        distance, _ = cKDTree(np.asarray(existing_A, dtype=np.float64)).query(positions_A)
+        distance, _ = cKDTree(np.asarray(existing_A, dtype=np.float64)).query(positions_A, workers=-1)
         positions_A, values = positions_A[distance > min_distance_A], values[distance > min_distance_A]
     return positions_A, values * (2 * math.pi * (sigma_A**2 + smoothing_A**2)) ** 1.5

@@ -747,7 +747,7 @@ class DensityControl:
             return math.inf
         from scipy.spatial import cKDTree
 
-        distance, _ = cKDTree(pos).query(pos, k=2)
+        distance, _ = cKDTree(pos).query(pos, k=2, workers=-1)
         return float(np.percentile(distance[:, 1], 5))
 
     def _merge_labels(self, params: Params, optimizers: Optimizers, labels: np.ndarray, n_clusters: int, param_lists=None) -> int:
