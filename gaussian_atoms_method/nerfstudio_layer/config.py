@@ -80,7 +80,9 @@ class AdamConfig(AdamOptimizerConfig):
 class TiltSeriesDatamanager(FullImageDatamanager[TiltSeriesDataset]):
     """nerfstudio's full-image datamanager serving float projections from memory.  Each view's
     camera is cut from the set once and kept: nerfstudio cuts and copies it at every step,
-    1.2 of the 10 ms a training step took at 20,000 atoms on the H100 (cProfile)."""
+    1.2 of the 10 ms a training step took at 20,000 atoms on the H100 (cProfile).  So is its
+    image on the device: a plain copy to the GPU at every step waited for the queued steps
+    (``torch.cuda.set_sync_debug_mode``)."""
 
     def next_train(self, step: int):
         """The next training view's camera (``metadata["cam_idx"]``: its index) and its data, in
@@ -89,12 +91,13 @@ class TiltSeriesDatamanager(FullImageDatamanager[TiltSeriesDataset]):
         if len(self.train_unseen_cameras) == 0:
             self.train_unseen_cameras = self.sample_train_cameras()
         data = dict(self.cached_train[image_idx])  # a copy: the cache is not changed (reading it first loads it, and the cameras)
-        data["image"] = data["image"].to(self.device)
-        cameras = self.__dict__.setdefault("_view_cameras", {})
+        cameras, images = self.__dict__.setdefault("_view_cameras", {}), self.__dict__.setdefault("_view_images", {})
         if image_idx not in cameras:
             camera = self.train_cameras[image_idx : image_idx + 1].to(self.device)
             camera.metadata = {**(camera.metadata or {}), "cam_idx": image_idx}
             cameras[image_idx] = camera
+            images[image_idx] = data["image"].to(self.device)
+        data["image"] = images[image_idx]
         return cameras[image_idx], data
 
 
