@@ -274,12 +274,19 @@ class DensityControl:
         ls = self.length_scale
         lo, hi = math.log(self.min_sigma_A * ls), math.log(self.max_sigma_A * ls)
         log_sigmas, log_amps, means = params["log_sigmas"].data, params["log_amplitudes"].data, params["means"].data
-        bound = 2.0 * self._box(self.half_extent, means)
-        held = torch.stack([(log_sigmas < lo).any(-1).sum(), (log_sigmas > hi).any(-1).sum(), (log_amps > self.max_log_amplitude).sum(), (means.abs() > bound).any(-1).sum()])
-        self.clamp_counts = held if self.clamp_counts is None else self.clamp_counts + held.to(self.clamp_counts.device)
+        twice = 2.0 * np.asarray(self.half_extent, dtype=np.float64)
+        bound, lower = self._box(twice, means), self._box(-twice, means)  # made once each
+        # A Gaussian counts once however many of its widths were held (one width when isotropic:
+        # no reduction over it); in place, a dozen operations a step fewer than before.
+        low, high = (log_sigmas < lo, log_sigmas > hi) if log_sigmas.shape[-1] == 1 else ((log_sigmas < lo).any(-1), (log_sigmas > hi).any(-1))
+        held = torch.stack([low.sum(), high.sum(), (log_amps > self.max_log_amplitude).sum(), (means.abs() > bound).any(-1).sum()])
+        if self.clamp_counts is None:
+            self.clamp_counts = held
+        else:
+            self.clamp_counts.add_(held.to(self.clamp_counts.device))
         log_sigmas.clamp_(lo, hi)
         log_amps.clamp_(max=self.max_log_amplitude)
-        means.copy_(torch.maximum(torch.minimum(means, bound), -bound))
+        means.clamp_(min=lower, max=bound)
 
     def report(self) -> list[str]:
         """What the safeguards did over the run, one sentence each (empty when nothing): the
