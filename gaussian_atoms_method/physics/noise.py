@@ -154,11 +154,6 @@ def _as_float64(values, device):
     return torch.as_tensor(values if values.flags.writeable else values.copy(), device=device)
 
 
-def _host(values) -> np.ndarray:
-    """``values`` (an array or a tensor on any device) as a float64 array."""
-    return as_array(values)
-
-
 def inflated(noise: NoiseModel, factor: float) -> NoiseModel:
     """``noise`` with every variance term times ``factor`` (standard errors alike)."""
     f = float(factor)
@@ -182,7 +177,7 @@ def binned_variance(residuals: np.ndarray, predicted: np.ndarray, bins: int = 16
     device = compute_device(residuals, device)
     if device is not None:
         return _binned_variance_torch(residuals, predicted, bins, min_count, robust, device)
-    r, m = _host(residuals).ravel(), _host(predicted).ravel()
+    r, m = as_array(residuals).ravel(), as_array(predicted).ravel()
     order = np.argsort(m, kind="stable")
     centres, variances, counts = [], [], []
     for chunk in np.array_split(order, bins):
@@ -277,7 +272,7 @@ def fit_noise_model(residuals: np.ndarray, predicted: np.ndarray, offset: float 
     """
     centres, variances, counts = binned_variance(residuals, predicted, bins, robust=robust, device=device)
     if len(centres) < 2:
-        var = float(variances[0]) if len(variances) else float(np.var(_host(residuals)))
+        var = float(variances[0]) if len(variances) else float(np.var(as_array(residuals)))
         return NoiseModel(max(var, 0.0), 0.0, offset)
     x = np.maximum(centres - offset, 0.0)
     # Noiseless data (tests, simulations without noise) give zero variances: weights stay finite.
