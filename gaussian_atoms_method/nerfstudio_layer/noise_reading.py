@@ -114,14 +114,16 @@ def judge_after_fit(model) -> None:
     """Before the final merges and prune: set the model's density control to judge in the noise
     after the fit (:func:`noise_after_fit`, at the Gaussians' median width), and say so when it
     is larger than the noise read before training."""
-    from gaussian_atoms_method.nerfstudio_layer.residuals import render_training_views
+    from gaussian_atoms_method.nerfstudio_layer.residuals import measured_views, render_training_views
 
-    projections = (model.kwargs.get("metadata", {}) or {}).get("projections")
-    if model.density.noise is None or projections is None or model.num_points == 0 or not model.config.judge_after_fit:
+    if model.density.noise is None or model.num_points == 0 or not model.config.judge_after_fit:
+        return
+    measured = measured_views(model)
+    if measured is None:
         return
     predicted = render_training_views(model, on_device=True)  # read on the model's device
     sigma_px = float(model.sigmas.median()) / model.density.pixel_size
-    judged, factor = noise_after_fit(model.density.noise, projections.to(predicted.device), predicted, sigma_px)
+    judged, factor = noise_after_fit(model.density.noise, measured, predicted, sigma_px)
     if factor > 1.0:
         CONSOLE.print(f"gaussian-atoms: over an atom the fit's residuals vary {factor:.3g} times as much as the noise read before training; the final merges and prune judge in that")
     model.density.noise = judged

@@ -8,8 +8,8 @@ import torch
 
 from gaussian_atoms_method.density.averaging import IterateAverage
 from gaussian_atoms_method.nerfstudio_layer.convergence import drifting
-from gaussian_atoms_method.nerfstudio_layer.rendering import index_on, render_views, to_device_without_waiting
-from gaussian_atoms_method.nerfstudio_layer.residuals import in_chunks, training_views
+from gaussian_atoms_method.nerfstudio_layer.rendering import index_on, render_views
+from gaussian_atoms_method.nerfstudio_layer.residuals import in_chunks, measured_views, training_views
 
 
 def refit(model, max_passes: int = 10) -> int:
@@ -39,16 +39,13 @@ def refit(model, max_passes: int = 10) -> int:
     0.9844, 0.9853 and 0.9876 after 1, 2, 3 and 10 passes, false atoms per atom 0.0196 ->
     0.0144, RMSD 28.3 -> 27.4 pm; atoms moving more than their precision in the pass: 1.2%,
     0.06%, then none (the steps left, 0.03 Å RMS, are the optimiser's own jitter)."""
-    projections = (model.kwargs.get("metadata", {}) or {}).get("projections")
+    measured_all = measured_views(model)
     names = [n for n in model.gauss_params.keys() if n in model.optimizers]
     steps, settled, noise = 0, 0, None
     with training_views(model) as cameras:
-        if cameras is None or projections is None:
+        if cameras is None or measured_all is None:
             return 0
         # Called where results are written: possibly under no_grad or inference mode.
-        # The measured views on the device once: a plain copy to the GPU at each step waited for
-        # the queued step (54,000 atoms on the H100: 8.8 ms a step, of about 4 ms of the GPU's own work).
-        measured_all = to_device_without_waiting(projections, model.means.device)
         with torch.inference_mode(False), torch.enable_grad():
             passes, first = [model.means.detach().clone()], 1  # the start, then each pass's mean; the streak from passes[first]
             for _ in range(max_passes):
@@ -76,18 +73,21 @@ def refit(model, max_passes: int = 10) -> int:
 def _refit_pass(model, cameras, measured_all: torch.Tensor, names, views_per_step: int = 1, average: IterateAverage | None = None) -> int:
     """One pass over the views, ``views_per_step`` per step (the mean of their losses, as
     training's one loss over a step's views), fitted to ``measured_all`` (V, H, W) on the model's
-    device, each iterate added to ``average``; returns the steps taken."""
+    device (once a refit: a copy of a step's views at each step waited for the queued step, 8.8 ms
+    a step for about 4 ms of the GPU's own work at 54,000 atoms on the H100), each iterate added
+    to ``average``; returns the steps taken."""
     # Views in random order, as training draws them: in tilt order neighbouring views pull
     # alike and Adam's momentum carries the atoms along (the aPd noise-200 RMSD rose 1.2 pm).
     order, size = torch.randperm(len(cameras), generator=model.generator), max(int(views_per_step), 1)
-    batches = [order[i : i + size] for i in range(0, len(order), size)]
     together = in_chunks(model, cameras)  # a step's views in one projector call, where the cameras allow it
     order_on_device = index_on(order, measured_all.device)  # copied without waiting for the queued steps
-    for batch, start in zip(batches, range(0, len(order), size)):
+    starts = range(0, len(order), size)
+    for start in starts:
+        batch = order[start : start + size]
         for n in names:
             model.optimizers[n].zero_grad()
         if together is not None:  # the data term's mean over all the step's pixels: the mean of its views' (one size)
-            index = order_on_device[start : start + len(batch)]
+            index = order_on_device[start : start + size]
             loss = model.get_loss_dict({"projection": render_views(model, index, *together[:3])[..., None]}, {"image": measured_all[index][..., None]})["main_loss"]
         else:
             loss = sum(model.get_loss_dict(model.get_outputs(cameras[v : v + 1]), {"image": measured_all[v][..., None]})["main_loss"] for v in batch.tolist()) / len(batch)
@@ -98,4 +98,4 @@ def _refit_pass(model, cameras, measured_all: torch.Tensor, names, views_per_ste
             model.density.clamp(model.gauss_params)
         if average is not None:
             average.add(model.gauss_params)
-    return len(batches)
+    return len(starts)

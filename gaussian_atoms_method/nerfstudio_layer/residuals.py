@@ -16,7 +16,7 @@ import torch
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from gaussian_atoms_method.atoms.residual_sites import unexplained_sites
-from gaussian_atoms_method.nerfstudio_layer.rendering import pixel_coordinates, render_views, view_chunks
+from gaussian_atoms_method.nerfstudio_layer.rendering import pixel_coordinates, render_views, to_device_without_waiting, view_chunks
 
 
 @contextmanager
@@ -52,6 +52,14 @@ def render_training_views(model, on_device: bool = False) -> np.ndarray | torch.
         else:  # per view, each through its own pose
             views = torch.stack([model.get_outputs(cameras[i : i + 1])["projection"][..., 0] for i in range(len(cameras))])
         return views if on_device else views.cpu().numpy()
+
+
+def measured_views(model) -> torch.Tensor | None:
+    """(V, H, W) the measured training views (normalised data units) on the model's device,
+    copied there without waiting for its queued work (:func:`.rendering.to_device_without_waiting`:
+    a plain copy to the GPU waits for it); None without the tilt series."""
+    projections = (model.kwargs.get("metadata", {}) or {}).get("projections")
+    return None if projections is None else to_device_without_waiting(torch.as_tensor(projections), model.means.device)
 
 
 def in_chunks(model, cameras):
@@ -109,9 +117,8 @@ def residual_correlations(model, means: torch.Tensor, sigmas: torch.Tensor) -> n
     zero: the probes are rendered by the model's own projector (same geometry, view shifts and
     tilts included) in place of its Gaussians, which are put back after.
     """
-    projections = (model.kwargs.get("metadata", {}) or {}).get("projections")
-    noise = model.density.noise
-    if projections is None or noise is None or not model.config.isotropic or len(means) == 0:
+    noise, measured = model.density.noise, measured_views(model)
+    if measured is None or noise is None or not model.config.isotropic or len(means) == 0:
         return None
     own = model.gauss_params
     probe = torch.nn.ParameterDict(
@@ -124,7 +131,7 @@ def residual_correlations(model, means: torch.Tensor, sigmas: torch.Tensor) -> n
     predicted = render_training_views(model, on_device=True)  # on the run's device throughout: one copy back, of the (P,) sums
     if predicted is None:
         return None
-    weighted = (torch.as_tensor(projections).to(predicted.device) - predicted) / noise.variance(predicted).clamp_min(1e-30)  # w r
+    weighted = (measured - predicted) / noise.variance(predicted).clamp_min(1e-30)  # w r
     total = torch.zeros(len(means), dtype=torch.float64, device=predicted.device)
     with training_views(model) as cameras, torch.inference_mode(False), torch.enable_grad():
         model.gauss_params = probe

@@ -25,7 +25,7 @@ from gaussian_atoms_method.atoms.matching import score_atoms
 from gaussian_atoms_method.atoms.slices import write_slices_png
 from gaussian_atoms_method.atoms.uncertainty import position_std_A, robust_noise_std
 from gaussian_atoms_method.nerfstudio_layer.rendering import detector_axes
-from gaussian_atoms_method.nerfstudio_layer.residuals import render_training_views
+from gaussian_atoms_method.nerfstudio_layer.residuals import measured_views, render_training_views
 from gaussian_atoms_method.physics.noise import fit_noise_model
 
 
@@ -35,11 +35,11 @@ def residual_noise(model) -> tuple[float, torch.Tensor, torch.Tensor] | None:
     deviation, input units), with the residuals and the predicted projections (V, H, W) in
     normalised data units (``model.normalisation.data_scale`` per input unit), tensors on the
     model's device (the noise readings run there); None without the tilt series."""
-    projections = (model.kwargs.get("metadata", {}) or {}).get("projections")
-    predicted = render_training_views(model, on_device=True) if projections is not None else None
+    measured = measured_views(model)
+    predicted = render_training_views(model, on_device=True) if measured is not None else None
     if predicted is None:
         return None
-    residuals = predicted - projections.to(predicted.device)
+    residuals = predicted - measured
     return robust_noise_std(residuals) / model.normalisation.data_scale, residuals, predicted
 
 
