@@ -162,11 +162,16 @@ def write_atoms(atoms: AtomSet, path: str | Path) -> Path:
     return path
 
 
+EXTXYZ_COLUMNS = {"pos": ("positions", "R", 3), "sigma_A": ("sigmas", "R", 1), "amplitude": ("amplitudes", "R", 1), "position_std_A": ("position_std_A", "R", 3), "atom_class": ("atom_class", "I", 1)}
+"""The per-atom columns of this package's extended XYZ after the species, in the order
+:meth:`AtomSet.to_ase` adds them: name -> (:class:`AtomSet` field, ASE's type letter, width)."""
+
+
 def _extxyz_columns(atoms: AtomSet) -> list[tuple[str, np.ndarray, str]]:
-    """(name, (N, k) values, ASE's type letter) of each per-atom array after the species, in the
-    order :meth:`AtomSet.to_ase` adds them."""
-    n, columns = len(atoms), [("pos", atoms.positions, "R")]
-    for name, values, kind in (("sigma_A", atoms.sigmas, "R"), ("amplitude", atoms.amplitudes, "R"), ("position_std_A", atoms.position_std_A, "R"), ("atom_class", atoms.atom_class, "I")):
+    """(name, (N, k) values, ASE's type letter) of each of :data:`EXTXYZ_COLUMNS` the atoms hold."""
+    n, columns = len(atoms), []
+    for name, (field_name, kind, _) in EXTXYZ_COLUMNS.items():
+        values = getattr(atoms, field_name)
         if values is not None:
             columns.append((name, values.reshape(n, -1), kind))
     return columns
@@ -262,13 +267,9 @@ ELEMENTS = frozenset(
 )
 """The species ASE's extended XYZ reader accepts (``ase.data.chemical_symbols``)."""
 
-PLAIN_COLUMNS = {"pos": ("R", 3), "sigma_A": ("R", 1), "amplitude": ("R", 1), "position_std_A": ("R", 3), "atom_class": ("I", 1)}
-"""The per-atom columns :func:`_read_plain_extxyz` reads (those :func:`_write_extxyz` writes)."""
-
-
 def _read_plain_extxyz(path: Path) -> AtomSet | None:
     """A one-frame extended XYZ file of the plain form this package and simulations write (a
-    comment line of only ``Properties=species:S:1:pos:R:3[...]`` of :data:`PLAIN_COLUMNS` and
+    comment line of only ``Properties=species:S:1:pos:R:3[...]`` of :data:`EXTXYZ_COLUMNS` and
     ``pbc="F F F"``, known species), read without ASE: what ``ase.io.read`` gives for it
     (tests/test_atoms_io.py), where ASE's import and reader took 0.36 s of the launch's input
     check for the 6,679-atom Au truth on the H100 machine.  None for anything else (ASE reads it)."""
@@ -283,7 +284,7 @@ def _read_plain_extxyz(path: Path) -> AtomSet | None:
     if len(spec) % 3 or spec[:3] != ["pos", "R", "3"]:
         return None
     columns = [(spec[i], spec[i + 1], int(spec[i + 2])) if spec[i + 2].isdigit() else (None, None, 0) for i in range(0, len(spec), 3)]
-    if any(PLAIN_COLUMNS.get(name) != (kind, width) for name, kind, width in columns) or len({c[0] for c in columns}) != len(columns):
+    if any(EXTXYZ_COLUMNS.get(name, (None,))[1:] != (kind, width) for name, kind, width in columns) or len({c[0] for c in columns}) != len(columns):
         return None
     n, width = int(head), 1 + sum(w for _, _, w in columns)
     tokens = body.split()
@@ -293,15 +294,15 @@ def _read_plain_extxyz(path: Path) -> AtomSet | None:
     species = table[:, 0].astype(str)
     if not set(species.tolist()) <= ELEMENTS:
         return None
-    values, at = {}, 1
+    arrays, at = {"species": species}, 1
     try:
         for name, kind, w in columns:
-            block = table[:, at : at + w]
-            values[name] = (block.astype(np.int64) if kind == "I" else block.astype(np.float64)).reshape(n, w) if w > 1 else (block[:, 0].astype(np.int64) if kind == "I" else block[:, 0].astype(np.float64))
+            block = table[:, at : at + w].astype(np.int64 if kind == "I" else np.float64)
+            arrays[EXTXYZ_COLUMNS[name][0]] = block if w > 1 else block[:, 0]
             at += w
     except ValueError:
         return None
-    return AtomSet(values["pos"], values.get("sigma_A"), values.get("amplitude"), species, position_std_A=values.get("position_std_A"), atom_class=values.get("atom_class"))
+    return AtomSet(**arrays)
 
 
 def _read_csv(path: Path) -> AtomSet:

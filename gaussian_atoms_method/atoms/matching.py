@@ -54,11 +54,9 @@ def match_atoms(pred_A: np.ndarray, true_A: np.ndarray, radius_A: float = 0.75) 
     p, t, d, comp = p[order], t[order], d[order], comp[order]
     starts = np.flatnonzero(np.r_[True, comp[1:] != comp[:-1]])
     ends = np.r_[starts[1:], len(comp)]
-    alone = starts[ends - starts == 1]  # the common case, taken at once: an isolated pair
-    out_p, out_t = [p[alone]], [t[alone]]
-    for s, e in zip(starts, ends):
-        if e - s == 1:
-            continue
+    alone = ends - starts == 1  # the common case, taken at once: an isolated pair
+    out_p, out_t = [p[starts[alone]]], [t[starts[alone]]]
+    for s, e in zip(starts[~alone], ends[~alone]):
         up, ip = np.unique(p[s:e], return_inverse=True)
         ut, it = np.unique(t[s:e], return_inverse=True)
         # Non-edges cost more than any set of edges, so the assignment maximises the number of
