@@ -312,7 +312,7 @@ def measure_noise(projections) -> NoiseModel | None:
     (:mod:`gaussian_atoms_method.atoms.initialise`) and the data term share it."""
     if projections is None or min(projections.shape[-2:]) < 5:
         return None
-    return noise_from_projections(projections if hasattr(projections, "detach") else as_array(projections))
+    return noise_from_projections(projections)
 
 
 def noise_from_projections(projections: np.ndarray, offset: float = 0.0, smoothing_px: float = 2.0, z_min: float = 3.0, device=None) -> NoiseModel:
@@ -368,11 +368,11 @@ def _noise_from_projections_torch(projections, offset: float, smoothing_px: floa
 
     p = _as_float64(projections, device)
     radius = int(np.ceil(4 * smoothing_px))
-    g = np.exp(-np.arange(-1, 2) ** 2 / (2 * smoothing_px**2))
-    g = g / np.exp(-np.arange(-radius, radius + 1) ** 2 / (2 * smoothing_px**2)).sum()  # the normalised Gaussian's 3 taps
+    taps = gaussian_taps(smoothing_px, radius)
+    g = taps[radius - 1 : radius + 2]  # the normalised Gaussian's 3 central taps
     second = np.array([1.0, -2.0, 1.0])
     filtered = separable_correlate(p, second, second) / 6.0
-    smooth = separable_correlate(torch.nn.functional.pad(p[None], (radius,) * 4, mode="replicate")[0], *(gaussian_taps(smoothing_px, radius),) * 2)
+    smooth = separable_correlate(torch.nn.functional.pad(p[None], (radius,) * 4, mode="replicate")[0], taps, taps)
     mean = (smooth[:, 1:-1, 1:-1] - separable_correlate(p, g, g)) / (1.0 - g.sum() ** 2)
     return fit_noise_model(filtered, mean, offset=offset, z_min=z_min, robust=False, quadratic=False)
 
