@@ -124,7 +124,11 @@ def test_plain_extended_xyz_is_read_as_ase_reads_it(tmp_path):
     frames, an unknown species) is read by ASE as before, or refused by it."""
     import ase.io
 
-    from gaussian_atoms_method.atoms.atom_set import _read_plain_extxyz
+    import ase.data
+
+    from gaussian_atoms_method.atoms.atom_set import ELEMENTS, _read_plain_extxyz
+
+    assert ELEMENTS == set(ase.data.chemical_symbols)  # the species list kept here is ASE's
 
     rng = np.random.default_rng(3)
     n = 300
