@@ -480,6 +480,7 @@ def entrypoint(argv: list[str] | None = None) -> None:
         from gaussian_atoms_method.start_ahead import begin_for, end_now
 
         begin_for(argv[1:])  # the start computed in a thread while nerfstudio loads
+        from gaussian_atoms_method.nerfstudio_layer.train import exit_process
         from gaussian_atoms_method.nerfstudio_layer.train import run as train_run
         from gaussian_atoms_method.nerfstudio_layer.trainer import INPUT_ERRORS
 
@@ -489,11 +490,12 @@ def entrypoint(argv: list[str] | None = None) -> None:
             end_now(exc.code if isinstance(exc.code, int) else 2)
             raise
         try:
-            return train_run(config)
+            train_run(config)
         except INPUT_ERRORS as exc:
             print(f"gaussian-atoms train: error: {exc}", file=sys.stderr)
             end_now(2)
             raise SystemExit(2) from None
+        exit_process(0)  # the run's files are complete: no teardown of what it loaded
     command = parse(argv)
     try:
         command.main()

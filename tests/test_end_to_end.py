@@ -104,6 +104,21 @@ def test_gaussian_atoms_train_is_ns_train(tmp_path):
     assert configs[0] == configs[1]
     # A boolean given a value, as nerfstudio's FlagConversionOff allows, means the same in both.
     assert "stop_when_converged: false" in configs[0]
+    # gaussian-atoms train ends its process without the interpreter's teardown
+    # (nerfstudio_layer.train.exit_process): its TensorBoard file holds the same scalars at
+    # the same steps as ns-train's, through to the last one logged.
+    assert _scalar_steps(runs["ga"]) == _scalar_steps(runs["ns"])
+    assert max(max(steps) for steps in _scalar_steps(runs["ga"]).values()) >= 290
+
+
+def _scalar_steps(run: Path) -> dict:
+    """Each scalar tag of the run's TensorBoard events and the steps it was logged at."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    (events,) = run.glob("events.out.tfevents.*")
+    accumulator = EventAccumulator(str(events))
+    accumulator.Reload()
+    return {tag: [e.step for e in accumulator.Scalars(tag)] for tag in accumulator.Tags()["scalars"]}
     # Bad input: one line naming the file; an option it cannot honour: named, with the way out.
     (tmp_path / "tilt_series.json").write_text('{"projections": "p.npy", "angles_deg": "a.txt", "pixel_size_A": 0.25}')
     bad = _run(BIN / "gaussian-atoms", "train", "--machine.device-type", "cpu", "--vis", "tensorboard", "--output-dir", tmp_path / "out", "tilt-series", "--data", tmp_path)

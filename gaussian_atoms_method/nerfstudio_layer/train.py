@@ -15,7 +15,10 @@ One process on one device; multi-GPU and multi-machine runs go through ``ns-trai
 
 from __future__ import annotations
 
+import atexit
+import os
 import random
+import sys
 
 from gaussian_atoms_method.nerfstudio_layer.options import OptionError
 
@@ -62,6 +65,26 @@ def run(config) -> None:
         from nerfstudio.utils import profiler
 
         profiler.flush_profiler(config.logging)
+
+
+def exit_process(status: int = 0) -> None:
+    """End the process with ``status`` once its outputs are complete: nerfstudio's TensorBoard
+    writers closed (nerfstudio leaves their files to the interpreter's shutdown), the exit
+    handlers run (logging, wandb, comet, the viewer), the console flushed; then ``os._exit``,
+    which skips the interpreter's and CUDA's teardown of the loaded libraries and the device's
+    memory: 1.0-1.2 s of every run on the H100 machine (Au and the 20,000-atom a-Si, launch to
+    exit), 0.75 s after a bare CUDA product.  Only the command line calls this, after a run
+    that ended normally."""
+    from nerfstudio.utils import writer
+
+    for event_writer in writer.EVENT_WRITERS:
+        tensorboard = getattr(event_writer, "tb_writer", None)
+        if tensorboard is not None:
+            tensorboard.close()
+    atexit._run_exitfuncs()  # what the interpreter's exit runs first
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)
 
 
 def make_trainer(config):
