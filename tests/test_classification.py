@@ -2,7 +2,8 @@
 
 import numpy as np
 
-from gaussian_atoms_method.atoms.classification import classify_gaussians, gaussian_mixture, gaussian_mixture_reference, write_population_png
+from gaussian_atoms_method.atoms.classification import classify_gaussians, gaussian_mixture, gaussian_mixture_reference
+from gaussian_atoms_method.atoms.pictures import write_population_png
 
 
 def _two_element_particle(rng, n=600, bond_A=2.5):
@@ -38,7 +39,7 @@ def test_two_populations_and_vacuum_blobs_are_told_apart(tmp_path):
     assert np.mean(light == np.bincount(light).argmax()) > 0.99 and np.bincount(light).argmax() < np.bincount(heavy_class).argmax()
     counts = result.counts()
     assert counts["non-atoms"] == 30 and sum(v for k, v in counts.items() if k != "non-atoms") == len(pos)
-    write_population_png(all_masses, all_sigmas, result, tmp_path / "classes.png")
+    write_population_png(all_masses, all_sigmas, result.atoms, result.classes, len(result.class_means), None, tmp_path / "classes.png")
     assert (tmp_path / "classes.png").stat().st_size > 10_000
 
 

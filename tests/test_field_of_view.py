@@ -9,6 +9,7 @@ from scipy.spatial import cKDTree
 
 from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
 from dataparsers.tilt_series_format import write_tilt_series
+from gaussian_atoms_method.atoms import picture_process
 from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms
 from gaussian_atoms_method.harness.simulate import project_gaussian_potential, spherical_particle
 from gaussian_atoms_method.physics.field_of_view import FILM_Z, film_evidence, slab_half_width
@@ -50,7 +51,7 @@ def test_slab_half_width_is_where_the_steepest_rays_travel():
     assert slab_half_width(10.0, 5.0, np.zeros(3)) == pytest.approx(10.0)  # untilted: the detector itself
 
 
-def test_slab_reports_only_the_gaussians_above_the_detector(tmp_path):
+def test_slab_reports_only_the_gaussians_above_the_detector(tmp_path, monkeypatch):
     """In a slab series the model reads the film from the data, fills the slab beyond the
     detector and reports as atoms only the Gaussians above it: none in atoms.xyz lies beyond the
     detector's half-width across the tilt axis, and the Gaussians beyond it (holding the outer
@@ -76,7 +77,10 @@ def test_slab_reports_only_the_gaussians_above_the_detector(tmp_path):
     assert beyond(model.atoms().positions).sum() > 0  # the start reaches beyond the detector
     targets = [torch.as_tensor(p)[..., None] * model.normalisation.data_scale for p in projections]
     train_views(model, outputs.cameras, targets, steps=60, refine=False)
+    # The pictures drawn by child processes, as on a machine with cores to spare (atoms/picture_process.py)
+    monkeypatch.setattr(picture_process, "spare_cores", lambda: True)
     model.write_results(tmp_path / "run")
+    assert (tmp_path / "run" / "slices.png").stat().st_size > 10_000 and (tmp_path / "run" / "classes.png").stat().st_size > 10_000
     reported = read_atoms(tmp_path / "run" / "atoms.xyz")
     others = read_atoms(tmp_path / "run" / "non_atoms.xyz")
     assert len(reported) > 0 and not beyond(reported.positions).any()

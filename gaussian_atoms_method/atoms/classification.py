@@ -209,35 +209,3 @@ def in_support(positions_A: np.ndarray) -> np.ndarray:
     q1, q3 = np.percentile(d, [25, 75])
     radius = max(q3 + FENCE_IQR * (q3 - q1), 2.0 * float(np.median(d)))
     return cKDTree(positions).query_ball_point(positions, radius, return_length=True, workers=-1) >= 3  # itself and two more
-
-
-def write_population_png(masses: np.ndarray, sigmas_A: np.ndarray, classification: Classification, path, beyond_field: tuple[np.ndarray, np.ndarray] | None = None) -> None:
-    """The population of the Gaussians: width against mass (log axes), each atom coloured by its
-    class, the non-atoms outside the support as crosses and those beyond the field of view
-    (``beyond_field``: their masses and widths) as grey dots; atomically written."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import matplotlib.ticker
-
-    from gaussian_atoms_method.atoms.atom_set import _atomic_write
-
-    fig, ax = plt.subplots(figsize=(5.5, 4.2), dpi=120)
-    if beyond_field is not None and len(beyond_field[0]):
-        ax.scatter(beyond_field[0], beyond_field[1], s=4, c="0.75", label=f"beyond the field of view ({len(beyond_field[0])})")
-    atoms = classification.atoms
-    for k in range(1, len(classification.class_means) + 1):
-        pick = atoms & (classification.classes == k)
-        ax.scatter(masses[pick], sigmas_A[pick], s=5, label=f"class {k} ({int(pick.sum())})")
-    if np.any(~atoms):
-        ax.scatter(masses[~atoms], sigmas_A[~atoms], s=18, marker="x", c="k", label=f"outside the support ({int((~atoms).sum())})")
-    ax.set(xscale="log", yscale="log", xlabel="mass (input units x Å²)", ylabel="width σ (Å)", title="Fitted Gaussians: atoms by class, and non-atoms")
-    for axis in (ax.xaxis, ax.yaxis):  # a decade or less: label 1, 2 and 5 times powers of ten, not every minor tick (they overlapped)
-        axis.set_major_locator(matplotlib.ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
-        axis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda value, _: f"{value:g}"))
-        axis.set_minor_formatter(matplotlib.ticker.NullFormatter())
-    ax.legend(fontsize=7, markerscale=2)
-    fig.tight_layout()
-    _atomic_write(path, lambda tmp: fig.savefig(tmp, format="png"))
-    plt.close(fig)

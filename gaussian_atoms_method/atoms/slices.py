@@ -1,7 +1,8 @@
-"""Pictures of a result: central slices of the reconstructed potential with atoms overlaid."""
+"""Central slices of a result's potential with its atoms (and the truth's) near each, and their picture."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -52,23 +53,35 @@ shows (5 in at 90 dpi, about 400), so a wide particle's slices cost no more than
 can show (54,000 atoms: 1,200 samples at 0.1 Å took 0.6 s of products and drawing)."""
 
 
-def write_slices_png(pred: AtomSet, output: Path, truth: AtomSet | None = None, spacing_A: float = 0.1, slab_A: float = 1.0, title: str = "", device=None) -> Path:
-    """Three central slices (xy, xz, yz through the atoms' centroid) of the predicted potential,
-    with the predicted atoms (open circles) and true atoms (crosses) within ``slab_A`` of each
-    slice overlaid; sampled every ``spacing_A``, or coarser where a slice would take more than
-    :data:`PANEL_SAMPLES` samples, the products on ``device`` (:func:`potential_on_plane`).
-    Written atomically (complete or absent)."""
-    import matplotlib
+@dataclass
+class SlicePlanes:
+    """Three central slices of a result's potential and the atoms to mark on them
+    (:func:`slice_planes`), in Å: what :func:`~gaussian_atoms_method.atoms.pictures.draw_slices`
+    draws, plain arrays (a child process draws them, :mod:`.picture_process`)."""
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    axes: tuple
+    """Each slice's (normal, u, v) world axes (:data:`SLICES`)."""
+    planes: list
+    """Three (U, V) potentials, one per slice."""
+    extents: list
+    """Each plane's (left, right, bottom, top) in Å, for ``imshow``."""
+    centre_A: np.ndarray
+    slab_A: float
+    true_points: list
+    """Per slice, the (v, u) positions of the true atoms within ``slab_A`` of it (None without a truth)."""
+    predicted_points: list
+    """Per slice, the (v, u) positions of the predicted atoms within ``slab_A`` of it."""
 
-    from gaussian_atoms_method.atoms.atom_set import _atomic_write
 
+def slice_planes(pred: AtomSet, truth: AtomSet | None = None, spacing_A: float = 0.1, slab_A: float = 1.0, device=None) -> SlicePlanes:
+    """Three central slices (xy, xz, yz through the atoms' median) of the predicted potential,
+    sampled every ``spacing_A``, or coarser where a slice would take more than
+    :data:`PANEL_SAMPLES` samples, the products on ``device`` (:func:`potential_on_plane`); and
+    the predicted and true atoms within ``slab_A`` of each.  A predicted atom matched to a true
+    one is taken with it (by the true atom's distance to the slice), so a lone marker is a real
+    miss or a false atom, not the slab's edge."""
     if len(pred) == 0:
         raise ValueError("no predicted atoms to draw")
-    # A predicted atom matched to a true one is drawn with it (by the true atom's distance to
-    # the slice), so a lone marker is a real miss or a false atom, not the slab's edge.
     pred_slab_position = pred.positions.copy()
     if truth is not None and len(truth):
         from gaussian_atoms_method.atoms.matching import match_atoms
@@ -80,26 +93,25 @@ def write_slices_png(pred: AtomSet, output: Path, truth: AtomSet | None = None, 
     half = float(np.max(np.abs(reference - centre))) + 3.0
     spacing_A = max(spacing_A, 2 * half / PANEL_SAMPLES)
     coords = np.arange(-half, half + spacing_A / 2, spacing_A)
-    names = "xyz"
-    fig, axes = plt.subplots(1, 3, figsize=(15, 5.2))
-    for ax, (n, u, v) in zip(axes, SLICES):
-        plane = potential_on_plane(pred, n, centre[n], u, v, coords + centre[u], coords + centre[v], device)
-        extent = (centre[v] - half, centre[v] + half, centre[u] + half, centre[u] - half)
-        ax.imshow(plane, cmap="gray", extent=extent)
-        for atoms, slab_pos, style in ((truth, None if truth is None else truth.positions, dict(marker="x", color="tab:red", s=22, linewidths=1.0, label="true")),
-                                       (pred, pred_slab_position, dict(marker="o", facecolors="none", edgecolors="tab:cyan", s=40, linewidths=1.0, label="predicted"))):  # fmt: skip
-            if atoms is None:
-                continue
-            sel = np.abs(slab_pos[:, n] - centre[n]) < slab_A
-            ax.scatter(atoms.positions[sel, v], atoms.positions[sel, u], **style)
-        ax.set_xlabel(f"{names[v]} (Å)")
-        ax.set_ylabel(f"{names[u]} (Å)")
-        ax.set_title(f"{names[u]}{names[v]} slice at {names[n]} = {centre[n]:.1f} Å (atoms within {slab_A:g} Å)")
-    axes[0].legend(loc="upper right", fontsize=8)
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    output = Path(output)
-    _atomic_write(output, lambda p: fig.savefig(p, dpi=90, format="png"))
-    plt.close(fig)
-    return output
+    planes, extents, true_points, predicted_points = [], [], [], []
+    for n, u, v in SLICES:
+        planes.append(potential_on_plane(pred, n, centre[n], u, v, coords + centre[u], coords + centre[v], device))
+        extents.append((centre[v] - half, centre[v] + half, centre[u] + half, centre[u] - half))
+        if truth is not None:
+            near = np.abs(truth.positions[:, n] - centre[n]) < slab_A
+            true_points.append(truth.positions[near][:, [v, u]])
+        else:
+            true_points.append(None)
+        near = np.abs(pred_slab_position[:, n] - centre[n]) < slab_A
+        predicted_points.append(pred.positions[near][:, [v, u]])
+    return SlicePlanes(SLICES, planes, extents, centre, float(slab_A), true_points, predicted_points)
+
+
+def write_slices_png(pred: AtomSet, output: Path, truth: AtomSet | None = None, spacing_A: float = 0.1, slab_A: float = 1.0, title: str = "", device=None) -> Path:
+    """The three central slices of :func:`slice_planes` with the predicted atoms (open circles)
+    and true atoms (crosses) within ``slab_A`` of each slice overlaid
+    (:func:`~gaussian_atoms_method.atoms.pictures.draw_slices`); written atomically (complete
+    or absent)."""
+    from gaussian_atoms_method.atoms.pictures import draw_slices
+
+    return draw_slices(slice_planes(pred, truth, spacing_A, slab_A, device), output, title)

@@ -20,9 +20,12 @@ import torch
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms, write_atoms
-from gaussian_atoms_method.atoms.classification import classify_gaussians, in_support, write_population_png
+from gaussian_atoms_method.atoms import picture_process
+from gaussian_atoms_method.atoms import pictures as pictures_module
+from gaussian_atoms_method.atoms.classification import classify_gaussians, in_support
 from gaussian_atoms_method.atoms.matching import score_atoms
-from gaussian_atoms_method.atoms.slices import write_slices_png
+from gaussian_atoms_method.atoms.picture_process import PICTURES
+from gaussian_atoms_method.atoms.slices import slice_planes
 from gaussian_atoms_method.atoms.uncertainty import position_std_A, robust_noise_std
 from gaussian_atoms_method.nerfstudio_layer.rendering import detector_axes
 from gaussian_atoms_method.nerfstudio_layer.residuals import measured_views, render_training_views
@@ -65,7 +68,18 @@ def model_position_std_A(model, atoms: AtomSet, noise: float | None = None) -> t
 def write_results(model, run_dir: Path) -> dict | None:
     """After the model's last merge and prune, write ``atoms.xyz``, ``atoms.csv`` (with each
     atom's position precision), ``slices.png`` and, with a truth file, ``evaluation.json``;
-    return the scores (None without a truth file)."""
+    return the scores (None without a truth file).  The pictures are drawn by child processes
+    started here, beside the final stage, where there are cores to spare
+    (:mod:`~gaussian_atoms_method.atoms.picture_process`)."""
+    drawers = picture_process.start(2)
+    try:
+        return _write_results(model, run_dir, drawers)
+    finally:
+        for drawer in drawers or ():
+            drawer.close()
+
+
+def _write_results(model, run_dir: Path, drawers) -> dict | None:
     model.finalize()
     for line in model.density.report():
         CONSOLE.print(f"gaussian-atoms: {line}")
@@ -99,9 +113,11 @@ def write_results(model, run_dir: Path) -> dict | None:
             + ", ".join(f"{a} {v * 100:.1f} pm" for a, v in zip("xyz", np.median(atoms.position_std_A, axis=0)))
         )
     # atoms() lists the Gaussians in the model's order: the density control's own test of the field
-    # The atoms are written first and the pictures after them (matplotlib's import, and on a
-    # fresh machine its font cache, are not on the way to the result).
-    atoms, non_atoms, draw_classes = split_atoms(atoms, model.density.in_field(model.means.detach()).cpu().numpy(), run_dir / "classes.png", model.means.device)
+    atoms, non_atoms, population = split_atoms(atoms, model.density.in_field(model.means.detach()).cpu().numpy(), model.means.device)
+    # Each picture goes to a child as soon as its arrays are known (drawn there while this process
+    # writes the atoms); without children, the atoms are written first and the pictures after them.
+    pictures = [] if population is None else [("population", *population, run_dir / "classes.png")]
+    _hand_over(pictures, drawers)
     write_atoms(atoms, run_dir / "atoms.xyz")
     write_atoms(atoms, run_dir / "atoms.csv")
     write_atoms(non_atoms, run_dir / "non_atoms.xyz")
@@ -110,24 +126,37 @@ def write_results(model, run_dir: Path) -> dict | None:
     scores = score_atoms(atoms.positions, truth.positions) if truth is not None else None
     if scores is not None:
         (run_dir / "evaluation.json").write_text(json.dumps(scores, indent=2) + "\n")
-    draw_classes()
     if len(atoms):
         title = f"{len(atoms)} atoms" + (
             f"; against the truth: TPR {scores['tpr']:.4f}, FP/atom {scores['fp_per_true_atom']:.4f}, RMSD {scores['rmsd_pm']:.1f} pm" if scores else ""
         )
-        write_slices_png(atoms, run_dir / "slices.png", truth, title=title, device=model.means.device)
+        pictures.append(("slices", slice_planes(atoms, truth, device=model.means.device), run_dir / "slices.png", title))
+    _hand_over(pictures, drawers)
+    for name, *args in pictures:  # those no child took
+        getattr(pictures_module, PICTURES[name])(*args)
+    for drawer in drawers or ():
+        drawer.wait()
     if scores is None:
         return None
     CONSOLE.print(f"[bold]gaussian-atoms[/bold]: against {model.truth_path}: {json.dumps(scores)}")
     return scores
 
 
-def split_atoms(gaussians: AtomSet, in_field: np.ndarray, figure: Path | None = None, device="cpu"):
+def _hand_over(pictures: list, drawers) -> None:
+    """Give the ``pictures`` ((name, *arguments), :data:`~gaussian_atoms_method.atoms.picture_process.PICTURES`)
+    to the ``drawers`` that have none yet, one each; those taken leave the list."""
+    for drawer in drawers or ():
+        if pictures and drawer.free and drawer.draw(*pictures[0]):
+            pictures.pop(0)
+
+
+def split_atoms(gaussians: AtomSet, in_field: np.ndarray, device="cpu"):
     """The Gaussians as atoms and non-atoms: beyond the field of view, or in the field but
     outside the support (:func:`gaussian_atoms_method.atoms.classification.classify_gaussians`);
-    prints the counts (atoms per class).  Returns the atoms, the non-atoms and a function of no
-    arguments that draws the population into ``figure`` (nothing without one), to call once the
-    atoms are written.  The classes' mixture is fitted on ``device`` (the run's)."""
+    prints the counts (atoms per class).  Returns the atoms, the non-atoms and the population's
+    picture's arguments but its path (:func:`gaussian_atoms_method.atoms.pictures.write_population_png`;
+    None with no Gaussian in the field).  The classes' mixture is fitted on
+    ``device`` (the run's)."""
     field = gaussians.subset(in_field)
     classes = classify_gaussians(field.masses, field.sigmas, field.positions, device=device)
     reported = reported_as_atoms(gaussians.positions, in_field, classes.atoms)
@@ -141,11 +170,8 @@ def split_atoms(gaussians: AtomSet, in_field: np.ndarray, figure: Path | None = 
                   f"{outside + beyond} non-atoms: {outside} outside the support (no neighbour within the material's distances), {beyond} beyond the field of view")  # fmt: skip
     others = gaussians.subset(~in_field)
 
-    def draw() -> None:
-        if figure is not None and len(field):
-            write_population_png(field.masses, field.sigmas, classes, figure, (others.masses, others.sigmas))
-
-    return gaussians.subset(reported), gaussians.subset(~reported), draw
+    population = (field.masses, field.sigmas, classes.atoms, classes.classes, len(classes.class_means), (others.masses, others.sigmas)) if len(field) else None
+    return gaussians.subset(reported), gaussians.subset(~reported), population
 
 
 def reported_as_atoms(positions_A: np.ndarray, in_field: np.ndarray, support: np.ndarray | None = None) -> np.ndarray:

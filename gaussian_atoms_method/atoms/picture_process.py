@@ -1,0 +1,110 @@
+"""Pictures drawn in child processes, started before they are needed.
+
+A run's last seconds go to its pictures (:mod:`.pictures`): matplotlib's import and its first
+text (0.6-0.9 s on the H100 machine, more where its font cache is built) and two figures drawn
+one after the other (``classes.png`` 0.25 s, ``slices.png`` about 1 s at 20,000 atoms).  A
+:class:`PictureProcess` is a child Python process that imports matplotlib and draws a first
+text as soon as it starts (while the run's final stage works), then waits for one picture's
+arrays on its standard input; one child per picture draws them side by side while the run
+writes its atoms.  The child imports numpy and matplotlib, not torch.
+
+Where the machine has no cores to spare (:func:`spare_cores`) the pictures are drawn in the
+run's own process, as a child's imports would take the final stage's cores.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import subprocess
+import sys
+
+PICTURES = {
+    "slices": "draw_slices",
+    "population": "write_population_png",
+}
+"""The pictures a child draws: name -> function of :mod:`.pictures`."""
+
+SPARE_CORES = 4
+"""Cores the process may use from which children draw the pictures: the children's two imports
+run beside the run's final stage (the 2-core CI machine: in-process, as before)."""
+
+
+def spare_cores() -> bool:
+    """Whether this process may use at least :data:`SPARE_CORES` cores."""
+    try:
+        return len(os.sched_getaffinity(0)) >= SPARE_CORES
+    except AttributeError:  # no affinity on this platform
+        return (os.cpu_count() or 1) >= SPARE_CORES
+
+
+class PictureProcess:
+    """One child process that will draw one picture (:meth:`draw`), started now."""
+
+    def __init__(self) -> None:
+        self._process = subprocess.Popen(
+            [sys.executable, "-m", __name__], stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+        )  # fmt: skip
+        self.free = True
+        """Whether the child still waits for its picture."""
+        self._drawing = False
+
+    def draw(self, picture: str, *args) -> bool:
+        """Hand the child ``picture`` (a key of :data:`PICTURES`) and its arguments; False where
+        the child is gone (the caller draws it itself)."""
+        self.free = False
+        try:
+            self._process.stdin.write(pickle.dumps((picture, args), protocol=pickle.HIGHEST_PROTOCOL))
+            self._process.stdin.close()
+        except (BrokenPipeError, OSError):
+            return False
+        self._drawing = True
+        return True
+
+    def wait(self) -> None:
+        """Wait for the picture; a failure in the child is raised here with its last line."""
+        if not self._drawing:
+            self.close()
+            return
+        err = self._process.stderr.read().decode(errors="replace")
+        if self._process.wait() != 0:
+            last = err.strip().splitlines()[-1] if err.strip() else f"exit status {self._process.returncode}"
+            raise RuntimeError(f"drawing a picture failed: {last}")
+
+    def close(self) -> None:
+        """End the child without a picture (a run that stopped before its pictures)."""
+        if self._process.poll() is None:
+            self._process.kill()
+        self._process.wait()
+
+
+def start(count: int) -> list[PictureProcess] | None:
+    """``count`` children where there are cores to spare (:func:`spare_cores`); None otherwise."""
+    if not spare_cores():
+        return None
+    try:
+        return [PictureProcess() for _ in range(count)]
+    except OSError:  # no interpreter to start: the pictures are drawn in this process
+        return None
+
+
+def _serve() -> None:
+    """The child: matplotlib imported and a first text drawn, then one picture from stdin."""
+    from io import BytesIO
+
+    from gaussian_atoms_method.atoms import pictures
+
+    plt = pictures.pyplot()
+    fig = plt.figure(figsize=(1, 1))
+    fig.text(0.5, 0.5, "Å σ")  # loads the font: the first text of a process costs its font file
+    fig.savefig(BytesIO(), format="png")
+    plt.close(fig)
+    data = sys.stdin.buffer.read()
+    if not data:  # the run ended without pictures
+        return
+    picture, args = pickle.loads(data)
+    getattr(pictures, PICTURES[picture])(*args)
+
+
+if __name__ == "__main__":
+    _serve()
