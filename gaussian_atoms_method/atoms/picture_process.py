@@ -39,43 +39,50 @@ def spare_cores() -> bool:
 
 
 class PictureProcess:
-    """One child process that will draw one picture (:meth:`draw`), started now."""
+    """One child process that will draw one picture (:meth:`draw`), started now; it imports
+    from this process's module path."""
 
     def __init__(self) -> None:
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
         self._process = subprocess.Popen(
-            [sys.executable, "-m", __name__], stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+            [sys.executable, "-m", __name__], stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env,
         )  # fmt: skip
-        self.free = True
-        """Whether the child still waits for its picture."""
-        self._drawing = False
+        self.picture: tuple | None = None
+        """The picture handed to the child: (name, *arguments); None while it waits for one."""
+        self.error = ""
+        """Why the child did not draw its picture (its last line), after :meth:`wait`."""
 
     def draw(self, picture: str, *args) -> bool:
         """Hand the child ``picture`` (a key of :data:`PICTURES`) and its arguments; False where
         the child is gone (the caller draws it itself)."""
-        self.free = False
+        self.picture = (picture, *args)
         try:
             self._process.stdin.write(pickle.dumps((picture, args), protocol=pickle.HIGHEST_PROTOCOL))
             self._process.stdin.close()
         except (BrokenPipeError, OSError):
+            self.close()
             return False
-        self._drawing = True
         return True
 
-    def wait(self) -> None:
-        """Wait for the picture; a failure in the child is raised here with its last line."""
-        if not self._drawing:
+    def wait(self) -> bool:
+        """Wait for the child; whether it drew its picture (False with :attr:`error` where it
+        failed: the caller draws the picture itself, so a child never fails a run)."""
+        if self.picture is None:
             self.close()
-            return
+            return False
         err = self._process.stderr.read().decode(errors="replace")
         if self._process.wait() != 0:
-            last = err.strip().splitlines()[-1] if err.strip() else f"exit status {self._process.returncode}"
-            raise RuntimeError(f"drawing a picture failed: {last}")
+            self.error = err.strip().splitlines()[-1] if err.strip() else f"exit status {self._process.returncode}"
+            return False
+        return True
 
     def close(self) -> None:
         """End the child without a picture (a run that stopped before its pictures)."""
         if self._process.poll() is None:
             self._process.kill()
         self._process.wait()
+        for stream in (self._process.stdin, self._process.stderr):
+            stream.close()
 
 
 def start(count: int) -> list[PictureProcess] | None:

@@ -132,10 +132,12 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
         )
         pictures.append(("slices", slice_planes(atoms, truth, device=model.means.device), run_dir / "slices.png", title))
     _hand_over(pictures, drawers)
-    for name, *args in pictures:  # those no child took
-        getattr(pictures_module, PICTURES[name])(*args)
     for drawer in drawers or ():
-        drawer.wait()
+        if drawer.picture is not None and not drawer.wait():
+            CONSOLE.print(f"gaussian-atoms: the {drawer.picture[0]} picture's process failed ({drawer.error}); drawn in this one")
+            pictures.append(drawer.picture)
+    for name, *args in pictures:  # those no child took, or whose child failed: drawn here
+        getattr(pictures_module, PICTURES[name])(*args)
     if scores is None:
         return None
     CONSOLE.print(f"[bold]gaussian-atoms[/bold]: against {model.truth_path}: {json.dumps(scores)}")
@@ -146,7 +148,7 @@ def _hand_over(pictures: list, drawers) -> None:
     """Give the ``pictures`` ((name, *arguments), :data:`~gaussian_atoms_method.atoms.picture_process.PICTURES`)
     to the ``drawers`` that have none yet, one each; those taken leave the list."""
     for drawer in drawers or ():
-        if pictures and drawer.free and drawer.draw(*pictures[0]):
+        if pictures and drawer.picture is None and drawer.draw(*pictures[0]):
             pictures.pop(0)
 
 

@@ -82,8 +82,11 @@ def exit_process(status: int = 0) -> None:
         if tensorboard is not None:
             tensorboard.close()
     atexit._run_exitfuncs()  # what the interpreter's exit runs first
-    sys.stdout.flush()
-    sys.stderr.flush()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError, AttributeError):  # a closed pipe or stream, or none
+            pass
     os._exit(status)
 
 
