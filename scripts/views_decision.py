@@ -17,7 +17,7 @@ import time
 import numpy as np
 import torch
 
-from gaussian_atoms_method.nerfstudio_layer.rendering import STEP_COST_RATIO, _probe_scene, auto_views_per_step, projector_for, synchronise
+from gaussian_atoms_method.nerfstudio_layer.rendering import STEP_COST_RATIO, probe_scene, auto_views_per_step, projector_for, synchronise
 
 
 def main() -> None:
@@ -36,7 +36,7 @@ def main() -> None:
     print("| --- | --- | --- | --- |")
     one = None
     for views in (1, 2, 4, 8):
-        means, sigmas, amplitudes, detector = _probe_scene(args.gaussians, views, axis, axis)
+        means, sigmas, amplitudes, detector = probe_scene(args.gaussians, views, axis, axis)
         times = []
         for _ in range(args.calls + 1):
             synchronise(device)

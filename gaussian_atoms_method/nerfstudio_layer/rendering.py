@@ -404,7 +404,7 @@ def projector_bytes_per_view(projector, n_gaussians: int, rows: torch.Tensor, co
     detector (``rows``, ``cols``) and device of the coordinates: measured on ``sample`` Gaussians
     in two views (the tensors saved for the backward pass, each storage once) and scaled to
     ``n_gaussians``.  The dense projector keeps a few (N, H) and (N, W) float32 tensors per view."""
-    means, sigmas, amplitudes, axes = _probe_scene(sample, 2, rows, cols)
+    means, sigmas, amplitudes, axes = probe_scene(sample, 2, rows, cols)
     storages: dict[int, int] = {}
 
     def keep(t: torch.Tensor):
@@ -441,7 +441,7 @@ def projector_seconds(projector, n_gaussians: int, views: int, rows: torch.Tenso
     """Median wall time of the projector's forward and backward pass for ``n_gaussians`` random
     Gaussians in ``views`` views on the coordinates' device (synchronised; after one untimed call)."""
     device = rows.device
-    means, sigmas, amplitudes, axes = _probe_scene(n_gaussians, views, rows, cols)
+    means, sigmas, amplitudes, axes = probe_scene(n_gaussians, views, rows, cols)
     times = []
     for _ in range(repeats + 1):
         synchronise(device)
@@ -452,7 +452,7 @@ def projector_seconds(projector, n_gaussians: int, views: int, rows: torch.Tenso
     return float(np.median(times[1:]))
 
 
-def _probe_scene(n_gaussians: int, views: int, rows: torch.Tensor, cols: torch.Tensor):
+def probe_scene(n_gaussians: int, views: int, rows: torch.Tensor, cols: torch.Tensor):
     """``n_gaussians`` random Gaussians over the detector's extent (learnable, on the
     coordinates' device and dtype) and the detector axes of ``views`` views tilted about y."""
     device, dtype = rows.device, rows.dtype
