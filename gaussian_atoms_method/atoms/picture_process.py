@@ -29,7 +29,8 @@ SPARE_CORES = 4
 """The fewest cores the process may use for children to draw its pictures: one for each of the
 two children and two left to the final stage, whose torch work runs on two threads on a CPU
 (on the 2-core CI machine the children's imports would take the final stage's cores; on the
-16-core H100 machine they took 1.2-2.1 s off the 20,000-atom run's end)."""
+16-core H100 machine the 20,000-atom run ended 2-3.5 s sooner with them and the quick exit of
+``nerfstudio_layer.train.exit_process``, 1.0-1.2 s of which is the exit's)."""
 
 
 def spare_cores() -> bool:
