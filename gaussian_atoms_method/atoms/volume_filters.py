@@ -19,6 +19,7 @@ import torch
 
 from gaussian_atoms_method.atoms import host_filters, peaks
 from gaussian_atoms_method.atoms.voxel_pairs import pairs_within
+from gaussian_atoms_method.physics.noise import gaussian_taps
 
 
 def _off_cpu(volume: torch.Tensor, choice: bool | None) -> bool:
@@ -34,10 +35,11 @@ def gaussian_kernel1d(sigma: float, order: int = 0, truncate: float = 4.0) -> np
     if order not in (0, 2):
         raise ValueError(f"order must be 0 or 2, got {order}")
     radius = int(truncate * float(sigma) + 0.5)
+    phi = gaussian_taps(sigma, radius)
+    if order == 0:
+        return phi
     x = np.arange(-radius, radius + 1, dtype=np.float64)
-    phi = np.exp(-0.5 * x**2 / sigma**2)
-    phi /= phi.sum()
-    return phi if order == 0 else phi * (x**2 / sigma**4 - 1.0 / sigma**2)
+    return phi * (x**2 / sigma**4 - 1.0 / sigma**2)
 
 
 def _filter_axis(volume: torch.Tensor, kernel: np.ndarray, axis: int) -> torch.Tensor:
