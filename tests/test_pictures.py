@@ -25,8 +25,8 @@ def test_a_child_draws_the_pictures_this_process_draws(tmp_path):
     for a given figure: no date in its PNG), so handing a picture over changes nothing."""
     planes = slice_planes(_atoms(), _atoms(seed=1))
     children = [PictureProcess(), PictureProcess()]
-    assert children[0].draw("slices", planes, tmp_path / "child_slices.png", "test")
-    assert children[1].draw("population", *_population(), tmp_path / "child_classes.png")
+    assert children[0].draw(draw_slices, planes, tmp_path / "child_slices.png", "test")
+    assert children[1].draw(write_population_png, *_population(), tmp_path / "child_classes.png")
     draw_slices(planes, tmp_path / "slices.png", "test")
     write_population_png(*_population(), tmp_path / "classes.png")
     for child in children:
@@ -39,9 +39,9 @@ def test_a_child_that_fails_says_why_and_leaves_no_file(tmp_path):
     """A child's failure is its last line, and no half-written file: the run then draws the
     picture itself (results.write_results), so a child never fails a run."""
     child = PictureProcess()
-    assert child.draw("slices", "not planes", tmp_path / "slices.png", "")
+    assert child.draw(draw_slices, "not planes", tmp_path / "slices.png", "")
     assert not child.wait() and child.error.startswith("AttributeError")
-    assert child.picture[0] == "slices" and not list(tmp_path.iterdir())
+    assert child.picture[0] is draw_slices and not list(tmp_path.iterdir())
 
 
 def test_a_child_given_no_picture_ends():

@@ -19,12 +19,6 @@ import pickle
 import subprocess
 import sys
 
-PICTURES = {
-    "slices": "draw_slices",
-    "population": "write_population_png",
-}
-"""The pictures a child draws: name -> function of :mod:`.pictures`."""
-
 SPARE_CORES = 4
 """The fewest cores the process may use for children to draw its pictures: one for each of the
 two children and two left to the final stage, whose torch work runs on two threads on a CPU
@@ -51,16 +45,18 @@ class PictureProcess:
             [sys.executable, "-m", __name__], stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env,
         )  # fmt: skip
         self.picture: tuple | None = None
-        """The picture handed to the child: (name, *arguments); None while it waits for one."""
+        """The picture handed to the child: (a function of :mod:`.pictures`, *its arguments);
+        None while it waits for one."""
         self.error = ""
         """Why the child did not draw its picture (its last line), after :meth:`wait`."""
 
-    def draw(self, picture: str, *args) -> bool:
-        """Hand the child ``picture`` (a key of :data:`PICTURES`) and its arguments; False where
-        the child is gone (the caller draws it itself)."""
-        self.picture = (picture, *args)
+    def draw(self, function, *args) -> bool:
+        """Hand the child ``function`` (of :mod:`.pictures`: pickled by its name, so the child
+        calls its own) and its arguments; False where the child is gone (the caller draws it
+        itself)."""
+        self.picture = (function, *args)
         try:
-            self._process.stdin.write(pickle.dumps((picture, args), protocol=pickle.HIGHEST_PROTOCOL))
+            self._process.stdin.write(pickle.dumps(self.picture, protocol=pickle.HIGHEST_PROTOCOL))
             self._process.stdin.close()
         except (BrokenPipeError, OSError):
             self.close()
@@ -112,8 +108,8 @@ def _serve() -> None:
     data = sys.stdin.buffer.read()
     if not data:  # the run ended without pictures
         return
-    picture, args = pickle.loads(data)
-    getattr(pictures, PICTURES[picture])(*args)
+    function, *args = pickle.loads(data)
+    function(*args)
 
 
 if __name__ == "__main__":

@@ -21,10 +21,9 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms, write_atoms
 from gaussian_atoms_method.atoms import picture_process
-from gaussian_atoms_method.atoms import pictures as pictures_module
 from gaussian_atoms_method.atoms.classification import classify_gaussians, in_support
 from gaussian_atoms_method.atoms.matching import score_atoms
-from gaussian_atoms_method.atoms.picture_process import PICTURES
+from gaussian_atoms_method.atoms.pictures import draw_slices, write_population_png
 from gaussian_atoms_method.atoms.slices import slice_planes
 from gaussian_atoms_method.atoms.uncertainty import position_std_A, robust_noise_std
 from gaussian_atoms_method.nerfstudio_layer.rendering import detector_axes
@@ -116,7 +115,7 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
     atoms, non_atoms, population = split_atoms(atoms, model.density.in_field(model.means.detach()).cpu().numpy(), model.means.device)
     # Each picture goes to a child as soon as its arrays are known (drawn there while this process
     # writes the atoms); without children, the atoms are written first and the pictures after them.
-    pictures = [] if population is None else [("population", *population, run_dir / "classes.png")]
+    pictures = [] if population is None else [(write_population_png, *population, run_dir / "classes.png")]
     _hand_over(pictures, drawers)
     write_atoms(atoms, run_dir / "atoms.xyz")
     write_atoms(atoms, run_dir / "atoms.csv")
@@ -130,14 +129,14 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
         title = f"{len(atoms)} atoms" + (
             f"; against the truth: TPR {scores['tpr']:.4f}, FP/atom {scores['fp_per_true_atom']:.4f}, RMSD {scores['rmsd_pm']:.1f} pm" if scores else ""
         )
-        pictures.append(("slices", slice_planes(atoms, truth, device=model.means.device), run_dir / "slices.png", title))
+        pictures.append((draw_slices, slice_planes(atoms, truth, device=model.means.device), run_dir / "slices.png", title))
     _hand_over(pictures, drawers)
     for drawer in drawers or ():
         if drawer.picture is not None and not drawer.wait():
-            CONSOLE.print(f"gaussian-atoms: the {drawer.picture[0]} picture's process failed ({drawer.error}); drawn in this one")
+            CONSOLE.print(f"gaussian-atoms: the child process of {drawer.picture[0].__name__} failed ({drawer.error}); the picture is drawn in this one")
             pictures.append(drawer.picture)
-    for name, *args in pictures:  # those no child took, or whose child failed: drawn here
-        getattr(pictures_module, PICTURES[name])(*args)
+    for function, *args in pictures:  # those no child took, or whose child failed: drawn here
+        function(*args)
     if scores is None:
         return None
     CONSOLE.print(f"[bold]gaussian-atoms[/bold]: against {model.truth_path}: {json.dumps(scores)}")
@@ -145,8 +144,8 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
 
 
 def _hand_over(pictures: list, drawers) -> None:
-    """Give the ``pictures`` ((name, *arguments), :data:`~gaussian_atoms_method.atoms.picture_process.PICTURES`)
-    to the ``drawers`` that have none yet, one each; those taken leave the list."""
+    """Give the ``pictures`` ((a function of :mod:`~gaussian_atoms_method.atoms.pictures`,
+    *its arguments)) to the ``drawers`` that have none yet, one each; those taken leave the list."""
     for drawer in drawers or ():
         if pictures and drawer.picture is None and drawer.draw(*pictures[0]):
             pictures.pop(0)
