@@ -277,7 +277,7 @@ class DensityControl:
         twice = 2.0 * np.asarray(self.half_extent, dtype=np.float64)
         bound, lower = self._box(twice, means), self._box(-twice, means)  # made once each
         # A Gaussian counts once however many of its widths were held (one width when isotropic:
-        # no reduction over it); in place, a dozen operations a step fewer than before.
+        # no reduction over it); the counts add in place (this runs every step).
         low, high = (log_sigmas < lo, log_sigmas > hi) if log_sigmas.shape[-1] == 1 else ((log_sigmas < lo).any(-1), (log_sigmas > hi).any(-1))
         held = torch.stack([low.sum(), high.sum(), (log_amps > self.max_log_amplitude).sum(), (means.abs() > bound).any(-1).sum()])
         if self.clamp_counts is None:
