@@ -167,17 +167,25 @@ def filtered_backprojection(
         raise ValueError(f"{n_angles} sinogram angles but {len(angles_deg)} angles_deg")
     size = length if output_size is None else int(output_size)
     padded = max(64, int(2 ** np.ceil(np.log2(2 * length))))
-    fourier_filter = torch.as_tensor(_get_fourier_filter(padded, filter_name)[:, 0], device=device)
-    spectrum = torch.fft.fft(torch.nn.functional.pad(sino.permute(2, 1, 0), (0, 0, 0, padded - length)), dim=1)
+    # iradon takes the real part of ifft(fft(p) H); for real p that is irfft(rfft(p) E), with E
+    # the even part of H (scikit-image's Hann window is not quite even): half the spectrum, along
+    # a contiguous axis (the Au series' filtering 0.65 -> 0.05 s on the 2-core CPU).
+    fourier_filter = _get_fourier_filter(padded, filter_name)[:, 0]
+    even = 0.5 * (fourier_filter + np.roll(fourier_filter[::-1], 1))
+    half = torch.as_tensor(even[: padded // 2 + 1], device=device)
+    spectrum = torch.fft.rfft(sino.permute(2, 0, 1).contiguous(), n=padded, dim=-1)  # (N, S, padded // 2 + 1)
     # iradon's scale taken on the (small) filtered projections, not on the volume
-    filtered = torch.fft.ifft(spectrum * fourier_filter[:, None], dim=1).real[:, :length] * (np.pi / (2 * n_angles))  # (N, L, S)
+    filtered = torch.fft.irfft(spectrum * half, n=padded, dim=-1)[..., :length] * (np.pi / (2 * n_angles))  # (N, S, L)
     # One zero sample after each angle's detector (read by rays that miss it).
-    filtered = torch.nn.functional.pad(filtered, (0, 0, 0, 1)).reshape(n_angles * (length + 1), n_slices).to(dtype)
-    out = torch.empty(size * size, n_slices, dtype=dtype, device=device)
+    filtered = torch.nn.functional.pad(filtered.to(dtype).transpose(1, 2), (0, 0, 0, 1)).reshape(n_angles * (length + 1), n_slices)
     block = max(1, max_matrix_entries // (2 * n_angles))  # output pixels per block
-    for start in range(0, size * size, block):
-        rows = slice(start, min(start + block, size * size))
-        out[rows] = backprojection_matrix(angles_deg, length, size, rows, dtype, device) @ filtered
+    if block >= size * size:  # one block: the product is the output, not copied into it
+        out = backprojection_matrix(angles_deg, length, size, None, dtype, device) @ filtered
+    else:
+        out = torch.empty(size * size, n_slices, dtype=dtype, device=device)
+        for start in range(0, size * size, block):
+            rows = slice(start, min(start + block, size * size))
+            out[rows] = backprojection_matrix(angles_deg, length, size, rows, dtype, device) @ filtered
     out = out.T.reshape(n_slices, size, size)
     return out if as_tensor else out.cpu().numpy()
 
