@@ -188,3 +188,22 @@ def test_medians_on_a_device_are_numpys():
     got = binned_variance(residuals, predicted, device="cpu")  # the medians in torch
     for a, b in zip(got, expected):
         np.testing.assert_allclose(a, b, rtol=1e-12)
+
+
+def test_equal_count_bins_are_the_stable_sorts():
+    """The noise reading's bins, found without a sort, are ``np.array_split`` of the stable
+    sorted order exactly: continuous values, counts with many ties (ties at the edges split in
+    index order), and more bins than values."""
+    from gaussian_atoms_method.physics.noise import equal_count_bins
+
+    rng = np.random.default_rng(1)
+    for trial in range(120):
+        n, bins = int(rng.integers(1, 400)), int(rng.integers(1, 30))
+        values = [rng.standard_normal(n), rng.integers(0, 1 + trial % 5, n).astype(np.float64), np.round(rng.standard_normal(n), 1)][trial % 3]
+        chunks = np.array_split(np.argsort(values, kind="stable"), bins)
+        expected = np.empty(n, dtype=np.int64)
+        for k, chunk in enumerate(chunks):
+            expected[chunk] = k
+        label, sizes = equal_count_bins(values, bins)
+        np.testing.assert_array_equal(label, expected)
+        np.testing.assert_array_equal(sizes, [len(c) for c in chunks])

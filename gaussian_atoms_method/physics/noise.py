@@ -178,9 +178,10 @@ def binned_variance(residuals: np.ndarray, predicted: np.ndarray, bins: int = 16
     if device is not None:
         return _binned_variance_torch(residuals, predicted, bins, min_count, robust, device)
     r, m = as_array(residuals).ravel(), as_array(predicted).ravel()
-    order = np.argsort(m, kind="stable")
+    label, sizes = equal_count_bins(m, bins)
+    order = np.argsort(label, kind="stable")  # small integers: a radix sort, the bins' members in index order
     centres, variances, counts = [], [], []
-    for chunk in np.array_split(order, bins):
+    for chunk in np.split(order, np.cumsum(sizes)[:-1]):
         if len(chunk) < min_count:
             continue
         rc = r[chunk]
@@ -188,6 +189,29 @@ def binned_variance(residuals: np.ndarray, predicted: np.ndarray, bins: int = 16
         variances.append(float(np.var(rc)) if not robust else mad_std(rc, device) ** 2)
         counts.append(len(chunk))
     return np.array(centres), np.array(variances), np.array(counts)
+
+
+def equal_count_bins(values: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndarray]:
+    """(n,) the bin of each of the (n,) ``values`` and the (bins,) bin sizes: ``np.array_split``'s
+    bins of the values in stable sorted order, without the sort.  Each bin's first rank is
+    selected (``np.partition``); a value below an edge lies before it, above it after, and values
+    equal to an edge take their ranks in index order, as a stable sort gives them.  The noise
+    reading's 3.4 million Au pixels: 0.3 s against 0.86 s for the stable sort (2-core CPU)."""
+    values = np.asarray(values)
+    n = len(values)
+    sizes = np.array([n // bins + 1] * (n % bins) + [n // bins] * (bins - n % bins), dtype=np.int64)
+    starts = np.cumsum(sizes)[:-1]
+    starts = starts[starts < n]  # more bins than values: the last ones are empty
+    if len(starts) == 0:
+        return np.zeros(n, dtype=np.int64), sizes
+    edges = np.partition(values, starts)[starts]
+    label = np.searchsorted(edges, values, side="left")  # the edges strictly below each value
+    for u in np.unique(edges):  # values at an edge: the first (start - below) of them, in index order, lie before it
+        equal = np.flatnonzero(values == u)
+        below = np.count_nonzero(values < u)
+        for start in starts[edges == u]:
+            label[equal[start - below :]] += 1
+    return label, sizes
 
 
 def _binned_variance_torch(residuals, predicted, bins: int, min_count: int, robust: bool, device):
