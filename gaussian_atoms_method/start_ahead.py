@@ -31,11 +31,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from dataparsers.tilt_series_format import load_tilt_series
-from gaussian_atoms_method.atoms.initialise import Start, compute_start
-from gaussian_atoms_method.density.strategy import DensityControl
+from gaussian_atoms_method.physics.noise import HOST, measure_noise
 from gaussian_atoms_method.physics.units import Normalisation, normalised_projections
 
 
@@ -45,28 +43,37 @@ class _Ahead:
 
     data: Path
     extended_object: str
-    max_atom_sigma_A: float
+    max_atom_sigma_A: float | None
+    """None: the option's default (read in the thread, which imports torch)."""
     thread: threading.Thread | None = None
     read: threading.Event = field(default_factory=threading.Event)
     """Set once the thread has read the series (or failed to)."""
     series: object = None
-    projections: torch.Tensor | None = None
+    projections: object = None
+    """(V, H, W) tensor: the normalised projections."""
     normalisation: Normalisation | None = None
-    start: Start | None = None
+    start: object = None
+    """The :class:`~gaussian_atoms_method.atoms.initialise.Start`, once computed."""
 
 
 _ahead: _Ahead | None = None
 
 
-def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float = DensityControl.max_atom_sigma_A) -> None:
+def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float | None = None) -> None:
     """Read the tilt series in ``data`` (a directory or manifest, the reader's defaults) and
     compute its back-projection start in a thread, for :func:`take`.  Errors are left to the
     run, which reads the series again and reports them in its own way.  Not a daemon: a process
     that exits while a daemon thread is inside a torch operation aborts ("terminate called
     without an active exception", seen on the H100); a run stopped by its input ends at once
-    through :func:`end_now`."""
+    through :func:`end_now`.
+
+    The thread starts before the launcher has imported torch (this module does not import it):
+    it reads the series and their noise in numpy meanwhile, on a core the import leaves idle,
+    then imports torch (waiting for the launcher's import) for the rest.  The noise read on the
+    host is the run's own where torch then sees no GPU (the CPU's reading is numpy's); with a GPU
+    it is read again there, as the run reads it."""
     global _ahead
-    ahead = _Ahead(Path(data), extended_object, float(max_atom_sigma_A))
+    ahead = _Ahead(Path(data), extended_object, None if max_atom_sigma_A is None else float(max_atom_sigma_A))
 
     def work() -> None:
         try:
@@ -75,8 +82,17 @@ def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float = D
             finally:
                 ahead.read.set()
             ahead.normalisation, scaled = normalised_projections(ahead.series)
+            noise = measure_noise(scaled, device=HOST)
+            import torch
+
+            from gaussian_atoms_method.atoms.initialise import compute_start
+            from gaussian_atoms_method.density.strategy import DensityControl
+
+            if ahead.max_atom_sigma_A is None:
+                ahead.max_atom_sigma_A = DensityControl.max_atom_sigma_A
             ahead.projections = torch.from_numpy(scaled)
-            ahead.start = compute_start(ahead.series, ahead.projections, ahead.normalisation, ahead.extended_object, ahead.max_atom_sigma_A)
+            known = {"noise": noise} if not torch.cuda.is_available() else {}
+            ahead.start = compute_start(ahead.series, ahead.projections, ahead.normalisation, ahead.extended_object, ahead.max_atom_sigma_A, **known)
         except Exception:  # noqa: BLE001 - the run computes its own start and reports the error there
             ahead.start = None
 
@@ -85,7 +101,7 @@ def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float = D
     ahead.thread.start()
 
 
-def take(series, projections, normalisation: Normalisation, extended_object: str, max_atom_sigma_A: float) -> Start | None:
+def take(series, projections, normalisation: Normalisation, extended_object: str, max_atom_sigma_A: float):
     """The start :func:`begin` computed, if it was for these inputs (the tilt series' data and
     geometry, the normalised ``projections``, ``normalisation`` and the options); None
     otherwise, or when none was begun.  Waits for the thread when it read the same file; handed
@@ -122,7 +138,7 @@ def same_start_inputs(ahead: _Ahead, series, projections, normalisation: Normali
         ahead.extended_object == extended_object and ahead.max_atom_sigma_A == float(max_atom_sigma_A) and ahead.normalisation == normalisation
         and mine.pixel_size_A == theirs.pixel_size_A and mine.tilt_axis == theirs.tilt_axis and mine.tilt_axis_angle_deg == theirs.tilt_axis_angle_deg
         and _same(mine.centre_px, theirs.centre_px) and _same(mine.angles_deg, theirs.angles_deg) and _same(mine.projections, theirs.projections)
-        and torch.equal(ahead.projections, projections.to(ahead.projections.device))
+        and ahead.projections.equal(projections.to(ahead.projections.device))
     )  # fmt: skip
 
 

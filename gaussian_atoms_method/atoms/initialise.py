@@ -387,7 +387,7 @@ class Start:
 
 def compute_start(
     series, projections, normalisation: Normalisation, extended_object: str, max_atom_sigma_A: float, from_backprojection: bool = True,
-    count: int = 0, extent: float = 1.0, generator: torch.Generator | None = None,
+    count: int = 0, extent: float = 1.0, generator: torch.Generator | None = None, noise: NoiseModel | None = None,
 ) -> Start:  # fmt: skip
     """The start for a tilt series (``series``: :class:`~dataparsers.tilt_series_format.TiltSeries`,
     or None) with (V, H, W) ``projections`` in normalised data units: the noise measured once
@@ -395,9 +395,10 @@ def compute_start(
     (:func:`~gaussian_atoms_method.physics.field_of_view.field_of_view`, ``extended_object`` its
     option) and the starting positions (:func:`~gaussian_atoms_method.atoms.initialise.starting_positions`:
     back-projection candidates, or ``count`` random ones in a cube of side ``extent`` drawn
-    with ``generator``)."""
+    with ``generator``).  ``noise``: the projections' noise if already read, as
+    :func:`~gaussian_atoms_method.physics.noise.measure_noise` reads it on this machine."""
     ls = normalisation.length_scale
-    noise = measure_noise(projections)
+    noise = measure_noise(projections) if noise is None else noise
     fov = field_of_view(series, projections, ls, extended_object, EDGE_MARGIN_WIDTHS * max_atom_sigma_A)
     generator = generator if generator is not None else torch.Generator()
     in_series_units = noise.scaled(1.0 / normalisation.data_scale) if noise is not None else None

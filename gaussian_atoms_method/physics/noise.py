@@ -132,9 +132,16 @@ def separable_correlate(padded, taps_rows: np.ndarray, taps_cols: np.ndarray):
     return sum(float(t) * rows[:, :, k : k + w] for k, t in enumerate(taps_cols))
 
 
+HOST = "host"
+"""The device argument of the noise readings that keeps them in numpy on the host, without
+importing torch (a start begun while the launcher imports it, :mod:`gaussian_atoms_method.start_ahead`)."""
+
+
 def compute_device(values, device=None):
-    """Where the noise readings of ``values`` run: ``device`` if given, else a tensor's own
-    device off the CPU, else a GPU where there is one; None: numpy on the host."""
+    """Where the noise readings of ``values`` run: ``device`` if given (:data:`HOST`: numpy),
+    else a tensor's own device off the CPU, else a GPU where there is one; None: numpy on the host."""
+    if device == HOST:
+        return None
     import torch
 
     if device is not None:
@@ -330,13 +337,13 @@ def as_array(projections) -> np.ndarray:
     return np.asarray(projections.detach().cpu().double() if hasattr(projections, "detach") else projections, dtype=np.float64)
 
 
-def measure_noise(projections) -> NoiseModel | None:
-    """The noise of the (V, H, W) projections as measured (:func:`noise_from_projections`), in
-    their units; None without data or with images under 5 x 5 pixels.  Read once: the start
-    (:mod:`gaussian_atoms_method.atoms.initialise`) and the data term share it."""
+def measure_noise(projections, device=None) -> NoiseModel | None:
+    """The noise of the (V, H, W) projections as measured (:func:`noise_from_projections`, on
+    ``device``), in their units; None without data or with images under 5 x 5 pixels.  Read
+    once: the start (:mod:`gaussian_atoms_method.atoms.initialise`) and the data term share it."""
     if projections is None or min(projections.shape[-2:]) < 5:
         return None
-    return noise_from_projections(projections)
+    return noise_from_projections(projections, device=device)
 
 
 def noise_from_projections(projections: np.ndarray, offset: float = 0.0, smoothing_px: float = 2.0, z_min: float = 3.0, device=None) -> NoiseModel:
@@ -382,7 +389,7 @@ def noise_from_projections(projections: np.ndarray, offset: float = 0.0, smoothi
     smooth = ndimage.gaussian_filter(p, (0, smoothing_px, smoothing_px), mode="nearest", truncate=radius / smoothing_px)
     mean = ((smooth - ndimage.correlate(p, centre[None], mode="nearest")) / (1.0 - centre.sum()))[:, 1:-1, 1:-1]
     # Plain variances: counts of a few electrons take a handful of values and defeat the MAD.
-    return fit_noise_model(filtered, mean, offset=offset, z_min=z_min, robust=False, quadratic=False)
+    return fit_noise_model(filtered, mean, offset=offset, z_min=z_min, robust=False, quadratic=False, device=HOST)
 
 
 def _noise_from_projections_torch(projections, offset: float, smoothing_px: float, z_min: float, device) -> NoiseModel:
