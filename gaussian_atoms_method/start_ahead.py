@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from dataparsers.tilt_series_format import load_tilt_series
-from gaussian_atoms_method.physics.noise import HOST, measure_noise
+from gaussian_atoms_method.physics.noise import HOST
 from gaussian_atoms_method.physics.units import Normalisation, normalised_projections
 
 
@@ -68,10 +68,10 @@ def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float | N
     through :func:`end_now`.
 
     The thread starts before the launcher has imported torch (this module does not import it):
-    it reads the series and their noise in numpy meanwhile, on a core the import leaves idle,
-    then imports torch (waiting for the launcher's import) for the rest.  The noise read on the
-    host is the run's own where torch then sees no GPU (the CPU's reading is numpy's); with a GPU
-    it is read again there, as the run reads it."""
+    it reads the series, their noise and the candidates' back-projection in numpy and scipy
+    meanwhile, on a core the import leaves idle, then imports torch (waiting for the launcher's
+    import) for the rest.  Both are the run's own where torch then sees no GPU (the CPU's are
+    numpy's and scipy's); with a GPU they are made again there, as the run makes them."""
     global _ahead
     ahead = _Ahead(Path(data), extended_object, None if max_atom_sigma_A is None else float(max_atom_sigma_A))
 
@@ -81,8 +81,15 @@ def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float | N
                 ahead.series = load_tilt_series(ahead.data)
             finally:
                 ahead.read.set()
-            ahead.normalisation, scaled = normalised_projections(ahead.series)
+            from gaussian_atoms_method.physics.field_of_view import field_of_view
+            from gaussian_atoms_method.physics.noise import measure_noise
+            from gaussian_atoms_method.physics.reconstruction import backprojection_for_peaks
+
+            series = ahead.series
+            ahead.normalisation, scaled = normalised_projections(series)
             noise = measure_noise(scaled, device=HOST)
+            slice_px = field_of_view(series, scaled, ahead.normalisation.length_scale, ahead.extended_object).slice_px
+            volume = backprojection_for_peaks(series.projections, series.angles_deg, series.pixel_size_A, series.tilt_axis, series.centre_px, series.tilt_axis_angle_deg, slice_px, HOST)
             import torch
 
             from gaussian_atoms_method.atoms.initialise import compute_start
@@ -91,7 +98,7 @@ def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float | N
             if ahead.max_atom_sigma_A is None:
                 ahead.max_atom_sigma_A = DensityControl.max_atom_sigma_A
             ahead.projections = torch.from_numpy(scaled)
-            known = {"noise": noise} if not torch.cuda.is_available() else {}
+            known = {"noise": noise, "backprojection": volume} if not torch.cuda.is_available() else {}
             ahead.start = compute_start(ahead.series, ahead.projections, ahead.normalisation, ahead.extended_object, ahead.max_atom_sigma_A, **known)
         except Exception:  # noqa: BLE001 - the run computes its own start and reports the error there
             ahead.start = None

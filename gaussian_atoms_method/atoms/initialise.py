@@ -99,7 +99,7 @@ from gaussian_atoms_method.atoms.volume_filters import separated_maxima
 from gaussian_atoms_method.atoms.point_response import backprojected_atom, clean_peaks, point_response
 from gaussian_atoms_method.physics.field_of_view import FieldOfView, field_of_view
 from gaussian_atoms_method.physics.noise import NoiseModel, measure_noise, noise_from_projections
-from gaussian_atoms_method.physics.reconstruction import Volume, reconstruct
+from gaussian_atoms_method.physics.reconstruction import Volume, backprojection_for_peaks, reconstruct
 from gaussian_atoms_method.physics.units import Normalisation
 
 
@@ -182,6 +182,7 @@ def backprojection_candidates(
     noise: NoiseModel | None = None,
     deconvolve: bool = True,
     slice_size_px: int | None = None,
+    backprojection: Volume | None = None,
 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Candidate atom positions, strongest first.
 
@@ -230,6 +231,9 @@ def backprojection_candidates(
     slice_size_px : int, optional
         Reconstruct across the tilt axis over this many voxels (an object wider than the field of
         view, :mod:`gaussian_atoms_method.physics.field_of_view`); the depth stays the detector's.
+    backprojection : Volume, optional
+        Step 1's back-projection if already made (:func:`~gaussian_atoms_method.physics.reconstruction.backprojection_for_peaks`
+        of the same arguments, on the host); else made here.
 
     Returns
     -------
@@ -241,10 +245,10 @@ def backprojection_candidates(
     """
     if max_count is not None and max_count <= 0:
         return (np.zeros((0, 3)), np.zeros(0)) if return_values else np.zeros((0, 3))
-    # float32 and left on ``device``: the filters and the maxima run there; only peak indices and
-    # values come back to the host.  (float64 took twice as long on the CPU: the Au series'
-    # FBP 1.5 s, its Laplacian of Gaussian 2.0 s against 0.95 s.)
-    volume = reconstruct(projections, angles_deg, pixel_size_A, "fbp", tilt_axis, centre_px, filter_name="hann", device=device, tilt_axis_angle_deg=tilt_axis_angle_deg, slice_size_px=slice_size_px, dtype=torch.float32, as_tensor=True)
+    if backprojection is None:
+        volume = backprojection_for_peaks(projections, angles_deg, pixel_size_A, tilt_axis, centre_px, tilt_axis_angle_deg, slice_size_px, device)
+    else:
+        volume = Volume(torch.as_tensor(backprojection.data, device=device), backprojection.spacing_A, backprojection.origin_index)
     if slice_size_px is not None:  # wider across the axis only: the depth back to the detector's length
         depth = projections.shape[1 if tilt_axis == "y" else 2] | 1
         start = int(volume.origin_index[2]) - depth // 2
@@ -315,7 +319,7 @@ def backprojection_candidates(
 
 def starting_positions(
     series, length_scale: float, count: int, extent: float, generator: torch.Generator, from_backprojection: bool = True, noise: NoiseModel | None = None,
-    slice_size_px: int | None = None,
+    slice_size_px: int | None = None, backprojection: Volume | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Where training starts: (n, 3) positions in normalised units and, for a back-projection
     start, (n,) weights of mean 1 in proportion to the smoothed back-projection there (else None).
@@ -338,12 +342,15 @@ def starting_positions(
         The projections' noise in the series' units, if already read.
     slice_size_px : int, optional
         Across the tilt axis, start over this many voxels (:func:`backprojection_candidates`).
+    backprojection : Volume, optional
+        The candidates' back-projection if already made (:func:`backprojection_candidates`).
     """
     if from_backprojection and series is not None:
         # A GPU, if there is one, does the back-projection (the model is built on the CPU).
         positions_A, values = backprojection_candidates(
             series.projections, series.angles_deg, series.pixel_size_A, series.tilt_axis, series.centre_px, None,
             device="cuda" if torch.cuda.is_available() else "cpu", return_values=True, tilt_axis_angle_deg=series.tilt_axis_angle_deg, noise=noise, slice_size_px=slice_size_px,
+            backprojection=backprojection,
         )  # fmt: skip
         if len(positions_A):
             # A candidate made of noise reads about zero; a floor of 1% of the strongest keeps
@@ -388,6 +395,7 @@ class Start:
 def compute_start(
     series, projections, normalisation: Normalisation, extended_object: str, max_atom_sigma_A: float, from_backprojection: bool = True,
     count: int = 0, extent: float = 1.0, generator: torch.Generator | None = None, noise: NoiseModel | None = None,
+    backprojection: Volume | None = None,
 ) -> Start:  # fmt: skip
     """The start for a tilt series (``series``: :class:`~dataparsers.tilt_series_format.TiltSeries`,
     or None) with (V, H, W) ``projections`` in normalised data units: the noise measured once
@@ -396,11 +404,13 @@ def compute_start(
     option) and the starting positions (:func:`~gaussian_atoms_method.atoms.initialise.starting_positions`:
     back-projection candidates, or ``count`` random ones in a cube of side ``extent`` drawn
     with ``generator``).  ``noise``: the projections' noise if already read, as
-    :func:`~gaussian_atoms_method.physics.noise.measure_noise` reads it on this machine."""
+    :func:`~gaussian_atoms_method.physics.noise.measure_noise` reads it on this machine;
+    ``backprojection``: the candidates' back-projection if already made (:func:`~gaussian_atoms_method.physics.reconstruction.backprojection_for_peaks`
+    of the series, across the tilt axis over the field's ``slice_px``)."""
     ls = normalisation.length_scale
     noise = measure_noise(projections) if noise is None else noise
     fov = field_of_view(series, projections, ls, extended_object, EDGE_MARGIN_WIDTHS * max_atom_sigma_A)
     generator = generator if generator is not None else torch.Generator()
     in_series_units = noise.scaled(1.0 / normalisation.data_scale) if noise is not None else None
-    means, weights = starting_positions(series, ls, count, extent, generator, from_backprojection, in_series_units, fov.slice_px)
+    means, weights = starting_positions(series, ls, count, extent, generator, from_backprojection, in_series_units, fov.slice_px, backprojection)
     return Start(noise, fov, means, weights)

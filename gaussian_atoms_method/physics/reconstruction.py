@@ -115,6 +115,39 @@ def backprojection_matrix(angles_deg: np.ndarray, length: int, size: int, rows: 
         return torch.sparse_csr_tensor(crow, cols.reshape(-1), vals.reshape(-1), size=(len(pixels), len(angles) * (length + 1)), check_invariants=False)
 
 
+def _on_host(device) -> bool:
+    """Whether ``device`` (a name or a torch device) is the CPU: the FBP runs in numpy and scipy there."""
+    return str(device) == "cpu"
+
+
+def backprojection_matrix_on_host(angles_deg: np.ndarray, length: int, size: int, rows: slice | None = None, dtype=np.float64):
+    """:func:`backprojection_matrix` built in numpy as a ``scipy.sparse`` CSR matrix of ``dtype``
+    (the same entries: the same float64 operations), without torch."""
+    from scipy import sparse
+
+    start, stop, _ = (rows if rows is not None else slice(None)).indices(size * size)
+    pixels = np.arange(start, stop)
+    radius = size // 2
+    x = (pixels // size - radius).astype(np.float64)[:, None]
+    y = (pixels % size - radius).astype(np.float64)[:, None]
+    angles = np.deg2rad(np.asarray(angles_deg, dtype=np.float64))
+    t = y * np.cos(angles)[None, :] - x * np.sin(angles)[None, :] + length // 2
+    inside = (t >= 0) & (t <= length - 1)
+    floor = np.floor(t)
+    i0 = np.where(inside, floor, float(length)).astype(np.int64)
+    w = np.where(inside, t - floor, 0.0)
+    block = np.arange(len(angles))[None, :] * (length + 1)
+    cols = np.stack([block + i0, block + np.minimum(i0 + 1, length)], axis=-1)
+    vals = np.stack([1.0 - w, w], axis=-1).astype(dtype)
+    crow = np.arange(len(pixels) + 1) * (2 * len(angles))
+    return sparse.csr_matrix((vals.reshape(-1), cols.reshape(-1), crow), shape=(len(pixels), len(angles) * (length + 1)))
+
+
+def _numpy_dtype(dtype):
+    """A torch or numpy float dtype (None: float64) as numpy's."""
+    return np.float32 if dtype is not None and "float32" in str(dtype) else np.float64
+
+
 def filtered_backprojection(
     sinograms: np.ndarray,
     angles_deg: np.ndarray,
@@ -133,7 +166,8 @@ def filtered_backprojection(
     output pixel and angle) applied to all slices' filtered projections at once: one sparse x
     dense product instead of scikit-image's per-slice loop of interpolations (the 271-slice Au
     volume: 3 s against 13 s on the 2-core machine; the matrix is built in blocks of output
-    rows to bound its memory).
+    rows to bound its memory).  On the CPU it runs in numpy and scipy (the same values as
+    torch's to the bit, without importing torch: a start begun while the launcher imports it).
 
     Parameters
     ----------
@@ -146,7 +180,7 @@ def filtered_backprojection(
     max_matrix_entries : int
         Build the matrix in blocks of output pixels with at most this many entries (16 bytes
         each).
-    dtype : torch dtype, optional
+    dtype : torch or numpy dtype, optional
         Of the product and the result (default float64, ``iradon``'s to rounding).  float32
         halves the time of the 271^3 Au volume's product and copies (0.45 -> 0.16 s for the
         product on the 2-core CPU), for a start that only looks for its maxima.
@@ -157,12 +191,10 @@ def filtered_backprojection(
     -------
     (S, output_size, output_size) array (or tensor), equal to ``iradon`` of each slice.
     """
-    import torch
     from skimage.transform.radon_transform import _get_fourier_filter
 
-    dtype = dtype or torch.float64
-    sino = torch.as_tensor(np.asarray(sinograms, dtype=np.float64), device=device)
-    n_slices, length, n_angles = sino.shape
+    sinograms = np.asarray(sinograms, dtype=np.float64)
+    n_slices, length, n_angles = sinograms.shape
     if n_angles != len(angles_deg):
         raise ValueError(f"{n_angles} sinogram angles but {len(angles_deg)} angles_deg")
     size = length if output_size is None else int(output_size)
@@ -171,14 +203,25 @@ def filtered_backprojection(
     # the even part of H (scikit-image's Hann window is not quite even): half the spectrum, along
     # a contiguous axis (the Au series' filtering 0.65 -> 0.05 s on the 2-core CPU).
     fourier_filter = _get_fourier_filter(padded, filter_name)[:, 0]
-    even = 0.5 * (fourier_filter + np.roll(fourier_filter[::-1], 1))
-    half = torch.as_tensor(even[: padded // 2 + 1], device=device)
+    even = 0.5 * (fourier_filter + np.roll(fourier_filter[::-1], 1))[: padded // 2 + 1]
+    block = max(1, max_matrix_entries // (2 * n_angles))  # output pixels per block
+    if _on_host(device):
+        out = _backproject_on_host(sinograms, angles_deg, even, padded, size, block, _numpy_dtype(dtype))
+        if not as_tensor:
+            return out
+        import torch
+
+        return torch.from_numpy(out)
+    import torch
+
+    dtype = torch.float32 if _numpy_dtype(dtype) is np.float32 else torch.float64
+    sino = torch.as_tensor(sinograms, device=device)
+    half = torch.as_tensor(even, device=device)
     spectrum = torch.fft.rfft(sino.permute(2, 0, 1).contiguous(), n=padded, dim=-1)  # (N, S, padded // 2 + 1)
     # iradon's scale taken on the (small) filtered projections, not on the volume
     filtered = torch.fft.irfft(spectrum * half, n=padded, dim=-1)[..., :length] * (np.pi / (2 * n_angles))  # (N, S, L)
     # One zero sample after each angle's detector (read by rays that miss it).
     filtered = torch.nn.functional.pad(filtered.to(dtype).transpose(1, 2), (0, 0, 0, 1)).reshape(n_angles * (length + 1), n_slices)
-    block = max(1, max_matrix_entries // (2 * n_angles))  # output pixels per block
     if block >= size * size:  # one block: the product is the output, not copied into it
         out = backprojection_matrix(angles_deg, length, size, None, dtype, device) @ filtered
     else:
@@ -188,6 +231,25 @@ def filtered_backprojection(
             out[rows] = backprojection_matrix(angles_deg, length, size, rows, dtype, device) @ filtered
     out = out.T.reshape(n_slices, size, size)
     return out if as_tensor else out.cpu().numpy()
+
+
+def _backproject_on_host(sinograms: np.ndarray, angles_deg, even_filter: np.ndarray, padded: int, size: int, block: int, dtype) -> np.ndarray:
+    """:func:`filtered_backprojection`'s filter and product in numpy and scipy, without torch
+    (a start begun while the launcher imports it, :mod:`gaussian_atoms_method.start_ahead`):
+    scipy's sparse product gives torch's to the bit (the Au series in float32), on one core."""
+    import scipy.fft
+
+    n_slices, length, n_angles = sinograms.shape
+    spectrum = scipy.fft.rfft(np.ascontiguousarray(sinograms.transpose(2, 0, 1)), n=padded, axis=-1)
+    filtered = scipy.fft.irfft(spectrum * even_filter, n=padded, axis=-1)[..., :length] * (np.pi / (2 * n_angles))  # (N, S, L)
+    stacked = np.zeros((n_angles, length + 1, n_slices), dtype=dtype)  # one zero sample after each angle's detector
+    stacked[:, :length, :] = filtered.transpose(0, 2, 1)
+    stacked = stacked.reshape(n_angles * (length + 1), n_slices)
+    out = np.empty((size * size, n_slices), dtype=dtype)
+    for start in range(0, size * size, block):
+        rows = slice(start, min(start + block, size * size))
+        out[rows] = backprojection_matrix_on_host(angles_deg, length, size, rows, dtype) @ stacked
+    return out.T.reshape(n_slices, size, size)
 
 
 def reconstruct(
@@ -260,6 +322,16 @@ def reconstruct(
     return slices_to_volume(recs, pixel_size_A, tilt_axis, axis_centre)
 
 
+def backprojection_for_peaks(projections, angles_deg, pixel_size_A: float, tilt_axis: str = "y", centre_px=None, tilt_axis_angle_deg: float = 0.0, slice_size_px: int | None = None, device: str = "cpu") -> Volume:
+    """The Hann FBP a search for atom-like peaks reads (the start's step 1,
+    :func:`gaussian_atoms_method.atoms.initialise.backprojection_candidates`), in float32
+    (float64 took twice as long on the CPU: the Au series' FBP 1.5 s, its Laplacian of Gaussian
+    2.0 s against 0.95 s): a tensor on ``device`` (the filters and the maxima run there), or
+    with ``device`` "host" an array made without importing torch (the CPU's own FBP: the same values)."""
+    on_host = device == "host"
+    return reconstruct(projections, angles_deg, pixel_size_A, "fbp", tilt_axis, centre_px, filter_name="hann", device="cpu" if on_host else device, tilt_axis_angle_deg=tilt_axis_angle_deg, slice_size_px=slice_size_px, dtype=np.float32, as_tensor=not on_host)
+
+
 def slice_sinograms(projections: np.ndarray, tilt_axis: str = "y", centre_px=None, tilt_axis_angle_deg: float = 0.0) -> tuple[np.ndarray, int, float]:
     """The (S, L, N) sinograms of the slices perpendicular to the tilt axis, each padded to odd
     length ``L`` with the tilt centre at ``L // 2`` (the layout :func:`filtered_backprojection`,
@@ -290,7 +362,7 @@ def slices_to_volume(recs, pixel_size_A: float, tilt_axis: str, axis_centre: flo
         origin = np.array([axis_centre, size // 2, size // 2], dtype=np.float64)
     # one pass: divided into a contiguous volume of the final layout
     if isinstance(view, np.ndarray):
-        data = np.divide(view, pixel_size_A, out=np.empty(view.shape, dtype=view.dtype))
+        data = np.divide(view, view.dtype.type(pixel_size_A), out=np.empty(view.shape, dtype=view.dtype))  # in the volume's precision, as torch divides
     else:
         data = _divide_contiguous(view, pixel_size_A)
     return Volume(data, float(pixel_size_A), origin)
