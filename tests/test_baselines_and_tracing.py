@@ -104,3 +104,16 @@ def test_batched_filtered_backprojection_equals_scikit_image():
     np.testing.assert_allclose(single.numpy(), expected, rtol=0, atol=1e-6 * np.abs(expected).max())
     with pytest.raises(ValueError, match="angles"):
         filtered_backprojection(sino, theta[:-1])
+
+
+def test_the_hosts_backprojection_matrix_is_torchs():
+    """The CPU's FBP builds its sparse matrix in numpy for scipy (without torch): the same
+    entries as the torch builder the GPU and SIRT use, to the bit, whole and in blocks of rows."""
+    from gaussian_atoms_method.physics.reconstruction import backprojection_matrix, backprojection_matrix_on_host
+
+    theta = np.linspace(-70, 68, 17)
+    for size, rows in ((41, None), (29, slice(100, 357)), (57, slice(0, 5))):
+        on_host = backprojection_matrix_on_host(theta, 41, size, rows, np.float32)
+        in_torch = backprojection_matrix(theta, 41, size, rows, torch.float32)
+        assert on_host.dtype == np.float32 and on_host.shape == tuple(in_torch.shape)
+        np.testing.assert_array_equal(on_host.toarray(), in_torch.to_dense().numpy())

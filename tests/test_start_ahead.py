@@ -120,3 +120,21 @@ def test_a_run_stopped_by_a_bad_option_while_the_start_runs_ends_in_one_line(ser
     run = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert run.returncode == 2 and own_lines(run.stdout + run.stderr) == ["gaussian-atoms: error: --pipeline.model.min-sigma-A must be positive, got -1.0"]
     assert "terminate called" not in run.stderr and not (tmp_path / "out").exists()
+
+
+def test_the_start_ahead_begins_before_torch_is_imported():
+    """The launcher imports this module and begins the start before it imports torch: the
+    module, and the noise reading the thread makes first, import no torch."""
+    code = (
+        "import sys, numpy as np\n"
+        "from gaussian_atoms_method import start_ahead\n"
+        "from gaussian_atoms_method.physics.noise import HOST, measure_noise\n"
+        "from gaussian_atoms_method.physics.reconstruction import backprojection_for_peaks\n"
+        "p = np.random.default_rng(0).normal(5.0, 1.0, (5, 33, 33))\n"
+        "assert measure_noise(p, device=HOST).read_var > 0\n"
+        "v = backprojection_for_peaks(p, np.linspace(-60, 60, 5), 0.5, device=HOST)\n"
+        "assert isinstance(v.data, np.ndarray) and v.data.dtype == np.float32\n"
+        "assert 'torch' not in sys.modules, 'torch imported'\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr[-2000:]
