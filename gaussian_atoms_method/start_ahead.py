@@ -68,10 +68,11 @@ def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float | N
     through :func:`end_now`.
 
     The thread starts before the launcher has imported torch (this module does not import it):
-    it reads the series, their noise and the candidates' back-projection in numpy and scipy
-    meanwhile, on a core the import leaves idle, then imports torch (waiting for the launcher's
-    import) for the rest.  Both are the run's own where torch then sees no GPU (the CPU's are
-    numpy's and scipy's); with a GPU they are made again there, as the run makes them."""
+    it reads the series and, where no GPU can be seen (:func:`gpu_possible`), their noise and
+    the candidates' back-projection in numpy and scipy meanwhile, on a core the import leaves
+    idle; then it imports torch (waiting for the launcher's import) for the rest.  Both are the
+    run's own where torch then sees no GPU (the CPU's are numpy's and scipy's); with a GPU they
+    are made there, as the run makes them."""
     global _ahead
     ahead = _Ahead(Path(data), extended_object, None if max_atom_sigma_A is None else float(max_atom_sigma_A))
 
@@ -87,9 +88,11 @@ def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float | N
 
             series = ahead.series
             ahead.normalisation, scaled = normalised_projections(series)
-            noise = measure_noise(scaled, device=HOST)
-            slice_px = field_of_view(series, scaled, ahead.normalisation.length_scale, ahead.extended_object).slice_px
-            volume = backprojection_for_peaks(series.projections, series.angles_deg, series.pixel_size_A, series.tilt_axis, series.centre_px, series.tilt_axis_angle_deg, slice_px, HOST)
+            noise = volume = None
+            if not gpu_possible():  # with a GPU both are made there: host work beside the import would only slow it
+                noise = measure_noise(scaled, device=HOST)
+                slice_px = field_of_view(series, scaled, ahead.normalisation.length_scale, ahead.extended_object).slice_px
+                volume = backprojection_for_peaks(series.projections, series.angles_deg, series.pixel_size_A, series.tilt_axis, series.centre_px, series.tilt_axis_angle_deg, slice_px, HOST)
             import torch
 
             from gaussian_atoms_method.atoms.initialise import compute_start
@@ -98,7 +101,7 @@ def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float | N
             if ahead.max_atom_sigma_A is None:
                 ahead.max_atom_sigma_A = DensityControl.max_atom_sigma_A
             ahead.projections = torch.from_numpy(scaled)
-            known = {"noise": noise, "backprojection": volume} if not torch.cuda.is_available() else {}
+            known = {"noise": noise, "backprojection": volume} if volume is not None and not torch.cuda.is_available() else {}
             ahead.start = compute_start(ahead.series, ahead.projections, ahead.normalisation, ahead.extended_object, ahead.max_atom_sigma_A, **known)
         except Exception:  # noqa: BLE001 - the run computes its own start and reports the error there
             ahead.start = None
@@ -106,6 +109,19 @@ def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float | N
     ahead.thread = threading.Thread(target=work, name="gaussian-atoms start", daemon=False)
     _ahead = ahead
     ahead.thread.start()
+
+
+GPU_NODES = ("/dev/nvidiactl", "/dev/nvidia0", "/proc/driver/nvidia", "/dev/kfd")
+"""Device files a GPU driver makes (NVIDIA's, and ROCm's ``/dev/kfd``): without any of them torch
+can see no GPU, so the start runs on the CPU."""
+
+
+def gpu_possible() -> bool:
+    """Whether torch might see a GPU here (:data:`GPU_NODES`), asked without importing torch:
+    where it cannot, the thread makes the CPU's noise reading and back-projection while the
+    launcher imports torch (beside the import each slows the other: worth it only where they
+    are the run's own)."""
+    return any(os.path.exists(node) for node in GPU_NODES)
 
 
 def take(series, projections, normalisation: Normalisation, extended_object: str, max_atom_sigma_A: float):

@@ -138,3 +138,16 @@ def test_the_start_ahead_begins_before_torch_is_imported():
     )
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert result.returncode == 0, result.stderr[-2000:]
+
+
+def test_where_a_gpu_may_be_seen_the_thread_leaves_the_host_work_to_the_start(series_dir, monkeypatch):
+    """Where a GPU's device files exist the thread reads no noise and makes no back-projection
+    before torch is imported (the run makes them on the GPU); the start it computes is still the
+    one computed in line, to the bit."""
+    monkeypatch.setattr(start_ahead, "gpu_possible", lambda: True)
+    series, projections, normalisation = _inputs(series_dir)
+    start_ahead.begin(series_dir)
+    ahead = start_ahead.take(series, projections, normalisation, "auto", 1.5)
+    in_line = compute_start(series, projections, normalisation, "auto", 1.5)
+    assert ahead is not None and torch.equal(ahead.means, in_line.means) and torch.equal(ahead.weights, in_line.weights)
+    assert ahead.noise == in_line.noise
