@@ -133,8 +133,10 @@ def separable_correlate(padded, taps_rows: np.ndarray, taps_cols: np.ndarray):
 
 
 HOST = "host"
-"""The device argument of the noise readings that keeps them in numpy on the host, without
-importing torch (a start begun while the launcher imports it, :mod:`gaussian_atoms_method.start_ahead`)."""
+"""The device argument that keeps the noise readings, and the start's back-projection
+(:func:`gaussian_atoms_method.physics.reconstruction.backprojection_for_peaks`), in numpy on the
+host without importing torch (a start begun while the launcher imports it,
+:mod:`gaussian_atoms_method.start_ahead`)."""
 
 
 def compute_device(values, device=None):

@@ -18,6 +18,7 @@ import numpy as np
 from scipy import ndimage
 
 from gaussian_atoms_method.physics.geometry import to_nominal_axis
+from gaussian_atoms_method.physics.noise import HOST
 
 
 @dataclass
@@ -327,8 +328,9 @@ def backprojection_for_peaks(projections, angles_deg, pixel_size_A: float, tilt_
     :func:`gaussian_atoms_method.atoms.initialise.backprojection_candidates`), in float32
     (float64 took twice as long on the CPU: the Au series' FBP 1.5 s, its Laplacian of Gaussian
     2.0 s against 0.95 s): a tensor on ``device`` (the filters and the maxima run there), or
-    with ``device`` "host" an array made without importing torch (the CPU's own FBP: the same values)."""
-    on_host = device == "host"
+    with ``device`` :data:`~gaussian_atoms_method.physics.noise.HOST` an array made without
+    importing torch (the CPU's own FBP: the same values)."""
+    on_host = device == HOST
     return reconstruct(projections, angles_deg, pixel_size_A, "fbp", tilt_axis, centre_px, filter_name="hann", device="cpu" if on_host else device, tilt_axis_angle_deg=tilt_axis_angle_deg, slice_size_px=slice_size_px, dtype=np.float32, as_tensor=not on_host)
 
 
