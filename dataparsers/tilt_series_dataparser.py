@@ -82,12 +82,16 @@ class TiltSeriesDataParserConfig(DataParserConfig):
     """Angle of the tilt axis in the images (degrees, counterclockwise with the rows pointing up,
     from the direction tilt-axis names); default the manifest's, an IMOD MRC header's, or 0."""
 
+    species: Optional[str] = None
+    """The specimen's elements, e.g. Ta or Fe,Pt: they set the shortest distance two atoms may
+    keep (the hard core); without them it is read from the atoms found.  Overrides the manifest."""
+
     def load(self, data: Optional[Path] = None) -> TiltSeries:
         """The tilt series these options name (``data`` overrides the directory); raises
         :class:`~dataparsers.errors.TiltSeriesError` naming the file and the problem."""
         return load_tilt_series(
             self.data if data is None else data, self.projections, self.angles_deg, self.pixel_size_A, self.tilt_axis, self.truth,
-            self.dataset, self.tilt_index_axis, self.angles_variable, self.centre_px, self.tilt_axis_angle_deg,
+            self.dataset, self.tilt_index_axis, self.angles_variable, self.centre_px, self.tilt_axis_angle_deg, self.species,
         )  # fmt: skip
 
 

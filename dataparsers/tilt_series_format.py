@@ -59,6 +59,9 @@ class TiltSeries:
         Angle of the tilt axis in the recorded images, from the detector direction ``tilt_axis``
         names (:mod:`gaussian_atoms_method.physics.geometry`: counterclockwise with the rows
         pointing up, as IMOD shows a stack).
+    species : tuple of str
+        The elements the specimen holds (``("Ta",)``, ``("Fe", "Pt")``); () when not given.  They
+        set the material's hard core (:mod:`gaussian_atoms_method.atoms.hard_core`).
     """
 
     projections: np.ndarray
@@ -70,6 +73,7 @@ class TiltSeries:
     source: Path | None = None
     centre_px: np.ndarray | None = None
     tilt_axis_angle_deg: float = 0.0
+    species: tuple = ()
 
     def __post_init__(self) -> None:
         where = str(self.source) if self.source is not None else "tilt series"
@@ -120,6 +124,12 @@ class TiltSeries:
             raise TiltSeriesError(f"{where}: tilt_axis_angle_deg must be a number of degrees, got {self.tilt_axis_angle_deg!r}") from None
         if not np.isfinite(self.tilt_axis_angle_deg):
             raise TiltSeriesError(f"{where}: tilt_axis_angle_deg must be finite, got {self.tilt_axis_angle_deg}")
+        from gaussian_atoms_method.atoms.hard_core import SpeciesError, parse_species
+
+        try:
+            self.species = parse_species(self.species)
+        except SpeciesError as exc:
+            raise TiltSeriesError(f"{where}: {exc}") from None
 
     @property
     def n_views(self) -> int:
@@ -142,6 +152,7 @@ def load_tilt_series(
     angles_variable: str | None = None,
     centre_px=None,
     tilt_axis_angle_deg: float | None = None,
+    species: str | None = None,
 ) -> TiltSeries:
     """Read a tilt series from a directory with ``tilt_series.json`` and/or explicit options.
 
@@ -154,6 +165,8 @@ def load_tilt_series(
     single-axis series.  Without a pixel size, an MRC header's is used; without an angle file,
     an EMD file's angle dimension; without a tilt-axis angle, the one IMOD writes into an MRC
     header's labels (with ``tilt_axis`` "x", IMOD's reference direction, unless given).
+    ``species`` ("Ta", "Fe,Pt") names the specimen's elements (manifest key ``species``: a
+    string or a list).
     """
 
     data = Path(data)
@@ -173,7 +186,7 @@ def load_tilt_series(
             raise TiltSeriesError(f"{manifest_path}: expected a JSON object")
         known = {
             "projections", "angles_deg", "pixel_size_A", "tilt_axis", "truth", "origin_A", "centre_px", "volume",
-            "volume_voxel_size_A", "description", "simulation", "dataset", "tilt_index_axis", "angles_variable", "tilt_axis_angle_deg",
+            "volume_voxel_size_A", "description", "simulation", "dataset", "tilt_index_axis", "angles_variable", "tilt_axis_angle_deg", "species",
         }  # fmt: skip
         unknown = set(manifest) - known
         if unknown:
@@ -231,11 +244,12 @@ def load_tilt_series(
             truth_path=truth_path,
             source=proj_path,
             centre_px=centre_px if centre_px is not None else manifest.get("centre_px"),
+            species=pick(species, "species") or (),
         )
     except TiltSeriesError as exc:
         # Name the file the problem most likely lives in.
         msg = str(exc).split(": ", 1)[-1]
-        culprit = angles_path if "angle" in msg and "axis" not in msg else (where if any(k in msg for k in ("pixel", "axis", "origin", "centre")) else proj_path)
+        culprit = angles_path if "angle" in msg and "axis" not in msg else (where if any(k in msg for k in ("pixel", "axis", "origin", "centre", "species")) else proj_path)
         raise TiltSeriesError(f"{culprit}: {msg}") from None
 
 
@@ -250,6 +264,7 @@ def write_tilt_series(
     extra: dict | None = None,
     centre_px=None,
     tilt_axis_angle_deg: float = 0.0,
+    species=(),
 ) -> Path:
     """Write a ``tilt_series.json`` directory; ``truth`` is an AtomSet in its own frame.
 
@@ -257,7 +272,7 @@ def write_tilt_series(
     """
     from gaussian_atoms_method.atoms.atom_set import write_atoms
 
-    series = TiltSeries(projections, angles_deg, pixel_size_A, tilt_axis, np.asarray(origin_A, dtype=float), centre_px=centre_px, tilt_axis_angle_deg=tilt_axis_angle_deg)
+    series = TiltSeries(projections, angles_deg, pixel_size_A, tilt_axis, np.asarray(origin_A, dtype=float), centre_px=centre_px, tilt_axis_angle_deg=tilt_axis_angle_deg, species=species)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / MANIFEST).unlink(missing_ok=True)
@@ -273,6 +288,8 @@ def write_tilt_series(
     }
     if series.tilt_axis_angle_deg:
         manifest["tilt_axis_angle_deg"] = series.tilt_axis_angle_deg
+    if series.species:
+        manifest["species"] = ",".join(series.species)
     if truth is not None:
         write_atoms(truth, out / "atoms_true.xyz")
         manifest["truth"] = "atoms_true.xyz"

@@ -68,9 +68,9 @@ def _from_hyperspy(signal, angles_deg, pixel_size_A):
     return stack.projections, (stack.angles_deg if angles_deg is None else angles_deg), (stack.pixel_size_A if pixel_size_A is None else pixel_size_A)
 
 
-def _as_series(projections, angles_deg, pixel_size_A, tilt_axis: str) -> TiltSeries:
+def _as_series(projections, angles_deg, pixel_size_A, tilt_axis: str, species=None) -> TiltSeries:
     if isinstance(projections, TiltSeries):
-        return projections
+        return dataclasses.replace(projections, species=species) if species is not None else projections
     if hasattr(projections, "axes_manager") and hasattr(projections, "metadata"):  # a HyperSpy signal
         projections, angles_deg, pixel_size_A = _from_hyperspy(projections, angles_deg, pixel_size_A)
     if angles_deg is None:
@@ -81,7 +81,7 @@ def _as_series(projections, angles_deg, pixel_size_A, tilt_axis: str) -> TiltSer
         pixel = float(pixel_size_A)
     except (TypeError, ValueError):
         raise TiltSeriesError(f"pixel_size_A must be a number of Å, got {pixel_size_A!r}") from None
-    return TiltSeries(np.asarray(projections), np.asarray(angles_deg, dtype=np.float64), pixel, tilt_axis, source=Path("projections"))
+    return TiltSeries(np.asarray(projections), np.asarray(angles_deg, dtype=np.float64), pixel, tilt_axis, source=Path("projections"), species=species or ())
 
 
 def _device(device: str) -> str:
@@ -126,6 +126,7 @@ def reconstruct(
     *,
     device: str = "auto",
     tilt_axis: str = "y",
+    species: str | None = None,
     output_dir: str | Path | None = None,
     max_num_iterations: int | None = None,
     progress: bool = True,
@@ -146,6 +147,10 @@ def reconstruct(
         Detector pixel size in Å.
     device : {"auto", "cpu", "cuda"}
         Where to train ("auto": the GPU when torch sees one).
+    species : str, optional
+        The specimen's elements, e.g. ``"Ta"`` or ``"Fe,Pt"``: they set the shortest distance two
+        atoms may keep (:mod:`gaussian_atoms_method.atoms.hard_core`); without them it is read
+        from the atoms found.
     output_dir : path, optional
         Keep the run here (``reconstruct/gaussian-atoms/<timestamp>``: ``config.yml`` for
         ``ns-viewer``, ``atoms.xyz``, ``classes.png``, ...); by default it is written to a
@@ -177,10 +182,10 @@ def reconstruct(
     work = Path(tempfile.mkdtemp(prefix="gaussian-atoms-"))
     try:
         try:
-            series = _as_series(projections, angles_deg, pixel_size_A, tilt_axis)
+            series = _as_series(projections, angles_deg, pixel_size_A, tilt_axis, species)
             truth = read_atoms(series.truth_path) if series.truth_path is not None else None
             data = write_tilt_series(work / "series", series.projections, series.angles_deg, series.pixel_size_A, truth, series.origin_A,
-                                     series.tilt_axis, centre_px=series.centre_px, tilt_axis_angle_deg=series.tilt_axis_angle_deg)  # fmt: skip
+                                     series.tilt_axis, centre_px=series.centre_px, tilt_axis_angle_deg=series.tilt_axis_angle_deg, species=series.species)  # fmt: skip
             config = build_config(data, Path(output_dir) if keep else work / "outputs", _device(device), max_num_iterations, model_options)
             check_input(config)
         except (TiltSeriesError, AtomFileError, OptionError) as exc:

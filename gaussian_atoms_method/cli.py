@@ -291,10 +291,13 @@ class BenchmarkFilm:
     train_args: str = ""
     """Further ns-train options, given with "=", e.g. --train-args="--pipeline.model.background plane"."""
 
+    species: str = "Ta"
+    """The film's element, written into each sub-area's manifest (it sets the hard core); "" for none."""
+
     def main(self) -> None:
         from gaussian_atoms_method.harness.film_benchmark import FilmBenchmark
 
-        FilmBenchmark(self.data, self.output, self.areas, self.iterations, self.device, tuple(shlex.split(self.train_args))).run()
+        FilmBenchmark(self.data, self.output, self.areas, self.iterations, self.device, tuple(shlex.split(self.train_args)), self.species).run()
         print(f"wrote {self.output / 'results.md'} and results.csv")
 
 

@@ -8,6 +8,12 @@ The classical pipeline classifies every traced peak (k-means into species and "n
   elements scatter more: class 1 is the lightest).  A description of the population, not yet
   species: one element whose masses are not normally distributed (a probe's tails widen some
   atoms) also takes several components; ``gaussian-atoms export --species`` names elements;
+* **non-atom classes** by population: the class holding the most mass among the supported
+  Gaussians is the confident atoms; a class most of whose members have no confident atom within
+  the far-out fence of the confident atoms' own nearest-neighbour distances lies outside their
+  support (a probe's or a denoiser's leftovers in the vacuum around a carbon particle: wider and
+  lighter, more than 2 Å from any atom) and is reported as non-atoms, whole
+  (:func:`population_support`);
 * **support** from the atoms themselves: a Gaussian with fewer than two neighbours within the
   larger of the far-out fence of the nearest-neighbour distances (upper quartile plus three
   interquartile ranges; Tukey's) and twice their median stands apart from the material, in
@@ -196,7 +202,37 @@ def classify_gaussians(masses: np.ndarray, sigmas_A: np.ndarray, positions_A: np
     rank = np.empty(k, dtype=np.int64)
     rank[order] = np.arange(1, k + 1)
     classes = rank[np.argmax(log_p, axis=1)]
-    return Classification(classes, in_support(positions), means[order], bic)
+    support = in_support(positions)
+    return Classification(classes, support & population_support(classes, support, masses, positions), means[order], bic)
+
+
+def population_support(classes: np.ndarray, support: np.ndarray, masses: np.ndarray, positions_A: np.ndarray) -> np.ndarray:
+    """(N,) bool: False for every member of a class that lies outside the confident atoms' support
+    (module docstring).  The confident atoms: the supported members of the class that holds the
+    most mass among the supported Gaussians.  A member lies outside when no confident atom other
+    than itself is within the far-out fence (:data:`FENCE_IQR`) of the confident atoms'
+    nearest-neighbour distances; a class lies outside when more than half its members do."""
+    classes, support = np.asarray(classes), np.asarray(support, dtype=bool)
+    positions = np.asarray(positions_A, dtype=np.float64).reshape(-1, 3)
+    keep = np.ones(len(classes), dtype=bool)
+    labels = np.unique(classes[support])
+    if len(labels) < 2:
+        return keep
+    mass = np.asarray(masses, dtype=np.float64)
+    confident_class = labels[np.argmax([mass[support & (classes == c)].sum() for c in labels])]
+    confident = np.flatnonzero(support & (classes == confident_class))
+    if len(confident) < 4:
+        return keep
+    d = nearest_neighbour_distances(positions[confident])
+    q1, q3 = np.percentile(d, [25, 75])
+    distance, index = cKDTree(positions[confident]).query(positions, k=2, workers=-1)
+    # a confident atom's nearest confident atom is itself: take the second
+    own = confident[index[:, 0]] == np.arange(len(positions))
+    near = np.where(own, distance[:, 1], distance[:, 0]) <= q3 + FENCE_IQR * (q3 - q1)
+    for c in labels:
+        if c != confident_class and np.mean(near[classes == c]) < 0.5:
+            keep[classes == c] = False
+    return keep
 
 
 def in_support(positions_A: np.ndarray) -> np.ndarray:

@@ -39,7 +39,7 @@ from gaussian_atoms_method.nerfstudio_layer.convergence import ConvergenceCheck
 from gaussian_atoms_method.nerfstudio_layer.floors import FloorSolver
 from gaussian_atoms_method.nerfstudio_layer.kernel_reading import HeldOutKernel
 from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions
-from gaussian_atoms_method.nerfstudio_layer.noise_reading import judge_after_fit, read_noise, say_start
+from gaussian_atoms_method.nerfstudio_layer.noise_reading import judge_after_fit, read_noise, say_hard_core, say_start
 from gaussian_atoms_method.nerfstudio_layer.refit import refit
 from gaussian_atoms_method.nerfstudio_layer.residuals import residual_correlations
 from gaussian_atoms_method.nerfstudio_layer.results import model_position_std_A, write_results, write_snapshot
@@ -95,6 +95,7 @@ class GaussianAtomsModel(SplatfactoCompat):
         max_log_amp = math.log(1000.0 * max(n, 1) * amp0 * (sigma0 / (cfg.min_sigma_A * ls)) ** 3)
         self.density = DensityControl(ls, max_log_amp, self.generator, half_extent=half_extent, field_half_extent=self.field_half_extent if half_extent != self.field_half_extent else None, **{f.name: getattr(cfg, f.name) for f in fields(DensityControl) if hasattr(cfg, f.name)})
         self.density.reset(n)
+        self.density.hard_core_A = say_hard_core(series.species if series is not None else ())
         self.convergence = ConvergenceCheck(cfg.warmup_length, cfg.refine_every, cfg.converged_fraction, cfg.false_discovery_rate, cfg.merge_threshold_A * ls)
         self.noise_read, self.data_term, floor, surfaces = read_noise(metadata.get("projections"), cfg.loss, cfg.background, measured)
         self._setup_view_params(metadata, series, floor, surfaces)

@@ -98,6 +98,19 @@ def say_start(start: Start, length_scale: float, option: str, ahead: bool = Fals
         CONSOLE.print(f"gaussian-atoms: {len(start.means)} Gaussians start at back-projection maxima" + (" (found while the launcher loaded)" if ahead else ""))
 
 
+def say_hard_core(species: tuple[str, ...]) -> float | None:
+    """Say the material's hard core (:mod:`gaussian_atoms_method.atoms.hard_core`) on one line:
+    from ``species`` when given (returned, Å), else that it is read from the atoms (None)."""
+    from gaussian_atoms_method.atoms.hard_core import COVALENT_FRACTION, SHELL_FRACTION, hard_core_from_species
+
+    if species:
+        distance = hard_core_from_species(species)
+        CONSOLE.print(f"gaussian-atoms: hard core {distance:.2f} Å ({','.join(species)}: {COVALENT_FRACTION:.2f} of the least sum of covalent radii): no two atoms closer")
+        return distance
+    CONSOLE.print(f"gaussian-atoms: hard core read from the confident atoms ({SHELL_FRACTION:.2f} of their first shell's peak; give the elements with --species to set it)")
+    return None
+
+
 def noise_after_fit(before: NoiseModel, measured, predicted, sigma_px: float) -> tuple[NoiseModel, float]:
     """The noise the final tests judge in: ``before`` (read before training) scaled by how much
     more the fit's residuals vary over an atom than it says

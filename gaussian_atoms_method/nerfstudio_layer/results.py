@@ -12,6 +12,7 @@ scores against a truth file, and snapshots during training.
 from __future__ import annotations
 
 import json
+import math
 import time
 from pathlib import Path
 
@@ -22,9 +23,11 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms, write_atoms
 from gaussian_atoms_method.atoms import picture_process
 from gaussian_atoms_method.atoms.classification import classify_gaussians, in_support
+from gaussian_atoms_method.atoms.hard_core import lighter_of_close_pairs
 from gaussian_atoms_method.atoms.matching import score_atoms
-from gaussian_atoms_method.atoms.pictures import draw_slices, write_population_png
+from gaussian_atoms_method.atoms.pictures import draw_slices, write_population_png, write_rdf_png
 from gaussian_atoms_method.atoms.slices import slice_planes
+from gaussian_atoms_method.atoms.structure_evidence import pair_distribution_function, structure_evidence
 from gaussian_atoms_method.atoms.uncertainty import position_std_A, robust_noise_std
 from gaussian_atoms_method.nerfstudio_layer.rendering import detector_axes
 from gaussian_atoms_method.nerfstudio_layer.residuals import measured_views, render_training_views
@@ -112,7 +115,8 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
             + ", ".join(f"{a} {v * 100:.1f} pm" for a, v in zip("xyz", np.median(atoms.position_std_A, axis=0)))
         )
     # atoms() lists the Gaussians in the model's order: the density control's own test of the field
-    atoms, non_atoms, population = split_atoms(atoms, model.density.in_field(model.means.detach()).cpu().numpy(), model.means.device)
+    hard_core_A = model.density.hard_core(model.gauss_params) / model.normalisation.length_scale
+    atoms, non_atoms, population = split_atoms(atoms, model.density.in_field(model.means.detach()).cpu().numpy(), model.means.device, hard_core_A)
     # Each picture goes to a child as soon as its arrays are known (drawn there while this process
     # writes the atoms); without children, the atoms are written first and the pictures after them.
     pictures = [] if population is None else [(write_population_png, *population, run_dir / "classes.png")]
@@ -120,6 +124,10 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
     write_atoms(atoms, run_dir / "atoms.xyz")
     write_atoms(atoms, run_dir / "atoms.csv")
     write_atoms(non_atoms, run_dir / "non_atoms.xyz")
+    evidence = structure_evidence(atoms.positions, hard_core_A)
+    (run_dir / "structure.json").write_text(json.dumps(evidence, indent=2) + "\n")
+    say_structure(evidence)
+    pictures.append((write_rdf_png, *pair_distribution_function(atoms.positions), evidence["hard_core_A"], evidence["share_under_hard_core"], run_dir / "rdf.png"))
     CONSOLE.print(f"[bold]gaussian-atoms[/bold]: wrote {len(atoms)} atoms to {run_dir / 'atoms.xyz'} and {len(non_atoms)} non-atoms to non_atoms.xyz")
     truth = read_atoms(model.truth_path) if model.truth_path is not None else None
     scores = score_atoms(atoms.positions, truth.positions) if truth is not None else None
@@ -151,9 +159,24 @@ def _hand_over(pictures: list, drawers) -> None:
             pictures.pop(0)
 
 
-def split_atoms(gaussians: AtomSet, in_field: np.ndarray, device="cpu"):
+def say_structure(evidence: dict) -> None:
+    """One line of :func:`~gaussian_atoms_method.atoms.structure_evidence.structure_evidence`."""
+    parts = [f"number density {evidence['number_density_per_A3']:.4f} atoms/Å³"]
+    if evidence["nearest_neighbour_median_A"] is not None:
+        parts.append(f"median nearest neighbour {evidence['nearest_neighbour_median_A']:.2f} Å")
+    if evidence["first_shell_peak_A"] is not None:
+        parts.append(f"first shell at {evidence['first_shell_peak_A']:.2f} Å")
+    if evidence["hard_core_A"] is not None:
+        parts.append(f"{evidence['share_under_hard_core']:.1%} of atoms closer than the hard core {evidence['hard_core_A']:.2f} Å")
+    CONSOLE.print("gaussian-atoms: structure: " + ", ".join(parts) + " (rdf.png, structure.json)")
+
+
+def split_atoms(gaussians: AtomSet, in_field: np.ndarray, device="cpu", hard_core_A: float = math.inf):
     """The Gaussians as atoms and non-atoms: beyond the field of view, or in the field but
-    outside the support (:func:`gaussian_atoms_method.atoms.classification.classify_gaussians`);
+    outside the support or in a class apart from the atoms
+    (:func:`gaussian_atoms_method.atoms.classification.classify_gaussians`), or the lighter of a
+    pair closer than ``hard_core_A`` (:func:`gaussian_atoms_method.atoms.hard_core.lighter_of_close_pairs`:
+    two atoms never come that close, so the report holds the heavier);
     prints the counts (atoms per class).  Returns the atoms, the non-atoms and the population's
     picture's arguments but its path (:func:`gaussian_atoms_method.atoms.pictures.write_population_png`;
     None with no Gaussian in the field).  The classes' mixture is fitted on
@@ -161,17 +184,21 @@ def split_atoms(gaussians: AtomSet, in_field: np.ndarray, device="cpu"):
     field = gaussians.subset(in_field)
     classes = classify_gaussians(field.masses, field.sigmas, field.positions, device=device)
     reported = reported_as_atoms(gaussians.positions, in_field, classes.atoms)
+    close = np.zeros(len(gaussians), dtype=bool)
+    close[reported] = lighter_of_close_pairs(gaussians.positions[reported], gaussians.masses[reported], hard_core_A)
+    reported &= ~close
     labels = np.zeros(len(gaussians), dtype=np.int64)  # 0: a non-atom
-    labels[np.flatnonzero(in_field)] = np.where(classes.atoms, classes.classes, 0)
+    labels[np.flatnonzero(in_field)] = np.where(reported[in_field], classes.classes, 0)
     gaussians = AtomSet(gaussians.positions, gaussians.sigmas, gaussians.amplitudes, gaussians.species, dict(gaussians.info), gaussians.position_std_A, labels)
     counts = classes.counts()
-    outside, beyond = counts.pop("non-atoms"), int((~in_field).sum())
+    outside, beyond, n_close = counts.pop("non-atoms"), int((~in_field).sum()), int(close.sum())
     per_class = ", ".join(f"{v} in {k}" for k, v in counts.items()) if len(counts) > 1 else ""
     CONSOLE.print(f"gaussian-atoms: {int(reported.sum())} atoms{f' ({per_class}, by mass and width)' if per_class else ''}; "
-                  f"{outside + beyond} non-atoms: {outside} outside the support (no neighbour within the material's distances), {beyond} beyond the field of view")  # fmt: skip
+                  f"{outside + beyond + n_close} non-atoms: {outside} outside the atoms' support (no neighbour within the material's distances, or a class apart from them), "
+                  f"{n_close} within the hard core of a heavier atom, {beyond} beyond the field of view")  # fmt: skip
     others = gaussians.subset(~in_field)
 
-    population = (field.masses, field.sigmas, classes.atoms, classes.classes, len(classes.class_means), (others.masses, others.sigmas)) if len(field) else None
+    population = (field.masses, field.sigmas, reported[in_field], classes.classes, len(classes.class_means), (others.masses, others.sigmas)) if len(field) else None
     return gaussians.subset(reported), gaussians.subset(~reported), population
 
 

@@ -1,0 +1,153 @@
+"""The material's hard core: the distance no two of its atoms come closer than.
+
+Gaussians are the model; atoms are the report, and two atoms closer than the material allows
+have zero prior probability.  The distance comes from one of two places:
+
+* **species given** (``Ta``, ``Fe,Pt``): :data:`COVALENT_FRACTION` of the sum of the two
+  elements' single-bond covalent radii (B. Cordero et al., "Covalent radii revisited", Dalton
+  Trans. 2832 (2008), as ``ase.data.covalent_radii`` tabulates them), the least over the
+  material's pairs of elements (:func:`hard_core_from_species`);
+* **read from the data**: :data:`SHELL_FRACTION` of the typical bond of the confident heavy
+  atoms, the peak of their first coordination shell
+  (:func:`hard_core_from_positions`, :func:`..atoms.pair_distribution.first_shell`).
+
+Both fractions start from the shortest bond chemistry knows: the Cr-Cr quintuple bond, 1.73-1.80 Å,
+is 0.62-0.65 of Cordero's 2.78 Å and 0.69-0.72 of bcc Cr's 2.50 Å nearest neighbours (the C≡C
+triple bond, 1.20 Å, is 0.79 and 0.85 of the same).  A measured pair's distance carries both
+atoms' position errors; 0.07 of the bond is left for them (0.18 Å of a 2.6 Å metal bond: one
+standard deviation of the distance between two positions each known to 13 pm along it).  Tantalum: 1.87 Å
+from its species (Ta-Ta bonds 2.5-3.0 Å); gold 1.50 Å; silicon 1.22 Å; carbon 0.84 Å.
+
+Pure numpy (and ASE's table on first use).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+SHORTEST_BOND_OF_RADII = 0.62
+"""The shortest bond known (Cr-Cr quintuple, 1.73 Å) over the sum of its elements' covalent radii."""
+SHORTEST_BOND_OF_SHELL = 0.69
+"""The same bond over its element's ordinary bond (bcc Cr, 2.50 Å)."""
+POSITION_ALLOWANCE = 0.07
+"""What a measured pair's distance may fall short of the true one, as a fraction of the bond."""
+COVALENT_FRACTION = SHORTEST_BOND_OF_RADII - POSITION_ALLOWANCE
+"""Hard core over the sum of the covalent radii (0.55)."""
+SHELL_FRACTION = SHORTEST_BOND_OF_SHELL - POSITION_ALLOWANCE
+"""Hard core over the first shell's peak read from the atoms (0.62)."""
+HEAVY_FRACTION = 0.5
+"""The data's reading uses Gaussians holding at least this share of a typical atom's mass: a pair
+the fit made shares one atom's mass, so at most one of its partners counts."""
+
+
+class SpeciesError(ValueError):
+    """A species list that names no element, or an unknown one; the message names it."""
+
+
+def parse_species(species: str | Sequence[str] | None) -> tuple[str, ...]:
+    """The element symbols of ``species`` ("Ta", "Fe,Pt", "Fe Pt" or a sequence), in the
+    order given, without repeats; () for None or an empty string.  Raises :class:`SpeciesError`
+    naming an unknown symbol."""
+    if species is None:
+        return ()
+    names = re.split(r"[,\s]+", species.strip()) if isinstance(species, str) else [str(s).strip() for s in species]
+    out: list[str] = []
+    for name in names:
+        if not name:
+            continue
+        symbol = name[:1].upper() + name[1:].lower()
+        if symbol not in _radii():
+            raise SpeciesError(f"species: unknown element {name!r}; expected chemical symbols such as Ta or Fe,Pt")
+        if symbol not in out:
+            out.append(symbol)
+    return tuple(out)
+
+
+def _radii() -> dict[str, float]:
+    from ase.data import atomic_numbers, covalent_radii
+
+    return {s: float(covalent_radii[z]) for s, z in atomic_numbers.items() if 0 < z < len(covalent_radii)}
+
+
+def hard_core_from_species(species: str | Sequence[str]) -> float:
+    """The hard core of a material of these elements, Å: :data:`COVALENT_FRACTION` of the least
+    sum of two covalent radii among its pairs of elements (an element with itself included)."""
+    elements = parse_species(species)
+    if not elements:
+        raise SpeciesError("species: name at least one element, e.g. Ta or Fe,Pt")
+    radii = _radii()
+    smallest = min(radii[e] for e in elements)
+    return COVALENT_FRACTION * 2.0 * smallest
+
+
+@dataclass(frozen=True)
+class HardCore:
+    """A hard core (Å or normalised units, as the positions it was read from) and where it came from."""
+
+    distance: float
+    source: str
+    """'species Ta', 'the confident atoms' first shell (peak 2.85 Å)' or 'none'."""
+
+
+def hard_core_from_positions(positions: np.ndarray, masses: np.ndarray, typical_mass: float) -> tuple[float, float]:
+    """The hard core read from (N, 3) confident atoms with (N,) masses: :data:`SHELL_FRACTION` of
+    their typical bond.  Only the heavy ones count (:data:`HEAVY_FRACTION` of ``typical_mass``).
+    The bond is their first shell's peak; where most nearest neighbours lie far below it (another
+    shell is below the main peak), their median nearest-neighbour distance.  Returns (hard core,
+    bond), both infinite with too few heavy atoms (:data:`..atoms.pair_distribution.MIN_ATOMS`)."""
+    from gaussian_atoms_method.atoms.pair_distribution import first_shell, nearest_neighbour_distances
+
+    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    heavy = positions[np.asarray(masses) >= HEAVY_FRACTION * typical_mass]
+    shell = first_shell(heavy)
+    if not math.isfinite(shell.peak):
+        return math.inf, math.inf
+    bond = shell.peak if shell.inner_share < 0.5 else float(np.median(nearest_neighbour_distances(heavy)))
+    return SHELL_FRACTION * bond, bond
+
+
+def close_pairs(positions: np.ndarray, distance: float) -> np.ndarray:
+    """(K, 2) index pairs of (N, 3) positions closer than ``distance``, closest first."""
+    from scipy.spatial import cKDTree
+
+    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    if len(positions) < 2 or not distance > 0 or not math.isfinite(distance):
+        return np.zeros((0, 2), dtype=np.int64)
+    pairs = cKDTree(positions).query_pairs(distance, output_type="ndarray")
+    if len(pairs) == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    d = np.linalg.norm(positions[pairs[:, 0]] - positions[pairs[:, 1]], axis=1)
+    keep = d < distance
+    return pairs[keep][np.argsort(d[keep], kind="stable")]
+
+
+def share_closer(positions: np.ndarray, distance: float) -> float:
+    """Share of (N, 3) positions with a neighbour closer than ``distance`` (0 with fewer than two)."""
+    from gaussian_atoms_method.atoms.pair_distribution import nearest_neighbour_distances
+
+    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    if len(positions) < 2:
+        return 0.0
+    return float(np.mean(nearest_neighbour_distances(positions) < distance))
+
+
+def lighter_of_close_pairs(positions: np.ndarray, masses: np.ndarray, distance: float) -> np.ndarray:
+    """(N,) bool: the Gaussians that lie within ``distance`` of a heavier one (the pair's
+    lighter partner; of equal masses the later index), walking the pairs heaviest first so a
+    Gaussian already set aside does not set aside another."""
+    masses = np.asarray(masses, dtype=np.float64)
+    out = np.zeros(len(masses), dtype=bool)
+    pairs = close_pairs(positions, distance)
+    if len(pairs) == 0:
+        return out
+    heavier = np.where(masses[pairs[:, 0]] >= masses[pairs[:, 1]], pairs[:, 0], pairs[:, 1])
+    lighter = np.where(heavier == pairs[:, 0], pairs[:, 1], pairs[:, 0])
+    for i in np.argsort(-masses[heavier], kind="stable"):
+        if not out[heavier[i]]:
+            out[lighter[i]] = True
+    return out
