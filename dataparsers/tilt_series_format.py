@@ -21,6 +21,7 @@ does not import nerfstudio.
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -34,6 +35,15 @@ from .readers import read_angles, read_stack, single_axis_from_euler
 __all__ = ["MANIFEST", "TiltSeries", "TiltSeriesError", "load_tilt_series", "write_tilt_series", "update_manifest"]
 
 MANIFEST = "tilt_series.json"
+
+
+MIN_SPAN_DEG = 5.0
+"""Tilt angles spanning less than this tell no depth (two atoms 2 Å apart along the beam move by
+2 Å x sin(5 deg) = 0.17 Å between the extreme views, under any pixel): where the same numbers read
+as radians span more, they were given in radians."""
+MIN_SIDE_PX = 8
+"""The smallest image side: the noise reading's outer frame and the first steps' 2 x 2 binning
+need a few pixels, and no atom (about 1 Å across) fits in fewer at any usual pixel size."""
 
 
 @dataclass
@@ -84,6 +94,8 @@ class TiltSeries:
             raise TiltSeriesError(f"{where}: projections must be real numbers, got dtype {proj.dtype}")
         if min(proj.shape) == 0:
             raise TiltSeriesError(f"{where}: projections are empty, shape {proj.shape}")
+        if min(proj.shape[1:]) < MIN_SIDE_PX:
+            raise TiltSeriesError(f"{where}: projections of {proj.shape[1]} x {proj.shape[2]} pixels; at least {MIN_SIDE_PX} x {MIN_SIDE_PX} are needed (is the stack's axis order right? see tilt_index_axis)")
         n_bad = int(np.size(proj) - np.count_nonzero(np.isfinite(proj)))
         if n_bad:
             raise TiltSeriesError(f"{where}: projections hold {n_bad} NaN/Inf value(s)")
@@ -99,6 +111,9 @@ class TiltSeries:
         if len(directions) < 2:
             seen = f"{len(angles)} projection" + ("" if len(angles) == 1 else f"s all at {angles[0]:g} deg (mod 180)")
             raise TiltSeriesError(f"{where}: {seen}: a tilt series needs views from two or more directions to tell depth")
+        span = float(angles.max() - angles.min())
+        if span < MIN_SPAN_DEG and np.max(np.abs(angles)) <= 0.5 * math.pi and math.degrees(span) >= MIN_SPAN_DEG:
+            raise TiltSeriesError(f"{where}: the tilt angles span only {span:.3g} deg ({angles.min():.3g} to {angles.max():.3g}); as radians they would span {math.degrees(span):.0f} deg: give the angles in degrees")
         uniq, counts = np.unique(angles, return_counts=True)
         if np.any(counts > 1):
             raise TiltSeriesError(f"{where}: duplicate tilt angle(s) {uniq[counts > 1].tolist()} deg")
@@ -172,6 +187,8 @@ def load_tilt_series(
     data = Path(data)
     if data.is_file() and data.suffix == ".json":
         manifest_path, root = data, data.parent
+    elif data.is_file() and projections is None:  # a projection file: its folder holds no manifest to read
+        manifest_path, root, projections = data.parent / (MANIFEST + ".absent"), data.parent, data.name
     else:
         manifest_path, root = data / MANIFEST, data
     if not root.exists():
@@ -208,11 +225,20 @@ def load_tilt_series(
         px = stack.pixel_size_A
     if px is None:
         raise TiltSeriesError(f"{where}: 'pixel_size_A' is missing (give it in {MANIFEST} or as an option; {proj_path.name} has none in its header)")
+    px_where = "--pixel-size-A" if pixel_size_A is not None else where
     try:
         px = float(px)
     except (TypeError, ValueError):
-        raise TiltSeriesError(f"{where}: pixel_size_A must be a number of Å, got {px!r}") from None
-    if angles_name is not None:
+        raise TiltSeriesError(f"{px_where}: pixel_size_A must be a number of Å, got {px!r}") from None
+    if not (np.isfinite(px) and px > 0):
+        raise TiltSeriesError(f"{px_where}: pixel_size_A must be a positive number of Å, got {px:g}")
+    if angles_name is not None and not isinstance(angles_name, (str, Path)):  # values, not a file (the Python API)
+        angles_path = Path("angles_deg")
+        try:
+            angles = np.asarray(angles_name, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise TiltSeriesError(f"angles_deg: expected a file name or N numbers (degrees), got {type(angles_name).__name__}") from None
+    elif angles_name is not None:
         angles_path = root / angles_name
         angles = read_angles(angles_path, pick(angles_variable, "angles_variable"))
         if angles.ndim == 2 and angles.shape[1] == 3:
@@ -224,7 +250,9 @@ def load_tilt_series(
     if angles.ndim != 1:
         raise TiltSeriesError(f"{angles_path}: expected N single-axis tilt angles (one column) or N x 3 Euler angles, got shape {angles.shape}")
     if len(angles) != proj.shape[0]:
-        raise TiltSeriesError(f"{angles_path}: {len(angles)} tilt angles for {proj.shape[0]} projections in {proj_path.name}")
+        other = [axis for axis in (1, 2) if proj.shape[axis] == len(angles)]
+        hint = f"; if the stack holds its tilts along another axis, give tilt_index_axis (--tilt-index-axis, manifest key): the stack as read is {proj.shape}" if other else ""
+        raise TiltSeriesError(f"{angles_path}: {len(angles)} tilt angles for {proj.shape[0]} projections in {proj_path.name}{hint}")
     truth_name = pick(truth, "truth")
     truth_path = root / truth_name if truth_name is not None else None
     if truth_path is not None and not truth_path.is_file():

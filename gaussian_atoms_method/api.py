@@ -46,13 +46,12 @@ def read_tilt_series(path: str | Path, **options) -> TiltSeries:
     TiltSeries
         ``projections`` (N, H, W) float32, ``angles_deg`` (N,), ``pixel_size_A``, and the geometry.
     """
-    path = Path(path)
     try:
-        if path.is_file() and path.suffix != ".json":
-            return load_tilt_series(path.parent, projections=path.name, **options)
-        return load_tilt_series(path, **options)
+        return load_tilt_series(Path(path), **options)
     except TiltSeriesError as exc:
         raise _input_error(exc) from None
+    except TypeError as exc:  # an unknown or misspelt option
+        raise _input_error(TiltSeriesError(f"read_tilt_series: {exc}")) from None
 
 
 def _from_hyperspy(signal, angles_deg, pixel_size_A):

@@ -87,6 +87,11 @@ BROKEN: dict[str, tuple[Callable[[Path], Path], str]] = {
     "single projection": (lambda out: valid_then(out, lambda d: (resave(d, lambda p: p[:1]), (d / "angles.txt").write_text("0\n"))), "1 projection: a tilt series needs views"),
     "all at one direction": (lambda out: valid_then(out, lambda d: (resave(d, lambda p: p[:2]), (d / "angles.txt").write_text("-90\n90\n"))), "all at -90 deg (mod 180)"),
     "all zero": (lambda out: resave(valid_series(out), lambda p: np.zeros_like(p)), "all zero"),
+    "angles in radians": (lambda out: valid_then(out, lambda d: (d / "angles.txt").write_text("\n".join(f"{a:.4f}" for a in np.radians(np.linspace(-60, 60, 7))))), "give the angles in degrees"),
+    "tilt axis last": (lambda out: resave(valid_series(out, shape=(24, 20)), lambda p: np.moveaxis(p, 0, 2)), "give tilt_index_axis"),
+    "1 x 1 projections": (lambda out: resave(valid_series(out), lambda p: p[:, :1, :1]), "at least 8 x 8"),
+    "zero pixel size": (lambda out: edit_manifest(valid_series(out), pixel_size_A=0), "pixel_size_A must be a positive"),
+    "unknown species": (lambda out: edit_manifest(valid_series(out), species="Ta,Xx"), "unknown element 'Xx'"),
 }
 
 ODD: dict[str, Callable[[Path], Path]] = {
@@ -96,6 +101,7 @@ ODD: dict[str, Callable[[Path], Path]] = {
     "x tilt axis": lambda out: valid_series(out, tilt_axis="x"),
     "tilt axis at -86 deg in the image": lambda out: valid_series(out, tilt_axis_angle_deg=-86.0),
     "off-centre tilt axis": lambda out: valid_series(out, centre_px=(10.0, 13.5)),
+    "species given": lambda out: valid_series(out, species="Au"),
 }
 
 
