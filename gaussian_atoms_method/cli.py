@@ -362,6 +362,8 @@ class Export:
                 raise ValueError(f"{source}: has no sigma_A/amplitude columns to classify species by")
             atoms.species, report = classify_species(atoms.masses, [e.strip() for e in self.species.split(",") if e.strip()])
             print(json.dumps({"species": report}))
+            if not report.get("separated", True):
+                print(f"gaussian-atoms: the atoms' masses show {report['populations']} separate population(s), not one per element ({report['test']}): every atom written as {atoms.species[0]}", file=sys.stderr)
         write_atoms(atoms, self.output)
         print(f"wrote {len(atoms)} atoms to {self.output}")
 

@@ -30,6 +30,19 @@ def test_classify_two_species_by_mass():
         classify_species(masses, ["Fe", "Xx"])
 
 
+def test_one_population_gets_one_element_whatever_the_elements_named():
+    """A pure particle's masses (one log-normal population, 10% scatter) exported as Fe,Pt: the
+    mixture picks one component, so no atom is called Fe; a real Fe/Pt mixture at the same
+    scatter is split (Ashman's D far above 2)."""
+    rng = np.random.default_rng(3)
+    pure = 2.0 * np.exp(rng.normal(scale=0.10, size=600))
+    species, report = classify_species(pure, ["Fe", "Pt"])
+    assert set(species) == {"Pt"} and report["separated"] is False and report["populations"] == 1
+    mixed = np.where(rng.uniform(size=600) < 0.5, 1.0, 3.0) * np.exp(rng.normal(scale=0.10, size=600))
+    species, report = classify_species(mixed, ["Fe", "Pt"])
+    assert report["separated"] is True and set(species) == {"Fe", "Pt"}
+
+
 def test_kmeans_orders_clusters_by_mean():
     labels = kmeans_1d(np.array([5.0, 5.1, 0.0, 0.1, 9.9, 10.0]), 3)
     np.testing.assert_array_equal(labels, [1, 1, 0, 0, 2, 2])
@@ -37,7 +50,11 @@ def test_kmeans_orders_clusters_by_mean():
 
 def test_export_round_trips_through_ase(tmp_path):
     run = tmp_path / "run"
-    atoms = AtomSet(np.array([[0.0, 1.0, 2.0], [2.5, -1.0, 0.5], [-2.0, 0.0, 1.0]]), sigmas=[0.6, 0.6, 0.7], amplitudes=[10.0, 31.0, 29.0])
+    # 40 atoms on a 2.5 Å grid: 20 light (amplitude 10) and 20 three times heavier, 2% scatter
+    grid = np.stack(np.meshgrid(np.arange(4), np.arange(5), np.arange(2), indexing="ij"), -1).reshape(-1, 3) * 2.5
+    heavy = np.arange(40) % 2 == 1
+    amplitudes = np.where(heavy, 30.0, 10.0) * np.exp(np.random.default_rng(0).normal(scale=0.02, size=40))
+    atoms = AtomSet(grid.astype(float), sigmas=np.full(40, 0.6), amplitudes=amplitudes)
     write_atoms(atoms, run / "atoms.xyz")
     (run / "config.yml").write_text("method_name: gaussian-atoms\n")
     exe = Path(sys.executable).parent / "gaussian-atoms"
@@ -50,10 +67,10 @@ def test_export_round_trips_through_ase(tmp_path):
             # A CIF cell cannot hold negative coordinates: shifted by half the cell, as documented.
             shift = back.cell.lengths() / 2 if suffix == ".cif" else 0.0
             np.testing.assert_allclose(back.get_positions() - shift, atoms.positions, atol=1e-4)
-            assert back.get_chemical_symbols() == ["Fe", "Pt", "Pt"]
+            assert back.get_chemical_symbols() == np.where(heavy, "Pt", "Fe").tolist()
         if suffix == ".extxyz":
             np.testing.assert_allclose(back.arrays["sigma_A"], atoms.sigmas)
             np.testing.assert_allclose(back.arrays["amplitude"], atoms.amplitudes)
-    assert json.loads(proc.stdout.splitlines()[0])["species"]["counts"] == {"Fe": 1, "Pt": 2}
+    assert json.loads(proc.stdout.splitlines()[0])["species"]["counts"] == {"Fe": 20, "Pt": 20}
     missing = subprocess.run([exe, "export", "--load-config", tmp_path / "none" / "config.yml", "--output", tmp_path / "x.xyz"], capture_output=True, text=True)
     assert missing.returncode == 2 and "config.yml: run config not found" in missing.stderr
