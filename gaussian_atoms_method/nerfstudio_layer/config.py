@@ -153,7 +153,7 @@ def gaussian_atoms_trainer_config(max_iterations: int = MAX_ITERATIONS) -> Gauss
                 "scheduler": ExponentialDecaySchedulerConfig(lr_final=2e-5, max_steps=max_iterations),
             },
         },
-        viewer=ViewerConfig(num_rays_per_chunk=1 << 15),
+        viewer=ViewerConfig(num_rays_per_chunk=1 << 15, websocket_host="127.0.0.1"),  # this machine only, unless --viewer.websocket-host says more
         vis="viewer",
     )
 

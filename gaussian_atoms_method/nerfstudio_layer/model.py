@@ -276,6 +276,7 @@ class GaussianAtomsModel(SplatfactoCompat):
             trainer.stop_training = self.kernel_reading.settled
         elif at_check(self, step, last_step):
             CONSOLE.print(f"gaussian-atoms: converged at step {step}: stopping early ({self.convergence.summary()})")
+            self.converged_at = step
             self.write_results(Path(trainer.base_dir))
             trainer.stop_training = True  # nerfstudio's loop ends before the next step
 

@@ -82,6 +82,9 @@ def write_results(model, run_dir: Path) -> dict | None:
 
 
 def _write_results(model, run_dir: Path, drawers) -> dict | None:
+    converged_at = getattr(model, "converged_at", None)
+    if converged_at is None and model.config.stop_when_converged:
+        CONSOLE.print(f"gaussian-atoms: [bold]stopped at the step limit ({model.step + 1} steps) before the atoms converged[/bold]: they may still move by more than their stated precision; give more steps (--max-num-iterations)")
     model.finalize()
     for line in model.density.report():
         CONSOLE.print(f"gaussian-atoms: {line}")
@@ -111,7 +114,8 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
                 f"(input units; slope {nm.gain_se:.2g} standard error)"
             )
         CONSOLE.print(
-            f"gaussian-atoms: residual noise {noise:.4g} (input units); median position precision "
+            f"gaussian-atoms: residual noise {noise:.4g} (input units); median position precision (the Cramér-Rao lower bound; "
+            + ("reached once converged" if converged_at is not None else "not reached: the run did not converge") + ") "
             + ", ".join(f"{a} {v * 100:.1f} pm" for a, v in zip("xyz", np.median(atoms.position_std_A, axis=0)))
         )
     # atoms() lists the Gaussians in the model's order: the density control's own test of the field
@@ -132,6 +136,7 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
     truth = read_atoms(model.truth_path) if model.truth_path is not None else None
     scores = score_atoms(atoms.positions, truth.positions) if truth is not None else None
     if scores is not None:
+        scores |= {"converged": converged_at is not None, "steps": (converged_at if converged_at is not None else model.step) + 1}
         (run_dir / "evaluation.json").write_text(json.dumps(scores, indent=2) + "\n")
     if len(atoms):
         title = f"{len(atoms)} atoms" + (
@@ -192,6 +197,8 @@ def split_atoms(gaussians: AtomSet, in_field: np.ndarray, device="cpu", hard_cor
     gaussians = AtomSet(gaussians.positions, gaussians.sigmas, gaussians.amplitudes, gaussians.species, dict(gaussians.info), gaussians.position_std_A, labels)
     counts = classes.counts()
     outside, beyond, n_close = counts.pop("non-atoms"), int((~in_field).sum()), int(close.sum())
+    counts = {f"class {k}": int(np.sum(reported[in_field] & (classes.classes == k))) for k in range(1, len(classes.class_means) + 1)}
+    counts = {name: n for name, n in counts.items() if n}  # a class reported whole as non-atoms is not listed
     per_class = ", ".join(f"{v} in {k}" for k, v in counts.items()) if len(counts) > 1 else ""
     CONSOLE.print(f"gaussian-atoms: {int(reported.sum())} atoms{f' ({per_class}, by mass and width)' if per_class else ''}; "
                   f"{outside + beyond + n_close} non-atoms: {outside} outside the atoms' support (no neighbour within the material's distances, or a class apart from them), "
