@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from gaussian_atoms_method.physics.geometry import TILT_AXES, imod_axis_angle
+from gaussian_atoms_method.physics.noise import MIN_SIDE_PX
 
 from .errors import TiltSeriesError
 from .readers import read_angles, read_stack, single_axis_from_euler
@@ -41,9 +42,6 @@ MIN_SPAN_DEG = 5.0
 """Tilt angles spanning less than this tell no depth (two atoms 2 Å apart along the beam move by
 2 Å x sin(5 deg) = 0.17 Å between the extreme views, under any pixel): where the same numbers read
 as radians span more, they were given in radians."""
-MIN_SIDE_PX = 8
-"""The smallest image side: the noise reading's outer frame and the first steps' 2 x 2 binning
-need a few pixels, and no atom (about 1 Å across) fits in fewer at any usual pixel size."""
 
 
 @dataclass

@@ -203,26 +203,22 @@ def _train(config, seed: int, progress: bool) -> Path:
     """Run the trainer ``gaussian-atoms train`` runs on ``config`` in this process; the run
     directory.  A failure in training raises (``FloatingPointError`` naming the step and the
     cause, ``KeyboardInterrupt``) instead of ending the process as the CLI does."""
-    from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
     from nerfstudio.engine.trainer import Trainer
 
     from gaussian_atoms_method.nerfstudio_layer.kernel_reading import restart_with_kernel_held
-    from gaussian_atoms_method.nerfstudio_layer.train import make_trainer
+    from gaussian_atoms_method.nerfstudio_layer.train import ProgressBar, make_trainer, quiet_trainer_console
 
     config.machine.seed = seed
     config.set_timestamp()
     trainer = make_trainer(config)
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=config.max_num_iterations, desc="gaussian-atoms", unit="step")
+    bar = ProgressBar(config.max_num_iterations) if progress else None
     try:
         for _ in range(2):  # psf="held-out": a pass that reads the kernel, then the run with it held
             if bar is not None:
-                bar.reset()
-                trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], lambda step: bar.update(step + 1 - bar.n)))
-            Trainer.train(trainer)  # nerfstudio's loop, without the CLI's exit on failure
+                bar.follow(trainer)
+                trainer.progress = bar
+            with quiet_trainer_console():  # its closing box would name a run directory that may be temporary
+                Trainer.train(trainer)  # nerfstudio's loop, without the CLI's exit on failure
             if not restart_with_kernel_held(trainer):
                 break
     finally:

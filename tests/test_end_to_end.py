@@ -50,7 +50,9 @@ def test_simulate_train_evaluate(tmp_path):
     scores = json.loads(ev.stdout)
     # The run's own evaluation agrees (atoms.xyz keeps 1e-8 Å, so RMSD to 1e-6 pm).
     in_run = json.loads((run / "evaluation.json").read_text())
-    assert {k: v for k, v in in_run.items() if k != "rmsd_pm"} == {k: v for k, v in scores.items() if k != "rmsd_pm"}
+    run_only = {"converged", "steps"}  # how the run ended: the evaluate verb scores atoms alone
+    assert in_run["converged"] is True and 0 < in_run["steps"] <= 3000
+    assert {k: v for k, v in in_run.items() if k not in run_only | {"rmsd_pm"}} == {k: v for k, v in scores.items() if k != "rmsd_pm"}
     assert in_run["rmsd_pm"] == pytest.approx(scores["rmsd_pm"], abs=1e-6)
     # Data made with the model's own physics at a peak-to-noise near 70 and every atom well
     # separated (2.9 Å vs 0.61 Å blur): every atom must be found, none invented, and positions

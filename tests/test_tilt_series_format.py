@@ -37,7 +37,7 @@ def test_options_override_manifest(tmp_path):
 
 
 def test_options_without_manifest(tmp_path):
-    np.save(tmp_path / "p.npy", np.ones((3, 4, 4)))
+    np.save(tmp_path / "p.npy", np.ones((3, 5, 5)))  # the smallest image the noise reading takes
     np.savetxt(tmp_path / "a.txt", [-10.0, 0.0, 10.0])
     series = load_tilt_series(tmp_path, projections="p.npy", angles_deg="a.txt", pixel_size_A=0.3)
     assert series.n_views == 3

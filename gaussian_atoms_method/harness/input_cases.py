@@ -89,7 +89,7 @@ BROKEN: dict[str, tuple[Callable[[Path], Path], str]] = {
     "all zero": (lambda out: resave(valid_series(out), lambda p: np.zeros_like(p)), "all zero"),
     "angles in radians": (lambda out: valid_then(out, lambda d: (d / "angles.txt").write_text("\n".join(f"{a:.4f}" for a in np.radians(np.linspace(-60, 60, 7))))), "give the angles in degrees"),
     "tilt axis last": (lambda out: resave(valid_series(out, shape=(24, 20)), lambda p: np.moveaxis(p, 0, 2)), "give tilt_index_axis"),
-    "1 x 1 projections": (lambda out: resave(valid_series(out), lambda p: p[:, :1, :1]), "at least 8 x 8"),
+    "1 x 1 projections": (lambda out: resave(valid_series(out), lambda p: p[:, :1, :1]), "at least 5 x 5"),
     "zero pixel size": (lambda out: edit_manifest(valid_series(out), pixel_size_A=0), "pixel_size_A must be a positive"),
     "unknown species": (lambda out: edit_manifest(valid_series(out), species="Ta,Xx"), "unknown element 'Xx'"),
 }

@@ -275,6 +275,9 @@ class GaussianAtomsModel(SplatfactoCompat):
         if self.kernel_reading.first_pass:  # psf held-out: the reading ends once the kernel is held (.kernel_reading.restart_with_kernel_held)
             trainer.stop_training = self.kernel_reading.settled
         elif at_check(self, step, last_step):
+            if getattr(trainer, "progress", None) is not None:  # the bar ends here, before the results print
+                trainer.progress.bar.update(step + 1 - trainer.progress.bar.n)
+                trainer.progress.close()
             CONSOLE.print(f"gaussian-atoms: converged at step {step}: stopping early ({self.convergence.summary()})")
             self.converged_at = step
             self.write_results(Path(trainer.base_dir))

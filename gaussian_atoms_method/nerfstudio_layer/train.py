@@ -57,14 +57,70 @@ def run(config) -> None:
     if config.load_config:
         config = yaml.load(config.load_config.read_text(), Loader=yaml.Loader)
     config.set_timestamp()
-    config.print_to_terminal()
-    trainer = make_trainer(config)
+    config.check_or_exit()  # no dump of the configuration: it is in config.yml
+    bar = ProgressBar(config.max_num_iterations) if config.logging.local_writer.enable else None
+
+    def console_of_our_own(config) -> None:  # after config.yml is saved: it stays ns-train's
+        if bar is not None:  # our progress bar instead of nerfstudio's table of steps
+            config.logging.local_writer.enable = False
+        if config.logging.profiler == "basic":  # nerfstudio's timing table would follow the results; ns-train keeps it
+            config.logging.profiler = "none"
+
+    trainer = make_trainer(config, console_of_our_own)
     try:
-        trainer.train()  # GaussianAtomsTrainer: failures and Ctrl+C end in one line
+        with quiet_trainer_console():
+            if bar is not None:
+                bar.follow(trainer)
+                trainer.progress = bar
+            trainer.train()  # GaussianAtomsTrainer: failures and Ctrl+C end in one line
     finally:
+        if bar is not None:
+            bar.close()
         from nerfstudio.utils import profiler
 
         profiler.flush_profiler(config.logging)
+
+
+class ProgressBar:
+    """A progress bar of training steps that ends at the step the run stopped at: the step limit,
+    or the step where the atoms converged (then it reads that step as 100%)."""
+
+    def __init__(self, total: int) -> None:
+        from tqdm.auto import tqdm
+
+        self.bar = tqdm(total=total, desc="gaussian-atoms", unit="step", dynamic_ncols=True)
+
+    def follow(self, trainer) -> None:
+        """Start over at 0 and count ``trainer``'s steps (called again for a second pass)."""
+        from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
+
+        self.bar.reset()
+        trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], lambda step: self.bar.update(step + 1 - self.bar.n)))
+
+    def close(self) -> None:
+        """End the bar at the step reached (once; the results print after it)."""
+        if self.bar.disable:
+            return
+        if self.bar.n < self.bar.total:  # stopped early: the run's own end is 100%
+            self.bar.total = self.bar.n
+            self.bar.refresh()
+        self.bar.close()
+
+
+class quiet_trainer_console:
+    """Within it nerfstudio's trainer module prints nothing (its "Training Finished" box and its
+    checkpoint lines); our own lines, printed from our modules, still show."""
+
+    def __enter__(self):
+        import nerfstudio.engine.trainer as module
+        from rich.console import Console
+
+        self.module, self.console = module, module.CONSOLE
+        module.CONSOLE = Console(quiet=True)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.module.CONSOLE = self.console
 
 
 def exit_process(status: int = 0) -> None:
@@ -90,13 +146,16 @@ def exit_process(status: int = 0) -> None:
     os._exit(status)
 
 
-def make_trainer(config):
+def make_trainer(config, after_saving=None):
     """Save ``config.yml``, seed every generator with ``config.machine.seed`` and build the
-    trainer, set up for one process on one device (what ``ns-train`` does before training)."""
+    trainer, set up for one process on one device (what ``ns-train`` does before training);
+    ``after_saving(config)``, if given, changes what is not to be saved before the set-up."""
     import numpy as np
     import torch
 
     config.save_config()
+    if after_saving is not None:
+        after_saving(config)
     seed = config.machine.seed
     random.seed(seed)
     np.random.seed(seed)

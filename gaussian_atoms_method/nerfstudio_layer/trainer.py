@@ -76,12 +76,17 @@ class GaussianAtomsTrainerConfig(TrainerConfig):
             self.pipeline.datamanager.data, self.data = self.data, None
 
     def print_to_terminal(self) -> None:
-        # Both launchers call this first, before saving config.yml: check the input here.
+        # ns-train calls this first, before saving config.yml: check the input here, then print
+        # nerfstudio's dump of the configuration, as ns-train does for every method.
+        self.check_or_exit()
+        super().print_to_terminal()
+
+    def check_or_exit(self) -> None:
+        """:func:`check_input`, a failure ending the process in one line (exit 2)."""
         try:
             check_input(self)
         except INPUT_ERRORS as exc:
             fail(f"gaussian-atoms: error: {exc}", 2)
-        super().print_to_terminal()
 
 
 class GaussianAtomsTrainer(Trainer):
@@ -102,6 +107,8 @@ class GaussianAtomsTrainer(Trainer):
         try:
             super().train()
             if restart_with_kernel_held(self):
+                if getattr(self, "progress", None) is not None:  # the restart made the callbacks anew
+                    self.progress.follow(self)
                 super().train()
         except FloatingPointError as exc:  # the model names the step and the cause
             fail(str(exc), 1)

@@ -69,6 +69,11 @@ class NoiseModel:
         return self.read_var + self.gain * x + self.misfit * x**2
 
 
+
+MIN_SIDE_PX = 5
+"""The smallest image side the noise reading takes: its filters compare each pixel with a 5 x 5
+neighbourhood."""
+
 def atom_scale_excess(residuals: np.ndarray, variance: np.ndarray, sigma_px: float, device=None) -> float:
     """How much more the (V, H, W) ``residuals`` vary over an atom than the noise model says:
     ``Var(g * (r / sqrt(v))) / sum g^2`` for ``g`` the Gaussian of ``sigma_px`` and ``v`` the
@@ -373,8 +378,8 @@ def noise_from_projections(projections: np.ndarray, offset: float = 0.0, smoothi
 
     projections = projections if hasattr(projections, "shape") else np.asarray(projections, dtype=np.float64)
     shape = tuple(projections.shape)
-    if len(shape) != 3 or min(shape[1:]) < 5:
-        raise ValueError(f"need (N, H, W) projections at least 5 x 5, got shape {shape}")
+    if len(shape) != 3 or min(shape[1:]) < MIN_SIDE_PX:
+        raise ValueError(f"need (N, H, W) projections at least {MIN_SIDE_PX} x {MIN_SIDE_PX}, got shape {shape}")
     device = compute_device(projections, device)
     if device is not None:
         return _noise_from_projections_torch(projections, offset, smoothing_px, z_min, device)
