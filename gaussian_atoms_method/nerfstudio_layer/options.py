@@ -9,13 +9,41 @@ reasons are given here, where ``--help`` shows them.  Where each option takes ef
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
-from typing import Literal, Optional, Tuple, Union
+from typing import Annotated, Literal, Optional, Tuple, Union, get_type_hints
+
+import tyro
 
 from gaussian_atoms_method.density.strategy import DensityControl
 from gaussian_atoms_method.nerfstudio_layer.lazy_compile import import_splatfacto
 
 SplatfactoModelConfig = import_splatfacto().SplatfactoModelConfig
+
+
+INERT_SPLATFACTO = (
+    "background_color", "camera_optimizer", "collider_params", "color_corrected_metrics", "cull_alpha_thresh", "cull_scale_thresh",
+    "cull_screen_size", "densify_size_thresh", "enable_collider", "eval_num_rays_per_chunk", "grid_shape", "loss_coefficients",
+    "max_gauss_ratio", "n_split_samples", "num_downscales", "output_depth_during_training", "prompt", "random_init", "random_scale",
+    "rasterize_mode", "reset_alpha_every", "resolution_schedule", "sh_degree", "sh_degree_interval", "split_screen_size", "ssim_lambda",
+    "stop_screen_size_at", "use_absgrad", "use_bilateral_grid", "use_scale_regularization",
+)  # fmt: skip
+"""splatfacto's options that do nothing here (colours, alpha compositing, screen-space culling, SSIM,
+cameras' optimisation): kept on the config, so nerfstudio's code and old config.yml files read them,
+and left out of ``--help`` and the command line."""
+
+
+def inert_splatfacto_fields() -> dict:
+    """For each of :data:`INERT_SPLATFACTO`: its type marked for tyro to suppress, and its field
+    with splatfacto's default."""
+    hints = get_type_hints(SplatfactoModelConfig, include_extras=True)
+    base = {f.name: f for f in dataclasses.fields(SplatfactoModelConfig)}
+    out = {}
+    for name in INERT_SPLATFACTO:
+        f = base[name]
+        default = dataclasses.field(default=f.default) if f.default is not dataclasses.MISSING else dataclasses.field(default_factory=f.default_factory)
+        out[name] = (Annotated[hints[name], tyro.conf.Suppress], default)
+    return out
 
 
 class OptionError(ValueError):
@@ -24,12 +52,87 @@ class OptionError(ValueError):
 
 @dataclass
 class GaussianAtomsOptions(SplatfactoModelConfig):
-    """Gaussian atoms: isotropic 3D Gaussians fitted to a tilt series."""
+    """Gaussian atoms: isotropic 3D Gaussians fitted to a tilt series.
 
+    The options a user sets first come first (the data's background and probe, a film, the
+    alignment, the data term, the start, the false discoveries accepted, when to stop, the seed);
+    the fit's own settings follow."""
+
+    background: Literal["auto", "none", "constant", "plane", "smooth"] = "auto"
+    """A per-projection background fitted with the atoms (carbon support, contamination, a
+    detector offset, a phase image's floor): a constant, a plane over the detector, or
+    ``smooth``: each view's floor starting as its outer frame shows it (the frame's least-squares
+    quadratic surface, :func:`gaussian_atoms_method.physics.noise.frame_surfaces`) with a
+    constant and quadratic correction (a frame the object reaches holds its tails).  Each is
+    solved in closed form on the pixels the Gaussians leave empty, each time its view is
+    rendered, and shared by all views while their fits agree (:mod:`.floors`).  ``auto``:
+    when the projections' outer frame sits significantly off zero (more than 5 standard errors
+    of its mean, :func:`gaussian_atoms_method.physics.noise.detector_floor`: the peer's aSi-208
+    counts sit on 1.0 count), a constant if the frame is flat and ``smooth``
+    if it is flat about its quadratic surface (within 1.5 times the noise variance at its level
+    either way); where atoms reach the frame, the same read from the frame pixels they leave
+    alone (:func:`gaussian_atoms_method.physics.noise.clipped_frame`)."""
+    psf: Literal["learned", "held-out", "fixed", "none"] = "learned"
+    """The microscope's point-spread function: ``learned``, a radially symmetric kernel of unit
+    integral shared by every view (Gaussians of 1, 2 and 4 Å weighted by learned weights,
+    :mod:`gaussian_atoms_method.physics.psf`) convolves the projections, so a probe's tails and
+    rings are not explained by extra faint, wide Gaussians; ``fixed``: the kernel of
+    ``psf_weights``, held (a probe measured, or chosen on held-out views with
+    ``scripts/held_out_views.py``); ``held-out``: a first pass reads the kernel on the odd views
+    while the atoms learn from the even ones, then the run starts again with it held
+    (:mod:`.kernel_reading`: learned with the atoms, a probe's tails can go to extra Gaussians
+    instead; twice the time; where half the views fit poorly the reading is too wide: a dense
+    54,000-atom particle without tails read 53% at 2 Å); ``none``: the blur is in the atoms' widths alone (the
+    paper's model)."""
+    psf_weights: Tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """The kernel's intensity fractions in its Gaussians of 1, 2 and 4 Å (the rest in the delta,
+    that is in the atoms' own widths): held with ``psf fixed``, the start with ``psf learned``."""
+    extended_object: Literal["auto", "on", "off"] = "auto"
+    """An object wider than the field of view (a film): Gaussians also fill the slab beyond the
+    detector across the tilt axis, as far as the rays that reach the detector travel, so the
+    high-tilt views' material outside the box is explained there, and only the Gaussians above
+    the detector are reported as atoms (the rest go to ``non_atoms.xyz``).  ``auto``: when the
+    views' projected mass grows like 1/cos(tilt)
+    (:func:`gaussian_atoms_method.physics.field_of_view.film_evidence`, 3 standard errors)."""
+    refine_alignment: bool = False
+    """Learn a per-projection in-plane shift with the atoms (residual misalignment of the tilt
+    series).  Shifts are taken relative to their mean over the views (an overall shift of
+    every view is the same as moving the particle)."""
+    refine_tilts: bool = False
+    """Learn a per-projection tilt-angle offset (about the tilt axis) with the atoms: errors of
+    the goniometer readings.  Offsets are taken relative to their mean (a common offset is the
+    same as rotating the particle).  Single-axis tilt series only."""
+    loss: Literal["auto", "l1", "l2", "huber", "poisson"] = "auto"
+    """Data term (:mod:`gaussian_atoms_method.physics.data_terms`): ``auto`` reads the noise
+    from the projections before training (:func:`gaussian_atoms_method.physics.noise.noise_from_projections`)
+    and takes the Poisson likelihood where the variance grows significantly with the signal
+    (electron counts), else Huber's (least squares within 1.345 noise standard deviations,
+    L1 beyond: additive noise, robust to the model's misfit); or force ``l1`` (the paper's),
+    ``l2``, ``huber`` or ``poisson``.  Every run prints the noise it read and the term it chose."""
     init: Literal["backprojection", "random"] = "backprojection"
     """Where the Gaussians start: at the strongest local maxima of a smoothed filtered
     back-projection (see :mod:`gaussian_atoms_method.atoms.initialise`), or at random positions (the
     paper).  Back-projection needs single-axis tilts; otherwise random is used."""
+    false_discovery_rate: float = DensityControl.false_discovery_rate
+    """The final prune keeps the Gaussians whose mass significance clears the Benjamini-Hochberg
+    level at this rate (noise Gaussians expected among those kept: at most this fraction), never
+    stricter than the false_alarm_rate level
+    (:meth:`gaussian_atoms_method.density.strategy.DensityControl.discovery_threshold`).  0.001:
+    one in a thousand, ten times below the 0.01 false atoms per atom the benchmarks ask for, so
+    noise never dominates the false atoms (at Au noise 500 the rates 0.0005-0.005 gave the same
+    false atoms: fragments of atoms, not noise)."""
+    stop_when_converged: bool = True
+    """End training early once the atoms are settled: over a refine interval at most
+    false_discovery_rate of the atoms' worth of Gaussians added or removed, and the RMS step of the others
+    (matched within merge_threshold_A) below ``converged_fraction`` of the atoms' noise-limited
+    precision (:mod:`gaussian_atoms_method.atoms.uncertainty`), at two checks in a row
+    (:mod:`.convergence`).  Further steps would move the atoms by less than the data can tell
+    apart.  Until then the run acts on what the checks show (:mod:`.stopping`): the final merges
+    and prune once only the set still churns, a halved position rate while the positions only
+    scatter."""
+    seed: int = 0
+    """Seed of the random initialisation and duplications."""
+
     init_mass: Literal["backprojection", "equal"] = "backprojection"
     """How the measured mass is shared among the starting Gaussians: in proportion to the
     smoothed back-projection at each (noise candidates start faint and are pruned sooner;
@@ -73,14 +176,6 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
     normal quantile at this rate shared over the volume's 1 Å^3 cells
     (:meth:`gaussian_atoms_method.density.strategy.DensityControl.significance_threshold`;
     4.5 sigma for a 25 Å box at 5%)."""
-    false_discovery_rate: float = DensityControl.false_discovery_rate
-    """The final prune keeps the Gaussians whose mass significance clears the Benjamini-Hochberg
-    level at this rate (noise Gaussians expected among those kept: at most this fraction), never
-    stricter than the false_alarm_rate level
-    (:meth:`gaussian_atoms_method.density.strategy.DensityControl.discovery_threshold`).  0.001:
-    one in a thousand, ten times below the 0.01 false atoms per atom the benchmarks ask for, so
-    noise never dominates the false atoms (at Au noise 500 the rates 0.0005-0.005 gave the same
-    false atoms: fragments of atoms, not noise)."""
     add_from_residuals: bool = DensityControl.add_from_residuals
     """Once the atoms are settled (the convergence check), back-project the residuals of every
     view and add a Gaussian wherever they hold significant unexplained mass
@@ -126,53 +221,6 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
     H100); ``tiled``, each Gaussian only on the tiles it reaches (about 6x faster than dense on
     a CPU at 7k-17k Gaussians); ``gsplat``, tiled with stock gsplat's tile intersection (CUDA only; correct but
     slower than dense at these sizes).  ``auto``: dense on CUDA, tiled on CPU."""
-    loss: Literal["auto", "l1", "l2", "huber", "poisson"] = "auto"
-    """Data term (:mod:`gaussian_atoms_method.physics.data_terms`): ``auto`` reads the noise
-    from the projections before training (:func:`gaussian_atoms_method.physics.noise.noise_from_projections`)
-    and takes the Poisson likelihood where the variance grows significantly with the signal
-    (electron counts), else Huber's (least squares within 1.345 noise standard deviations,
-    L1 beyond: additive noise, robust to the model's misfit); or force ``l1`` (the paper's),
-    ``l2``, ``huber`` or ``poisson``.  Every run prints the noise it read and the term it chose."""
-    background: Literal["auto", "none", "constant", "plane", "smooth"] = "auto"
-    """A per-projection background fitted with the atoms (carbon support, contamination, a
-    detector offset, a phase image's floor): a constant, a plane over the detector, or
-    ``smooth``: each view's floor starting as its outer frame shows it (the frame's least-squares
-    quadratic surface, :func:`gaussian_atoms_method.physics.noise.frame_surfaces`) with a
-    constant and quadratic correction (a frame the object reaches holds its tails).  Each is
-    solved in closed form on the pixels the Gaussians leave empty, each time its view is
-    rendered, and shared by all views while their fits agree (:mod:`.floors`).  ``auto``:
-    when the projections' outer frame sits significantly off zero (more than 5 standard errors
-    of its mean, :func:`gaussian_atoms_method.physics.noise.detector_floor`: the peer's aSi-208
-    counts sit on 1.0 count), a constant if the frame is flat and ``smooth``
-    if it is flat about its quadratic surface (within 1.5 times the noise variance at its level
-    either way); where atoms reach the frame, the same read from the frame pixels they leave
-    alone (:func:`gaussian_atoms_method.physics.noise.clipped_frame`)."""
-    psf: Literal["learned", "held-out", "fixed", "none"] = "learned"
-    """The microscope's point-spread function: ``learned``, a radially symmetric kernel of unit
-    integral shared by every view (Gaussians of 1, 2 and 4 Å weighted by learned weights,
-    :mod:`gaussian_atoms_method.physics.psf`) convolves the projections, so a probe's tails and
-    rings are not explained by extra faint, wide Gaussians; ``fixed``: the kernel of
-    ``psf_weights``, held (a probe measured, or chosen on held-out views with
-    ``scripts/held_out_views.py``); ``held-out``: a first pass reads the kernel on the odd views
-    while the atoms learn from the even ones, then the run starts again with it held
-    (:mod:`.kernel_reading`: learned with the atoms, a probe's tails can go to extra Gaussians
-    instead; twice the time; where half the views fit poorly the reading is too wide: a dense
-    54,000-atom particle without tails read 53% at 2 Å); ``none``: the blur is in the atoms' widths alone (the
-    paper's model)."""
-    psf_weights: Tuple[float, float, float] = (0.0, 0.0, 0.0)
-    """The kernel's intensity fractions in its Gaussians of 1, 2 and 4 Å (the rest in the delta,
-    that is in the atoms' own widths): held with ``psf fixed``, the start with ``psf learned``."""
-    extended_object: Literal["auto", "on", "off"] = "auto"
-    """An object wider than the field of view (a film): Gaussians also fill the slab beyond the
-    detector across the tilt axis, as far as the rays that reach the detector travel, so the
-    high-tilt views' material outside the box is explained there, and only the Gaussians above
-    the detector are reported as atoms (the rest go to ``non_atoms.xyz``).  ``auto``: when the
-    views' projected mass grows like 1/cos(tilt)
-    (:func:`gaussian_atoms_method.physics.field_of_view.film_evidence`, 3 standard errors)."""
-    refine_alignment: bool = False
-    """Learn a per-projection in-plane shift with the atoms (residual misalignment of the tilt
-    series).  Shifts are taken relative to their mean over the views (an overall shift of
-    every view is the same as moving the particle)."""
     coarse_steps: int = 300
     """Coarse to fine: the first this many steps fit the projections binned 2 x 2 (a quarter of
     the pixels to evaluate), then full resolution.  0: always full resolution.  300 covers the
@@ -188,21 +236,8 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
     normalised rate (1e-3 of the detector) was 0.07 Å on the 271-pixel Au series and 0.12 Å on a
     497-pixel one, where the positions then settled 800 steps later (54,000-atom a-Pd, H100).
     None: the configured rate as it is."""
-    stop_when_converged: bool = True
-    """End training early once the atoms are settled: over a refine interval at most
-    false_discovery_rate of the atoms' worth of Gaussians added or removed, and the RMS step of the others
-    (matched within merge_threshold_A) below ``converged_fraction`` of the atoms' noise-limited
-    precision (:mod:`gaussian_atoms_method.atoms.uncertainty`), at two checks in a row
-    (:mod:`.convergence`).  Further steps would move the atoms by less than the data can tell
-    apart.  Until then the run acts on what the checks show (:mod:`.stopping`): the final merges
-    and prune once only the set still churns, a halved position rate while the positions only
-    scatter."""
     converged_fraction: float = 1.0
     """See stop_when_converged."""
-    refine_tilts: bool = False
-    """Learn a per-projection tilt-angle offset (about the tilt axis) with the atoms: errors of
-    the goniometer readings.  Offsets are taken relative to their mean (a common offset is the
-    same as rotating the particle).  Single-axis tilt series only."""
     views_per_step: Union[int, Literal["auto"]] = "auto"
     """Training views fitted per step: the view nerfstudio hands the model and this many minus
     one others drawn at random, rendered in one projector call, one loss over all.  On a GPU a
@@ -223,8 +258,11 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
     directory with the wall-clock time, for time-to-accuracy benchmarks: the Gaussians the run
     would report as atoms were it stopped there (in the field of view and the support, as
     ``atoms.xyz``), before the final merges and prune."""
-    seed: int = 0
-    """Seed of the random initialisation and duplications."""
+
+    for _name, (_type, _field) in inert_splatfacto_fields().items():  # redeclared, hidden from the command line
+        __annotations__[_name] = _type
+        vars()[_name] = _field
+    del _name, _type, _field
 
     def per_view_options(self) -> list[str]:
         """The options on that give each view its own parameters (one view per step only)."""

@@ -114,8 +114,8 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
                 f"(input units; slope {nm.gain_se:.2g} standard error)"
             )
         CONSOLE.print(
-            f"gaussian-atoms: residual noise {noise:.4g} (input units); median position precision (the Cramér-Rao lower bound; "
-            + ("reached once converged" if converged_at is not None else "not reached: the run did not converge") + ") "
+            f"gaussian-atoms: residual noise {noise:.4g} (input units); median position precision (the Cramér-Rao lower bound: "
+            + ("on simulated atoms the actual errors are 1-3 times it, docs/results.md" if converged_at is not None else "the run did not converge, its errors may be far larger") + ") "
             + ", ".join(f"{a} {v * 100:.1f} pm" for a, v in zip("xyz", np.median(atoms.position_std_A, axis=0)))
         )
     # atoms() lists the Gaussians in the model's order: the density control's own test of the field
