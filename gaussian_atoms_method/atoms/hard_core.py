@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import math
 import re
-from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
@@ -83,15 +82,6 @@ def hard_core_from_species(species: str | Sequence[str]) -> float:
     radii = _radii()
     smallest = min(radii[e] for e in elements)
     return COVALENT_FRACTION * 2.0 * smallest
-
-
-@dataclass(frozen=True)
-class HardCore:
-    """A hard core (Å or normalised units, as the positions it was read from) and where it came from."""
-
-    distance: float
-    source: str
-    """'species Ta', 'the confident atoms' first shell (peak 2.85 Å)' or 'none'."""
 
 
 def hard_core_from_positions(positions: np.ndarray, masses: np.ndarray, typical_mass: float) -> tuple[float, float]:

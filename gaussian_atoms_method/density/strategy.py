@@ -151,8 +151,8 @@ class DensityControl:
     hard_core_A: float | None = None
     """The material's hard core from its species (Å, :func:`..atoms.hard_core.hard_core_from_species`);
     None: read from the confident atoms (:meth:`hard_core`)."""
-    _hard_core_read: tuple = (0, math.inf, math.inf)
-    """The last reading from the atoms: (Gaussians then, hard core, bond), normalised."""
+    _hard_core_read: tuple = (0, math.inf)
+    """The last reading from the atoms: (Gaussians then, hard core normalised)."""
     joined_close: int = 0
     """Gaussians joined into a partner closer than the hard core over the run (:meth:`join_close_pairs`)."""
     heavy_split: bool = False
@@ -793,7 +793,7 @@ class DensityControl:
         if self.hard_core_A is not None:
             return self.hard_core_A * self.length_scale
         n = params["means"].shape[0]
-        read_at, distance, _ = self._hard_core_read
+        read_at, distance = self._hard_core_read
         if read_at and abs(n - read_at) <= 0.1 * read_at:
             return distance
         if not self.noise_known():
@@ -803,15 +803,17 @@ class DensityControl:
         sigmas = widths(params, self.min_log_sigma)
         confident = (self.atom_width(sigmas) & self.in_field(params["means"]) & (self.mass_significance(params) >= self.significance_threshold())).cpu()
         mass = gaussian_mass(sigmas, amplitudes(params)).detach().double().cpu().numpy()
-        distance, bond = hard_core_from_positions(params["means"].detach().double().cpu().numpy()[confident.numpy()], mass[confident.numpy()], self.typical_atom_mass(params))
-        self._hard_core_read = (n, distance, bond) if math.isfinite(distance) else (0, math.inf, math.inf)
+        distance, _ = hard_core_from_positions(params["means"].detach().double().cpu().numpy()[confident.numpy()], mass[confident.numpy()], self.typical_atom_mass(params))
+        self._hard_core_read = (n, distance) if math.isfinite(distance) else (0, math.inf)
         return distance
 
     @torch.no_grad()
     def join_close_pairs(self, params: Params, optimizers: Optimizers, param_lists=None, protect_fresh: bool = True) -> int:
         """Join every pair of atom-like Gaussians inside the volume closer than the material's
         hard core (:meth:`hard_core`) into one at their mass-weighted centre, closest pairs first,
-        in rounds (:meth:`_merge_pairs_in_rounds`); training then settles the joined Gaussian.
+        in rounds (:meth:`_merge_pairs_in_rounds`); a pair holding more than :data:`SPLIT_MASS`
+        typical atoms' mass is two atoms, moved apart to the hard core instead
+        (:meth:`_push_apart`).  Training then settles them.
         Two atoms that close have zero prior probability whatever the likelihood gains: where the
         forward model misses something (a real film's probe, a denoiser's leftovers) the fit
         otherwise explains it with a second Gaussian 1.2-1.8 Å from the atom.  With
@@ -840,12 +842,8 @@ class DensityControl:
         mass kept: a pair holding two atoms' mass (:data:`SPLIT_MASS`) is two atoms, too close."""
         if len(pairs) == 0:
             return
-        used, disjoint = set(), []
-        for i, j in pairs.tolist():  # closest first; a Gaussian moves for one partner only
-            if i not in used and j not in used:
-                used.update((i, j))
-                disjoint.append((i, j))
-        pairs = np.asarray(disjoint, dtype=np.int64)
+        labels, _ = disjoint_pair_labels(params["means"].shape[0], pairs)  # closest first; a Gaussian moves for one partner only
+        pairs = pairs[labels[pairs[:, 0]] == labels[pairs[:, 1]]]
         means = params["means"].data
         p = torch.as_tensor(pairs, device=means.device)
         mass = gaussian_mass(widths(params, self.min_log_sigma), amplitudes(params)).detach()

@@ -195,8 +195,7 @@ def split_atoms(gaussians: AtomSet, in_field: np.ndarray, device="cpu", hard_cor
     labels = np.zeros(len(gaussians), dtype=np.int64)  # 0: a non-atom
     labels[np.flatnonzero(in_field)] = np.where(reported[in_field], classes.classes, 0)
     gaussians = AtomSet(gaussians.positions, gaussians.sigmas, gaussians.amplitudes, gaussians.species, dict(gaussians.info), gaussians.position_std_A, labels)
-    counts = classes.counts()
-    outside, beyond, n_close = counts.pop("non-atoms"), int((~in_field).sum()), int(close.sum())
+    outside, beyond, n_close = int((~classes.atoms).sum()), int((~in_field).sum()), int(close.sum())
     counts = {f"class {k}": int(np.sum(reported[in_field] & (classes.classes == k))) for k in range(1, len(classes.class_means) + 1)}
     counts = {name: n for name, n in counts.items() if n}  # a class reported whole as non-atoms is not listed
     per_class = ", ".join(f"{v} in {k}" for k, v in counts.items()) if len(counts) > 1 else ""
