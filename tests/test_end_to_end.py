@@ -1,6 +1,8 @@
 """The whole chain from a clean install: simulate -> ns-train gaussian-atoms (CPU) -> atoms -> evaluate."""
 
 import json
+import os
+import stat
 import subprocess
 import sys
 from pathlib import Path
@@ -31,7 +33,7 @@ def test_simulate_train_evaluate(tmp_path):
         BIN / "ns-train", "gaussian-atoms", "--machine.device-type", "cpu", "--vis", "tensorboard",
         "--output-dir", tmp_path / "out", "--experiment-name", "e2e", "--timestamp", "run",
         "--max-num-iterations", "1000", "--pipeline.model.num-random", "1500",
-        "tilt-series", "--data", data,
+        "tilt-series", "--data", data, preexec_fn=lambda: os.umask(0o022),
     )  # fmt: skip
     assert train.returncode == 0, train.stdout[-3000:] + train.stderr[-3000:]
     # The data's noise is additive Gaussian (noise-std 20): the residuals' variance-mean
@@ -41,6 +43,9 @@ def test_simulate_train_evaluate(tmp_path):
     atoms = ase.io.read(run / "atoms.xyz")
     truth = ase.io.read(data / "atoms_true.xyz")
     assert (run / "atoms.csv").is_file() and (run / "config.yml").is_file() and (run / "slices.png").is_file()
+    # Under umask 022 a colleague on the same machine can read every result (not mkstemp's 0600).
+    for name in ("atoms.xyz", "atoms.csv", "non_atoms.xyz", "slices.png", "classes.png", "rdf.png", "structure.json", "evaluation.json"):
+        assert stat.S_IMODE(os.stat(run / name).st_mode) & 0o044 == 0o044, name
     # Each atom's position precision (Cramér-Rao, tests/test_uncertainty.py): at a peak-to-noise
     # near 70 and 29 views, about a pm per axis, never above the 5 pm the RMSD is held to below.
     std = atoms.arrays["position_std_A"]
