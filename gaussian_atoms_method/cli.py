@@ -337,6 +337,30 @@ class Benchmark:
 
 
 @dataclass
+class View:
+    """Open a finished run in nerfstudio's viewer (the atoms as points coloured by mass over the
+    projections), served to this machine only unless --host says otherwise."""
+
+    load_config: Path
+    """The run's config.yml."""
+    host: str = "127.0.0.1"
+    """The address the viewer listens on: 127.0.0.1 is this machine only; 0.0.0.0 every network."""
+    port: Optional[int] = None
+    """The viewer's port (default nerfstudio's, 7007, or the next free one)."""
+
+    def build(self):
+        """nerfstudio's ``ns-viewer`` command with these settings, built but not run."""
+        from nerfstudio.scripts.viewer.run_viewer import RunViewer, ViewerConfigWithoutNumRays
+
+        if not self.load_config.is_file():
+            raise FileNotFoundError(f"{self.load_config}: run config not found")
+        return RunViewer(load_config=self.load_config, viewer=ViewerConfigWithoutNumRays(websocket_host=self.host, websocket_port=self.port))
+
+    def main(self) -> None:
+        self.build().main()
+
+
+@dataclass
 class Export:
     """Write a finished run's atoms as .xyz/.extxyz (with sigma_A, amplitude), .csv or .cif,
     optionally with species assigned by clustering the atoms' integrated masses."""
@@ -452,6 +476,7 @@ Commands = Union[
     Annotated[BenchmarkFilm, tyro.conf.subcommand("benchmark-film")],
     Annotated[Stress, tyro.conf.subcommand("stress")],
     Annotated[Export, tyro.conf.subcommand("export")],
+    Annotated[View, tyro.conf.subcommand("view")],
     Annotated[Sweep, tyro.conf.subcommand("sweep")],
 ]
 

@@ -106,6 +106,12 @@ def test_gaussian_atoms_train_is_ns_train(tmp_path):
         )  # fmt: skip
         assert train.returncode == 0, train.stdout[-3000:] + train.stderr[-3000:]
         runs[name] = tmp_path / "out" / name / "gaussian-atoms" / "run"
+        if name == "ga":  # our lines and a progress bar, no configuration dump: it ends with what it found
+            from gaussian_atoms_method.harness.input_cases import own_lines
+
+            assert len(own_lines(train.stdout + train.stderr)) <= 60, train.stdout + train.stderr
+            ending = " ".join(own_lines(train.stdout)[-4:])  # the console wraps its long last line
+            assert "gaussian-atoms: against" in ending and ending.endswith("}") and "method_name=" not in train.stdout
     assert (runs["ga"] / "atoms.xyz").read_text() == (runs["ns"] / "atoms.xyz").read_text()
     configs = [(runs[n] / "config.yml").read_text().replace(f"experiment_name: {n}", "").replace(f"/{n}/", "/") for n in runs]
     assert configs[0] == configs[1]

@@ -47,8 +47,7 @@ def _parse(argv: list[str]) -> object:
 
         return parse(argv[1:])
     if program == "ns-viewer":
-        assert argv[1:2] == ["--load-config"] and len(argv) in (3, 5)
-        assert len(argv) == 3 or argv[3] == "--viewer.websocket-host"  # the one viewer option the README names
+        assert argv[1:2] == ["--load-config"] and len(argv) == 3
         return argv[2]
     raise AssertionError(f"README command with an unknown program: {shlex.join(argv)}")
 

@@ -53,3 +53,32 @@ def test_files_written_follow_the_umask(tmp_path):
         os.umask(old)
     for path in (xyz, png):
         assert stat.S_IMODE(os.stat(path).st_mode) == 0o644
+
+
+def test_the_viewer_serves_this_machine_unless_asked(tmp_path):
+    from gaussian_atoms_method.cli import parse
+
+    (tmp_path / "config.yml").write_text("method_name: gaussian-atoms\n")
+    local = parse(["view", "--load-config", str(tmp_path / "config.yml")]).build()
+    assert local.viewer.websocket_host == "127.0.0.1" and local.load_config == tmp_path / "config.yml"
+    assert parse(["view", "--load-config", str(tmp_path / "config.yml"), "--host", "0.0.0.0"]).build().viewer.websocket_host == "0.0.0.0"
+
+
+def test_export_of_a_one_element_particle_writes_one_element(tmp_path):
+    """The export verb on a pure particle's atoms asked for Fe,Pt: one element, and a line saying why."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import ase.io
+
+    rng = np.random.default_rng(4)
+    grid = np.stack(np.meshgrid(*[np.arange(6)] * 3, indexing="ij"), -1).reshape(-1, 3) * 2.9
+    atoms = AtomSet(grid.astype(float), sigmas=np.full(len(grid), 0.6), amplitudes=30.0 * np.exp(rng.normal(scale=0.08, size=len(grid))))
+    write_atoms(atoms, tmp_path / "run" / "atoms.xyz")
+    (tmp_path / "run" / "config.yml").write_text("method_name: gaussian-atoms\n")
+    out = tmp_path / "out.extxyz"
+    proc = subprocess.run([str(Path(sys.executable).parent / "gaussian-atoms"), "export", "--load-config", str(tmp_path / "run" / "config.yml"), "--output", str(out), "--species", "Fe,Pt"], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert set(ase.io.read(out).get_chemical_symbols()) == {"Pt"}
+    assert "separate population" in proc.stderr
