@@ -97,6 +97,15 @@ def _device(device: str) -> str:
     return device
 
 
+def _whole(value, name: str) -> int:
+    """``value`` as an int, or :class:`OptionError` naming the argument."""
+    from gaussian_atoms_method.nerfstudio_layer.options import OptionError
+
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise OptionError(f"{name} must be a whole number, got {value!r}")
+    return int(value)
+
+
 def build_config(data: Path, output_dir: Path, device: str, max_num_iterations: int | None, model_options: dict[str, Any]):
     """The :class:`~gaussian_atoms_method.nerfstudio_layer.trainer.GaussianAtomsTrainerConfig`
     that ``ns-train gaussian-atoms --machine.device-type DEVICE tilt-series --data DATA`` builds,
@@ -104,7 +113,7 @@ def build_config(data: Path, output_dir: Path, device: str, max_num_iterations: 
     from gaussian_atoms_method.nerfstudio_layer.config import MAX_ITERATIONS, gaussian_atoms_trainer_config
     from gaussian_atoms_method.nerfstudio_layer.options import OptionError
 
-    config = gaussian_atoms_trainer_config(MAX_ITERATIONS if max_num_iterations is None else int(max_num_iterations))
+    config = gaussian_atoms_trainer_config(MAX_ITERATIONS if max_num_iterations is None else _whole(max_num_iterations, "max_num_iterations"))
     names = {f.name for f in dataclasses.fields(config.pipeline.model) if not f.name.startswith("_")}
     for name, value in model_options.items():
         if name not in names:
@@ -186,6 +195,7 @@ def reconstruct(
             data = write_tilt_series(work / "series", series.projections, series.angles_deg, series.pixel_size_A, truth, series.origin_A,
                                      series.tilt_axis, centre_px=series.centre_px, tilt_axis_angle_deg=series.tilt_axis_angle_deg, species=series.species)  # fmt: skip
             config = build_config(data, Path(output_dir) if keep else work / "outputs", _device(device), max_num_iterations, model_options)
+            config.machine.seed = _whole(seed, "seed")
             check_input(config)
         except (TiltSeriesError, AtomFileError, OptionError) as exc:
             raise _input_error(exc) from None

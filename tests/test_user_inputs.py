@@ -82,3 +82,13 @@ def test_export_of_a_one_element_particle_writes_one_element(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert set(ase.io.read(out).get_chemical_symbols()) == {"Pt"}
     assert "separate population" in proc.stderr
+
+
+@pytest.mark.parametrize("bad, named", [({"max_num_iterations": "abc"}, "max_num_iterations"), ({"max_num_iterations": 0}, "--max-num-iterations"),
+                                        ({"seed": "x"}, "seed"), ({"species": "Xx"}, "unknown element 'Xx'"), ({"device": "gpu"}, "device")])  # fmt: skip
+def test_every_bad_argument_of_reconstruct_is_an_input_error_naming_it(bad, named):
+    import gaussian_atoms_method as ga
+
+    projections = np.random.default_rng(0).uniform(size=(7, 24, 24)).astype(np.float32)
+    with pytest.raises(ga.InputError, match=named):
+        ga.reconstruct(projections, np.linspace(-60, 60, 7), 0.3, progress=False, **bad)

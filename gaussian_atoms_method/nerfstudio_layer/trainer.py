@@ -42,6 +42,8 @@ def check_input(config: TrainerConfig) -> None:
     train: the model options, the tilt series (read and validated as the dataparser will) and
     its truth file."""
     check_device(config.machine.device_type)
+    if not (isinstance(config.max_num_iterations, int) and config.max_num_iterations >= 1):
+        raise OptionError(f"--max-num-iterations must be a whole number of steps, at least 1, got {config.max_num_iterations!r}")
     model = config.pipeline.model
     if isinstance(model, GaussianAtomsOptions):
         model.check()
