@@ -51,12 +51,11 @@ class OptionError(ValueError):
 
 
 @dataclass
-class GaussianAtomsOptions(SplatfactoModelConfig):
-    """Gaussian atoms: isotropic 3D Gaussians fitted to a tilt series.
-
-    The options a user sets first come first (the data's background and probe, a film, the
-    alignment, the data term, the start, the false discoveries accepted, when to stop, the seed);
-    the fit's own settings follow."""
+class UserFirstOptions:
+    """The options a user sets first: the data's background and probe, a film, the alignment,
+    the data term, the start, the false discoveries accepted, when to stop, the seed.  A base of
+    :class:`GaussianAtomsOptions` after splatfacto's config, so that ``--help`` lists them first
+    (a dataclass takes its fields from its last base first)."""
 
     background: Literal["auto", "none", "constant", "plane", "smooth"] = "auto"
     """A per-projection background fitted with the atoms (carbon support, contamination, a
@@ -132,6 +131,14 @@ class GaussianAtomsOptions(SplatfactoModelConfig):
     scatter."""
     seed: int = 0
     """Seed of the random initialisation and duplications."""
+
+
+@dataclass
+class GaussianAtomsOptions(SplatfactoModelConfig, UserFirstOptions):
+    """Gaussian atoms: isotropic 3D Gaussians fitted to a tilt series.
+
+    The options a user sets first come first (:class:`UserFirstOptions`); the fit's own settings
+    follow."""
 
     init_mass: Literal["backprojection", "equal"] = "backprojection"
     """How the measured mass is shared among the starting Gaussians: in proportion to the
