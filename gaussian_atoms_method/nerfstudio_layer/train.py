@@ -88,7 +88,10 @@ class ProgressBar:
     def __init__(self, total: int) -> None:
         from tqdm.auto import tqdm
 
-        self.bar = tqdm(total=total, desc="gaussian-atoms", unit="step", dynamic_ncols=True)
+        # In a terminal the bar redraws in place; into a log (no terminal) each drawing is a line
+        # of its own, so there it is drawn every tenth of the run.
+        live = sys.stderr.isatty()
+        self.bar = tqdm(total=total, desc="gaussian-atoms", unit="step", dynamic_ncols=True, **({} if live else {"miniters": max(total // 10, 1), "mininterval": 0.0}))
 
     def follow(self, trainer) -> None:
         """Start over at 0 and count ``trainer``'s steps (called again for a second pass)."""
