@@ -195,7 +195,7 @@ def reconstruct(
             data = write_tilt_series(work / "series", series.projections, series.angles_deg, series.pixel_size_A, truth, series.origin_A,
                                      series.tilt_axis, centre_px=series.centre_px, tilt_axis_angle_deg=series.tilt_axis_angle_deg, species=series.species)  # fmt: skip
             config = build_config(data, Path(output_dir) if keep else work / "outputs", _device(device), max_num_iterations, model_options)
-            config.machine.seed = _whole(seed, "seed")
+            _whole(seed, "seed")  # checked here, set by _train
             check_input(config)
         except (TiltSeriesError, AtomFileError, OptionError) as exc:
             raise _input_error(exc) from None

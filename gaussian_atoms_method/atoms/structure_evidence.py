@@ -51,11 +51,12 @@ def number_density(positions_A: np.ndarray) -> float:
     return len(positions) / volume if volume > 0 else 0.0
 
 
-def structure_evidence(positions_A: np.ndarray, hard_core_A: float) -> dict:
+def structure_evidence(positions_A: np.ndarray, hard_core_A: float) -> tuple[dict, np.ndarray, np.ndarray]:
     """The summary of :mod:`this module <.structure_evidence>` for (N, 3) reported atoms:
     ``n_atoms``, ``number_density_per_A3``, ``hard_core_A``, ``share_under_hard_core`` (atoms
     with a neighbour closer than it), ``nearest_neighbour_median_A``, and ``first_shell_peak_A``
-    (the maximum of ``g(r)`` beyond the hard core)."""
+    (the maximum of ``g(r)`` beyond the hard core); and the (B,) ``r`` and ``g(r)`` it read that
+    from (:func:`pair_distribution_function`, for ``rdf.png``)."""
     from gaussian_atoms_method.atoms.hard_core import share_closer
     from gaussian_atoms_method.atoms.pair_distribution import nearest_neighbour_distances
 
@@ -66,4 +67,4 @@ def structure_evidence(positions_A: np.ndarray, hard_core_A: float) -> dict:
     r, g = pair_distribution_function(positions)
     beyond = r > (hard_core_A if math.isfinite(hard_core_A) else 0.0)
     out["first_shell_peak_A"] = float(r[beyond][np.argmax(g[beyond])]) if np.any(g[beyond] > 0) else None
-    return out
+    return out, r, g

@@ -276,8 +276,7 @@ class GaussianAtomsModel(SplatfactoCompat):
             trainer.stop_training = self.kernel_reading.settled
         elif at_check(self, step, last_step):
             if getattr(trainer, "progress", None) is not None:  # the bar ends here, before the results print
-                trainer.progress.bar.update(step + 1 - trainer.progress.bar.n)
-                trainer.progress.close()
+                trainer.progress.end_at(step)
             CONSOLE.print(f"gaussian-atoms: converged at step {step}: stopping early ({self.convergence.summary()})")
             self.converged_at = step
             self.write_results(Path(trainer.base_dir))

@@ -27,7 +27,7 @@ from gaussian_atoms_method.atoms.hard_core import lighter_of_close_pairs
 from gaussian_atoms_method.atoms.matching import score_atoms
 from gaussian_atoms_method.atoms.pictures import draw_slices, write_population_png, write_rdf_png
 from gaussian_atoms_method.atoms.slices import slice_planes
-from gaussian_atoms_method.atoms.structure_evidence import pair_distribution_function, structure_evidence
+from gaussian_atoms_method.atoms.structure_evidence import structure_evidence
 from gaussian_atoms_method.atoms.uncertainty import position_std_A, robust_noise_std
 from gaussian_atoms_method.nerfstudio_layer.rendering import detector_axes
 from gaussian_atoms_method.nerfstudio_layer.residuals import measured_views, render_training_views
@@ -128,10 +128,10 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
     write_atoms(atoms, run_dir / "atoms.xyz")
     write_atoms(atoms, run_dir / "atoms.csv")
     write_atoms(non_atoms, run_dir / "non_atoms.xyz")
-    evidence = structure_evidence(atoms.positions, hard_core_A)
+    evidence, r_A, g = structure_evidence(atoms.positions, hard_core_A)
     (run_dir / "structure.json").write_text(json.dumps(evidence, indent=2) + "\n")
     say_structure(evidence)
-    pictures.append((write_rdf_png, *pair_distribution_function(atoms.positions), evidence["hard_core_A"], evidence["share_under_hard_core"], run_dir / "rdf.png"))
+    pictures.append((write_rdf_png, r_A, g, evidence["hard_core_A"], evidence["share_under_hard_core"], run_dir / "rdf.png"))
     CONSOLE.print(f"[bold]gaussian-atoms[/bold]: wrote {len(atoms)} atoms to {run_dir / 'atoms.xyz'} and {len(non_atoms)} non-atoms to non_atoms.xyz")
     truth = read_atoms(model.truth_path) if model.truth_path is not None else None
     scores = score_atoms(atoms.positions, truth.positions) if truth is not None else None

@@ -100,6 +100,12 @@ class ProgressBar:
         self.bar.reset()
         trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], lambda step: self.bar.update(step + 1 - self.bar.n)))
 
+    def end_at(self, step: int) -> None:
+        """Count through ``step`` and end the bar there (the run converged at it)."""
+        if not self.bar.disable:
+            self.bar.update(step + 1 - self.bar.n)
+        self.close()
+
     def close(self) -> None:
         """End the bar at the step reached (once; the results print after it)."""
         if self.bar.disable:
