@@ -293,11 +293,14 @@ class BenchmarkFilm:
 
     species: str = "Ta"
     """The film's element, written into each sub-area's manifest (it sets the hard core); "" for none."""
+    start_from_model: bool = False
+    """Start each fit at the authors' model instead of the back-projection's candidates: how much
+    of the model the data hold (the fit moves off the rest)."""
 
     def main(self) -> None:
         from gaussian_atoms_method.harness.film_benchmark import FilmBenchmark
 
-        FilmBenchmark(self.data, self.output, self.areas, self.iterations, self.device, tuple(shlex.split(self.train_args)), self.species).run()
+        FilmBenchmark(self.data, self.output, self.areas, self.iterations, self.device, tuple(shlex.split(self.train_args)), self.species, self.start_from_model).run()
         print(f"wrote {self.output / 'results.md'} and results.csv")
 
 

@@ -173,8 +173,9 @@ def _same(a, b) -> bool:
 
 TRAIN_OPTIONS = {"--data": "data", "--pipeline.model.extended-object": "extended_object", "--pipeline.model.max-atom-sigma-A": "max_atom_sigma_A"}
 """The training options the start reads, with :func:`begin`'s argument for each."""
-NOT_AHEAD = {"-h", "--help", "--load-config", "--load-dir", "--load-checkpoint", "--pipeline.model.init"}
-"""Options after which no start is begun: help, a loaded run, a start other than the back-projection."""
+NOT_AHEAD = {"-h", "--help", "--load-config", "--load-dir", "--load-checkpoint", "--pipeline.model.init", "--pipeline.model.start-atoms"}
+"""Options after which no start is begun: help, a loaded run, a start other than the back-projection
+(random, or given atoms)."""
 
 
 def requested_start(argv: list[str]) -> dict | None:

@@ -38,6 +38,22 @@ def test_reconstruct_arrays_gives_the_atoms(particle):
     assert len(atoms.info["non_atoms"]) == 0
 
 
+def test_a_given_start_keeps_what_the_data_hold_and_drops_the_rest(particle, tmp_path):
+    """``start_atoms``: the true atoms moved 0.3 Å at random, and one more in the vacuum 6 Å
+    beyond the particle's surface.  The fit returns every atom to within the precision of the
+    first test and drops the vacuum one (no mass there in any view)."""
+    from gaussian_atoms_method.atoms.atom_set import AtomSet, write_atoms
+
+    truth, angles, projections = particle
+    rng = np.random.default_rng(1)
+    moved = truth.positions + rng.normal(scale=0.3 / np.sqrt(3), size=truth.positions.shape)
+    start = np.vstack([moved, [[0.0, 0.0, 11.0]]])
+    path = write_atoms(AtomSet(positions=start, species=np.array(["Au"] * len(start))), tmp_path / "start.xyz")
+    atoms = ga.reconstruct(projections, angles, 0.25, device="cpu", max_num_iterations=400, progress=False, start_atoms=path)
+    scores = score_atoms(atoms.positions, truth.positions)
+    assert scores["tpr"] == 1.0 and scores["fp_per_true_atom"] == 0.0 and scores["rmsd_pm"] < 5.0
+
+
 def test_reconstruct_reads_the_kernel_then_holds_it(particle):
     """``psf="held-out"`` through the API: the reading pass, then the atoms with the kernel held
     (the trainer's two passes); the model's own physics has no tails to read, so the atoms come

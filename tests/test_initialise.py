@@ -131,3 +131,16 @@ def test_deconvolution_seats_the_shoulder_atoms():
     assert recall(after) >= recall(before) + 0.01 and recall(after) >= 0.99
     assert np.mean(cKDTree(atoms.positions).query(added)[0] < 0.75) >= 0.75  # the decoy level's share
     assert cKDTree(after).query(after, k=2)[0][:, 1].min() > 0.7
+
+
+def test_a_given_start_is_taken_as_it_is():
+    """``positions_A`` (``--pipeline.model.start-atoms``): the start is those positions in the
+    model's units, with equal masses (no weights), whatever the data's candidates are."""
+    import torch
+
+    from gaussian_atoms_method.atoms.initialise import starting_positions
+
+    given = np.array([[0.0, 1.0, -2.0], [3.5, 0.0, 0.25]])
+    means, weights = starting_positions(None, 0.1, 50, 1.0, torch.Generator().manual_seed(0), positions_A=given)
+    np.testing.assert_allclose(means.numpy(), 0.1 * given, rtol=1e-6)
+    assert weights is None

@@ -89,6 +89,7 @@ def test_an_unreadable_series_leaves_the_run_to_report_it(tmp_path):
         (["tilt-series", "--data", "d", "--pixel-size-A", "0.3"], None),  # the series read with options of its own
         (["--help", "tilt-series", "--data", "d"], None),
         (["--pipeline.model.init", "random", "tilt-series", "--data", "d"], None),
+        (["--pipeline.model.start-atoms", "a.xyz", "tilt-series", "--data", "d"], None),
         (["--load-config", "c.yml"], None),
         (["tilt-series"], None),
         (["--pipeline.model.max-atom-sigma-A", "wide", "--data", "d"], None),

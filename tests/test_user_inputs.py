@@ -85,7 +85,8 @@ def test_export_of_a_one_element_particle_writes_one_element(tmp_path):
 
 
 @pytest.mark.parametrize("bad, named", [({"max_num_iterations": "abc"}, "max_num_iterations"), ({"max_num_iterations": 0}, "--max-num-iterations"),
-                                        ({"seed": "x"}, "seed"), ({"species": "Xx"}, "unknown element 'Xx'"), ({"device": "gpu"}, "device")])  # fmt: skip
+                                        ({"seed": "x"}, "seed"), ({"species": "Xx"}, "unknown element 'Xx'"), ({"device": "gpu"}, "device"),
+                                        ({"start_atoms": "no_such_atoms.xyz"}, "--pipeline.model.start-atoms: no_such_atoms.xyz: atom file not found")])  # fmt: skip
 def test_every_bad_argument_of_reconstruct_is_an_input_error_naming_it(bad, named):
     import gaussian_atoms_method as ga
 

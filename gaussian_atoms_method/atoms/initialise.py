@@ -319,7 +319,7 @@ def backprojection_candidates(
 
 def starting_positions(
     series, length_scale: float, count: int, extent: float, generator: torch.Generator, from_backprojection: bool = True, noise: NoiseModel | None = None,
-    slice_size_px: int | None = None, backprojection: Volume | None = None,
+    slice_size_px: int | None = None, backprojection: Volume | None = None, positions_A: np.ndarray | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Where training starts: (n, 3) positions in normalised units and, for a back-projection
     start, (n,) weights of mean 1 in proportion to the smoothed back-projection there (else None).
@@ -344,7 +344,11 @@ def starting_positions(
         Across the tilt axis, start over this many voxels (:func:`backprojection_candidates`).
     backprojection : Volume, optional
         The candidates' back-projection if already made (:func:`backprojection_candidates`).
+    positions_A : (n, 3) array, optional
+        Start at these positions (Å), with equal masses, instead.
     """
+    if positions_A is not None:
+        return torch.as_tensor(np.asarray(positions_A, dtype=np.float64) * length_scale, dtype=torch.float32), None
     if from_backprojection and series is not None:
         # A GPU, if there is one, does the back-projection (the model is built on the CPU).
         positions_A, values = backprojection_candidates(
@@ -395,7 +399,7 @@ class Start:
 def compute_start(
     series, projections, normalisation: Normalisation, extended_object: str, max_atom_sigma_A: float, from_backprojection: bool = True,
     count: int = 0, extent: float = 1.0, generator: torch.Generator | None = None, noise: NoiseModel | None = None,
-    backprojection: Volume | None = None,
+    backprojection: Volume | None = None, positions_A: np.ndarray | None = None,
 ) -> Start:  # fmt: skip
     """The start for a tilt series (``series``: :class:`~dataparsers.tilt_series_format.TiltSeries`,
     or None) with (V, H, W) ``projections`` in normalised data units: the noise measured once
@@ -406,11 +410,12 @@ def compute_start(
     with ``generator``).  ``noise``: the projections' noise if already read, as
     :func:`~gaussian_atoms_method.physics.noise.measure_noise` reads it on this machine;
     ``backprojection``: the candidates' back-projection if already made (:func:`~gaussian_atoms_method.physics.reconstruction.backprojection_for_peaks`
-    of the series, across the tilt axis over the field's ``slice_px``)."""
+    of the series, across the tilt axis over the field's ``slice_px``); ``positions_A``: start at
+    these atoms (Å) instead of any candidates."""
     ls = normalisation.length_scale
     noise = measure_noise(projections) if noise is None else noise
     fov = field_of_view(series, projections, ls, extended_object, EDGE_MARGIN_WIDTHS * max_atom_sigma_A)
     generator = generator if generator is not None else torch.Generator()
     in_series_units = noise.scaled(1.0 / normalisation.data_scale) if noise is not None else None
-    means, weights = starting_positions(series, ls, count, extent, generator, from_backprojection, in_series_units, fov.slice_px, backprojection)
+    means, weights = starting_positions(series, ls, count, extent, generator, from_backprojection, in_series_units, fov.slice_px, backprojection, positions_A)
     return Start(noise, fov, means, weights)

@@ -92,6 +92,28 @@ def prepare_area(data_dir: Path, out_dir: Path, area: int, species: str = "") ->
     )
 
 
+def write_model_start(data_dir: Path, area_dir: Path, area: int) -> Path:
+    """Write the authors' model as a start (``--pipeline.model.start-atoms``): the model's atoms
+    that reach the detector at some tilt, moved onto the data's frame by the global shift
+    that takes our back-projection candidates onto the model (the two frames differ by about a
+    voxel, README).  A fit started there keeps what the data hold of the model and moves off the
+    rest."""
+    from dataparsers.tilt_series_format import load_tilt_series
+    from gaussian_atoms_method.atoms.atom_set import write_atoms
+    from gaussian_atoms_method.atoms.initialise import backprojection_candidates
+
+    series = load_tilt_series(area_dir)
+    model = model_in_area_A(data_dir, area)
+    height_A, width_A = (np.array(series.projections.shape[1:]) - 1) * PIXEL_SIZE_A
+    cx, cy = np.asarray(series.centre_px) * PIXEL_SIZE_A
+    theta = np.deg2rad(series.angles_deg)[:, None]
+    across = model[None, :, 0] * np.cos(theta) - model[None, :, 2] * np.sin(theta)  # (tilts, atoms), tilt axis y
+    seen = np.any((across >= -cx) & (across <= height_A - cx), axis=0) & (model[:, 1] >= -cy) & (model[:, 1] <= width_A - cy)
+    candidates = backprojection_candidates(series.projections, series.angles_deg, series.pixel_size_A, series.tilt_axis, series.centre_px, None)
+    shift = global_shift(candidates, model[seen], MATCH_RADIUS_A)
+    return write_atoms(AtomSet(positions=model[seen] - shift, species=np.array(["Ta"] * int(seen.sum()))), Path(area_dir) / "model_start.xyz")
+
+
 def scored_region(model_A: np.ndarray, shape_px: tuple[int, int], centre_px: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
     """(2, 3) lower and upper corners (Å) of the scored region: the detector's interior
     (:data:`INTERIOR_PX`) and the depth of the model's atoms inside it plus
@@ -143,6 +165,7 @@ class FilmBenchmark:
     device: str = "cpu"
     flags: tuple[str, ...] = ()
     species: str = "Ta"
+    start_from_model: bool = False
 
     def run(self) -> list[dict]:
         from gaussian_atoms_method.harness.benchmark import scored_run
@@ -155,12 +178,19 @@ class FilmBenchmark:
         rows = []
         for area in self.areas:
             run_dir = self.output / "runs" / f"area{area}"
-            s = scored_run(run_dir / "film_scores.json", run_dir, lambda: prepare_area(self.data_dir, self.output / "data", area, self.species),
-                           lambda data, atoms: score(area, data, atoms), self.iterations, self.device, self.flags)  # fmt: skip
+            flags = self.flags + (("--pipeline.model.start-atoms", str(self.output / "data" / f"area{area}" / "model_start.xyz")) if self.start_from_model else ())
+            s = scored_run(run_dir / "film_scores.json", run_dir, lambda: self.prepare(area), lambda data, atoms: score(area, data, atoms), self.iterations, self.device, flags)
             rows.append({"area": area, **s})
             print(f"Ta film area {area}: found {s['found']:.3f} of {s['n_model']} model atoms, extra {s['extra_per_model_atom']:.3f} per model atom, RMSD {s['rmsd_pm']:.1f} pm, {s['share_close']:.1%} of atoms closer than {CLOSE_PAIR_A} Å to another, {s['seconds']:.0f} s", flush=True)
         self.write(rows)
         return rows
+
+    def prepare(self, area: int) -> Path:
+        """The sub-area's tilt-series directory (and the model as its start, if asked)."""
+        area_dir = prepare_area(self.data_dir, self.output / "data", area, self.species)
+        if self.start_from_model:
+            write_model_start(self.data_dir, area_dir, area)
+        return area_dir
 
     def write(self, rows: list[dict]) -> None:
         self.output.mkdir(parents=True, exist_ok=True)

@@ -30,7 +30,7 @@ from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttrib
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch.nn import Parameter
 
-from gaussian_atoms_method.atoms.atom_set import AtomSet
+from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms
 from gaussian_atoms_method.atoms.initialise import compute_start, starting_amplitude
 from gaussian_atoms_method.density.strategy import DensityControl, amplitudes, widths
 from gaussian_atoms_method.nerfstudio_layer import rendering as R
@@ -78,8 +78,9 @@ class GaussianAtomsModel(SplatfactoCompat):
         self.truth_path: Path | None = Path(metadata["truth_path"]) if metadata.get("truth_path") is not None else None
         self.generator = torch.Generator().manual_seed(cfg.seed)
         projections, start_options = metadata.get("projections"), (self.normalisation, cfg.extended_object, cfg.max_atom_sigma_A)
-        ahead = take_start(series, projections, *start_options) if cfg.init == "backprojection" else None  # begun while the launcher loaded
-        start = ahead or compute_start(series, projections, *start_options, cfg.init == "backprojection", cfg.num_random, cfg.init_extent, self.generator)
+        given = read_atoms(cfg.start_atoms).positions if cfg.start_atoms is not None else None
+        ahead = take_start(series, projections, *start_options) if cfg.init == "backprojection" and given is None else None  # begun while the launcher loaded
+        start = ahead or compute_start(series, projections, *start_options, cfg.init == "backprojection", cfg.num_random, cfg.init_extent, self.generator, positions_A=given)
         say_start(start, ls, cfg.extended_object, ahead is not None)
         measured, means, weights, half_extent, self.field_half_extent = start.noise, start.means, start.weights, start.field.half_extent, start.field.field_half_extent
         n, sigma0 = means.shape[0], cfg.init_sigma_A * ls

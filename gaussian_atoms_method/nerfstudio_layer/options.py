@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Annotated, Literal, Optional, Tuple, Union, get_type_hints
 
 import tyro
@@ -112,6 +113,10 @@ class UserFirstOptions:
     """Where the Gaussians start: at the strongest local maxima of a smoothed filtered
     back-projection (see :mod:`gaussian_atoms_method.atoms.initialise`), or at random positions (the
     paper).  Back-projection needs single-axis tilts; otherwise random is used."""
+    start_atoms: Optional[Path] = None
+    """Start from these atoms instead (any atom file :func:`~gaussian_atoms_method.atoms.atom_set.read_atoms`
+    reads; positions in Å in the series' frame, as ``atoms.xyz`` writes them): refine a model
+    traced elsewhere, or ask whether the data hold it (the fit moves off what they do not)."""
     false_discovery_rate: float = DensityControl.false_discovery_rate
     """The final prune keeps the Gaussians whose mass significance clears the Benjamini-Hochberg
     level at this rate (noise Gaussians expected among those kept: at most this fraction), never
@@ -298,6 +303,14 @@ class GaussianAtomsOptions(SplatfactoModelConfig, UserFirstOptions):
             raise OptionError(f"--pipeline.model.position-rate-px must be positive (detector pixels per step) or None, got {self.position_rate_px}")
         if not 0 < self.false_discovery_rate < 1:
             raise OptionError(f"--pipeline.model.false-discovery-rate must lie in (0, 1), got {self.false_discovery_rate}")
+        if self.start_atoms is not None:
+            from gaussian_atoms_method.atoms.atom_set import AtomFileError, read_atoms
+
+            try:
+                if len(read_atoms(self.start_atoms)) == 0:
+                    raise AtomFileError(f"{self.start_atoms}: holds no atoms")
+            except AtomFileError as error:
+                raise OptionError(f"--pipeline.model.start-atoms: {error}") from None
         from gaussian_atoms_method.physics.psf import KERNEL_WIDTHS_A
 
         if len(self.psf_weights) != len(KERNEL_WIDTHS_A) or min(self.psf_weights) < 0 or sum(self.psf_weights) >= 1:
