@@ -44,3 +44,20 @@ def test_a_sub_area_is_written_as_a_tilt_series(tmp_path):
     assert series.angles_deg.min() == pytest.approx(-63.0, abs=0.01) and series.angles_deg.max() == pytest.approx(55.9, abs=0.01)
     assert tuple(series.centre_px) == (65.0, 30.0)
 
+
+
+def test_the_model_as_a_start_is_the_part_the_detector_sees_on_the_data_frame(tmp_path):
+    """``--start-from-model``: every scored model atom is in the start, the film's atoms no tilt
+    brings onto the detector are not, and the frames are put together by a shift of about a voxel
+    (0.32 Å per axis, the data's README) that the scorer's own shift of the start undoes."""
+    from gaussian_atoms_method.atoms.atom_set import read_atoms
+    from gaussian_atoms_method.harness.film_benchmark import write_model_start
+
+    area_dir = prepare_area(DATA, tmp_path, 8)
+    start = read_atoms(write_model_start(DATA, area_dir, 8)).positions
+    model = model_in_area_A(DATA, 8)
+    _, half = area_geometry(DATA, 8)
+    scores = score_area(start, model, (131, 61), tuple(half[:2]))
+    assert scores["found"] == 1.0 and scores["rmsd_pm"] < 1e-6
+    assert 0.3 < np.linalg.norm(scores["shift_A"]) < 1.0
+    assert len(start) < 0.5 * len(model)  # the film goes on far beyond this sub-area's reach
