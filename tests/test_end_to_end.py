@@ -122,6 +122,12 @@ def test_gaussian_atoms_train_is_ns_train(tmp_path):
     # the same steps as ns-train's, through to the last one logged.
     assert _scalar_steps(runs["ga"]) == _scalar_steps(runs["ns"])
     assert max(max(steps) for steps in _scalar_steps(runs["ga"]).values()) >= 290
+    # Bad input: one line naming the file; an option it cannot honour: named, with the way out.
+    (tmp_path / "tilt_series.json").write_text('{"projections": "p.npy", "angles_deg": "a.txt", "pixel_size_A": 0.25}')
+    bad = _run(BIN / "gaussian-atoms", "train", "--machine.device-type", "cpu", "--vis", "tensorboard", "--output-dir", tmp_path / "out", "tilt-series", "--data", tmp_path)
+    assert bad.returncode == 2 and "p.npy: projections file not found" in bad.stderr
+    two = _run(BIN / "gaussian-atoms", "train", "--machine.num-devices", "2", "--output-dir", tmp_path / "out", "tilt-series", "--data", data)
+    assert two.returncode == 2 and "--machine.num-devices 2" in two.stderr and "ns-train" in two.stderr
 
 
 def _scalar_steps(run: Path) -> dict:
@@ -132,12 +138,6 @@ def _scalar_steps(run: Path) -> dict:
     accumulator = EventAccumulator(str(events))
     accumulator.Reload()
     return {tag: [e.step for e in accumulator.Scalars(tag)] for tag in accumulator.Tags()["scalars"]}
-    # Bad input: one line naming the file; an option it cannot honour: named, with the way out.
-    (tmp_path / "tilt_series.json").write_text('{"projections": "p.npy", "angles_deg": "a.txt", "pixel_size_A": 0.25}')
-    bad = _run(BIN / "gaussian-atoms", "train", "--machine.device-type", "cpu", "--vis", "tensorboard", "--output-dir", tmp_path / "out", "tilt-series", "--data", tmp_path)
-    assert bad.returncode == 2 and "p.npy: projections file not found" in bad.stderr
-    two = _run(BIN / "gaussian-atoms", "train", "--machine.num-devices", "2", "--output-dir", tmp_path / "out", "tilt-series", "--data", data)
-    assert two.returncode == 2 and "--machine.num-devices 2" in two.stderr and "ns-train" in two.stderr
 
 
 def test_time_to_accuracy_benchmark(tmp_path):
