@@ -8,7 +8,7 @@ STAMP := $(VENV)/.installed
 DEMO_DATA := data/demo
 DEMO_RUN := outputs/demo/gaussian-atoms/demo
 
-.PHONY: install demo test clean
+.PHONY: install demo test format clean
 
 install: $(STAMP)
 
@@ -28,7 +28,13 @@ demo: $(STAMP)
 	$(BIN)/gaussian-atoms evaluate --pred $(DEMO_RUN)/atoms.xyz --truth $(DEMO_DATA)/atoms_true.xyz
 
 test: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
 	$(BIN)/python -m pytest -q
+
+format: $(STAMP)
+	$(BIN)/ruff format .
+	$(BIN)/ruff check --fix .
 
 clean:
 	rm -rf outputs $(DEMO_DATA)

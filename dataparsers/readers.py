@@ -26,7 +26,24 @@ from .errors import TiltSeriesError
 from .rosetta import LENGTH_TO_A, read_with_rosettasciio
 from .stack_data import StackData, imod_tilt_axis_angle  # noqa: F401 (imported from here by callers)
 
-STACK_SUFFIXES = (".npy", ".npz", ".mat", ".h5", ".hdf5", ".emd", ".tif", ".tiff", ".mrc", ".st", ".ali", ".mrcz", ".dm3", ".dm4", ".hspy", ".zspy")
+STACK_SUFFIXES = (
+    ".npy",
+    ".npz",
+    ".mat",
+    ".h5",
+    ".hdf5",
+    ".emd",
+    ".tif",
+    ".tiff",
+    ".mrc",
+    ".st",
+    ".ali",
+    ".mrcz",
+    ".dm3",
+    ".dm4",
+    ".hspy",
+    ".zspy",
+)
 ANGLE_SUFFIXES = (".txt", ".tlt", ".rawtlt", ".csv", ".dat", ".npy", ".mat")
 
 
@@ -110,7 +127,11 @@ def _ours_hdf5(path: Path) -> bool:
     if not h5py.is_hdf5(path):
         return False
     with h5py.File(path, "r") as f:
-        if "data" in f and isinstance(f["data"], h5py.Group) and any(isinstance(g, h5py.Group) and "data" in g for g in f["data"].values()):
+        if (
+            "data" in f
+            and isinstance(f["data"], h5py.Group)
+            and any(isinstance(g, h5py.Group) and "data" in g for g in f["data"].values())
+        ):
             return True
         return path.suffix.lower() == ".hdf5" and "Experiments" not in f
 
@@ -119,7 +140,11 @@ def _read_hdf5(path: Path, dataset: str | None, tilt_index_axis: int | None) -> 
     import h5py
 
     with h5py.File(path, "r") as f:
-        if "data" in f and isinstance(f["data"], h5py.Group) and any(isinstance(g, h5py.Group) and "data" in g for g in f["data"].values()):
+        if (
+            "data" in f
+            and isinstance(f["data"], h5py.Group)
+            and any(isinstance(g, h5py.Group) and "data" in g for g in f["data"].values())
+        ):
             # EMD: /data/<name>/{data, dim1, dim2, dim3}; a dimension named like "angle" holds the tilts.
             groups = [k for k, g in f["data"].items() if isinstance(g, h5py.Group) and "data" in g]
             group = f["data"][_pick(groups, dataset, path, "EMD data group")]
@@ -136,7 +161,11 @@ def _read_hdf5(path: Path, dataset: str | None, tilt_index_axis: int | None) -> 
                 else:
                     lengths[d] = _emd_step_A(dim)
             pixel = [v for d, v in lengths.items() if d != axis]
-            size = pixel[0] if len(pixel) == 2 and None not in pixel and abs(pixel[0] - pixel[1]) <= 1e-3 * pixel[0] else None
+            size = (
+                pixel[0]
+                if len(pixel) == 2 and None not in pixel and abs(pixel[0] - pixel[1]) <= 1e-3 * pixel[0]
+                else None
+            )
             return StackData(_tilt_first(array, axis, path, "the EMD data"), size, angles)
         names: list[str] = []
         f.visititems(lambda n, obj: names.append(n) if isinstance(obj, h5py.Dataset) and obj.ndim == 3 else None)
@@ -157,9 +186,8 @@ def _emd_step_A(dim) -> float | None:
 
 def _mat_variables(path: Path) -> dict:
     """Variables of a .mat file: v5 through scipy, v7.3 (HDF5) through h5py with axes reversed."""
-    import scipy.io
-
     import h5py
+    import scipy.io
 
     if not h5py.is_hdf5(path):
         return {k: v for k, v in scipy.io.loadmat(path).items() if not k.startswith("__")}
@@ -185,14 +213,20 @@ def read_angles(path: str | Path, variable: str | None = None) -> np.ndarray:
         if suffix == ".npy":
             angles = np.load(path, allow_pickle=False)
         elif suffix == ".mat":
-            variables = {k: v for k, v in _mat_variables(path).items() if np.ndim(v) == 2 and np.issubdtype(np.asarray(v).dtype, np.number)}
+            variables = {
+                k: v
+                for k, v in _mat_variables(path).items()
+                if np.ndim(v) == 2 and np.issubdtype(np.asarray(v).dtype, np.number)
+            }
             angles = np.asarray(variables[_pick(list(variables), variable, path, "angle variable")])
         elif suffix in (".txt", ".tlt", ".rawtlt", ".csv", ".dat"):
             with warnings.catch_warnings():  # an empty file: the count check below says so in one line
                 warnings.simplefilter("ignore", UserWarning)
                 angles = np.loadtxt(path, delimiter="," if suffix == ".csv" else None, ndmin=1)
         else:
-            raise TiltSeriesError(f"{path}: unsupported tilt angles file type {suffix!r}; expected one of {ANGLE_SUFFIXES}")
+            raise TiltSeriesError(
+                f"{path}: unsupported tilt angles file type {suffix!r}; expected one of {ANGLE_SUFFIXES}"
+            )
     except TiltSeriesError:
         raise
     except Exception as exc:
@@ -218,7 +252,9 @@ def single_axis_from_euler(euler_deg: np.ndarray, where: str | Path = "tilt angl
     """
     euler = np.asarray(euler_deg, dtype=np.float64)
     if euler.ndim != 2 or euler.shape[1] != 3:
-        raise TiltSeriesError(f"{where}: expected N x 3 Euler angles (phi, theta, psi) in degrees, got shape {euler.shape}")
+        raise TiltSeriesError(
+            f"{where}: expected N x 3 Euler angles (phi, theta, psi) in degrees, got shape {euler.shape}"
+        )
     off_axis = np.abs(euler[:, [0, 2]]).max() if len(euler) else 0.0
     if off_axis > 1e-6:
         raise TiltSeriesError(

@@ -25,12 +25,46 @@ import numpy as np
 from .errors import TiltSeriesError
 from .stack_data import StackData, imod_tilt_axis_angle
 
-PLUGINS = {".dm3": "digitalmicrograph", ".dm4": "digitalmicrograph", ".emd": "emd", ".hspy": "hspy", ".hdf5": "hspy", ".zspy": "zspy",
-           ".mrc": "mrc", ".st": "mrc", ".ali": "mrc", ".mrcz": "mrcz", ".tif": "tiff", ".tiff": "tiff"}  # fmt: skip
+PLUGINS = {
+    ".dm3": "digitalmicrograph",
+    ".dm4": "digitalmicrograph",
+    ".emd": "emd",
+    ".hspy": "hspy",
+    ".hdf5": "hspy",
+    ".zspy": "zspy",
+    ".mrc": "mrc",
+    ".st": "mrc",
+    ".ali": "mrc",
+    ".mrcz": "mrcz",
+    ".tif": "tiff",
+    ".tiff": "tiff",
+}
 """The rosettasciio plugin that reads each suffix."""
 
-LENGTH_TO_A = {"a": 1.0, "å": 1.0, "Å": 1.0, "angstrom": 1.0, "angstroms": 1.0, "ang": 1.0, "\\aa": 1.0, "nm": 10.0, "pm": 0.01, "um": 1e4, "µm": 1e4, "μm": 1e4}
-ANGLE_TO_DEG = {"deg": 1.0, "degree": 1.0, "degrees": 1.0, "°": 1.0, "rad": 180.0 / np.pi, "radian": 180.0 / np.pi, "radians": 180.0 / np.pi, "mrad": 0.18 / np.pi}
+LENGTH_TO_A = {
+    "a": 1.0,
+    "å": 1.0,
+    "Å": 1.0,
+    "angstrom": 1.0,
+    "angstroms": 1.0,
+    "ang": 1.0,
+    "\\aa": 1.0,
+    "nm": 10.0,
+    "pm": 0.01,
+    "um": 1e4,
+    "µm": 1e4,
+    "μm": 1e4,
+}
+ANGLE_TO_DEG = {
+    "deg": 1.0,
+    "degree": 1.0,
+    "degrees": 1.0,
+    "°": 1.0,
+    "rad": 180.0 / np.pi,
+    "radian": 180.0 / np.pi,
+    "radians": 180.0 / np.pi,
+    "mrad": 0.18 / np.pi,
+}
 RELATIVE_PIXEL_MISMATCH = 1e-3
 """Rows and columns whose pixel sizes differ by more than this are not square pixels (files
 written in float32 differ by 1e-7 between the two; a real anisotropy is a percent or more)."""
@@ -63,7 +97,9 @@ def pixel_size_A(axes: list[dict], path: Path) -> float | None:
     if not sizes or min(sizes) <= 0:
         return None
     if max(sizes) > min(sizes) * (1 + RELATIVE_PIXEL_MISMATCH):
-        raise TiltSeriesError(f"{path}: pixels of {' x '.join(f'{s:.4g}' for s in sizes)} Å; square pixels expected (resample the stack)")
+        raise TiltSeriesError(
+            f"{path}: pixels of {' x '.join(f'{s:.4g}' for s in sizes)} Å; square pixels expected (resample the stack)"
+        )
     return float(np.mean(sizes))
 
 
@@ -131,7 +167,12 @@ def stack_from_signal(signal: dict, path: Path, tilt_index_axis: int | None = No
     if angles is not None and len(angles) != data.shape[tilt_index_axis]:
         angles = None  # metadata for another shape (a cropped stack): the user gives the angles
     image_axes = [a for k, a in enumerate(axes) if k != tilt_index_axis]
-    return StackData(np.moveaxis(data, tilt_index_axis, 0), pixel_size_A(image_axes, path), angles, imod_tilt_axis_angle(_mrc_labels(signal)))
+    return StackData(
+        np.moveaxis(data, tilt_index_axis, 0),
+        pixel_size_A(image_axes, path),
+        angles,
+        imod_tilt_axis_angle(_mrc_labels(signal)),
+    )
 
 
 def read_with_rosettasciio(path: Path, dataset: str | None, tilt_index_axis: int | None) -> StackData:
@@ -140,7 +181,9 @@ def read_with_rosettasciio(path: Path, dataset: str | None, tilt_index_axis: int
     try:
         plugin = importlib.import_module(f"rsciio.{PLUGINS[suffix]}")
     except ImportError as exc:
-        raise TiltSeriesError(f"{path}: reading {suffix} needs rosettasciio (pip install rosettasciio): {exc}") from None
+        raise TiltSeriesError(
+            f"{path}: reading {suffix} needs rosettasciio (pip install rosettasciio): {exc}"
+        ) from None
     signal = _pick_signal(plugin.file_reader(str(path)), dataset, path)
     stack = stack_from_signal(signal, path, tilt_index_axis)
     if suffix in (".mrc", ".st", ".ali") and not _mrc_header_has_size(signal):
@@ -164,4 +207,6 @@ def _mrc_header_has_size(signal: dict) -> bool:
 
 def _mrcz_pixel_size(path: Path, dataset: str | None, tilt_index_axis: int | None) -> float | None:
     plugin = importlib.import_module("rsciio.mrcz")
-    return stack_from_signal(_pick_signal(plugin.file_reader(str(path)), dataset, path), path, tilt_index_axis).pixel_size_A
+    return stack_from_signal(
+        _pick_signal(plugin.file_reader(str(path)), dataset, path), path, tilt_index_axis
+    ).pixel_size_A

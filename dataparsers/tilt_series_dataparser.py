@@ -31,7 +31,9 @@ from .tilt_series_format import TiltSeries, load_tilt_series
 
 def cameras_from_tilt_series(series: TiltSeries, norm: Normalisation) -> Cameras:
     """Orthographic nerfstudio cameras, one per projection, in normalised units."""
-    axes = torch.from_numpy(detector_axes_from_tilts(series.angles_deg, series.tilt_axis, series.tilt_axis_angle_deg)).float()
+    axes = torch.from_numpy(
+        detector_axes_from_tilts(series.angles_deg, series.tilt_axis, series.tilt_axis_angle_deg)
+    ).float()
     rows, cols, beam = axes[:, 0], axes[:, 1], axes[:, 2]
     c2w = torch.zeros(series.n_views, 3, 4)
     c2w[:, :, 0], c2w[:, :, 1], c2w[:, :, 2] = cols, -rows, beam
@@ -90,9 +92,19 @@ class TiltSeriesDataParserConfig(DataParserConfig):
         """The tilt series these options name (``data`` overrides the directory); raises
         :class:`~dataparsers.errors.TiltSeriesError` naming the file and the problem."""
         return load_tilt_series(
-            self.data if data is None else data, self.projections, self.angles_deg, self.pixel_size_A, self.tilt_axis, self.truth,
-            self.dataset, self.tilt_index_axis, self.angles_variable, self.centre_px, self.tilt_axis_angle_deg, self.species,
-        )  # fmt: skip
+            self.data if data is None else data,
+            self.projections,
+            self.angles_deg,
+            self.pixel_size_A,
+            self.tilt_axis,
+            self.truth,
+            self.dataset,
+            self.tilt_index_axis,
+            self.angles_variable,
+            self.centre_px,
+            self.tilt_axis_angle_deg,
+            self.species,
+        )
 
 
 @dataclass

@@ -93,7 +93,10 @@ class TiltSeries:
         if min(proj.shape) == 0:
             raise TiltSeriesError(f"{where}: projections are empty, shape {proj.shape}")
         if min(proj.shape[1:]) < MIN_SIDE_PX:
-            raise TiltSeriesError(f"{where}: projections of {proj.shape[1]} x {proj.shape[2]} pixels; at least {MIN_SIDE_PX} x {MIN_SIDE_PX} are needed (is the stack's axis order right? see tilt_index_axis)")
+            raise TiltSeriesError(
+                f"{where}: projections of {proj.shape[1]} x {proj.shape[2]} pixels; at least {MIN_SIDE_PX} x "
+                f"{MIN_SIDE_PX} are needed (is the stack's axis order right? see tilt_index_axis)"
+            )
         n_bad = int(np.size(proj) - np.count_nonzero(np.isfinite(proj)))
         if n_bad:
             raise TiltSeriesError(f"{where}: projections hold {n_bad} NaN/Inf value(s)")
@@ -108,10 +111,15 @@ class TiltSeries:
         directions = np.unique(np.round(np.mod(angles, 180.0), 6) % 180.0)
         if len(directions) < 2:
             seen = f"{len(angles)} projection" + ("" if len(angles) == 1 else f"s all at {angles[0]:g} deg (mod 180)")
-            raise TiltSeriesError(f"{where}: {seen}: a tilt series needs views from two or more directions to tell depth")
+            raise TiltSeriesError(
+                f"{where}: {seen}: a tilt series needs views from two or more directions to tell depth"
+            )
         span = float(angles.max() - angles.min())
         if span < MIN_SPAN_DEG and np.max(np.abs(angles)) <= 0.5 * math.pi and math.degrees(span) >= MIN_SPAN_DEG:
-            raise TiltSeriesError(f"{where}: the tilt angles span only {span:.3g} deg ({angles.min():.3g} to {angles.max():.3g}); as radians they would span {math.degrees(span):.0f} deg: give the angles in degrees")
+            raise TiltSeriesError(
+                f"{where}: the tilt angles span only {span:.3g} deg ({angles.min():.3g} to {angles.max():.3g}); as "
+                f"radians they would span {math.degrees(span):.0f} deg: give the angles in degrees"
+            )
         uniq, counts = np.unique(angles, return_counts=True)
         if np.any(counts > 1):
             raise TiltSeriesError(f"{where}: duplicate tilt angle(s) {uniq[counts > 1].tolist()} deg")
@@ -129,12 +137,16 @@ class TiltSeries:
             self.centre_px = (np.array(proj.shape[1:], dtype=np.float64) - 1) / 2.0
         centre = np.asarray(self.centre_px, dtype=np.float64).reshape(-1)
         if centre.shape != (2,) or not np.all(np.isfinite(centre)):
-            raise TiltSeriesError(f"{where}: centre_px must be two finite pixel indices (row, col), got {self.centre_px!r}")
+            raise TiltSeriesError(
+                f"{where}: centre_px must be two finite pixel indices (row, col), got {self.centre_px!r}"
+            )
         self.centre_px = centre
         try:
             self.tilt_axis_angle_deg = float(self.tilt_axis_angle_deg)
         except (TypeError, ValueError):
-            raise TiltSeriesError(f"{where}: tilt_axis_angle_deg must be a number of degrees, got {self.tilt_axis_angle_deg!r}") from None
+            raise TiltSeriesError(
+                f"{where}: tilt_axis_angle_deg must be a number of degrees, got {self.tilt_axis_angle_deg!r}"
+            ) from None
         if not np.isfinite(self.tilt_axis_angle_deg):
             raise TiltSeriesError(f"{where}: tilt_axis_angle_deg must be finite, got {self.tilt_axis_angle_deg}")
         from gaussian_atoms_method.atoms.hard_core import SpeciesError, parse_species
@@ -200,12 +212,28 @@ def load_tilt_series(
         if not isinstance(manifest, dict):
             raise TiltSeriesError(f"{manifest_path}: expected a JSON object")
         known = {
-            "projections", "angles_deg", "pixel_size_A", "tilt_axis", "truth", "origin_A", "centre_px", "volume",
-            "volume_voxel_size_A", "description", "simulation", "dataset", "tilt_index_axis", "angles_variable", "tilt_axis_angle_deg", "species",
-        }  # fmt: skip
+            "projections",
+            "angles_deg",
+            "pixel_size_A",
+            "tilt_axis",
+            "truth",
+            "origin_A",
+            "centre_px",
+            "volume",
+            "volume_voxel_size_A",
+            "description",
+            "simulation",
+            "dataset",
+            "tilt_index_axis",
+            "angles_variable",
+            "tilt_axis_angle_deg",
+            "species",
+        }
         unknown = set(manifest) - known
         if unknown:
-            raise TiltSeriesError(f"{manifest_path}: unknown key(s) {sorted(unknown)}; expected some of {sorted(known)}")
+            raise TiltSeriesError(
+                f"{manifest_path}: unknown key(s) {sorted(unknown)}; expected some of {sorted(known)}"
+            )
     elif projections is None:
         raise TiltSeriesError(f"{manifest_path}: not found, and no projections option given")
     where = manifest_path if manifest_path.is_file() else root
@@ -213,7 +241,11 @@ def load_tilt_series(
     def pick(option, key):
         return option if option is not None else manifest.get(key)
 
-    proj_name, angles_name, px = pick(projections, "projections"), pick(angles_deg, "angles_deg"), pick(pixel_size_A, "pixel_size_A")
+    proj_name, angles_name, px = (
+        pick(projections, "projections"),
+        pick(angles_deg, "angles_deg"),
+        pick(pixel_size_A, "pixel_size_A"),
+    )
     if proj_name is None:
         raise TiltSeriesError(f"{where}: 'projections' is missing (give it in {MANIFEST} or as an option)")
     proj_path = root / proj_name
@@ -222,7 +254,10 @@ def load_tilt_series(
     if px is None:
         px = stack.pixel_size_A
     if px is None:
-        raise TiltSeriesError(f"{where}: 'pixel_size_A' is missing (give it in {MANIFEST} or as an option; {proj_path.name} has none in its header)")
+        raise TiltSeriesError(
+            f"{where}: 'pixel_size_A' is missing (give it in {MANIFEST} or as an option; {proj_path.name} has none in "
+            f"its header)"
+        )
     px_where = "--pixel-size-A" if pixel_size_A is not None else where
     try:
         px = float(px)
@@ -235,7 +270,9 @@ def load_tilt_series(
         try:
             angles = np.asarray(angles_name, dtype=np.float64)
         except (TypeError, ValueError):
-            raise TiltSeriesError(f"angles_deg: expected a file name or N numbers (degrees), got {type(angles_name).__name__}") from None
+            raise TiltSeriesError(
+                f"angles_deg: expected a file name or N numbers (degrees), got {type(angles_name).__name__}"
+            ) from None
     elif angles_name is not None:
         angles_path = root / angles_name
         angles = read_angles(angles_path, pick(angles_variable, "angles_variable"))
@@ -246,11 +283,21 @@ def load_tilt_series(
     else:
         raise TiltSeriesError(f"{where}: 'angles_deg' is missing (give it in {MANIFEST} or as an option)")
     if angles.ndim != 1:
-        raise TiltSeriesError(f"{angles_path}: expected N single-axis tilt angles (one column) or N x 3 Euler angles, got shape {angles.shape}")
+        raise TiltSeriesError(
+            f"{angles_path}: expected N single-axis tilt angles (one column) or N x 3 Euler angles, got shape "
+            f"{angles.shape}"
+        )
     if len(angles) != proj.shape[0]:
         other = [axis for axis in (1, 2) if proj.shape[axis] == len(angles)]
-        hint = f"; if the stack holds its tilts along another axis, give tilt_index_axis (--tilt-index-axis, manifest key): the stack as read is {proj.shape}" if other else ""
-        raise TiltSeriesError(f"{angles_path}: {len(angles)} tilt angles for {proj.shape[0]} projections in {proj_path.name}{hint}")
+        hint = (
+            f"; if the stack holds its tilts along another axis, give tilt_index_axis (--tilt-index-axis, manifest "
+            f"key): the stack as read is {proj.shape}"
+            if other
+            else ""
+        )
+        raise TiltSeriesError(
+            f"{angles_path}: {len(angles)} tilt angles for {proj.shape[0]} projections in {proj_path.name}{hint}"
+        )
     truth_name = pick(truth, "truth")
     truth_path = root / truth_name if truth_name is not None else None
     if truth_path is not None and not truth_path.is_file():
@@ -275,7 +322,11 @@ def load_tilt_series(
     except TiltSeriesError as exc:
         # Name the file the problem most likely lives in.
         msg = str(exc).split(": ", 1)[-1]
-        culprit = angles_path if "angle" in msg and "axis" not in msg else (where if any(k in msg for k in ("pixel", "axis", "origin", "centre", "species")) else proj_path)
+        culprit = (
+            angles_path
+            if "angle" in msg and "axis" not in msg
+            else (where if any(k in msg for k in ("pixel", "axis", "origin", "centre", "species")) else proj_path)
+        )
         raise TiltSeriesError(f"{culprit}: {msg}") from None
 
 
@@ -298,7 +349,16 @@ def write_tilt_series(
     """
     from gaussian_atoms_method.atoms.atom_set import write_atoms
 
-    series = TiltSeries(projections, angles_deg, pixel_size_A, tilt_axis, np.asarray(origin_A, dtype=float), centre_px=centre_px, tilt_axis_angle_deg=tilt_axis_angle_deg, species=species)
+    series = TiltSeries(
+        projections,
+        angles_deg,
+        pixel_size_A,
+        tilt_axis,
+        np.asarray(origin_A, dtype=float),
+        centre_px=centre_px,
+        tilt_axis_angle_deg=tilt_axis_angle_deg,
+        species=species,
+    )
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / MANIFEST).unlink(missing_ok=True)

@@ -58,13 +58,23 @@ def _from_hyperspy(signal, angles_deg, pixel_size_A):
     """Projections, angles and pixel size from a HyperSpy signal (its axes' units and scales)."""
     title = getattr(getattr(signal.metadata, "General", None), "title", "") or "HyperSpy signal"
     axes = signal.axes_manager.as_dictionary()  # "axis-0", ...: the data's axes in array order
-    as_dict = {"data": np.asarray(signal.data), "axes": [axes[f"axis-{k}"] for k in range(len(axes))], "metadata": signal.metadata.as_dictionary()}
+    as_dict = {
+        "data": np.asarray(signal.data),
+        "axes": [axes[f"axis-{k}"] for k in range(len(axes))],
+        "metadata": signal.metadata.as_dictionary(),
+    }
     stack = stack_from_signal(as_dict, Path(str(title)))
     if angles_deg is None and stack.angles_deg is None:
-        raise TiltSeriesError(f"{title}: no tilt angles in the signal's axes or metadata.Tomography.tilts; pass angles_deg")
+        raise TiltSeriesError(
+            f"{title}: no tilt angles in the signal's axes or metadata.Tomography.tilts; pass angles_deg"
+        )
     if pixel_size_A is None and stack.pixel_size_A is None:
         raise TiltSeriesError(f"{title}: the signal's axes have no length units; pass pixel_size_A")
-    return stack.projections, (stack.angles_deg if angles_deg is None else angles_deg), (stack.pixel_size_A if pixel_size_A is None else pixel_size_A)
+    return (
+        stack.projections,
+        (stack.angles_deg if angles_deg is None else angles_deg),
+        (stack.pixel_size_A if pixel_size_A is None else pixel_size_A),
+    )
 
 
 def _as_series(projections, angles_deg, pixel_size_A, tilt_axis: str, species=None) -> TiltSeries:
@@ -80,7 +90,14 @@ def _as_series(projections, angles_deg, pixel_size_A, tilt_axis: str, species=No
         pixel = float(pixel_size_A)
     except (TypeError, ValueError):
         raise TiltSeriesError(f"pixel_size_A must be a number of Å, got {pixel_size_A!r}") from None
-    return TiltSeries(np.asarray(projections), np.asarray(angles_deg, dtype=np.float64), pixel, tilt_axis, source=Path("projections"), species=species or ())
+    return TiltSeries(
+        np.asarray(projections),
+        np.asarray(angles_deg, dtype=np.float64),
+        pixel,
+        tilt_axis,
+        source=Path("projections"),
+        species=species or (),
+    )
 
 
 def _device(device: str) -> str:
@@ -106,18 +123,25 @@ def _whole(value, name: str) -> int:
     return int(value)
 
 
-def build_config(data: Path, output_dir: Path, device: str, max_num_iterations: int | None, model_options: dict[str, Any]):
+def build_config(
+    data: Path, output_dir: Path, device: str, max_num_iterations: int | None, model_options: dict[str, Any]
+):
     """The :class:`~gaussian_atoms_method.nerfstudio_layer.trainer.GaussianAtomsTrainerConfig`
     that ``ns-train gaussian-atoms --machine.device-type DEVICE tilt-series --data DATA`` builds,
     with ``model_options`` set on ``pipeline.model`` (an unknown name raises ``OptionError``)."""
     from gaussian_atoms_method.nerfstudio_layer.config import MAX_ITERATIONS, gaussian_atoms_trainer_config
     from gaussian_atoms_method.nerfstudio_layer.options import OptionError
 
-    config = gaussian_atoms_trainer_config(MAX_ITERATIONS if max_num_iterations is None else _whole(max_num_iterations, "max_num_iterations"))
+    config = gaussian_atoms_trainer_config(
+        MAX_ITERATIONS if max_num_iterations is None else _whole(max_num_iterations, "max_num_iterations")
+    )
     names = {f.name for f in dataclasses.fields(config.pipeline.model) if not f.name.startswith("_")}
     for name, value in model_options.items():
         if name not in names:
-            raise OptionError(f"{name}: not a model option; the options are those of `ns-train gaussian-atoms --help` under --pipeline.model, e.g. {sorted(names)[:4]}")
+            raise OptionError(
+                f"{name}: not a model option; the options are those of `ns-train gaussian-atoms --help` under "
+                f"--pipeline.model, e.g. {sorted(names)[:4]}"
+            )
         setattr(config.pipeline.model, name, value)
     config.pipeline.datamanager.data = data
     config.machine.device_type = device
@@ -192,9 +216,21 @@ def reconstruct(
         try:
             series = _as_series(projections, angles_deg, pixel_size_A, tilt_axis, species)
             truth = read_atoms(series.truth_path) if series.truth_path is not None else None
-            data = write_tilt_series(work / "series", series.projections, series.angles_deg, series.pixel_size_A, truth, series.origin_A,
-                                     series.tilt_axis, centre_px=series.centre_px, tilt_axis_angle_deg=series.tilt_axis_angle_deg, species=series.species)  # fmt: skip
-            config = build_config(data, Path(output_dir) if keep else work / "outputs", _device(device), max_num_iterations, model_options)
+            data = write_tilt_series(
+                work / "series",
+                series.projections,
+                series.angles_deg,
+                series.pixel_size_A,
+                truth,
+                series.origin_A,
+                series.tilt_axis,
+                centre_px=series.centre_px,
+                tilt_axis_angle_deg=series.tilt_axis_angle_deg,
+                species=series.species,
+            )
+            config = build_config(
+                data, Path(output_dir) if keep else work / "outputs", _device(device), max_num_iterations, model_options
+            )
             _whole(seed, "seed")  # checked here, set by _train
             check_input(config)
         except (TiltSeriesError, AtomFileError, OptionError) as exc:

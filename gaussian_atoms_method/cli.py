@@ -28,7 +28,8 @@ class Simulate:
     """au, fept, apd, hea, carbon, asi, film (amorphous Pd, 110 x 40 x 20 Å: give --field-of-view-A),
     sphere (an fcc sphere of --element, --radius-A) or a structure file."""
     scale: Optional[float] = None
-    """Linear size factor (atom count ~ scale^3) of the named particles (default 1): the generated ones grow or shrink, au and structure files are cut (at most 1)."""
+    """Linear size factor (atom count ~ scale^3) of the named particles (default 1): the generated ones grow or shrink,
+    au and structure files are cut (at most 1)."""
     element: Optional[str] = None
     """Element of the fcc sphere (--particle sphere; default Au)."""
     radius_A: Optional[float] = None
@@ -69,9 +70,13 @@ class Simulate:
         import numpy as np
 
         from dataparsers.tilt_series_format import update_manifest, write_tilt_series
-
         from gaussian_atoms_method.harness.particles import make_particle
-        from gaussian_atoms_method.harness.simulate import parse_tilts, simulate_tilt_series, spherical_particle, true_potential_volume
+        from gaussian_atoms_method.harness.simulate import (
+            parse_tilts,
+            simulate_tilt_series,
+            spherical_particle,
+            true_potential_volume,
+        )
 
         # Options that would be ignored are refused: `--element Au --radius-A 11` without
         # `--particle sphere` once simulated the 6,679-atom Au particle instead.
@@ -80,7 +85,11 @@ class Simulate:
                 raise ValueError("--scale applies to the named particles; give --radius-A for --particle sphere")
             particle = spherical_particle(self.element or "Au", 10.0 if self.radius_A is None else self.radius_A)
         else:
-            ignored = [name for name, value in (("--element", self.element), ("--radius-A", self.radius_A)) if value is not None]
+            ignored = [
+                name
+                for name, value in (("--element", self.element), ("--radius-A", self.radius_A))
+                if value is not None
+            ]
             if ignored:
                 raise ValueError(f"{' and '.join(ignored)} apply to --particle sphere, not --particle {self.particle}")
             particle = make_particle(self.particle, self.particle_scale, self.seed)
@@ -128,12 +137,16 @@ class Simulate:
         )
         n, h, w = sim.projections.shape
         if self.save_volume:
-            volume = true_potential_volume(sim.truth, self.potential, self.pixel_size_A, h, self.atom_sigma_A, self.blur_sigma_A)
+            volume = true_potential_volume(
+                sim.truth, self.potential, self.pixel_size_A, h, self.atom_sigma_A, self.blur_sigma_A
+            )
             np.save(self.output / "potential_volume.npy", volume)
             update_manifest(self.output, volume="potential_volume.npy", volume_voxel_size_A=self.pixel_size_A)
         print(
-            f"wrote {self.output}: {len(truth)} atoms, {n} tilts ({np.min(sim.angles_deg):g}..{np.max(sim.angles_deg):g} deg), "
-            f"{h}x{w} px at {self.pixel_size_A} Å, {self.potential} potential, noise {self.noise_std:g}, peak-to-noise {sim.peak_to_noise:.1f}"
+            f"wrote {self.output}: {len(truth)} atoms, {n} tilts "
+            f"({np.min(sim.angles_deg):g}..{np.max(sim.angles_deg):g} deg), "
+            f"{h}x{w} px at {self.pixel_size_A} Å, {self.potential} potential, noise {self.noise_std:g}, peak-to-noise "
+            f"{sim.peak_to_noise:.1f}"
         )
 
 
@@ -159,7 +172,12 @@ class Evaluate:
 
     def main(self) -> None:
         from gaussian_atoms_method.atoms.atom_set import read_atoms
-        from gaussian_atoms_method.harness.evaluation import evaluate_atoms, inside_footprint, load_reference, summary_line
+        from gaussian_atoms_method.harness.evaluation import (
+            evaluate_atoms,
+            inside_footprint,
+            load_reference,
+            summary_line,
+        )
 
         if (self.truth is None) == (self.data is None):
             raise ValueError("give exactly one of --truth and --data")
@@ -210,7 +228,17 @@ class Baseline:
     def main(self) -> None:
         from gaussian_atoms_method.harness.baselines import run_baseline
 
-        run_baseline(self.data, self.output, self.method, self.sart_iterations, self.inr_steps, self.device, self.min_distance_A, self.threshold_scale, self.save_volume)
+        run_baseline(
+            self.data,
+            self.output,
+            self.method,
+            self.sart_iterations,
+            self.inr_steps,
+            self.device,
+            self.min_distance_A,
+            self.threshold_scale,
+            self.save_volume,
+        )
 
 
 @dataclass
@@ -300,7 +328,16 @@ class BenchmarkFilm:
     def main(self) -> None:
         from gaussian_atoms_method.harness.film_benchmark import FilmBenchmark
 
-        FilmBenchmark(self.data, self.output, self.areas, self.iterations, self.device, tuple(shlex.split(self.train_args)), self.species, self.start_from_model).run()
+        FilmBenchmark(
+            self.data,
+            self.output,
+            self.areas,
+            self.iterations,
+            self.device,
+            tuple(shlex.split(self.train_args)),
+            self.species,
+            self.start_from_model,
+        ).run()
         print(f"wrote {self.output / 'results.md'} and results.csv")
 
 
@@ -316,7 +353,9 @@ class Benchmark:
     snapshot_every: int = 100
     """Score our atoms every this many training steps."""
     device: Literal["cpu", "cuda"] = "cpu"
-    baselines: tuple[Literal["fbp", "sart", "sirt", "astra-fbp", "astra-sirt", "astra-cuda-fbp", "astra-cuda-sirt"], ...] = ()
+    baselines: tuple[
+        Literal["fbp", "sart", "sirt", "astra-fbp", "astra-sirt", "astra-cuda-fbp", "astra-cuda-sirt"], ...
+    ] = ()
     """Classical reconstructions + tracing in the same run; none given: FBP, scikit-image's SART
     and ASTRA's CPU FBP and SIRT on the CPU, FBP, SIRT on the GPU and ASTRA's CUDA FBP and SIRT on
     cuda (ASTRA's rows are skipped, with a line, without astra-toolbox or its CUDA libraries)."""
@@ -334,8 +373,20 @@ class Benchmark:
         if self.snapshot_every <= 0:
             raise ValueError(f"--snapshot-every must be positive, got {self.snapshot_every}")
         if not self.sirt_iterations or any(b <= a for a, b in zip((0,) + self.sirt_iterations, self.sirt_iterations)):
-            raise ValueError(f"--sirt-iterations must be positive and increasing, got {' '.join(map(str, self.sirt_iterations))}")
-        TimeToAccuracy(self.data, self.output, self.iterations, self.snapshot_every, self.device, self.baselines, tuple(shlex.split(self.train_args)), self.launcher, self.sirt_iterations).run()
+            raise ValueError(
+                f"--sirt-iterations must be positive and increasing, got {' '.join(map(str, self.sirt_iterations))}"
+            )
+        TimeToAccuracy(
+            self.data,
+            self.output,
+            self.iterations,
+            self.snapshot_every,
+            self.device,
+            self.baselines,
+            tuple(shlex.split(self.train_args)),
+            self.launcher,
+            self.sirt_iterations,
+        ).run()
         print(f"wrote {self.output / 'time_to_accuracy.md'}, .csv and .png")
 
 
@@ -357,7 +408,10 @@ class View:
 
         if not self.load_config.is_file():
             raise FileNotFoundError(f"{self.load_config}: run config not found")
-        return RunViewer(load_config=self.load_config, viewer=ViewerConfigWithoutNumRays(websocket_host=self.host, websocket_port=self.port))
+        return RunViewer(
+            load_config=self.load_config,
+            viewer=ViewerConfigWithoutNumRays(websocket_host=self.host, websocket_port=self.port),
+        )
 
     def main(self) -> None:
         self.build().main()
@@ -387,10 +441,16 @@ class Export:
         if self.species:
             if atoms.masses is None:
                 raise ValueError(f"{source}: has no sigma_A/amplitude columns to classify species by")
-            atoms.species, report = classify_species(atoms.masses, [e.strip() for e in self.species.split(",") if e.strip()])
+            atoms.species, report = classify_species(
+                atoms.masses, [e.strip() for e in self.species.split(",") if e.strip()]
+            )
             print(json.dumps({"species": report}))
             if not report.get("separated", True):
-                print(f"gaussian-atoms: the atoms' masses show {report['populations']} separate population(s), not one per element ({report['test']}): every atom written as {atoms.species[0]}", file=sys.stderr)
+                print(
+                    f"gaussian-atoms: the atoms' masses show {report['populations']} separate population(s), not one "
+                    f"per element ({report['test']}): every atom written as {atoms.species[0]}",
+                    file=sys.stderr,
+                )
         write_atoms(atoms, self.output)
         print(f"wrote {len(atoms)} atoms to {self.output}")
 
@@ -441,7 +501,17 @@ class Sweep:
     def main(self) -> None:
         from gaussian_atoms_method.harness.sweep import Sweep as SweepRunner
 
-        rows = SweepRunner(self.data, self.output, self.grid, (), self.iterations, self.jobs, self.device, self.backend, self.ray_address).run()
+        rows = SweepRunner(
+            self.data,
+            self.output,
+            self.grid,
+            (),
+            self.iterations,
+            self.jobs,
+            self.device,
+            self.backend,
+            self.ray_address,
+        ).run()
         failed = [r for r in rows if r.get("status") != "ok"]
         if failed:
             print(f"gaussian-atoms sweep: {len(failed)} of {len(rows)} runs failed (see sweep.md)", file=sys.stderr)
@@ -505,7 +575,6 @@ def parse(argv: list[str]) -> object:
 def entrypoint(argv: list[str] | None = None) -> None:
     """Run one verb; errors in the user's input are reported in one line, exit status 2."""
     from dataparsers.tilt_series_format import TiltSeriesError
-
     from gaussian_atoms_method.atoms.atom_set import AtomFileError
 
     argv = list(sys.argv[1:] if argv is None else argv)

@@ -91,8 +91,19 @@ def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float | N
             noise = volume = None
             if not gpu_possible():  # with a GPU both are made there: host work beside the import would only slow it
                 noise = measure_noise(scaled, device=HOST)
-                slice_px = field_of_view(series, scaled, ahead.normalisation.length_scale, ahead.extended_object).slice_px
-                volume = backprojection_for_peaks(series.projections, series.angles_deg, series.pixel_size_A, series.tilt_axis, series.centre_px, series.tilt_axis_angle_deg, slice_px, HOST)
+                slice_px = field_of_view(
+                    series, scaled, ahead.normalisation.length_scale, ahead.extended_object
+                ).slice_px
+                volume = backprojection_for_peaks(
+                    series.projections,
+                    series.angles_deg,
+                    series.pixel_size_A,
+                    series.tilt_axis,
+                    series.centre_px,
+                    series.tilt_axis_angle_deg,
+                    slice_px,
+                    HOST,
+                )
             import torch
 
             from gaussian_atoms_method.atoms.initialise import compute_start
@@ -101,8 +112,19 @@ def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float | N
             if ahead.max_atom_sigma_A is None:
                 ahead.max_atom_sigma_A = DensityControl.max_atom_sigma_A
             ahead.projections = torch.from_numpy(scaled)
-            known = {"noise": noise, "backprojection": volume} if volume is not None and not torch.cuda.is_available() else {}
-            ahead.start = compute_start(ahead.series, ahead.projections, ahead.normalisation, ahead.extended_object, ahead.max_atom_sigma_A, **known)
+            known = (
+                {"noise": noise, "backprojection": volume}
+                if volume is not None and not torch.cuda.is_available()
+                else {}
+            )
+            ahead.start = compute_start(
+                ahead.series,
+                ahead.projections,
+                ahead.normalisation,
+                ahead.extended_object,
+                ahead.max_atom_sigma_A,
+                **known,
+            )
         except Exception:  # noqa: BLE001 - the run computes its own start and reports the error there
             ahead.start = None
 
@@ -134,10 +156,17 @@ def take(series, projections, normalisation: Normalisation, extended_object: str
     if ahead is None or series is None or projections is None:
         return None
     ahead.read.wait()
-    if ahead.series is None or ahead.series.source is None or series.source is None or Path(series.source).resolve() != Path(ahead.series.source).resolve():
+    if (
+        ahead.series is None
+        or ahead.series.source is None
+        or series.source is None
+        or Path(series.source).resolve() != Path(ahead.series.source).resolve()
+    ):
         return None  # another file: not waited for
     ahead.thread.join()
-    if ahead.start is None or not same_start_inputs(ahead, series, projections, normalisation, extended_object, max_atom_sigma_A):
+    if ahead.start is None or not same_start_inputs(
+        ahead, series, projections, normalisation, extended_object, max_atom_sigma_A
+    ):
         return None
     return ahead.start
 
@@ -154,15 +183,23 @@ def end_now(status: int) -> None:
         os._exit(status)
 
 
-def same_start_inputs(ahead: _Ahead, series, projections, normalisation: Normalisation, extended_object: str, max_atom_sigma_A: float) -> bool:
+def same_start_inputs(
+    ahead: _Ahead, series, projections, normalisation: Normalisation, extended_object: str, max_atom_sigma_A: float
+) -> bool:
     """Whether ``ahead`` was computed from exactly these inputs: what :func:`compute_start` reads."""
     mine, theirs = ahead.series, series
     return (
-        ahead.extended_object == extended_object and ahead.max_atom_sigma_A == float(max_atom_sigma_A) and ahead.normalisation == normalisation
-        and mine.pixel_size_A == theirs.pixel_size_A and mine.tilt_axis == theirs.tilt_axis and mine.tilt_axis_angle_deg == theirs.tilt_axis_angle_deg
-        and _same(mine.centre_px, theirs.centre_px) and _same(mine.angles_deg, theirs.angles_deg) and _same(mine.projections, theirs.projections)
+        ahead.extended_object == extended_object
+        and ahead.max_atom_sigma_A == float(max_atom_sigma_A)
+        and ahead.normalisation == normalisation
+        and mine.pixel_size_A == theirs.pixel_size_A
+        and mine.tilt_axis == theirs.tilt_axis
+        and mine.tilt_axis_angle_deg == theirs.tilt_axis_angle_deg
+        and _same(mine.centre_px, theirs.centre_px)
+        and _same(mine.angles_deg, theirs.angles_deg)
+        and _same(mine.projections, theirs.projections)
         and ahead.projections.equal(projections.to(ahead.projections.device))
-    )  # fmt: skip
+    )
 
 
 def _same(a, b) -> bool:
@@ -171,9 +208,21 @@ def _same(a, b) -> bool:
     return np.array_equal(np.asarray(a), np.asarray(b))
 
 
-TRAIN_OPTIONS = {"--data": "data", "--pipeline.model.extended-object": "extended_object", "--pipeline.model.max-atom-sigma-A": "max_atom_sigma_A"}
+TRAIN_OPTIONS = {
+    "--data": "data",
+    "--pipeline.model.extended-object": "extended_object",
+    "--pipeline.model.max-atom-sigma-A": "max_atom_sigma_A",
+}
 """The training options the start reads, with :func:`begin`'s argument for each."""
-NOT_AHEAD = {"-h", "--help", "--load-config", "--load-dir", "--load-checkpoint", "--pipeline.model.init", "--pipeline.model.start-atoms"}
+NOT_AHEAD = {
+    "-h",
+    "--help",
+    "--load-config",
+    "--load-dir",
+    "--load-checkpoint",
+    "--pipeline.model.init",
+    "--pipeline.model.start-atoms",
+}
 """Options after which no start is begun: help, a loaded run, a start other than the back-projection
 (random, or given atoms)."""
 
@@ -186,7 +235,10 @@ def requested_start(argv: list[str]) -> dict | None:
     back-projection's (:data:`NOT_AHEAD`)."""
     cut = argv.index("tilt-series") if "tilt-series" in argv else len(argv)
     found: dict = {}
-    for tokens, known, others_allowed in ((argv[:cut], TRAIN_OPTIONS, True), (argv[cut + 1 :], {"--data": "data"}, False)):
+    for tokens, known, others_allowed in (
+        (argv[:cut], TRAIN_OPTIONS, True),
+        (argv[cut + 1 :], {"--data": "data"}, False),
+    ):
         lowered = {name.lower(): key for name, key in known.items()}
         i = 0
         while i < len(tokens):
@@ -206,7 +258,11 @@ def requested_start(argv: list[str]) -> dict | None:
     if "data" not in found:
         return None
     try:
-        return {"data": Path(found.pop("data")), **found, **({"max_atom_sigma_A": float(found["max_atom_sigma_A"])} if "max_atom_sigma_A" in found else {})}
+        return {
+            "data": Path(found.pop("data")),
+            **found,
+            **({"max_atom_sigma_A": float(found["max_atom_sigma_A"])} if "max_atom_sigma_A" in found else {}),
+        }
     except ValueError:
         return None
 

@@ -20,8 +20,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gaussian_atoms_method.atoms.atom_set import read_atoms
-from gaussian_atoms_method.harness.benchmark import AccuracyBenchmark
 from gaussian_atoms_method.atoms.matching import match_atoms
+from gaussian_atoms_method.harness.benchmark import AccuracyBenchmark
 
 CONFIGS = {
     "full priors": (True, True, "mass"),
@@ -54,9 +54,18 @@ def main() -> None:
     parser.add_argument("--init", default="random", choices=["random", "backprojection"])
     parser.add_argument("--iterations", type=int, default=3000)
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
-    parser.add_argument("--configs", nargs="+", default=list(CONFIGS), choices=list(CONFIGS), metavar="NAME", help=f"any of {list(CONFIGS)}")
+    parser.add_argument(
+        "--configs",
+        nargs="+",
+        default=list(CONFIGS),
+        choices=list(CONFIGS),
+        metavar="NAME",
+        help=f"any of {list(CONFIGS)}",
+    )
     args = parser.parse_args()
-    bench = AccuracyBenchmark(output=args.output, particles=("fept",), scale=args.scale, iterations=args.iterations, device=args.device)
+    bench = AccuracyBenchmark(
+        output=args.output, particles=("fept",), scale=args.scale, iterations=args.iterations, device=args.device
+    )
     data = bench.dataset("fept", args.tilts, args.noise)
     truth = read_atoms(data / "atoms_true.xyz")
     rows = []
@@ -65,9 +74,23 @@ def main() -> None:
         run_dir = args.output / "runs" / f"{args.init}-{name.replace(' ', '-').replace(',', '')}"
         if not (run_dir / "evaluation.json").is_file():
             run_dir.mkdir(parents=True, exist_ok=True)
-            bench._run_ours(data, run_dir, ("--pipeline.model.isotropic", str(isotropic), "--pipeline.model.cluster-merge", str(merge), "--pipeline.model.init", args.init, "--pipeline.model.merge-amplitude", amplitude,
-                                       # The full 3,000 steps in every row, as the first rows were run.
-                                       "--pipeline.model.stop-when-converged", "False"))  # fmt: skip
+            bench._run_ours(
+                data,
+                run_dir,
+                (
+                    "--pipeline.model.isotropic",
+                    str(isotropic),
+                    "--pipeline.model.cluster-merge",
+                    str(merge),
+                    "--pipeline.model.init",
+                    args.init,
+                    "--pipeline.model.merge-amplitude",
+                    amplitude,
+                    # The full 3,000 steps in every row, as the first rows were run.
+                    "--pipeline.model.stop-when-converged",
+                    "False",
+                ),
+            )
         scores = json.loads((run_dir / "evaluation.json").read_text())
         pred = read_atoms(run_dir / "ours" / "gaussian-atoms" / "run" / "atoms.xyz")
         mass = pred.masses
@@ -87,14 +110,22 @@ def main() -> None:
         }
         rows.append(row)
         print(json.dumps(row), flush=True)
-    header = "| config | init | Gaussians per atom | within 0.75 Å per atom | TPR | FP/atom | RMSD (pm) | Fe/Pt separation d' | time (s) | where |"
+    header = (
+        "| config | init | Gaussians per atom | within 0.75 Å per atom | TPR | FP/atom | RMSD (pm) | Fe/Pt "
+        "separation d' | time (s) | where |"
+    )
     lines = [header, "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in rows:
         lines.append(
-            f"| {r['config']} | {r['init']} | {r['gaussians_per_atom']:.3f} | {r['within_0.75A_per_atom']:.3f} | {r['tpr']:.4f} | "
-            f"{r['fp_per_true_atom']:.4f} | {r['rmsd_pm']:.1f} | {r['species_separation']:.2f} | {r['seconds']:.0f} | {r.get('where', 'CPU')} |"
+            f"| {r['config']} | {r['init']} | {r['gaussians_per_atom']:.3f} | {r['within_0.75A_per_atom']:.3f} | "
+            f"{r['tpr']:.4f} | "
+            f"{r['fp_per_true_atom']:.4f} | {r['rmsd_pm']:.1f} | {r['species_separation']:.2f} | {r['seconds']:.0f} | "
+            f"{r.get('where', 'CPU')} |"
         )
-    text = f"FePt (scale {args.scale}, {len(truth)} atoms), {args.tilts} tilts, noise {args.noise:g}, {args.iterations} iterations\n\n" + "\n".join(lines) + "\n"
+    text = (
+        f"FePt (scale {args.scale}, {len(truth)} atoms), {args.tilts} tilts, noise {args.noise:g}, {args.iterations} "
+        f"iterations\n\n" + "\n".join(lines) + "\n"
+    )
     (args.output / f"ablation-{args.init}.md").write_text(text)
     print(text)
 

@@ -52,8 +52,7 @@ def make_data(output: Path, radius_A: float, seed: int) -> dict[str, Path]:
     r = (np.arange(n) - (n - 1) / 2) / n
     peak = float(clean.max())
     planes = [
-        peak * (0.1 + 0.1 * (a * r[:, None] + b * r[None, :]))
-        for a, b in rng.uniform(-1, 1, size=(len(angles), 2))
+        peak * (0.1 + 0.1 * (a * r[:, None] + b * r[None, :])) for a, b in rng.uniform(-1, 1, size=(len(angles), 2))
     ]
     background = clean + np.stack(planes)
     tilt_errors = rng.uniform(-0.5, 0.5, size=len(angles))
@@ -119,14 +118,23 @@ def main() -> None:
         s = json.loads(result.read_text())
         rows.append((dataset, label, s))
         print(dataset, label, json.dumps(s), flush=True)
-    lines = ["| data | model | TPR | FP/atom | RMSD (pm) | shift error RMS (Å) | tilt error RMS (deg) | time (s) |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    lines = [
+        "| data | model | TPR | FP/atom | RMSD (pm) | shift error RMS (Å) | tilt error RMS (deg) | time (s) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
     for dataset, label, s in rows:
         shift = f"{s['shift_error_rms_A']:.3f}" if "shift_error_rms_A" in s else "-"
         tilt = f"{s['tilt_error_rms_deg']:.3f}" if "tilt_error_rms_deg" in s else "-"
-        lines.append(f"| {dataset} | {label} | {s['tpr']:.4f} | {s['fp_per_true_atom']:.4f} | {s['rmsd_pm']:.1f} | {shift} | {tilt} | {s['seconds']:.0f} |")
+        lines.append(
+            f"| {dataset} | {label} | {s['tpr']:.4f} | {s['fp_per_true_atom']:.4f} | {s['rmsd_pm']:.1f} | {shift} | "
+            f"{tilt} | {s['seconds']:.0f} |"
+        )
     rms_true = float(np.sqrt(((true_shifts - true_shifts.mean(0)) ** 2).sum(1).mean()))
     true_tilts = np.load(args.output / "data" / "true_tilt_errors_deg.npy")
-    text = f"Au sphere radius {args.radius_A} Å, limited tilts, noise 50; true shifts RMS {rms_true:.2f} Å, tilt errors RMS {np.std(true_tilts):.2f} deg\n\n" + "\n".join(lines) + "\n"
+    text = (
+        f"Au sphere radius {args.radius_A} Å, limited tilts, noise 50; true shifts RMS {rms_true:.2f} Å, tilt errors "
+        f"RMS {np.std(true_tilts):.2f} deg\n\n" + "\n".join(lines) + "\n"
+    )
     (args.output / "results.md").write_text(text)
     print(text)
 

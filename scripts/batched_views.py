@@ -26,11 +26,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from gaussian_atoms_method.harness.evaluation import load_reference
-from gaussian_atoms_method.physics.geometry import detector_axes_from_tilts, pixel_centres
 from gaussian_atoms_method.atoms.initialise import backprojection_candidates
 from gaussian_atoms_method.atoms.matching import score_atoms
-from gaussian_atoms_method.physics.projector import gaussian_mass, project_gaussians, project_gaussians_tiled, typical_mass
+from gaussian_atoms_method.harness.evaluation import load_reference
+from gaussian_atoms_method.physics.geometry import detector_axes_from_tilts, pixel_centres
+from gaussian_atoms_method.physics.projector import (
+    gaussian_mass,
+    project_gaussians,
+    project_gaussians_tiled,
+    typical_mass,
+)
 
 
 def pruned(means, sigmas, amplitudes, max_sigma_A=1.5, fraction=0.25) -> np.ndarray:
@@ -46,14 +51,22 @@ def fit(series, truth, batch: int, seconds: float, every: float, device: str, se
     rng = np.random.default_rng(seed)
     projections = torch.as_tensor(np.asarray(series.projections), dtype=torch.float32, device=device)
     n_views, h, w = projections.shape
-    axes = torch.as_tensor(detector_axes_from_tilts(series.angles_deg, series.tilt_axis), dtype=torch.float32, device=device)
+    axes = torch.as_tensor(
+        detector_axes_from_tilts(series.angles_deg, series.tilt_axis), dtype=torch.float32, device=device
+    )
     ci, cj = ((h - 1) / 2, (w - 1) / 2) if series.centre_px is None else series.centre_px
     rows = torch.as_tensor(pixel_centres(h, series.pixel_size_A, ci), dtype=torch.float32, device=device)
     cols = torch.as_tensor(pixel_centres(w, series.pixel_size_A, cj), dtype=torch.float32, device=device)
     positions, values = backprojection_candidates(
-        series.projections, series.angles_deg, series.pixel_size_A, series.tilt_axis, series.centre_px, 10000,
-        device=device, return_values=True,
-    )  # fmt: skip
+        series.projections,
+        series.angles_deg,
+        series.pixel_size_A,
+        series.tilt_axis,
+        series.centre_px,
+        10000,
+        device=device,
+        return_values=True,
+    )
     weights = np.clip(values, 0.01 * values.max(), None)
     weights = weights / weights.mean()
     sigma0 = 0.7
@@ -99,9 +112,23 @@ def fit(series, truth, batch: int, seconds: float, every: float, device: str, se
             with torch.no_grad():
                 kept = pruned(means, torch.exp(log_sigmas), torch.exp(log_amps))
             s = score_atoms(kept + series.origin_A, truth.positions)
-            out.append({"batch": batch, "seconds": round(elapsed, 2), "steps": steps, "views": seen, "tpr": s["tpr"], "fp_per_true_atom": s["fp_per_true_atom"], "rmsd_pm": s["rmsd_pm"]})
+            out.append(
+                {
+                    "batch": batch,
+                    "seconds": round(elapsed, 2),
+                    "steps": steps,
+                    "views": seen,
+                    "tpr": s["tpr"],
+                    "fp_per_true_atom": s["fp_per_true_atom"],
+                    "rmsd_pm": s["rmsd_pm"],
+                }
+            )
             r = out[-1]
-            print(f"| {batch} | {r['seconds']:.1f} | {steps} | {seen} | {r['tpr']:.4f} | {r['fp_per_true_atom']:.4f} | {r['rmsd_pm']:.1f} |", flush=True)
+            print(
+                f"| {batch} | {r['seconds']:.1f} | {steps} | {seen} | {r['tpr']:.4f} | {r['fp_per_true_atom']:.4f} | "
+                f"{r['rmsd_pm']:.1f} |",
+                flush=True,
+            )
             next_snapshot += every
     return out
 
@@ -119,8 +146,18 @@ def main() -> None:
     series, truth, _, _ = load_reference(args.data)
     if args.device == "cuda":  # CUDA and cuBLAS start-up outside the timed fits
         x = torch.ones(8, 3, device="cuda", requires_grad=True)
-        project_gaussians(x, torch.ones(8, device="cuda"), torch.ones(8, device="cuda"), torch.eye(3, device="cuda")[None], torch.zeros(4, device="cuda"), torch.zeros(4, device="cuda")).sum().backward()
-    print(f"{args.device}: {series.projections.shape[0]} views of {series.projections.shape[1]} x {series.projections.shape[2]}, {len(truth.positions)} atoms\n")
+        project_gaussians(
+            x,
+            torch.ones(8, device="cuda"),
+            torch.ones(8, device="cuda"),
+            torch.eye(3, device="cuda")[None],
+            torch.zeros(4, device="cuda"),
+            torch.zeros(4, device="cuda"),
+        ).sum().backward()
+    print(
+        f"{args.device}: {series.projections.shape[0]} views of {series.projections.shape[1]} x "
+        f"{series.projections.shape[2]}, {len(truth.positions)} atoms\n"
+    )
     print("| views per step | fitting time (s) | steps | views seen | TPR | FP/atom | RMSD (pm) |")
     print("| --- | --- | --- | --- | --- | --- | --- |")
     rows = [r for b in args.batches for r in fit(series, truth, b, args.seconds, args.every, args.device)]

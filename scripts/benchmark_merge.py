@@ -58,7 +58,8 @@ def main() -> None:
     rng = np.random.default_rng(0)
     machine = f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} torch threads"
     lines = [
-        f"Merge cost, threshold {args.threshold_A} Å, {args.duplicate_fraction:.0%} of atoms duplicated; best of 3; {machine}.",
+        f"Merge cost, threshold {args.threshold_A} Å, {args.duplicate_fraction:.0%} of atoms duplicated; best of 3; "
+        f"{machine}.",
         "",
         "| Gaussians | clusters | k-d tree + components (s) | whole merge (s) |",
         "| --- | --- | --- | --- |",

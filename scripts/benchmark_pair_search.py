@@ -51,7 +51,9 @@ def sphere_points(count: int, radius_vox: float, rng) -> np.ndarray:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--peaks", type=int, default=97000, help="CLEAN's candidates")
     parser.add_argument("--maxima", type=int, default=395000, help="maxima to suppress within 1 Å")
@@ -76,18 +78,41 @@ def main() -> None:
         (a, _), th = timed(lambda: clean_peaks(peaks, values, response, centre, 2.0), "cpu")
         (b, _), td = timed(lambda: clean_peaks(peaks, values, response, centre, 2.0, args.device), args.device)
         print(f"| CLEAN ({len(a):,} kept) | {th:.2f} | {td:.2f} | {np.array_equal(a, b)} |", flush=True)
-        a, th = timed(lambda: host_peaks.suppress_within(maxima * 0.25, np.argsort(-heights, kind="stable"), 1.0), "cpu")
-        b, td = timed(lambda: volume_filters.suppress_within_on_device(torch.as_tensor(maxima, device=args.device), heights, 0.25, 1.0), args.device)
-        print(f"| suppression within 1 Å ({len(a):,} kept) | {th:.2f} | {td:.2f} | {np.array_equal(a, b)} |", flush=True)
+        a, th = timed(
+            lambda: host_peaks.suppress_within(maxima * 0.25, np.argsort(-heights, kind="stable"), 1.0), "cpu"
+        )
+        b, td = timed(
+            lambda: volume_filters.suppress_within_on_device(
+                torch.as_tensor(maxima, device=args.device), heights, 0.25, 1.0
+            ),
+            args.device,
+        )
+        print(
+            f"| suppression within 1 Å ({len(a):,} kept) | {th:.2f} | {td:.2f} | {np.array_equal(a, b)} |", flush=True
+        )
     if args.data is not None:
         from dataparsers.tilt_series_format import load_tilt_series
         from gaussian_atoms_method.atoms.initialise import backprojection_candidates
 
         series = load_tilt_series(args.data)
         for run in range(2):
-            found, seconds = timed(lambda: backprojection_candidates(series.projections, series.angles_deg, series.pixel_size_A, series.tilt_axis, series.centre_px,
-                                                                     device=args.device, tilt_axis_angle_deg=series.tilt_axis_angle_deg), args.device)  # fmt: skip
-            print(f"back-projection start on {args.device} ({'warm' if run else 'first'}): {seconds:.2f} s, {len(found)} candidates", flush=True)
+            found, seconds = timed(
+                lambda: backprojection_candidates(
+                    series.projections,
+                    series.angles_deg,
+                    series.pixel_size_A,
+                    series.tilt_axis,
+                    series.centre_px,
+                    device=args.device,
+                    tilt_axis_angle_deg=series.tilt_axis_angle_deg,
+                ),
+                args.device,
+            )
+            print(
+                f"back-projection start on {args.device} ({'warm' if run else 'first'}): {seconds:.2f} s, {len(found)} "
+                f"candidates",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

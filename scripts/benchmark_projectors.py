@@ -79,7 +79,9 @@ def main() -> None:
     rows = []
     for n in args.sizes:
         ref_scene = scene(n, dev, torch.float64)
-        reference = project_gaussians(*ref_scene[:3], ref_scene[3][:4], ref_scene[4], ref_scene[4]) if n <= 20000 else None
+        reference = (
+            project_gaussians(*ref_scene[:3], ref_scene[3][:4], ref_scene[4], ref_scene[4]) if n <= 20000 else None
+        )
         for name in args.projectors:
             project = PROJECTORS[name]
             means, sigmas, amps, axes, coords = scene(n, dev)
@@ -105,7 +107,12 @@ def main() -> None:
     name = torch.cuda.get_device_name() if dev == "cuda" else f"CPU, {torch.get_num_threads()} threads"
     (args.output / f"projectors_{dev}.json").write_text(json.dumps({"device": name, "rows": rows}, indent=2))
     head = "| Gaussians | projector | max error / peak | " + " | ".join(f"{v} view(s) (ms)" for v in args.views) + " |"
-    lines = [f"{name}, torch {torch.__version__}, float32, TF32 off, forward + backward, median of {args.repeats}", "", head, "|" + " --- |" * (3 + len(args.views))]
+    lines = [
+        f"{name}, torch {torch.__version__}, float32, TF32 off, forward + backward, median of {args.repeats}",
+        "",
+        head,
+        "|" + " --- |" * (3 + len(args.views)),
+    ]
     for r in rows:
         times = " | ".join(f"{r.get(f'ms_{v}_views', float('nan')):.2f}" for v in args.views)
         lines.append(f"| {r['gaussians']:,} | {r['projector']} | {r['max_error_of_peak']:.1e} | {times} |")

@@ -54,7 +54,10 @@ def main() -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    rows = [("aSi-208", "dose (e/Å²)", peer_series(read_rows(args.peer))), ("Au, Poisson counts", "dose (counts at the brightest pixel)", method_series(read_rows(args.au)))]
+    rows = [
+        ("aSi-208", "dose (e/Å²)", peer_series(read_rows(args.peer))),
+        ("Au, Poisson counts", "dose (counts at the brightest pixel)", method_series(read_rows(args.au))),
+    ]
     from matplotlib.ticker import FuncFormatter, NullFormatter
 
     colours = {"ours": "C0", "peer": "C1", "fbp": "C2", "sart": "C3"}

@@ -30,7 +30,10 @@ def kernel_of_run(run_dir: Path, kernel: str) -> list[float]:
     """The kernel a run ended with: the fractions it printed (learned), or the ones it held."""
     if kernel != "learned":
         return [float(v) for v in kernel.split(",")]
-    found = re.search(r"point-spread function \(\w+\): intensity fractions ([\d.]+) at 1 Å, ([\d.]+) at 2 Å, ([\d.]+) at 4 Å", (run_dir / "train.log").read_text())
+    found = re.search(
+        r"point-spread function \(\w+\): intensity fractions ([\d.]+) at 1 Å, ([\d.]+) at 2 Å, ([\d.]+) at 4 Å",
+        (run_dir / "train.log").read_text(),
+    )
     return [float(v) for v in found.groups()] if found else [0.0, 0.0, 0.0]
 
 
@@ -41,8 +44,18 @@ def main() -> None:
     parser.add_argument("--kernels", nargs="+", default=["learned", "0,0.1,0.1", "0,0.15,0.2", "0,0.2,0.3"])
     parser.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
     parser.add_argument("--iterations", type=int, default=3000)
-    parser.add_argument("--interior-px", type=int, nargs=2, default=(0, 0), help="rows and columns left out at each detector edge when scoring")
-    parser.add_argument("--train-args", default="", help='further ns-train options, e.g. --train-args="--pipeline.model.background plane"')
+    parser.add_argument(
+        "--interior-px",
+        type=int,
+        nargs=2,
+        default=(0, 0),
+        help="rows and columns left out at each detector edge when scoring",
+    )
+    parser.add_argument(
+        "--train-args",
+        default="",
+        help='further ns-train options, e.g. --train-args="--pipeline.model.background plane"',
+    )
     args = parser.parse_args()
 
     from dataparsers.tilt_series_format import load_tilt_series
@@ -52,7 +65,7 @@ def main() -> None:
     try:
         series = load_tilt_series(args.data)
     except (OSError, ValueError) as err:
-        raise SystemExit(f"held_out_views: {err}")
+        raise SystemExit(f"held_out_views: {err}") from None
     for kernel in args.kernels:
         if kernel != "learned" and not re.fullmatch(r"[\d.]+,[\d.]+,[\d.]+", kernel):
             raise SystemExit(f"held_out_views: --kernels takes 'learned' or three fractions 'a,b,c', got {kernel!r}")
@@ -62,20 +75,30 @@ def main() -> None:
         row = {"kernel": kernel}
         for fit, held in (("even", "odd"), ("odd", "even")):
             run_dir = args.output / "runs" / kernel.replace(",", "_") / fit
-            train_ours(folds[fit], run_dir, args.iterations, args.device, kernel_args(kernel) + tuple(args.train_args.split()))
+            train_ours(
+                folds[fit], run_dir, args.iterations, args.device, kernel_args(kernel) + tuple(args.train_args.split())
+            )
             gaussians = run_gaussians(run_dir / "ours" / "gaussian-atoms" / "run")
-            row[f"{fit}->{held}"] = held_out_rms(gaussians, load_tilt_series(folds[held]), kernel_of_run(run_dir, kernel), tuple(args.interior_px))
+            row[f"{fit}->{held}"] = held_out_rms(
+                gaussians, load_tilt_series(folds[held]), kernel_of_run(run_dir, kernel), tuple(args.interior_px)
+            )
             row[f"kernel {fit}"] = kernel_of_run(run_dir, kernel)
         row["mean"] = 0.5 * (row["even->odd"] + row["odd->even"])
         rows.append(row)
-        print(f"kernel {kernel}: held-out rms {row['even->odd']:.4g} (even -> odd), {row['odd->even']:.4g} (odd -> even)", flush=True)
+        print(
+            f"kernel {kernel}: held-out rms {row['even->odd']:.4g} (even -> odd), {row['odd->even']:.4g} (odd -> even)",
+            flush=True,
+        )
     best = min(rows, key=lambda r: r["mean"])
     fields = ["kernel", "even->odd", "odd->even", "mean"]
     with open(args.output / "held_out.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
         writer.writeheader()
         writer.writerows(rows)
-    lines = ["| kernel (fractions at 1, 2, 4 Å) | held-out rms, even -> odd | odd -> even | mean |", "| --- | --- | --- | --- |"]
+    lines = [
+        "| kernel (fractions at 1, 2, 4 Å) | held-out rms, even -> odd | odd -> even | mean |",
+        "| --- | --- | --- | --- |",
+    ]
     lines += [f"| {r['kernel']} | {r['even->odd']:.5g} | {r['odd->even']:.5g} | {r['mean']:.5g} |" for r in rows]
     (args.output / "held_out.md").write_text("\n".join(lines) + f"\n\nThe views held out prefer: {best['kernel']}\n")
     print(f"the views held out prefer {best['kernel']}; wrote {args.output / 'held_out.md'}")

@@ -26,7 +26,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from dataparsers.tilt_series_format import MANIFEST  # noqa: E402
-from gaussian_atoms_method.harness.input_cases import BROKEN, ODD, edit_manifest, valid_series, valid_then, own_lines  # noqa: E402
+from gaussian_atoms_method.harness.input_cases import BROKEN, ODD, edit_manifest, own_lines, valid_series, valid_then  # noqa: E402
 
 BIN = Path(sys.executable).parent
 
@@ -65,18 +65,39 @@ def _inf_angle(out: Path) -> Path:
 
 EXTRA_BROKEN = {
     "npz with two arrays, none named": (_npz_two, "name the one to use"),
-    "projections entry is a directory": (lambda out: edit_manifest(valid_then(out, lambda d: (d / "sub").mkdir()), projections="sub"), "sub"),
+    "projections entry is a directory": (
+        lambda out: edit_manifest(valid_then(out, lambda d: (d / "sub").mkdir()), projections="sub"),
+        "sub",
+    ),
     "empty angles file": (lambda out: valid_then(out, lambda d: (d / "angles.txt").write_text("")), "angles"),
     "infinite angle": (_inf_angle, "NaN/Inf"),
-    "zero pixel size": (lambda out: edit_manifest(valid_series(out), pixel_size_A=0), "pixel_size_A must be a positive"),
+    "zero pixel size": (
+        lambda out: edit_manifest(valid_series(out), pixel_size_A=0),
+        "pixel_size_A must be a positive",
+    ),
     "manifest is a file path, not a directory": (lambda out: valid_series(out) / MANIFEST / "x", "not found"),
 }
 EXTRA_ODD = {"TIFF stack": _tiff, "IMOD MRC with its tilt-axis angle": _imod_mrc}
 
 
 def run_case(launcher: list[str], data: Path, out: Path) -> tuple[subprocess.CompletedProcess, list[str]]:
-    cmd = [*launcher, "--data", str(data), "--max-num-iterations", "2", "--machine.device-type", "cpu", "--vis", "tensorboard",
-           "--output-dir", str(out), "--experiment-name", "m", "--timestamp", "t"]  # fmt: skip
+    cmd = [
+        *launcher,
+        "--data",
+        str(data),
+        "--max-num-iterations",
+        "2",
+        "--machine.device-type",
+        "cpu",
+        "--vis",
+        "tensorboard",
+        "--output-dir",
+        str(out),
+        "--experiment-name",
+        "m",
+        "--timestamp",
+        "t",
+    ]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     return proc, own_lines(proc.stdout + proc.stderr)
 
@@ -86,12 +107,24 @@ def main() -> None:
     ap.add_argument("--launcher", choices=["ns-train", "gaussian-atoms"], default="ns-train")
     ap.add_argument("--output", type=Path, default=Path("outputs/input-matrix"))
     args = ap.parse_args()
-    launcher = [str(BIN / "ns-train"), "gaussian-atoms"] if args.launcher == "ns-train" else [str(BIN / "gaussian-atoms"), "train"]
+    launcher = (
+        [str(BIN / "ns-train"), "gaussian-atoms"]
+        if args.launcher == "ns-train"
+        else [str(BIN / "gaussian-atoms"), "train"]
+    )
     shutil.rmtree(args.output, ignore_errors=True)
     rows = []
-    print("| case | kind | in tests | exit | own lines | traceback | run dir left | passed | message |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- |", flush=True)
-    cases = [(n, "broken", True, *c) for n, c in BROKEN.items()] + [(n, "broken", False, *c) for n, c in EXTRA_BROKEN.items()]
-    cases += [(n, "odd", True, w, "") for n, w in ODD.items()] + [(n, "odd", False, w, "") for n, w in EXTRA_ODD.items()]
+    print(
+        "| case | kind | in tests | exit | own lines | traceback | run dir left | passed | message |\n| --- | --- | "
+        "--- | --- | --- | --- | --- | --- | --- |",
+        flush=True,
+    )
+    cases = [(n, "broken", True, *c) for n, c in BROKEN.items()] + [
+        (n, "broken", False, *c) for n, c in EXTRA_BROKEN.items()
+    ]
+    cases += [(n, "odd", True, w, "") for n, w in ODD.items()] + [
+        (n, "odd", False, w, "") for n, w in EXTRA_ODD.items()
+    ]
     for i, (name, kind, in_tests, write, fragment) in enumerate(cases):
         case_dir = args.output / f"case{i:02d}"
         data = write(case_dir / "data")
@@ -106,8 +139,25 @@ def main() -> None:
             left = False
             ok = proc.returncode == 0 and (out / "m" / "gaussian-atoms" / "t" / "atoms.xyz").is_file()
             message = "trained" if ok else (lines[-1] if lines else "")
-        rows.append({"case": name, "kind": kind, "in_tests": in_tests, "exit": proc.returncode, "own_lines": len(lines), "traceback": traceback, "left": left, "passed": ok, "message": message})
-        print(f"| {name} | {kind} | {'yes' if in_tests else 'no'} | {proc.returncode} | {len(lines)} | {'yes' if traceback else 'no'} | {'yes' if left else 'no'} | {'yes' if ok else 'NO'} | {message.replace('|', '/')[:110]} |", flush=True)
+        rows.append(
+            {
+                "case": name,
+                "kind": kind,
+                "in_tests": in_tests,
+                "exit": proc.returncode,
+                "own_lines": len(lines),
+                "traceback": traceback,
+                "left": left,
+                "passed": ok,
+                "message": message,
+            }
+        )
+        print(
+            f"| {name} | {kind} | {'yes' if in_tests else 'no'} | {proc.returncode} | {len(lines)} | "
+            f"{'yes' if traceback else 'no'} | {'yes' if left else 'no'} | {'yes' if ok else 'NO'} | "
+            f"{message.replace('|', '/')[:110]} |",
+            flush=True,
+        )
     (args.output / "input_matrix.json").write_text(json.dumps(rows, indent=2) + "\n")
     failed = [r["case"] for r in rows if not r["passed"]]
     print(f"{len(rows) - len(failed)} passed, {len(failed)} failed" + (f": {failed}" if failed else ""))

@@ -20,8 +20,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from gaussian_atoms_method.harness.evaluation import evaluate_atoms  # noqa: E402
 from gaussian_atoms_method.atoms.atom_set import AtomSet  # noqa: E402
+from gaussian_atoms_method.harness.evaluation import evaluate_atoms  # noqa: E402
 from gaussian_atoms_method.harness.inr import fit_inr  # noqa: E402
 from gaussian_atoms_method.harness.simulate import blur_and_noise  # noqa: E402
 from gaussian_atoms_method.harness.tracing import trace_atoms  # noqa: E402
@@ -50,15 +50,37 @@ def main() -> None:
     for noise in args.noise:
         noisy = blur_and_noise(clean.astype(np.float64), px, 0.0, noise, args.seed + int(noise)).astype(np.float32)
         start = time.perf_counter()
-        vol = fit_inr(noisy, angles, px, steps=args.steps, rays_per_step=args.rays, samples_per_ray=args.samples, learning_rate=args.lr, device=args.device, frequency_std_per_A=args.frequency_std_per_A, hidden=args.hidden, density_scale=args.density_scale)
+        vol = fit_inr(
+            noisy,
+            angles,
+            px,
+            steps=args.steps,
+            rays_per_step=args.rays,
+            samples_per_ray=args.samples,
+            learning_rate=args.lr,
+            device=args.device,
+            frequency_std_per_A=args.frequency_std_per_A,
+            hidden=args.hidden,
+            density_scale=args.density_scale,
+        )
         idx, _ = trace_atoms(vol.data, vol.spacing_A)
         seconds = time.perf_counter() - start
         pred = AtomSet(vol.index_to_A(idx))
         pred_volume = vol.resample(volume.shape, px) if volume is not None else None
         scores = evaluate_atoms(pred, truth, reference_volume=volume, voxel_size_A=px, pred_volume=pred_volume)
-        scores.update(seconds=seconds, noisy_checksum=float(noisy.astype(np.float64).sum()), steps=args.steps, settings=vars(args) | {"folder": str(args.folder), "out": str(args.out)})
+        scores.update(
+            seconds=seconds,
+            noisy_checksum=float(noisy.astype(np.float64).sum()),
+            steps=args.steps,
+            settings=vars(args) | {"folder": str(args.folder), "out": str(args.out)},
+        )
         (args.out / f"inr-noise{noise:g}.json").write_text(json.dumps(scores, indent=2) + "\n")
-        print(f"noise {noise:g}: TPR {scores['tpr']:.4f} FP {scores['fp_per_true_atom']:.4f} RMSD {scores['rmsd_pm']:.1f} pm SSIM {scores.get('ssim', float('nan')):.3f} {seconds:.0f} s checksum {scores['noisy_checksum']:.6e}", flush=True)
+        print(
+            f"noise {noise:g}: TPR {scores['tpr']:.4f} FP {scores['fp_per_true_atom']:.4f} RMSD "
+            f"{scores['rmsd_pm']:.1f} pm SSIM {scores.get('ssim', float('nan')):.3f} {seconds:.0f} s checksum "
+            f"{scores['noisy_checksum']:.6e}",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

@@ -24,8 +24,16 @@ from gaussian_atoms_method.atoms.matching import score_atoms  # noqa: E402
 from gaussian_atoms_method.harness.inr import fit_inr  # noqa: E402
 from gaussian_atoms_method.harness.tracing import trace_atoms  # noqa: E402
 
-KEYS = {"steps": ("steps", int), "rays": ("rays_per_step", int), "samples": ("samples_per_ray", int), "fstd_per_A": ("frequency_std_per_A", float),
-        "hidden": ("hidden", int), "layers": ("layers", int), "lr": ("learning_rate", float), "scale": ("density_scale", float)}  # fmt: skip
+KEYS = {
+    "steps": ("steps", int),
+    "rays": ("rays_per_step", int),
+    "samples": ("samples_per_ray", int),
+    "fstd_per_A": ("frequency_std_per_A", float),
+    "hidden": ("hidden", int),
+    "layers": ("layers", int),
+    "lr": ("learning_rate", float),
+    "scale": ("density_scale", float),
+}
 
 
 def main() -> None:
@@ -43,15 +51,30 @@ def main() -> None:
         from gaussian_atoms_method.atoms.atom_set import read_atoms
 
         truth = read_atoms(series.truth_path).positions
-    print("| settings | TPR | FP/atom | RMSD pm | predicted | seconds |\n| --- | --- | --- | --- | --- | --- |", flush=True)
+    print(
+        "| settings | TPR | FP/atom | RMSD pm | predicted | seconds |\n| --- | --- | --- | --- | --- | --- |",
+        flush=True,
+    )
     for config in args.configs:
         kwargs = {KEYS[k][0]: KEYS[k][1](v) for k, v in (item.split("=") for item in config.split())}
         start = time.perf_counter()
-        vol = fit_inr(series.projections, series.angles_deg, series.pixel_size_A, series.tilt_axis, series.centre_px, device=args.device, **kwargs)
+        vol = fit_inr(
+            series.projections,
+            series.angles_deg,
+            series.pixel_size_A,
+            series.tilt_axis,
+            series.centre_px,
+            device=args.device,
+            **kwargs,
+        )
         idx, _ = trace_atoms(vol.data, vol.spacing_A)
         seconds = time.perf_counter() - start
         scores = score_atoms(vol.index_to_A(idx) + series.origin_A, truth)
-        print(f"| {config} | {scores['tpr']:.4f} | {scores['fp_per_true_atom']:.4f} | {scores['rmsd_pm']:.1f} | {scores['n_pred']} | {seconds:.0f} |", flush=True)
+        print(
+            f"| {config} | {scores['tpr']:.4f} | {scores['fp_per_true_atom']:.4f} | {scores['rmsd_pm']:.1f} | "
+            f"{scores['n_pred']} | {seconds:.0f} |",
+            flush=True,
+        )
         if args.output:
             with open(args.output, "a") as f:
                 f.write(json.dumps({"config": config, "seconds": seconds, **scores}) + "\n")

@@ -36,8 +36,8 @@ def time_iterations(n_atoms: int, device: str, iterations: int = 30, warmup: int
 
     from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
     from dataparsers.tilt_series_format import write_tilt_series
-    from gaussian_atoms_method.nerfstudio_layer.config import gaussian_atoms_trainer_config
     from gaussian_atoms_method.harness.simulate import parse_tilts
+    from gaussian_atoms_method.nerfstudio_layer.config import gaussian_atoms_trainer_config
     from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
     from gaussian_atoms_method.nerfstudio_layer.rendering import projector_name
 
@@ -48,9 +48,9 @@ def time_iterations(n_atoms: int, device: str, iterations: int = 30, warmup: int
         write_tilt_series(Path(tmp), rng.uniform(0, 1, (len(angles), side, side)).astype(np.float32), angles, 0.25)
         outputs = TiltSeriesDataParserConfig(data=Path(tmp)).setup().get_dataparser_outputs("train")
     radius_norm = 0.5 * (side * 0.25 - 10.0) / (side * 0.25)
-    model = GaussianAtomsModelConfig(init="random", num_random=n_atoms, init_extent=2 * radius_norm / np.sqrt(3), coarse_steps=0).setup(
-        scene_box=outputs.scene_box, num_train_data=len(angles), metadata=outputs.metadata
-    )
+    model = GaussianAtomsModelConfig(
+        init="random", num_random=n_atoms, init_extent=2 * radius_norm / np.sqrt(3), coarse_steps=0
+    ).setup(scene_box=outputs.scene_box, num_train_data=len(angles), metadata=outputs.metadata)
     model.to(device)
     optimizers = Optimizers(gaussian_atoms_trainer_config().optimizers, model.get_param_groups())
     cameras = outputs.cameras.to(device)
@@ -88,10 +88,18 @@ def main() -> None:
     args = parser.parse_args()
     torch.backends.cuda.matmul.allow_tf32 = False  # the projector's matmuls need full float32
     name = torch.cuda.get_device_name() if args.device == "cuda" else f"CPU, {torch.get_num_threads()} threads"
-    lines = [f"Device: {name}", "", "| atoms | detector (px) | projector | s / iteration | iterations / s | peak GPU memory (GB) | peak RSS (GB) |", "| --- | --- | --- | --- | --- | --- | --- |"]
+    lines = [
+        f"Device: {name}",
+        "",
+        "| atoms | detector (px) | projector | s / iteration | iterations / s | peak GPU memory (GB) | peak RSS (GB) |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
+    ]
     for n in args.atoms:
         r = time_iterations(n, args.device)
-        lines.append(f"| {r['atoms']} | {r['detector']} | {r['projector']} | {r['s_per_iter']:.4f} | {1 / r['s_per_iter']:.1f} | {r['gpu_GB']:.2f} | {r['rss_GB']:.2f} |")
+        lines.append(
+            f"| {r['atoms']} | {r['detector']} | {r['projector']} | {r['s_per_iter']:.4f} | {1 / r['s_per_iter']:.1f} "
+            f"| {r['gpu_GB']:.2f} | {r['rss_GB']:.2f} |"
+        )
         print(lines[-1], flush=True)
     text = "\n".join(lines) + "\n"
     print(text)

@@ -23,7 +23,8 @@ LAUNCHERS = {
         "tyro.cli(AnnotatedBaseConfigUnion, args=['gaussian-atoms', 'tilt-series', '--data', sys.argv[1]])"
     ),
     "gaussian-atoms train: import trainer + plugin, parse": (
-        "from gaussian_atoms_method.nerfstudio_layer.train import build_config; build_config(['tilt-series', '--data', sys.argv[1]])"
+        "from gaussian_atoms_method.nerfstudio_layer.train import build_config; build_config(['tilt-series', "
+        "'--data', sys.argv[1]])"
     ),
 }
 
@@ -40,12 +41,16 @@ def timed(label, fn):
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("data", help="a tilt-series directory (tilt_series.json)")
     data = parser.parse_args().data
     for label, code in LAUNCHERS.items():
         t = time.perf_counter()
-        run = subprocess.run([sys.executable, "-W", "ignore", "-c", "import sys; " + code, data], capture_output=True, text=True)
+        run = subprocess.run(
+            [sys.executable, "-W", "ignore", "-c", "import sys; " + code, data], capture_output=True, text=True
+        )
         if run.returncode != 0:  # e.g. ns-train where another installed method fails to import
             print(f"{label}: failed: {(run.stderr.strip().splitlines() or ['?'])[-1]}", flush=True)
             continue
@@ -63,12 +68,25 @@ def main() -> None:
     from gaussian_atoms_method.atoms.initialise import backprojection_candidates
     from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
 
-    outputs = timed("dataparser (read, normalise, cameras)", lambda: TiltSeriesDataParserConfig(data=data).setup().get_dataparser_outputs("train"))
+    outputs = timed(
+        "dataparser (read, normalise, cameras)",
+        lambda: TiltSeriesDataParserConfig(data=data).setup().get_dataparser_outputs("train"),
+    )
     s = outputs.metadata["tilt_series"]
     args = (s.projections, s.angles_deg, s.pixel_size_A, s.tilt_axis, s.centre_px)
     for device in (["cuda", "cuda"] if torch.cuda.is_available() else []) + ["cpu"]:
-        timed(f"back-projection candidates on {device}", lambda: backprojection_candidates(*args, device=device, tilt_axis_angle_deg=s.tilt_axis_angle_deg))
-    timed("model construction (includes the candidates)", lambda: GaussianAtomsModelConfig().setup(scene_box=outputs.scene_box, num_train_data=s.n_views, metadata=outputs.metadata))
+        timed(
+            f"back-projection candidates on {device}",
+            lambda device=device: backprojection_candidates(
+                *args, device=device, tilt_axis_angle_deg=s.tilt_axis_angle_deg
+            ),
+        )
+    timed(
+        "model construction (includes the candidates)",
+        lambda: GaussianAtomsModelConfig().setup(
+            scene_box=outputs.scene_box, num_train_data=s.n_views, metadata=outputs.metadata
+        ),
+    )
 
 
 if __name__ == "__main__":

@@ -46,17 +46,26 @@ def check(config: Path) -> dict:
         "actual_pm": np.sqrt((err**2).mean(axis=0)) * 100,
         "within_1": np.mean(np.abs(err) < s, axis=0),
         "within_2": np.mean(np.abs(err) < 2 * s, axis=0),
-        "quartiles": [(np.median(total_pred[quartile == q]) * 100, np.sqrt(np.mean(total_err[quartile == q] ** 2)) * 100) for q in range(4)],
+        "quartiles": [
+            (np.median(total_pred[quartile == q]) * 100, np.sqrt(np.mean(total_err[quartile == q] ** 2)) * 100)
+            for q in range(4)
+        ],
     }
 
 
 def markdown(rows: list[dict]) -> str:
-    out = "| data | matched | noise (est.) | axis | predicted std (pm, median) | actual RMS (pm) | actual / predicted | within 1 std | within 2 std |\n"
+    out = (
+        "| data | matched | noise (est.) | axis | predicted std (pm, median) | actual RMS (pm) | actual / predicted "
+        "| within 1 std | within 2 std |\n"
+    )
     out += "| --- | --- | --- | --- | --- | --- | --- | --- | --- |\n"
     for r in rows:
         for k, axis in enumerate("xyz"):
             lead = f"| {r['data']} | {r['matched']} | {r['noise']:.3g} " if k == 0 else "| | | "
-            out += lead + f"| {axis} | {r['pred_pm'][k]:.1f} | {r['actual_pm'][k]:.1f} | {r['actual_pm'][k] / r['pred_pm'][k]:.2f} | {r['within_1'][k]:.2f} | {r['within_2'][k]:.2f} |\n"
+            out += (
+                lead + f"| {axis} | {r['pred_pm'][k]:.1f} | {r['actual_pm'][k]:.1f} | "
+                f"{r['actual_pm'][k] / r['pred_pm'][k]:.2f} | {r['within_1'][k]:.2f} | {r['within_2'][k]:.2f} |\n"
+            )
     out += "\nBy quartile of the predicted 3D precision (median predicted -> actual 3D RMS error, pm):\n\n"
     out += "| data | Q1 | Q2 | Q3 | Q4 |\n| --- | --- | --- | --- | --- |\n"
     for r in rows:

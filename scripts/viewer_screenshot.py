@@ -59,7 +59,11 @@ def atom_pixel_fraction(png: Path) -> float:
     palette = colormaps["viridis"](np.linspace(0.0, 1.0, 64))[:, :3] * 255
     pixels = rgb.reshape(-1, 3)
     saturated = (pixels.max(axis=1) - pixels.min(axis=1)) > 40  # not grey / white UI
-    distance = np.min(np.linalg.norm(pixels[saturated, None, :] - palette[None], axis=-1), axis=1) if saturated.any() else np.zeros(0)
+    distance = (
+        np.min(np.linalg.norm(pixels[saturated, None, :] - palette[None], axis=-1), axis=1)
+        if saturated.any()
+        else np.zeros(0)
+    )
     return float(np.sum(distance < 25) / len(pixels))
 
 
@@ -74,7 +78,13 @@ def screenshot(config: Path, output: Path, wait_s: float = 25.0, size=(1280, 800
     port = free_port()
     log = open(output.with_suffix(".log"), "w")  # the viewer's own output, for when it fails
     viewer = subprocess.Popen(
-        [str(Path(sys.executable).parent / "ns-viewer"), "--load-config", str(config), "--viewer.websocket-port", str(port)],
+        [
+            str(Path(sys.executable).parent / "ns-viewer"),
+            "--load-config",
+            str(config),
+            "--viewer.websocket-port",
+            str(port),
+        ],
         stdout=log,
         stderr=subprocess.STDOUT,
     )
@@ -84,10 +94,17 @@ def screenshot(config: Path, output: Path, wait_s: float = 25.0, size=(1280, 800
         options = webdriver.ChromeOptions()
         options.binary_location = paths[0]
         for flag in (
-            "--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
-            "--disable-background-networking", "--disable-component-update", "--disable-sync", "--no-first-run",
+            "--headless=new",
+            "--no-sandbox",
+            "--disable-dev-shm-usage",
+            "--use-angle=swiftshader",
+            "--enable-unsafe-swiftshader",
+            "--disable-background-networking",
+            "--disable-component-update",
+            "--disable-sync",
+            "--no-first-run",
             f"--window-size={size[0]},{size[1]}",
-        ):  # fmt: skip
+        ):
             options.add_argument(flag)
         driver = webdriver.Chrome(service=Service(paths[1]), options=options)
         try:

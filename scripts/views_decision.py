@@ -17,12 +17,20 @@ import time
 import numpy as np
 import torch
 
-from gaussian_atoms_method.nerfstudio_layer.rendering import STEP_COST_RATIO, probe_scene, auto_views_per_step, projector_for, synchronise
+from gaussian_atoms_method.nerfstudio_layer.rendering import (
+    STEP_COST_RATIO,
+    auto_views_per_step,
+    probe_scene,
+    projector_for,
+    synchronise,
+)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--gaussians", type=int, default=10438, help="Gaussians in the probe scene (default: the Au start's)")
+    parser.add_argument(
+        "--gaussians", type=int, default=10438, help="Gaussians in the probe scene (default: the Au start's)"
+    )
     parser.add_argument("--pixels", type=int, default=271, help="detector side, pixels")
     parser.add_argument("--views", type=int, default=47, help="views in the series")
     parser.add_argument("--decisions", type=int, default=30, help="auto's decisions to repeat")
@@ -47,8 +55,13 @@ def main() -> None:
         least, median = min(times[1:]), float(np.median(times[1:]))
         one = one or least
         print(f"| {views} | {least:.3f} | {median:.3f} | {least / one:.2f} |")
-    picks = collections.Counter(auto_views_per_step(projector, args.gaussians, args.views, axis, axis) for _ in range(args.decisions))
-    print(f"\nauto's views in {args.decisions} decisions (ratio {STEP_COST_RATIO:g}): " + ", ".join(f"{v}: {n}" for v, n in sorted(picks.items())))
+    picks = collections.Counter(
+        auto_views_per_step(projector, args.gaussians, args.views, axis, axis) for _ in range(args.decisions)
+    )
+    print(
+        f"\nauto's views in {args.decisions} decisions (ratio {STEP_COST_RATIO:g}): "
+        + ", ".join(f"{v}: {n}" for v, n in sorted(picks.items()))
+    )
 
 
 if __name__ == "__main__":

@@ -24,16 +24,50 @@ BIN = Path(sys.executable).parent
 def test_lobato_au_trains_to_the_measured_accuracy(tmp_path):
     data, out = tmp_path / "data", tmp_path / "out"
     sim = subprocess.run(
-        [str(BIN / "gaussian-atoms"), "simulate", "--particle", "au", "--scale", "0.35", "--tilts", "limited",
-         "--noise-std", "200", "--seed", "0", "--output", str(data), "--no-save-volume"],
-        capture_output=True, text=True, timeout=600,
-    )  # fmt: skip
+        [
+            str(BIN / "gaussian-atoms"),
+            "simulate",
+            "--particle",
+            "au",
+            "--scale",
+            "0.35",
+            "--tilts",
+            "limited",
+            "--noise-std",
+            "200",
+            "--seed",
+            "0",
+            "--output",
+            str(data),
+            "--no-save-volume",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert sim.returncode == 0, sim.stderr[-2000:]
     train = subprocess.run(
-        [str(BIN / "gaussian-atoms"), "train", "--machine.device-type", "cpu", "--vis", "tensorboard", "--output-dir", str(out),
-         "--experiment-name", "lobato", "--timestamp", "run", "tilt-series", "--data", str(data)],
-        capture_output=True, text=True, timeout=900,
-    )  # fmt: skip
+        [
+            str(BIN / "gaussian-atoms"),
+            "train",
+            "--machine.device-type",
+            "cpu",
+            "--vis",
+            "tensorboard",
+            "--output-dir",
+            str(out),
+            "--experiment-name",
+            "lobato",
+            "--timestamp",
+            "run",
+            "tilt-series",
+            "--data",
+            str(data),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
     assert train.returncode == 0, train.stdout[-2000:] + train.stderr[-2000:]
     scores = json.loads((out / "lobato" / "gaussian-atoms" / "run" / "evaluation.json").read_text())
     assert scores["n_true"] == 312

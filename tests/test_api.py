@@ -33,7 +33,9 @@ def test_reconstruct_arrays_gives_the_atoms(particle):
     # none invented, positions far below the 0.25 Å pixel (noise-limited precision is ~1 pm).
     assert scores["tpr"] == 1.0 and scores["fp_per_true_atom"] == 0.0 and scores["rmsd_pm"] < 5.0
     assert atoms.sigmas.shape == atoms.amplitudes.shape == (len(atoms),)
-    assert atoms.position_std_A.shape == (len(atoms), 3) and np.all((atoms.position_std_A > 1e-3) & (atoms.position_std_A < 0.05))
+    assert atoms.position_std_A.shape == (len(atoms), 3) and np.all(
+        (atoms.position_std_A > 1e-3) & (atoms.position_std_A < 0.05)
+    )
     assert np.all(atoms.atom_class >= 1)  # every reported atom has a class; non-atoms are apart
     assert len(atoms.info["non_atoms"]) == 0
 
@@ -49,7 +51,9 @@ def test_a_given_start_keeps_what_the_data_hold_and_drops_the_rest(particle, tmp
     moved = truth.positions + rng.normal(scale=0.3 / np.sqrt(3), size=truth.positions.shape)
     start = np.vstack([moved, [[0.0, 0.0, 11.0]]])
     path = write_atoms(AtomSet(positions=start, species=np.array(["Au"] * len(start))), tmp_path / "start.xyz")
-    atoms = ga.reconstruct(projections, angles, 0.25, device="cpu", max_num_iterations=400, progress=False, start_atoms=path)
+    atoms = ga.reconstruct(
+        projections, angles, 0.25, device="cpu", max_num_iterations=400, progress=False, start_atoms=path
+    )
     scores = score_atoms(atoms.positions, truth.positions)
     assert scores["tpr"] == 1.0 and scores["fp_per_true_atom"] == 0.0 and scores["rmsd_pm"] < 5.0
 
@@ -59,7 +63,16 @@ def test_reconstruct_reads_the_kernel_then_holds_it(particle):
     (the trainer's two passes); the model's own physics has no tails to read, so the atoms come
     out as with the defaults: all found, none invented."""
     truth, angles, projections = particle
-    atoms = ga.reconstruct(projections, angles, 0.25, device="cpu", max_num_iterations=400, progress=False, psf="held-out", stop_split_at=300)
+    atoms = ga.reconstruct(
+        projections,
+        angles,
+        0.25,
+        device="cpu",
+        max_num_iterations=400,
+        progress=False,
+        psf="held-out",
+        stop_split_at=300,
+    )
     scores = score_atoms(atoms.positions, truth.positions)
     assert scores["tpr"] == 1.0 and scores["fp_per_true_atom"] == 0.0 and scores["rmsd_pm"] < 5.0
 
@@ -84,8 +97,22 @@ def test_reconstruct_takes_a_hyperspy_signal(particle, tmp_path):
 def test_bad_input_raises_the_cli_line(tmp_path):
     """The message of InputError is the line the CLI prints for the same series."""
     data = BROKEN["single projection"][0](tmp_path / "series")
-    cli = subprocess.run([str(BIN / "gaussian-atoms"), "train", "--machine.device-type", "cpu", "--output-dir", str(tmp_path / "out"),
-                          "tilt-series", "--data", str(data)], capture_output=True, text=True, timeout=300)  # fmt: skip
+    cli = subprocess.run(
+        [
+            str(BIN / "gaussian-atoms"),
+            "train",
+            "--machine.device-type",
+            "cpu",
+            "--output-dir",
+            str(tmp_path / "out"),
+            "tilt-series",
+            "--data",
+            str(data),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert cli.returncode == 2
     with pytest.raises(ga.InputError) as info:
         ga.read_tilt_series(data)

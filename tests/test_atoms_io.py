@@ -9,7 +9,13 @@ from gaussian_atoms_method.atoms.atom_set import AtomFileError, AtomSet, read_at
 
 def _atoms():
     rng = np.random.default_rng(3)
-    return AtomSet(rng.normal(size=(7, 3)) * 10, sigmas=rng.uniform(0.5, 0.8, 7), amplitudes=rng.uniform(1, 9, 7), species=["Au"] * 3 + ["Pt"] * 4, atom_class=[1, 1, 1, 2, 2, 2, 0])
+    return AtomSet(
+        rng.normal(size=(7, 3)) * 10,
+        sigmas=rng.uniform(0.5, 0.8, 7),
+        amplitudes=rng.uniform(1, 9, 7),
+        species=["Au"] * 3 + ["Pt"] * 4,
+        atom_class=[1, 1, 1, 2, 2, 2, 0],
+    )
 
 
 @pytest.mark.parametrize("suffix", [".xyz", ".extxyz", ".csv"])
@@ -93,8 +99,14 @@ def test_xyz_and_csv_are_the_bytes_ase_and_csv_write(tmp_path, optional):
     assert (tmp_path / "ours.xyz").read_bytes() == (tmp_path / "ase.xyz").read_bytes()
     write_atoms(a, tmp_path / "ours.csv")
     n = len(a)
-    columns = {"species": a.species if a.species is not None else np.full(n, "X"), "x_A": a.positions[:, 0], "y_A": a.positions[:, 1], "z_A": a.positions[:, 2],
-               "sigma_A": a.sigmas if a.sigmas is not None else np.full(n, np.nan), "amplitude": a.amplitudes if a.amplitudes is not None else np.full(n, np.nan)}  # fmt: skip
+    columns = {
+        "species": a.species if a.species is not None else np.full(n, "X"),
+        "x_A": a.positions[:, 0],
+        "y_A": a.positions[:, 1],
+        "z_A": a.positions[:, 2],
+        "sigma_A": a.sigmas if a.sigmas is not None else np.full(n, np.nan),
+        "amplitude": a.amplitudes if a.amplitudes is not None else np.full(n, np.nan),
+    }
     if a.position_std_A is not None:
         columns.update({f"std_{axis}_A": a.position_std_A[:, k] for k, axis in enumerate("xyz")})
     if a.atom_class is not None:
@@ -103,7 +115,10 @@ def test_xyz_and_csv_are_the_bytes_ase_and_csv_write(tmp_path, optional):
         writer = csv.writer(f)
         writer.writerow(columns.keys())
         for i in range(n):
-            writer.writerow([columns["species"][i]] + [str(int(columns[k][i])) if k == "class" else repr(float(columns[k][i])) for k in list(columns)[1:]])
+            writer.writerow(
+                [columns["species"][i]]
+                + [str(int(columns[k][i])) if k == "class" else repr(float(columns[k][i])) for k in list(columns)[1:]]
+            )
     assert (tmp_path / "ours.csv").read_bytes() == (tmp_path / "csv.csv").read_bytes()
 
 
@@ -122,9 +137,8 @@ def test_plain_extended_xyz_is_read_as_ase_reads_it(tmp_path):
     """The reader of plain one-frame extended XYZ (this package's files, simulations' truth)
     gives ASE's arrays to the bit, every column included; a file it does not take (a cell, two
     frames, an unknown species) is read by ASE as before, or refused by it."""
-    import ase.io
-
     import ase.data
+    import ase.io
 
     from gaussian_atoms_method.atoms.atom_set import ELEMENTS, _read_plain_extxyz
 
@@ -132,7 +146,14 @@ def test_plain_extended_xyz_is_read_as_ase_reads_it(tmp_path):
 
     rng = np.random.default_rng(3)
     n = 300
-    full = AtomSet(rng.normal(size=(n, 3)) * 12.3456789, rng.random(n) + 0.3, rng.random(n) * 5, np.array(["Au", "Si", "O"] * 100), position_std_A=rng.random((n, 3)) * 0.1, atom_class=rng.integers(0, 3, n))
+    full = AtomSet(
+        rng.normal(size=(n, 3)) * 12.3456789,
+        rng.random(n) + 0.3,
+        rng.random(n) * 5,
+        np.array(["Au", "Si", "O"] * 100),
+        position_std_A=rng.random((n, 3)) * 0.1,
+        atom_class=rng.integers(0, 3, n),
+    )
     for atoms in (full, AtomSet(full.positions, species=full.species)):
         path = write_atoms(atoms, tmp_path / "a.xyz")
         mine, theirs = _read_plain_extxyz(path), AtomSet.from_ase(ase.io.read(path))

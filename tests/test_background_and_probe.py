@@ -40,7 +40,9 @@ def test_smooth_floor_is_recovered_from_the_frames():
     from gaussian_atoms_method.nerfstudio_layer.noise_reading import read_noise
 
     rng = np.random.default_rng(0)
-    clean = blur_and_noise(project_gaussian_potential(spherical_particle("Au", radius_A=6.0), ANGLES, 0.3, 64), 0.3, 0.5, 0.0, 0)
+    clean = blur_and_noise(
+        project_gaussian_potential(spherical_particle("Au", radius_A=6.0), ANGLES, 0.3, 64), 0.3, 0.5, 0.0, 0
+    )
     with_floor = add_varying_floor(clean, 0.25, 0.05, seed=3)
     true_floor = with_floor - clean
     data = with_floor + 0.01 * true_floor.mean() * rng.standard_normal(clean.shape)
@@ -59,7 +61,9 @@ def test_atom_scale_excess_is_one_for_the_noise_and_more_for_a_misfit():
     rng = np.random.default_rng(1)
     noise = rng.standard_normal((20, 96, 96))
     assert atom_scale_excess(noise, np.ones_like(noise), 2.0) == pytest.approx(1.0, abs=0.03)
-    misfit = convolve_views(rng.standard_normal(noise.shape), np.outer(*[np.exp(-np.arange(-8, 9) ** 2 / 8.0)] * 2))
+    misfit = convolve_views(rng.standard_normal(noise.shape), np.outer(*[np.exp(-(np.arange(-8, 9) ** 2) / 8.0)] * 2))
     assert atom_scale_excess(noise + misfit / misfit.std(), np.ones_like(noise), 2.0) > 3.0
     counts_mean = rng.uniform(0.5, 3.0, noise.shape)  # Poisson counts judged by their own model
-    assert atom_scale_excess(rng.poisson(counts_mean) - counts_mean, NoiseModel(0.0, 1.0).variance(counts_mean), 2.0) == pytest.approx(1.0, abs=0.05)
+    assert atom_scale_excess(
+        rng.poisson(counts_mean) - counts_mean, NoiseModel(0.0, 1.0).variance(counts_mean), 2.0
+    ) == pytest.approx(1.0, abs=0.05)

@@ -1,14 +1,14 @@
 """Voxel baselines (FBP, SART) and atom tracing."""
 
 import numpy as np
-import torch
 import pytest
+import torch
 
-from gaussian_atoms_method.physics.reconstruction import reconstruct
 from gaussian_atoms_method.atoms.matching import score_atoms
-from gaussian_atoms_method.harness.simulate import parse_tilts, simulate_tilt_series, spherical_particle
 from gaussian_atoms_method.atoms.peaks import suppress_within
+from gaussian_atoms_method.harness.simulate import parse_tilts, simulate_tilt_series, spherical_particle
 from gaussian_atoms_method.harness.tracing import trace_atoms
+from gaussian_atoms_method.physics.reconstruction import reconstruct
 
 
 def _blobs(centres_vox, shape=(40, 40, 40), sigma=2.4, amps=None):
@@ -34,7 +34,8 @@ def test_trace_finds_subvoxel_peaks():
 
 
 def test_minimum_distance_keeps_the_brighter():
-    vol = _blobs(np.array([[20.0, 20.0, 20.0], [26.0, 20.0, 20.0]]), sigma=1.5, amps=np.array([1.0, 0.8]))  # 1.5 Å apart
+    # 1.5 Å apart
+    vol = _blobs(np.array([[20.0, 20.0, 20.0], [26.0, 20.0, 20.0]]), sigma=1.5, amps=np.array([1.0, 0.8]))
     idx, _ = trace_atoms(vol, spacing_A=0.25, min_distance_A=2.0, threshold=0.1)
     assert len(idx) == 1 and abs(idx[0, 0] - 20.0) < 0.3
     idx, _ = trace_atoms(vol, spacing_A=0.25, min_distance_A=1.0, threshold=0.1)
@@ -63,7 +64,9 @@ def test_baselines_recover_atoms_with_our_convention(pixels, tilt_axis):
     """FBP and SART + tracing on a full tilt range of clean Gaussian data find every atom where
     our convention says it is (even and odd detectors, both tilt axes)."""
     atoms = spherical_particle("Au", 6.0)
-    sim = simulate_tilt_series(atoms, parse_tilts("-90:2:88"), potential="gaussian", detector_pixels=pixels, noise_std=2.0, tilt_axis=tilt_axis)
+    sim = simulate_tilt_series(
+        atoms, parse_tilts("-90:2:88"), potential="gaussian", detector_pixels=pixels, noise_std=2.0, tilt_axis=tilt_axis
+    )
     for method, rmsd_pm in (("fbp", 3.0), ("sart", 15.0)):
         vol = reconstruct(sim.projections, sim.angles_deg, sim.pixel_size_A, method, tilt_axis, sart_iterations=1)
         idx, _ = trace_atoms(vol.data, vol.spacing_A)

@@ -9,12 +9,19 @@ from gaussian_atoms_method.atoms.matching import score_atoms
 from gaussian_atoms_method.harness import time_to_accuracy
 from gaussian_atoms_method.harness.astra_rows import astra_unavailable
 from gaussian_atoms_method.harness.simulate import parse_tilts, simulate_tilt_series, spherical_particle
-from gaussian_atoms_method.physics.reconstruction import backprojection_matrix, filtered_backprojection, sirt, slice_sinograms
+from gaussian_atoms_method.physics.reconstruction import (
+    backprojection_matrix,
+    filtered_backprojection,
+    sirt,
+    slice_sinograms,
+)
 
 
 def _series():
     atoms = spherical_particle("Au", 6.0)
-    return atoms, simulate_tilt_series(atoms, parse_tilts("-70:5:70"), potential="gaussian", detector_pixels=64, noise_std=2.0)
+    return atoms, simulate_tilt_series(
+        atoms, parse_tilts("-70:5:70"), potential="gaussian", detector_pixels=64, noise_std=2.0
+    )
 
 
 def test_sirt_reduces_the_residual_and_agrees_with_fbp():
@@ -71,7 +78,7 @@ def test_astra_fbp_slice_has_our_orientation():
 
     _, sim = _series()
     sino, _, _ = slice_sinograms(sim.projections)
-    (_, slices), = astra_slices(sino, sim.angles_deg, "fbp")
+    ((_, slices),) = astra_slices(sino, sim.angles_deg, "fbp")
     ours = filtered_backprojection(sino, sim.angles_deg)
     assert np.corrcoef(slices.ravel(), ours.ravel())[0, 1] > 0.95
 
@@ -80,7 +87,18 @@ def test_benchmark_refuses_sirt_iterations_out_of_order_in_one_line(tmp_path, ca
     from gaussian_atoms_method.cli import entrypoint
 
     with pytest.raises(SystemExit) as info:
-        entrypoint(["benchmark", "--data", str(tmp_path / "series"), "--output", str(tmp_path / "out"), "--sirt-iterations", "25", "10"])
+        entrypoint(
+            [
+                "benchmark",
+                "--data",
+                str(tmp_path / "series"),
+                "--output",
+                str(tmp_path / "out"),
+                "--sirt-iterations",
+                "25",
+                "10",
+            ]
+        )
     err = capsys.readouterr().err
     assert info.value.code == 2 and err.count("\n") == 1 and "--sirt-iterations" in err
     assert not (tmp_path / "out").exists()

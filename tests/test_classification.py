@@ -36,10 +36,15 @@ def test_two_populations_and_vacuum_blobs_are_told_apart(tmp_path):
     assert result.atoms[: len(pos)].all() and not result.atoms[len(pos) :].any()
     light, heavy_class = result.classes[: len(pos)][~heavy], result.classes[: len(pos)][heavy]
     assert np.mean(heavy_class == np.bincount(heavy_class).argmax()) > 0.99
-    assert np.mean(light == np.bincount(light).argmax()) > 0.99 and np.bincount(light).argmax() < np.bincount(heavy_class).argmax()
+    assert (
+        np.mean(light == np.bincount(light).argmax()) > 0.99
+        and np.bincount(light).argmax() < np.bincount(heavy_class).argmax()
+    )
     counts = result.counts()
     assert counts["non-atoms"] == 30 and sum(v for k, v in counts.items() if k != "non-atoms") == len(pos)
-    write_population_png(all_masses, all_sigmas, result.atoms, result.classes, len(result.class_means), None, tmp_path / "classes.png")
+    write_population_png(
+        all_masses, all_sigmas, result.atoms, result.classes, len(result.class_means), None, tmp_path / "classes.png"
+    )
     assert (tmp_path / "classes.png").stat().st_size > 10_000
 
 
@@ -68,7 +73,13 @@ def test_mixture_in_torch_follows_the_numpy_reference():
     four components (float64 sums in another order differ by about 1e-15 per step; EM contracts
     such differences)."""
     rng = np.random.default_rng(3)
-    x = np.concatenate([rng.normal([0, 0], [0.2, 0.1], (500, 2)), rng.normal([1, 0.3], [0.3, 0.1], (300, 2)), rng.normal([2, 0.1], [0.2, 0.05], (200, 2))])
+    x = np.concatenate(
+        [
+            rng.normal([0, 0], [0.2, 0.1], (500, 2)),
+            rng.normal([1, 0.3], [0.3, 0.1], (300, 2)),
+            rng.normal([2, 0.1], [0.2, 0.05], (200, 2)),
+        ]
+    )
     for k in (1, 2, 3, 4):
         fast, slow = gaussian_mixture(x, k), gaussian_mixture_reference(x, k)
         for a, b in zip(fast[:3], slow[:3]):

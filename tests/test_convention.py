@@ -31,7 +31,10 @@ def test_resire_projections_follow_our_convention(shared_data):
 
     def corr_all(sign, centre):
         return np.array(
-            [_corr(project_volume(vol, sign * a, series.tilt_axis, centre=centre), p) for a, p in zip(series.angles_deg, series.projections)]
+            [
+                _corr(project_volume(vol, sign * a, series.tilt_axis, centre=centre), p)
+                for a, p in zip(series.angles_deg, series.projections)
+            ]
         )
 
     ours, flipped, middle = corr_all(1, centre), corr_all(-1, centre), corr_all(1, None)

@@ -48,7 +48,8 @@ def test_convergence_matches_atoms_not_indices_and_tolerates_its_share_of_change
     assert not check.update(4, positions[[3]], 0.01, precision)  # two went
     moved = ConvergenceCheck(warmup_length=0, refine_every=1, changed_fraction=0.25, match_distance=0.007)
     assert not moved.update(1, positions, 0.01, precision) and not moved.update(2, positions, 0.01, precision)
-    assert not moved.update(3, positions + torch.tensor([0.008, 0.0, 0.0]), 0.01, precision)  # farther than the match distance: all new
+    # farther than the match distance: all new
+    assert not moved.update(3, positions + torch.tensor([0.008, 0.0, 0.0]), 0.01, precision)
 
 
 def test_convergence_without_a_tilt_series_never_stops():
@@ -112,11 +113,15 @@ def test_each_check_reports_positions_set_and_scatter_apart():
     scatter = ConvergenceCheck(warmup_length=0, refine_every=1, match_distance=0.007)
     travel = ConvergenceCheck(warmup_length=0, refine_every=1, match_distance=0.007)
     for step in range(1, 4):
-        scatter.update(step, many + torch.as_tensor(rng.normal(0, 0.001, (400, 3))), 0.01, precision)  # 0.1 Å per axis about fixed places
-        travel.update(step, many + step * 0.002 + torch.as_tensor(rng.normal(0, 0.001, (400, 3))), 0.01, precision)  # and 0.2 Å per axis a check
+        # 0.1 Å per axis about fixed places
+        scatter.update(step, many + torch.as_tensor(rng.normal(0, 0.001, (400, 3))), 0.01, precision)
+        # and 0.2 Å per axis a check
+        travel.update(step, many + step * 0.002 + torch.as_tensor(rng.normal(0, 0.001, (400, 3))), 0.01, precision)
     assert scatter.scatter_only and not travel.scatter_only
     # The drift per interval with the scatter taken out: 0.2 Å per axis a check is 0.35 Å in 3D;
     # scatter alone reads near zero (its estimate's spread over 400 atoms: about 0.03 Å).
     assert travel.drift_A == pytest.approx(0.2 * np.sqrt(3), rel=0.1) and scatter.drift_A < 0.06
-    assert travel.precision_A == pytest.approx(0.1 * np.sqrt(3)) and travel.step_A == pytest.approx(np.sqrt(3 * (0.2**2 + 2 * 0.1**2)), rel=0.1)
+    assert travel.precision_A == pytest.approx(0.1 * np.sqrt(3)) and travel.step_A == pytest.approx(
+        np.sqrt(3 * (0.2**2 + 2 * 0.1**2)), rel=0.1
+    )
     assert "drifting 0.3" in travel.summary() and "precision of 0.173 Å" in travel.summary()

@@ -1,7 +1,5 @@
 """The CUDA paths agree with the CPU reference (skipped without a CUDA device or gsplat's CUDA)."""
 
-import math
-
 import numpy as np
 import pytest
 import torch
@@ -81,12 +79,17 @@ def test_noise_readings_on_cuda_equal_the_hosts():
     rows, cols = np.arange(120)[:, None], np.arange(101)[None]
     mean = np.broadcast_to(3.0 + 40.0 * np.exp(-((rows - 60) ** 2 + (cols - 50) ** 2) / 300.0), (11, 120, 101)).copy()
     data = rng.poisson(mean).astype(np.float64)
-    for a, b in zip(astuple(noise_from_projections(data, device="cpu")), astuple(noise_from_projections(torch.tensor(data, device="cuda")))):
+    for a, b in zip(
+        astuple(noise_from_projections(data, device="cpu")),
+        astuple(noise_from_projections(torch.tensor(data, device="cuda"))),
+    ):
         assert b == pytest.approx(a, rel=1e-9, abs=1e-12)
     r, m = torch.tensor(data - mean, device="cuda"), torch.tensor(mean, device="cuda")
     for a, b in zip(astuple(fit_noise_model(data - mean, mean, device="cpu")), astuple(fit_noise_model(r, m))):
         assert b == pytest.approx(a, rel=1e-9, abs=1e-12)
-    assert atom_scale_excess(r, m, 1.5) == pytest.approx(atom_scale_excess(data - mean, mean, 1.5, device="cpu"), rel=1e-9)
+    assert atom_scale_excess(r, m, 1.5) == pytest.approx(
+        atom_scale_excess(data - mean, mean, 1.5, device="cpu"), rel=1e-9
+    )
 
 
 @cuda
@@ -116,7 +119,12 @@ def test_slice_planes_on_cuda_equal_the_hosts():
     atoms = AtomSet(rng.uniform(-9, 9, (500, 3)), sigmas=rng.uniform(0.3, 0.8, 500), amplitudes=rng.uniform(1, 3, 500))
     coords = np.linspace(-10, 10, 301)
     host = potential_on_plane(atoms, 2, 0.5, 0, 1, coords, coords)
-    np.testing.assert_allclose(potential_on_plane(atoms, 2, 0.5, 0, 1, coords, coords, device="cuda"), host, rtol=1e-10, atol=1e-12 * host.max())
+    np.testing.assert_allclose(
+        potential_on_plane(atoms, 2, 0.5, 0, 1, coords, coords, device="cuda"),
+        host,
+        rtol=1e-10,
+        atol=1e-12 * host.max(),
+    )
 
 
 @cuda
@@ -127,7 +135,9 @@ def test_clusters_on_cuda_equal_the_hosts():
     rng = np.random.default_rng(4)
     pos = (rng.random((20000, 3)) * 40.0).astype(np.float32)
     mergeable = rng.random(20000) > 0.1
-    labels, count = cluster_labels_on_device(torch.tensor(pos, device="cuda"), 0.6, torch.tensor(mergeable, device="cuda"))
+    labels, count = cluster_labels_on_device(
+        torch.tensor(pos, device="cuda"), 0.6, torch.tensor(mergeable, device="cuda")
+    )
     expected = cluster_labels(pos, 0.6, mergeable)
     assert count == expected[1] < 20000 and np.array_equal(labels, expected[0])
 
@@ -142,7 +152,10 @@ def test_auto_views_per_step_on_a_gpu_stays_within_its_memory_share():
     views = R.auto_views_per_step(project_gaussians, 3000, 47, coords, coords)
     free = torch.cuda.mem_get_info()[0] + torch.cuda.memory_reserved() - torch.cuda.memory_allocated()
     assert 1 <= views <= R.MAX_VIEWS_PER_STEP
-    assert views * R.projector_bytes_per_view(project_gaussians, 3000, coords, coords) <= R.MEMORY_SHARE * free or views == 1
+    assert (
+        views * R.projector_bytes_per_view(project_gaussians, 3000, coords, coords) <= R.MEMORY_SHARE * free
+        or views == 1
+    )
 
 
 @cuda
@@ -156,9 +169,19 @@ def test_a_training_step_never_waits_for_the_gpu(tmp_path):
     from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
 
     rng = np.random.default_rng(0)
-    write_tilt_series(tmp_path, rng.uniform(0, 10, size=(5, 30, 36)).astype(np.float32), np.array([-50.0, -10.0, 0.0, 25.0, 60.0]), 0.3, truth=AtomSet(np.zeros((1, 3)), species=["Au"]))
+    write_tilt_series(
+        tmp_path,
+        rng.uniform(0, 10, size=(5, 30, 36)).astype(np.float32),
+        np.array([-50.0, -10.0, 0.0, 25.0, 60.0]),
+        0.3,
+        truth=AtomSet(np.zeros((1, 3)), species=["Au"]),
+    )
     outputs = TiltSeriesDataParserConfig(data=tmp_path).setup().get_dataparser_outputs("train")
-    model = GaussianAtomsModelConfig(num_random=50, views_per_step=3, background="constant", coarse_steps=0).setup(scene_box=outputs.scene_box, num_train_data=5, metadata=outputs.metadata).to("cuda")
+    model = (
+        GaussianAtomsModelConfig(num_random=50, views_per_step=3, background="constant", coarse_steps=0)
+        .setup(scene_box=outputs.scene_box, num_train_data=5, metadata=outputs.metadata)
+        .to("cuda")
+    )
     model.train()
     images = torch.as_tensor(outputs.metadata["projections"], device="cuda")
     cameras = [outputs.cameras[v : v + 1].to("cuda") for v in range(5)]  # as the datamanager serves them
@@ -189,11 +212,16 @@ def test_clean_with_pairs_found_on_cuda_equals_the_hosts():
 
     rng = np.random.default_rng(3)
     grid = np.indices((21, 21, 31)) - np.array([10, 10, 15])[:, None, None, None]
-    response = np.exp(-(grid[0] ** 2 + grid[1] ** 2) / 8 - grid[2] ** 2 / 60) - 0.1 * np.exp(-(grid**2).sum(axis=0) / 90)
+    response = np.exp(-(grid[0] ** 2 + grid[1] ** 2) / 8 - grid[2] ** 2 / 60) - 0.1 * np.exp(
+        -(grid**2).sum(axis=0) / 90
+    )
     peaks = np.unique(rng.integers(0, 80, (6000, 3)), axis=0)
     peaks = peaks[rng.permutation(len(peaks))]
     values = np.sort(rng.uniform(0.5, 10.0, len(peaks)))[::-1]
-    host, gpu = clean_peaks(peaks, values, response, np.array([10, 10, 15]), 2.0), clean_peaks(peaks, values, response, np.array([10, 10, 15]), 2.0, "cuda")
+    host, gpu = (
+        clean_peaks(peaks, values, response, np.array([10, 10, 15]), 2.0),
+        clean_peaks(peaks, values, response, np.array([10, 10, 15]), 2.0, "cuda"),
+    )
     assert 0.2 * len(peaks) < len(host[0]) < len(peaks)
     assert host[0].tolist() == gpu[0].tolist()
     np.testing.assert_allclose(gpu[1], host[1], rtol=1e-12)
@@ -210,17 +238,46 @@ def test_separated_maxima_on_cuda_equal_the_hosts():
     field = ndimage.gaussian_filter(np.random.default_rng(6).standard_normal((60, 50, 70)), 1.2)
     expected = peaks.separated_maxima(field, 0.25, 1.0, 0.01)
     assert len(expected) > 100
-    np.testing.assert_array_equal(volume_filters.separated_maxima(torch.as_tensor(field, device="cuda"), 0.25, 1.0, 0.01), expected)
+    np.testing.assert_array_equal(
+        volume_filters.separated_maxima(torch.as_tensor(field, device="cuda"), 0.25, 1.0, 0.01), expected
+    )
 
 
 def _train(data, out, graphs: bool, steps: int, views: int):
     """A short run on the GPU through nerfstudio's trainer; returns the model."""
     from gaussian_atoms_method.nerfstudio_layer.train import build_config, make_trainer
 
-    config = build_config(["--machine.device-type", "cuda", "--vis", "tensorboard", "--output-dir", str(out), "--timestamp", "run", "--max-num-iterations", str(steps),
-                           "--pipeline.model.cuda-graphs", str(graphs), "--pipeline.model.views-per-step", str(views), "--pipeline.model.coarse-steps", "20",
-                           "--pipeline.model.warmup-length", "30", "--pipeline.model.refine-every", "20", "--pipeline.model.merge-every", "20",
-                           "--pipeline.model.stop-when-converged", "False", "tilt-series", "--data", str(data)])  # fmt: skip
+    config = build_config(
+        [
+            "--machine.device-type",
+            "cuda",
+            "--vis",
+            "tensorboard",
+            "--output-dir",
+            str(out),
+            "--timestamp",
+            "run",
+            "--max-num-iterations",
+            str(steps),
+            "--pipeline.model.cuda-graphs",
+            str(graphs),
+            "--pipeline.model.views-per-step",
+            str(views),
+            "--pipeline.model.coarse-steps",
+            "20",
+            "--pipeline.model.warmup-length",
+            "30",
+            "--pipeline.model.refine-every",
+            "20",
+            "--pipeline.model.merge-every",
+            "20",
+            "--pipeline.model.stop-when-converged",
+            "False",
+            "tilt-series",
+            "--data",
+            str(data),
+        ]
+    )
     trainer = make_trainer(config)
     trainer.train()
     return trainer.pipeline.model
@@ -237,7 +294,9 @@ def test_steps_replayed_as_a_cuda_graph_train_as_eager_steps(tmp_path, views):
     from gaussian_atoms_method.harness.simulate import simulate_tilt_series, spherical_particle
 
     truth = spherical_particle("Au", radius_A=5.0)
-    sim = simulate_tilt_series(truth, np.arange(-70.0, 71.0, 10.0), potential="gaussian", noise_std=20.0, floor_fraction=0.05, seed=0)
+    sim = simulate_tilt_series(
+        truth, np.arange(-70.0, 71.0, 10.0), potential="gaussian", noise_std=20.0, floor_fraction=0.05, seed=0
+    )
     data = write_tilt_series(tmp_path / "series", sim.projections, sim.angles_deg, sim.pixel_size_A, truth=truth)
     eager = _train(data, tmp_path / "eager", False, 70, views)
     graphed = _train(data, tmp_path / "graphed", True, 70, views)

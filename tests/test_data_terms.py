@@ -43,7 +43,9 @@ def test_poisson_fit_of_counts_is_unbiased_where_l1_is_not():
 def _sphere_series(noise):
     from gaussian_atoms_method.harness.simulate import parse_tilts, simulate_gaussian_tilt_series, spherical_particle
 
-    return simulate_gaussian_tilt_series(spherical_particle("Au", radius_A=6.0), parse_tilts("limited")[::4], noise_std=noise, seed=3)
+    return simulate_gaussian_tilt_series(
+        spherical_particle("Au", radius_A=6.0), parse_tilts("limited")[::4], noise_std=noise, seed=3
+    )
 
 
 def test_noise_read_before_the_fit_tells_counts_from_additive_noise():

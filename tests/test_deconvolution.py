@@ -4,7 +4,14 @@ constructed cases; the step on a simulated carbon sphere is in ``test_initialise
 import numpy as np
 from scipy import ndimage
 
-from gaussian_atoms_method.atoms.deconvolution import decoy_level, fit_amplitudes, matched_response, peak_sharpness, subvoxel_peaks, remainder_sites
+from gaussian_atoms_method.atoms.deconvolution import (
+    decoy_level,
+    fit_amplitudes,
+    matched_response,
+    peak_sharpness,
+    remainder_sites,
+    subvoxel_peaks,
+)
 from gaussian_atoms_method.atoms.point_response import backprojected_atom, peak_normalised
 from gaussian_atoms_method.harness.simulate import parse_tilts
 
@@ -96,7 +103,9 @@ def test_the_fit_on_a_device_is_the_hosts():
     positions = rng.uniform(4, 27, size=(40, 3))
     field = np.zeros((33, 31, 29), dtype=np.float32)
     for p, a in zip(positions, rng.uniform(0.5, 2.0, 40)):
-        field += a * np.exp(-0.5 * np.sum((np.indices(field.shape) - p[:, None, None, None]) ** 2, axis=0) / 1.2**2).astype(np.float32)
+        field += a * np.exp(
+            -0.5 * np.sum((np.indices(field.shape) - p[:, None, None, None]) ** 2, axis=0) / 1.2**2
+        ).astype(np.float32)
     field += 0.01 * rng.standard_normal(field.shape).astype(np.float32)
     a_host, m_host = fit_amplitudes(field, positions, response, (4, 4, 4), iterations=3)
     a_dev, m_dev = fit_amplitudes_on_device(torch.as_tensor(field), positions, response, (4, 4, 4), iterations=3)

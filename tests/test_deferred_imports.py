@@ -30,11 +30,14 @@ def test_the_plugin_leaves_torchvision_unimported_until_it_is_read():
         import torchvision.transforms.functional
         assert isinstance(sys.modules["matplotlib"], DeferredModule)
         import matplotlib.pyplot as plt  # a submodule imported first: the real package comes with it
-        assert not isinstance(sys.modules["matplotlib"], DeferredModule) and plt.figure is sys.modules["matplotlib.pyplot"].figure
+        assert not isinstance(sys.modules["matplotlib"], DeferredModule)
+        assert plt.figure is sys.modules["matplotlib.pyplot"].figure
         print("ok")
         """
     )
-    run = subprocess.run([sys.executable, "-W", "ignore", "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    run = subprocess.run(
+        [sys.executable, "-W", "ignore", "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300
+    )
     assert run.returncode == 0 and run.stdout.strip().endswith("ok"), run.stderr[-2000:]
 
 
@@ -77,7 +80,9 @@ def test_tensorly_and_dynamo_wait_until_something_uses_them():
         print("ok")
         """
     )
-    run = subprocess.run([sys.executable, "-W", "ignore", "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    run = subprocess.run(
+        [sys.executable, "-W", "ignore", "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300
+    )
     assert run.returncode == 0 and run.stdout.strip().endswith("ok"), run.stderr[-2000:]
 
 
@@ -93,7 +98,9 @@ def test_broadcast_shapes_of_plain_ints_match_torchs_own_without_sympy():
         import gaussian_atoms_method.nerfstudio_layer
         from gaussian_atoms_method.nerfstudio_layer.deferred_imports import _plain_broadcast
         from nerfstudio.cameras.cameras import Cameras, CameraType
-        cams = Cameras(camera_to_worlds=torch.eye(4)[:3].expand(5, 3, 4), fx=1.0, fy=1.0, cx=4.0, cy=4.0, width=8, height=8, camera_type=CameraType.ORTHOPHOTO)
+        poses = torch.eye(4)[:3].expand(5, 3, 4)
+        ortho = CameraType.ORTHOPHOTO
+        cams = Cameras(camera_to_worlds=poses, fx=1.0, fy=1.0, cx=4.0, cy=4.0, width=8, height=8, camera_type=ortho)
         cams[2:4], cams[torch.tensor([1])]
         assert "sympy" not in sys.modules and "torch.fx.experimental.symbolic_shapes" not in sys.modules
         shapes = [(), (0,), (1,), (3,), (1, 1), (2, 1), (1, 3), (2, 3), (0, 3), (4, 1, 3)]
@@ -115,5 +122,7 @@ def test_broadcast_shapes_of_plain_ints_match_torchs_own_without_sympy():
         print("ok")
         """
     )
-    run = subprocess.run([sys.executable, "-W", "ignore", "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    run = subprocess.run(
+        [sys.executable, "-W", "ignore", "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300
+    )
     assert run.returncode == 0 and run.stdout.strip().endswith("ok"), run.stderr[-2000:]

@@ -93,7 +93,9 @@ def test_pulled_gaussian_is_duplicated_with_half_the_mass_each():
 
 
 def test_refine_runs_only_on_refine_steps_after_the_warm_up():
-    params, opts, control = _setup([[0.0, 0.0, 0.0], [0.3, 0.0, 0.0]], sigma_A=0.06, warmup_length=200, refine_every=100)
+    params, opts, control = _setup(
+        [[0.0, 0.0, 0.0], [0.3, 0.0, 0.0]], sigma_A=0.06, warmup_length=200, refine_every=100
+    )
     control.length_scale = 0.1
     with torch.no_grad():
         params["log_amplitudes"][1] -= math.log(100.0)
@@ -103,7 +105,9 @@ def test_refine_runs_only_on_refine_steps_after_the_warm_up():
 
 
 def test_clamp_keeps_runaway_values_finite():
-    params, opts, control = _setup([[0.0, 0.0, 0.0], [0.3, 0.0, 0.0]], sigma_A=0.06, min_sigma_A=0.15, max_sigma_A=5.0, max_log_amplitude=3.0)
+    params, opts, control = _setup(
+        [[0.0, 0.0, 0.0], [0.3, 0.0, 0.0]], sigma_A=0.06, min_sigma_A=0.15, max_sigma_A=5.0, max_log_amplitude=3.0
+    )
     control.length_scale = 0.1
     with torch.no_grad():
         params["log_sigmas"][0] = 50.0
@@ -151,7 +155,9 @@ def _pair_along_the_wedge(separation_A, sigma_A, each_significance):
     """Two Gaussians ``separation_A`` apart along z (the direction the missing wedge blurs) in a
     100 Å box at 0.25 Å pixels, unit additive noise, L1 efficiency, each of the given mass
     significance; returns params, optimisers, control."""
-    params, opts, control = _setup([[0.0, 0.0, 0.0], [0.0, 0.0, separation_A * 0.01]], sigma_A=sigma_A * 0.01, min_sigma_A=0.01)
+    params, opts, control = _setup(
+        [[0.0, 0.0, 0.0], [0.0, 0.0, separation_A * 0.01]], sigma_A=sigma_A * 0.01, min_sigma_A=0.01
+    )
     control.length_scale = 0.01
     dirs = _tilt_series_dirs()
     _with_noise(control, pixel_size=0.0025, n_views=len(dirs), view_dirs=dirs)
@@ -218,14 +224,17 @@ def test_mass_significance_matches_the_numerical_fisher_information():
 def test_final_prune_by_significance_keeps_a_faint_atom_and_drops_a_noise_blob():
     """With the noise known, the final prune asks whether each mass is significantly above zero:
     a light atom at 9 sigma stays beside a heavy one (a mass fraction of 0.08: the relative rule
-    of the training-time prunes would drop it), a blob at 2 sigma goes.  The threshold for a 100 Å box (10^6 cells, 5%) is
+    of the training-time prunes would drop it), a blob at 2 sigma goes.  The threshold for a 100 Å box (10^6 cells, 5%)
+    is
     5.33 sigma."""
     params, opts, control = _setup([[0.0, 0.0, 0.0], [0.2, 0.0, 0.0], [-0.2, 0.0, 0.0]], sigma_A=0.006)
     control.length_scale = 0.01  # a 100 Å box; the Gaussians 0.6 Å wide, 20 Å apart
     _with_noise(control, pixel_size=0.0025)
     z_unit = float(control.mass_significance(params)[0])  # amplitude 1
     with torch.no_grad():
-        params["log_amplitudes"][:] = torch.log(torch.tensor([[110.0 / z_unit], [9.0 / z_unit], [2.0 / z_unit]], dtype=torch.float64))
+        params["log_amplitudes"][:] = torch.log(
+            torch.tensor([[110.0 / z_unit], [9.0 / z_unit], [2.0 / z_unit]], dtype=torch.float64)
+        )
     assert control.significance_threshold() == pytest.approx(5.33, abs=0.01)
     assert control.prune(params, opts, final=True) == 1
     kept = control.mass_significance(params)
@@ -303,7 +312,9 @@ def test_a_weak_atom_a_bond_away_is_not_merged_into_its_neighbour():
     assert control.shortest_bond(params["means"], ~weak) == pytest.approx(0.025, rel=1e-12)
     assert control.merge_unresolved(params, opts) == 1  # the fragment only
     assert params["means"].shape[0] == 27
-    assert float((params["means"] - torch.tensor([0.025, 0.025, 0.025], dtype=torch.float64)).norm(dim=-1).min()) < 1e-12
+    assert (
+        float((params["means"] - torch.tensor([0.025, 0.025, 0.025], dtype=torch.float64)).norm(dim=-1).min()) < 1e-12
+    )
 
 
 def _series_axes(dirs):
@@ -346,11 +357,17 @@ def test_likelihood_change_matches_the_pixel_chi_square_and_tells_a_split_atom_f
     residual, weight = data - model, 1.0 / 0.01
 
     def correlations(means, sigmas):
-        images = torch.stack([project_gaussians(m[None], s[None], torch.ones(1, dtype=torch.float64), axes, coords, coords) for m, s in zip(means, sigmas)])
+        images = torch.stack(
+            [
+                project_gaussians(m[None], s[None], torch.ones(1, dtype=torch.float64), axes, coords, coords)
+                for m, s in zip(means, sigmas)
+            ]
+        )
         return (images * residual * weight).sum(dim=(1, 2, 3)).numpy()
 
     change = control.likelihood_change(params, np.array([[0, 1]]), correlations)[0]
-    merged = project_gaussians(torch.zeros(1, 3, dtype=torch.float64), sig[:1], 2.0 * amp[:1], axes, coords, coords)  # equal masses and widths
+    # equal masses and widths
+    merged = project_gaussians(torch.zeros(1, 3, dtype=torch.float64), sig[:1], 2.0 * amp[:1], axes, coords, coords)
     pixel = float((weight * ((residual + model - merged) ** 2 - residual**2)).sum())
     energy = float((weight * (model - merged) ** 2).sum())
     assert change == pytest.approx(pixel, abs=1e-6 * energy)
@@ -394,10 +411,14 @@ def test_a_gaussian_holding_two_atoms_is_split_along_the_missing_wedge():
     pair = params["means"].detach()[[heavy, 343]].numpy()
     offset = (pair[0] - pair[1]) / 0.01
     # -70:3:68 is not quite symmetric: the beams' mean axis leans 1 degree from z.
-    assert np.linalg.norm(offset) == pytest.approx(distance / 0.01, rel=1e-9) and abs(offset[2]) / np.linalg.norm(offset) > math.cos(math.radians(2.0))
+    assert np.linalg.norm(offset) == pytest.approx(distance / 0.01, rel=1e-9) and abs(offset[2]) / np.linalg.norm(
+        offset
+    ) > math.cos(math.radians(2.0))
     assert 2.2 <= distance / 0.01 <= 2.5
     assert float(_mass(params, control).detach().sum()) == pytest.approx(total, rel=1e-9)
-    assert widths(params, control.min_log_sigma)[[heavy, 343]].detach().numpy() == pytest.approx([0.006, 0.006], rel=1e-9)
+    assert widths(params, control.min_log_sigma)[[heavy, 343]].detach().numpy() == pytest.approx(
+        [0.006, 0.006], rel=1e-9
+    )
     assert opts["means"].state[params["means"]]["exp_avg"].shape == (344, 3)
     assert control.split_heavy_gaussians(params, opts) == 0  # once a run
 
@@ -413,7 +434,13 @@ def test_settling_mid_run_applies_the_final_prune_but_spares_fresh_additions():
     with torch.no_grad():
         params["log_amplitudes"][:] = torch.log(torch.tensor([[110.0 / z_unit], [2.0 / z_unit]], dtype=torch.float64))
     control.step = 700
-    control.add(params, opts, torch.tensor([[-0.2, 0.0, 0.0]], dtype=torch.float64), 0.006, _mass(params, control)[1:2].detach().clone())
+    control.add(
+        params,
+        opts,
+        torch.tensor([[-0.2, 0.0, 0.0]], dtype=torch.float64),
+        0.006,
+        _mass(params, control)[1:2].detach().clone(),
+    )
     assert control.descendants(700) == 1
     assert control.settle(params, opts) == 1 and params["means"].shape[0] == 2
     assert control.descendants(700) == 1 and control.descendants(0) == 0

@@ -27,14 +27,45 @@ def test_ns_train_lists_method_and_dataparser():
 
 def test_simulate_train_evaluate(tmp_path):
     data = tmp_path / "data"
-    sim = _run(BIN / "gaussian-atoms", "simulate", "--output", data, "--particle", "sphere", "--potential", "gaussian", "--radius-A", "6", "--tilts", "-70:5:70", "--noise-std", "20")
+    sim = _run(
+        BIN / "gaussian-atoms",
+        "simulate",
+        "--output",
+        data,
+        "--particle",
+        "sphere",
+        "--potential",
+        "gaussian",
+        "--radius-A",
+        "6",
+        "--tilts",
+        "-70:5:70",
+        "--noise-std",
+        "20",
+    )
     assert sim.returncode == 0, sim.stderr
     train = _run(
-        BIN / "ns-train", "gaussian-atoms", "--machine.device-type", "cpu", "--vis", "tensorboard",
-        "--output-dir", tmp_path / "out", "--experiment-name", "e2e", "--timestamp", "run",
-        "--max-num-iterations", "1000", "--pipeline.model.num-random", "1500",
-        "tilt-series", "--data", data, preexec_fn=lambda: os.umask(0o022),
-    )  # fmt: skip
+        BIN / "ns-train",
+        "gaussian-atoms",
+        "--machine.device-type",
+        "cpu",
+        "--vis",
+        "tensorboard",
+        "--output-dir",
+        tmp_path / "out",
+        "--experiment-name",
+        "e2e",
+        "--timestamp",
+        "run",
+        "--max-num-iterations",
+        "1000",
+        "--pipeline.model.num-random",
+        "1500",
+        "tilt-series",
+        "--data",
+        data,
+        preexec_fn=lambda: os.umask(0o022),
+    )
     assert train.returncode == 0, train.stdout[-3000:] + train.stderr[-3000:]
     # The data's noise is additive Gaussian (noise-std 20): the residuals' variance-mean
     # relation says so (physics/noise.py; tests/test_noise.py for Poisson and mixed noise).
@@ -44,7 +75,16 @@ def test_simulate_train_evaluate(tmp_path):
     truth = ase.io.read(data / "atoms_true.xyz")
     assert (run / "atoms.csv").is_file() and (run / "config.yml").is_file() and (run / "slices.png").is_file()
     # Under umask 022 a colleague on the same machine can read every result (not mkstemp's 0600).
-    for name in ("atoms.xyz", "atoms.csv", "non_atoms.xyz", "slices.png", "classes.png", "rdf.png", "structure.json", "evaluation.json"):
+    for name in (
+        "atoms.xyz",
+        "atoms.csv",
+        "non_atoms.xyz",
+        "slices.png",
+        "classes.png",
+        "rdf.png",
+        "structure.json",
+        "evaluation.json",
+    ):
         assert stat.S_IMODE(os.stat(run / name).st_mode) & 0o044 == 0o044, name
     # Each atom's position precision (Cramér-Rao, tests/test_uncertainty.py): at a peak-to-noise
     # near 70 and 29 views, about a pm per axis, never above the 5 pm the RMSD is held to below.
@@ -57,7 +97,9 @@ def test_simulate_train_evaluate(tmp_path):
     in_run = json.loads((run / "evaluation.json").read_text())
     run_only = {"converged", "steps"}  # how the run ended: the evaluate verb scores atoms alone
     assert in_run["converged"] is True and 0 < in_run["steps"] <= 3000
-    assert {k: v for k, v in in_run.items() if k not in run_only | {"rmsd_pm"}} == {k: v for k, v in scores.items() if k != "rmsd_pm"}
+    assert {k: v for k, v in in_run.items() if k not in run_only | {"rmsd_pm"}} == {
+        k: v for k, v in scores.items() if k != "rmsd_pm"
+    }
     assert in_run["rmsd_pm"] == pytest.approx(scores["rmsd_pm"], abs=1e-6)
     # Data made with the model's own physics at a peak-to-noise near 70 and every atom well
     # separated (2.9 Å vs 0.61 Å blur): every atom must be found, none invented, and positions
@@ -69,16 +111,25 @@ def test_simulate_train_evaluate(tmp_path):
     assert 0.45 < atoms.arrays["sigma_A"].mean() < 0.8
     # The checkpoint loads back as ns-viewer / ns-eval load it (torch >= 2.6 weights_only
     # loading included), holding the atoms that were written.
-    load = _run(sys.executable, "-c", (
-        "import sys, numpy as np; from pathlib import Path; from nerfstudio.utils.eval_utils import eval_setup; "
-        "_, pipe, _, step = eval_setup(Path(sys.argv[1]), test_mode='inference'); "
-        "np.save(sys.argv[2], pipe.model.atoms().positions); print(step)"
-    ), run / "config.yml", tmp_path / "loaded.npy", cwd=Path.cwd())  # fmt: skip
+    load = _run(
+        sys.executable,
+        "-c",
+        (
+            "import sys, numpy as np; from pathlib import Path; from nerfstudio.utils.eval_utils import eval_setup; "
+            "_, pipe, _, step = eval_setup(Path(sys.argv[1]), test_mode='inference'); "
+            "np.save(sys.argv[2], pipe.model.atoms().positions); print(step)"
+        ),
+        run / "config.yml",
+        tmp_path / "loaded.npy",
+        cwd=Path.cwd(),
+    )
     assert load.returncode == 0, load.stderr[-3000:]
     np.testing.assert_allclose(np.load(tmp_path / "loaded.npy"), atoms.get_positions(), atol=1e-4)
     # ns-viewer on a run whose data has gone: one line naming the file, exit 2, no traceback.
     data.rename(tmp_path / "moved")
-    viewer = subprocess.run([str(BIN / "ns-viewer"), "--load-config", str(run / "config.yml")], capture_output=True, text=True, timeout=120)
+    viewer = subprocess.run(
+        [str(BIN / "ns-viewer"), "--load-config", str(run / "config.yml")], capture_output=True, text=True, timeout=120
+    )
     assert viewer.returncode == 2 and "Traceback" not in viewer.stderr
     assert f"{data}: data directory not found" in viewer.stderr
 
@@ -95,15 +146,47 @@ def test_gaussian_atoms_train_is_ns_train(tmp_path):
     written, and a config.yml that differs only in the names given on the command line; a
     boolean option with the value False works in both."""
     data = tmp_path / "data"
-    sim = _run(BIN / "gaussian-atoms", "simulate", "--output", data, "--particle", "sphere", "--potential", "gaussian", "--radius-A", "5", "--tilts", "-70:10:70", "--noise-std", "20")
+    sim = _run(
+        BIN / "gaussian-atoms",
+        "simulate",
+        "--output",
+        data,
+        "--particle",
+        "sphere",
+        "--potential",
+        "gaussian",
+        "--radius-A",
+        "5",
+        "--tilts",
+        "-70:10:70",
+        "--noise-std",
+        "20",
+    )
     assert sim.returncode == 0, sim.stderr
     runs = {}
     for name, launcher in (("ga", [BIN / "gaussian-atoms", "train"]), ("ns", [BIN / "ns-train", "gaussian-atoms"])):
         train = _run(
-            *launcher, "--machine.device-type", "cpu", "--vis", "tensorboard", "--output-dir", tmp_path / "out",
-            "--experiment-name", name, "--timestamp", "run", "--max-num-iterations", "300",
-            "--pipeline.model.num-random", "400", "--pipeline.model.stop-when-converged", "False", "tilt-series", "--data", data,
-        )  # fmt: skip
+            *launcher,
+            "--machine.device-type",
+            "cpu",
+            "--vis",
+            "tensorboard",
+            "--output-dir",
+            tmp_path / "out",
+            "--experiment-name",
+            name,
+            "--timestamp",
+            "run",
+            "--max-num-iterations",
+            "300",
+            "--pipeline.model.num-random",
+            "400",
+            "--pipeline.model.stop-when-converged",
+            "False",
+            "tilt-series",
+            "--data",
+            data,
+        )
         assert train.returncode == 0, train.stdout[-3000:] + train.stderr[-3000:]
         runs[name] = tmp_path / "out" / name / "gaussian-atoms" / "run"
         if name == "ga":  # our lines and a progress bar, no configuration dump: it ends with what it found
@@ -113,7 +196,9 @@ def test_gaussian_atoms_train_is_ns_train(tmp_path):
             ending = " ".join(own_lines(train.stdout)[-4:])  # the console wraps its long last line
             assert "gaussian-atoms: against" in ending and ending.endswith("}") and "method_name=" not in train.stdout
     assert (runs["ga"] / "atoms.xyz").read_text() == (runs["ns"] / "atoms.xyz").read_text()
-    configs = [(runs[n] / "config.yml").read_text().replace(f"experiment_name: {n}", "").replace(f"/{n}/", "/") for n in runs]
+    configs = [
+        (runs[n] / "config.yml").read_text().replace(f"experiment_name: {n}", "").replace(f"/{n}/", "/") for n in runs
+    ]
     assert configs[0] == configs[1]
     # A boolean given a value, as nerfstudio's FlagConversionOff allows, means the same in both.
     assert "stop_when_converged: false" in configs[0]
@@ -124,9 +209,31 @@ def test_gaussian_atoms_train_is_ns_train(tmp_path):
     assert max(max(steps) for steps in _scalar_steps(runs["ga"]).values()) >= 290
     # Bad input: one line naming the file; an option it cannot honour: named, with the way out.
     (tmp_path / "tilt_series.json").write_text('{"projections": "p.npy", "angles_deg": "a.txt", "pixel_size_A": 0.25}')
-    bad = _run(BIN / "gaussian-atoms", "train", "--machine.device-type", "cpu", "--vis", "tensorboard", "--output-dir", tmp_path / "out", "tilt-series", "--data", tmp_path)
+    bad = _run(
+        BIN / "gaussian-atoms",
+        "train",
+        "--machine.device-type",
+        "cpu",
+        "--vis",
+        "tensorboard",
+        "--output-dir",
+        tmp_path / "out",
+        "tilt-series",
+        "--data",
+        tmp_path,
+    )
     assert bad.returncode == 2 and "p.npy: projections file not found" in bad.stderr
-    two = _run(BIN / "gaussian-atoms", "train", "--machine.num-devices", "2", "--output-dir", tmp_path / "out", "tilt-series", "--data", data)
+    two = _run(
+        BIN / "gaussian-atoms",
+        "train",
+        "--machine.num-devices",
+        "2",
+        "--output-dir",
+        tmp_path / "out",
+        "tilt-series",
+        "--data",
+        data,
+    )
     assert two.returncode == 2 and "--machine.num-devices 2" in two.stderr and "ns-train" in two.stderr
 
 
@@ -146,10 +253,36 @@ def test_time_to_accuracy_benchmark(tmp_path):
     import csv
 
     data = tmp_path / "data"
-    sim = _run(BIN / "gaussian-atoms", "simulate", "--output", data, "--particle", "sphere", "--potential", "gaussian", "--radius-A", "5", "--tilts", "-70:10:70", "--noise-std", "20")
+    sim = _run(
+        BIN / "gaussian-atoms",
+        "simulate",
+        "--output",
+        data,
+        "--particle",
+        "sphere",
+        "--potential",
+        "gaussian",
+        "--radius-A",
+        "5",
+        "--tilts",
+        "-70:10:70",
+        "--noise-std",
+        "20",
+    )
     assert sim.returncode == 0, sim.stderr
     out = tmp_path / "bench"
-    bench = _run(BIN / "gaussian-atoms", "benchmark", "--data", data, "--output", out, "--iterations", "400", "--snapshot-every", "100")
+    bench = _run(
+        BIN / "gaussian-atoms",
+        "benchmark",
+        "--data",
+        data,
+        "--output",
+        out,
+        "--iterations",
+        "400",
+        "--snapshot-every",
+        "100",
+    )
     assert bench.returncode == 0, bench.stdout[-3000:] + bench.stderr[-3000:]
     rows = list(csv.DictReader(open(out / "time_to_accuracy.csv")))
     assert [r["method"] for r in rows[:2]] == ["fbp", "sart"]

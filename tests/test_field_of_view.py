@@ -34,7 +34,8 @@ def test_film_evidence_tells_a_slab_from_a_particle():
     """A slab wider than the detector puts material under it in proportion to 1/cos(theta): its
     growth term stands far above the views' scatter and carries most of the zero-tilt mass (not
     all: the slab's atoms are discrete, so the number under the detector fluctuates from view to
-    view about the uniform slab's t / cos(theta); 0.82 here).  A particle inside the field keeps its mass at every tilt: within a few
+    view about the uniform slab's t / cos(theta); 0.82 here).  A particle inside the field keeps its mass at every
+    tilt: within a few
     standard errors of no growth."""
     rng = np.random.default_rng(0)
     film = film_evidence(_project(_slab(rng), rng), ANGLES)
@@ -47,7 +48,9 @@ def test_film_evidence_tells_a_slab_from_a_particle():
 
 def test_slab_half_width_is_where_the_steepest_rays_travel():
     """x = (u + z sin theta) / cos theta at the edge of the detector and the slab, steepest tilt."""
-    assert slab_half_width(10.0, 5.0, np.array([-60.0, 0.0, 45.0])) == pytest.approx((10 + 5 * math.sin(math.pi / 3)) / 0.5)
+    assert slab_half_width(10.0, 5.0, np.array([-60.0, 0.0, 45.0])) == pytest.approx(
+        (10 + 5 * math.sin(math.pi / 3)) / 0.5
+    )
     assert slab_half_width(10.0, 5.0, np.zeros(3)) == pytest.approx(10.0)  # untilted: the detector itself
 
 
@@ -64,7 +67,9 @@ def test_slab_reports_only_the_gaussians_above_the_detector(tmp_path, monkeypatc
     projections = _project(atoms, rng, noise=0.5)
     write_tilt_series(tmp_path / "series", projections, ANGLES, PIXEL_A, truth=atoms)
     outputs = TiltSeriesDataParserConfig(data=tmp_path / "series").setup().get_dataparser_outputs("train")
-    model = GaussianAtomsModelConfig(coarse_steps=0).setup(scene_box=outputs.scene_box, num_train_data=len(outputs.image_filenames), metadata=outputs.metadata)
+    model = GaussianAtomsModelConfig(coarse_steps=0).setup(
+        scene_box=outputs.scene_box, num_train_data=len(outputs.image_filenames), metadata=outputs.metadata
+    )
     ls = model.normalisation.length_scale
     detector_half_A = 0.5 * 64 * PIXEL_A
     assert model.density.half_extent[0] / ls == pytest.approx(slab_half_width(detector_half_A, 0.5 / ls, ANGLES))
@@ -80,11 +85,14 @@ def test_slab_reports_only_the_gaussians_above_the_detector(tmp_path, monkeypatc
     # The pictures drawn by child processes, as on a machine with cores to spare (atoms/picture_process.py)
     monkeypatch.setattr(picture_process, "spare_cores", lambda: True)
     model.write_results(tmp_path / "run")
-    assert (tmp_path / "run" / "slices.png").stat().st_size > 10_000 and (tmp_path / "run" / "classes.png").stat().st_size > 10_000
+    assert (tmp_path / "run" / "slices.png").stat().st_size > 10_000 and (
+        tmp_path / "run" / "classes.png"
+    ).stat().st_size > 10_000
     reported = read_atoms(tmp_path / "run" / "atoms.xyz")
     others = read_atoms(tmp_path / "run" / "non_atoms.xyz")
     assert len(reported) > 0 and not beyond(reported.positions).any()
-    assert len(others) > 0 and beyond(others.positions).mean() > 0.9  # nearly all of them across the tilt axis, in the outer film
+    # nearly all of them across the tilt axis, in the outer film
+    assert len(others) > 0 and beyond(others.positions).mean() > 0.9
     # In the field a non-atom is one the classification puts outside the support: never a true atom (none within 0.75 Å)
     in_field = ~(np.abs(others.positions) > detector_half_A - 1e-6).any(axis=1)
     if in_field.any():
@@ -101,6 +109,8 @@ def test_particle_inside_the_field_keeps_the_cube(tmp_path):
     write_tilt_series(tmp_path, _project(atoms, rng, pixels=48), ANGLES, PIXEL_A, truth=atoms)
     outputs = TiltSeriesDataParserConfig(data=tmp_path).setup().get_dataparser_outputs("train")
     for option, wide in (("auto", False), ("off", False), ("on", True)):
-        model = GaussianAtomsModelConfig(extended_object=option).setup(scene_box=outputs.scene_box, num_train_data=len(outputs.image_filenames), metadata=outputs.metadata)
+        model = GaussianAtomsModelConfig(extended_object=option).setup(
+            scene_box=outputs.scene_box, num_train_data=len(outputs.image_filenames), metadata=outputs.metadata
+        )
         assert (model.density.half_extent[0] > 0.5) == wide, option
         assert model.field_half_extent == (0.5, 0.5, 0.5)

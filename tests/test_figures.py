@@ -22,7 +22,11 @@ def test_plane_equals_the_central_slice_of_the_voxelised_potential():
     n, spacing = 61, 0.25
     volume = voxelise_gaussians(atoms.positions, atoms.sigmas, atoms.amplitudes, spacing, (n, n, n))
     coords = (np.arange(n) - (n - 1) / 2) * spacing
-    for normal, u, v, sl in ((2, 0, 1, volume[:, :, n // 2]), (1, 0, 2, volume[:, n // 2, :]), (0, 1, 2, volume[n // 2])):
+    for normal, u, v, sl in (
+        (2, 0, 1, volume[:, :, n // 2]),
+        (1, 0, 2, volume[:, n // 2, :]),
+        (0, 1, 2, volume[n // 2]),
+    ):
         plane = potential_on_plane(atoms, normal, 0.0, u, v, coords, coords)
         np.testing.assert_allclose(plane, sl, atol=3.5e-4 * atoms.amplitudes.max() * 4)
 
@@ -68,5 +72,9 @@ def test_dose_figure_reads_ours_and_the_peer_and_draws(tmp_path):
     assert methods["ours"][0] == [20.0, 80.0] and methods["ours"][1]["rmsd_pm"] == [10.9, 5.0]
     assert set(methods) == {"ours", "sart"}
     out = tmp_path / "dose.png"
-    subprocess.run([sys.executable, str(script), "--peer", str(peer), "--au", str(au), "--output", str(out)], check=True, capture_output=True)
+    subprocess.run(
+        [sys.executable, str(script), "--peer", str(peer), "--au", str(au), "--output", str(out)],
+        check=True,
+        capture_output=True,
+    )
     assert out.stat().st_size > 10_000

@@ -5,7 +5,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gaussian_atoms_method.harness.film_benchmark import area_geometry, model_in_area_A, prepare_area, score_area, scored_region
+from gaussian_atoms_method.harness.film_benchmark import (
+    area_geometry,
+    model_in_area_A,
+    prepare_area,
+    score_area,
+    scored_region,
+)
 
 DATA = Path("../shared/data/ta_film")
 pytestmark = pytest.mark.skipif(not (DATA / "alignPara.mat").is_file(), reason="needs ../shared/data/ta_film")
@@ -32,7 +38,8 @@ def test_the_model_scores_itself_perfectly_and_a_shift_is_taken_out():
     changed = np.concatenate([np.delete(model, drop, axis=0), model[drop] + 1.6 * direction])
     scores = score_area(changed, model, shape, tuple(half[:2]))
     assert scores["found"] == pytest.approx(0.9, abs=0.01)
-    assert scores["extra_per_model_atom"] == pytest.approx(0.1, abs=0.02)  # a few of the moved ones leave the scored box
+    # a few of the moved ones leave the scored box
+    assert scores["extra_per_model_atom"] == pytest.approx(0.1, abs=0.02)
 
 
 def test_a_sub_area_is_written_as_a_tilt_series(tmp_path):
@@ -41,9 +48,10 @@ def test_a_sub_area_is_written_as_a_tilt_series(tmp_path):
 
     series = load_tilt_series(prepare_area(DATA, tmp_path, 8))
     assert series.projections.shape == (46, 131, 61)
-    assert series.angles_deg.min() == pytest.approx(-63.0, abs=0.01) and series.angles_deg.max() == pytest.approx(55.9, abs=0.01)
+    assert series.angles_deg.min() == pytest.approx(-63.0, abs=0.01) and series.angles_deg.max() == pytest.approx(
+        55.9, abs=0.01
+    )
     assert tuple(series.centre_px) == (65.0, 30.0)
-
 
 
 def test_the_model_as_a_start_is_the_part_the_detector_sees_on_the_data_frame(tmp_path):

@@ -9,22 +9,39 @@ import numpy as np
 import torch
 
 from gaussian_atoms_method.nerfstudio_layer.floors import FloorSolver, agree, floor_moments
-from gaussian_atoms_method.nerfstudio_layer.rendering import FLOOR_TERMS, add_background, coordinate_powers, floor_images
+from gaussian_atoms_method.nerfstudio_layer.rendering import (
+    FLOOR_TERMS,
+    add_background,
+    coordinate_powers,
+    floor_images,
+)
 from gaussian_atoms_method.physics.noise import NoiseModel
 
 
 def _model(coefficients: np.ndarray, read_var: float, surfaces: int = 0) -> SimpleNamespace:
-    return SimpleNamespace(training=True, rendered_floors=None, step=0, noise_read=NoiseModel(read_var, 0.0), config=SimpleNamespace(refine_every=10),
-                           view_params={"background": torch.nn.Parameter(torch.as_tensor(coefficients, dtype=torch.float32), requires_grad=False)},
-                           background_surfaces=torch.zeros(surfaces, 40, 48))  # fmt: skip
+    return SimpleNamespace(
+        training=True,
+        rendered_floors=None,
+        step=0,
+        noise_read=NoiseModel(read_var, 0.0),
+        config=SimpleNamespace(refine_every=10),
+        view_params={
+            "background": torch.nn.Parameter(torch.as_tensor(coefficients, dtype=torch.float32), requires_grad=False)
+        },
+        background_surfaces=torch.zeros(surfaces, 40, 48),
+    )
 
 
 def _views(true: np.ndarray, noise_std: float, seed: int = 0):
-    """(V, H, W, 1) float64 measured views: a blob (the object) on each view's floor ``true`` (V, K), plus noise; and the rows and columns."""
+    """(V, H, W, 1) float64 measured views: a blob (the object) on each view's floor ``true`` (V, K), plus noise; and
+    the rows and columns."""
     rows, cols = torch.linspace(-0.5, 0.5, 40, dtype=torch.float64), torch.linspace(-0.6, 0.6, 48, dtype=torch.float64)
     blob = 50.0 * torch.exp(-(rows[:, None] ** 2 + cols[None, :] ** 2) / 0.02)
     rng = np.random.default_rng(seed)
-    views = [add_background(blob, torch.as_tensor(c), rows, cols) + torch.as_tensor(rng.normal(0.0, noise_std, blob.shape)) for c in true]
+    views = [
+        add_background(blob, torch.as_tensor(c), rows, cols) + torch.as_tensor(rng.normal(0.0, noise_std, blob.shape))
+        for c in true
+    ]
     return torch.stack(views)[..., None], blob, rows, cols
 
 
@@ -102,12 +119,22 @@ def test_the_floor_terms_are_add_backgrounds_and_their_moments_the_pixel_sums():
     for k, (a, b) in enumerate(FLOOR_TERMS):
         unit = torch.zeros(6, dtype=torch.float64)
         unit[k] = 1.0
-        torch.testing.assert_close(add_background(torch.zeros(7, 9, dtype=torch.float64), unit, rows, cols), rows[:, None] ** a * cols[None, :] ** b, rtol=0, atol=1e-15)
+        torch.testing.assert_close(
+            add_background(torch.zeros(7, 9, dtype=torch.float64), unit, rows, cols),
+            rows[:, None] ** a * cols[None, :] ** b,
+            rtol=0,
+            atol=1e-15,
+        )
     weights = torch.as_tensor(np.random.default_rng(2).uniform(0, 1, (2, 7, 9)))
     moments = floor_moments(weights, *coordinate_powers(rows, cols))
     for a in range(5):
         for b in range(5):
-            torch.testing.assert_close(moments[:, a, b], (weights * rows[:, None] ** a * cols[None, :] ** b).sum(dim=(1, 2)), rtol=1e-12, atol=1e-15)
+            torch.testing.assert_close(
+                moments[:, a, b],
+                (weights * rows[:, None] ** a * cols[None, :] ** b).sum(dim=(1, 2)),
+                rtol=1e-12,
+                atol=1e-15,
+            )
 
 
 def test_a_view_the_object_fills_keeps_its_floor():

@@ -37,7 +37,9 @@ def test_odd_but_valid_input_trains(name, tmp_path):
     config.pipeline.datamanager.data = data
     check_input(config)
     outputs = TiltSeriesDataParserConfig(data=data).setup().get_dataparser_outputs("train")
-    model = GaussianAtomsModelConfig(num_random=50).setup(scene_box=outputs.scene_box, num_train_data=len(outputs.cameras), metadata=outputs.metadata)
+    model = GaussianAtomsModelConfig(num_random=50).setup(
+        scene_box=outputs.scene_box, num_train_data=len(outputs.cameras), metadata=outputs.metadata
+    )
     targets = [outputs.metadata["projections"][v][..., None] for v in range(len(outputs.cameras))]
     loss = train_views(model, outputs.cameras, targets, steps=4)
     assert np.isfinite(loss) and all(bool(torch.isfinite(p).all()) for p in model.gauss_params.values())
@@ -52,7 +54,20 @@ def test_integer_counts_stay_integer_on_disk(tmp_path):
 def test_launchers_stop_in_one_line_and_write_nothing(launcher, tmp_path):
     data = BROKEN["NaN pixels"][0](tmp_path / "series")
     out = tmp_path / "out"
-    cmd = [str(BIN / launcher[0]), *launcher[1:], "--data", str(data), "--max-num-iterations", "2", "--machine.device-type", "cpu", "--vis", "tensorboard", "--output-dir", str(out)]
+    cmd = [
+        str(BIN / launcher[0]),
+        *launcher[1:],
+        "--data",
+        str(data),
+        "--max-num-iterations",
+        "2",
+        "--machine.device-type",
+        "cpu",
+        "--vis",
+        "tensorboard",
+        "--output-dir",
+        str(out),
+    ]
     run = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     lines = own_lines(run.stdout + run.stderr)
     assert run.returncode == 2 and "Traceback" not in run.stderr
@@ -65,7 +80,10 @@ def test_training_failure_is_one_line_with_step_and_cause(monkeypatch, capsys):
     from nerfstudio.engine.trainer import Trainer
 
     def diverge(self):
-        raise FloatingPointError("gaussian-atoms: step 17: the loss is nan and training cannot go on; cause: 3 Gaussian(s) with non-finite means.")
+        raise FloatingPointError(
+            "gaussian-atoms: step 17: the loss is nan and training cannot go on; cause: 3 Gaussian(s) with non-finite "
+            "means."
+        )
 
     monkeypatch.setattr(Trainer, "train", diverge)
     trainer = object.__new__(GaussianAtomsTrainer)

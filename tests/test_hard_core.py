@@ -108,7 +108,13 @@ def density_control(hard_core_A: float = 1.87):
     """A density control in Å (length scale 1) with the hard core of the species given."""
     from gaussian_atoms_method.density.strategy import DensityControl
 
-    return DensityControl(length_scale=1.0, max_log_amplitude=50.0, generator=torch.Generator().manual_seed(0), half_extent=(20.0, 20.0, 20.0), hard_core_A=hard_core_A)
+    return DensityControl(
+        length_scale=1.0,
+        max_log_amplitude=50.0,
+        generator=torch.Generator().manual_seed(0),
+        half_extent=(20.0, 20.0, 20.0),
+        hard_core_A=hard_core_A,
+    )
 
 
 def params_at(positions: np.ndarray, masses: np.ndarray, sigma: float = 0.5) -> dict:
@@ -178,12 +184,35 @@ def test_an_atom_with_a_profile_the_model_lacks_is_fitted_without_a_reported_pai
     atoms = spherical_particle("Au", radius_A=6.0)
     direction = np.array([1.0, 0.5, 0.3]) / np.linalg.norm([1.0, 0.5, 0.3])
     satellites = AtomSet(atoms.positions + 1.2 * direction, species=["Ti"] * len(atoms))  # Z 22 of 79: 28% of the mass
-    both = AtomSet(np.concatenate([atoms.positions, satellites.positions]), species=list(atoms.species) + list(satellites.species))
+    both = AtomSet(
+        np.concatenate([atoms.positions, satellites.positions]), species=list(atoms.species) + list(satellites.species)
+    )
     sim = simulate_tilt_series(both, parse_tilts("-70:5:70"), potential="gaussian", noise_std=20.0, seed=1)
-    data = write_tilt_series(tmp_path / "series", sim.projections, sim.angles_deg, sim.pixel_size_A, truth=atoms, species="Au")
-    run = subprocess.run([str(Path(sys.executable).parent / "gaussian-atoms"), "train", "--machine.device-type", "cpu", "--vis", "tensorboard",
-                          "--output-dir", str(tmp_path / "out"), "--experiment-name", "e", "--timestamp", "t", "tilt-series", "--data", str(data)],
-                         capture_output=True, text=True, timeout=600)  # fmt: skip
+    data = write_tilt_series(
+        tmp_path / "series", sim.projections, sim.angles_deg, sim.pixel_size_A, truth=atoms, species="Au"
+    )
+    run = subprocess.run(
+        [
+            str(Path(sys.executable).parent / "gaussian-atoms"),
+            "train",
+            "--machine.device-type",
+            "cpu",
+            "--vis",
+            "tensorboard",
+            "--output-dir",
+            str(tmp_path / "out"),
+            "--experiment-name",
+            "e",
+            "--timestamp",
+            "t",
+            "tilt-series",
+            "--data",
+            str(data),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]
     found = read_atoms(tmp_path / "out" / "e" / "gaussian-atoms" / "t" / "atoms.xyz").positions
     scores = score_atoms(found, atoms.positions)

@@ -1,6 +1,5 @@
 """Views held out of a fit: split, predicted as the run renders them, scored; a kernel held fixed."""
 
-
 import numpy as np
 import pytest
 import torch
@@ -14,8 +13,15 @@ def _series(tmp_path, n_views=6, shape=(40, 36)):
     rng = np.random.default_rng(0)
     angles = np.linspace(-60, 60, n_views)
     # Off-centre tilt centre and a non-zero origin: both conventions are exercised.
-    path = write_tilt_series(tmp_path / "series", rng.normal(size=(n_views, *shape)).astype(np.float32), angles, 0.4,
-                             truth=AtomSet(positions=np.zeros((1, 3)) + 2.0, species=np.array(["Au"])), origin_A=(1.0, -2.0, 0.5), centre_px=(18.0, 20.0))  # fmt: skip
+    path = write_tilt_series(
+        tmp_path / "series",
+        rng.normal(size=(n_views, *shape)).astype(np.float32),
+        angles,
+        0.4,
+        truth=AtomSet(positions=np.zeros((1, 3)) + 2.0, species=np.array(["Au"])),
+        origin_A=(1.0, -2.0, 0.5),
+        centre_px=(18.0, 20.0),
+    )
     return load_tilt_series(path)
 
 
@@ -31,7 +37,8 @@ def test_held_out_views_are_predicted_as_the_run_renders_them(tmp_path):
     series = _series(tmp_path)
     outputs = TiltSeriesDataParserConfig(data=tmp_path / "series").setup().get_dataparser_outputs("train")
     model = GaussianAtomsModelConfig(num_random=3, init="random", coarse_steps=0, background="none", loss="l2").setup(
-        scene_box=outputs.scene_box, num_train_data=len(outputs.image_filenames), metadata=outputs.metadata)  # fmt: skip
+        scene_box=outputs.scene_box, num_train_data=len(outputs.image_filenames), metadata=outputs.metadata
+    )
     norm = model.normalisation
     positions_A = np.array([[1.0, -2.0, 0.5], [3.5, 0.0, -1.0], [-2.0, -4.0, 2.5]])
     with torch.no_grad():
@@ -42,7 +49,16 @@ def test_held_out_views_are_predicted_as_the_run_renders_them(tmp_path):
     for weights in ([0.0, 0.0, 0.0], [0.0, 0.2, 0.1]):
         with torch.no_grad():
             model.view_params["psf"].copy_(torch.tensor(weights))
-            rendered = torch.stack([model.get_outputs(outputs.cameras[v : v + 1])["projection"][..., 0] for v in range(len(series.angles_deg))]).double().numpy()
+            rendered = (
+                torch.stack(
+                    [
+                        model.get_outputs(outputs.cameras[v : v + 1])["projection"][..., 0]
+                        for v in range(len(series.angles_deg))
+                    ]
+                )
+                .double()
+                .numpy()
+            )
         predicted = predicted_views(model.atoms(), series, weights)
         assert np.abs(predicted - rendered / norm.data_scale).max() < 1e-4 * np.abs(predicted).max()
 
@@ -56,17 +72,31 @@ def test_held_out_rms_reads_the_noise_when_the_atoms_and_kernel_are_right(tmp_pa
     from gaussian_atoms_method.harness.held_out import held_out_rms, predicted_views, split_views
 
     series = _series(tmp_path)
-    atoms = AtomSet(positions=np.array([[1.0, -2.0, 0.5], [3.5, 0.0, -1.0], [-2.0, -4.0, 2.5]]), sigmas=np.array([0.5, 0.7, 0.6]), amplitudes=np.array([40.0, 30.0, 35.0]))
+    atoms = AtomSet(
+        positions=np.array([[1.0, -2.0, 0.5], [3.5, 0.0, -1.0], [-2.0, -4.0, 2.5]]),
+        sigmas=np.array([0.5, 0.7, 0.6]),
+        amplitudes=np.array([40.0, 30.0, 35.0]),
+    )
     kernel = [0.0, 0.2, 0.1]
     rng = np.random.default_rng(1)
-    series.projections = (predicted_views(atoms, series, kernel) + np.arange(len(series.angles_deg))[:, None, None] + rng.normal(scale=0.5, size=series.projections.shape)).astype(np.float32)
+    series.projections = (
+        predicted_views(atoms, series, kernel)
+        + np.arange(len(series.angles_deg))[:, None, None]
+        + rng.normal(scale=0.5, size=series.projections.shape)
+    ).astype(np.float32)
     assert held_out_rms(atoms, series, kernel) == pytest.approx(0.5, rel=0.03)
     assert held_out_rms(atoms, series, None) > 1.2 * held_out_rms(atoms, series, kernel)
     even, odd = split_views(series, tmp_path / "views")
     for path, start in ((even, 0), (odd, 1)):
         part = load_tilt_series(path)
-        assert np.allclose(part.angles_deg, series.angles_deg[start::2]) and np.array_equal(part.projections, series.projections[start::2])
-        assert np.allclose(part.centre_px, series.centre_px) and np.allclose(part.origin_A, series.origin_A) and part.truth_path is not None
+        assert np.allclose(part.angles_deg, series.angles_deg[start::2]) and np.array_equal(
+            part.projections, series.projections[start::2]
+        )
+        assert (
+            np.allclose(part.centre_px, series.centre_px)
+            and np.allclose(part.origin_A, series.origin_A)
+            and part.truth_path is not None
+        )
 
 
 def test_a_fixed_kernel_is_held_and_bad_weights_are_named(tmp_path):
@@ -80,8 +110,9 @@ def test_a_fixed_kernel_is_held_and_bad_weights_are_named(tmp_path):
     _series(tmp_path)
     outputs = TiltSeriesDataParserConfig(data=tmp_path / "series").setup().get_dataparser_outputs("train")
     for mode in ("fixed", "learned"):
-        model = GaussianAtomsModelConfig(num_random=3, init="random", coarse_steps=0, background="none", psf=mode, psf_weights=(0.0, 0.15, 0.2)).setup(
-            scene_box=outputs.scene_box, num_train_data=len(outputs.image_filenames), metadata=outputs.metadata)  # fmt: skip
+        model = GaussianAtomsModelConfig(
+            num_random=3, init="random", coarse_steps=0, background="none", psf=mode, psf_weights=(0.0, 0.15, 0.2)
+        ).setup(scene_box=outputs.scene_box, num_train_data=len(outputs.image_filenames), metadata=outputs.metadata)
         psf = model.view_params["psf"]
         assert torch.allclose(psf.detach(), torch.tensor([0.0, 0.15, 0.2])) and psf.requires_grad == (mode == "learned")
     for weights in ((0.5, 0.6, 0.0), (-0.1, 0.0, 0.0)):
@@ -99,12 +130,20 @@ def test_merge_costs_keep_a_demanded_pair_and_drop_a_split_atom(tmp_path):
     from gaussian_atoms_method.harness.held_out import pair_merge_costs, predicted_views, split_views
 
     series = _series(tmp_path, n_views=8)
-    truth = AtomSet(positions=np.array([[0.0, 0.0, 0.0], [2.6, 0.0, 0.0], [-3.0, 3.0, 1.0]]), sigmas=np.array([0.5, 0.5, 0.5]), amplitudes=np.array([40.0, 40.0, 40.0]))
+    truth = AtomSet(
+        positions=np.array([[0.0, 0.0, 0.0], [2.6, 0.0, 0.0], [-3.0, 3.0, 1.0]]),
+        sigmas=np.array([0.5, 0.5, 0.5]),
+        amplitudes=np.array([40.0, 40.0, 40.0]),
+    )
     series.projections = predicted_views(truth, series).astype(np.float32)
     even, odd = (load_tilt_series(p) for p in split_views(series, tmp_path / "views"))
     costs = pair_merge_costs(truth, np.array([[0, 1]]), even, odd)[0]
     assert costs[0] > 0 and costs[1] == pytest.approx(costs[0], rel=0.25)
 
-    halves = AtomSet(positions=np.array([[2.5, 0.0, 0.0], [2.7, 0.0, 0.0], [0.0, 0.0, 0.0], [-3.0, 3.0, 1.0]]), sigmas=np.full(4, 0.5), amplitudes=np.array([20.0, 20.0, 40.0, 40.0]))
+    halves = AtomSet(
+        positions=np.array([[2.5, 0.0, 0.0], [2.7, 0.0, 0.0], [0.0, 0.0, 0.0], [-3.0, 3.0, 1.0]]),
+        sigmas=np.full(4, 0.5),
+        amplitudes=np.array([20.0, 20.0, 40.0, 40.0]),
+    )
     split = pair_merge_costs(halves, np.array([[0, 1]]), even, odd)[0]
     assert np.all(split < 0) and np.all(-split < 0.01 * costs.min())

@@ -28,7 +28,9 @@ def test_candidates_cover_every_atom():
 
     # The smoothed back-projection at each candidate, strongest first: at a peak-to-noise of
     # about 20 an atom reads several times what a maximum made of noise does.
-    same, values = backprojection_candidates(sim.projections, sim.angles_deg, sim.pixel_size_A, max_count=n_max, return_values=True)
+    same, values = backprojection_candidates(
+        sim.projections, sim.angles_deg, sim.pixel_size_A, max_count=n_max, return_values=True
+    )
     np.testing.assert_array_equal(same, cand)
     assert values.shape == (len(cand),) and np.all(np.diff(values) <= 0)
     on_atom = cKDTree(atoms.positions).query(cand)[0] < 0.75
@@ -122,7 +124,7 @@ def test_deconvolution_seats_the_shoulder_atoms():
     before = backprojection_candidates(*args, deconvolve=False)
     after = backprojection_candidates(*args)
     np.testing.assert_allclose(after[: len(before)], before)
-    added = after[len(before):]
+    added = after[len(before) :]
     assert 0 < len(added) < 0.1 * len(atoms)
 
     def recall(cand):

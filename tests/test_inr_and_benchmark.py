@@ -16,7 +16,18 @@ def test_inr_puts_atoms_where_our_convention_says():
     (a sign or axis error would put them Å away)."""
     atoms = AtomSet(np.array([[1.5, -1.0, 0.8], [-1.2, 0.9, -1.1]]), species=["Au", "Au"])
     sim = simulate_tilt_series(atoms, parse_tilts("-90:5:85"), potential="gaussian", detector_pixels=32, noise_std=0.0)
-    vol = fit_inr(sim.projections, sim.angles_deg, 0.25, steps=400, rays_per_step=512, samples_per_ray=32, frequency_std_per_A=0.625, hidden=64, density_scale=1.0, learning_rate=5e-3)
+    vol = fit_inr(
+        sim.projections,
+        sim.angles_deg,
+        0.25,
+        steps=400,
+        rays_per_step=512,
+        samples_per_ray=32,
+        frequency_std_per_A=0.625,
+        hidden=64,
+        density_scale=1.0,
+        learning_rate=5e-3,
+    )
     idx, _ = trace_atoms(vol.data, vol.spacing_A)
     found = vol.index_to_A(idx)
     assert len(found) == 2
@@ -29,7 +40,9 @@ def test_benchmark_accuracy_tiny(tmp_path):
     pytest.importorskip("abtem")
     from gaussian_atoms_method.harness.benchmark import AccuracyBenchmark
 
-    bench = AccuracyBenchmark(output=tmp_path, particles=("au",), tilts=("-70:10:70",), noise=(20.0,), methods=("fbp", "sart"), scale=0.2)
+    bench = AccuracyBenchmark(
+        output=tmp_path, particles=("au",), tilts=("-70:10:70",), noise=(20.0,), methods=("fbp", "sart"), scale=0.2
+    )
     rows = bench.run()
     assert [r["method"] for r in rows] == ["fbp", "sart"]
     with open(tmp_path / "results.csv") as f:

@@ -2,7 +2,8 @@
 
 The layers, lowest first (docs/architecture.md): physics, atoms, density, the tilt-series
 formats (``dataparsers``' readers), the launch (the start begun before nerfstudio loads), the
-nerfstudio layer (with ``dataparsers``' dataparser and dataset), the harness, the CLI.  A module imports only from its own layer or lower ones, so
+nerfstudio layer (with ``dataparsers``' dataparser and dataset), the harness, the CLI.  A module imports only from its
+own layer or lower ones, so
 there is no import cycle, nerfstudio stays in the nerfstudio layer and above, and no library
 module imports the CLI.
 """
@@ -32,7 +33,16 @@ def layer_of(module: str) -> str:
         raise KeyError(module)
     if len(parts) == 1:
         return "api"  # the package's __init__: the API's names, loaded on first use
-    sub = {"physics": "physics", "atoms": "atoms", "density": "density", "nerfstudio_layer": "nerfstudio", "harness": "harness", "cli": "cli", "api": "api", "start_ahead": "launch"}
+    sub = {
+        "physics": "physics",
+        "atoms": "atoms",
+        "density": "density",
+        "nerfstudio_layer": "nerfstudio",
+        "harness": "harness",
+        "cli": "cli",
+        "api": "api",
+        "start_ahead": "launch",
+    }
     return sub[parts[1]]
 
 
@@ -83,7 +93,9 @@ def test_every_module_is_in_a_layer(graph):
             layer_of(name)
         except KeyError:
             unplaced.append(name)
-    assert not unplaced, f"modules outside the layout (add them to a layer here and in docs/architecture.md): {unplaced}"
+    assert not unplaced, (
+        f"modules outside the layout (add them to a layer here and in docs/architecture.md): {unplaced}"
+    )
 
 
 def test_imports_only_go_down_the_layers(graph):
@@ -129,7 +141,9 @@ def test_no_import_cycles(graph):
 
 
 def test_nerfstudio_is_imported_only_by_the_nerfstudio_layer_and_above(graph):
-    below = [name for name, (_, ns) in graph.items() if ns and LAYERS.index(layer_of(name)) < LAYERS.index("nerfstudio")]
+    below = [
+        name for name, (_, ns) in graph.items() if ns and LAYERS.index(layer_of(name)) < LAYERS.index("nerfstudio")
+    ]
     assert not below, f"nerfstudio imported below the nerfstudio layer: {below}"
 
 
@@ -139,19 +153,32 @@ def test_no_library_module_imports_the_cli(graph):
 
 def test_the_model_stays_thin():
     """The model file holds the model's wiring, rendering and loss; density control, the start,
-    convergence and results live in their own modules (the issue's bound: under 300 lines)."""
-    lines = (ROOT / "gaussian_atoms_method" / "nerfstudio_layer" / "model.py").read_text().count("\n")
-    assert lines < 300, f"nerfstudio_layer/model.py has {lines} lines"
+    convergence and results live in their own modules.  The issue's bound was under 300 lines
+    before the code was formatted at 120 columns (ruff); the same file, 290 lines then, holds 209
+    statements, so the bound, in a measure the formatter leaves alone, is 216 statements."""
+    import ast
+
+    tree = ast.parse((ROOT / "gaussian_atoms_method" / "nerfstudio_layer" / "model.py").read_text())
+    statements = sum(isinstance(node, ast.stmt) for node in ast.walk(tree))
+    assert statements < 216, f"nerfstudio_layer/model.py has {statements} statements"
 
 
 def _run(code: str) -> str:
-    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT).stdout.strip()
+    return subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT
+    ).stdout.strip()
 
 
 def test_importing_has_no_side_effects():
     """Importing the package loads nothing else; importing the method's config (as ns-train does)
     leaves torch's checkpoint safe-globals alone: the model adds them when it is built."""
-    assert _run("import sys, gaussian_atoms_method; print(sorted(m for m in ('torch', 'nerfstudio', 'dataparsers') if m in sys.modules))") == "[]"
+    assert (
+        _run(
+            "import sys, gaussian_atoms_method; print(sorted(m for m in ('torch', 'nerfstudio', 'dataparsers') if m "
+            "in sys.modules))"
+        )
+        == "[]"
+    )
     code = (
         "import torch, gaussian_atoms_method.nerfstudio_layer.config; "
         "from gaussian_atoms_method.nerfstudio_layer.checkpoints import numpy_checkpoint_globals; "

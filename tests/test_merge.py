@@ -4,8 +4,8 @@ import numpy as np
 import torch
 
 from gaussian_atoms_method.atoms.merge import cluster_labels, merged_values
-from gaussian_atoms_method.physics.projector import gaussian_mass
 from gaussian_atoms_method.density.remap import apply_remap, duplicate_remap, keep_remap
+from gaussian_atoms_method.physics.projector import gaussian_mass
 
 
 def test_clusters_follow_chains_and_threshold():
@@ -54,7 +54,9 @@ def test_merge_conserves_mass_or_averages():
 
 def _params_and_adam(n=5):
     torch.manual_seed(0)
-    params = torch.nn.ParameterDict({"means": torch.nn.Parameter(torch.randn(n, 3)), "log_sigmas": torch.nn.Parameter(torch.randn(n, 1))})
+    params = torch.nn.ParameterDict(
+        {"means": torch.nn.Parameter(torch.randn(n, 3)), "log_sigmas": torch.nn.Parameter(torch.randn(n, 1))}
+    )
     opts = {k: torch.optim.Adam([p], lr=0.1) for k, p in params.items()}
     loss = sum((p**2).sum() for p in params.values())
     loss.backward()
@@ -125,5 +127,7 @@ def test_clusters_found_in_torch_are_the_k_d_trees():
         mergeable = rng.random(n) > 0.25
         for mask in (None, mergeable):
             expected = cluster_labels(pos, threshold, mask)
-            labels, count = cluster_labels_on_device(torch.tensor(pos), threshold, None if mask is None else torch.tensor(mask))
+            labels, count = cluster_labels_on_device(
+                torch.tensor(pos), threshold, None if mask is None else torch.tensor(mask)
+            )
             assert count == expected[1] and np.array_equal(labels, expected[0])

@@ -10,17 +10,26 @@ from scipy.spatial import cKDTree
 from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
 from dataparsers.tilt_series_format import write_tilt_series
 from gaussian_atoms_method.atoms.atom_set import AtomSet
-from gaussian_atoms_method.physics.geometry import detector_axes_from_tilts, pixel_centres
 from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
-from gaussian_atoms_method.physics.projector import project_gaussians
 from gaussian_atoms_method.nerfstudio_layer.training import train_views
+from gaussian_atoms_method.physics.geometry import detector_axes_from_tilts, pixel_centres
+from gaussian_atoms_method.physics.projector import project_gaussians
 
 
 def _series(tmp_path, tilt_axis="y", centre_px=None, shape=(30, 36)):
     rng = np.random.default_rng(0)
     angles = np.array([-50.0, -10.0, 25.0, 60.0])
     proj = rng.uniform(0, 10, size=(4,) + shape).astype(np.float32)
-    write_tilt_series(tmp_path, proj, angles, 0.3, truth=AtomSet(np.zeros((1, 3)), species=["Au"]), origin_A=(5.0, 6.0, 7.0), tilt_axis=tilt_axis, centre_px=centre_px)
+    write_tilt_series(
+        tmp_path,
+        proj,
+        angles,
+        0.3,
+        truth=AtomSet(np.zeros((1, 3)), species=["Au"]),
+        origin_A=(5.0, 6.0, 7.0),
+        tilt_axis=tilt_axis,
+        centre_px=centre_px,
+    )
     return angles
 
 
@@ -33,7 +42,9 @@ def _model(tmp_path, **cfg):
     cfg.setdefault("background", "none")
     outputs = TiltSeriesDataParserConfig(data=tmp_path).setup().get_dataparser_outputs("train")
     config = GaussianAtomsModelConfig(**cfg)
-    model = config.setup(scene_box=outputs.scene_box, num_train_data=len(outputs.image_filenames), metadata=outputs.metadata)
+    model = config.setup(
+        scene_box=outputs.scene_box, num_train_data=len(outputs.image_filenames), metadata=outputs.metadata
+    )
     return model, outputs
 
 
@@ -41,8 +52,8 @@ def test_initial_mass_follows_the_backprojection(tmp_path):
     """init_mass="backprojection" shares the same measured mass as "equal" but in proportion to
     the smoothed back-projection: Gaussians that start on atoms carry several times the mass of
     those that start on noise, so the first prune removes the latter."""
-    from gaussian_atoms_method.physics.projector import gaussian_mass
     from gaussian_atoms_method.harness.simulate import parse_tilts, simulate_gaussian_tilt_series, spherical_particle
+    from gaussian_atoms_method.physics.projector import gaussian_mass
 
     atoms = spherical_particle("Au", radius_A=6.0)
     sim = simulate_gaussian_tilt_series(atoms, parse_tilts("limited"), noise_std=20.0, seed=1)
@@ -70,7 +81,9 @@ def test_camera_rendering_matches_core_projector_in_A(tmp_path, tilt_axis, centr
     ci, cj = centre_px if centre_px is not None else ((h - 1) / 2, (w - 1) / 2)
     rows, cols = torch.tensor(pixel_centres(h, 0.3, ci)), torch.tensor(pixel_centres(w, 0.3, cj))
     t = lambda a: torch.tensor(a, dtype=torch.float64)
-    expected = project_gaussians(t(atoms.positions - norm.origin_A), t(atoms.sigmas), t(atoms.amplitudes), axes, rows, cols)
+    expected = project_gaussians(
+        t(atoms.positions - norm.origin_A), t(atoms.sigmas), t(atoms.amplitudes), axes, rows, cols
+    )
     for v in range(len(angles)):
         got = model.get_outputs(outputs.cameras[v : v + 1])["projection"][..., 0].double() / norm.data_scale
         # float32 rendering vs float64 reference.
@@ -136,7 +149,14 @@ def test_anisotropic_switch_renders_the_same_spheres(tmp_path):
     aniso.get_loss_dict(aniso.get_outputs(cam), {"image": target})["main_loss"].backward()
     assert torch.all(aniso.gauss_params["log_sigmas"].grad.abs().sum(0) > 0)
     assert float(aniso.gauss_params["quats"].grad.abs().sum()) > 0
-    assert set(aniso.get_param_groups()) == {"means", "log_sigmas", "log_amplitudes", "quats", "psf"}  # psf: the learned kernel
+    # psf: the learned kernel
+    assert set(aniso.get_param_groups()) == {
+        "means",
+        "log_sigmas",
+        "log_amplitudes",
+        "quats",
+        "psf",
+    }
 
 
 def test_same_seed_same_atoms(tmp_path):
@@ -147,7 +167,15 @@ def test_same_seed_same_atoms(tmp_path):
     atoms = spherical_particle("Au", radius_A=5.0)
     sim = simulate_gaussian_tilt_series(atoms, parse_tilts("limited")[::10], noise_std=20.0, seed=1)
     write_tilt_series(tmp_path, sim.projections, sim.angles_deg, sim.pixel_size_A, truth=atoms)
-    cfg = dict(num_random=300, init="random", warmup_length=24, refine_every=4, merge_every=4, stop_split_at=32, densify_grad_thresh=0.01)
+    cfg = dict(
+        num_random=300,
+        init="random",
+        warmup_length=24,
+        refine_every=4,
+        merge_every=4,
+        stop_split_at=32,
+        densify_grad_thresh=0.01,
+    )
     runs = []
     for seed in (3, 3, 4):
         model, outputs = _model(tmp_path, seed=seed, **cfg)
@@ -168,7 +196,9 @@ def test_divergence_stops_with_the_step_and_cause(tmp_path):
     with torch.no_grad():
         model.gauss_params["means"][2, 0] = float("nan")
     target = outputs.metadata["projections"][0][..., None]
-    with pytest.raises(FloatingPointError, match=r"step 17: the loss is .* cause: 1 Gaussian\(s\) with non-finite means"):
+    with pytest.raises(
+        FloatingPointError, match=r"step 17: the loss is .* cause: 1 Gaussian\(s\) with non-finite means"
+    ):
         model.get_loss_dict(model.get_outputs(outputs.cameras[0:1]), {"image": target})
 
 
@@ -191,10 +221,12 @@ def test_view_shifts_and_background_are_recovered(tmp_path):
     """Per-view in-plane shifts (up to 1 Å) and a constant background per view are learned
     back from simulated data when the atoms are known (the backgrounds in closed form,
     :mod:`gaussian_atoms_method.nerfstudio_layer.floors`): shifts to 0.05 Å,
-    backgrounds to 1% of the projection peak (they are 5-20% of it) (L1, 600 steps: a fifth of a 0.25 Å pixel is sub-pixel
+    backgrounds to 1% of the projection peak (they are 5-20% of it) (L1, 600 steps: a fifth of a 0.25 Å pixel is
+    sub-pixel
     registration, what alignment needs for pm atoms)."""
-    from gaussian_atoms_method.harness.simulate import simulate_gaussian_tilt_series, spherical_particle
     from scipy import ndimage
+
+    from gaussian_atoms_method.harness.simulate import simulate_gaussian_tilt_series, spherical_particle
 
     atoms = spherical_particle("Au", radius_A=4.0)
     angles = np.linspace(-60, 60, 9)
@@ -203,16 +235,25 @@ def test_view_shifts_and_background_are_recovered(tmp_path):
     shifts_A = rng.uniform(-1, 1, size=(len(angles), 2))
     shifts_A -= shifts_A.mean(0)
     backgrounds = rng.uniform(0.05, 0.2, size=len(angles)) * sim.projections.max()
-    proj = np.stack([ndimage.shift(p, s / sim.pixel_size_A, order=3) + b for p, s, b in zip(sim.projections, shifts_A, backgrounds)])
+    proj = np.stack(
+        [ndimage.shift(p, s / sim.pixel_size_A, order=3) + b for p, s, b in zip(sim.projections, shifts_A, backgrounds)]
+    )
     write_tilt_series(tmp_path, proj.astype(np.float32), angles, sim.pixel_size_A, truth=sim.truth)
-    model, outputs = _model(tmp_path, num_random=len(atoms), init="random", refine_alignment=True, background="constant", loss="l1")
+    model, outputs = _model(
+        tmp_path, num_random=len(atoms), init="random", refine_alignment=True, background="constant", loss="l1"
+    )
     norm = model.normalisation
     with torch.no_grad():
         model.gauss_params["means"].copy_(torch.as_tensor(norm.positions_from_A(atoms.positions), dtype=torch.float32))
         model.gauss_params["log_sigmas"].fill_(math.log(sim.truth.sigmas[0] * norm.length_scale))
-    # Known positions and widths; amplitudes and shifts learned jointly, the backgrounds solved every refine_every steps.
-    opt = torch.optim.Adam([{"params": [model.view_params["view_shifts"]], "lr": 2e-3},
-                            {"params": [model.gauss_params["log_amplitudes"]], "lr": 2e-2}])
+    # Known positions and widths; amplitudes and shifts learned jointly, the backgrounds solved every refine_every
+    # steps.
+    opt = torch.optim.Adam(
+        [
+            {"params": [model.view_params["view_shifts"]], "lr": 2e-3},
+            {"params": [model.gauss_params["log_amplitudes"]], "lr": 2e-2},
+        ]
+    )
     targets = [outputs.metadata["projections"][v][..., None] for v in range(len(angles))]
     for step in range(600):
         opt.zero_grad()
@@ -250,13 +291,19 @@ def test_tilt_offsets_are_recovered(tmp_path):
     with torch.no_grad():
         model.gauss_params["means"].copy_(torch.as_tensor(norm.positions_from_A(atoms.positions), dtype=torch.float32))
         model.gauss_params["log_sigmas"].fill_(math.log(sim.truth.sigmas[0] * norm.length_scale))
-    opt = torch.optim.Adam([{"params": [model.view_params["view_tilts"]], "lr": 1e-3},
-                            {"params": [model.gauss_params["log_amplitudes"]], "lr": 2e-2}])  # fmt: skip
+    opt = torch.optim.Adam(
+        [
+            {"params": [model.view_params["view_tilts"]], "lr": 1e-3},
+            {"params": [model.gauss_params["log_amplitudes"]], "lr": 2e-2},
+        ]
+    )
     targets = [outputs.metadata["projections"][v][..., None] for v in range(len(angles))]
     for step in range(900):
         opt.zero_grad()
         v = step % len(angles)
-        model.get_loss_dict(model.get_outputs(outputs.cameras[v : v + 1]), {"image": targets[v]})["main_loss"].backward()
+        model.get_loss_dict(model.get_outputs(outputs.cameras[v : v + 1]), {"image": targets[v]})[
+            "main_loss"
+        ].backward()
         opt.step()
     t = model.view_params["view_tilts"].detach().double().numpy()[:, 0]
     learned_deg = np.rad2deg(t - t.mean())
@@ -290,7 +337,16 @@ def test_viewer_finds_the_atoms_and_renders_a_perspective_camera(tmp_path):
     c2w = ortho.camera_to_worlds.clone()
     c2w[0, :, 3] = c2w[0, :, 2] * distance
     f = ortho.fx[0, 0] * distance  # the perspective focal length with the same magnification there
-    persp = Cameras(camera_to_worlds=c2w, fx=f, fy=f, cx=ortho.cx[0, 0], cy=ortho.cy[0, 0], width=ortho.width[0, 0], height=ortho.height[0, 0], camera_type=CameraType.PERSPECTIVE)
+    persp = Cameras(
+        camera_to_worlds=c2w,
+        fx=f,
+        fy=f,
+        cx=ortho.cx[0, 0],
+        cy=ortho.cy[0, 0],
+        width=ortho.width[0, 0],
+        height=ortho.height[0, 0],
+        camera_type=CameraType.PERSPECTIVE,
+    )
     ortho_out, persp_out = model.get_outputs(ortho), model.get_outputs(persp)
     torch.testing.assert_close(persp_out["projection"], ortho_out["projection"], rtol=1e-4, atol=1e-3)
     assert persp_out["depth"].shape == persp_out["projection"].shape and float(persp_out["depth"].min()) > 100
@@ -317,7 +373,8 @@ def test_convergence_stop_needs_settled_atoms(tmp_path):
 
     keep = torch.ones(model.num_points, dtype=torch.bool)
     keep[0] = False
-    model.density.remap(model.gauss_params, model.optimizers, *keep_remap(keep))  # one Gaussian fewer, as a prune makes it: the set changed
+    # one Gaussian fewer, as a prune makes it: the set changed
+    model.density.remap(model.gauss_params, model.optimizers, *keep_remap(keep))
     assert not model.converged(700) and not model.converged(800) and model.converged(900)
 
 
@@ -329,7 +386,8 @@ def test_coarse_phase_renders_and_compares_2x2_blocks(tmp_path):
     import torch.nn.functional as F
 
     _series(tmp_path)  # 30 x 36 pixels
-    model, outputs = _model(tmp_path, num_random=20, coarse_steps=100, init_sigma_A=0.7, loss="l1")  # the binning, in the simplest term
+    # the binning, in the simplest term
+    model, outputs = _model(tmp_path, num_random=20, coarse_steps=100, init_sigma_A=0.7, loss="l1")
     camera, gt = outputs.cameras[0:1], outputs.metadata["projections"][0][..., None]
     model.train()
     model.step = 0
@@ -363,7 +421,10 @@ def test_views_per_step_fits_several_views_in_one_loss(tmp_path):
     assert out["extra_projection"].shape == (2, 30, 36, 1) and len(set(views)) == 3
     loss = model.get_loss_dict(out, {"image": projections[1][..., None]})["main_loss"]
     single.eval()
-    per_view = [(single.get_outputs(outputs.cameras[v : v + 1])["projection"][..., 0] - projections[v]).abs().mean() for v in views]
+    per_view = [
+        (single.get_outputs(outputs.cameras[v : v + 1])["projection"][..., 0] - projections[v]).abs().mean()
+        for v in views
+    ]
     torch.testing.assert_close(loss, torch.stack(per_view).mean(), rtol=1e-5, atol=0)
 
     coarse, _ = _model(tmp_path, num_random=20, views_per_step=3, coarse_steps=100)
@@ -407,4 +468,6 @@ def test_a_smooth_floor_loads_a_checkpoint_saved_with_one_background_term(tmp_pa
     old = {**state, "view_params.background": torch.arange(4.0)[:, None]}
     model.view_params["background"].data.fill_(7.0)
     model.load_state_dict(old)
-    torch.testing.assert_close(model.view_params["background"].data, torch.cat([torch.arange(4.0)[:, None], torch.zeros(4, 5)], dim=1))
+    torch.testing.assert_close(
+        model.view_params["background"].data, torch.cat([torch.arange(4.0)[:, None], torch.zeros(4, 5)], dim=1)
+    )

@@ -145,12 +145,20 @@ def test_readings_in_torch_are_numpys(kind):
     host, device = noise_from_projections(data), noise_from_projections(torch.tensor(data), device="cpu")
     for a, b in zip(astuple(host), astuple(device)):
         assert b == pytest.approx(a, rel=1e-9, abs=1e-12)
-    for a, b in zip(binned_variance(residuals, mean, robust=kind == "additive"), binned_variance(torch.tensor(residuals), torch.tensor(mean.copy()), robust=kind == "additive", device="cpu")):
+    for a, b in zip(
+        binned_variance(residuals, mean, robust=kind == "additive"),
+        binned_variance(torch.tensor(residuals), torch.tensor(mean.copy()), robust=kind == "additive", device="cpu"),
+    ):
         np.testing.assert_allclose(b, a, rtol=1e-12)
-    for a, b in zip(astuple(fit_noise_model(residuals, mean)), astuple(fit_noise_model(torch.tensor(residuals), torch.tensor(mean.copy()), device="cpu"))):
+    for a, b in zip(
+        astuple(fit_noise_model(residuals, mean)),
+        astuple(fit_noise_model(torch.tensor(residuals), torch.tensor(mean.copy()), device="cpu")),
+    ):
         assert b == pytest.approx(a, rel=1e-9, abs=1e-12)
     variance = host.variance(mean)
-    assert atom_scale_excess(torch.tensor(residuals), torch.tensor(variance), 1.6, device="cpu") == pytest.approx(atom_scale_excess(residuals, variance, 1.6), rel=1e-12)
+    assert atom_scale_excess(torch.tensor(residuals), torch.tensor(variance), 1.6, device="cpu") == pytest.approx(
+        atom_scale_excess(residuals, variance, 1.6), rel=1e-12
+    )
 
 
 def test_masked_least_squares_equals_lstsq_per_view():
@@ -199,7 +207,11 @@ def test_equal_count_bins_are_the_stable_sorts():
     rng = np.random.default_rng(1)
     for trial in range(120):
         n, bins = int(rng.integers(1, 400)), int(rng.integers(1, 30))
-        values = [rng.standard_normal(n), rng.integers(0, 1 + trial % 5, n).astype(np.float64), np.round(rng.standard_normal(n), 1)][trial % 3]
+        values = [
+            rng.standard_normal(n),
+            rng.integers(0, 1 + trial % 5, n).astype(np.float64),
+            np.round(rng.standard_normal(n), 1),
+        ][trial % 3]
         chunks = np.array_split(np.argsort(values, kind="stable"), bins)
         expected = np.empty(n, dtype=np.int64)
         for k, chunk in enumerate(chunks):

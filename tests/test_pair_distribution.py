@@ -38,7 +38,9 @@ def test_split_atoms_do_not_move_the_distance():
     split = rng.choice(len(positions), 300, replace=False)
     direction = rng.normal(size=(300, 3))
     direction /= np.linalg.norm(direction, axis=1, keepdims=True)
-    halves = np.concatenate([np.delete(positions, split, axis=0), positions[split] + 0.6 * direction, positions[split] - 0.6 * direction])
+    halves = np.concatenate(
+        [np.delete(positions, split, axis=0), positions[split] + 0.6 * direction, positions[split] - 0.6 * direction]
+    )
     distance, share = shortest_distance(halves)
     assert 0.9 * 2.88 <= distance <= 2.88
     assert share >= 600 / len(halves)
@@ -55,16 +57,23 @@ def test_a_too_close_pair_needs_the_prior_odds_to_stay_two(monkeypatch):
     from gaussian_atoms_method.physics.noise import NoiseModel
 
     rng = np.random.default_rng(1)
-    lattice = np.stack(np.meshgrid(*[np.arange(-3, 4)] * 3, indexing="ij"), -1).reshape(-1, 3) * 2.5  # 343 atoms 2.5 Å apart
+    # 343 atoms 2.5 Å apart
+    lattice = np.stack(np.meshgrid(*[np.arange(-3, 4)] * 3, indexing="ij"), -1).reshape(-1, 3) * 2.5
     lattice = lattice + 0.05 * rng.normal(size=lattice.shape)
-    close, far = lattice[0] + [0, 0, 1.2], lattice[-1] + [0, 0, 2.4]  # a pair 1.2 Å apart, one 2.4 Å (but for the lattice)
+    # a pair 1.2 Å apart, one 2.4 Å (but for the lattice)
+    close, far = (
+        lattice[0] + [0, 0, 1.2],
+        lattice[-1] + [0, 0, 2.4],
+    )
     positions = np.concatenate([lattice, [close, far]]) * 0.01  # 0.01 normalised units per Å
     n = len(positions)
-    params = torch.nn.ParameterDict({
-        "means": torch.nn.Parameter(torch.tensor(positions)),
-        "log_sigmas": torch.nn.Parameter(torch.full((n, 1), math.log(0.006), dtype=torch.float64)),
-        "log_amplitudes": torch.nn.Parameter(torch.zeros(n, 1, dtype=torch.float64)),
-    })  # fmt: skip
+    params = torch.nn.ParameterDict(
+        {
+            "means": torch.nn.Parameter(torch.tensor(positions)),
+            "log_sigmas": torch.nn.Parameter(torch.full((n, 1), math.log(0.006), dtype=torch.float64)),
+            "log_amplitudes": torch.nn.Parameter(torch.zeros(n, 1, dtype=torch.float64)),
+        }
+    )
     optimizers = {k: torch.optim.Adam([p], lr=0.0) for k, p in params.items()}
     control = DensityControl(length_scale=0.01, max_log_amplitude=50.0, generator=torch.Generator().manual_seed(0))
     control.reset(n)

@@ -24,7 +24,9 @@ def test_parabola_vertex_is_exact_and_clipped():
     voxel is clipped to it; a convex or flat triple gives 0."""
     x = np.array([-1.0, 0.0, 1.0])
     below, centre, above = -((x - 0.3) ** 2)
-    np.testing.assert_allclose(parabola_vertex(np.array([below]), np.array([centre]), np.array([above])), [0.3], atol=1e-12)
+    np.testing.assert_allclose(
+        parabola_vertex(np.array([below]), np.array([centre]), np.array([above])), [0.3], atol=1e-12
+    )
     below, centre, above = -((x - 2.0) ** 2)
     assert parabola_vertex(np.array([below]), np.array([centre]), np.array([above]))[0] == 0.5
     assert parabola_vertex(np.array([1.0, 1.0]), np.array([0.0, 1.0]), np.array([1.0, 1.0])).tolist() == [0.0, 0.0]

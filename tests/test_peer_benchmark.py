@@ -40,10 +40,12 @@ def test_peer_data_read_through_the_readers(shared_data, tmp_path):
     assert series.projections.shape == (60, 128, 128) and tuple(series.centre_px) == (64, 64)
 
     from gaussian_atoms_method.atoms.atom_set import read_atoms
-    from gaussian_atoms_method.physics.reconstruction import reconstruct
     from gaussian_atoms_method.harness.tracing import trace_atoms
+    from gaussian_atoms_method.physics.reconstruction import reconstruct
 
-    vol = reconstruct(series.projections, series.angles_deg, series.pixel_size_A, "fbp", "y", series.centre_px, filter_name="hann")
+    vol = reconstruct(
+        series.projections, series.angles_deg, series.pixel_size_A, "fbp", "y", series.centre_px, filter_name="hann"
+    )
     idx, _ = trace_atoms(vol.data, vol.spacing_A)
     scores = score_like_peer(vol.index_to_A(idx), read_atoms(series.truth_path).positions)
     # A plain FBP + tracing already finds nearly all: the frame (swap, centre, sign) is right;
@@ -51,7 +53,9 @@ def test_peer_data_read_through_the_readers(shared_data, tmp_path):
     assert scores["tpr"] > 0.9
 
 
-@pytest.mark.parametrize("dose, found, false, rmsd_pm", [("1.6e5", 208, 0, 4.24), ("1.6e4", 208, 0, 17.3), ("8e3", 199, 0, 28.9)])
+@pytest.mark.parametrize(
+    "dose, found, false, rmsd_pm", [("1.6e5", 208, 0, 4.24), ("1.6e4", 208, 0, 17.3), ("8e3", 199, 0, 28.9)]
+)
 def test_peer_rows_are_read_and_scored_as_recorded(shared_data, dose, found, false, rmsd_pm):
     """The peer pipeline's own models (peer_models/), converted and scored the way
     ../shared/data/README.md records them: the rows benchmark-peer prints beside ours."""

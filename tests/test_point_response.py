@@ -3,7 +3,14 @@
 import numpy as np
 import pytest
 
-from gaussian_atoms_method.atoms.point_response import CLEAN_BLOCK, _response_pairs, clean_peaks, clean_peaks_reference, point_response, response_pairs_on_device
+from gaussian_atoms_method.atoms.point_response import (
+    CLEAN_BLOCK,
+    _response_pairs,
+    clean_peaks,
+    clean_peaks_reference,
+    point_response,
+    response_pairs_on_device,
+)
 
 
 def test_clean_drops_a_maximum_on_an_atoms_ridge_and_keeps_a_true_neighbour():
@@ -68,7 +75,10 @@ def test_clean_in_blocks_equals_clean_by_definition():
     values = np.sort(rng.uniform(0.5, 10.0, len(peaks)))[::-1]
     expected = _clean_by_definition(peaks, values, response, centre, 2.0)
     assert CLEAN_BLOCK < len(peaks) and 0.2 * len(peaks) < len(expected[0]) < len(peaks)
-    for accepted, amounts in (clean_peaks(peaks, values, response, centre, 2.0), clean_peaks_reference(peaks, values, response, centre, 2.0)):
+    for accepted, amounts in (
+        clean_peaks(peaks, values, response, centre, 2.0),
+        clean_peaks_reference(peaks, values, response, centre, 2.0),
+    ):
         assert accepted.tolist() == expected[0].tolist()
         np.testing.assert_allclose(amounts, expected[1], rtol=1e-12)
 

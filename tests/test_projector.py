@@ -38,7 +38,9 @@ def test_matches_quadrature_along_rays():
     for v in range(len(angles)):
         for i, j in [(12, 12), (5, 17), (20, 3), (11, 14)]:
             origin = coords[i] * axes[v, 0] + coords[j] * axes[v, 1]
-            val, _ = integrate.quad(lambda t: density(origin + t * axes[v, 2]), -15, 15, epsabs=1e-13, epsrel=1e-12, limit=200)
+            val, _ = integrate.quad(
+                lambda t: density(origin + t * axes[v, 2]), -15, 15, epsabs=1e-13, epsrel=1e-12, limit=200
+            )
             worst = max(worst, abs(img[v, i, j] - val) / max(abs(val), 1e-12))
     # float64 analytic vs adaptive quadrature: both essentially exact.
     assert worst < 1e-8
@@ -99,7 +101,9 @@ def test_gradcheck_float64():
     amps = torch.rand(4, dtype=torch.float64).requires_grad_()
     axes = torch.tensor(detector_axes_from_tilts([10.0, -50.0]))
     coords = torch.tensor(pixel_centres(9, 0.12))
-    assert torch.autograd.gradcheck(lambda m, s, a: project_gaussians(m, s, a, axes, coords, coords), (means, sigmas, amps))
+    assert torch.autograd.gradcheck(
+        lambda m, s, a: project_gaussians(m, s, a, axes, coords, coords), (means, sigmas, amps)
+    )
 
 
 def test_shape_errors():
@@ -173,7 +177,9 @@ def test_tile_blocks_backward_matches_autograd():
 
     gen = torch.Generator().manual_seed(5)
     n_tiles, tile, k = 6, 8, 5
-    pixels = torch.arange(tile, dtype=torch.float64)[None, :] + 8.0 * torch.arange(n_tiles, dtype=torch.float64)[:, None]
+    pixels = (
+        torch.arange(tile, dtype=torch.float64)[None, :] + 8.0 * torch.arange(n_tiles, dtype=torch.float64)[:, None]
+    )
     U = (pixels[:, :1] + torch.rand(n_tiles, k, generator=gen, dtype=torch.float64) * 40 - 16).requires_grad_()
     V = (pixels[:, :1] + torch.rand(n_tiles, k, generator=gen, dtype=torch.float64) * 40 - 16).requires_grad_()
     P = (torch.rand(n_tiles, k, generator=gen, dtype=torch.float64) + 0.1).detach()
@@ -185,10 +191,13 @@ def test_tile_blocks_backward_matches_autograd():
     weights = torch.randn(n_tiles, tile, tile, generator=gen, dtype=torch.float64)
     fast, plain = tile_blocks(*inputs), tile_blocks_reference(*inputs)
     assert float((fast - plain).detach().abs().max()) <= k * math.exp(-87.0)
-    for got, want in zip(torch.autograd.grad((fast * weights).sum(), inputs), torch.autograd.grad((plain * weights).sum(), inputs)):
+    for got, want in zip(
+        torch.autograd.grad((fast * weights).sum(), inputs), torch.autograd.grad((plain * weights).sum(), inputs)
+    ):
         assert float((got - want).abs().max()) <= 1e-12 * max(float(want.abs().max()), 1.0)
     assert torch.autograd.gradcheck(tile_blocks, inputs)
-    assert torch.autograd.gradcheck(lambda *a: tile_blocks(*a, pixels, pixels), inputs[:4])  # fixed pixels: no gradient asked for them
+    # fixed pixels: no gradient asked for them
+    assert torch.autograd.gradcheck(lambda *a: tile_blocks(*a, pixels, pixels), inputs[:4])
 
 
 def test_tile_order_is_torchs_stable_order():
@@ -208,13 +217,29 @@ def test_tiled_empty_and_invisible():
 
     axes = torch.tensor(detector_axes_from_tilts(np.array([0.0]), "y"), dtype=torch.float64)
     coords = (torch.arange(20, dtype=torch.float64) - 9.5) / 20
-    empty = project_gaussians_tiled(torch.zeros(0, 3, dtype=torch.float64), torch.zeros(0, dtype=torch.float64), torch.zeros(0, dtype=torch.float64), axes, coords, coords)
+    empty = project_gaussians_tiled(
+        torch.zeros(0, 3, dtype=torch.float64),
+        torch.zeros(0, dtype=torch.float64),
+        torch.zeros(0, dtype=torch.float64),
+        axes,
+        coords,
+        coords,
+    )
     assert empty.shape == (1, 20, 20) and float(empty.abs().max()) == 0.0
     far = torch.tensor([[5.0, 5.0, 0.0]], dtype=torch.float64)
-    img = project_gaussians_tiled(far, torch.tensor([0.01], dtype=torch.float64), torch.tensor([1.0], dtype=torch.float64), axes, coords, coords)
+    img = project_gaussians_tiled(
+        far, torch.tensor([0.01], dtype=torch.float64), torch.tensor([1.0], dtype=torch.float64), axes, coords, coords
+    )
     assert float(img.abs().max()) == 0.0
     with pytest.raises(ValueError, match="evenly spaced"):
-        project_gaussians_tiled(far, torch.tensor([0.01], dtype=torch.float64), torch.tensor([1.0], dtype=torch.float64), axes, coords**3, coords)
+        project_gaussians_tiled(
+            far,
+            torch.tensor([0.01], dtype=torch.float64),
+            torch.tensor([1.0], dtype=torch.float64),
+            axes,
+            coords**3,
+            coords,
+        )
 
 
 def test_anisotropic_matches_quadrature_and_isotropic():
@@ -243,13 +268,17 @@ def test_anisotropic_matches_quadrature_and_isotropic():
     for v in range(len(angles)):
         for i, j in [(20, 20), (12, 25), (27, 9), (15, 15)]:
             origin = coords[i].item() * axes[v, 0].numpy() + coords[j].item() * axes[v, 1].numpy()
-            val, _ = integrate.quad(lambda t: density(origin + t * axes[v, 2].numpy()), -12, 12, epsabs=1e-13, epsrel=1e-12, limit=200)
+            val, _ = integrate.quad(
+                lambda t: density(origin + t * axes[v, 2].numpy()), -12, 12, epsabs=1e-13, epsrel=1e-12, limit=200
+            )
             worst = max(worst, abs(img[v, i, j] - val) / float(img[v].max()))
     assert worst < 1e-6  # the window cut-off (2.7e-7 of a peak) is the only approximation
 
     sig = torch.tensor([0.4, 0.7, 0.55], dtype=torch.float64)
     iso = project_gaussians(means, sig, amps, axes, coords, coords)
-    aniso = project_anisotropic_gaussians(means, torch.diag_embed(sig[:, None].expand(3, 3) ** 2), amps, axes, coords, coords)
+    aniso = project_anisotropic_gaussians(
+        means, torch.diag_embed(sig[:, None].expand(3, 3) ** 2), amps, axes, coords, coords
+    )
     assert float((iso - aniso).abs().max()) <= 1e-6 * float(iso.max())
 
 

@@ -6,7 +6,13 @@ import numpy as np
 import pytest
 import torch
 
-from gaussian_atoms_method.physics.psf import KERNEL_WIDTHS_A, apply_kernel, fast_fft_length, kernel_transfer, project_weights
+from gaussian_atoms_method.physics.psf import (
+    KERNEL_WIDTHS_A,
+    apply_kernel,
+    fast_fft_length,
+    kernel_transfer,
+    project_weights,
+)
 
 
 def test_kernel_of_one_gaussian_blurs_a_gaussian_exactly_and_keeps_mass():
@@ -17,14 +23,22 @@ def test_kernel_of_one_gaussian_blurs_a_gaussian_exactly_and_keeps_mass():
     x = (torch.arange(n, dtype=torch.float64) - n / 2) * spacing
     r2 = x[:, None] ** 2 + x[None, :] ** 2
     image = torch.exp(-r2 / (2 * a**2)) / (2 * math.pi * a**2)
-    blurred = apply_kernel(image[None], spacing, torch.tensor([s], dtype=torch.float64), torch.tensor([1.0], dtype=torch.float64))[0]
+    blurred = apply_kernel(
+        image[None], spacing, torch.tensor([s], dtype=torch.float64), torch.tensor([1.0], dtype=torch.float64)
+    )[0]
     expected = torch.exp(-r2 / (2 * (a**2 + s**2))) / (2 * math.pi * (a**2 + s**2))
     assert float((blurred - expected).abs().max()) < 1e-9 * float(expected.max())
-    mixed = apply_kernel(image[None], spacing, torch.tensor(KERNEL_WIDTHS_A, dtype=torch.float64), torch.tensor([0.3, -0.1, 0.2], dtype=torch.float64))
+    mixed = apply_kernel(
+        image[None],
+        spacing,
+        torch.tensor(KERNEL_WIDTHS_A, dtype=torch.float64),
+        torch.tensor([0.3, -0.1, 0.2], dtype=torch.float64),
+    )
     weights = torch.tensor([0.5, -3.0, 2.0], dtype=torch.float64)
     project_weights(weights)  # after each step: a non-negative kernel
     assert bool((weights >= 0).all()) and float(weights.sum()) == pytest.approx(1.0) and float(weights[1]) == 0.0
-    assert torch.equal(apply_kernel(image[None], spacing, torch.tensor(KERNEL_WIDTHS_A), torch.zeros(3))[0], image)  # zero weights: identity
+    # zero weights: identity
+    assert torch.equal(apply_kernel(image[None], spacing, torch.tensor(KERNEL_WIDTHS_A), torch.zeros(3))[0], image)
     assert float(mixed.sum()) == pytest.approx(float(image.sum()), rel=1e-6)
     assert float(kernel_transfer(torch.zeros(1), torch.tensor([1.0]), torch.tensor([0.7]))) == 1.0
 
@@ -64,11 +78,17 @@ def _blurred_series_and_model(tmp_path, true_weights: torch.Tensor, **options):
     atoms = spherical_particle("Au", radius_A=4.0)
     angles = np.linspace(-60, 60, 7)
     sim = simulate_gaussian_tilt_series(atoms, angles, noise_std=0.0, margin_A=10.0)
-    proj = apply_kernel(torch.as_tensor(sim.projections, dtype=torch.float64), sim.pixel_size_A, torch.tensor(KERNEL_WIDTHS_A, dtype=torch.float64), true_weights).numpy()
+    proj = apply_kernel(
+        torch.as_tensor(sim.projections, dtype=torch.float64),
+        sim.pixel_size_A,
+        torch.tensor(KERNEL_WIDTHS_A, dtype=torch.float64),
+        true_weights,
+    ).numpy()
     write_tilt_series(tmp_path, proj.astype(np.float32), angles, sim.pixel_size_A, truth=sim.truth)
     outputs = TiltSeriesDataParserConfig(data=tmp_path).setup().get_dataparser_outputs("train")
-    model = GaussianAtomsModelConfig(num_random=len(atoms), init="random", coarse_steps=0, background="none", loss="l2", **options).setup(
-        scene_box=outputs.scene_box, num_train_data=len(outputs.image_filenames), metadata=outputs.metadata)  # fmt: skip
+    model = GaussianAtomsModelConfig(
+        num_random=len(atoms), init="random", coarse_steps=0, background="none", loss="l2", **options
+    ).setup(scene_box=outputs.scene_box, num_train_data=len(outputs.image_filenames), metadata=outputs.metadata)
     return atoms, sim, angles, outputs, model
 
 
@@ -84,18 +104,28 @@ def test_kernel_is_recovered_from_a_simulated_series(tmp_path):
     with torch.no_grad():
         model.gauss_params["means"].copy_(torch.as_tensor(norm.positions_from_A(atoms.positions), dtype=torch.float32))
         model.gauss_params["log_sigmas"].fill_(math.log(sim.truth.sigmas[0] * norm.length_scale))
-    opt = torch.optim.Adam([{"params": [model.view_params["psf"]], "lr": 1e-2}, {"params": [model.gauss_params["log_amplitudes"]], "lr": 2e-2}])
+    opt = torch.optim.Adam(
+        [
+            {"params": [model.view_params["psf"]], "lr": 1e-2},
+            {"params": [model.gauss_params["log_amplitudes"]], "lr": 2e-2},
+        ]
+    )
     targets = [outputs.metadata["projections"][v][..., None] for v in range(len(angles))]
     for step in range(800):
         opt.zero_grad()
         v = step % len(angles)
-        model.get_loss_dict(model.get_outputs(outputs.cameras[v : v + 1]), {"image": targets[v]})["main_loss"].backward()
+        model.get_loss_dict(model.get_outputs(outputs.cameras[v : v + 1]), {"image": targets[v]})[
+            "main_loss"
+        ].backward()
         opt.step()
         project_weights(model.view_params["psf"].data)
     learned = model.view_params["psf"].detach().double()
     widths = torch.tensor(KERNEL_WIDTHS_A, dtype=torch.float64)
     freq2 = torch.linspace(0.0, (0.5 / sim.pixel_size_A) ** 2, 200, dtype=torch.float64)
-    assert float((kernel_transfer(freq2, widths, learned) - kernel_transfer(freq2, widths, true_weights)).abs().max()) < 0.03
+    assert (
+        float((kernel_transfer(freq2, widths, learned) - kernel_transfer(freq2, widths, true_weights)).abs().max())
+        < 0.03
+    )
     assert abs(float(learned[1]) - 0.3) < 0.05
 
 
@@ -112,7 +142,9 @@ def test_kernel_weights_are_read_from_views_under_each_data_term(kind):
     spacing, widths = 0.3, torch.tensor(KERNEL_WIDTHS_A, dtype=torch.float64)
     sites = torch.zeros(23, 151, 77, dtype=torch.float64)
     sites[:, 20:130:9, 10:70:7] = 1.0
-    atoms = apply_kernel(sites, spacing, torch.tensor([0.5], dtype=torch.float64), torch.tensor([1.0], dtype=torch.float64))
+    atoms = apply_kernel(
+        sites, spacing, torch.tensor([0.5], dtype=torch.float64), torch.tensor([1.0], dtype=torch.float64)
+    )
     peak, floor, true = float(atoms.max()), 0.3, torch.tensor([0.05, 0.2, 0.1], dtype=torch.float64)
     noise = 0.01 * peak
     gain = 1.0 if kind == "l2" else noise**2 / (floor + 0.5 * peak)  # Poisson-like: the noise at mid signal
@@ -125,7 +157,10 @@ def test_kernel_weights_are_read_from_views_under_each_data_term(kind):
     read = fit_kernel_weights(atoms, torch.tensor(floor, dtype=torch.float64), measured, spacing, widths, loss)
     assert float((read - true).abs().max()) < 0.01, read
     plain = atoms + floor + noise * torch.randn(blurred.shape, generator=gen, dtype=torch.float64)
-    assert float(fit_kernel_weights(atoms, torch.tensor(floor, dtype=torch.float64), plain, spacing, widths, loss).max()) < 0.01
+    assert (
+        float(fit_kernel_weights(atoms, torch.tensor(floor, dtype=torch.float64), plain, spacing, widths, loss).max())
+        < 0.01
+    )
 
 
 def test_held_out_views_teach_the_kernel_not_the_atoms(tmp_path):
@@ -142,16 +177,21 @@ def test_held_out_views_teach_the_kernel_not_the_atoms(tmp_path):
     with torch.no_grad():
         model.gauss_params["means"].copy_(torch.as_tensor(norm.positions_from_A(atoms.positions), dtype=torch.float32))
         model.gauss_params["log_sigmas"].fill_(math.log(sim.truth.sigmas[0] * norm.length_scale))
-        sigmas, peaks = gaussian_potential_parameters(atoms.species, 0.35)  # the simulation's atoms, blurred to the truth's widths
+        # the simulation's atoms, blurred to the truth's widths
+        sigmas, peaks = gaussian_potential_parameters(atoms.species, 0.35)
         peaks = peaks * (sigmas / sim.truth.sigmas) ** 3
-        model.gauss_params["log_amplitudes"].copy_(torch.log(torch.as_tensor(peaks * norm.data_scale / norm.length_scale, dtype=torch.float32))[:, None])
+        model.gauss_params["log_amplitudes"].copy_(
+            torch.log(torch.as_tensor(peaks * norm.data_scale / norm.length_scale, dtype=torch.float32))[:, None]
+        )
     model.train()
     model.step = model.density.warmup_length
     targets = [outputs.metadata["projections"][v][..., None] for v in range(len(angles))]
     for view, teaches in ((1, False), (2, True)):
         for p in model.gauss_params.values():
             p.grad = None
-        model.get_loss_dict(model.get_outputs(outputs.cameras[view : view + 1]), {"image": targets[view]})["main_loss"].backward()
+        model.get_loss_dict(model.get_outputs(outputs.cameras[view : view + 1]), {"image": targets[view]})[
+            "main_loss"
+        ].backward()
         assert (model.means.grad is not None) == teaches
     model.kernel_reading.read(model, model.step)
     read = model.view_params["psf"].detach().double()
@@ -180,16 +220,42 @@ def test_held_out_reading_then_the_run_with_the_kernel_held(tmp_path):
     atoms = spherical_particle("Au", radius_A=4.0)
     angles = np.linspace(-60, 60, 13)
     sim = simulate_gaussian_tilt_series(atoms, angles, noise_std=0.0, margin_A=10.0)
-    proj = apply_kernel(torch.as_tensor(sim.projections, dtype=torch.float64), sim.pixel_size_A, torch.tensor(KERNEL_WIDTHS_A, dtype=torch.float64), torch.tensor([0.0, 0.3, 0.0], dtype=torch.float64))
+    proj = apply_kernel(
+        torch.as_tensor(sim.projections, dtype=torch.float64),
+        sim.pixel_size_A,
+        torch.tensor(KERNEL_WIDTHS_A, dtype=torch.float64),
+        torch.tensor([0.0, 0.3, 0.0], dtype=torch.float64),
+    )
     write_tilt_series(tmp_path / "series", proj.numpy().astype(np.float32), angles, sim.pixel_size_A, truth=sim.truth)
-    cmd = [str(Path(sys.executable).parent / "gaussian-atoms"), "train", "--machine.device-type", "cpu", "--vis", "tensorboard", "--output-dir", str(tmp_path / "out"),
-           "--timestamp", "run", "--max-num-iterations", "400", "--pipeline.model.psf", "held-out", "--pipeline.model.stop-split-at", "300",
-           "tilt-series", "--data", str(tmp_path / "series")]  # fmt: skip
+    cmd = [
+        str(Path(sys.executable).parent / "gaussian-atoms"),
+        "train",
+        "--machine.device-type",
+        "cpu",
+        "--vis",
+        "tensorboard",
+        "--output-dir",
+        str(tmp_path / "out"),
+        "--timestamp",
+        "run",
+        "--max-num-iterations",
+        "400",
+        "--pipeline.model.psf",
+        "held-out",
+        "--pipeline.model.stop-split-at",
+        "300",
+        "tilt-series",
+        "--data",
+        str(tmp_path / "series"),
+    ]
     run = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]
     log = run.stdout + run.stderr
     assert log.count("the atoms start again on every view") == 1 and log.count("wrote ") == 1
     psf = json.loads(next((tmp_path / "out").rglob("psf.json")).read_text())
-    read = [float(w) for w in re.search(r"read on the held-out views is held at ([0-9.]+), ([0-9.]+), ([0-9.]+)", log).groups()]
+    read = [
+        float(w)
+        for w in re.search(r"read on the held-out views is held at ([0-9.]+), ([0-9.]+), ([0-9.]+)", log).groups()
+    ]
     assert psf["psf"] == "fixed" and np.allclose(psf["intensity_fractions"], read, atol=1e-3), (psf, read)
     assert next((tmp_path / "out").rglob("atoms.xyz")).is_file()

@@ -45,7 +45,9 @@ def test_emd_tomviz_layout(tmp_path):
         g = f.create_group("data").create_group("tomography")
         g.attrs["emd_group_type"] = 1
         g["data"] = np.moveaxis(STACK, 0, 2)  # (H, W, N) with the angle last
-        for i, (name, units, values) in enumerate([("x", "[n_m]", np.arange(6)), ("y", "[n_m]", np.arange(5)), ("angles", "[deg]", ANGLES)]):
+        for i, (name, units, values) in enumerate(
+            [("x", "[n_m]", np.arange(6)), ("y", "[n_m]", np.arange(5)), ("angles", "[deg]", ANGLES)]
+        ):
             d = g.create_dataset(f"dim{i + 1}", data=values)
             d.attrs["name"], d.attrs["units"] = np.bytes_(name), np.bytes_(units)
     got = read_stack(tmp_path / "s.emd")
@@ -63,14 +65,21 @@ def test_plain_hdf5(tmp_path):
 
 
 def test_mat_v5_and_v73(tmp_path):
-    scipy.io.savemat(tmp_path / "s.mat", {"Projs": np.moveaxis(STACK, 0, 2), "angles": np.stack([np.zeros(4), ANGLES, np.zeros(4)], 1)})
+    scipy.io.savemat(
+        tmp_path / "s.mat",
+        {"Projs": np.moveaxis(STACK, 0, 2), "angles": np.stack([np.zeros(4), ANGLES, np.zeros(4)], 1)},
+    )
     np.testing.assert_array_equal(read_stack(tmp_path / "s.mat").projections, STACK)
     np.testing.assert_array_equal(read_angles(tmp_path / "s.mat")[:, 1], ANGLES)
     # v7.3 is HDF5 with MATLAB's column-major layout: a MATLAB (H, W, N) array appears reversed.
     with h5py.File(tmp_path / "v73.mat", "w", userblock_size=512) as f:
         f["Projs"] = np.moveaxis(STACK, 0, 2).transpose()
     with open(tmp_path / "v73.mat", "r+b") as f:  # the header MATLAB writes in the user block
-        f.write(b"MATLAB 7.3 MAT-file, Platform: GLNXA64, Created on: Sun Nov 22 00:00:00 2026 HDF5 schema 1.00 .".ljust(116))
+        f.write(
+            b"MATLAB 7.3 MAT-file, Platform: GLNXA64, Created on: Sun Nov 22 00:00:00 2026 HDF5 schema 1.00 .".ljust(
+                116
+            )
+        )
     np.testing.assert_array_equal(read_stack(tmp_path / "v73.mat").projections, STACK)
 
 

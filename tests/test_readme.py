@@ -64,7 +64,9 @@ def test_readme_simulate_example_makes_the_sphere_it_says(tmp_path):
     from gaussian_atoms_method.cli import Simulate
 
     example = next(a for a in readme_commands() if a[1:2] == ["simulate"] and "--radius-A" in a)
-    command = tyro.cli(Simulate, args=[*example[2:], "--output", str(tmp_path / "s"), "--tilts", "-60:60:60", "--no-save-volume"])
+    command = tyro.cli(
+        Simulate, args=[*example[2:], "--output", str(tmp_path / "s"), "--tilts", "-60:60:60", "--no-save-volume"]
+    )
     command.main()
     n_atoms = sum(1 for _ in open(tmp_path / "s" / "atoms_true.xyz")) - 2
     assert 300 < n_atoms < 400  # an 11 Å Au sphere: 321 atoms (make demo's)
@@ -84,13 +86,28 @@ def test_wheel_carries_the_au_particle(tmp_path):
     """Build a wheel, install it into a fresh venv (dependencies taken from this environment
     through a .pth, not this checkout), and simulate the paper's Au particle from it."""
     dist = tmp_path / "dist"
-    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(dist), str(ROOT)], check=True, capture_output=True)
+    subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(dist), str(ROOT)],
+        check=True,
+        capture_output=True,
+    )
     wheel = next(dist.glob("gaussian_atoms-*.whl"))
     venv = tmp_path / "venv"
     subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True)
     python = venv / "bin" / "python"
-    site = Path(subprocess.run([str(python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"], capture_output=True, text=True, check=True).stdout.strip())
-    subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--target", str(site), str(wheel)], check=True, capture_output=True)
+    site = Path(
+        subprocess.run(
+            [str(python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+    )
+    subprocess.run(
+        [sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--target", str(site), str(wheel)],
+        check=True,
+        capture_output=True,
+    )
     (site / "dependencies.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
     code = (
         "import gaussian_atoms_method, sys; from gaussian_atoms_method.harness.particles import make_particle; "

@@ -59,15 +59,20 @@ def _two_atoms_one_off(tmp_path):
     write_tilt_series(tmp_path, blank, angles, 0.3, truth=AtomSet(np.zeros((1, 3)), species=["Au"]))
     outputs = TiltSeriesDataParserConfig(data=tmp_path).setup().get_dataparser_outputs("train")
     model = GaussianAtomsModelConfig(num_random=2, init="random", coarse_steps=0, background="none").setup(
-        scene_box=outputs.scene_box, num_train_data=4, metadata=outputs.metadata)  # fmt: skip
+        scene_box=outputs.scene_box, num_train_data=4, metadata=outputs.metadata
+    )
     ls = model.normalisation.length_scale
     truth = torch.tensor([[-1.5, 0.0, 0.0], [1.5, 0.0, 0.0]], dtype=torch.float32) * ls
     with torch.no_grad():
         model.gauss_params["means"].copy_(truth)
         model.gauss_params["log_sigmas"].fill_(math.log(0.5 * ls))
         cams = outputs.cameras
-        clean = torch.stack([model.get_outputs(cams[v : v + 1])["projection"].detach().reshape(40, 40) for v in range(4)])
-        noise = torch.from_numpy(np.random.default_rng(0).normal(0.0, 0.2 * float(clean.max()), clean.shape).astype(np.float32))
+        clean = torch.stack(
+            [model.get_outputs(cams[v : v + 1])["projection"].detach().reshape(40, 40) for v in range(4)]
+        )
+        noise = torch.from_numpy(
+            np.random.default_rng(0).normal(0.0, 0.2 * float(clean.max()), clean.shape).astype(np.float32)
+        )
         model.kwargs["metadata"]["projections"].copy_(clean + noise)
         model.gauss_params["means"][0, 0] += 0.5 * ls
     model.optimizers = {"means": torch.optim.Adam([model.gauss_params["means"]], lr=0.03 * ls)}

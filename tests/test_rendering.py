@@ -64,7 +64,9 @@ def test_background_constant_and_plane():
     np.testing.assert_allclose(plane.numpy(), 2.0 + 0.5 * rows.numpy()[:, None] - cols.numpy()[None, :])
     r, c = rows.numpy()[:, None], cols.numpy()[None, :]
     quadratic = R.add_background(image, torch.tensor([2.0, 0.5, -1.0, 0.3, -0.2, 0.7], dtype=torch.float64), rows, cols)
-    np.testing.assert_allclose(quadratic.numpy(), 2.0 + 0.5 * r - c + 0.3 * r**2 - 0.2 * r * c + 0.7 * c**2, rtol=1e-15, atol=1e-15)
+    np.testing.assert_allclose(
+        quadratic.numpy(), 2.0 + 0.5 * r - c + 0.3 * r**2 - 0.2 * r * c + 0.7 * c**2, rtol=1e-15, atol=1e-15
+    )
 
 
 def test_floor_images_are_every_views_terms_summed_and_view_floors_add_the_binned_surfaces():
@@ -76,16 +78,36 @@ def test_floor_images_are_every_views_terms_summed_and_view_floors_add_the_binne
     rows, cols = torch.linspace(-0.7, 0.4, 9, dtype=torch.float64), torch.linspace(-0.3, 0.9, 12, dtype=torch.float64)
     coefficients = torch.randn(4, 6, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
     for k in (1, 3, 6):
-        expected = torch.stack([sum(c[i] * rows[:, None] ** a * cols[None, :] ** b for i, (a, b) in enumerate(R.FLOOR_TERMS[:k])) for c in coefficients[:, :k]])
-        torch.testing.assert_close(R.floor_images(coefficients[:, :k], R.coordinate_powers(rows, cols)), expected, rtol=0, atol=1e-13)
+        expected = torch.stack(
+            [
+                sum(c[i] * rows[:, None] ** a * cols[None, :] ** b for i, (a, b) in enumerate(R.FLOOR_TERMS[:k]))
+                for c in coefficients[:, :k]
+            ]
+        )
+        torch.testing.assert_close(
+            R.floor_images(coefficients[:, :k], R.coordinate_powers(rows, cols)), expected, rtol=0, atol=1e-13
+        )
     surfaces = torch.rand(4, 18, 24, generator=torch.Generator().manual_seed(4), dtype=torch.float64)
-    model = SimpleNamespace(view_params={"background": coefficients}, background_surfaces=surfaces, view_geometry=R.ViewGeometry())
+    model = SimpleNamespace(
+        view_params={"background": coefficients}, background_surfaces=surfaces, view_geometry=R.ViewGeometry()
+    )
     coarse = R.coordinate_powers(rows, cols)  # a 9 x 12 detector: the 18 x 24 surfaces binned
     floors = R.view_floors(model, [2, 0], coarse, torch.float64)
     for floor, v in zip(floors, (2, 0)):
-        torch.testing.assert_close(floor, R.floor_images(coefficients[v : v + 1], coarse)[0] + surfaces[v].reshape(9, 2, 12, 2).mean(dim=(1, 3)), rtol=0, atol=1e-13)
-    torch.testing.assert_close(R.view_floors(model, [1], coarse, torch.float64)[0], R.view_floors(model, [1, 3], coarse, torch.float64)[0], rtol=0, atol=1e-13)
-    assert model.view_geometry.surfaces(surfaces, 9, 12) is model.view_geometry.surfaces(surfaces, 9, 12)  # binned once per size
+        torch.testing.assert_close(
+            floor,
+            R.floor_images(coefficients[v : v + 1], coarse)[0] + surfaces[v].reshape(9, 2, 12, 2).mean(dim=(1, 3)),
+            rtol=0,
+            atol=1e-13,
+        )
+    torch.testing.assert_close(
+        R.view_floors(model, [1], coarse, torch.float64)[0],
+        R.view_floors(model, [1, 3], coarse, torch.float64)[0],
+        rtol=0,
+        atol=1e-13,
+    )
+    # binned once per size
+    assert model.view_geometry.surfaces(surfaces, 9, 12) is model.view_geometry.surfaces(surfaces, 9, 12)
 
 
 def test_binned_views_bins_each_view_as_binned_like_does():
@@ -108,7 +130,9 @@ def test_a_floor_varying_within_the_views_learns_a_quadratic_correction_from_its
     assert params["background"].shape == (5, 6) and buffers["background_surfaces"].shape == (5, 8, 8)
     assert (params["background"][:, 0] == 1.5).all() and (params["background"][:, 1:] == 0).all()
     assert R.view_parameters(cfg, 5, 1.5, None, None, 1.0)[0]["background"].shape == (5, 1)
-    assert R.view_parameters(SimpleNamespace(**{**vars(cfg), "background": "plane"}), 5, None, None, None, 1.0)[0]["background"].shape == (5, 3)
+    assert R.view_parameters(SimpleNamespace(**{**vars(cfg), "background": "plane"}), 5, None, None, None, 1.0)[0][
+        "background"
+    ].shape == (5, 3)
 
 
 def test_view_index_finds_the_training_pose():
@@ -126,15 +150,20 @@ def test_view_geometry_reads_a_training_camera_once():
     camera.metadata = {"cam_idx": 2}
     first = geometry.read(camera, poses[2], False, poses, True, "cpu", torch.float64)
     rows, cols = R.pixel_coordinates(camera, poses[2], False, "cpu", torch.float64)
-    assert torch.equal(first[0], rows) and torch.equal(first[1], cols) and first[2] == pytest.approx(0.1) and first[3] == 2
+    assert (
+        torch.equal(first[0], rows) and torch.equal(first[1], cols) and first[2] == pytest.approx(0.1) and first[3] == 2
+    )
     assert geometry.read(camera, poses[2], False, poses, True, "cpu", torch.float64) is first
-    assert geometry.read(camera, poses[2], True, poses, True, "cpu", torch.float64)[0].shape == (3,)  # the coarse phase: its own entry
+    # the coarse phase: its own entry
+    assert geometry.read(camera, poses[2], True, poses, True, "cpu", torch.float64)[0].shape == (3,)
     viewer = _camera(poses[1] + 0.01)
     assert geometry.read(viewer, poses[1] + 0.01, False, poses, True, "cpu", torch.float64)[3] is None
     assert geometry.read(camera, poses[2], False, poses, False, "cpu", torch.float64) is not first
     # the floors' coordinate powers: kept for the coordinates read kept, made each time for others
     powers = geometry.powers(first[0], first[1])
-    assert geometry.powers(first[0], first[1]) is powers and all(torch.equal(p, q) for p, q in zip(powers, R.coordinate_powers(rows, cols)))
+    assert geometry.powers(first[0], first[1]) is powers and all(
+        torch.equal(p, q) for p, q in zip(powers, R.coordinate_powers(rows, cols))
+    )
     shifted = first[0] - 0.1
     assert geometry.powers(shifted, first[1]) is not geometry.powers(shifted, first[1])
 
@@ -203,9 +232,14 @@ def test_auto_views_per_step_counts_the_projectors_memory_and_keeps_one_view_off
 
 @pytest.mark.parametrize(
     "options, named",
-    [({"views_per_step": 0}, "views-per-step"), ({"views_per_step": 4, "refine_tilts": True}, "--pipeline.model.refine-tilts"),
-     ({"num_random": 0}, "num-random"), ({"init_sigma_A": 9.0}, "init-sigma-A"), ({"merge_threshold_A": -1.0}, "merge-threshold-A")],
-)  # fmt: skip
+    [
+        ({"views_per_step": 0}, "views-per-step"),
+        ({"views_per_step": 4, "refine_tilts": True}, "--pipeline.model.refine-tilts"),
+        ({"num_random": 0}, "num-random"),
+        ({"init_sigma_A": 9.0}, "init-sigma-A"),
+        ({"merge_threshold_A": -1.0}, "merge-threshold-A"),
+    ],
+)
 def test_option_conflicts_are_named_before_anything_is_built(options, named):
     with pytest.raises(OptionError, match=named):
         GaussianAtomsOptions(**options).check()
@@ -236,16 +270,34 @@ def test_training_views_rendered_in_chunks_are_the_views_rendered_one_by_one(tmp
     from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
 
     truth = spherical_particle("Au", radius_A=4.0)
-    sim = simulate_tilt_series(truth, np.arange(-60.0, 61.0, 20.0), potential="gaussian", noise_std=5.0, floor_fraction=0.05, seed=0)
-    outputs = TiltSeriesDataParserConfig(data=write_tilt_series(tmp_path, sim.projections, sim.angles_deg, sim.pixel_size_A, truth=truth)).setup().get_dataparser_outputs("train")
-    model = GaussianAtomsModelConfig(background="constant", psf_weights=(0.1, 0.05, 0.0)).setup(scene_box=outputs.scene_box, num_train_data=len(sim.angles_deg), metadata=outputs.metadata)
-    model.view_params["background"].data[:, 0] = torch.linspace(0.5, 1.5, len(sim.angles_deg))  # a floor of its own per view
+    sim = simulate_tilt_series(
+        truth, np.arange(-60.0, 61.0, 20.0), potential="gaussian", noise_std=5.0, floor_fraction=0.05, seed=0
+    )
+    outputs = (
+        TiltSeriesDataParserConfig(
+            data=write_tilt_series(tmp_path, sim.projections, sim.angles_deg, sim.pixel_size_A, truth=truth)
+        )
+        .setup()
+        .get_dataparser_outputs("train")
+    )
+    model = GaussianAtomsModelConfig(background="constant", psf_weights=(0.1, 0.05, 0.0)).setup(
+        scene_box=outputs.scene_box, num_train_data=len(sim.angles_deg), metadata=outputs.metadata
+    )
+    # a floor of its own per view
+    model.view_params["background"].data[:, 0] = torch.linspace(0.5, 1.5, len(sim.angles_deg))
     probes = model.means.detach()[:5] + 0.01, model.sigmas.detach()[:5]
     model.indexed_views = False  # each view through its own camera
     one_by_one, correlations = residuals.render_training_views(model), residuals.residual_correlations(model, *probes)
     model.indexed_views = True
     for size in (1, 100):
-        monkeypatch.setattr(residuals, "view_chunks", lambda n, *_: [list(range(i, min(i + size, n))) for i in range(0, n, size)])
+        monkeypatch.setattr(
+            residuals, "view_chunks", lambda n, *_: [list(range(i, min(i + size, n))) for i in range(0, n, size)]
+        )
         chunked = residuals.render_training_views(model)
         np.testing.assert_allclose(chunked, one_by_one, rtol=0, atol=2e-5 * np.abs(one_by_one).max())
-        np.testing.assert_allclose(residuals.residual_correlations(model, *probes), correlations, rtol=1e-4, atol=1e-6 * np.abs(correlations).max())
+        np.testing.assert_allclose(
+            residuals.residual_correlations(model, *probes),
+            correlations,
+            rtol=1e-4,
+            atol=1e-6 * np.abs(correlations).max(),
+        )

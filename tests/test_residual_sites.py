@@ -27,7 +27,9 @@ def test_a_missing_atom_is_found_from_the_residual():
     0.5 Å of the missing atom (a voxel maximum of an FBP elongated by the missing wedge), with
     a mass within a factor two of one atom's (the limited range lowers the FBP's peak)."""
     atoms, missing, others, sim, residuals = _missing_one(noise_std=20.0)
-    sites, masses = unexplained_sites(residuals, sim.angles_deg, sim.pixel_size_A, others.positions, sigma_A=float(sim.truth.sigmas[0]))
+    sites, masses = unexplained_sites(
+        residuals, sim.angles_deg, sim.pixel_size_A, others.positions, sigma_A=float(sim.truth.sigmas[0])
+    )
     assert len(sites) == 1
     assert np.linalg.norm(sites[0] - atoms.positions[missing]) < 0.5
     clean = simulate_gaussian_tilt_series(atoms, sim.angles_deg, noise_std=0.0).projections
@@ -44,7 +46,9 @@ def test_a_complete_fit_leaves_no_site():
     clean = simulate_gaussian_tilt_series(atoms, angles, noise_std=0.0)
     for seed in (1, 2, 3):
         noisy = simulate_gaussian_tilt_series(atoms, angles, noise_std=20.0, seed=seed)
-        sites, _ = unexplained_sites(noisy.projections - clean.projections, noisy.angles_deg, noisy.pixel_size_A, atoms.positions, sigma_A=0.6)
+        sites, _ = unexplained_sites(
+            noisy.projections - clean.projections, noisy.angles_deg, noisy.pixel_size_A, atoms.positions, sigma_A=0.6
+        )
         assert len(sites) == 0
 
 
@@ -67,7 +71,9 @@ def test_the_random_field_level_of_a_tensor_is_that_of_its_array():
     from gaussian_atoms_method.atoms.peaks import random_field_threshold
     from gaussian_atoms_method.atoms.volume_filters import gaussian_filter
 
-    field = gaussian_filter(torch.randn(40, 48, 36, generator=torch.Generator().manual_seed(4), dtype=torch.float64), 1.5).numpy()
+    field = gaussian_filter(
+        torch.randn(40, 48, 36, generator=torch.Generator().manual_seed(4), dtype=torch.float64), 1.5
+    ).numpy()
     assert abs(random_field_threshold(torch.from_numpy(field), 0.05) - random_field_threshold(field, 0.05)) < 1e-9
 
 
@@ -77,7 +83,12 @@ def test_the_search_on_cuda_finds_the_cpu_sites():
     maxima run on the device: the same site to a voxel, the same mass to float32's back-projection
     rounding (1e-4)."""
     atoms, missing, others, sim, residuals = _missing_one(noise_std=20.0)
-    found = [unexplained_sites(residuals, sim.angles_deg, sim.pixel_size_A, others.positions, float(sim.truth.sigmas[0]), device=d) for d in ("cpu", "cuda")]
+    found = [
+        unexplained_sites(
+            residuals, sim.angles_deg, sim.pixel_size_A, others.positions, float(sim.truth.sigmas[0]), device=d
+        )
+        for d in ("cpu", "cuda")
+    ]
     (cpu_sites, cpu_masses), (gpu_sites, gpu_masses) = found
     assert cpu_sites.shape == gpu_sites.shape == (1, 3)
     assert np.abs(cpu_sites - gpu_sites).max() <= sim.pixel_size_A + 1e-9

@@ -5,9 +5,15 @@ import pytest
 import torch
 
 from gaussian_atoms_method.atoms.atom_set import AtomSet
+from gaussian_atoms_method.harness.simulate import (
+    MASS_PER_Z,
+    gaussian_potential_parameters,
+    parse_tilts,
+    simulate_gaussian_tilt_series,
+    spherical_particle,
+)
 from gaussian_atoms_method.physics.geometry import detector_axes_from_tilts, pixel_centres
 from gaussian_atoms_method.physics.projector import project_gaussians
-from gaussian_atoms_method.harness.simulate import MASS_PER_Z, gaussian_potential_parameters, parse_tilts, simulate_gaussian_tilt_series, spherical_particle
 from gaussian_atoms_method.physics.units import DATA_RANGE, Normalisation
 
 
@@ -34,11 +40,15 @@ def test_spherical_particle_is_fcc_and_centred():
 
 def test_simulated_mass_and_noise():
     atoms = AtomSet(np.array([[0.0, 0.0, 0.0], [2.0, -1.0, 1.0]]), species=["Au", "Pt"])
-    sim = simulate_gaussian_tilt_series(atoms, np.array([0.0, 30.0]), pixel_size_A=0.2, detector_pixels=80, noise_std=0.0)
+    sim = simulate_gaussian_tilt_series(
+        atoms, np.array([0.0, 30.0]), pixel_size_A=0.2, detector_pixels=80, noise_std=0.0
+    )
     # Blur and projection conserve the integrated potential: MASS_PER_Z x Z per atom.
     expected = MASS_PER_Z * (79 + 78)
     np.testing.assert_allclose(sim.projections.sum(axis=(1, 2)) * 0.2**2, expected, rtol=1e-4)
-    noisy = simulate_gaussian_tilt_series(atoms, np.array([0.0, 30.0]), pixel_size_A=0.2, detector_pixels=80, noise_std=5.0)
+    noisy = simulate_gaussian_tilt_series(
+        atoms, np.array([0.0, 30.0]), pixel_size_A=0.2, detector_pixels=80, noise_std=5.0
+    )
     resid = noisy.projections - sim.projections
     assert resid.std() == pytest.approx(5.0, rel=0.03)  # 12,800 samples: 1% standard error
     assert noisy.peak_to_noise == pytest.approx(sim.projections.max() / 5.0, rel=1e-5)
@@ -57,12 +67,26 @@ def test_normalisation_round_trip_and_amplitude_units():
     sig_n, amp_n = 0.02, 500.0
     axes = torch.tensor(detector_axes_from_tilts([20.0]))
     c_n = torch.tensor(pixel_centres(50, 0.3 * norm.length_scale))
-    img_n = project_gaussians(torch.zeros(1, 3, dtype=torch.float64), torch.tensor([sig_n], dtype=torch.float64), torch.tensor([amp_n], dtype=torch.float64), axes, c_n, c_n)
+    img_n = project_gaussians(
+        torch.zeros(1, 3, dtype=torch.float64),
+        torch.tensor([sig_n], dtype=torch.float64),
+        torch.tensor([amp_n], dtype=torch.float64),
+        axes,
+        c_n,
+        c_n,
+    )
     # ... equals the same Gaussian converted to Å and physical amplitude, projected in Å.
     c_A = torch.tensor(pixel_centres(50, 0.3))
     sig_A = float(norm.sigmas_to_A(sig_n))
     amp = float(norm.amplitudes_to_physical(amp_n))
-    img_A = project_gaussians(torch.zeros(1, 3, dtype=torch.float64), torch.tensor([sig_A], dtype=torch.float64), torch.tensor([amp], dtype=torch.float64), axes, c_A, c_A)
+    img_A = project_gaussians(
+        torch.zeros(1, 3, dtype=torch.float64),
+        torch.tensor([sig_A], dtype=torch.float64),
+        torch.tensor([amp], dtype=torch.float64),
+        axes,
+        c_A,
+        c_A,
+    )
     torch.testing.assert_close(img_n / norm.data_scale, img_A)
     with pytest.raises(ValueError, match="all zero"):
         Normalisation.for_tilt_series(np.zeros((2, 3, 3)), 0.25)
@@ -89,7 +113,11 @@ def test_lobato_is_independent_physics_with_the_same_geometry():
     from gaussian_atoms_method.harness.simulate import project_gaussian_potential, project_lobato_potential
 
     px, n = 0.1, 81  # fine pixels so the sub-pixel peak is well defined
-    for position, angle, tilt_axis in [([1.3, -0.7, 0.9], 0.0, "y"), ([1.3, -0.7, 0.9], 35.0, "y"), ([-0.8, 1.1, -1.4], -60.0, "x")]:
+    for position, angle, tilt_axis in [
+        ([1.3, -0.7, 0.9], 0.0, "y"),
+        ([1.3, -0.7, 0.9], 35.0, "y"),
+        ([-0.8, 1.1, -1.4], -60.0, "x"),
+    ]:
         atom = AtomSet(np.array([position]), species=["Au"])
         lob = project_lobato_potential(atom, [angle], px, n, tilt_axis)[0]
         gau = project_gaussian_potential(atom, [angle], px, n, 0.35, tilt_axis)[0]
@@ -110,9 +138,14 @@ def test_film_wider_than_the_field_is_projected_whole_and_cropped():
 
     film = amorphous_packing(0, ("Pd",), 2.5, np.random.default_rng(0), box_A=(30.0, 12.0, 8.0))
     assert np.all(np.abs(film.positions) <= np.array([15.0, 6.0, 4.0]) + 1e-9)
-    assert np.linalg.norm(film.positions[:, None] - film.positions[None], axis=-1)[np.triu_indices(len(film), 1)].min() > 0.98 * 2.5
+    assert (
+        np.linalg.norm(film.positions[:, None] - film.positions[None], axis=-1)[np.triu_indices(len(film), 1)].min()
+        > 0.98 * 2.5
+    )
     angles = np.array([-60.0, 0.0, 45.0])
-    sim = simulate_tilt_series(film, angles, potential="gaussian", pixel_size_A=0.5, blur_sigma_A=0.0, noise_std=0.0, field_of_view_A=10.0)
+    sim = simulate_tilt_series(
+        film, angles, potential="gaussian", pixel_size_A=0.5, blur_sigma_A=0.0, noise_std=0.0, field_of_view_A=10.0
+    )
     field = sim.projections.shape[-1]
     assert sim.projections.shape == (3, field, field) and abs(field * 0.5 - 10.0) <= 0.5
     half = 0.5 * field * 0.5
@@ -120,8 +153,14 @@ def test_film_wider_than_the_field_is_projected_whole_and_cropped():
     np.testing.assert_array_equal(sim.truth.positions, film.positions[inside])
     sigmas, amplitudes = gaussian_potential_parameters(film.species, 0.35)
     coords = torch.from_numpy(pixel_centres(field, 0.5))
-    direct = project_gaussians(torch.from_numpy(film.positions), torch.from_numpy(sigmas), torch.from_numpy(amplitudes),
-                               torch.from_numpy(detector_axes_from_tilts(angles, "y")), coords, coords).numpy()  # fmt: skip
+    direct = project_gaussians(
+        torch.from_numpy(film.positions),
+        torch.from_numpy(sigmas),
+        torch.from_numpy(amplitudes),
+        torch.from_numpy(detector_axes_from_tilts(angles, "y")),
+        coords,
+        coords,
+    ).numpy()
     np.testing.assert_allclose(sim.projections, direct, rtol=0, atol=1e-6 * direct.max())
 
 

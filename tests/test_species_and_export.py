@@ -60,7 +60,11 @@ def test_export_round_trips_through_ase(tmp_path):
     exe = Path(sys.executable).parent / "gaussian-atoms"
     for suffix in (".extxyz", ".csv", ".cif"):
         out = tmp_path / f"out{suffix}"
-        proc = subprocess.run([exe, "export", "--load-config", run / "config.yml", "--output", out, "--species", "Fe,Pt"], capture_output=True, text=True)
+        proc = subprocess.run(
+            [exe, "export", "--load-config", run / "config.yml", "--output", out, "--species", "Fe,Pt"],
+            capture_output=True,
+            text=True,
+        )
         assert proc.returncode == 0, proc.stderr
         if suffix != ".csv":
             back = ase.io.read(out)
@@ -72,5 +76,9 @@ def test_export_round_trips_through_ase(tmp_path):
             np.testing.assert_allclose(back.arrays["sigma_A"], atoms.sigmas)
             np.testing.assert_allclose(back.arrays["amplitude"], atoms.amplitudes)
     assert json.loads(proc.stdout.splitlines()[0])["species"]["counts"] == {"Fe": 20, "Pt": 20}
-    missing = subprocess.run([exe, "export", "--load-config", tmp_path / "none" / "config.yml", "--output", tmp_path / "x.xyz"], capture_output=True, text=True)
+    missing = subprocess.run(
+        [exe, "export", "--load-config", tmp_path / "none" / "config.yml", "--output", tmp_path / "x.xyz"],
+        capture_output=True,
+        text=True,
+    )
     assert missing.returncode == 2 and "config.yml: run config not found" in missing.stderr

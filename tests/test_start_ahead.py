@@ -24,7 +24,9 @@ def series_dir(tmp_path_factory) -> Path:
     """A 43-atom Au sphere, 15 tilts, the model's own physics: a start with candidates."""
     truth = spherical_particle("Au", radius_A=5.0)
     sim = simulate_tilt_series(truth, np.arange(-70.0, 71.0, 10.0), potential="gaussian", noise_std=20.0, seed=0)
-    return write_tilt_series(tmp_path_factory.mktemp("ahead") / "series", sim.projections, sim.angles_deg, sim.pixel_size_A, truth=truth)
+    return write_tilt_series(
+        tmp_path_factory.mktemp("ahead") / "series", sim.projections, sim.angles_deg, sim.pixel_size_A, truth=truth
+    )
 
 
 def _inputs(data: Path):
@@ -65,7 +67,9 @@ def test_a_start_for_other_inputs_is_not_taken(series_dir, change):
 
 
 def test_a_start_for_another_file_is_not_waited_for(series_dir, tmp_path):
-    other = write_tilt_series(tmp_path / "other", np.load(series_dir / "projections.npy"), load_tilt_series(series_dir).angles_deg, 0.25)
+    other = write_tilt_series(
+        tmp_path / "other", np.load(series_dir / "projections.npy"), load_tilt_series(series_dir).angles_deg, 0.25
+    )
     series, projections, normalisation = _inputs(other)
     start_ahead.begin(series_dir)
     assert start_ahead.take(series, projections, normalisation, "auto", 1.5) is None
@@ -85,7 +89,16 @@ def test_an_unreadable_series_leaves_the_run_to_report_it(tmp_path):
     [
         (["--vis", "tensorboard", "tilt-series", "--data", "d"], {"data": Path("d")}),
         (["--data", "d", "--max-num-iterations", "2"], {"data": Path("d")}),
-        (["--pipeline.model.extended_object", "on", "--pipeline.model.max-atom-sigma-a=2", "tilt-series", "--data=d"], {"data": Path("d"), "extended_object": "on", "max_atom_sigma_A": 2.0}),
+        (
+            [
+                "--pipeline.model.extended_object",
+                "on",
+                "--pipeline.model.max-atom-sigma-a=2",
+                "tilt-series",
+                "--data=d",
+            ],
+            {"data": Path("d"), "extended_object": "on", "max_atom_sigma_A": 2.0},
+        ),
         (["tilt-series", "--data", "d", "--pixel-size-A", "0.3"], None),  # the series read with options of its own
         (["--help", "tilt-series", "--data", "d"], None),
         (["--pipeline.model.init", "random", "tilt-series", "--data", "d"], None),
@@ -110,16 +123,46 @@ def test_begun_for_a_command_line_that_names_the_series(monkeypatch):
 
 @pytest.mark.parametrize("launcher", [["ns-train", "gaussian-atoms"], ["gaussian-atoms", "train"]])
 def test_both_launchers_start_ahead(launcher, series_dir, tmp_path):
-    cmd = [str(BIN / launcher[0]), *launcher[1:], "--max-num-iterations", "2", "--machine.device-type", "cpu", "--vis", "tensorboard", "--output-dir", str(tmp_path), "tilt-series", "--data", str(series_dir)]
+    cmd = [
+        str(BIN / launcher[0]),
+        *launcher[1:],
+        "--max-num-iterations",
+        "2",
+        "--machine.device-type",
+        "cpu",
+        "--vis",
+        "tensorboard",
+        "--output-dir",
+        str(tmp_path),
+        "tilt-series",
+        "--data",
+        str(series_dir),
+    ]
     run = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stderr[-2000:]
     assert "start at back-projection maxima (found while the launcher loaded)" in run.stdout
 
 
 def test_a_run_stopped_by_a_bad_option_while_the_start_runs_ends_in_one_line(series_dir, tmp_path):
-    cmd = [str(BIN / "gaussian-atoms"), "train", "--pipeline.model.min-sigma-A", "-1", "--machine.device-type", "cpu", "--vis", "tensorboard", "--output-dir", str(tmp_path / "out"), "tilt-series", "--data", str(series_dir)]
+    cmd = [
+        str(BIN / "gaussian-atoms"),
+        "train",
+        "--pipeline.model.min-sigma-A",
+        "-1",
+        "--machine.device-type",
+        "cpu",
+        "--vis",
+        "tensorboard",
+        "--output-dir",
+        str(tmp_path / "out"),
+        "tilt-series",
+        "--data",
+        str(series_dir),
+    ]
     run = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
-    assert run.returncode == 2 and own_lines(run.stdout + run.stderr) == ["gaussian-atoms: error: --pipeline.model.min-sigma-A must be positive, got -1.0"]
+    assert run.returncode == 2 and own_lines(run.stdout + run.stderr) == [
+        "gaussian-atoms: error: --pipeline.model.min-sigma-A must be positive, got -1.0"
+    ]
     assert "terminate called" not in run.stderr and not (tmp_path / "out").exists()
 
 

@@ -16,8 +16,12 @@ def _model_and_optimizers(pixel_A=0.25, detector_px=271, rate_px=1 / math.sqrt(1
     params = {"means": [torch.nn.Parameter(torch.zeros(3, 3))]}
     config = gaussian_atoms_trainer_config(max_iterations=3000)
     optimizers = Optimizers({"means": config.optimizers["means"]}, params)
-    model = SimpleNamespace(config=SimpleNamespace(position_rate_px=rate_px), kwargs={"metadata": {"pixel_size_A": pixel_A}},
-                            normalisation=SimpleNamespace(length_scale=1.0 / (detector_px * pixel_A)), _optimizers_obj=optimizers)  # fmt: skip
+    model = SimpleNamespace(
+        config=SimpleNamespace(position_rate_px=rate_px),
+        kwargs={"metadata": {"pixel_size_A": pixel_A}},
+        normalisation=SimpleNamespace(length_scale=1.0 / (detector_px * pixel_A)),
+        _optimizers_obj=optimizers,
+    )
     return model, optimizers
 
 

@@ -39,7 +39,14 @@ def test_sweep_resumes_and_reports_failures(tmp_path):
         calls.append(args)
         if "bad" in args:
             raise RuntimeError("ns-train failed: bad value")
-        return {"tpr": 1.0, "fp_per_true_atom": 0.0, "rmsd_pm": float(args[-1]), "n_pred": 3, "n_true": 3, "seconds": 1.0}
+        return {
+            "tpr": 1.0,
+            "fp_per_true_atom": 0.0,
+            "rmsd_pm": float(args[-1]),
+            "n_pred": 3,
+            "n_true": 3,
+            "seconds": 1.0,
+        }
 
     data = _data(tmp_path)
     sweep = Sweep(data, tmp_path / "sweep", ("--x 1 2 bad",), jobs=2, runner=fake_runner)
@@ -102,12 +109,46 @@ def test_sweep_cli_trains_each_setting(tmp_path):
     its own setting (a boolean given as False too), and both are scored against the truth (an
     easy particle: all 55 atoms)."""
     data = tmp_path / "data"
-    sim = subprocess.run([str(BIN / "gaussian-atoms"), "simulate", "--output", str(data), "--particle", "sphere", "--potential", "gaussian",
-                          "--radius-A", "6", "--tilts", "-70:5:70", "--noise-std", "20"], capture_output=True, text=True)  # fmt: skip
+    sim = subprocess.run(
+        [
+            str(BIN / "gaussian-atoms"),
+            "simulate",
+            "--output",
+            str(data),
+            "--particle",
+            "sphere",
+            "--potential",
+            "gaussian",
+            "--radius-A",
+            "6",
+            "--tilts",
+            "-70:5:70",
+            "--noise-std",
+            "20",
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert sim.returncode == 0, sim.stderr
     out = tmp_path / "sweep"
-    cmd = [str(BIN / "gaussian-atoms"), "sweep", "--data", str(data), "--output", str(out), "--iterations", "400", "--jobs", "2",
-           "--", "--pipeline.model.merge-threshold-A", "0.5", "0.7", "--pipeline.model.stop-when-converged", "False"]  # fmt: skip
+    cmd = [
+        str(BIN / "gaussian-atoms"),
+        "sweep",
+        "--data",
+        str(data),
+        "--output",
+        str(out),
+        "--iterations",
+        "400",
+        "--jobs",
+        "2",
+        "--",
+        "--pipeline.model.merge-threshold-A",
+        "0.5",
+        "0.7",
+        "--pipeline.model.stop-when-converged",
+        "False",
+    ]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
     table = list(csv.DictReader(open(out / "sweep.csv")))

@@ -33,7 +33,9 @@ def turned_series(tmp_path_factory):
     ideal = project_gaussian_potential(atoms, angles, 0.3, 64)
     # scipy turns by +a from rows towards columns; the recorded image is turned by -a.
     turned = np.stack([ndimage.rotate(p, -ANGLE_DEG, reshape=False, order=3) for p in ideal])
-    out = write_tilt_series(tmp_path_factory.mktemp("turned"), turned, angles, 0.3, truth=atoms, tilt_axis_angle_deg=ANGLE_DEG)
+    out = write_tilt_series(
+        tmp_path_factory.mktemp("turned"), turned, angles, 0.3, truth=atoms, tilt_axis_angle_deg=ANGLE_DEG
+    )
     return out, atoms, turned
 
 

@@ -53,7 +53,11 @@ def _edit_manifest(tmp_path, **changes):
     "break_it, file_name, words",
     [
         (lambda d: np.savetxt(d / "angles.txt", np.arange(4.0)), "angles.txt", "4 tilt angles for 5 projections"),
-        (lambda d: np.save(d / "projections.npy", np.full((5, 8, 9), np.nan, np.float32)), "projections.npy", "NaN/Inf"),
+        (
+            lambda d: np.save(d / "projections.npy", np.full((5, 8, 9), np.nan, np.float32)),
+            "projections.npy",
+            "NaN/Inf",
+        ),
         (lambda d: np.save(d / "projections.npy", np.ones((5, 8), np.float32)), "projections.npy", "3D stack"),
         (lambda d: _edit_manifest(d, pixel_size_A=0), "tilt_series.json", "positive"),
         (lambda d: _edit_manifest(d, pixel_size_A=-0.1), "tilt_series.json", "positive"),

@@ -31,7 +31,17 @@ def test_tutorial_runs(shared_data, tmp_path):
     assert (int(found[1]), int(found[2]), int(found[3])) == (208, 208, 0) and float(found[4]) < 4.23
     assert (tmp_path / "outputs" / "tutorial" / "atoms.png").is_file()
     for block in blocks("bash"):
-        shell = subprocess.run(["bash", "-euo", "pipefail", "-c", block.replace("../shared/data/asi208", str(data))], cwd=tmp_path, capture_output=True, text=True, timeout=900)
+        shell = subprocess.run(
+            ["bash", "-euo", "pipefail", "-c", block.replace("../shared/data/asi208", str(data))],
+            cwd=tmp_path,
+            capture_output=True,
+            text=True,
+            timeout=900,
+        )
         assert shell.returncode == 0, shell.stderr[-3000:]
     run_dir = tmp_path / "outputs" / "tutorial-cli" / "asi208" / "gaussian-atoms" / "run"
-    assert (run_dir / "atoms.xyz").is_file() and (run_dir / "slices.png").is_file() and (tmp_path / "outputs" / "tutorial-cli" / "atoms.cif").is_file()
+    assert (
+        (run_dir / "atoms.xyz").is_file()
+        and (run_dir / "slices.png").is_file()
+        and (tmp_path / "outputs" / "tutorial-cli" / "atoms.cif").is_file()
+    )

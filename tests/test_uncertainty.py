@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 import torch
 
+from gaussian_atoms_method.atoms.uncertainty import position_std_A, robust_noise_std
 from gaussian_atoms_method.physics.geometry import detector_axes_from_tilts, pixel_centres
 from gaussian_atoms_method.physics.projector import project_gaussians
-from gaussian_atoms_method.atoms.uncertainty import position_std_A, robust_noise_std
 
 PIXEL_A = 0.25
 ANGLES = np.arange(-70.0, 71.0, 10.0)  # 15 views, a missing wedge
@@ -47,7 +47,9 @@ def _batch_images_and_jacobian(positions_A: np.ndarray):
     dv = COORDS[None, None, None, :] - v[:, :, None, None]
     image = peak * np.exp(-(du**2 + dv**2) / (2 * SIGMA_A**2))
     # dI/dr = I * (du * row_axis + dv * col_axis) / sigma^2
-    jac = (image * du)[..., None] * AXES[None, :, None, None, 0, :] + (image * dv)[..., None] * AXES[None, :, None, None, 1, :]
+    jac = (image * du)[..., None] * AXES[None, :, None, None, 0, :] + (image * dv)[..., None] * AXES[
+        None, :, None, None, 1, :
+    ]
     t = positions_A.shape[0]
     return image.reshape(t, -1), jac.reshape(t, -1, 3) / SIGMA_A**2
 
@@ -61,7 +63,9 @@ def test_predicted_precision_matches_repeated_fits(loss):
     rng = np.random.default_rng(0)
     truth = np.array([0.03, -0.02, 0.04])
     noise, trials = 4.0, 400
-    np.testing.assert_allclose(_batch_images_and_jacobian(truth[None])[0].reshape(_images(truth).shape), _images(truth), atol=1e-9)
+    np.testing.assert_allclose(
+        _batch_images_and_jacobian(truth[None])[0].reshape(_images(truth).shape), _images(truth), atol=1e-9
+    )
     clean = _batch_images_and_jacobian(truth[None])[0]
     data = clean + rng.normal(0.0, noise, (trials, clean.shape[1]))
     fit = np.repeat(truth[None], trials, axis=0)

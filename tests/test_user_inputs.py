@@ -47,7 +47,9 @@ def test_files_written_follow_the_umask(tmp_path):
 
     old = os.umask(0o022)
     try:
-        xyz = write_atoms(AtomSet(np.zeros((2, 3)) + [[0, 0, 0], [2.5, 0, 0]], species=["Au", "Au"]), tmp_path / "atoms.xyz")
+        xyz = write_atoms(
+            AtomSet(np.zeros((2, 3)) + [[0, 0, 0], [2.5, 0, 0]], species=["Au", "Au"]), tmp_path / "atoms.xyz"
+        )
         png = write_rdf_png(np.linspace(0.05, 8, 160), np.ones(160), 1.5, 0.0, tmp_path / "rdf.png")
     finally:
         os.umask(old)
@@ -61,7 +63,12 @@ def test_the_viewer_serves_this_machine_unless_asked(tmp_path):
     (tmp_path / "config.yml").write_text("method_name: gaussian-atoms\n")
     local = parse(["view", "--load-config", str(tmp_path / "config.yml")]).build()
     assert local.viewer.websocket_host == "127.0.0.1" and local.load_config == tmp_path / "config.yml"
-    assert parse(["view", "--load-config", str(tmp_path / "config.yml"), "--host", "0.0.0.0"]).build().viewer.websocket_host == "0.0.0.0"
+    assert (
+        parse(["view", "--load-config", str(tmp_path / "config.yml"), "--host", "0.0.0.0"])
+        .build()
+        .viewer.websocket_host
+        == "0.0.0.0"
+    )
 
 
 def test_export_of_a_one_element_particle_writes_one_element(tmp_path):
@@ -74,19 +81,44 @@ def test_export_of_a_one_element_particle_writes_one_element(tmp_path):
 
     rng = np.random.default_rng(4)
     grid = np.stack(np.meshgrid(*[np.arange(6)] * 3, indexing="ij"), -1).reshape(-1, 3) * 2.9
-    atoms = AtomSet(grid.astype(float), sigmas=np.full(len(grid), 0.6), amplitudes=30.0 * np.exp(rng.normal(scale=0.08, size=len(grid))))
+    atoms = AtomSet(
+        grid.astype(float),
+        sigmas=np.full(len(grid), 0.6),
+        amplitudes=30.0 * np.exp(rng.normal(scale=0.08, size=len(grid))),
+    )
     write_atoms(atoms, tmp_path / "run" / "atoms.xyz")
     (tmp_path / "run" / "config.yml").write_text("method_name: gaussian-atoms\n")
     out = tmp_path / "out.extxyz"
-    proc = subprocess.run([str(Path(sys.executable).parent / "gaussian-atoms"), "export", "--load-config", str(tmp_path / "run" / "config.yml"), "--output", str(out), "--species", "Fe,Pt"], capture_output=True, text=True)
+    proc = subprocess.run(
+        [
+            str(Path(sys.executable).parent / "gaussian-atoms"),
+            "export",
+            "--load-config",
+            str(tmp_path / "run" / "config.yml"),
+            "--output",
+            str(out),
+            "--species",
+            "Fe,Pt",
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert proc.returncode == 0, proc.stderr
     assert set(ase.io.read(out).get_chemical_symbols()) == {"Pt"}
     assert "separate population" in proc.stderr
 
 
-@pytest.mark.parametrize("bad, named", [({"max_num_iterations": "abc"}, "max_num_iterations"), ({"max_num_iterations": 0}, "--max-num-iterations"),
-                                        ({"seed": "x"}, "seed"), ({"species": "Xx"}, "unknown element 'Xx'"), ({"device": "gpu"}, "device"),
-                                        ({"start_atoms": "no_such_atoms.xyz"}, "--pipeline.model.start-atoms: no_such_atoms.xyz: atom file not found")])  # fmt: skip
+@pytest.mark.parametrize(
+    "bad, named",
+    [
+        ({"max_num_iterations": "abc"}, "max_num_iterations"),
+        ({"max_num_iterations": 0}, "--max-num-iterations"),
+        ({"seed": "x"}, "seed"),
+        ({"species": "Xx"}, "unknown element 'Xx'"),
+        ({"device": "gpu"}, "device"),
+        ({"start_atoms": "no_such_atoms.xyz"}, "--pipeline.model.start-atoms: no_such_atoms.xyz: atom file not found"),
+    ],
+)
 def test_every_bad_argument_of_reconstruct_is_an_input_error_naming_it(bad, named):
     import gaussian_atoms_method as ga
 

@@ -24,16 +24,54 @@ pytestmark = pytest.mark.skipif(
 
 def test_viewer_screenshot_shows_atoms(tmp_path):
     data = tmp_path / "data"
-    subprocess.run([str(BIN / "gaussian-atoms"), "simulate", "--output", str(data), "--particle", "sphere", "--potential", "gaussian",
-                    "--radius-A", "6", "--tilts", "-70:5:70", "--noise-std", "20"], check=True, capture_output=True)  # fmt: skip
+    subprocess.run(
+        [
+            str(BIN / "gaussian-atoms"),
+            "simulate",
+            "--output",
+            str(data),
+            "--particle",
+            "sphere",
+            "--potential",
+            "gaussian",
+            "--radius-A",
+            "6",
+            "--tilts",
+            "-70:5:70",
+            "--noise-std",
+            "20",
+        ],
+        check=True,
+        capture_output=True,
+    )
     train = subprocess.run(
-        [str(BIN / "ns-train"), "gaussian-atoms", "--machine.device-type", "cpu", "--vis", "tensorboard", "--output-dir", str(tmp_path / "out"),
-         "--experiment-name", "v", "--timestamp", "run", "--max-num-iterations", "600", "tilt-series", "--data", str(data)],
-        capture_output=True, text=True,
-    )  # fmt: skip
+        [
+            str(BIN / "ns-train"),
+            "gaussian-atoms",
+            "--machine.device-type",
+            "cpu",
+            "--vis",
+            "tensorboard",
+            "--output-dir",
+            str(tmp_path / "out"),
+            "--experiment-name",
+            "v",
+            "--timestamp",
+            "run",
+            "--max-num-iterations",
+            "600",
+            "tilt-series",
+            "--data",
+            str(data),
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert train.returncode == 0, train.stderr[-2000:]
     png = tmp_path / "viewer.png"
-    fraction = viewer_screenshot.screenshot(tmp_path / "out" / "v" / "gaussian-atoms" / "run" / "config.yml", png, wait_s=20.0)
+    fraction = viewer_screenshot.screenshot(
+        tmp_path / "out" / "v" / "gaussian-atoms" / "run" / "config.yml", png, wait_s=20.0
+    )
     log = png.with_suffix(".log").read_text()
     assert "Traceback" not in log, log[-3000:]
     # 55 atoms drawn as viridis discs fill a few percent of a 1280 x 800 page (2-4% measured);

@@ -16,14 +16,23 @@ def test_gaussian_filter_and_laplace_equal_scipy(sigma_vox):
     (sigma 3.5: radius 14 on a 9-voxel axis): equal to float64 rounding."""
     volume = np.random.default_rng(0).standard_normal((23, 9, 31))
     tensor = torch.from_numpy(volume)
-    for ours, theirs in ((volume_filters.gaussian_filter, ndimage.gaussian_filter), (volume_filters.gaussian_laplace, ndimage.gaussian_laplace)):
+    for ours, theirs in (
+        (volume_filters.gaussian_filter, ndimage.gaussian_filter),
+        (volume_filters.gaussian_laplace, ndimage.gaussian_laplace),
+    ):
         expected = theirs(volume, sigma_vox)
-        np.testing.assert_allclose(ours(tensor, sigma_vox, in_torch=True).numpy(), expected, rtol=0, atol=1e-12 * np.abs(expected).max())
+        np.testing.assert_allclose(
+            ours(tensor, sigma_vox, in_torch=True).numpy(), expected, rtol=0, atol=1e-12 * np.abs(expected).max()
+        )
         np.testing.assert_array_equal(ours(tensor, sigma_vox).numpy(), expected)  # on the CPU: scipy's own passes
     for in_torch in (True, False):
         smooth, laplace = volume_filters.gaussian_filter_and_laplace(tensor, sigma_vox, in_torch)
-        np.testing.assert_array_equal(smooth.numpy(), volume_filters.gaussian_filter(tensor, sigma_vox, in_torch).numpy())
-        np.testing.assert_array_equal(laplace.numpy(), volume_filters.gaussian_laplace(tensor, sigma_vox, in_torch).numpy())
+        np.testing.assert_array_equal(
+            smooth.numpy(), volume_filters.gaussian_filter(tensor, sigma_vox, in_torch).numpy()
+        )
+        np.testing.assert_array_equal(
+            laplace.numpy(), volume_filters.gaussian_laplace(tensor, sigma_vox, in_torch).numpy()
+        )
 
 
 @pytest.mark.parametrize("shape", [(40, 37, 45), (3, 1, 50), (1, 60, 2)])
@@ -39,9 +48,15 @@ def test_host_passes_in_threads_are_scipys_bit_for_bit(shape):
         for dtype in (np.float32, np.float64):
             volume = np.random.default_rng(2).standard_normal(shape).astype(dtype)
             tensor = torch.from_numpy(volume)
-            np.testing.assert_array_equal(volume_filters.gaussian_filter(tensor, 1.3).numpy(), ndimage.gaussian_filter(volume, 1.3))
-            np.testing.assert_array_equal(volume_filters.gaussian_laplace(tensor, 1.3).numpy(), ndimage.gaussian_laplace(volume, 1.3))
-            np.testing.assert_array_equal(host_filters.maximum_filter3(volume), ndimage.maximum_filter(volume, size=3, mode="nearest"))
+            np.testing.assert_array_equal(
+                volume_filters.gaussian_filter(tensor, 1.3).numpy(), ndimage.gaussian_filter(volume, 1.3)
+            )
+            np.testing.assert_array_equal(
+                volume_filters.gaussian_laplace(tensor, 1.3).numpy(), ndimage.gaussian_laplace(volume, 1.3)
+            )
+            np.testing.assert_array_equal(
+                host_filters.maximum_filter3(volume), ndimage.maximum_filter(volume, size=3, mode="nearest")
+            )
     finally:
         torch.set_num_threads(threads)
 
@@ -55,7 +70,9 @@ def test_pooled_maxima_equal_the_numpy_search():
         expected = peaks.local_maxima(field, level)
         np.testing.assert_array_equal(volume_filters.local_maxima(tensor, level, pooled=True), expected)
         np.testing.assert_array_equal(volume_filters.local_maxima(tensor, level), expected)
-    np.testing.assert_array_equal(volume_filters.separated_maxima(tensor, 0.25, 1.0, 0.02), peaks.separated_maxima(field, 0.25, 1.0, 0.02))
+    np.testing.assert_array_equal(
+        volume_filters.separated_maxima(tensor, 0.25, 1.0, 0.02), peaks.separated_maxima(field, 0.25, 1.0, 0.02)
+    )
 
 
 def test_suppression_on_a_device_keeps_what_the_greedy_visit_keeps():

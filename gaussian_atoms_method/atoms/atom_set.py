@@ -87,12 +87,31 @@ class AtomSet:
 
     def subset(self, mask) -> "AtomSet":
         """The atoms where the (N,) bool ``mask`` (or index array) selects, every attribute alike."""
-        pick = (lambda v: None if v is None else v[mask])
-        return AtomSet(self.positions[mask], pick(self.sigmas), pick(self.amplitudes), pick(self.species), dict(self.info), pick(self.position_std_A), pick(self.atom_class))
+
+        def pick(v):
+            return None if v is None else v[mask]
+
+        return AtomSet(
+            self.positions[mask],
+            pick(self.sigmas),
+            pick(self.amplitudes),
+            pick(self.species),
+            dict(self.info),
+            pick(self.position_std_A),
+            pick(self.atom_class),
+        )
 
     def shifted(self, offset_A) -> "AtomSet":
         """A copy with every position moved by ``offset_A`` (3,)."""
-        return AtomSet(self.positions + np.asarray(offset_A, dtype=np.float64), self.sigmas, self.amplitudes, self.species, dict(self.info), self.position_std_A, self.atom_class)
+        return AtomSet(
+            self.positions + np.asarray(offset_A, dtype=np.float64),
+            self.sigmas,
+            self.amplitudes,
+            self.species,
+            dict(self.info),
+            self.position_std_A,
+            self.atom_class,
+        )
 
     # ------------------------------------------------------------------ ASE
     def to_ase(self):
@@ -170,7 +189,13 @@ def write_atoms(atoms: AtomSet, path: str | Path) -> Path:
     return path
 
 
-EXTXYZ_COLUMNS = {"pos": ("positions", "R", 3), "sigma_A": ("sigmas", "R", 1), "amplitude": ("amplitudes", "R", 1), "position_std_A": ("position_std_A", "R", 3), "atom_class": ("atom_class", "I", 1)}
+EXTXYZ_COLUMNS = {
+    "pos": ("positions", "R", 3),
+    "sigma_A": ("sigmas", "R", 1),
+    "amplitude": ("amplitudes", "R", 1),
+    "position_std_A": ("position_std_A", "R", 3),
+    "atom_class": ("atom_class", "I", 1),
+}
 """The per-atom columns of this package's extended XYZ after the species, in the order
 :meth:`AtomSet.to_ase` adds them: name -> (:class:`AtomSet` field, ASE's type letter, width)."""
 
@@ -197,7 +222,9 @@ def _write_extxyz(atoms: AtomSet, path: Path) -> None:
     n, columns = len(atoms), _extxyz_columns(atoms)
     species = (atoms.species if atoms.species is not None else np.full(n, "X")).tolist()
     properties = ":".join(["species:S:1"] + [f"{name}:{kind}:{values.shape[1]}" for name, values, kind in columns])
-    row = "%-2s" + "".join((" %16.8f" if kind == "R" else " %8d") * values.shape[1] for _, values, kind in columns) + "\n"
+    row = (
+        "%-2s" + "".join((" %16.8f" if kind == "R" else " %8d") * values.shape[1] for _, values, kind in columns) + "\n"
+    )
     numbers = np.hstack([values.astype(np.float64) for _, values, _ in columns]).tolist()
     with open(path, "w") as f:
         f.write(f'{n}\nProperties={properties} pbc="F F F"\n')
@@ -222,12 +249,20 @@ def _write_csv(atoms: AtomSet, path: Path) -> None:
     # Each value as csv.writer writes repr(float) and str(int), a row at a time (csv.writer's
     # own loop took 1.15 s for 54,000 atoms on the 2-core CPU); species with a comma or a quote
     # go through csv's quoting.
-    species = [f'"{x.replace(chr(34), chr(34) * 2)}"' if ("," in x or '"' in x) else x for x in np.asarray(columns["species"]).astype(str).tolist()]
-    floats = np.stack([np.asarray(columns[k], dtype=np.float64) for k in list(columns)[1:] if k != "class"], axis=1).tolist()
+    species = [
+        f'"{x.replace(chr(34), chr(34) * 2)}"' if ("," in x or '"' in x) else x
+        for x in np.asarray(columns["species"]).astype(str).tolist()
+    ]
+    floats = np.stack(
+        [np.asarray(columns[k], dtype=np.float64) for k in list(columns)[1:] if k != "class"], axis=1
+    ).tolist()
     classes = [str(int(c)) for c in columns["class"]] if "class" in columns else None
     with open(path, "w", newline="") as f:
         f.write(",".join(columns.keys()) + "\r\n")
-        f.writelines(",".join([s, *map(repr, r)] + ([classes[i]] if classes else [])) + "\r\n" for i, (s, r) in enumerate(zip(species, floats)))
+        f.writelines(
+            ",".join([s, *map(repr, r)] + ([classes[i]] if classes else [])) + "\r\n"
+            for i, (s, r) in enumerate(zip(species, floats))
+        )
 
 
 def read_atoms(path: str | Path) -> AtomSet:
@@ -240,7 +275,8 @@ def read_atoms(path: str | Path) -> AtomSet:
     if not path.is_file():
         raise AtomFileError(f"{path}: atom file not found")
     stat = path.stat()
-    return copy.deepcopy(_read_unchanged(path.resolve(), stat.st_ino, stat.st_mtime_ns, stat.st_size))  # the caller's own arrays
+    # the caller's own arrays
+    return copy.deepcopy(_read_unchanged(path.resolve(), stat.st_ino, stat.st_mtime_ns, stat.st_size))
 
 
 @functools.lru_cache(maxsize=4)
@@ -275,6 +311,7 @@ ELEMENTS = frozenset(
 )
 """The species ASE's extended XYZ reader accepts (``ase.data.chemical_symbols``)."""
 
+
 def _read_plain_extxyz(path: Path) -> AtomSet | None:
     """A one-frame extended XYZ file of the plain form this package and simulations write (a
     comment line of only ``Properties=species:S:1:pos:R:3[...]`` of :data:`EXTXYZ_COLUMNS` and
@@ -286,13 +323,23 @@ def _read_plain_extxyz(path: Path) -> AtomSet | None:
     head, _, rest = text.partition("\n")
     comment, _, body = rest.partition("\n")
     fields = comment.split()
-    if not head.strip().isdigit() or len(fields) != 4 or fields[1:] != ['pbc="F', "F", 'F"'] or not fields[0].startswith("Properties=species:S:1:"):
+    if (
+        not head.strip().isdigit()
+        or len(fields) != 4
+        or fields[1:] != ['pbc="F', "F", 'F"']
+        or not fields[0].startswith("Properties=species:S:1:")
+    ):
         return None
     spec = fields[0][len("Properties=species:S:1:") :].split(":")
     if len(spec) % 3 or spec[:3] != ["pos", "R", "3"]:
         return None
-    columns = [(spec[i], spec[i + 1], int(spec[i + 2])) if spec[i + 2].isdigit() else (None, None, 0) for i in range(0, len(spec), 3)]
-    if any(EXTXYZ_COLUMNS.get(name, (None,))[1:] != (kind, width) for name, kind, width in columns) or len({c[0] for c in columns}) != len(columns):
+    columns = [
+        (spec[i], spec[i + 1], int(spec[i + 2])) if spec[i + 2].isdigit() else (None, None, 0)
+        for i in range(0, len(spec), 3)
+    ]
+    if any(EXTXYZ_COLUMNS.get(name, (None,))[1:] != (kind, width) for name, kind, width in columns) or len(
+        {c[0] for c in columns}
+    ) != len(columns):
         return None
     n, width = int(head), 1 + sum(w for _, _, w in columns)
     tokens = body.split()
@@ -327,7 +374,14 @@ def _read_csv(path: Path) -> AtomSet:
     species = np.array([r.get("species", "X") for r in rows])
     std = np.array([[float(r[f"std_{a}_A"]) for a in "xyz"] for r in rows]) if "std_x_A" in rows[0] else None
     classes = np.array([int(float(r["class"])) for r in rows]) if "class" in rows[0] else None
-    return AtomSet(pos, None if np.isnan(sig).all() else sig, None if np.isnan(amp).all() else amp, species, position_std_A=std, atom_class=classes)
+    return AtomSet(
+        pos,
+        None if np.isnan(sig).all() else sig,
+        None if np.isnan(amp).all() else amp,
+        species,
+        position_std_A=std,
+        atom_class=classes,
+    )
 
 
 def _read_type_xyz_text(path: Path) -> AtomSet:

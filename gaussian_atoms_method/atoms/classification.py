@@ -62,7 +62,9 @@ class Classification:
 
     def counts(self) -> dict[str, int]:
         """Atoms per class and the non-atoms."""
-        out = {f"class {k + 1}": int(np.sum(self.atoms & (self.classes == k + 1))) for k in range(len(self.class_means))}
+        out = {
+            f"class {k + 1}": int(np.sum(self.atoms & (self.classes == k + 1))) for k in range(len(self.class_means))
+        }
         out["non-atoms"] = int(np.sum(~self.atoms))
         return out
 
@@ -78,7 +80,9 @@ def _seeds(x: np.ndarray, k: int, seed: int) -> np.ndarray:
     return np.array(centres)
 
 
-def gaussian_mixture(x: np.ndarray, k: int, iterations: int = 200, seed: int = 0, device: str | torch.device = "cpu") -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+def gaussian_mixture(
+    x: np.ndarray, k: int, iterations: int = 200, seed: int = 0, device: str | torch.device = "cpu"
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """EM for a ``k``-component Gaussian mixture with full covariances on (N, D) ``x``, in
     float64 torch on ``device``.
 
@@ -138,7 +142,9 @@ def _inverse_and_logdet(covs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]
     return torch.linalg.inv(small).to(covs.device), torch.linalg.slogdet(small)[1].to(covs.device)
 
 
-def gaussian_mixture_reference(x: np.ndarray, k: int, iterations: int = 200, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+def gaussian_mixture_reference(
+    x: np.ndarray, k: int, iterations: int = 200, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """:func:`gaussian_mixture` in numpy, one component at a time (the tests' reference)."""
     n, d = x.shape
     means = _seeds(x, k, seed)
@@ -169,7 +175,13 @@ def _log_normal(x: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> np.ndarray:
     return -0.5 * (np.einsum("ni,ij,nj->n", diff, np.linalg.inv(cov), diff) + logdet + d * np.log(2 * np.pi))
 
 
-def classify_gaussians(masses: np.ndarray, sigmas_A: np.ndarray, positions_A: np.ndarray, max_classes: int = MAX_CLASSES, device: str | torch.device = "cpu") -> Classification:
+def classify_gaussians(
+    masses: np.ndarray,
+    sigmas_A: np.ndarray,
+    positions_A: np.ndarray,
+    max_classes: int = MAX_CLASSES,
+    device: str | torch.device = "cpu",
+) -> Classification:
     """Classes and support of N fitted Gaussians (module docstring).
 
     Parameters
@@ -197,7 +209,10 @@ def classify_gaussians(masses: np.ndarray, sigmas_A: np.ndarray, positions_A: np
         if best is None or bic[k] < bic[best[0]]:
             best = (k, weights, means, covs)
     k, weights, means, covs = best
-    log_p = (_log_normals(torch.as_tensor(x.T.copy()), torch.as_tensor(means), torch.as_tensor(covs)).numpy() + np.log(weights)[:, None]).T
+    log_p = (
+        _log_normals(torch.as_tensor(x.T.copy()), torch.as_tensor(means), torch.as_tensor(covs)).numpy()
+        + np.log(weights)[:, None]
+    ).T
     order = np.argsort(means[:, 0])
     rank = np.empty(k, dtype=np.int64)
     rank[order] = np.arange(1, k + 1)
@@ -206,7 +221,9 @@ def classify_gaussians(masses: np.ndarray, sigmas_A: np.ndarray, positions_A: np
     return Classification(classes, support & population_support(classes, support, masses, positions), means[order], bic)
 
 
-def population_support(classes: np.ndarray, support: np.ndarray, masses: np.ndarray, positions_A: np.ndarray) -> np.ndarray:
+def population_support(
+    classes: np.ndarray, support: np.ndarray, masses: np.ndarray, positions_A: np.ndarray
+) -> np.ndarray:
     """(N,) bool: False for every member of a class that lies outside the confident atoms' support
     (module docstring).  The confident atoms: the supported members of the class that holds the
     most mass among the supported Gaussians.  A member lies outside when no confident atom other
@@ -244,4 +261,5 @@ def in_support(positions_A: np.ndarray) -> np.ndarray:
     d = nearest_neighbour_distances(positions)
     q1, q3 = np.percentile(d, [25, 75])
     radius = max(q3 + FENCE_IQR * (q3 - q1), 2.0 * float(np.median(d)))
-    return cKDTree(positions).query_ball_point(positions, radius, return_length=True, workers=-1) >= 3  # itself and two more
+    # itself and two more
+    return cKDTree(positions).query_ball_point(positions, radius, return_length=True, workers=-1) >= 3

@@ -78,7 +78,9 @@ def peak_sharpness(field, peaks: np.ndarray) -> np.ndarray:
     return around / 6.0 / _reader(field)(peaks)
 
 
-def matched_response(narrow: np.ndarray, narrow_sigma_A: float, spacing_A: float, sharp, sharpness: float, max_width_A: float = 1.2) -> tuple[np.ndarray, np.ndarray, float]:
+def matched_response(
+    narrow: np.ndarray, narrow_sigma_A: float, spacing_A: float, sharp, sharpness: float, max_width_A: float = 1.2
+) -> tuple[np.ndarray, np.ndarray, float]:
     """One atom through the filter ``sharp``, at the width the data show.
 
     ``narrow`` is the back-projection of an atom of width ``narrow_sigma_A``
@@ -95,7 +97,9 @@ def matched_response(narrow: np.ndarray, narrow_sigma_A: float, spacing_A: float
     widths = np.arange(narrow_sigma_A, max_width_A + 1e-9, 0.05)
 
     def response(width, volume=narrow):
-        return peak_normalised(sharp(ndimage.gaussian_filter(volume, math.sqrt(max(width**2 - narrow_sigma_A**2, 0.0)) / spacing_A)))
+        return peak_normalised(
+            sharp(ndimage.gaussian_filter(volume, math.sqrt(max(width**2 - narrow_sigma_A**2, 0.0)) / spacing_A))
+        )
 
     # the search reads only the peak: a box of 4 widest blurs about it (an eighth of the volume's cost)
     centre = np.array(np.unravel_index(int(np.argmax(narrow)), narrow.shape))
@@ -113,7 +117,9 @@ def subvoxel_peaks(field, indices: np.ndarray) -> np.ndarray:
     where not concave)."""
     indices = np.asarray(indices, dtype=np.int64)
     centre = _reader(field)(indices)
-    offsets = np.stack([parabola_vertex(below, centre, above) for below, above in _face_neighbours(field, indices)], axis=1)
+    offsets = np.stack(
+        [parabola_vertex(below, centre, above) for below, above in _face_neighbours(field, indices)], axis=1
+    )
     return indices + offsets
 
 
@@ -166,7 +172,9 @@ def _conjugate_gradients(amplitudes, gradient, normal, iterations: int) -> None:
         direction, norm = gradient + new_norm / norm * direction, new_norm
 
 
-def fit_amplitudes(field: np.ndarray, positions_vox: np.ndarray, response: np.ndarray, centre, iterations: int = 2) -> tuple[np.ndarray, np.ndarray]:
+def fit_amplitudes(
+    field: np.ndarray, positions_vox: np.ndarray, response: np.ndarray, centre, iterations: int = 2
+) -> tuple[np.ndarray, np.ndarray]:
     """Amplitudes of ``response`` (peak 1 at voxel ``centre``) placed at each of the (M, 3)
     sub-voxel ``positions_vox`` (trilinear weights) that fit ``field`` best in least squares,
     all at once (``iterations`` conjugate-gradient steps on the normal equations, from the
@@ -233,7 +241,9 @@ def fit_amplitudes_on_device(field, positions_vox: np.ndarray, response: np.ndar
     padded = torch.zeros(shape, dtype=torch.float32, device=dev)
     padded[tuple(slice(0, n) for n in field.shape)] = field
     last = torch.as_tensor(np.array(field.shape) - 1, device=dev)
-    nearest = torch.as_tensor(np.rint(positions_vox).astype(np.int64), device=dev).clamp(min=torch.zeros_like(last), max=last)
+    nearest = torch.as_tensor(np.rint(positions_vox).astype(np.int64), device=dev).clamp(
+        min=torch.zeros_like(last), max=last
+    )
     amplitudes = field[nearest[:, 0], nearest[:, 1], nearest[:, 2]].double()
     gradient = sample(torch.fft.rfftn(padded) * spectrum.conj()) - normal(amplitudes)
     _conjugate_gradients(amplitudes, gradient, normal, iterations)
@@ -256,8 +266,17 @@ def decoy_level(values: np.ndarray, decoys: np.ndarray, false_discovery_rate: fl
     return float(values[passing[-1]]) if len(passing) else np.inf
 
 
-def remainder_sites(field: np.ndarray, indices: np.ndarray, response: np.ndarray, centre, spacing_A: float, min_distance_A: float, noise_level: float,
-                      false_discovery_rate: float = DECOY_FALSE_DISCOVERY_RATE, iterations: int = 2) -> np.ndarray:  # fmt: skip
+def remainder_sites(
+    field: np.ndarray,
+    indices: np.ndarray,
+    response: np.ndarray,
+    centre,
+    spacing_A: float,
+    min_distance_A: float,
+    noise_level: float,
+    false_discovery_rate: float = DECOY_FALSE_DISCOVERY_RATE,
+    iterations: int = 2,
+) -> np.ndarray:
     """(K, 3) voxel indices of the maxima the candidates at ``indices`` (M, 3) do not explain,
     strongest first (see the module's text).
 
@@ -281,7 +300,9 @@ def remainder_sites(field: np.ndarray, indices: np.ndarray, response: np.ndarray
 
     # an array on the host; a tensor on its device (the same fit and maxima, .volume_filters): only peaks come back
     on_host = isinstance(field, np.ndarray)
-    fit, maxima = (fit_amplitudes, separated_maxima) if on_host else (fit_amplitudes_on_device, volume_filters.separated_maxima)
+    fit, maxima = (
+        (fit_amplitudes, separated_maxima) if on_host else (fit_amplitudes_on_device, volume_filters.separated_maxima)
+    )
     _, model = fit(field, subvoxel_peaks(field, indices), response, centre, iterations)
     remainder = field - model
     del model

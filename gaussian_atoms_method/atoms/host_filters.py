@@ -42,7 +42,9 @@ def along_axis(volume: np.ndarray, axis: int, one_d: Callable[[np.ndarray, int, 
         cut[across] = slice(bounds[i], bounds[i + 1])
         one_d(volume[tuple(cut)], axis, out[tuple(cut)])
 
-    pool = _POOL.get(threads) or _POOL.setdefault(threads, ThreadPoolExecutor(threads, thread_name_prefix="host-filter"))
+    pool = _POOL.get(threads) or _POOL.setdefault(
+        threads, ThreadPoolExecutor(threads, thread_name_prefix="host-filter")
+    )
     for done in [pool.submit(run, i) for i in range(k)]:
         done.result()
     return out
@@ -50,11 +52,19 @@ def along_axis(volume: np.ndarray, axis: int, one_d: Callable[[np.ndarray, int, 
 
 def gaussian_pass(volume: np.ndarray, sigma: float, axis: int, order: int = 0) -> np.ndarray:
     """scipy's ``gaussian_filter1d(volume, sigma, axis, order)`` (``reflect``, ``truncate`` 4)."""
-    return along_axis(volume, axis, lambda part, ax, out: ndimage.gaussian_filter1d(part, sigma, ax, order, output=out, mode="reflect", truncate=4.0))
+    return along_axis(
+        volume,
+        axis,
+        lambda part, ax, out: ndimage.gaussian_filter1d(
+            part, sigma, ax, order, output=out, mode="reflect", truncate=4.0
+        ),
+    )
 
 
 def maximum_filter3(volume: np.ndarray) -> np.ndarray:
     """scipy's ``maximum_filter(volume, size=3, mode="nearest")``: its 1-D passes along each axis in turn."""
     for axis in range(volume.ndim):
-        volume = along_axis(volume, axis, lambda part, ax, out: ndimage.maximum_filter1d(part, 3, ax, output=out, mode="nearest"))
+        volume = along_axis(
+            volume, axis, lambda part, ax, out: ndimage.maximum_filter1d(part, 3, ax, output=out, mode="nearest")
+        )
     return volume

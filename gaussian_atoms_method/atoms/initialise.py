@@ -95,13 +95,12 @@ from scipy.spatial import cKDTree
 from gaussian_atoms_method.atoms import volume_filters
 from gaussian_atoms_method.atoms.deconvolution import matched_response, peak_sharpness, remainder_sites
 from gaussian_atoms_method.atoms.peaks import random_field_threshold
-from gaussian_atoms_method.atoms.volume_filters import separated_maxima
 from gaussian_atoms_method.atoms.point_response import backprojected_atom, clean_peaks, point_response
+from gaussian_atoms_method.atoms.volume_filters import separated_maxima
 from gaussian_atoms_method.physics.field_of_view import FieldOfView, field_of_view
 from gaussian_atoms_method.physics.noise import NoiseModel, measure_noise, noise_from_projections
 from gaussian_atoms_method.physics.reconstruction import Volume, backprojection_for_peaks, reconstruct
 from gaussian_atoms_method.physics.units import Normalisation
-
 
 BRIGHT_PIXELS_PERCENTILE = 99.0
 """Step 5's maxima lie on the atoms' own signal (between bonded neighbours), where counting
@@ -112,8 +111,16 @@ ended with 0.021 false atoms per atom instead of 0.007; with this level none wer
 the carbon gains stayed (start recall 0.9861 and 0.9604)."""
 
 
-def backprojected_noise(projections: np.ndarray, angles_deg: np.ndarray, pixel_size_A: float, tilt_axis: str,
-                        device: str = "cpu", seed: int = 0, size_px: int = 64, noise: NoiseModel | None = None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+def backprojected_noise(
+    projections: np.ndarray,
+    angles_deg: np.ndarray,
+    pixel_size_A: float,
+    tilt_axis: str,
+    device: str = "cpu",
+    seed: int = 0,
+    size_px: int = 64,
+    noise: NoiseModel | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """A sample of the Hann back-projection of the projections' noise alone: the volume of unit
     white noise on a ``size_px`` detector of the same pixels and tilts, and the (V, H, W) noise
     variance of each pixel of the projections, which scales it (:func:`noise_level` filters the
@@ -130,8 +137,11 @@ def backprojected_noise(projections: np.ndarray, angles_deg: np.ndarray, pixel_s
     noise = noise_from_projections(p) if noise is None else noise
     if torch.device(device).type == "cpu":
         variance = np.clip(noise.variance(ndimage.gaussian_filter(p, (0, 2.0, 2.0))), 0.0, None)
-    else:  # the same filter on the device (0.45 s on the host at 20,000 atoms on the H100 machine); a float64 tensor there
-        variance = noise.variance(volume_filters.gaussian_filter(volume_filters.as_volume(p, device), 2.0, axes=(1, 2))).clamp_min(0.0)
+    # the same filter on the device (0.45 s on the host at 20,000 atoms on the H100 machine); a float64 tensor there
+    else:
+        variance = noise.variance(
+            volume_filters.gaussian_filter(volume_filters.as_volume(p, device), 2.0, axes=(1, 2))
+        ).clamp_min(0.0)
     h, w = min(size_px, p.shape[1]), min(size_px, p.shape[2])
     draw = np.random.default_rng(seed).standard_normal((p.shape[0], h, w))
     volume = reconstruct(draw, angles_deg, pixel_size_A, "fbp", tilt_axis, None, filter_name="hann", device=device)
@@ -232,7 +242,8 @@ def backprojection_candidates(
         Reconstruct across the tilt axis over this many voxels (an object wider than the field of
         view, :mod:`gaussian_atoms_method.physics.field_of_view`); the depth stays the detector's.
     backprojection : Volume, optional
-        Step 1's back-projection if already made (:func:`~gaussian_atoms_method.physics.reconstruction.backprojection_for_peaks`
+        Step 1's back-projection if already made
+        (:func:`~gaussian_atoms_method.physics.reconstruction.backprojection_for_peaks`
         of the same arguments, on the host); else made here.
 
     Returns
@@ -246,13 +257,21 @@ def backprojection_candidates(
     if max_count is not None and max_count <= 0:
         return (np.zeros((0, 3)), np.zeros(0)) if return_values else np.zeros((0, 3))
     if backprojection is None:
-        volume = backprojection_for_peaks(projections, angles_deg, pixel_size_A, tilt_axis, centre_px, tilt_axis_angle_deg, slice_size_px, device)
+        volume = backprojection_for_peaks(
+            projections, angles_deg, pixel_size_A, tilt_axis, centre_px, tilt_axis_angle_deg, slice_size_px, device
+        )
     else:
-        volume = Volume(torch.as_tensor(backprojection.data, device=device), backprojection.spacing_A, backprojection.origin_index)
+        volume = Volume(
+            torch.as_tensor(backprojection.data, device=device), backprojection.spacing_A, backprojection.origin_index
+        )
     if slice_size_px is not None:  # wider across the axis only: the depth back to the detector's length
         depth = projections.shape[1 if tilt_axis == "y" else 2] | 1
         start = int(volume.origin_index[2]) - depth // 2
-        volume = Volume(volume.data[:, :, max(start, 0) : start + depth].contiguous(), volume.spacing_A, volume.origin_index - np.array([0.0, 0.0, max(start, 0)]))
+        volume = Volume(
+            volume.data[:, :, max(start, 0) : start + depth].contiguous(),
+            volume.spacing_A,
+            volume.origin_index - np.array([0.0, 0.0, max(start, 0)]),
+        )
     sigma_vox = smoothing_A / volume.spacing_A
     field = volume.data
 
@@ -276,15 +295,30 @@ def backprojection_candidates(
     positions = separated_maxima(data, volume.spacing_A, min_distance_A, level)
     if max_count is None:
         if len(positions):  # one candidate per atom, not one per maximum of its ridge (step 3)
-            response, centre = point_response(projections.shape, angles_deg, pixel_size_A, smoothing_A, tilt_axis, smoothing_A, tilt_axis_angle_deg, device)
-            positions = positions[clean_peaks(positions, volume_filters.values_at(data, positions), response, centre, level, device)[0]]
+            response, centre = point_response(
+                projections.shape,
+                angles_deg,
+                pixel_size_A,
+                smoothing_A,
+                tilt_axis,
+                smoothing_A,
+                tilt_axis_angle_deg,
+                device,
+            )
+            positions = positions[
+                clean_peaks(positions, volume_filters.values_at(data, positions), response, centre, level, device)[0]
+            ]
     positions = positions[:max_count]
     if shoulders and smoothing_A > 0 and (max_count is None or len(positions) < max_count):
         if laplacian is None:
             laplacian = -volume_filters.gaussian_laplace(field, sigma_vox)
         # Only maxima above the strength cut can be kept, and one is only ever suppressed by a
         # stronger one, so the search starts at the cut (a few thousand voxels, not half the volume).
-        strength = shoulder_strength * np.percentile(volume_filters.values_at(laplacian, positions), 90) if len(positions) else -math.inf
+        strength = (
+            shoulder_strength * np.percentile(volume_filters.values_at(laplacian, positions), 90)
+            if len(positions)
+            else -math.inf
+        )
         extra = separated_maxima(laplacian, volume.spacing_A, min_distance_A, strength)
         if len(positions) and len(extra):
             distance, _ = cKDTree(positions * volume.spacing_A).query(extra * volume.spacing_A, workers=-1)
@@ -298,7 +332,13 @@ def backprojection_candidates(
             return -volume_filters.gaussian_laplace(v, fine_vox)
 
         fine = fine_filter(field)
-        fine_level = noise_level(sample, math.sqrt(percentile(variance, BRIGHT_PIXELS_PERCENTILE)), on_host(fine_filter), false_alarm_rate, data.numel())
+        fine_level = noise_level(
+            sample,
+            math.sqrt(percentile(variance, BRIGHT_PIXELS_PERCENTILE)),
+            on_host(fine_filter),
+            false_alarm_rate,
+            data.numel(),
+        )
         maxima = separated_maxima(fine, volume.spacing_A, fine_min_distance_A, fine_level)
         resolved = np.zeros((0, 3), dtype=np.int64)  # step 5's additions
         if len(maxima):
@@ -306,20 +346,34 @@ def backprojection_candidates(
             resolved = maxima[distance > fine_min_distance_A]
             positions = np.concatenate([positions, resolved])
         if deconvolve and len(resolved):  # step 6: what the candidates' responses leave unexplained
-            fine = fine.numpy() if fine.device.type == "cpu" else fine  # off the CPU the fit and its maxima stay on the device
+            # off the CPU the fit and its maxima stay on the device
+            fine = fine.numpy() if fine.device.type == "cpu" else fine
             narrow_A = max(0.3, 0.7 * pixel_size_A)  # sampled by the detector
-            narrow = backprojected_atom(projections.shape, angles_deg, pixel_size_A, narrow_A, tilt_axis, tilt_axis_angle_deg, device).data
-            sharpness = float(np.median(peak_sharpness(fine, maxima[: max(len(maxima) // 4, 1)])))  # the strongest quarter: atoms
+            narrow = backprojected_atom(
+                projections.shape, angles_deg, pixel_size_A, narrow_A, tilt_axis, tilt_axis_angle_deg, device
+            ).data
+            # the strongest quarter: atoms
+            sharpness = float(np.median(peak_sharpness(fine, maxima[: max(len(maxima) // 4, 1)])))
             response, centre, _ = matched_response(narrow, narrow_A, volume.spacing_A, on_host(fine_filter), sharpness)
-            extra = remainder_sites(fine, positions, response, centre, volume.spacing_A, fine_min_distance_A, fine_level)
+            extra = remainder_sites(
+                fine, positions, response, centre, volume.spacing_A, fine_min_distance_A, fine_level
+            )
             positions = np.concatenate([positions, extra])
     positions_A = volume.index_to_A(positions)
     return (positions_A, volume_filters.values_at(data, positions)) if return_values else positions_A
 
 
 def starting_positions(
-    series, length_scale: float, count: int, extent: float, generator: torch.Generator, from_backprojection: bool = True, noise: NoiseModel | None = None,
-    slice_size_px: int | None = None, backprojection: Volume | None = None, positions_A: np.ndarray | None = None,
+    series,
+    length_scale: float,
+    count: int,
+    extent: float,
+    generator: torch.Generator,
+    from_backprojection: bool = True,
+    noise: NoiseModel | None = None,
+    slice_size_px: int | None = None,
+    backprojection: Volume | None = None,
+    positions_A: np.ndarray | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Where training starts: (n, 3) positions in normalised units and, for a back-projection
     start, (n,) weights of mean 1 in proportion to the smoothed back-projection there (else None).
@@ -352,10 +406,19 @@ def starting_positions(
     if from_backprojection and series is not None:
         # A GPU, if there is one, does the back-projection (the model is built on the CPU).
         positions_A, values = backprojection_candidates(
-            series.projections, series.angles_deg, series.pixel_size_A, series.tilt_axis, series.centre_px, None,
-            device="cuda" if torch.cuda.is_available() else "cpu", return_values=True, tilt_axis_angle_deg=series.tilt_axis_angle_deg, noise=noise, slice_size_px=slice_size_px,
+            series.projections,
+            series.angles_deg,
+            series.pixel_size_A,
+            series.tilt_axis,
+            series.centre_px,
+            None,
+            device="cuda" if torch.cuda.is_available() else "cpu",
+            return_values=True,
+            tilt_axis_angle_deg=series.tilt_axis_angle_deg,
+            noise=noise,
+            slice_size_px=slice_size_px,
             backprojection=backprojection,
-        )  # fmt: skip
+        )
         if len(positions_A):
             # A candidate made of noise reads about zero; a floor of 1% of the strongest keeps
             # every weight positive (a log-amplitude) without making it atom-like.
@@ -365,7 +428,9 @@ def starting_positions(
     return (torch.rand(count, 3, generator=generator) - 0.5) * extent, None
 
 
-def starting_amplitude(projections, pixel_size_A: float | None, length_scale: float | None, n: int, sigma: float, data_range: float) -> float:
+def starting_amplitude(
+    projections, pixel_size_A: float | None, length_scale: float | None, n: int, sigma: float, data_range: float
+) -> float:
     """3D peak (normalised units) that shares the measured mass equally among ``n`` Gaussians
     of width ``sigma`` (normalised): every Gaussian starts atom-like in total, and the fit sorts
     them.  ``projections``: (N, H, W) tensor in normalised data units.  Without data to size
@@ -397,10 +462,19 @@ class Start:
 
 
 def compute_start(
-    series, projections, normalisation: Normalisation, extended_object: str, max_atom_sigma_A: float, from_backprojection: bool = True,
-    count: int = 0, extent: float = 1.0, generator: torch.Generator | None = None, noise: NoiseModel | None = None,
-    backprojection: Volume | None = None, positions_A: np.ndarray | None = None,
-) -> Start:  # fmt: skip
+    series,
+    projections,
+    normalisation: Normalisation,
+    extended_object: str,
+    max_atom_sigma_A: float,
+    from_backprojection: bool = True,
+    count: int = 0,
+    extent: float = 1.0,
+    generator: torch.Generator | None = None,
+    noise: NoiseModel | None = None,
+    backprojection: Volume | None = None,
+    positions_A: np.ndarray | None = None,
+) -> Start:
     """The start for a tilt series (``series``: :class:`~dataparsers.tilt_series_format.TiltSeries`,
     or None) with (V, H, W) ``projections`` in normalised data units: the noise measured once
     (the start and the data term share it), the field of view
@@ -409,7 +483,8 @@ def compute_start(
     back-projection candidates, or ``count`` random ones in a cube of side ``extent`` drawn
     with ``generator``).  ``noise``: the projections' noise if already read, as
     :func:`~gaussian_atoms_method.physics.noise.measure_noise` reads it on this machine;
-    ``backprojection``: the candidates' back-projection if already made (:func:`~gaussian_atoms_method.physics.reconstruction.backprojection_for_peaks`
+    ``backprojection``: the candidates' back-projection if already made
+    (:func:`~gaussian_atoms_method.physics.reconstruction.backprojection_for_peaks`
     of the series, across the tilt axis over the field's ``slice_px``); ``positions_A``: start at
     these atoms (Å) instead of any candidates."""
     ls = normalisation.length_scale
@@ -417,5 +492,16 @@ def compute_start(
     fov = field_of_view(series, projections, ls, extended_object, EDGE_MARGIN_WIDTHS * max_atom_sigma_A)
     generator = generator if generator is not None else torch.Generator()
     in_series_units = noise.scaled(1.0 / normalisation.data_scale) if noise is not None else None
-    means, weights = starting_positions(series, ls, count, extent, generator, from_backprojection, in_series_units, fov.slice_px, backprojection, positions_A)
+    means, weights = starting_positions(
+        series,
+        ls,
+        count,
+        extent,
+        generator,
+        from_backprojection,
+        in_series_units,
+        fov.slice_px,
+        backprojection,
+        positions_A,
+    )
     return Start(noise, fov, means, weights)

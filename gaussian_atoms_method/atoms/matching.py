@@ -81,10 +81,14 @@ def _coincident_pairs(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndar
     if len(hit) == 0:
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
     found = tree.query_ball_point(a[hit], 0.0)
-    return np.repeat(hit, [len(js) for js in found]).astype(np.int64), np.asarray([j for js in found for j in js], dtype=np.int64)
+    return np.repeat(hit, [len(js) for js in found]).astype(np.int64), np.asarray(
+        [j for js in found for j in js], dtype=np.int64
+    )
 
 
-def global_shift(pred_A: np.ndarray, true_A: np.ndarray, radius_A: float = 0.75, max_iterations: int = 50) -> np.ndarray:
+def global_shift(
+    pred_A: np.ndarray, true_A: np.ndarray, radius_A: float = 0.75, max_iterations: int = 50
+) -> np.ndarray:
     """The Miao group's alignment: iterate a global mean shift of the predictions onto their matches.
 
     Returns the (3,) shift (Å) that, added to ``pred_A``, minimises the mean offset of matched pairs.
@@ -102,7 +106,12 @@ def global_shift(pred_A: np.ndarray, true_A: np.ndarray, radius_A: float = 0.75,
 
 
 def score_atoms(
-    pred_A: np.ndarray, true_A: np.ndarray, radius_A: float = 0.75, mean_shift: bool = False, pred_species=None, true_species=None
+    pred_A: np.ndarray,
+    true_A: np.ndarray,
+    radius_A: float = 0.75,
+    mean_shift: bool = False,
+    pred_species=None,
+    true_species=None,
 ) -> dict:
     """The paper's scores for a predicted atom set.
 

@@ -20,7 +20,9 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 
-def cluster_labels(positions: np.ndarray, threshold: float, mergeable: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+def cluster_labels(
+    positions: np.ndarray, threshold: float, mergeable: np.ndarray | None = None
+) -> tuple[np.ndarray, int]:
     """Label the connected clusters of points closer than ``threshold`` to each other.
 
     Parameters
@@ -49,7 +51,9 @@ def cluster_labels(positions: np.ndarray, threshold: float, mergeable: np.ndarra
     return labels.astype(np.int64), int(n_clusters)
 
 
-def cluster_labels_on_device(positions: torch.Tensor, threshold: float, mergeable: torch.Tensor | None = None) -> tuple[np.ndarray, int]:
+def cluster_labels_on_device(
+    positions: torch.Tensor, threshold: float, mergeable: torch.Tensor | None = None
+) -> tuple[np.ndarray, int]:
     """:func:`cluster_labels` of an (N, 3) tensor, found on its device: the same pairs (at
     most ``threshold`` apart, in float64; candidates from cubes of side ``threshold``,
     :func:`..atoms.voxel_pairs.pairs_within`) and the same labels (every point takes the
@@ -97,7 +101,12 @@ def scatter_mean(values: torch.Tensor, src: torch.Tensor, dst: torch.Tensor, n_o
 
 
 def merged_values(
-    means: torch.Tensor, sigmas: torch.Tensor, amplitudes: torch.Tensor, labels: torch.Tensor, n_clusters: int, amplitude_rule: str = "mass"
+    means: torch.Tensor,
+    sigmas: torch.Tensor,
+    amplitudes: torch.Tensor,
+    labels: torch.Tensor,
+    n_clusters: int,
+    amplitude_rule: str = "mass",
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Position, width and combined amplitude of each cluster: mass-weighted means (``"mass"``)
     or plain means (``"mean"``, the paper).
@@ -125,8 +134,12 @@ def merged_values(
         mass = amplitudes * (2.0 * torch.pi * sigmas**2) ** 1.5
         total = torch.zeros(n_clusters, dtype=mass.dtype, device=mass.device).index_add_(0, labels, mass)
         weight = (mass / total.clamp_min(torch.finfo(mass.dtype).tiny)[labels])[:, None]
-        new_means = torch.zeros(n_clusters, means.shape[1], dtype=means.dtype, device=means.device).index_add_(0, labels, weight * means)
-        new_sigmas = torch.zeros(n_clusters, dtype=sigmas.dtype, device=sigmas.device).index_add_(0, labels, weight[:, 0] * sigmas)
+        new_means = torch.zeros(n_clusters, means.shape[1], dtype=means.dtype, device=means.device).index_add_(
+            0, labels, weight * means
+        )
+        new_sigmas = torch.zeros(n_clusters, dtype=sigmas.dtype, device=sigmas.device).index_add_(
+            0, labels, weight[:, 0] * sigmas
+        )
         new_amps = total / (2.0 * torch.pi * new_sigmas**2) ** 1.5
     else:
         raise ValueError(f"amplitude_rule must be 'mass' or 'mean', got {amplitude_rule!r}")

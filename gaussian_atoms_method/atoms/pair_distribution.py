@@ -124,7 +124,9 @@ def kernel_density_reference(values: np.ndarray, weights: np.ndarray, grid: np.n
     """The direct sum of :func:`weighted_kernel_density`, in chunks of 4,096 values (bounded memory)."""
     density = np.zeros(len(grid))
     for chunk in np.array_split(np.arange(len(values)), max(1, len(values) // 4096)):
-        density += (np.exp(-0.5 * ((grid[:, None] - values[None, chunk]) / bandwidth) ** 2) * weights[None, chunk]).sum(axis=1)
+        density += (np.exp(-0.5 * ((grid[:, None] - values[None, chunk]) / bandwidth) ** 2) * weights[None, chunk]).sum(
+            axis=1
+        )
     return density
 
 
@@ -168,4 +170,8 @@ def first_shell(positions: np.ndarray) -> FirstShell:
     peak = int(np.argmax(density))
     below = np.nonzero(density[: peak + 1] < 0.5 * density[peak])[0]
     shell = FirstShell(float(grid[below[-1]]) if len(below) else 0.0, float(grid[peak]), 1.0, 0.0, n)
-    return replace(shell, share=max(float(np.mean(nearest < shell.onset)), 1.0 / n), inner_share=float(np.mean(nearest < shell.peak - INNER_WIDTHS * shell.width)))
+    return replace(
+        shell,
+        share=max(float(np.mean(nearest < shell.onset)), 1.0 / n),
+        inner_share=float(np.mean(nearest < shell.peak - INNER_WIDTHS * shell.width)),
+    )

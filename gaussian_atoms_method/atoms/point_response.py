@@ -21,7 +21,16 @@ from gaussian_atoms_method.atoms.voxel_pairs import pairs_within
 from gaussian_atoms_method.physics.reconstruction import reconstruct
 
 
-def backprojected_atom(shape, angles_deg, pixel_size_A: float, sigma_A: float, tilt_axis="y", tilt_axis_angle_deg: float = 0.0, device: str = "cpu", half_width_A: float = 10.0):
+def backprojected_atom(
+    shape,
+    angles_deg,
+    pixel_size_A: float,
+    sigma_A: float,
+    tilt_axis="y",
+    tilt_axis_angle_deg: float = 0.0,
+    device: str = "cpu",
+    half_width_A: float = 10.0,
+):
     """The Hann-filtered back-projection (a volume) of one Gaussian atom of width ``sigma_A``
     at the tilt centre, in the geometry of a tilt series of ``shape`` (N, H, W), on a detector
     cut to ``half_width_A`` about its middle (:func:`point_response` says why).  Projection and
@@ -33,10 +42,30 @@ def backprojected_atom(shape, angles_deg, pixel_size_A: float, sigma_A: float, t
     ci, cj = (h - 1) / 2, (w - 1) / 2
     rows, cols = np.arange(h)[:, None] - ci, np.arange(w)[None, :] - cj
     image = np.exp(-(rows**2 + cols**2) / (2 * (sigma_A / pixel_size_A) ** 2))
-    return reconstruct(np.repeat(image[None], n, axis=0), angles_deg, pixel_size_A, "fbp", tilt_axis, None, filter_name="hann", device=device, tilt_axis_angle_deg=tilt_axis_angle_deg)
+    return reconstruct(
+        np.repeat(image[None], n, axis=0),
+        angles_deg,
+        pixel_size_A,
+        "fbp",
+        tilt_axis,
+        None,
+        filter_name="hann",
+        device=device,
+        tilt_axis_angle_deg=tilt_axis_angle_deg,
+    )
 
 
-def point_response(shape, angles_deg, pixel_size_A: float, sigma_A: float, tilt_axis="y", smoothing_A: float = 0.5, tilt_axis_angle_deg: float = 0.0, device: str = "cpu", half_width_A: float = 10.0):
+def point_response(
+    shape,
+    angles_deg,
+    pixel_size_A: float,
+    sigma_A: float,
+    tilt_axis="y",
+    smoothing_A: float = 0.5,
+    tilt_axis_angle_deg: float = 0.0,
+    device: str = "cpu",
+    half_width_A: float = 10.0,
+):
     """The smoothed Hann-filtered back-projection of one Gaussian atom of width ``sigma_A`` at
     the tilt centre, in the geometry of a tilt series of ``shape`` (N, H, W), scaled to 1 at its
     peak; returns it and the (3,) voxel index of the peak.  A point at the tilt centre projects
@@ -47,7 +76,9 @@ def point_response(shape, angles_deg, pixel_size_A: float, sigma_A: float, tilt_
     10 Å (20 widths of a blurred atom) only the missing wedge's faint streaks remain, which
     :func:`clean_peaks` may ignore (it subtracts less, so keeps more).  The full 280-pixel Au
     detector took seconds of start-up; 81 pixels, a fraction of one."""
-    volume = backprojected_atom(shape, angles_deg, pixel_size_A, sigma_A, tilt_axis, tilt_axis_angle_deg, device, half_width_A)
+    volume = backprojected_atom(
+        shape, angles_deg, pixel_size_A, sigma_A, tilt_axis, tilt_axis_angle_deg, device, half_width_A
+    )
     return peak_normalised(ndimage.gaussian_filter(volume.data, smoothing_A / volume.spacing_A))
 
 
@@ -57,7 +88,9 @@ def peak_normalised(response: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return response / response[tuple(centre)], centre
 
 
-def clean_peaks(peaks: np.ndarray, values: np.ndarray, response: np.ndarray, centre: np.ndarray, level: float, device=None) -> tuple[np.ndarray, np.ndarray]:
+def clean_peaks(
+    peaks: np.ndarray, values: np.ndarray, response: np.ndarray, centre: np.ndarray, level: float, device=None
+) -> tuple[np.ndarray, np.ndarray]:
     """Accept peaks strongest first, each judged on its value less the responses of those
     accepted before it.
 
@@ -80,7 +113,11 @@ def clean_peaks(peaks: np.ndarray, values: np.ndarray, response: np.ndarray, cen
     if len(peaks) == 0:
         return np.zeros(0, dtype=np.int64), np.zeros(0)
     on_device = device is not None and torch.device(device).type != "cpu"
-    later, earlier, weights = response_pairs_on_device(peaks, response, centre, device) if on_device else _response_pairs(peaks, response, centre)
+    later, earlier, weights = (
+        response_pairs_on_device(peaks, response, centre, device)
+        if on_device
+        else _response_pairs(peaks, response, centre)
+    )
     # Row i of W holds the weights of the peaks visited before i.  In blocks of the visit order:
     # what the earlier blocks' accepted peaks take off is one sparse product (amounts of peaks
     # not yet visited are still 0), and only the pairs inside a block are visited one by one,
@@ -134,7 +171,9 @@ def _response_pairs(peaks: np.ndarray, response: np.ndarray, centre: np.ndarray)
     return later[inside], earlier[inside], np.take(response.ravel(), flat[inside])
 
 
-def response_pairs_on_device(peaks: np.ndarray, response: np.ndarray, centre: np.ndarray, device, max_candidates: int = 1 << 26):
+def response_pairs_on_device(
+    peaks: np.ndarray, response: np.ndarray, centre: np.ndarray, device, max_candidates: int = 1 << 26
+):
     """:func:`_response_pairs` found on ``device`` in torch (:func:`.voxel_pairs.pairs_within`),
     sorted by (later, earlier): the same pairs and weights.  On the H100 machine the host's k-d
     tree search took 3.9 s of the 54,000-atom a-Pd's start (96,995 peaks, 15 million pairs)."""
@@ -157,7 +196,9 @@ def response_pairs_on_device(peaks: np.ndarray, response: np.ndarray, centre: np
     return tuple(x[pair_order].cpu().numpy() for x in (later, earlier, weights))
 
 
-def clean_peaks_reference(peaks: np.ndarray, values: np.ndarray, response: np.ndarray, centre: np.ndarray, level: float) -> tuple[np.ndarray, np.ndarray]:
+def clean_peaks_reference(
+    peaks: np.ndarray, values: np.ndarray, response: np.ndarray, centre: np.ndarray, level: float
+) -> tuple[np.ndarray, np.ndarray]:
     """:func:`clean_peaks` one peak at a time in numpy (the tests' reference)."""
     amounts = np.zeros(len(peaks))
     if len(peaks) == 0:

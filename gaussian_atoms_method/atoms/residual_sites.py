@@ -80,15 +80,32 @@ def unexplained_sites(
     # The back-projection stays on ``device`` (a host copy of the 401^3 float64 volume and back
     # took 0.45 s a search at 20,000 atoms on the H100 machine), as do the filter, the noise
     # reading and the maxima (the start's, .volume_filters); only sites come back.
-    volume = reconstruct(residuals, angles_deg, pixel_size_A, "fbp", tilt_axis, centre_px, filter_name="hann", device=device, tilt_axis_angle_deg=tilt_axis_angle_deg, as_tensor=True)
+    volume = reconstruct(
+        residuals,
+        angles_deg,
+        pixel_size_A,
+        "fbp",
+        tilt_axis,
+        centre_px,
+        filter_name="hann",
+        device=device,
+        tilt_axis_angle_deg=tilt_axis_angle_deg,
+        as_tensor=True,
+    )
     data = volume_filters.gaussian_filter(volume_filters.as_volume(volume.data, device), smoothing_A / volume.spacing_A)
     noise = mad_std(data)
     level = random_field_threshold(data, false_alarm_rate) * noise
-    peaks = volume_filters.separated_maxima(data, volume.spacing_A, min_distance_A, level) if noise > 0 else np.zeros((0, 3), dtype=np.int64)
+    peaks = (
+        volume_filters.separated_maxima(data, volume.spacing_A, min_distance_A, level)
+        if noise > 0
+        else np.zeros((0, 3), dtype=np.int64)
+    )
     if len(peaks) == 0:
         return np.zeros((0, 3)), np.zeros(0)
     values = volume_filters.values_at(data, peaks)
-    response, centre = point_response(residuals.shape, angles_deg, pixel_size_A, sigma_A, tilt_axis, smoothing_A, tilt_axis_angle_deg, device)
+    response, centre = point_response(
+        residuals.shape, angles_deg, pixel_size_A, sigma_A, tilt_axis, smoothing_A, tilt_axis_angle_deg, device
+    )
     accepted, values = clean_peaks(peaks, values, response, centre, level, device)
     positions_A = volume.index_to_A(peaks[accepted])
     if len(existing_A):

@@ -57,7 +57,9 @@ def candidate_pairs(positions: np.ndarray, sigmas: np.ndarray) -> np.ndarray:
     if sigmas.max() <= 1.25 * cut:  # the widest no wider than the rest: one search at its radius is cheaper
         cut = float(sigmas.max())
     wide = np.flatnonzero(sigmas > cut)
-    found = [tree.query_pairs(SEARCH_WIDTHS * np.sqrt(2.0) * cut, output_type="ndarray").astype(np.int64).reshape(-1, 2)]
+    found = [
+        tree.query_pairs(SEARCH_WIDTHS * np.sqrt(2.0) * cut, output_type="ndarray").astype(np.int64).reshape(-1, 2)
+    ]
     if len(wide):
         reach = SEARCH_WIDTHS * np.sqrt(sigmas[wide] ** 2 + float(sigmas.max()) ** 2)
         near = tree.query_ball_point(positions[wide], reach)
@@ -73,7 +75,9 @@ def candidate_pairs(positions: np.ndarray, sigmas: np.ndarray) -> np.ndarray:
     return pairs[d <= SEARCH_WIDTHS * np.hypot(sigmas[pairs[:, 0]], sigmas[pairs[:, 1]])]
 
 
-def merged_moments(positions: np.ndarray, sigmas: np.ndarray, masses: np.ndarray, pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def merged_moments(
+    positions: np.ndarray, sigmas: np.ndarray, masses: np.ndarray, pairs: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """The one isotropic Gaussian each pair would become: its centre of mass (K, 3) and the width
     (K,) that keeps the pair's second moment, ``s_c^2 = sum m (s^2 + |x - x_c|^2 / 3) / M``."""
     m = masses[pairs]  # (K, 2)
@@ -85,7 +89,13 @@ def merged_moments(positions: np.ndarray, sigmas: np.ndarray, masses: np.ndarray
 
 
 def merge_energy(
-    positions: np.ndarray, sigmas: np.ndarray, masses: np.ndarray, pairs: np.ndarray, view_dirs: np.ndarray, chunk: int = 4096, merged: tuple[np.ndarray, np.ndarray] | None = None
+    positions: np.ndarray,
+    sigmas: np.ndarray,
+    masses: np.ndarray,
+    pairs: np.ndarray,
+    view_dirs: np.ndarray,
+    chunk: int = 4096,
+    merged: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """(K,) squared norm of the change in the projections, summed over the views, when each pair
     becomes its merged Gaussian (:func:`merged_moments`, or ``merged``); units mass^2 / length^2.
@@ -102,8 +112,13 @@ def merge_energy(
     47 views take 1.5 MB each).
     """
     if len(pairs) > chunk:
-        parts = [(k, None if merged is None else (merged[0][k : k + chunk], merged[1][k : k + chunk])) for k in range(0, len(pairs), chunk)]
-        return np.concatenate([merge_energy(positions, sigmas, masses, pairs[k : k + chunk], view_dirs, chunk, part) for k, part in parts])
+        parts = [
+            (k, None if merged is None else (merged[0][k : k + chunk], merged[1][k : k + chunk]))
+            for k in range(0, len(pairs), chunk)
+        ]
+        return np.concatenate(
+            [merge_energy(positions, sigmas, masses, pairs[k : k + chunk], view_dirs, chunk, part) for k, part in parts]
+        )
     if len(pairs) == 0:
         return np.zeros(0)
     centre, s_c = merged_moments(positions, sigmas, masses, pairs) if merged is None else merged

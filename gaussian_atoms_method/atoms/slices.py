@@ -13,7 +13,16 @@ from gaussian_atoms_method.atoms.atom_set import AtomSet
 SLICES = ((2, 0, 1), (1, 0, 2), (0, 1, 2))
 
 
-def potential_on_plane(atoms: AtomSet, normal_axis: int, offset_A: float, axis_u: int, axis_v: int, coords_u_A: np.ndarray, coords_v_A: np.ndarray, device=None) -> np.ndarray:
+def potential_on_plane(
+    atoms: AtomSet,
+    normal_axis: int,
+    offset_A: float,
+    axis_u: int,
+    axis_v: int,
+    coords_u_A: np.ndarray,
+    coords_v_A: np.ndarray,
+    device=None,
+) -> np.ndarray:
     """The Gaussians' potential on a plane ``x[normal_axis] = offset_A``.
 
     Parameters
@@ -73,7 +82,9 @@ class SlicePlanes:
     """Per slice, the (v, u) positions of the predicted atoms within ``slab_A`` of it."""
 
 
-def slice_planes(pred: AtomSet, truth: AtomSet | None = None, spacing_A: float = 0.1, slab_A: float = 1.0, device=None) -> SlicePlanes:
+def slice_planes(
+    pred: AtomSet, truth: AtomSet | None = None, spacing_A: float = 0.1, slab_A: float = 1.0, device=None
+) -> SlicePlanes:
     """Three central slices (xy, xz, yz through the atoms' median) of the predicted potential,
     sampled every ``spacing_A``, or coarser where a slice would take more than
     :data:`PANEL_SAMPLES` samples, the products on ``device`` (:func:`potential_on_plane`); and
@@ -107,7 +118,15 @@ def slice_planes(pred: AtomSet, truth: AtomSet | None = None, spacing_A: float =
     return SlicePlanes(SLICES, planes, extents, centre, float(slab_A), true_points, predicted_points)
 
 
-def write_slices_png(pred: AtomSet, output: Path, truth: AtomSet | None = None, spacing_A: float = 0.1, slab_A: float = 1.0, title: str = "", device=None) -> Path:
+def write_slices_png(
+    pred: AtomSet,
+    output: Path,
+    truth: AtomSet | None = None,
+    spacing_A: float = 0.1,
+    slab_A: float = 1.0,
+    title: str = "",
+    device=None,
+) -> Path:
     """The three central slices of :func:`slice_planes` with the predicted atoms (open circles)
     and true atoms (crosses) within ``slab_A`` of each slice overlaid
     (:func:`~gaussian_atoms_method.atoms.pictures.draw_slices`); written atomically (complete

@@ -66,7 +66,11 @@ def mass_populations(log_masses: np.ndarray, k: int) -> tuple[int, str]:
     order = np.argsort(means)
     d = np.diff(means[order]) / np.sqrt((variances[order][1:] + variances[order][:-1]) / 2.0)
     populations = 1 + int(np.sum(d > ASHMAN_D))
-    said = f"a Gaussian mixture on log mass picks {best} component(s) by BIC" + (f", Ashman's D between neighbours {', '.join(f'{v:.2f}' for v in d)} (separate above {ASHMAN_D:g})" if best > 1 else "")
+    said = f"a Gaussian mixture on log mass picks {best} component(s) by BIC" + (
+        f", Ashman's D between neighbours {', '.join(f'{v:.2f}' for v in d)} (separate above {ASHMAN_D:g})"
+        if best > 1
+        else ""
+    )
     return populations, said
 
 
@@ -97,15 +101,29 @@ def classify_species(masses: np.ndarray, elements: list[str]) -> tuple[np.ndarra
     logm = np.log(masses)
     populations, test = mass_populations(logm, len(ordered))
     if populations < len(ordered):
-        return np.array([ordered[-1]] * len(masses)), {"counts": {ordered[-1]: len(masses)}, "separated": False, "populations": populations, "test": test}
+        return np.array([ordered[-1]] * len(masses)), {
+            "counts": {ordered[-1]: len(masses)},
+            "separated": False,
+            "populations": populations,
+            "test": test,
+        }
     labels = kmeans_1d(logm, len(ordered))
     species = np.array(ordered)[labels]
-    report = {"counts": {}, "mean_log_mass": {}, "separation": {}, "separated": True, "populations": populations, "test": test}
+    report = {
+        "counts": {},
+        "mean_log_mass": {},
+        "separation": {},
+        "separated": True,
+        "populations": populations,
+        "test": test,
+    }
     for j, el in enumerate(ordered):
         report["counts"][el] = int(np.sum(labels == j))
         report["mean_log_mass"][el] = float(logm[labels == j].mean()) if np.any(labels == j) else float("nan")
     for j in range(len(ordered) - 1):
         a, b = logm[labels == j], logm[labels == j + 1]
         pooled = np.sqrt((a.var() + b.var()) / 2) if len(a) > 1 and len(b) > 1 else float("nan")
-        report["separation"][f"{ordered[j]}/{ordered[j + 1]}"] = float((b.mean() - a.mean()) / pooled) if pooled > 0 else float("inf")
+        report["separation"][f"{ordered[j]}/{ordered[j + 1]}"] = (
+            float((b.mean() - a.mean()) / pooled) if pooled > 0 else float("inf")
+        )
     return species, report

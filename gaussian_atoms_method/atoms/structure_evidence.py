@@ -20,7 +20,9 @@ BIN_A = 0.05
 """Its bins, Å: finer than any shell's width (0.1-0.3 Å) and than the hard core's precision."""
 
 
-def pair_distribution_function(positions_A: np.ndarray, r_max_A: float = R_MAX_A, bin_A: float = BIN_A, density_per_A3: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+def pair_distribution_function(
+    positions_A: np.ndarray, r_max_A: float = R_MAX_A, bin_A: float = BIN_A, density_per_A3: float | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """(B,) bin centres (Å) and (B,) the radial distribution ``g(r)`` of (N, 3) positions: each
     bin's pair count over what a uniform gas of the same number density would hold
     (``N rho 4 pi r^2 dr / 2``; the density from the atoms' convex hull, :func:`number_density`).
@@ -62,9 +64,15 @@ def structure_evidence(positions_A: np.ndarray, hard_core_A: float) -> tuple[dic
 
     positions = np.asarray(positions_A, dtype=np.float64).reshape(-1, 3)
     rho = number_density(positions)
-    out = {"n_atoms": len(positions), "number_density_per_A3": rho, "hard_core_A": float(hard_core_A) if math.isfinite(hard_core_A) else None}
+    out = {
+        "n_atoms": len(positions),
+        "number_density_per_A3": rho,
+        "hard_core_A": float(hard_core_A) if math.isfinite(hard_core_A) else None,
+    }
     out["share_under_hard_core"] = share_closer(positions, hard_core_A) if math.isfinite(hard_core_A) else None
-    out["nearest_neighbour_median_A"] = float(np.median(nearest_neighbour_distances(positions))) if len(positions) >= 2 else None
+    out["nearest_neighbour_median_A"] = (
+        float(np.median(nearest_neighbour_distances(positions))) if len(positions) >= 2 else None
+    )
     r, g = pair_distribution_function(positions, density_per_A3=rho)
     beyond = r > (hard_core_A if math.isfinite(hard_core_A) else 0.0)
     out["first_shell_peak_A"] = float(r[beyond][np.argmax(g[beyond])]) if np.any(g[beyond] > 0) else None

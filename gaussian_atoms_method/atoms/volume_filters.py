@@ -48,7 +48,10 @@ def _filter_axis(volume: torch.Tensor, kernel: np.ndarray, axis: int) -> torch.T
     than the axis)."""
     n, radius = volume.shape[axis], len(kernel) // 2
     if radius <= n:
-        padded = torch.cat([volume.narrow(axis, 0, radius).flip(axis), volume, volume.narrow(axis, n - radius, radius).flip(axis)], axis)
+        padded = torch.cat(
+            [volume.narrow(axis, 0, radius).flip(axis), volume, volume.narrow(axis, n - radius, radius).flip(axis)],
+            axis,
+        )
     else:  # a kernel longer than the axis: reflections of reflections
         index = np.mod(np.arange(-radius, n + radius), 2 * n)
         index = np.where(index >= n, 2 * n - 1 - index, index)
@@ -69,7 +72,9 @@ def _pass(volume: torch.Tensor, sigma_vox: float, axis: int, order: int, in_torc
     return torch.from_numpy(host_filters.gaussian_pass(volume.numpy(), sigma_vox, axis, order))
 
 
-def gaussian_filter(volume: torch.Tensor, sigma_vox: float, in_torch: bool | None = None, axes: tuple[int, ...] | None = None) -> torch.Tensor:
+def gaussian_filter(
+    volume: torch.Tensor, sigma_vox: float, in_torch: bool | None = None, axes: tuple[int, ...] | None = None
+) -> torch.Tensor:
     """scipy's ``ndimage.gaussian_filter(volume, sigma_vox)`` of a tensor, on its device.
 
     Parameters
@@ -111,7 +116,9 @@ def gaussian_laplace(volume: torch.Tensor, sigma_vox: float, in_torch: bool | No
     return _laplace(volume, x, _pass(x, sigma_vox, 1, 0, in_torch), sigma_vox, in_torch)
 
 
-def gaussian_filter_and_laplace(volume: torch.Tensor, sigma_vox: float, in_torch: bool | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+def gaussian_filter_and_laplace(
+    volume: torch.Tensor, sigma_vox: float, in_torch: bool | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`gaussian_filter` and :func:`gaussian_laplace` of a 3D tensor at one width, the
     smoothings along x and x then y made once for both (nine 1D passes, not twelve)."""
     in_torch = _off_cpu(volume, in_torch)
@@ -136,7 +143,9 @@ def local_maxima(volume: torch.Tensor, level: float = 0.0, pooled: bool | None =
     return torch.nonzero(peak).cpu().numpy()
 
 
-def separated_maxima(volume: torch.Tensor, spacing_A: float, min_distance_A: float, level: float = -math.inf) -> np.ndarray:
+def separated_maxima(
+    volume: torch.Tensor, spacing_A: float, min_distance_A: float, level: float = -math.inf
+) -> np.ndarray:
     """:func:`gaussian_atoms_method.atoms.peaks.separated_maxima` of a tensor: (M, 3) voxel
     indices of local maxima above ``level``, strongest first, ``min_distance_A`` apart.  The
     maxima are found on the tensor's device; the strongest-first suppression there too off the
@@ -145,12 +154,18 @@ def separated_maxima(volume: torch.Tensor, spacing_A: float, min_distance_A: flo
     if len(found) == 0:
         return np.zeros((0, 3), dtype=np.int64)
     if _off_cpu(volume, None):
-        return found[suppress_within_on_device(torch.as_tensor(found, device=volume.device), values_at(volume, found), spacing_A, min_distance_A)]
+        return found[
+            suppress_within_on_device(
+                torch.as_tensor(found, device=volume.device), values_at(volume, found), spacing_A, min_distance_A
+            )
+        ]
     order = np.argsort(-values_at(volume, found), kind="stable")
     return found[peaks.suppress_within(found * spacing_A, order, min_distance_A)]
 
 
-def suppress_within_on_device(points: torch.Tensor, values: np.ndarray, spacing_A: float, min_distance_A: float) -> np.ndarray:
+def suppress_within_on_device(
+    points: torch.Tensor, values: np.ndarray, spacing_A: float, min_distance_A: float
+) -> np.ndarray:
     """:func:`gaussian_atoms_method.atoms.peaks.suppress_within` of the (M, 3) integer voxel
     ``points`` (a tensor) visited strongest ``values`` first (ties in index order), on their
     device: the indices kept, in the visit's order.  The pairs within ``min_distance_A``
@@ -164,7 +179,9 @@ def suppress_within_on_device(points: torch.Tensor, values: np.ndarray, spacing_
     reach = int(math.floor(min_distance_A / spacing_A + 1e-9))
     stronger, weaker = [], []
     for a, b in pairs_within(points, reach):
-        close = ((points[a].double() * spacing_A - points[b].double() * spacing_A) ** 2).sum(dim=1) <= min_distance_A**2  # as the k-d tree reads it
+        close = ((points[a].double() * spacing_A - points[b].double() * spacing_A) ** 2).sum(
+            dim=1
+        ) <= min_distance_A**2  # as the k-d tree reads it
         a, b = a[close], b[close]
         first = rank[a] < rank[b]
         stronger.append(torch.where(first, a, b))
@@ -175,7 +192,9 @@ def suppress_within_on_device(points: torch.Tensor, values: np.ndarray, spacing_
     suppressed = torch.zeros(n, dtype=torch.bool, device=dev)
     while True:
         hit = torch.zeros(n, dtype=torch.int32, device=dev).index_add_(0, weaker, kept[stronger].int()) > 0
-        open_ = torch.zeros(n, dtype=torch.int32, device=dev).index_add_(0, weaker, (~(kept | suppressed))[stronger].int())
+        open_ = torch.zeros(n, dtype=torch.int32, device=dev).index_add_(
+            0, weaker, (~(kept | suppressed))[stronger].int()
+        )
         now_kept = ~hit & (open_ == 0)
         if torch.equal(now_kept, kept) and torch.equal(hit, suppressed):
             break
@@ -193,5 +212,6 @@ def values_at(volume: torch.Tensor, indices: np.ndarray) -> np.ndarray:
 def as_volume(data, device: str | torch.device = "cpu", dtype: torch.dtype | None = torch.float64) -> torch.Tensor:
     """``data`` (an array or tensor) as a contiguous tensor on ``device`` (an array already of
     ``dtype`` on the CPU is shared, not copied); ``dtype`` None keeps the data's."""
-    return torch.as_tensor(np.ascontiguousarray(data) if isinstance(data, np.ndarray) else data, device=device, dtype=dtype).contiguous()
-
+    return torch.as_tensor(
+        np.ascontiguousarray(data) if isinstance(data, np.ndarray) else data, device=device, dtype=dtype
+    ).contiguous()

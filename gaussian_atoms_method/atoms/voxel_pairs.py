@@ -37,7 +37,8 @@ def pairs_within(points: torch.Tensor, reach: int, max_candidates: int = 1 << 26
     lo, counts = lo.reshape(-1), counts.reshape(-1)
     start = 0
     while start < n:
-        before = bounds[start - 1] if start else 0  # candidates of the points before ``start``, read from the host's list
+        # candidates of the points before ``start``, read from the host's list
+        before = bounds[start - 1] if start else 0
         stop = max(int(np.searchsorted(bounds, before + max_candidates, side="right")), start + 1)
         c = counts[27 * start : 27 * stop]
         slot = torch.repeat_interleave(torch.arange(len(c), device=dev), c, output_size=bounds[stop - 1] - before)

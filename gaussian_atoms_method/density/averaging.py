@@ -45,7 +45,11 @@ class IterateAverage:
     def _holds(self, params: Mapping[str, torch.Tensor]) -> bool:
         """Whether the open window holds iterates of ``params``' Gaussians (the same tensors)."""
         members = tuple(params[n] for n in self.names if n in params)
-        return self.count > 0 and len(members) == len(self._members) and all(a is b for a, b in zip(members, self._members))
+        return (
+            self.count > 0
+            and len(members) == len(self._members)
+            and all(a is b for a, b in zip(members, self._members))
+        )
 
     @torch.no_grad()
     def add(self, params: Mapping[str, torch.Tensor]) -> None:

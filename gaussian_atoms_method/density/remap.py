@@ -51,7 +51,9 @@ def apply_remap(
                 group["params"] = [new if p is old else p for p in group["params"]]
             if state is not None:
                 opt.state[new] = {
-                    k: scatter_mean(v, src, dst, n_out) if torch.is_tensor(v) and v.dim() > 0 and v.shape[0] == old.shape[0] else v
+                    k: scatter_mean(v, src, dst, n_out)
+                    if torch.is_tensor(v) and v.dim() > 0 and v.shape[0] == old.shape[0]
+                    else v
                     for k, v in state.items()
                 }
         if param_lists is not None and name in param_lists:

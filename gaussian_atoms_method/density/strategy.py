@@ -16,7 +16,8 @@ The rules, every ``refine_every`` steps after ``warmup_length``:
 * **prune** Gaussians whose mass is not significantly above zero given the measured noise
   (:meth:`DensityControl.mass_significance`: mass over its Cramér-Rao standard deviation below
   one during training; at the end below :meth:`DensityControl.discovery_threshold`, the level
-  that keeps noise to ``false_discovery_rate`` of the atoms found), wider than ``max_atom_sigma_A`` or outside the reconstruction volume; without a
+  that keeps noise to ``false_discovery_rate`` of the atoms found), wider than ``max_atom_sigma_A`` or outside the
+  reconstruction volume; without a
   noise model (a model built without data) lighter than ``prune_mass_fraction`` of a typical
   atom;
 * **merge** (every ``merge_every`` steps, when ``cluster_merge``) clusters closer than
@@ -48,7 +49,12 @@ from typing import Callable, Mapping, MutableMapping
 import numpy as np
 import torch
 
-from gaussian_atoms_method.atoms.merge import cluster_labels, cluster_labels_on_device, disjoint_pair_labels, merged_values
+from gaussian_atoms_method.atoms.merge import (
+    cluster_labels,
+    cluster_labels_on_device,
+    disjoint_pair_labels,
+    merged_values,
+)
 from gaussian_atoms_method.atoms.resolution import candidate_pairs, merge_energy, merged_moments
 from gaussian_atoms_method.density.averaging import IterateAverage
 from gaussian_atoms_method.density.remap import apply_remap, duplicate_remap, keep_remap, merge_remap
@@ -194,7 +200,9 @@ class DensityControl:
             self.born = torch.zeros(n, dtype=torch.long)
         return self.born
 
-    def remap(self, params: Params, optimizers: Optimizers, src, dst, n_out: int, new_values=None, param_lists=None) -> None:
+    def remap(
+        self, params: Params, optimizers: Optimizers, src, dst, n_out: int, new_values=None, param_lists=None
+    ) -> None:
         """Apply a remap (:mod:`.remap`) to the parameters, the optimisers' state, the
         accumulated gradients (merged Gaussians sum their pulls) and the birth steps (a merged
         Gaussian is as young as its youngest member)."""
@@ -203,7 +211,9 @@ class DensityControl:
         at = self.grad_accum.device
         self.grad_accum = torch.zeros(n_out, 3, device=at).index_add_(0, dst.to(at), self.grad_accum[src.to(at)])
         src, dst = src.cpu(), dst.cpu()
-        self.born = torch.zeros(n_out, dtype=torch.long).scatter_reduce_(0, dst, self._births(n_in)[src], reduce="amax", include_self=False)
+        self.born = torch.zeros(n_out, dtype=torch.long).scatter_reduce_(
+            0, dst, self._births(n_in)[src], reduce="amax", include_self=False
+        )
 
     # ------------------------------------------------------------------ called by the training loop
     @torch.no_grad()
@@ -264,7 +274,11 @@ class DensityControl:
         Returns how many Gaussians went."""
         removed = self.join_close_pairs(params, optimizers, param_lists, protect_fresh=True)
         if self.cluster_merge:
-            removed += self.merge_by_likelihood(params, optimizers, param_lists, correlations) if correlations is not None else 0
+            removed += (
+                self.merge_by_likelihood(params, optimizers, param_lists, correlations)
+                if correlations is not None
+                else 0
+            )
             removed += self.merge_unresolved(params, optimizers, param_lists)
         removed += self.prune(params, optimizers, param_lists, final=True)
         if self.cluster_merge:
@@ -289,8 +303,14 @@ class DensityControl:
         bound, lower = self._box(twice, means), self._box(-twice, means)  # made once each
         # A Gaussian counts once however many of its widths were held (one width when isotropic:
         # no reduction over it); the counts add in place (this runs every step).
-        low, high = (log_sigmas < lo, log_sigmas > hi) if log_sigmas.shape[-1] == 1 else ((log_sigmas < lo).any(-1), (log_sigmas > hi).any(-1))
-        held = torch.stack([low.sum(), high.sum(), (log_amps > self.max_log_amplitude).sum(), (means.abs() > bound).any(-1).sum()])
+        low, high = (
+            (log_sigmas < lo, log_sigmas > hi)
+            if log_sigmas.shape[-1] == 1
+            else ((log_sigmas < lo).any(-1), (log_sigmas > hi).any(-1))
+        )
+        held = torch.stack(
+            [low.sum(), high.sum(), (log_amps > self.max_log_amplitude).sum(), (means.abs() > bound).any(-1).sum()]
+        )
         if self.clamp_counts is None:
             self.clamp_counts = held
         else:
@@ -304,15 +324,22 @@ class DensityControl:
         clamps of :meth:`clamp` and the prunes of Gaussians that left the volume."""
         lines = []
         if self.clamp_counts is not None:
-            names = (f"widths held at the {self.min_sigma_A} Å floor", f"widths held at the {self.max_sigma_A} Å ceiling",
-                     "amplitudes held at the ceiling (1000x the measured mass)", "positions held at the edge of twice the volume")  # fmt: skip
+            names = (
+                f"widths held at the {self.min_sigma_A} Å floor",
+                f"widths held at the {self.max_sigma_A} Å ceiling",
+                "amplitudes held at the ceiling (1000x the measured mass)",
+                "positions held at the edge of twice the volume",
+            )
             held = [f"{int(n)} {name}" for n, name in zip(self.clamp_counts.tolist(), names) if n]
             if held:
                 lines.append("clamped (Gaussian-steps): " + ", ".join(held))
         if self.pruned_outside:
             line = f"{self.pruned_outside} Gaussians left the reconstruction volume and were pruned"
             if self.pruned_outside_atom_like:
-                line += f", {self.pruned_outside_atom_like} of them atom-like (check centre_px and pixel_size_A: atoms may lie outside the volume)"
+                line += (
+                    f", {self.pruned_outside_atom_like} of them atom-like (check centre_px and pixel_size_A: atoms "
+                    f"may lie outside the volume)"
+                )
             lines.append(line)
         return lines
 
@@ -333,14 +360,16 @@ class DensityControl:
         room = self.max_gaussians - n
         if room <= 0 or len(idx) == 0:
             return 0
-        idx = idx[torch.argsort(mean_grad[idx], descending=True)[:room]].cpu()  # on the host, as the birth steps (the sums lie on the parameters' device)
+        idx = idx[
+            torch.argsort(mean_grad[idx], descending=True)[:room]
+        ].cpu()  # on the host, as the birth steps (the sums lie on the parameters' device)
         self.remap(params, optimizers, *duplicate_remap(n, idx), param_lists=param_lists)
         # Halve both amplitudes and move the pair apart by one sigma in a random direction.
         dev = params["means"].device
         both = torch.cat([idx, torch.arange(n, n + len(idx))]).to(dev)
         params["log_amplitudes"].data[both] -= math.log(2.0)
         if math.isfinite(core):
-            pull = -self.grad_accum[: n].to(dev)[idx.to(dev)]
+            pull = -self.grad_accum[:n].to(dev)[idx.to(dev)]
             params["means"].data[n:] += core * pull / pull.norm(dim=-1, keepdim=True).clamp_min(1e-30)
         else:
             direction = torch.randn(len(idx), 3, generator=self.generator).to(dev)
@@ -353,7 +382,15 @@ class DensityControl:
         return len(idx)
 
     @torch.no_grad()
-    def add(self, params: Params, optimizers: Optimizers, means: torch.Tensor, sigma: float, masses: torch.Tensor, param_lists=None) -> int:
+    def add(
+        self,
+        params: Params,
+        optimizers: Optimizers,
+        means: torch.Tensor,
+        sigma: float,
+        masses: torch.Tensor,
+        param_lists=None,
+    ) -> int:
         """Append Gaussians at ``means`` (K, 3) of width ``sigma`` and integrated ``masses`` (K,)
         (normalised units), with fresh optimiser moments; at most up to ``max_gaussians``.
         Returns how many were added (they are fresh: not merged or pruned for one interval)."""
@@ -377,7 +414,9 @@ class DensityControl:
         self.born[n:] = self.step
         return k
 
-    def outside_hard_core(self, params: Params, means: torch.Tensor, masses: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def outside_hard_core(
+        self, params: Params, means: torch.Tensor, masses: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """The (K, 3) ``means`` and (K,) ``masses`` of new Gaussians less those within the hard
         core (:meth:`hard_core`) of an atom-like Gaussian inside the volume: no Gaussian is
         placed where no atom can be."""
@@ -437,7 +476,9 @@ class DensityControl:
         params["means"].data[idx.to(dev)] += 0.5 * closest * axis
         params["means"].data[n:] -= 0.5 * closest * axis
         params["log_sigmas"].data[both] = math.log(s_atom)
-        params["log_amplitudes"].data[both, 0] = torch.log(torch.cat([half_amp, half_amp])).to(dev, params["log_amplitudes"].dtype)
+        params["log_amplitudes"].data[both, 0] = torch.log(torch.cat([half_amp, half_amp])).to(
+            dev, params["log_amplitudes"].dtype
+        )
         self.born[idx] = self.step
         self.born[n:] = self.step
         return len(idx)
@@ -475,11 +516,25 @@ class DensityControl:
         """(N,) bool: inside the reconstruction volume (``half_extent``, normalised units)."""
         return (means.abs() <= self._box(self.half_extent, means)).all(dim=-1)
 
-    def set_noise(self, noise, floor: float, pixel_size: float, n_views: int, data_term: str, view_dirs: torch.Tensor | None = None) -> None:
+    def set_noise(
+        self,
+        noise,
+        floor: float,
+        pixel_size: float,
+        n_views: int,
+        data_term: str,
+        view_dirs: torch.Tensor | None = None,
+    ) -> None:
         """The measured noise (normalised units) the prune judges masses against, the floor the
         atoms sit on, the pixel size (normalised), the number of views, the data term (L1
         estimates carry pi/2 the least-squares variance, Huber's 1/0.95) and the views' (V, 3) beam directions."""
-        self.noise, self.floor, self.pixel_size, self.n_views, self.view_dirs = noise, floor, pixel_size, n_views, view_dirs
+        self.noise, self.floor, self.pixel_size, self.n_views, self.view_dirs = (
+            noise,
+            floor,
+            pixel_size,
+            n_views,
+            view_dirs,
+        )
         self.efficiency = {"l1": math.pi / 2, "huber": 1.0 / HUBER_EFFICIENCY}.get(data_term, 1.0)
 
     def residual_check_open(self, step: int) -> bool:
@@ -526,7 +581,13 @@ class DensityControl:
         return self.noise is not None and self.pixel_size > 0 and self.n_views > 0
 
     @torch.no_grad()
-    def unresolved_pairs(self, params: Mapping[str, torch.Tensor], mergeable: torch.Tensor, weak: torch.Tensor | None = None, max_separation: float = math.inf) -> np.ndarray:
+    def unresolved_pairs(
+        self,
+        params: Mapping[str, torch.Tensor],
+        mergeable: torch.Tensor,
+        weak: torch.Tensor | None = None,
+        max_separation: float = math.inf,
+    ) -> np.ndarray:
         """(K, 2) pairs of mergeable Gaussians the data cannot tell from one (:mod:`..atoms.resolution`):
         turning the pair into one Gaussian changes the projections by less chi-square (the
         pixels' noise variance from :meth:`pixel_variance` at the merged Gaussian, divided by
@@ -558,10 +619,13 @@ class DensityControl:
         return idx[pairs[order[chi_square[order] < level]]]
 
     @torch.no_grad()
-    def likelihood_change(self, params: Mapping[str, torch.Tensor], pairs: np.ndarray, correlations) -> np.ndarray | None:
+    def likelihood_change(
+        self, params: Mapping[str, torch.Tensor], pairs: np.ndarray, correlations
+    ) -> np.ndarray | None:
         """(K,) for each pair of Gaussians ``(a, b)``: the data's chi-square with the pair made one
         Gaussian (at their mass-weighted centre and width, with their mass: the merge
-        :meth:`_merge_labels` makes, by the same :func:`..atoms.merge.merged_values`) minus that with the pair.  Negative: the data prefer one.
+        :meth:`_merge_labels` makes, by the same :func:`..atoms.merge.merged_values`) minus that with the pair.
+        Negative: the data prefer one.
 
         With ``r`` the residual, ``p`` the pair's projections and ``s`` the merged one's, the
         change is ``sum w (p - s)^2 + 2 sum w r (p - s)`` (``w`` one over the noise variance): the
@@ -577,7 +641,14 @@ class DensityControl:
         amp = amplitudes(params).detach().double()
         pairs_t = torch.as_tensor(pairs, device=pos.device)
         members = pairs_t.flatten()  # each pair its own cluster of two
-        centre, s_c, amp_c = merged_values(pos[members], sig[members], amp[members], torch.arange(len(pairs_t), device=pos.device).repeat_interleave(2), len(pairs_t), "mass")
+        centre, s_c, amp_c = merged_values(
+            pos[members],
+            sig[members],
+            amp[members],
+            torch.arange(len(pairs_t), device=pos.device).repeat_interleave(2),
+            len(pairs_t),
+            "mass",
+        )
         unique = torch.unique(members)
         g = correlations(torch.cat([pos[unique], centre]), torch.cat([sig[unique], s_c]))
         if g is None:
@@ -587,7 +658,14 @@ class DensityControl:
         pairs_np, a_np = np.asarray(pairs), amp.cpu().numpy()
         cross = (a_np[pairs_np] * g_all[pairs_np]).sum(axis=1) - amp_c.cpu().numpy() * g[len(unique) :]
         mass = gaussian_mass(sig, amp).cpu().numpy()
-        energy = merge_energy(pos.cpu().numpy(), sig.cpu().numpy(), mass, pairs_np, self.view_dirs.detach().double().cpu().numpy(), merged=(centre.cpu().numpy(), s_c.cpu().numpy()))
+        energy = merge_energy(
+            pos.cpu().numpy(),
+            sig.cpu().numpy(),
+            mass,
+            pairs_np,
+            self.view_dirs.detach().double().cpu().numpy(),
+            merged=(centre.cpu().numpy(), s_c.cpu().numpy()),
+        )
         chi_square = energy / (self.pixel_size**2 * self.pixel_variance(mass[pairs_np].sum(axis=1), s_c.cpu().numpy()))
         return chi_square + 2.0 * cross
 
@@ -644,7 +722,9 @@ class DensityControl:
         noise_known = self.noise_known()
         keep = torch.ones_like(sigmas, dtype=torch.bool)
         if not (final and noise_known):  # the relative rule: without a noise model, or during training
-            keep &= gaussian_mass(sigmas, amplitudes(params)) >= self.prune_mass_fraction * self.typical_atom_mass(params)
+            keep &= gaussian_mass(sigmas, amplitudes(params)) >= self.prune_mass_fraction * self.typical_atom_mass(
+                params
+            )
         if noise_known:
             # A fresh duplicate holds half its parent's mass: it has one refine interval to
             # gather what the data give it before it is judged.
@@ -678,7 +758,9 @@ class DensityControl:
         return self._merge_labels(params, optimizers, labels, n_clusters, param_lists)
 
     @torch.no_grad()
-    def merge_by_likelihood(self, params: Params, optimizers: Optimizers, param_lists=None, correlations=None, max_rounds: int = 4) -> int:
+    def merge_by_likelihood(
+        self, params: Params, optimizers: Optimizers, param_lists=None, correlations=None, max_rounds: int = 4
+    ) -> int:
         """Merge the pairs of atom-like Gaussians inside the volume whose merge raises the data's
         chi-square (:meth:`likelihood_change`, the residual read through ``correlations``) by
         less than two Gaussians gain by fitting noise: the chi-square quantile with 5 degrees of
@@ -708,7 +790,9 @@ class DensityControl:
             if len(idx) < 2:
                 return np.zeros((0, 2), dtype=np.int64)
             pos = params["means"].detach().double().cpu().numpy()
-            pairs = idx[candidate_pairs(pos[idx], widths(params, self.min_log_sigma).detach().double().cpu().numpy()[idx])]
+            pairs = idx[
+                candidate_pairs(pos[idx], widths(params, self.min_log_sigma).detach().double().cpu().numpy()[idx])
+            ]
             change = self.likelihood_change(params, pairs, correlations) if len(pairs) else None
             if change is None:
                 return np.zeros((0, 2), dtype=np.int64)
@@ -736,11 +820,15 @@ class DensityControl:
 
         def unresolved(atom_like: torch.Tensor) -> np.ndarray:
             weak = (self.mass_significance(params) < self.significance_threshold()).cpu()
-            return self.unresolved_pairs(params, atom_like, weak, self.shortest_bond(params["means"], ~weak & atom_like))
+            return self.unresolved_pairs(
+                params, atom_like, weak, self.shortest_bond(params["means"], ~weak & atom_like)
+            )
 
         return self._merge_pairs_in_rounds(params, optimizers, param_lists, unresolved, max_rounds)
 
-    def _merge_pairs_in_rounds(self, params: Params, optimizers: Optimizers, param_lists, ordered_pairs, max_rounds: int) -> int:
+    def _merge_pairs_in_rounds(
+        self, params: Params, optimizers: Optimizers, param_lists, ordered_pairs, max_rounds: int
+    ) -> int:
         """Up to ``max_rounds`` rounds of: ``ordered_pairs`` of the (N,) CPU mask of atom-like
         Gaussians inside the volume gives (K, 2) pairs, best first; a greedy disjoint set of them
         is merged (:func:`..atoms.merge.disjoint_pair_labels`).  Stops when no pair is left;
@@ -751,7 +839,9 @@ class DensityControl:
             pairs = ordered_pairs(atom_like)
             if len(pairs) == 0:
                 break
-            removed += self._merge_labels(params, optimizers, *disjoint_pair_labels(params["means"].shape[0], pairs), param_lists)
+            removed += self._merge_labels(
+                params, optimizers, *disjoint_pair_labels(params["means"].shape[0], pairs), param_lists
+            )
         return removed
 
     def shortest_distance(self, params: Mapping[str, torch.Tensor]) -> tuple[float, Callable[[np.ndarray], np.ndarray]]:
@@ -772,7 +862,11 @@ class DensityControl:
         if not self.noise_known():
             return math.inf, no_prior
         sigmas = widths(params, self.min_log_sigma)
-        confident = self.atom_width(sigmas) & self.in_field(params["means"]) & (self.mass_significance(params) >= self.significance_threshold())
+        confident = (
+            self.atom_width(sigmas)
+            & self.in_field(params["means"])
+            & (self.mass_significance(params) >= self.significance_threshold())
+        )
         shell = first_shell(params["means"].detach()[confident].double().cpu().numpy())
         if not math.isfinite(shell.onset):
             return shell.onset, no_prior
@@ -801,14 +895,24 @@ class DensityControl:
         from gaussian_atoms_method.atoms.hard_core import hard_core_from_positions
 
         sigmas = widths(params, self.min_log_sigma)
-        confident = (self.atom_width(sigmas) & self.in_field(params["means"]) & (self.mass_significance(params) >= self.significance_threshold())).cpu()
+        confident = (
+            self.atom_width(sigmas)
+            & self.in_field(params["means"])
+            & (self.mass_significance(params) >= self.significance_threshold())
+        ).cpu()
         mass = gaussian_mass(sigmas, amplitudes(params)).detach().double().cpu().numpy()
-        distance, _ = hard_core_from_positions(params["means"].detach().double().cpu().numpy()[confident.numpy()], mass[confident.numpy()], self.typical_atom_mass(params))
+        distance, _ = hard_core_from_positions(
+            params["means"].detach().double().cpu().numpy()[confident.numpy()],
+            mass[confident.numpy()],
+            self.typical_atom_mass(params),
+        )
         self._hard_core_read = (n, distance) if math.isfinite(distance) else (0, math.inf)
         return distance
 
     @torch.no_grad()
-    def join_close_pairs(self, params: Params, optimizers: Optimizers, param_lists=None, protect_fresh: bool = True) -> int:
+    def join_close_pairs(
+        self, params: Params, optimizers: Optimizers, param_lists=None, protect_fresh: bool = True
+    ) -> int:
         """Join every pair of atom-like Gaussians inside the volume closer than the material's
         hard core (:meth:`hard_core`) into one at their mass-weighted centre, closest pairs first,
         in rounds (:meth:`_merge_pairs_in_rounds`); a pair holding more than :data:`SPLIT_MASS`
@@ -829,7 +933,11 @@ class DensityControl:
             mask = atom_like & ~self.fresh(len(atom_like)) if protect_fresh else atom_like
             idx = torch.nonzero(mask).flatten().numpy()
             pairs = idx[close_pairs(params["means"].detach().double().cpu().numpy()[idx], distance)]
-            two = self.atoms_worth(params).detach().cpu().numpy()[pairs].sum(axis=1) > SPLIT_MASS if len(pairs) else np.zeros(0, dtype=bool)
+            two = (
+                self.atoms_worth(params).detach().cpu().numpy()[pairs].sum(axis=1) > SPLIT_MASS
+                if len(pairs)
+                else np.zeros(0, dtype=bool)
+            )
             self._push_apart(params, pairs[two], distance)
             return pairs[~two]
 
@@ -842,7 +950,8 @@ class DensityControl:
         mass kept: a pair holding two atoms' mass (:data:`SPLIT_MASS`) is two atoms, too close."""
         if len(pairs) == 0:
             return
-        labels, _ = disjoint_pair_labels(params["means"].shape[0], pairs)  # closest first; a Gaussian moves for one partner only
+        # closest first; a Gaussian moves for one partner only
+        labels, _ = disjoint_pair_labels(params["means"].shape[0], pairs)
         pairs = pairs[labels[pairs[:, 0]] == labels[pairs[:, 1]]]
         means = params["means"].data
         p = torch.as_tensor(pairs, device=means.device)
@@ -850,7 +959,9 @@ class DensityControl:
         a, b = means[p[:, 0]], means[p[:, 1]]
         axis = b - a
         gap = axis.norm(dim=-1, keepdim=True)
-        axis = torch.where(gap > 0, axis / gap.clamp_min(1e-30), torch.tensor([0.0, 0.0, 1.0], device=means.device, dtype=means.dtype))
+        axis = torch.where(
+            gap > 0, axis / gap.clamp_min(1e-30), torch.tensor([0.0, 0.0, 1.0], device=means.device, dtype=means.dtype)
+        )
         ma, mb = mass[p[:, 0], None], mass[p[:, 1], None]
         grow = (distance - gap).clamp_min(0.0)
         means[p[:, 0]] = a - axis * grow * mb / (ma + mb)
@@ -869,7 +980,9 @@ class DensityControl:
         distance, _ = cKDTree(pos).query(pos, k=2, workers=-1)
         return float(np.percentile(distance[:, 1], 5))
 
-    def _merge_labels(self, params: Params, optimizers: Optimizers, labels: np.ndarray, n_clusters: int, param_lists=None) -> int:
+    def _merge_labels(
+        self, params: Params, optimizers: Optimizers, labels: np.ndarray, n_clusters: int, param_lists=None
+    ) -> int:
         """Replace each labelled cluster by one Gaussian (mass-weighted, :func:`..atoms.merge.merged_values`)."""
         means = params["means"]
         n = means.shape[0]
@@ -877,7 +990,9 @@ class DensityControl:
             return 0
         labels_t = torch.as_tensor(labels, device=means.device)
         sigmas = widths(params, self.min_log_sigma)
-        new_means, new_sigmas, amps = merged_values(means, sigmas, amplitudes(params), labels_t, n_clusters, self.merge_amplitude)
+        new_means, new_sigmas, amps = merged_values(
+            means, sigmas, amplitudes(params), labels_t, n_clusters, self.merge_amplitude
+        )
         new_values = {"means": new_means, "log_amplitudes": torch.log(amps)[:, None]}
         if self.isotropic:
             new_values["log_sigmas"] = torch.log(new_sigmas)[:, None]

@@ -29,7 +29,10 @@ def astra_unavailable(gpu: bool) -> str | None:
         except Exception as exc:  # its CUDA libraries fail to load
             return f"ASTRA CUDA rows skipped: {' '.join(str(exc).split())[:160]}"
         if not usable:
-            return "ASTRA CUDA rows skipped: astra.use_cuda() is False (no GPU, or its CUDA 12 runtime and cuFFT 11 do not load)"
+            return (
+                "ASTRA CUDA rows skipped: astra.use_cuda() is False (no GPU, or its CUDA 12 runtime and cuFFT 11 do "
+                "not load)"
+            )
     return None
 
 
@@ -48,7 +51,8 @@ def astra_slices(sinograms: np.ndarray, angles_deg: np.ndarray, method: str, ite
     Yields
     ------
     (iterations done, (S, L, L) array) in scikit-image's slice orientation; SIRT with ASTRA's
-    ``MinConstraint`` 0 (a potential is not negative), as our :func:`~gaussian_atoms_method.physics.reconstruction.sirt`.
+    ``MinConstraint`` 0 (a potential is not negative), as our
+    :func:`~gaussian_atoms_method.physics.reconstruction.sirt`.
     """
     import astra
 
@@ -56,7 +60,9 @@ def astra_slices(sinograms: np.ndarray, angles_deg: np.ndarray, method: str, ite
         raise ValueError(f"method must be 'fbp' or 'sirt', got {method!r}")
     n_slices, length, _ = sinograms.shape
     volume_geometry = astra.create_vol_geom(length, length)
-    projection_geometry = astra.create_proj_geom("parallel", 1.0, length, np.deg2rad(np.asarray(angles_deg, dtype=np.float64)))
+    projection_geometry = astra.create_proj_geom(
+        "parallel", 1.0, length, np.deg2rad(np.asarray(angles_deg, dtype=np.float64))
+    )
     projector = astra.create_projector("cuda" if gpu else "linear", projection_geometry, volume_geometry)
     name = {"fbp": "FBP", "sirt": "SIRT"}[method] + ("_CUDA" if gpu else "")
     slices = []

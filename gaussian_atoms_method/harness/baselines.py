@@ -45,9 +45,27 @@ def run_baseline(
     if method == "inr":
         from gaussian_atoms_method.harness.inr import fit_inr
 
-        vol = fit_inr(series.projections, series.angles_deg, series.pixel_size_A, series.tilt_axis, series.centre_px, inr_steps, device=device, tilt_axis_angle_deg=series.tilt_axis_angle_deg)
+        vol = fit_inr(
+            series.projections,
+            series.angles_deg,
+            series.pixel_size_A,
+            series.tilt_axis,
+            series.centre_px,
+            inr_steps,
+            device=device,
+            tilt_axis_angle_deg=series.tilt_axis_angle_deg,
+        )
     else:
-        vol = reconstruct(series.projections, series.angles_deg, series.pixel_size_A, method, series.tilt_axis, series.centre_px, sart_iterations, tilt_axis_angle_deg=series.tilt_axis_angle_deg)
+        vol = reconstruct(
+            series.projections,
+            series.angles_deg,
+            series.pixel_size_A,
+            method,
+            series.tilt_axis,
+            series.centre_px,
+            sart_iterations,
+            tilt_axis_angle_deg=series.tilt_axis_angle_deg,
+        )
     idx, _ = trace_atoms(vol.data, vol.spacing_A, min_distance_A, threshold_scale)
     seconds = time.perf_counter() - start
     atoms = AtomSet(vol.index_to_A(idx) + series.origin_A)

@@ -20,7 +20,21 @@ from pathlib import Path
 
 import numpy as np
 
-FIELDS = ["particle", "atoms", "tilts", "noise_std", "peak_to_noise", "method", "tpr", "fp_per_true_atom", "rmsd_pm", "ssim", "n_pred", "seconds", "machine"]
+FIELDS = [
+    "particle",
+    "atoms",
+    "tilts",
+    "noise_std",
+    "peak_to_noise",
+    "method",
+    "tpr",
+    "fp_per_true_atom",
+    "rmsd_pm",
+    "ssim",
+    "n_pred",
+    "seconds",
+    "machine",
+]
 
 
 @dataclass
@@ -48,11 +62,19 @@ class AccuracyBenchmark:
     def dataset(self, particle: str, tilts: str, noise: float) -> Path:
         """The tilt-series directory for one cell of the table (simulated once, then reused)."""
         from dataparsers.tilt_series_format import update_manifest, write_tilt_series
-
         from gaussian_atoms_method.harness.particles import make_particle
-        from gaussian_atoms_method.harness.simulate import blur_and_noise, parse_tilts, simulate_tilt_series, true_potential_volume
+        from gaussian_atoms_method.harness.simulate import (
+            blur_and_noise,
+            parse_tilts,
+            simulate_tilt_series,
+            true_potential_volume,
+        )
 
-        out = self.output / "data" / f"{particle}-{tilts}-{'counts' if self.noise_kind == 'poisson' else 'noise'}{noise:g}"
+        out = (
+            self.output
+            / "data"
+            / f"{particle}-{tilts}-{'counts' if self.noise_kind == 'poisson' else 'noise'}{noise:g}"
+        )
         if (out / "tilt_series.json").is_file() and "volume" in json.loads((out / "tilt_series.json").read_text()):
             return out
         clean_path = self.output / "data" / f"{particle}-{tilts}-clean.npz"
@@ -62,7 +84,9 @@ class AccuracyBenchmark:
             clean = np.load(clean_path)["projections"]
         else:
             # Blurred, noise-free projections, computed once per particle and tilt scheme.
-            clean = simulate_tilt_series(atoms, angles, "lobato", self.pixel_size_A, blur_sigma_A=self.blur_sigma_A, noise_std=0.0).projections
+            clean = simulate_tilt_series(
+                atoms, angles, "lobato", self.pixel_size_A, blur_sigma_A=self.blur_sigma_A, noise_std=0.0
+            ).projections
             clean_path.parent.mkdir(parents=True, exist_ok=True)
             np.savez(clean_path, projections=clean)
         if self.noise_kind == "poisson":
@@ -78,11 +102,24 @@ class AccuracyBenchmark:
             angles,
             self.pixel_size_A,
             truth=atoms,
-            extra={"simulation": {"particle": particle, "scale": self.scale, "potential": "lobato", "noise_std": noise, "noise_kind": self.noise_kind, "peak_to_noise": peak_to_noise, "blur_sigma_A": self.blur_sigma_A}},
+            extra={
+                "simulation": {
+                    "particle": particle,
+                    "scale": self.scale,
+                    "potential": "lobato",
+                    "noise_std": noise,
+                    "noise_kind": self.noise_kind,
+                    "peak_to_noise": peak_to_noise,
+                    "blur_sigma_A": self.blur_sigma_A,
+                }
+            },
         )
         volume_path = self.output / "data" / f"{particle}-volume.npy"
         if not volume_path.is_file():
-            np.save(volume_path, true_potential_volume(atoms, "lobato", self.pixel_size_A, clean.shape[1], 0.35, self.blur_sigma_A))
+            np.save(
+                volume_path,
+                true_potential_volume(atoms, "lobato", self.pixel_size_A, clean.shape[1], 0.35, self.blur_sigma_A),
+            )
         (out / "potential_volume.npy").unlink(missing_ok=True)
         (out / "potential_volume.npy").symlink_to(volume_path.resolve())
         update_manifest(out, volume="potential_volume.npy", volume_voxel_size_A=self.pixel_size_A)
@@ -98,7 +135,14 @@ class AccuracyBenchmark:
         if method in ("fbp", "sart", "inr"):
             from gaussian_atoms_method.harness.baselines import run_baseline
 
-            run_baseline(data, run_dir, method, sart_iterations=self.sart_iterations, inr_steps=self.inr_steps, device=self.device)
+            run_baseline(
+                data,
+                run_dir,
+                method,
+                sart_iterations=self.sart_iterations,
+                inr_steps=self.inr_steps,
+                device=self.device,
+            )
         elif method == "ours":
             self._run_ours(data, run_dir)
         else:
@@ -126,14 +170,27 @@ class AccuracyBenchmark:
                     for method in self.methods:
                         s = self.run_method(method, data)
                         row = {
-                            "particle": particle, "atoms": s["n_true"], "tilts": tilts, "noise_std": noise,
-                            "peak_to_noise": round(sim["peak_to_noise"], 1), "method": method,
-                            "tpr": s["tpr"], "fp_per_true_atom": s["fp_per_true_atom"], "rmsd_pm": s["rmsd_pm"],
-                            "ssim": s.get("ssim", float("nan")), "n_pred": s["n_pred"], "seconds": s.get("seconds", float("nan")),
+                            "particle": particle,
+                            "atoms": s["n_true"],
+                            "tilts": tilts,
+                            "noise_std": noise,
+                            "peak_to_noise": round(sim["peak_to_noise"], 1),
+                            "method": method,
+                            "tpr": s["tpr"],
+                            "fp_per_true_atom": s["fp_per_true_atom"],
+                            "rmsd_pm": s["rmsd_pm"],
+                            "ssim": s.get("ssim", float("nan")),
+                            "n_pred": s["n_pred"],
+                            "seconds": s.get("seconds", float("nan")),
                             "machine": s.get("machine", "this machine's CPU"),
-                        }  # fmt: skip
+                        }
                         rows.append(row)
-                        print(f"{particle} {tilts} noise {noise:g} {method}: TPR {row['tpr']:.4f} FP {row['fp_per_true_atom']:.4f} RMSD {row['rmsd_pm']:.1f} pm SSIM {row['ssim']:.3f} {row['seconds']:.0f} s", flush=True)
+                        print(
+                            f"{particle} {tilts} noise {noise:g} {method}: TPR {row['tpr']:.4f} FP "
+                            f"{row['fp_per_true_atom']:.4f} RMSD {row['rmsd_pm']:.1f} pm SSIM {row['ssim']:.3f} "
+                            f"{row['seconds']:.0f} s",
+                            flush=True,
+                        )
                         self.write(rows)
         return rows
 
@@ -176,10 +233,24 @@ def train_ours(
     shutil.rmtree(run_dir / "ours" / "gaussian-atoms" / "run", ignore_errors=True)
     start = time.perf_counter()
     cmd = [
-        *command, "--machine.device-type", device, "--vis", "tensorboard",
-        "--output-dir", str(run_dir), "--experiment-name", "ours", "--timestamp", "run",
-        "--max-num-iterations", str(iterations), *extra_args, "tilt-series", "--data", str(data),
-    ]  # fmt: skip
+        *command,
+        "--machine.device-type",
+        device,
+        "--vis",
+        "tensorboard",
+        "--output-dir",
+        str(run_dir),
+        "--experiment-name",
+        "ours",
+        "--timestamp",
+        "run",
+        "--max-num-iterations",
+        str(iterations),
+        *extra_args,
+        "tilt-series",
+        "--data",
+        str(data),
+    ]
     env = None if threads is None else {**os.environ, "OMP_NUM_THREADS": str(threads)}
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
     seconds = time.perf_counter() - start
@@ -190,7 +261,9 @@ def train_ours(
     return read_atoms(run_dir / "ours" / "gaussian-atoms" / "run" / "atoms.xyz"), seconds
 
 
-def scored_run(result: Path, run_dir: Path, prepare, score, iterations: int, device: str, flags: tuple[str, ...] = ()) -> dict:
+def scored_run(
+    result: Path, run_dir: Path, prepare, score, iterations: int, device: str, flags: tuple[str, ...] = ()
+) -> dict:
     """Our run's scores, kept in ``result`` and read back on a rerun (resumable benchmarks):
     otherwise ``prepare()`` writes the tilt-series directory, :func:`train_ours` fits it in
     ``run_dir`` and ``score(data, atoms)`` scores the atoms (the wall time is added)."""
@@ -202,11 +275,16 @@ def scored_run(result: Path, run_dir: Path, prepare, score, iterations: int, dev
 
 
 def markdown_table(rows: list[dict]) -> str:
-    head = "| particle | atoms | tilts | noise | PNR | method | TPR | FP/atom | RMSD (pm) | SSIM | predicted | time (s) | where |\n"
+    head = (
+        "| particle | atoms | tilts | noise | PNR | method | TPR | FP/atom | RMSD (pm) | SSIM | predicted | time (s) "
+        "| where |\n"
+    )
     head += "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |\n"
     body = "".join(
-        f"| {r['particle']} | {r['atoms']} | {r['tilts']} | {r['noise_std']:g} | {r['peak_to_noise']} | {r['method']} | "
-        f"{r['tpr']:.4f} | {r['fp_per_true_atom']:.4f} | {r['rmsd_pm']:.1f} | {r['ssim']:.3f} | {r['n_pred']} | {r['seconds']:.0f} | {r['machine']} |\n"
+        f"| {r['particle']} | {r['atoms']} | {r['tilts']} | {r['noise_std']:g} | {r['peak_to_noise']} | {r['method']} "
+        f"| "
+        f"{r['tpr']:.4f} | {r['fp_per_true_atom']:.4f} | {r['rmsd_pm']:.1f} | {r['ssim']:.3f} | {r['n_pred']} | "
+        f"{r['seconds']:.0f} | {r['machine']} |\n"
         for r in rows
     )
     return head + body
@@ -223,7 +301,10 @@ def plot(rows: list[dict], output: Path) -> None:
     fig, axes = plt.subplots(len(groups), 3, figsize=(12, 3.2 * len(groups)), squeeze=False)
     for g, (particle, tilts) in enumerate(groups):
         for method in sorted({r["method"] for r in rows}):
-            sel = sorted((r for r in rows if (r["particle"], r["tilts"], r["method"]) == (particle, tilts, method)), key=lambda r: r["noise_std"])
+            sel = sorted(
+                (r for r in rows if (r["particle"], r["tilts"], r["method"]) == (particle, tilts, method)),
+                key=lambda r: r["noise_std"],
+            )
             noise = [r["noise_std"] for r in sel]
             for k, key in enumerate(("tpr", "fp_per_true_atom", "rmsd_pm")):
                 axes[g, k].plot(noise, [r[key] for r in sel], "o-", label=method)

@@ -47,7 +47,13 @@ def evaluate_atoms(
         if pred_volume is None:
             if pred.sigmas is None or pred.amplitudes is None:
                 raise ValueError("SSIM needs the predicted atoms' sigma_A and amplitude, or a predicted volume")
-            pred_volume = voxelise_gaussians(pred.positions - np.asarray(origin_A), pred.sigmas, pred.amplitudes, voxel_size_A, reference_volume.shape)
+            pred_volume = voxelise_gaussians(
+                pred.positions - np.asarray(origin_A),
+                pred.sigmas,
+                pred.amplitudes,
+                voxel_size_A,
+                reference_volume.shape,
+            )
         scores.update(volume_ssim(pred_volume, reference_volume))
     return scores
 
@@ -75,7 +81,9 @@ def inside_footprint(positions_A: np.ndarray, series, margin_A: float) -> np.nda
     as an atom turns on its position error, and an atom there is seen by only some views:
     scoring the interior, as the Ta film's authors score their sub-areas, measures the method."""
     if series.tilt_axis_angle_deg:
-        raise ValueError("--interior-A: the footprint of a detector turned in its plane (tilt_axis_angle_deg) is not supported")
+        raise ValueError(
+            "--interior-A: the footprint of a detector turned in its plane (tilt_axis_angle_deg) is not supported"
+        )
     rel = np.asarray(positions_A, dtype=np.float64)[:, :2] - np.asarray(series.origin_A)[:2]
     px, (h, w), (cr, cc) = series.pixel_size_A, series.image_shape, series.centre_px
     low = np.array([(-0.5 - cr) * px, (-0.5 - cc) * px]) + margin_A
@@ -90,7 +98,6 @@ def load_reference(data: Path, series=None):
     pass ``series`` when it is already loaded, so the projections are not read twice.
     """
     from dataparsers.tilt_series_format import MANIFEST, load_tilt_series
-
     from gaussian_atoms_method.atoms.atom_set import read_atoms
 
     data = Path(data)

@@ -108,19 +108,32 @@ def write_model_start(data_dir: Path, area_dir: Path, area: int) -> Path:
     cx, cy = np.asarray(series.centre_px) * PIXEL_SIZE_A
     theta = np.deg2rad(series.angles_deg)[:, None]
     across = model[None, :, 0] * np.cos(theta) - model[None, :, 2] * np.sin(theta)  # (tilts, atoms), tilt axis y
-    seen = np.any((across >= -cx) & (across <= height_A - cx), axis=0) & (model[:, 1] >= -cy) & (model[:, 1] <= width_A - cy)
-    candidates = backprojection_candidates(series.projections, series.angles_deg, series.pixel_size_A, series.tilt_axis, series.centre_px, None)
+    seen = (
+        np.any((across >= -cx) & (across <= height_A - cx), axis=0)
+        & (model[:, 1] >= -cy)
+        & (model[:, 1] <= width_A - cy)
+    )
+    candidates = backprojection_candidates(
+        series.projections, series.angles_deg, series.pixel_size_A, series.tilt_axis, series.centre_px, None
+    )
     shift = global_shift(candidates, model[seen], MATCH_RADIUS_A)
-    return write_atoms(AtomSet(positions=model[seen] - shift, species=np.array(["Ta"] * int(seen.sum()))), Path(area_dir) / "model_start.xyz")
+    return write_atoms(
+        AtomSet(positions=model[seen] - shift, species=np.array(["Ta"] * int(seen.sum()))),
+        Path(area_dir) / "model_start.xyz",
+    )
 
 
-def scored_region(model_A: np.ndarray, shape_px: tuple[int, int], centre_px: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+def scored_region(
+    model_A: np.ndarray, shape_px: tuple[int, int], centre_px: tuple[float, float]
+) -> tuple[np.ndarray, np.ndarray]:
     """(2, 3) lower and upper corners (Å) of the scored region: the detector's interior
     (:data:`INTERIOR_PX`) and the depth of the model's atoms inside it plus
     :data:`DEPTH_MARGIN_A`; and the (M,) mask of the model's atoms inside."""
     h, w = shape_px
     lo_xy = (np.array(INTERIOR_PX, dtype=np.float64) - np.asarray(centre_px)) * PIXEL_SIZE_A
-    hi_xy = (np.array([h - 1 - INTERIOR_PX[0], w - 1 - INTERIOR_PX[1]], dtype=np.float64) - np.asarray(centre_px)) * PIXEL_SIZE_A
+    hi_xy = (
+        np.array([h - 1 - INTERIOR_PX[0], w - 1 - INTERIOR_PX[1]], dtype=np.float64) - np.asarray(centre_px)
+    ) * PIXEL_SIZE_A
     xy = np.all((model_A[:, :2] >= lo_xy) & (model_A[:, :2] <= hi_xy), axis=1)
     z = model_A[xy, 2]
     lo = np.r_[lo_xy, z.min() - DEPTH_MARGIN_A]
@@ -128,7 +141,9 @@ def scored_region(model_A: np.ndarray, shape_px: tuple[int, int], centre_px: tup
     return np.stack([lo, hi]), np.all((model_A >= lo) & (model_A <= hi), axis=1)
 
 
-def score_area(pred_A: np.ndarray, model_A: np.ndarray, shape_px: tuple[int, int], centre_px: tuple[float, float]) -> dict:
+def score_area(
+    pred_A: np.ndarray, model_A: np.ndarray, shape_px: tuple[int, int], centre_px: tuple[float, float]
+) -> dict:
     """Found fraction, extra atoms per model atom and RMSD in the scored region (module text)."""
     pred = np.asarray(pred_A, dtype=np.float64).reshape(-1, 3)
     box, inside = scored_region(model_A, shape_px, centre_px)
@@ -141,7 +156,11 @@ def score_area(pred_A: np.ndarray, model_A: np.ndarray, shape_px: tuple[int, int
     matched[pi] = True
     n_model = int(inside.sum())
     err = pred[pi[found]] - model_A[ti[found]]
-    close = nearest_neighbour_distances(pred)[pred_inside] < CLOSE_PAIR_A if len(pred) >= 2 else np.zeros(int(pred_inside.sum()), dtype=bool)
+    close = (
+        nearest_neighbour_distances(pred)[pred_inside] < CLOSE_PAIR_A
+        if len(pred) >= 2
+        else np.zeros(int(pred_inside.sum()), dtype=bool)
+    )
     return {
         "n_model": n_model,
         "n_pred": int(pred_inside.sum()),
@@ -173,15 +192,34 @@ class FilmBenchmark:
         def score(area, data, atoms):
             meta = json.loads((data / "tilt_series.json").read_text())
             shape = np.load(data / meta["projections"], mmap_mode="r").shape[1:]
-            return score_area(atoms.positions, model_in_area_A(self.data_dir, area), shape, tuple(meta["centre_px"])) | {"n_atoms_reported": len(atoms)}
+            return score_area(
+                atoms.positions, model_in_area_A(self.data_dir, area), shape, tuple(meta["centre_px"])
+            ) | {"n_atoms_reported": len(atoms)}
 
         rows = []
         for area in self.areas:
             run_dir = self.output / "runs" / f"area{area}"
-            flags = self.flags + (("--pipeline.model.start-atoms", str(self.output / "data" / f"area{area}" / "model_start.xyz")) if self.start_from_model else ())
-            s = scored_run(run_dir / "film_scores.json", run_dir, lambda: self.prepare(area), lambda data, atoms: score(area, data, atoms), self.iterations, self.device, flags)
+            flags = self.flags + (
+                ("--pipeline.model.start-atoms", str(self.output / "data" / f"area{area}" / "model_start.xyz"))
+                if self.start_from_model
+                else ()
+            )
+            s = scored_run(
+                run_dir / "film_scores.json",
+                run_dir,
+                lambda area=area: self.prepare(area),
+                lambda data, atoms, area=area: score(area, data, atoms),
+                self.iterations,
+                self.device,
+                flags,
+            )
             rows.append({"area": area, **s})
-            print(f"Ta film area {area}: found {s['found']:.3f} of {s['n_model']} model atoms, extra {s['extra_per_model_atom']:.3f} per model atom, RMSD {s['rmsd_pm']:.1f} pm, {s['share_close']:.1%} of atoms closer than {CLOSE_PAIR_A} Å to another, {s['seconds']:.0f} s", flush=True)
+            print(
+                f"Ta film area {area}: found {s['found']:.3f} of {s['n_model']} model atoms, extra "
+                f"{s['extra_per_model_atom']:.3f} per model atom, RMSD {s['rmsd_pm']:.1f} pm, {s['share_close']:.1%} "
+                f"of atoms closer than {CLOSE_PAIR_A} Å to another, {s['seconds']:.0f} s",
+                flush=True,
+            )
         self.write(rows)
         return rows
 
@@ -194,11 +232,31 @@ class FilmBenchmark:
 
     def write(self, rows: list[dict]) -> None:
         self.output.mkdir(parents=True, exist_ok=True)
-        fields = ["area", "n_model", "n_pred", "n_found", "found", "extra_per_model_atom", "rmsd_pm", "share_close", "seconds"]
+        fields = [
+            "area",
+            "n_model",
+            "n_pred",
+            "n_found",
+            "found",
+            "extra_per_model_atom",
+            "rmsd_pm",
+            "share_close",
+            "seconds",
+        ]
         with open(self.output / "results.csv", "w", newline="") as f:
             writer = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
             writer.writeheader()
             writer.writerows(rows)
-        lines = [f"Data: {CITATION}.", "", f"| sub-area | model atoms scored | found (≤ 0.75 Å) | extra per model atom | RMSD (pm) | atoms < {CLOSE_PAIR_A} Å apart | time (s) |", "| --- | --- | --- | --- | --- | --- | --- |"]
-        lines += [f"| {r['area']} | {r['n_model']} | {r['found']:.3f} | {r['extra_per_model_atom']:.3f} | {r['rmsd_pm']:.1f} | {r.get('share_close', float('nan')):.1%} | {r['seconds']:.0f} |" for r in rows]
+        lines = [
+            f"Data: {CITATION}.",
+            "",
+            f"| sub-area | model atoms scored | found (≤ 0.75 Å) | extra per model atom | RMSD (pm) | atoms < "
+            f"{CLOSE_PAIR_A} Å apart | time (s) |",
+            "| --- | --- | --- | --- | --- | --- | --- |",
+        ]
+        lines += [
+            f"| {r['area']} | {r['n_model']} | {r['found']:.3f} | {r['extra_per_model_atom']:.3f} | {r['rmsd_pm']:.1f} "
+            f"| {r.get('share_close', float('nan')):.1%} | {r['seconds']:.0f} |"
+            for r in rows
+        ]
         (self.output / "results.md").write_text("\n".join(lines) + "\n")

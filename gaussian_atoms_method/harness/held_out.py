@@ -37,8 +37,19 @@ def split_views(series, out_dir: str | Path) -> tuple[Path, Path]:
     truth = read_atoms(series.truth_path) if series.truth_path is not None else None
     out = []
     for name, start in (("even", 0), ("odd", 1)):
-        out.append(write_tilt_series(Path(out_dir) / name, series.projections[start::2], series.angles_deg[start::2], series.pixel_size_A, truth=truth,
-                                     origin_A=series.origin_A, tilt_axis=series.tilt_axis, centre_px=series.centre_px, tilt_axis_angle_deg=series.tilt_axis_angle_deg))  # fmt: skip
+        out.append(
+            write_tilt_series(
+                Path(out_dir) / name,
+                series.projections[start::2],
+                series.angles_deg[start::2],
+                series.pixel_size_A,
+                truth=truth,
+                origin_A=series.origin_A,
+                tilt_axis=series.tilt_axis,
+                centre_px=series.centre_px,
+                tilt_axis_angle_deg=series.tilt_axis_angle_deg,
+            )
+        )
     return out[0], out[1]
 
 
@@ -53,9 +64,16 @@ def predicted_views(atoms: AtomSet, series, kernel_weights=None, chunk: int = 4)
     rows = torch.as_tensor(pixel_centres(h, series.pixel_size_A, centre[0]))
     cols = torch.as_tensor(pixel_centres(w, series.pixel_size_A, centre[1]))
     axes = torch.as_tensor(detector_axes_from_tilts(series.angles_deg, series.tilt_axis, series.tilt_axis_angle_deg))
-    means = torch.as_tensor(np.asarray(atoms.positions, dtype=np.float64) - np.asarray(series.origin_A, dtype=np.float64))
-    sigmas, amps = torch.as_tensor(atoms.sigmas, dtype=torch.float64), torch.as_tensor(atoms.amplitudes, dtype=torch.float64)
-    weights = torch.as_tensor(np.zeros(len(KERNEL_WIDTHS_A)) if kernel_weights is None else np.asarray(kernel_weights, dtype=np.float64))
+    means = torch.as_tensor(
+        np.asarray(atoms.positions, dtype=np.float64) - np.asarray(series.origin_A, dtype=np.float64)
+    )
+    sigmas, amps = (
+        torch.as_tensor(atoms.sigmas, dtype=torch.float64),
+        torch.as_tensor(atoms.amplitudes, dtype=torch.float64),
+    )
+    weights = torch.as_tensor(
+        np.zeros(len(KERNEL_WIDTHS_A)) if kernel_weights is None else np.asarray(kernel_weights, dtype=np.float64)
+    )
     widths = torch.as_tensor(KERNEL_WIDTHS_A, dtype=torch.float64)
     out = []
     for start in range(0, len(axes), chunk):  # bounded memory: (chunk, H, N) at a time
@@ -85,11 +103,16 @@ def run_gaussians(run_dir: str | Path) -> AtomSet:
     if (Path(run_dir) / "non_atoms.xyz").is_file():
         parts.append(read_atoms(Path(run_dir) / "non_atoms.xyz"))
     parts = [p for p in parts if len(p)]
-    return AtomSet(positions=np.concatenate([p.positions for p in parts]).reshape(-1, 3), sigmas=np.concatenate([p.sigmas for p in parts]),
-                   amplitudes=np.concatenate([p.amplitudes for p in parts]))  # fmt: skip
+    return AtomSet(
+        positions=np.concatenate([p.positions for p in parts]).reshape(-1, 3),
+        sigmas=np.concatenate([p.sigmas for p in parts]),
+        amplitudes=np.concatenate([p.amplitudes for p in parts]),
+    )
 
 
-def pair_merge_costs(atoms: AtomSet, pairs: np.ndarray, fitted, held, kernel_weights=None, interior_px: tuple[int, int] = (0, 0)) -> np.ndarray:
+def pair_merge_costs(
+    atoms: AtomSet, pairs: np.ndarray, fitted, held, kernel_weights=None, interior_px: tuple[int, int] = (0, 0)
+) -> np.ndarray:
     """What merging each pair of Gaussians costs, on the views the fit saw and on views it did not.
 
     Each pair is replaced by one Gaussian at the mass-weighted centre with the mass-weighted width,
@@ -117,9 +140,14 @@ def pair_merge_costs(atoms: AtomSet, pairs: np.ndarray, fitted, held, kernel_wei
         images = images[:, r0 : images.shape[1] - r0, c0 : images.shape[2] - c0]
         return images - images.mean(axis=(1, 2), keepdims=True)
 
-    residuals = [interior(np.asarray(series.projections, dtype=np.float64) - predicted_views(atoms, series, kernel_weights)) for series in (fitted, held)]
+    residuals = [
+        interior(np.asarray(series.projections, dtype=np.float64) - predicted_views(atoms, series, kernel_weights))
+        for series in (fitted, held)
+    ]
     squares = [float((residual**2).sum()) for residual in residuals]
-    pos, sig, amp = (torch.as_tensor(np.asarray(v, dtype=np.float64)) for v in (atoms.positions, atoms.sigmas, atoms.amplitudes))
+    pos, sig, amp = (
+        torch.as_tensor(np.asarray(v, dtype=np.float64)) for v in (atoms.positions, atoms.sigmas, atoms.amplitudes)
+    )
     one_cluster = torch.zeros(2, dtype=torch.long)
     costs = np.zeros((len(pairs), 2))
     for k, ij in enumerate(np.asarray(pairs, dtype=np.int64).reshape(-1, 2)):
@@ -128,7 +156,8 @@ def pair_merge_costs(atoms: AtomSet, pairs: np.ndarray, fitted, held, kernel_wei
         merged = AtomSet(positions=centre.numpy(), sigmas=width.numpy(), amplitudes=height.numpy())
         scale = None
         for col, (series, residual) in enumerate(zip((fitted, held), residuals)):
-            without = residual + interior(predicted_views(pair, series, kernel_weights))  # the residual with the pair taken out
+            # the residual with the pair taken out
+            without = residual + interior(predicted_views(pair, series, kernel_weights))
             one = interior(predicted_views(merged, series, kernel_weights))
             if scale is None:
                 scale = float((without * one).sum() / max((one * one).sum(), 1e-300))

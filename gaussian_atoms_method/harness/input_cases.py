@@ -23,7 +23,9 @@ def valid_series(out: Path, shape=(24, 24), n_views=7, dtype=np.float32, **kw) -
     (integers scaled to 0-1000 counts), tilts -60..60 deg, 0.3 Å pixels, two Au atoms as the
     truth; ``kw`` goes to :func:`write_tilt_series` (tilt_axis, centre_px, ...)."""
     rng = np.random.default_rng(0)
-    projections = (rng.uniform(0, 1, (n_views,) + shape) * (1000 if np.issubdtype(dtype, np.integer) else 1)).astype(dtype)
+    projections = (rng.uniform(0, 1, (n_views,) + shape) * (1000 if np.issubdtype(dtype, np.integer) else 1)).astype(
+        dtype
+    )
     angles = np.linspace(-60, 60, n_views)
     truth = AtomSet(np.array([[0.0, 0.0, 0.0], [2.5, 0.0, 0.0]]), species=["Au", "Au"])
     out = write_tilt_series(out, projections, angles, 0.3, truth=truth, **kw)
@@ -64,18 +66,50 @@ def _nan(p):
 BROKEN: dict[str, tuple[Callable[[Path], Path], str]] = {
     # name: (writer, a fragment the one-line message must hold)
     "missing directory": (lambda out: out / "nowhere", "data directory not found"),
-    "no manifest": (lambda out: valid_then(out, lambda d: (d / MANIFEST).unlink()), "not found, and no projections option"),
-    "bad JSON": (lambda out: valid_then(out, lambda d: (d / MANIFEST).write_text("{projections: oops")), "not valid JSON"),
-    "manifest not an object": (lambda out: valid_then(out, lambda d: (d / MANIFEST).write_text("[1, 2]")), "expected a JSON object"),
+    "no manifest": (
+        lambda out: valid_then(out, lambda d: (d / MANIFEST).unlink()),
+        "not found, and no projections option",
+    ),
+    "bad JSON": (
+        lambda out: valid_then(out, lambda d: (d / MANIFEST).write_text("{projections: oops")),
+        "not valid JSON",
+    ),
+    "manifest not an object": (
+        lambda out: valid_then(out, lambda d: (d / MANIFEST).write_text("[1, 2]")),
+        "expected a JSON object",
+    ),
     "unknown key": (lambda out: edit_manifest(valid_series(out), pixelsize=0.3), "unknown key"),
-    "projections missing": (lambda out: edit_manifest(valid_series(out), projections="gone.npy"), "gone.npy: projections file not found"),
-    "angles missing": (lambda out: edit_manifest(valid_series(out), angles_deg="gone.txt"), "gone.txt: tilt angles file not found"),
+    "projections missing": (
+        lambda out: edit_manifest(valid_series(out), projections="gone.npy"),
+        "gone.npy: projections file not found",
+    ),
+    "angles missing": (
+        lambda out: edit_manifest(valid_series(out), angles_deg="gone.txt"),
+        "gone.txt: tilt angles file not found",
+    ),
     "no pixel size": (lambda out: edit_manifest(valid_series(out), pixel_size_A=None), "'pixel_size_A' is missing"),
-    "negative pixel size": (lambda out: edit_manifest(valid_series(out), pixel_size_A=-0.3), "pixel_size_A must be a positive"),
-    "pixel size not a number": (lambda out: edit_manifest(valid_series(out), pixel_size_A="big"), "pixel_size_A must be a number"),
-    "wrong angle count": (lambda out: valid_then(out, lambda d: (d / "angles.txt").write_text("0\n10\n20\n")), "3 tilt angles for 7 projections"),
-    "duplicate angles": (lambda out: valid_then(out, lambda d: (d / "angles.txt").write_text("\n".join(["0", "0", "10", "20", "30", "40", "50"]))), "duplicate tilt angle"),
-    "angles not numbers": (lambda out: valid_then(out, lambda d: (d / "angles.txt").write_text("a\nb\n")), "could not read tilt angles"),
+    "negative pixel size": (
+        lambda out: edit_manifest(valid_series(out), pixel_size_A=-0.3),
+        "pixel_size_A must be a positive",
+    ),
+    "pixel size not a number": (
+        lambda out: edit_manifest(valid_series(out), pixel_size_A="big"),
+        "pixel_size_A must be a number",
+    ),
+    "wrong angle count": (
+        lambda out: valid_then(out, lambda d: (d / "angles.txt").write_text("0\n10\n20\n")),
+        "3 tilt angles for 7 projections",
+    ),
+    "duplicate angles": (
+        lambda out: valid_then(
+            out, lambda d: (d / "angles.txt").write_text("\n".join(["0", "0", "10", "20", "30", "40", "50"]))
+        ),
+        "duplicate tilt angle",
+    ),
+    "angles not numbers": (
+        lambda out: valid_then(out, lambda d: (d / "angles.txt").write_text("a\nb\n")),
+        "could not read tilt angles",
+    ),
     "NaN pixels": (lambda out: resave(valid_series(out), _nan), "NaN/Inf"),
     "2D projections": (lambda out: resave(valid_series(out), lambda p: p[0]), "3D stack"),
     "complex projections": (lambda out: resave(valid_series(out), lambda p: p.astype(np.complex64)), "real numbers"),
@@ -83,14 +117,35 @@ BROKEN: dict[str, tuple[Callable[[Path], Path], str]] = {
     "bad centre": (lambda out: edit_manifest(valid_series(out), centre_px=[1, 2, 3]), "centre_px must be two"),
     "bad origin": (lambda out: edit_manifest(valid_series(out), origin_A=[0, 0]), "origin_A must be three"),
     "truth missing": (lambda out: edit_manifest(valid_series(out), truth="gone.xyz"), "gone.xyz: truth file not found"),
-    "truth unreadable": (lambda out: valid_then(out, lambda d: (d / "atoms_true.xyz").write_text("not an xyz file\n")), "atoms_true.xyz"),
-    "single projection": (lambda out: valid_then(out, lambda d: (resave(d, lambda p: p[:1]), (d / "angles.txt").write_text("0\n"))), "1 projection: a tilt series needs views"),
-    "all at one direction": (lambda out: valid_then(out, lambda d: (resave(d, lambda p: p[:2]), (d / "angles.txt").write_text("-90\n90\n"))), "all at -90 deg (mod 180)"),
+    "truth unreadable": (
+        lambda out: valid_then(out, lambda d: (d / "atoms_true.xyz").write_text("not an xyz file\n")),
+        "atoms_true.xyz",
+    ),
+    "single projection": (
+        lambda out: valid_then(out, lambda d: (resave(d, lambda p: p[:1]), (d / "angles.txt").write_text("0\n"))),
+        "1 projection: a tilt series needs views",
+    ),
+    "all at one direction": (
+        lambda out: valid_then(out, lambda d: (resave(d, lambda p: p[:2]), (d / "angles.txt").write_text("-90\n90\n"))),
+        "all at -90 deg (mod 180)",
+    ),
     "all zero": (lambda out: resave(valid_series(out), lambda p: np.zeros_like(p)), "all zero"),
-    "angles in radians": (lambda out: valid_then(out, lambda d: (d / "angles.txt").write_text("\n".join(f"{a:.4f}" for a in np.radians(np.linspace(-60, 60, 7))))), "give the angles in degrees"),
-    "tilt axis last": (lambda out: resave(valid_series(out, shape=(24, 20)), lambda p: np.moveaxis(p, 0, 2)), "give tilt_index_axis"),
+    "angles in radians": (
+        lambda out: valid_then(
+            out,
+            lambda d: (d / "angles.txt").write_text("\n".join(f"{a:.4f}" for a in np.radians(np.linspace(-60, 60, 7)))),
+        ),
+        "give the angles in degrees",
+    ),
+    "tilt axis last": (
+        lambda out: resave(valid_series(out, shape=(24, 20)), lambda p: np.moveaxis(p, 0, 2)),
+        "give tilt_index_axis",
+    ),
     "1 x 1 projections": (lambda out: resave(valid_series(out), lambda p: p[:, :1, :1]), "at least 5 x 5"),
-    "zero pixel size": (lambda out: edit_manifest(valid_series(out), pixel_size_A=0), "pixel_size_A must be a positive"),
+    "zero pixel size": (
+        lambda out: edit_manifest(valid_series(out), pixel_size_A=0),
+        "pixel_size_A must be a positive",
+    ),
     "unknown species": (lambda out: edit_manifest(valid_series(out), species="Ta,Xx"), "unknown element 'Xx'"),
 }
 

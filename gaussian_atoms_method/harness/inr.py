@@ -2,7 +2,8 @@
 
 The potential is an MLP of position (random Fourier features, softplus output so the density
 is non-negative), times ``density_scale``.  It is trained with the same projection geometry as our method
-(:mod:`gaussian_atoms_method.physics.geometry`, normalised units of :mod:`gaussian_atoms_method.physics.units`): a batch of detector pixels of one view,
+(:mod:`gaussian_atoms_method.physics.geometry`, normalised units of :mod:`gaussian_atoms_method.physics.units`): a
+batch of detector pixels of one view,
 each ray's line integral estimated by stratified samples along the beam, L1 loss against the
 measured values.  Afterwards the MLP is sampled on the voxel grid and traced like FBP/SART.
 
@@ -24,15 +25,17 @@ import math
 import numpy as np
 import torch
 
-from gaussian_atoms_method.physics.reconstruction import Volume
 from gaussian_atoms_method.physics.geometry import detector_axes_from_tilts, pixel_centres
+from gaussian_atoms_method.physics.reconstruction import Volume
 from gaussian_atoms_method.physics.units import Normalisation
 
 
 class CoordinateMLP(torch.nn.Module):
     """``f(r) >= 0`` for normalised positions ``r`` (M, 3) in [-0.5, 0.5]^3."""
 
-    def __init__(self, n_frequencies: int = 64, frequency_std: float = 20.0, hidden: int = 64, layers: int = 3, seed: int = 0):
+    def __init__(
+        self, n_frequencies: int = 64, frequency_std: float = 20.0, hidden: int = 64, layers: int = 3, seed: int = 0
+    ):
         super().__init__()
         gen = torch.Generator().manual_seed(seed)
         self.register_buffer("frequencies", torch.randn(3, n_frequencies, generator=gen) * frequency_std)
@@ -44,7 +47,9 @@ class CoordinateMLP(torch.nn.Module):
 
     def forward(self, r: torch.Tensor) -> torch.Tensor:
         phase = 2 * math.pi * r @ self.frequencies
-        return torch.nn.functional.softplus(self.body(torch.cat([torch.sin(phase), torch.cos(phase)], dim=-1))).squeeze(-1)
+        return torch.nn.functional.softplus(self.body(torch.cat([torch.sin(phase), torch.cos(phase)], dim=-1))).squeeze(
+            -1
+        )
 
 
 def fit_inr(
@@ -88,7 +93,9 @@ def fit_inr(
     frequency_std = frequency_std_per_A / norm.length_scale  # cycles per normalised unit
     rows = torch.tensor(pixel_centres(h, px, ci), dtype=torch.float32, device=device)
     cols = torch.tensor(pixel_centres(w, px, cj), dtype=torch.float32, device=device)
-    axes = torch.tensor(detector_axes_from_tilts(angles_deg, tilt_axis, tilt_axis_angle_deg), dtype=torch.float32, device=device)
+    axes = torch.tensor(
+        detector_axes_from_tilts(angles_deg, tilt_axis, tilt_axis_angle_deg), dtype=torch.float32, device=device
+    )
     target = torch.from_numpy(projections * np.float32(norm.data_scale)).to(device)
     model = CoordinateMLP(frequency_std=frequency_std, hidden=hidden, layers=layers, seed=seed).to(device)
     opt = torch.optim.Adam(model.parameters(), lr=learning_rate)
@@ -101,7 +108,10 @@ def fit_inr(
         i, j = pix // w, pix % w
         start = rows[i, None] * axes[v, 0] + cols[j, None] * axes[v, 1]  # (R, 3)
         # Stratified samples along the beam: an unbiased estimate of the line integral.
-        t = (torch.arange(samples_per_ray, device=device) + torch.rand(rays_per_step, samples_per_ray, generator=gen).to(device)) / samples_per_ray
+        t = (
+            torch.arange(samples_per_ray, device=device)
+            + torch.rand(rays_per_step, samples_per_ray, generator=gen).to(device)
+        ) / samples_per_ray
         t = (2 * t - 1) * half_depth
         points = start[:, None, :] + t[..., None] * axes[v, 2]
         inside = (points.abs() <= 0.5).all(-1)

@@ -10,7 +10,13 @@ import numpy as np
 
 
 def voxelise_gaussians(
-    positions_A: np.ndarray, sigmas_A: np.ndarray, amplitudes: np.ndarray, voxel_size_A: float, shape: tuple[int, int, int], origin_index=None, radius_sigmas: float = 4.0
+    positions_A: np.ndarray,
+    sigmas_A: np.ndarray,
+    amplitudes: np.ndarray,
+    voxel_size_A: float,
+    shape: tuple[int, int, int],
+    origin_index=None,
+    radius_sigmas: float = 4.0,
 ) -> np.ndarray:
     """Sample a sum of isotropic Gaussians on a voxel grid.
 
@@ -31,7 +37,11 @@ def voxelise_gaussians(
     import torch
 
     shape = tuple(int(s) for s in shape)
-    origin = (np.array(shape, dtype=np.float64) - 1) / 2 if origin_index is None else np.asarray(origin_index, dtype=np.float64)
+    origin = (
+        (np.array(shape, dtype=np.float64) - 1) / 2
+        if origin_index is None
+        else np.asarray(origin_index, dtype=np.float64)
+    )
     centres = np.asarray(positions_A, dtype=np.float64) / voxel_size_A + origin  # fractional indices
     sig = np.asarray(sigmas_A, dtype=np.float64) / voxel_size_A
     amp = np.asarray(amplitudes, dtype=np.float64)
@@ -56,7 +66,12 @@ def voxelise_gaussians(
         g = torch.exp(-((idx - c[:, :, None]) ** 2) / (2 * s[:, :, None] ** 2))  # separable factors
         valid = [(idx[:, a] >= 0) & (idx[:, a] < shape[a]) for a in range(3)]
         g = [torch.where(valid[a], g[:, a], 0.0) for a in range(3)]
-        vals = torch.from_numpy(amp[chunk])[:, None, None, None] * g[0][:, :, None, None] * g[1][:, None, :, None] * g[2][:, None, None, :]
+        vals = (
+            torch.from_numpy(amp[chunk])[:, None, None, None]
+            * g[0][:, :, None, None]
+            * g[1][:, None, :, None]
+            * g[2][:, None, None, :]
+        )
         flat = (
             idx[:, 0].clamp(0, shape[0] - 1)[:, :, None, None] * strides[0]
             + idx[:, 1].clamp(0, shape[1] - 1)[:, None, :, None] * strides[1]
@@ -77,5 +92,11 @@ def volume_ssim(volume: np.ndarray, reference: np.ndarray) -> dict:
     if volume.shape != reference.shape:
         raise ValueError(f"volume shape {volume.shape} differs from the reference's {reference.shape}")
     data_range = float(reference.max() - reference.min())
-    value = structural_similarity(np.asarray(volume, np.float64), np.asarray(reference, np.float64), data_range=data_range)
-    return {"ssim": float(value), "ssim_data_range": data_range, "ssim_reference": "true potential blurred like the data"}
+    value = structural_similarity(
+        np.asarray(volume, np.float64), np.asarray(reference, np.float64), data_range=data_range
+    )
+    return {
+        "ssim": float(value),
+        "ssim_data_range": data_range,
+        "ssim_reference": "true potential blurred like the data",
+    }

@@ -19,8 +19,14 @@ ELECTRON_WAVELENGTH_300KV_A = 0.019687
 """Relativistic electron wavelength at 300 kV, Å."""
 
 
-def aberrated_probe_intensity(pixel_size_A: float, size_px: int = 65, semiangle_mrad: float = 20.0, defocus_A: float = 40.0,
-                              cs_A: float = 1e5, wavelength_A: float = ELECTRON_WAVELENGTH_300KV_A) -> np.ndarray:  # fmt: skip
+def aberrated_probe_intensity(
+    pixel_size_A: float,
+    size_px: int = 65,
+    semiangle_mrad: float = 20.0,
+    defocus_A: float = 40.0,
+    cs_A: float = 1e5,
+    wavelength_A: float = ELECTRON_WAVELENGTH_300KV_A,
+) -> np.ndarray:
     """(size_px, size_px) probe intensity on the detector grid, centred at ``size_px // 2``, unit sum.
 
     ``size_px`` odd: the centre is then the middle pixel, where a same-size convolution
@@ -43,7 +49,9 @@ def convolve_views(projections: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     """Each (H, W) view of ``projections`` (N, H, W) convolved with ``kernel`` (centred), same size."""
     from scipy.signal import fftconvolve
 
-    return fftconvolve(np.asarray(projections, dtype=np.float64), np.asarray(kernel, dtype=np.float64)[None], mode="same", axes=(1, 2))
+    return fftconvolve(
+        np.asarray(projections, dtype=np.float64), np.asarray(kernel, dtype=np.float64)[None], mode="same", axes=(1, 2)
+    )
 
 
 def add_varying_floor(projections: np.ndarray, level_fraction: float, variation: float, seed: int = 0) -> np.ndarray:

@@ -44,18 +44,35 @@ def make_particle(name_or_path: str, scale: float = 1.0, seed: int = 0) -> AtomS
     if name_or_path == "au":
         atoms = _cut_sphere(read_atoms(DATA_DIR / "Au_NP.xyz"), scale)
     elif name_or_path == "fept":
-        atoms = polycrystal_l10(radius_A=29.7 * scale, n_grains=max(1, round(6 * scale**3)) if scale < 1 else 6, rng=rng)
+        atoms = polycrystal_l10(
+            radius_A=29.7 * scale, n_grains=max(1, round(6 * scale**3)) if scale < 1 else 6, rng=rng
+        )
     elif name_or_path == "apd":
         atoms = amorphous_packing(n_atoms=int(round(16000 * scale**3)), species=("Pd",), min_distance_A=2.5, rng=rng)
     elif name_or_path == "hea":
-        atoms = amorphous_packing(n_atoms=int(round(16000 * scale**3)), species=("Ni", "Pd", "Pt"), min_distance_A=2.4, rng=rng)
+        atoms = amorphous_packing(
+            n_atoms=int(round(16000 * scale**3)), species=("Ni", "Pd", "Pt"), min_distance_A=2.4, rng=rng
+        )
     elif name_or_path == "asi":
-        atoms = amorphous_packing(n_atoms=int(round(20000 * scale**3)), species=("Si",), min_distance_A=2.2, rng=rng, number_density_per_A3=0.049)
+        atoms = amorphous_packing(
+            n_atoms=int(round(20000 * scale**3)),
+            species=("Si",),
+            min_distance_A=2.2,
+            rng=rng,
+            number_density_per_A3=0.049,
+        )
     elif name_or_path == "film":
         # Amorphous Pd, 20 Å thick, 110 Å across the tilt axis and 50 Å along it: wider than a 40 Å
         # field of view by what rays at 70 degrees cross (20 Å x tan 70 = 55 Å), and going on
         # past the detector's edges along the axis as a film does.
-        atoms = amorphous_packing(n_atoms=0, species=("Pd",), min_distance_A=2.5, rng=rng, box_A=(110.0 * scale, 50.0 * scale, 20.0), periodic_xy=True)
+        atoms = amorphous_packing(
+            n_atoms=0,
+            species=("Pd",),
+            min_distance_A=2.5,
+            rng=rng,
+            box_A=(110.0 * scale, 50.0 * scale, 20.0),
+            periodic_xy=True,
+        )
     elif name_or_path == "carbon":
         atoms = disordered_carbon(n_atoms=int(round(7000 * scale**3)), rng=rng)
     else:
@@ -81,7 +98,14 @@ def _random_rotation(rng: np.random.Generator) -> np.ndarray:
     return q if np.linalg.det(q) > 0 else -q
 
 
-def polycrystal_l10(radius_A: float, n_grains: int, rng: np.random.Generator, a_A: float = 3.85, c_A: float = 3.71, min_distance_A: float = 2.2) -> AtomSet:
+def polycrystal_l10(
+    radius_A: float,
+    n_grains: int,
+    rng: np.random.Generator,
+    a_A: float = 3.85,
+    c_A: float = 3.71,
+    min_distance_A: float = 2.2,
+) -> AtomSet:
     """A sphere of L1_0 FePt grains (Voronoi cells of random seeds, random orientations).
 
     Atoms from neighbouring grains closer than ``min_distance_A`` are thinned so that grain
@@ -100,7 +124,11 @@ def polycrystal_l10(radius_A: float, n_grains: int, rng: np.random.Generator, a_
     for g in range(n_grains):
         p = lattice @ _random_rotation(rng).T + rng.uniform(0, a_A, 3)
         inside = np.linalg.norm(p, axis=1) <= radius_A
-        owner = np.argmin(np.linalg.norm(p[:, None, :] - seeds[None], axis=-1), axis=1) if n_grains > 1 else np.zeros(len(p), int)
+        owner = (
+            np.argmin(np.linalg.norm(p[:, None, :] - seeds[None], axis=-1), axis=1)
+            if n_grains > 1
+            else np.zeros(len(p), int)
+        )
         keep = inside & (owner == g)
         pos.append(p[keep])
         spe.append(lattice_kinds[keep])
@@ -120,8 +148,13 @@ def _thin(pos: np.ndarray, species: np.ndarray, min_distance_A: float) -> tuple[
 
 
 def amorphous_packing(
-    n_atoms: int, species: tuple[str, ...], min_distance_A: float, rng: np.random.Generator, number_density_per_A3: float = 0.066,
-    box_A: tuple[float, float, float] | None = None, periodic_xy: bool = False,
+    n_atoms: int,
+    species: tuple[str, ...],
+    min_distance_A: float,
+    rng: np.random.Generator,
+    number_density_per_A3: float = 0.066,
+    box_A: tuple[float, float, float] | None = None,
+    periodic_xy: bool = False,
 ) -> AtomSet:
     """A dense random packing in a sphere of ``n_atoms``, or in a box of sides ``box_A`` (x, y, z)
     at the number density (a film): random points pushed apart to a minimum distance.  With
@@ -146,7 +179,9 @@ def amorphous_packing(
     period = np.array([2.0 * half[0], 2.0 * half[1], 0.0]) if (box_A is not None and periodic_xy) else None
     for _ in range(500):
         if period is not None:  # cKDTree's periodic box: coordinates in [0, L), z unbounded (a large box)
-            pairs = cKDTree(pos + [half[0], half[1], half[2] + 1.0], boxsize=[period[0], period[1], 4.0 * half[2] + 8.0]).query_pairs(min_distance_A, output_type="ndarray")
+            pairs = cKDTree(
+                pos + [half[0], half[1], half[2] + 1.0], boxsize=[period[0], period[1], 4.0 * half[2] + 8.0]
+            ).query_pairs(min_distance_A, output_type="ndarray")
         else:
             pairs = cKDTree(pos).query_pairs(min_distance_A, output_type="ndarray")
         if len(pairs) == 0:
@@ -173,7 +208,9 @@ def amorphous_packing(
     return AtomSet(pos, species=spe)
 
 
-def disordered_carbon(n_atoms: int, rng: np.random.Generator, bond_A: float = 1.49, displacement_A: float = 0.025) -> AtomSet:
+def disordered_carbon(
+    n_atoms: int, rng: np.random.Generator, bond_A: float = 1.49, displacement_A: float = 0.025
+) -> AtomSet:
     """A sphere of ``n_atoms`` carbon atoms on a diamond network scaled to ``bond_A`` bonds
     (diamond's own is 1.545 Å), each displaced by a normal ``displacement_A`` per axis and the
     whole turned at random: nearest neighbours at 1.4-1.55 Å, 4-fold coordinated, no long-range
@@ -181,7 +218,18 @@ def disordered_carbon(n_atoms: int, rng: np.random.Generator, bond_A: float = 1.
     a = bond_A * 4.0 / np.sqrt(3.0)  # diamond: bond = a sqrt(3) / 4
     n = int(np.ceil((n_atoms / 8.0 * 6.0 / np.pi) ** (1.0 / 3.0))) + 2
     cells = np.stack(np.meshgrid(*[np.arange(-n, n + 1)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
-    basis = np.array([[0, 0, 0], [0, 0.5, 0.5], [0.5, 0, 0.5], [0.5, 0.5, 0], [0.25, 0.25, 0.25], [0.25, 0.75, 0.75], [0.75, 0.25, 0.75], [0.75, 0.75, 0.25]])
+    basis = np.array(
+        [
+            [0, 0, 0],
+            [0, 0.5, 0.5],
+            [0.5, 0, 0.5],
+            [0.5, 0.5, 0],
+            [0.25, 0.25, 0.25],
+            [0.25, 0.75, 0.75],
+            [0.75, 0.25, 0.75],
+            [0.75, 0.75, 0.25],
+        ]
+    )
     pos = ((cells[:, None, :] + basis[None]) * a).reshape(-1, 3)
     pos = pos[np.argsort(np.linalg.norm(pos, axis=1), kind="stable")[:n_atoms]]
     pos = pos @ _random_rotation(rng).T + rng.normal(0.0, displacement_A, pos.shape)

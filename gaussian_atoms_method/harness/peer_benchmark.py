@@ -18,7 +18,6 @@ The peer's pipeline (RESIRE, BM3D, polynomial tracing) finds all 208 within 0.9 
 from __future__ import annotations
 
 import csv
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -132,12 +131,28 @@ class PeerBenchmark:
         rows = []
         for dose in self.doses:
             run_dir = self.output / "runs" / f"dose{dose}"
-            s = scored_run(run_dir / "evaluation.json", run_dir, lambda: prepare_dose(self.data_dir, self.output / "data", dose),
-                           lambda data, atoms: score_like_peer(atoms.positions, read_atoms(data / "atoms_true.xyz").positions), self.iterations, self.device, self.flags)  # fmt: skip
+            s = scored_run(
+                run_dir / "evaluation.json",
+                run_dir,
+                lambda dose=dose: prepare_dose(self.data_dir, self.output / "data", dose),
+                lambda data, atoms: score_like_peer(atoms.positions, read_atoms(data / "atoms_true.xyz").positions),
+                self.iterations,
+                self.device,
+                self.flags,
+            )
             peer = peer_scores(self.data_dir, dose)
             rows.append({"dose": dose, **s, "peer": peer})
-            beside = f"; peer {peer['n_matched']}/{peer['n_true']}, FP {peer['n_pred'] - peer['n_matched']}, RMSD {peer['rmsd_pm']:.2f} pm" if peer else ""
-            print(f"aSi-208 dose {dose}: ours {s['n_matched']}/{s['n_true']} within {s['radius_A']} Å, FP {s['n_pred'] - s['n_matched']}, RMSD {s['rmsd_pm']:.2f} pm, {s['seconds']:.0f} s{beside}", flush=True)
+            beside = (
+                f"; peer {peer['n_matched']}/{peer['n_true']}, FP {peer['n_pred'] - peer['n_matched']}, RMSD "
+                f"{peer['rmsd_pm']:.2f} pm"
+                if peer
+                else ""
+            )
+            print(
+                f"aSi-208 dose {dose}: ours {s['n_matched']}/{s['n_true']} within {s['radius_A']} Å, FP "
+                f"{s['n_pred'] - s['n_matched']}, RMSD {s['rmsd_pm']:.2f} pm, {s['seconds']:.0f} s{beside}",
+                flush=True,
+            )
         self.write(rows)
         return rows
 
@@ -149,10 +164,19 @@ class PeerBenchmark:
             writer = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
             writer.writeheader()
             writer.writerows([r | {f"peer_{k}": v for k, v in (r.get("peer") or {}).items()} for r in rows])
-        lines = ["| dose (e/Å²) | method | found (≤ 0.9 Å) | false | RMSD (pm) | time (s) |", "| --- | --- | --- | --- | --- | --- |"]
+        lines = [
+            "| dose (e/Å²) | method | found (≤ 0.9 Å) | false | RMSD (pm) | time (s) |",
+            "| --- | --- | --- | --- | --- | --- |",
+        ]
         for r in rows:
-            lines.append(f"| {r['dose']} | ours | {r['n_matched']}/{r['n_true']} | {r['n_pred'] - r['n_matched']} | {r['rmsd_pm']:.2f} | {r['seconds']:.0f} |")
+            lines.append(
+                f"| {r['dose']} | ours | {r['n_matched']}/{r['n_true']} | {r['n_pred'] - r['n_matched']} | "
+                f"{r['rmsd_pm']:.2f} | {r['seconds']:.0f} |"
+            )
             p = r.get("peer")
             if p:
-                lines.append(f"| {r['dose']} | peer (RESIRE, BM3D, tracing) | {p['n_matched']}/{p['n_true']} | {p['n_pred'] - p['n_matched']} | {p['rmsd_pm']:.2f} | |")
+                lines.append(
+                    f"| {r['dose']} | peer (RESIRE, BM3D, tracing) | {p['n_matched']}/{p['n_true']} | "
+                    f"{p['n_pred'] - p['n_matched']} | {p['rmsd_pm']:.2f} | |"
+                )
         (self.output / "results.md").write_text("\n".join(lines) + "\n")

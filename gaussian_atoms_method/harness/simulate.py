@@ -96,7 +96,14 @@ def _detector_size(atoms: AtomSet, pixel_size_A: float, margin_A: float) -> int:
     return int(np.ceil(extent / pixel_size_A))
 
 
-def project_gaussian_potential(atoms: AtomSet, angles_deg, pixel_size_A: float, detector_pixels: int, atom_sigma_A: float = 0.35, tilt_axis: str = "y") -> np.ndarray:
+def project_gaussian_potential(
+    atoms: AtomSet,
+    angles_deg,
+    pixel_size_A: float,
+    detector_pixels: int,
+    atom_sigma_A: float = 0.35,
+    tilt_axis: str = "y",
+) -> np.ndarray:
     """Exact projections ``(N, P, P)`` of the quick Gaussian potential (positions about the tilt centre)."""
     sigmas, amplitudes = gaussian_potential_parameters(atoms.species, atom_sigma_A)
     axes = torch.from_numpy(detector_axes_from_tilts(angles_deg, tilt_axis))
@@ -105,12 +112,16 @@ def project_gaussian_potential(atoms: AtomSet, angles_deg, pixel_size_A: float, 
     images = []
     for start in range(0, len(axes), 8):  # a few views at a time bounds the memory
         images.append(
-            project_gaussians(means, torch.from_numpy(sigmas), torch.from_numpy(amplitudes), axes[start : start + 8], coords, coords)
+            project_gaussians(
+                means, torch.from_numpy(sigmas), torch.from_numpy(amplitudes), axes[start : start + 8], coords, coords
+            )
         )
     return torch.cat(images).numpy()
 
 
-def project_lobato_potential(atoms: AtomSet, angles_deg, pixel_size_A: float, detector_pixels: int, tilt_axis: str = "y") -> np.ndarray:
+def project_lobato_potential(
+    atoms: AtomSet, angles_deg, pixel_size_A: float, detector_pixels: int, tilt_axis: str = "y"
+) -> np.ndarray:
     """abTEM projected potentials ``(N, P, P)`` in V·Å with the Lobato parametrisation.
 
     For each tilt the atoms (positions in Å about the tilt centre) are rotated into detector
@@ -135,7 +146,13 @@ def project_lobato_potential(atoms: AtomSet, angles_deg, pixel_size_A: float, de
         local = atoms.positions @ d.T  # (row, column, depth) coordinates
         local = local + [centre, centre, depth / 2]
         cell = ase.Atoms(symbols, positions=local, cell=[side, side, depth], pbc=True)
-        potential = abtem.Potential(cell, gpts=(detector_pixels, detector_pixels), parametrization="lobato", projection="infinite", slice_thickness=depth)
+        potential = abtem.Potential(
+            cell,
+            gpts=(detector_pixels, detector_pixels),
+            parametrization="lobato",
+            projection="infinite",
+            slice_thickness=depth,
+        )
         out[k] = potential.build().compute(progress_bar=False).array.sum(axis=0)
     return out
 
@@ -157,7 +174,9 @@ def lobato_potential_volume(atoms: AtomSet, voxel_size_A: float, voxels: int, bl
     # x, y: abTEM samples grid point i at i * size; z: slab k spans [k, k + 1) * size.
     shift = np.array([(voxels - 1) / 2, (voxels - 1) / 2, voxels / 2]) * voxel_size_A
     cell = ase.Atoms(list(atoms.species), positions=atoms.positions + shift, cell=[side] * 3, pbc=True)
-    potential = abtem.Potential(cell, gpts=(voxels, voxels), slice_thickness=voxel_size_A, parametrization="lobato", projection="finite")
+    potential = abtem.Potential(
+        cell, gpts=(voxels, voxels), slice_thickness=voxel_size_A, parametrization="lobato", projection="finite"
+    )
     slabs = potential.build().compute(progress_bar=False).array  # (z, x, y) in V·Å
     volume = np.moveaxis(slabs, 0, -1).astype(np.float64) / voxel_size_A
     if blur_sigma_A > 0:
@@ -165,10 +184,14 @@ def lobato_potential_volume(atoms: AtomSet, voxel_size_A: float, voxels: int, bl
     return volume.astype(np.float32)
 
 
-def blur_and_noise(clean: np.ndarray, pixel_size_A: float, blur_sigma_A: float, noise_std: float, seed: int) -> np.ndarray:
+def blur_and_noise(
+    clean: np.ndarray, pixel_size_A: float, blur_sigma_A: float, noise_std: float, seed: int
+) -> np.ndarray:
     """Gaussian probe blur of each projection, then additive Gaussian noise (float64)."""
     if blur_sigma_A > 0:
-        clean = ndimage.gaussian_filter(clean, sigma=(0, blur_sigma_A / pixel_size_A, blur_sigma_A / pixel_size_A), mode="constant")
+        clean = ndimage.gaussian_filter(
+            clean, sigma=(0, blur_sigma_A / pixel_size_A, blur_sigma_A / pixel_size_A), mode="constant"
+        )
     if noise_std > 0:
         clean = clean + np.random.default_rng(seed).normal(0.0, noise_std, size=clean.shape)
     return clean
@@ -294,7 +317,14 @@ def simulate_gaussian_tilt_series(atoms: AtomSet, angles_deg: np.ndarray, **kwar
     return simulate_tilt_series(atoms, angles_deg, potential="gaussian", **kwargs)
 
 
-def true_potential_volume(truth: AtomSet, potential: str, voxel_size_A: float, voxels: int, atom_sigma_A: float = 0.35, blur_sigma_A: float = 0.5) -> np.ndarray:
+def true_potential_volume(
+    truth: AtomSet,
+    potential: str,
+    voxel_size_A: float,
+    voxels: int,
+    atom_sigma_A: float = 0.35,
+    blur_sigma_A: float = 0.5,
+) -> np.ndarray:
     """The true potential on a ``voxels``^3 grid about the tilt centre, blurred like the data (float32)."""
     from gaussian_atoms_method.harness.metrics import voxelise_gaussians
 

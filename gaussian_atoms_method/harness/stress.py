@@ -16,8 +16,8 @@ from typing import Callable
 import numpy as np
 import torch
 
-from gaussian_atoms_method.physics.geometry import detector_axes_from_tilts
 from gaussian_atoms_method.atoms.merge import cluster_labels, merged_values
+from gaussian_atoms_method.physics.geometry import detector_axes_from_tilts
 from gaussian_atoms_method.physics.projector import gaussian_mass, project_gaussians, project_gaussians_tiled
 
 Case = tuple[str, bool, str]
@@ -76,9 +76,20 @@ def coincident_case() -> Case:
     img, grads = _value_and_grads(project_gaussians_tiled, means, sig, amps, axes, coords, torch.float32)
     labels, n_clusters = cluster_labels(means.numpy(), 1e-3)
     _, new_sig, new_amp = merged_values(means, sig, amps, torch.as_tensor(labels), n_clusters)
-    mass_ok = math.isclose(float(gaussian_mass(new_sig, new_amp).sum()), float(gaussian_mass(sig, amps).sum()), rel_tol=1e-12)
-    ok = bool(torch.isfinite(img).all()) and all(bool(torch.isfinite(g).all()) for g in grads) and n_clusters == 1 and mass_ok
-    return "coincident atoms", ok, f"finite projection and gradients; merged into {n_clusters} with mass conserved: {mass_ok}"
+    mass_ok = math.isclose(
+        float(gaussian_mass(new_sig, new_amp).sum()), float(gaussian_mass(sig, amps).sum()), rel_tol=1e-12
+    )
+    ok = (
+        bool(torch.isfinite(img).all())
+        and all(bool(torch.isfinite(g).all()) for g in grads)
+        and n_clusters == 1
+        and mass_ok
+    )
+    return (
+        "coincident atoms",
+        ok,
+        f"finite projection and gradients; merged into {n_clusters} with mass conserved: {mass_ok}",
+    )
 
 
 def zero_projections_case() -> Case:
@@ -100,9 +111,8 @@ def low_snr_case(steps: int = 150) -> Case:
 
     from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
     from dataparsers.tilt_series_format import write_tilt_series
-
-    from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
     from gaussian_atoms_method.harness.simulate import simulate_gaussian_tilt_series, spherical_particle
+    from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
     from gaussian_atoms_method.nerfstudio_layer.training import train_views
 
     atoms = spherical_particle("Au", radius_A=5.0)
@@ -119,7 +129,11 @@ def low_snr_case(steps: int = 150) -> Case:
         targets = [outputs.metadata["projections"][v][..., None] for v in range(len(angles))]
         loss = train_views(model, outputs.cameras, targets, steps)
     finite = all(bool(torch.isfinite(p).all()) for p in model.gauss_params.values())
-    return "SNR below 1 (peak-to-noise 0.5)", finite and math.isfinite(loss), f"{steps} steps: loss {loss:.3g}, {model.num_points} Gaussians, all finite: {finite}"
+    return (
+        "SNR below 1 (peak-to-noise 0.5)",
+        finite and math.isfinite(loss),
+        f"{steps} steps: loss {loss:.3g}, {model.num_points} Gaussians, all finite: {finite}",
+    )
 
 
 def many_atoms_case(n: int = 100_000, pixels: int = 280) -> Case:

@@ -40,7 +40,10 @@ def parse_grid(entries) -> list[tuple[str, list[str]]]:
     for entry in entries:
         words = shlex.split(entry)
         if len(words) < 2 or not words[0].startswith("--"):
-            raise SweepError(f"sweep grid {entry!r}: expected an ns-train option and at least one value, e.g. '--pipeline.model.merge-threshold-A 0.2 0.3'")
+            raise SweepError(
+                f"sweep grid {entry!r}: expected an ns-train option and at least one value, e.g. "
+                f"'--pipeline.model.merge-threshold-A 0.2 0.3'"
+            )
         if any(words[0] == option for option, _ in grid):
             raise SweepError(f"sweep grid: {words[0]} is given twice")
         grid.append((words[0], words[1:]))
@@ -118,7 +121,11 @@ class Sweep:
         if not path.is_file():
             return None
         saved = json.loads(path.read_text())
-        same = saved.get("settings") == settings and saved.get("base_args") == list(self.base_args) and saved.get("iterations") == self.iterations
+        same = (
+            saved.get("settings") == settings
+            and saved.get("base_args") == list(self.base_args)
+            and saved.get("iterations") == self.iterations
+        )
         return saved if same else None
 
     def run(self) -> list[dict]:
@@ -132,9 +139,15 @@ class Sweep:
             rows.append(done)
             if done is None:
                 todo.append((len(rows) - 1, settings, run_dir))
-        print(f"gaussian-atoms sweep: {len(self.settings)} settings, {len(self.settings) - len(todo)} already finished, {len(todo)} to run")
+        print(
+            f"gaussian-atoms sweep: {len(self.settings)} settings, {len(self.settings) - len(todo)} already finished, "
+            f"{len(todo)} to run"
+        )
         threads = max(1, (os.cpu_count() or 1) // min(self.jobs, max(len(todo), 1)))
-        calls = [(str(self.data), str(run_dir), self._args(settings), self.iterations, self.device, threads) for _, settings, run_dir in todo]
+        calls = [
+            (str(self.data), str(run_dir), self._args(settings), self.iterations, self.device, threads)
+            for _, settings, run_dir in todo
+        ]
 
         def finish(k: int, outcome) -> None:
             # Recorded as each run ends, so an interruption loses only the runs in flight.
@@ -145,7 +158,13 @@ class Sweep:
                 first_line = str(outcome).splitlines()[0][:120] if str(outcome) else type(outcome).__name__
                 rows[index] = {"settings": settings, "status": f"failed: {first_line}"}
                 return
-            row = {"settings": settings, "base_args": list(self.base_args), "iterations": self.iterations, "status": "ok", **outcome}
+            row = {
+                "settings": settings,
+                "base_args": list(self.base_args),
+                "iterations": self.iterations,
+                "status": "ok",
+                **outcome,
+            }
             run_dir.mkdir(parents=True, exist_ok=True)
             tmp = run_dir / "result.json.tmp"
             tmp.write_text(json.dumps(row, indent=2) + "\n")
@@ -200,12 +219,19 @@ class Sweep:
         header = [o.lstrip("-") for o in options] + METRICS + ["status", "run"]
         table = []
         for settings, row in zip(self.settings, rows):
-            table.append([settings[o] for o in options] + [_fmt(row.get(m)) for m in METRICS] + [row.get("status", ""), run_name(settings)])
+            table.append(
+                [settings[o] for o in options]
+                + [_fmt(row.get(m)) for m in METRICS]
+                + [row.get("status", ""), run_name(settings)]
+            )
         with open(self.output / "sweep.csv", "w", newline="") as f:
             writer = csv.writer(f)
             writer.writerow(header)
             writer.writerows(table)
-        md = f"Sweep on `{self.data}`, {self.iterations} iterations, base arguments `{' '.join(self.base_args) or '(none)'}`.\n\n"
+        md = (
+            f"Sweep on `{self.data}`, {self.iterations} iterations, base arguments "
+            f"`{' '.join(self.base_args) or '(none)'}`.\n\n"
+        )
         md += "| " + " | ".join(header[:-1]) + " |\n|" + " --- |" * (len(header) - 1) + "\n"
         md += "".join("| " + " | ".join(map(str, r[:-1])) + " |\n" for r in table)
         (self.output / "sweep.md").write_text(md)

@@ -33,7 +33,18 @@ SIRT_ITERATIONS = (10, 25, 50, 100, 200)
 iterations' so far plus its own tracing), so the table shows SIRT's best, wherever it falls
 (on the Au series at noise 200: 10 iterations; later ones fit the noise and trace false atoms)."""
 
-FIELDS = ["method", "step", "seconds", "tpr", "fp_per_true_atom", "rmsd_pm", "n_pred", "gaussians", "peak_rss_GB", "peak_gpu_GB"]
+FIELDS = [
+    "method",
+    "step",
+    "seconds",
+    "tpr",
+    "fp_per_true_atom",
+    "rmsd_pm",
+    "n_pred",
+    "gaussians",
+    "peak_rss_GB",
+    "peak_gpu_GB",
+]
 
 
 @dataclass
@@ -64,23 +75,52 @@ class TimeToAccuracy:
         for method in self.baselines or default_baselines(self.device):
             for step, seconds, positions in classical_rows(series, method, self.device, self.sirt_iterations):
                 s = score_atoms(positions, truth.positions)
-                rows.append(self._row(method, step, seconds, s, rss_gb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6))
+                rows.append(
+                    self._row(method, step, seconds, s, rss_gb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6)
+                )
                 print(self._line(rows[-1]), flush=True)
         run_dir = self.output / "run"
         launch = time.time()
-        train_ours(self.data, run_dir, self.iterations, self.device, ("--pipeline.model.snapshot-every", str(self.snapshot_every), *self.extra_args), launcher=self.launcher)
+        train_ours(
+            self.data,
+            run_dir,
+            self.iterations,
+            self.device,
+            ("--pipeline.model.snapshot-every", str(self.snapshot_every), *self.extra_args),
+            launcher=self.launcher,
+        )
         rss_gb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1e6
         snapshots = run_dir / "ours" / "gaussian-atoms" / "run" / "snapshots"
         times = np.loadtxt(snapshots / "times.csv", delimiter=",", ndmin=2)
         for step, stamp, gaussians, gpu_bytes in times:
             atoms = read_atoms(snapshots / f"step-{int(step):06d}.csv")
             s = score_atoms(atoms.positions, truth.positions)
-            rows.append(self._row("ours", int(step), stamp - launch, s, gaussians=int(gaussians), rss_gb=rss_gb, gpu_gb=gpu_bytes / 1e9))
+            rows.append(
+                self._row(
+                    "ours",
+                    int(step),
+                    stamp - launch,
+                    s,
+                    gaussians=int(gaussians),
+                    rss_gb=rss_gb,
+                    gpu_gb=gpu_bytes / 1e9,
+                )
+            )
             print(self._line(rows[-1]), flush=True)
-        written = snapshots.parent / "atoms.xyz"  # the result, after the final stage: a run that stops early has no snapshot of it
+        # the result, after the final stage: a run that stops early has no snapshot of it
+        written = snapshots.parent / "atoms.xyz"
         if written.is_file():
             atoms = read_atoms(written)
-            rows.append(self._row("ours-final", "", written.stat().st_mtime - launch, score_atoms(atoms.positions, truth.positions), rss_gb=rss_gb, gpu_gb=rows[-1]["peak_gpu_GB"] if times.size else float("nan")))
+            rows.append(
+                self._row(
+                    "ours-final",
+                    "",
+                    written.stat().st_mtime - launch,
+                    score_atoms(atoms.positions, truth.positions),
+                    rss_gb=rss_gb,
+                    gpu_gb=rows[-1]["peak_gpu_GB"] if times.size else float("nan"),
+                )
+            )
             print(self._line(rows[-1]), flush=True)
         self.write(rows)
         return rows
@@ -88,15 +128,25 @@ class TimeToAccuracy:
     @staticmethod
     def _row(method, step, seconds, s, gaussians=None, rss_gb=float("nan"), gpu_gb=float("nan")) -> dict:
         return {
-            "method": method, "step": step, "seconds": seconds, "tpr": s["tpr"], "fp_per_true_atom": s["fp_per_true_atom"],
-            "rmsd_pm": s["rmsd_pm"], "n_pred": s["n_pred"], "gaussians": gaussians if gaussians is not None else s["n_pred"],
-            "peak_rss_GB": rss_gb, "peak_gpu_GB": gpu_gb,
-        }  # fmt: skip
+            "method": method,
+            "step": step,
+            "seconds": seconds,
+            "tpr": s["tpr"],
+            "fp_per_true_atom": s["fp_per_true_atom"],
+            "rmsd_pm": s["rmsd_pm"],
+            "n_pred": s["n_pred"],
+            "gaussians": gaussians if gaussians is not None else s["n_pred"],
+            "peak_rss_GB": rss_gb,
+            "peak_gpu_GB": gpu_gb,
+        }
 
     @staticmethod
     def _line(r: dict) -> str:
         step = f" step {r['step']}" if r["step"] != "" else ""
-        return f"{r['method']}{step}: {r['seconds']:.1f} s TPR {r['tpr']:.4f} FP {r['fp_per_true_atom']:.4f} RMSD {r['rmsd_pm']:.1f} pm"
+        return (
+            f"{r['method']}{step}: {r['seconds']:.1f} s TPR {r['tpr']:.4f} FP {r['fp_per_true_atom']:.4f} RMSD "
+            f"{r['rmsd_pm']:.1f} pm"
+        )
 
     def write(self, rows: list[dict]) -> None:
         self.output.mkdir(parents=True, exist_ok=True)
@@ -104,9 +154,15 @@ class TimeToAccuracy:
             writer = csv.DictWriter(f, fieldnames=FIELDS)
             writer.writeheader()
             writer.writerows(rows)
-        lines = ["| method | step | time (s) | TPR | FP/atom | RMSD (pm) | atoms | peak RSS (GB) |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+        lines = [
+            "| method | step | time (s) | TPR | FP/atom | RMSD (pm) | atoms | peak RSS (GB) |",
+            "| --- | --- | --- | --- | --- | --- | --- | --- |",
+        ]
         for r in rows:
-            lines.append(f"| {r['method']} | {r['step']} | {r['seconds']:.1f} | {r['tpr']:.4f} | {r['fp_per_true_atom']:.4f} | {r['rmsd_pm']:.1f} | {r['n_pred']} | {r['peak_rss_GB']:.2f} |")
+            lines.append(
+                f"| {r['method']} | {r['step']} | {r['seconds']:.1f} | {r['tpr']:.4f} | {r['fp_per_true_atom']:.4f} | "
+                f"{r['rmsd_pm']:.1f} | {r['n_pred']} | {r['peak_rss_GB']:.2f} |"
+            )
         (self.output / "time_to_accuracy.md").write_text("\n".join(lines) + "\n")
         plot_time_to_accuracy(rows, self.output / "time_to_accuracy.png")
 
@@ -145,7 +201,16 @@ def classical_rows(series, method: str, device: str = "cpu", sirt_iterations: tu
 
     start = time.perf_counter()
     if method in ("fbp", "sart"):
-        volume = reconstruct(series.projections, series.angles_deg, series.pixel_size_A, method, series.tilt_axis, series.centre_px, device=device, tilt_axis_angle_deg=series.tilt_axis_angle_deg)
+        volume = reconstruct(
+            series.projections,
+            series.angles_deg,
+            series.pixel_size_A,
+            method,
+            series.tilt_axis,
+            series.centre_px,
+            device=device,
+            tilt_axis_angle_deg=series.tilt_axis_angle_deg,
+        )
         positions = traced(volume)
         yield "", time.perf_counter() - start, positions
         return
@@ -155,7 +220,9 @@ def classical_rows(series, method: str, device: str = "cpu", sirt_iterations: tu
         if reason:
             print(reason, flush=True)
             return
-    sino, _, axis_centre = slice_sinograms(series.projections, series.tilt_axis, series.centre_px, series.tilt_axis_angle_deg)
+    sino, _, axis_centre = slice_sinograms(
+        series.projections, series.tilt_axis, series.centre_px, series.tilt_axis_angle_deg
+    )
     if method == "sirt":
         iterates = sirt(sino, series.angles_deg, sirt_iterations, device)
     else:
@@ -178,13 +245,25 @@ def plot_time_to_accuracy(rows: list[dict], path: Path) -> None:
 
     ours = [r for r in rows if r["method"] == "ours"]
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
-    for ax, key, label in zip(axes, ("tpr", "fp_per_true_atom", "rmsd_pm"), ("TPR", "false positives per atom", "RMSD (pm)")):
+    for ax, key, label in zip(
+        axes, ("tpr", "fp_per_true_atom", "rmsd_pm"), ("TPR", "false positives per atom", "RMSD (pm)")
+    ):
         ax.plot([r["seconds"] for r in ours], [r[key] for r in ours], "o-", ms=3, label="ours (during training)")
         final = [r for r in rows if r["method"] == "ours-final"]
-        ax.plot([r["seconds"] for r in final], [r[key] for r in final], "*", ms=11, color="C0", label="ours (written atoms)")
-        for method, marker in zip(dict.fromkeys(r["method"] for r in rows if r["method"] not in ("ours", "ours-final")), "s^vDPX*"):
+        ax.plot(
+            [r["seconds"] for r in final], [r[key] for r in final], "*", ms=11, color="C0", label="ours (written atoms)"
+        )
+        for method, marker in zip(
+            dict.fromkeys(r["method"] for r in rows if r["method"] not in ("ours", "ours-final")), "s^vDPX*"
+        ):
             points = [r for r in rows if r["method"] == method]
-            ax.plot([r["seconds"] for r in points], [r[key] for r in points], marker + ("--" if len(points) > 1 else ""), ms=7, label=f"{method} + tracing")
+            ax.plot(
+                [r["seconds"] for r in points],
+                [r[key] for r in points],
+                marker + ("--" if len(points) > 1 else ""),
+                ms=7,
+                label=f"{method} + tracing",
+            )
         ax.set_xlabel("wall time (s)")
         ax.set_ylabel(label)
         if key == "fp_per_true_atom":

@@ -46,12 +46,20 @@ def subvoxel_refine(volume, peaks: np.ndarray) -> np.ndarray:
         fp = volume_filters.values_at(field, peaks + step)
         positive = (fm > 0) & (fp > 0) & (f0 > 0)
         with np.errstate(divide="ignore", invalid="ignore"):
-            lm, l0, lp = np.log(np.where(positive, fm, 1)), np.log(np.where(positive, f0, 1)), np.log(np.where(positive, fp, 1))
-        out[:, axis] += parabola_vertex(np.where(positive, lm, fm), np.where(positive, l0, f0), np.where(positive, lp, fp))
+            lm, l0, lp = (
+                np.log(np.where(positive, fm, 1)),
+                np.log(np.where(positive, f0, 1)),
+                np.log(np.where(positive, fp, 1)),
+            )
+        out[:, axis] += parabola_vertex(
+            np.where(positive, lm, fm), np.where(positive, l0, f0), np.where(positive, lp, fp)
+        )
     return out
 
 
-def trace_atoms(volume, spacing_A: float, min_distance_A: float = 2.0, threshold_scale: float = 1.0, threshold: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+def trace_atoms(
+    volume, spacing_A: float, min_distance_A: float = 2.0, threshold_scale: float = 1.0, threshold: float | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Trace atoms in a volume.
 
     Parameters

@@ -21,10 +21,9 @@ from nerfstudio.plugins.types import MethodSpecification
 
 from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
 from dataparsers.tilt_series_dataset import TiltSeriesDataset
-
-from gaussian_atoms_method.start_ahead import begin_for
 from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
 from gaussian_atoms_method.nerfstudio_layer.trainer import GaussianAtomsTrainerConfig
+from gaussian_atoms_method.start_ahead import begin_for
 
 MAX_ITERATIONS = 3000
 
@@ -62,7 +61,8 @@ def _wrapper_layer(fn, name: str):
 
 
 _UPDATE = inspect.unwrap(torch.optim.Adam.step)  # the update, without the stock step's wrappers
-_WITH_GRAPH_BREAKS = _wrapper_layer(torch.optim.Adam.step, "_use_grad")  # the stock step without its profiling hooks (this class's own step has them)
+# the stock step without its profiling hooks (this class's own step has them)
+_WITH_GRAPH_BREAKS = _wrapper_layer(torch.optim.Adam.step, "_use_grad")
 
 
 @dataclass
@@ -90,7 +90,8 @@ class TiltSeriesDatamanager(FullImageDatamanager[TiltSeriesDataset]):
         image_idx = self.train_unseen_cameras.pop(0)
         if len(self.train_unseen_cameras) == 0:
             self.train_unseen_cameras = self.sample_train_cameras()
-        data = dict(self.cached_train[image_idx])  # a copy: the cache is not changed (reading it first loads it, and the cameras)
+        # a copy: the cache is not changed (reading it first loads it, and the cameras)
+        data = dict(self.cached_train[image_idx])
         cameras, images = self.__dict__.setdefault("_view_cameras", {}), self.__dict__.setdefault("_view_images", {})
         if image_idx not in cameras:
             camera = self.train_cameras[image_idx : image_idx + 1].to(self.device)
@@ -153,7 +154,8 @@ def gaussian_atoms_trainer_config(max_iterations: int = MAX_ITERATIONS) -> Gauss
                 "scheduler": ExponentialDecaySchedulerConfig(lr_final=2e-5, max_steps=max_iterations),
             },
         },
-        viewer=ViewerConfig(num_rays_per_chunk=1 << 15, websocket_host="127.0.0.1"),  # this machine only, unless --viewer.websocket-host says more
+        # this machine only, unless --viewer.websocket-host says more
+        viewer=ViewerConfig(num_rays_per_chunk=1 << 15, websocket_host="127.0.0.1"),
         vis="viewer",
     )
 

@@ -4,7 +4,8 @@ data can tell apart.
 Checked after each refine interval's densify / prune / merge: the Gaussians now are matched to
 those at the last check (mutual nearest neighbours within the merge distance: closer ones would
 be one atom); settled when the Gaussians added or removed hold at most ``changed_fraction`` of
-the atoms' worth of mass (each counted by its mass over a typical atom's) and the RMS step of the matched positions is below ``fraction`` of the atoms' median noise-limited
+the atoms' worth of mass (each counted by its mass over a typical atom's) and the RMS step of the matched positions is
+below ``fraction`` of the atoms' median noise-limited
 precision (the Cramér-Rao bound, :mod:`gaussian_atoms_method.atoms.uncertainty`), at two checks
 in a row.  Measured on Au noise 200: stops at step 2,300 with 10.4 vs 10.1 pm, the same TPR and
 false positives (docs/performance.md, convergence stop).  A count that must hold exactly never
@@ -33,7 +34,8 @@ class ConvergenceCheck:
     Besides the verdict, each check leaves what the run can act on while unsettled
     (:mod:`.stopping`): ``positions_settled``, the checks in a row at which the matched positions
     moved less than their precision whatever the set did; ``changed`` and ``tolerated``, the
-    atoms' worth of Gaussians added or removed and the share allowed, and ``churning``; ``scatter_only``, whether the positions
+    atoms' worth of Gaussians added or removed and the share allowed, and ``churning``; ``scatter_only``, whether the
+    positions
     over the last three checks only scatter about fixed places (:func:`drifting`)."""
 
     warmup_length: int
@@ -75,7 +77,14 @@ class ConvergenceCheck:
         """Whether ``step`` is a check (a refine step after the warm-up)."""
         return step >= self.warmup_length and step % self.refine_every == 0
 
-    def update(self, step: int, positions: torch.Tensor, length_scale: float, precision: Precision, atoms: torch.Tensor | None = None) -> bool:
+    def update(
+        self,
+        step: int,
+        positions: torch.Tensor,
+        length_scale: float,
+        precision: Precision,
+        atoms: torch.Tensor | None = None,
+    ) -> bool:
         """True once the atoms are settled.
 
         Parameters
@@ -97,7 +106,11 @@ class ConvergenceCheck:
         if not self.checks(step):
             return False
         positions = positions.detach().double().cpu().clone()
-        weights = torch.ones(len(positions), dtype=torch.float64) if atoms is None else atoms.detach().double().cpu().flatten()
+        weights = (
+            torch.ones(len(positions), dtype=torch.float64)
+            if atoms is None
+            else atoms.detach().double().cpu().flatten()
+        )
         previous_weights, self.previous_weights = self.previous_weights, weights
         older, link = self.older, self.link
         self.older, previous, self.previous, self.scatter_only = self.previous, self.previous, positions, False
@@ -107,11 +120,19 @@ class ConvergenceCheck:
             return False
         before, now = mutual_nearest(previous.numpy(), positions.numpy(), self.match_distance)
         self.link = (before, now)
-        self.changed = float(previous_weights.sum() - previous_weights[torch.as_tensor(before)].sum() + weights.sum() - weights[torch.as_tensor(now)].sum())
+        self.changed = float(
+            previous_weights.sum()
+            - previous_weights[torch.as_tensor(before)].sum()
+            + weights.sum()
+            - weights[torch.as_tensor(now)].sum()
+        )
         self.tolerated = self.changed_fraction * max(len(previous), len(positions))
         step_A = float((positions[now] - previous[before]).square().sum(dim=1).mean().sqrt()) / length_scale
 
-        def judged(noise):  # each atom's precision under ``noise`` (None: read it now), and whether the positions moved less
+        # each atom's precision under ``noise`` (None: read it now), and whether the positions moved less
+        def judged(
+            noise,
+        ):
             result = precision(noise)
             if result is None:
                 return None, False
@@ -123,7 +144,8 @@ class ConvergenceCheck:
         read_here = self.noise is None  # the first reading is this check's
         self.step_A, self.drift_A = step_A, math.nan
         precision_A, moved_less = judged(self.noise)
-        if moved_less and not (read_here or self.noise_read_settled):  # settled under an early reading: read the noise again, once
+        # settled under an early reading: read the noise again, once
+        if moved_less and not (read_here or self.noise_read_settled):
             precision_A, moved_less = judged(None)
             self.noise_read_settled = True
         if precision_A is None:
@@ -135,7 +157,10 @@ class ConvergenceCheck:
             older_of[link[1]] = link[0]
             chained = older_of[before] >= 0
             if chained.any():
-                a, b, c = (x.numpy() / length_scale for x in (older[older_of[before[chained]]], previous[before[chained]], positions[now[chained]]))
+                a, b, c = (
+                    x.numpy() / length_scale
+                    for x in (older[older_of[before[chained]]], previous[before[chained]], positions[now[chained]])
+                )
                 self.scatter_only = not drifting(a, b, c, precision_A[now[chained]])
                 self.drift_A = drift_per_interval(a, b, c)
         set_settled = self.changed <= self.tolerated
@@ -147,18 +172,27 @@ class ConvergenceCheck:
         """The last check's figures in words: the positions' step and drift against their
         precision, and the set's change against the tolerated."""
         drift = f", drifting {self.drift_A:.3f} Å" if math.isfinite(self.drift_A) else ""
-        return (f"the positions moved {self.step_A:.3f} Å RMS over the last interval{drift}, against a median precision of "
-                f"{self.precision_A:.3f} Å; the set changed by {self.changed:.0f} atoms' worth ({self.tolerated:.0f} tolerated)")
+        return (
+            f"the positions moved {self.step_A:.3f} Å RMS over the last interval{drift}, against a median precision of "
+            f"{self.precision_A:.3f} Å; the set changed by {self.changed:.0f} atoms' worth ({self.tolerated:.0f} "
+            f"tolerated)"
+        )
 
     def restart(self, positions: torch.Tensor, atoms: torch.Tensor | None = None) -> None:
         """Compare the next check with ``positions`` (the set was changed on purpose: its
         removals are not churn), from no settled checks."""
         self.previous, self.older, self.link = positions.detach().double().cpu().clone(), None, None
-        self.previous_weights = torch.ones(len(positions), dtype=torch.float64) if atoms is None else atoms.detach().double().cpu().flatten()
+        self.previous_weights = (
+            torch.ones(len(positions), dtype=torch.float64)
+            if atoms is None
+            else atoms.detach().double().cpu().flatten()
+        )
         self.settled_checks = self.positions_settled = self.churning = 0
 
 
-def drifting(older_A: np.ndarray, previous_A: np.ndarray, now_A: np.ndarray, precision_A: np.ndarray, z: float = 2.0) -> bool:
+def drifting(
+    older_A: np.ndarray, previous_A: np.ndarray, now_A: np.ndarray, precision_A: np.ndarray, z: float = 2.0
+) -> bool:
     """Whether three successive (N, 3) estimates of the positions (checks' or passes' means)
     still drift, rather than scatter about fixed positions.  Scattering alone, the step over two
     intervals is as large as over one; an atom that moves by v an interval adds 3 |v|^2 to the

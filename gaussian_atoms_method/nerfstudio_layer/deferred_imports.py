@@ -96,7 +96,11 @@ def defer_dynamo() -> int:
     changed = 0
     for method in vars(torch.optim.Optimizer).values():
         fn = getattr(method, "__wrapped__", None)
-        if getattr(method, "__code__", None) is not inner or fn is None or getattr(fn, "__dynamo_disable", None) is not None:
+        if (
+            getattr(method, "__code__", None) is not inner
+            or fn is None
+            or getattr(fn, "__dynamo_disable", None) is not None
+        ):
             continue
         fn.__dynamo_disable = _until_dynamo(fn, method)
         changed += 1

@@ -43,7 +43,9 @@ def _solve(gram: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
     the GPU to check for errors."""
     k = gram.shape[-1]
     ridge = 1e-9 * gram.diagonal(dim1=-2, dim2=-1).mean(-1)[..., None, None] + 1e-300
-    return torch.linalg.solve_ex(gram + ridge * torch.eye(k, dtype=gram.dtype, device=gram.device), rhs[..., None])[0][..., 0]
+    return torch.linalg.solve_ex(gram + ridge * torch.eye(k, dtype=gram.dtype, device=gram.device), rhs[..., None])[0][
+        ..., 0
+    ]
 
 
 def agree(values: torch.Tensor, gram: torch.Tensor, z: float = FLOOR_Z) -> tuple[bool, torch.Tensor]:
@@ -116,11 +118,18 @@ class FloorSolver:
         terms = self._terms.get((k, dev))
         if terms is None:  # made once per device: the terms' powers (K, 2) and their pairs' sums (K, K, 2)
             powers = index_on(FLOOR_TERMS[:k], dev)
-            terms = self._terms[(k, dev)] = (powers[:, 0], powers[:, 1], *(powers[:, None, :] + powers[None, :, :]).unbind(-1))
+            terms = self._terms[(k, dev)] = (
+                powers[:, 0],
+                powers[:, 1],
+                *(powers[:, None, :] + powers[None, :, :]).unbind(-1),
+            )
         row_terms, col_terms, row_pairs, col_pairs = terms
         weight = background_weights(model, predicted, floors.reshape(-1, h, w))  # the floors as rendered
         gram = floor_moments(weight, row_powers, col_powers).double()[:, row_pairs, col_pairs]  # (V, K, K)
-        rhs = floor_moments(weight * (measured - predicted), row_powers[:3], col_powers[:3]).double()[:, row_terms, col_terms]  # (V, K)
+        # (V, K)
+        rhs = floor_moments(weight * (measured - predicted), row_powers[:3], col_powers[:3]).double()[
+            :, row_terms, col_terms
+        ]
         if self.gram is None or self.gram.shape[:2] != (n_views, k) or self.gram.device != dev:
             self.gram = torch.zeros(n_views, k, k, dtype=torch.float64, device=dev)
             self.target = torch.zeros(n_views, k, dtype=torch.float64, device=dev)
@@ -153,4 +162,11 @@ class FloorSolver:
             coefficients.data[:] = pooled.to(coefficients)
         if shared != self.shared:
             self.shared = shared
-            CONSOLE.print(f"gaussian-atoms: step {step}: " + ("the views' floors agree within their noise: one floor for all views" if shared else "the views' floors differ beyond their noise: each view's fitted on its own"))
+            CONSOLE.print(
+                f"gaussian-atoms: step {step}: "
+                + (
+                    "the views' floors agree within their noise: one floor for all views"
+                    if shared
+                    else "the views' floors differ beyond their noise: each view's fitted on its own"
+                )
+            )

@@ -79,7 +79,10 @@ class HeldOutKernel:
     def _settle(self, model, step: int) -> None:
         self.settled = True
         fractions = ", ".join(f"{w:.3f}" for w in model.view_params["psf"].detach().cpu().tolist())
-        CONSOLE.print(f"gaussian-atoms: step {step}: the point-spread function read on the held-out views is held at {fractions} (1, 2, 4 Å)")
+        CONSOLE.print(
+            f"gaussian-atoms: step {step}: the point-spread function read on the held-out views is held at {fractions} "
+            f"(1, 2, 4 Å)"
+        )
 
 
 def read_kernel(model, views) -> torch.Tensor | None:
@@ -110,7 +113,14 @@ def read_kernel(model, views) -> torch.Tensor | None:
     gain, read_var = (noise.gain, noise.read_var) if noise else (1.0, 0.0)
     spacing = float(model.kwargs["metadata"]["pixel_size_A"]) * model.normalisation.length_scale
     kind = "l2" if model.data_term == "l1" else model.data_term  # L1's curvature is zero: no Newton step
-    return fit_kernel_weights(images, backgrounds, measured, spacing, model.psf_widths.to(images), lambda p, m: data_term(p, m, kind, gain, read_var))
+    return fit_kernel_weights(
+        images,
+        backgrounds,
+        measured,
+        spacing,
+        model.psf_widths.to(images),
+        lambda p, m: data_term(p, m, kind, gain, read_var),
+    )
 
 
 def restart_with_kernel_held(trainer) -> bool:
@@ -127,11 +137,21 @@ def restart_with_kernel_held(trainer) -> bool:
     reading = getattr(model, "kernel_reading", None)
     if reading is None or not reading.first_pass:
         return False
-    model.config.psf, model.config.psf_weights = "fixed", tuple(float(w) for w in model.view_params["psf"].detach().cpu().tolist())
-    CONSOLE.print(f"gaussian-atoms: the atoms start again on every view with the point-spread function held at {', '.join(f'{w:.3f}' for w in model.config.psf_weights)} (1, 2, 4 Å)")
+    model.config.psf, model.config.psf_weights = (
+        "fixed",
+        tuple(float(w) for w in model.view_params["psf"].detach().cpu().tolist()),
+    )
+    CONSOLE.print(
+        f"gaussian-atoms: the atoms start again on every view with the point-spread function held at "
+        f"{', '.join(f'{w:.3f}' for w in model.config.psf_weights)} (1, 2, 4 Å)"
+    )
     model.populate_modules()
     model.to(trainer.device)
     trainer.optimizers = trainer.setup_optimizers()
-    trainer.callbacks = trainer.pipeline.get_training_callbacks(TrainingCallbackAttributes(optimizers=trainer.optimizers, grad_scaler=trainer.grad_scaler, pipeline=trainer.pipeline, trainer=trainer))
+    trainer.callbacks = trainer.pipeline.get_training_callbacks(
+        TrainingCallbackAttributes(
+            optimizers=trainer.optimizers, grad_scaler=trainer.grad_scaler, pipeline=trainer.pipeline, trainer=trainer
+        )
+    )
     trainer._start_step = 0
     return True

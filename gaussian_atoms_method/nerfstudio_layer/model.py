@@ -38,8 +38,8 @@ from gaussian_atoms_method.nerfstudio_layer.checkpoints import allow_numpy_scala
 from gaussian_atoms_method.nerfstudio_layer.convergence import ConvergenceCheck
 from gaussian_atoms_method.nerfstudio_layer.floors import FloorSolver
 from gaussian_atoms_method.nerfstudio_layer.kernel_reading import HeldOutKernel
-from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions
 from gaussian_atoms_method.nerfstudio_layer.noise_reading import judge_after_fit, read_noise, say_hard_core, say_start
+from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions
 from gaussian_atoms_method.nerfstudio_layer.refit import refit
 from gaussian_atoms_method.nerfstudio_layer.residuals import residual_correlations
 from gaussian_atoms_method.nerfstudio_layer.results import model_position_std_A, write_results, write_snapshot
@@ -77,52 +77,132 @@ class GaussianAtomsModel(SplatfactoCompat):
         ls, series = self.normalisation.length_scale, metadata.get("tilt_series")
         self.truth_path: Path | None = Path(metadata["truth_path"]) if metadata.get("truth_path") is not None else None
         self.generator = torch.Generator().manual_seed(cfg.seed)
-        projections, start_options = metadata.get("projections"), (self.normalisation, cfg.extended_object, cfg.max_atom_sigma_A)
+        projections, start_options = (
+            metadata.get("projections"),
+            (self.normalisation, cfg.extended_object, cfg.max_atom_sigma_A),
+        )
         given = read_atoms(cfg.start_atoms).positions if cfg.start_atoms is not None else None
-        ahead = take_start(series, projections, *start_options) if cfg.init == "backprojection" and given is None else None  # begun while the launcher loaded
-        start = ahead or compute_start(series, projections, *start_options, cfg.init == "backprojection", cfg.num_random, cfg.init_extent, self.generator, positions_A=given)
+        # begun while the launcher loaded
+        ahead = (
+            take_start(series, projections, *start_options) if cfg.init == "backprojection" and given is None else None
+        )
+        start = ahead or compute_start(
+            series,
+            projections,
+            *start_options,
+            cfg.init == "backprojection",
+            cfg.num_random,
+            cfg.init_extent,
+            self.generator,
+            positions_A=given,
+        )
         say_start(start, ls, cfg.extended_object, ahead is not None)
-        measured, means, weights, half_extent, self.field_half_extent = start.noise, start.means, start.weights, start.field.half_extent, start.field.field_half_extent
+        measured, means, weights, half_extent, self.field_half_extent = (
+            start.noise,
+            start.means,
+            start.weights,
+            start.field.half_extent,
+            start.field.field_half_extent,
+        )
         n, sigma0 = means.shape[0], cfg.init_sigma_A * ls
-        amp0 = starting_amplitude(projections, metadata.get("pixel_size_A"), ls if metadata.get("normalisation") else None, n, sigma0, DATA_RANGE)
+        amp0 = starting_amplitude(
+            projections,
+            metadata.get("pixel_size_A"),
+            ls if metadata.get("normalisation") else None,
+            n,
+            sigma0,
+            DATA_RANGE,
+        )
         log_amps = torch.full((n, 1), math.log(amp0))
         if weights is not None and cfg.init_mass == "backprojection":
             log_amps += torch.log(weights)[:, None]
-        params = {"means": Parameter(means), "log_sigmas": Parameter(torch.full((n, 1 if cfg.isotropic else 3), math.log(sigma0))), "log_amplitudes": Parameter(log_amps)}
+        params = {
+            "means": Parameter(means),
+            "log_sigmas": Parameter(torch.full((n, 1 if cfg.isotropic else 3), math.log(sigma0))),
+            "log_amplitudes": Parameter(log_amps),
+        }
         if not cfg.isotropic:  # near-identity rotations; exactly identity would start every ellipsoid axis-aligned
-            params["quats"] = Parameter(torch.tensor([1.0, 0.0, 0.0, 0.0]) + 0.1 * torch.randn(n, 4, generator=self.generator))
+            params["quats"] = Parameter(
+                torch.tensor([1.0, 0.0, 0.0, 0.0]) + 0.1 * torch.randn(n, 4, generator=self.generator)
+            )
         self.gauss_params = torch.nn.ParameterDict(params)
         # Every Gaussian's mass stays below 1000x the whole measured mass (DensityControl.clamp).
         max_log_amp = math.log(1000.0 * max(n, 1) * amp0 * (sigma0 / (cfg.min_sigma_A * ls)) ** 3)
-        self.density = DensityControl(ls, max_log_amp, self.generator, half_extent=half_extent, field_half_extent=self.field_half_extent if half_extent != self.field_half_extent else None, **{f.name: getattr(cfg, f.name) for f in fields(DensityControl) if hasattr(cfg, f.name)})
+        self.density = DensityControl(
+            ls,
+            max_log_amp,
+            self.generator,
+            half_extent=half_extent,
+            field_half_extent=self.field_half_extent if half_extent != self.field_half_extent else None,
+            **{f.name: getattr(cfg, f.name) for f in fields(DensityControl) if hasattr(cfg, f.name)},
+        )
         self.density.reset(n)
         self.density.hard_core_A = say_hard_core(series.species if series is not None else ())
-        self.convergence = ConvergenceCheck(cfg.warmup_length, cfg.refine_every, cfg.converged_fraction, cfg.false_discovery_rate, cfg.merge_threshold_A * ls)
-        self.noise_read, self.data_term, floor, surfaces = read_noise(metadata.get("projections"), cfg.loss, cfg.background, measured)
+        self.convergence = ConvergenceCheck(
+            cfg.warmup_length,
+            cfg.refine_every,
+            cfg.converged_fraction,
+            cfg.false_discovery_rate,
+            cfg.merge_threshold_A * ls,
+        )
+        self.noise_read, self.data_term, floor, surfaces = read_noise(
+            metadata.get("projections"), cfg.loss, cfg.background, measured
+        )
         self._setup_view_params(metadata, series, floor, surfaces)
         if self.noise_read is not None and metadata.get("pixel_size_A"):  # the prune judges masses against this noise
-            self.density.set_noise(self.noise_read, floor or 0.0, metadata["pixel_size_A"] * ls, self.view_c2w.shape[0], self.data_term, self.view_c2w[:, :3, 2])
-        self.step, self.optimizers, self._optimizers_obj, self._held_out_step, self.kernel_reading = 0, {}, None, False, HeldOutKernel(self.view_c2w.shape[0], self.density.stop_split_at, cfg.psf == "held-out")
-        self.crop_box, self.background_color, self.atoms_in_viewer = None, torch.zeros(3), AtomsInViewer(self._viewer_atoms)  # the atoms as points in the viewer
-        self.view_geometry, self.finite_watch, self.floors, self.step_graph = R.ViewGeometry(), R.FiniteWatch(), FloorSolver(), StepGraph()  # read once per view; judged without waiting for the GPU; a step as a CUDA graph
+            self.density.set_noise(
+                self.noise_read,
+                floor or 0.0,
+                metadata["pixel_size_A"] * ls,
+                self.view_c2w.shape[0],
+                self.data_term,
+                self.view_c2w[:, :3, 2],
+            )
+        self.step, self.optimizers, self._optimizers_obj, self._held_out_step, self.kernel_reading = (
+            0,
+            {},
+            None,
+            False,
+            HeldOutKernel(self.view_c2w.shape[0], self.density.stop_split_at, cfg.psf == "held-out"),
+        )
+        # the atoms as points in the viewer
+        self.crop_box, self.background_color, self.atoms_in_viewer = (
+            None,
+            torch.zeros(3),
+            AtomsInViewer(self._viewer_atoms),
+        )
+        # read once per view; judged without waiting for the GPU; a step as a CUDA graph
+        self.view_geometry, self.finite_watch, self.floors, self.step_graph = (
+            R.ViewGeometry(),
+            R.FiniteWatch(),
+            FloorSolver(),
+            StepGraph(),
+        )
 
     def _setup_view_params(self, metadata: dict, series, floor: float | None, surfaces=None) -> None:
         """Per-view parameters and the views-per-step batches; a background (solved in closed form,
         :mod:`.floors`) starts at ``floor``, on the (V, H, W) ``surfaces`` of a floor that varies within the views."""
         cfg, view_c2w = self.config, metadata.get("view_c2w")
-        self.register_buffer("view_c2w", view_c2w.float() if view_c2w is not None else torch.zeros(0, 3, 4), persistent=False)
-        view_params, buffers = R.view_parameters(cfg, self.view_c2w.shape[0], floor, surfaces, series, self.normalisation.length_scale)
+        self.register_buffer(
+            "view_c2w", view_c2w.float() if view_c2w is not None else torch.zeros(0, 3, 4), persistent=False
+        )
+        view_params, buffers = R.view_parameters(
+            cfg, self.view_c2w.shape[0], floor, surfaces, series, self.normalisation.length_scale
+        )
         for name, value in buffers.items():
             self.register_buffer(name, value, persistent=False)
-        self.psf_widths_host = tuple(buffers["psf_widths"].tolist()) if "psf_widths" in buffers else ()  # read here, on the host: a read from the GPU each step waited for it
+        # read here, on the host: a read from the GPU each step waited for it
+        self.psf_widths_host = tuple(buffers["psf_widths"].tolist()) if "psf_widths" in buffers else ()
         self.view_params = torch.nn.ParameterDict(view_params)
         batches, self._views_per_step = R.view_batches(cfg, metadata.get("projections"), self.view_c2w)
-        self.indexed_views = not cfg.per_view_options() and R.on_beam_axes(self.view_c2w)  # a training step's views by one device index (get_outputs)
+        # a training step's views by one device index (get_outputs)
+        self.indexed_views = not cfg.per_view_options() and R.on_beam_axes(self.view_c2w)
         self.register_buffer("train_projections", batches, persistent=False)
 
     @property
     def views_per_step(self) -> int:
-        """Views fitted per training step (auto: resolved at the first training step, :func:`.rendering.first_step_views`)."""
+        """Views fitted per training step (auto: resolved at the first training step,
+        :func:`.rendering.first_step_views`)."""
         if self._views_per_step is None and self.training:
             self._views_per_step = R.first_step_views(self)
         return self._views_per_step or 1
@@ -151,21 +231,36 @@ class GaussianAtomsModel(SplatfactoCompat):
     def get_outputs(self, camera: Cameras, background: bool = True) -> Dict[str, torch.Tensor]:
         """Project the Gaussians for one camera: ``rgb`` (H, W, 3) in [0, 1] for the viewer, ``projection``
         (H, W, 1) in normalised data units (``background=False``: the view's background apart, in
-        ``background``), ``depth``; with views_per_step > 1 the step's other views (``extra_projection``, ``extra_views``: on the model's device)."""
+        ``background``), ``depth``; with views_per_step > 1 the step's other views (``extra_projection``,
+        ``extra_views``: on the model's device)."""
         if camera.shape[0] != 1:
             raise ValueError("GaussianAtomsModel renders one camera at a time")
         dev, dt = self.means.device, self.means.dtype
         c2w = camera.camera_to_worlds[0].to(dt)
-        rows, cols, pitch, view = self.view_geometry.read(camera, c2w, self.training and self.step < self.config.coarse_steps, self.view_c2w, self.training, dev, dt)
-        self._held_out_step, self.rendered_floors = self.training and self.kernel_reading.holds_out(view, self.step), None  # psf held-out: it teaches the kernel, not the atoms
-        indexed = background and self.training and view is not None and self.indexed_views and not self._held_out_step  # the step's views by one device index
+        rows, cols, pitch, view = self.view_geometry.read(
+            camera, c2w, self.training and self.step < self.config.coarse_steps, self.view_c2w, self.training, dev, dt
+        )
+        # psf held-out: it teaches the kernel, not the atoms
+        self._held_out_step, self.rendered_floors = (
+            self.training and self.kernel_reading.holds_out(view, self.step),
+            None,
+        )
+        # the step's views by one device index
+        indexed = background and self.training and view is not None and self.indexed_views and not self._held_out_step
         extra = {}
-        if indexed:  # cameras on their beam axes through the tilt centre: no offset (R.step_index; a CUDA graph's replays refill it, .step_graph)
+        # cameras on their beam axes through the tilt centre: no offset (R.step_index; a CUDA graph's replays refill
+        # it, .step_graph)
+        if indexed:
             index = R.step_index(self, view, dev)
             images = R.render_views(self, index, rows, cols, pitch)
-            image, extra = images[0], ({"extra_projection": images[1:, :, :, None], "extra_views": index[1:]} if len(images) > 1 else {})
+            image, extra = (
+                images[0],
+                ({"extra_projection": images[1:, :, :, None], "extra_views": index[1:]} if len(images) > 1 else {}),
+            )
         else:
-            means, sigmas, amps = [x.detach() if self._held_out_step else x for x in (self.means, self.sigmas, self.amplitudes)]
+            means, sigmas, amps = [
+                x.detach() if self._held_out_step else x for x in (self.means, self.sigmas, self.amplitudes)
+            ]
             image = R.one_view(self, c2w, view, rows, cols, pitch, means, sigmas, amps)
             if view is not None and "background" in self.view_params:
                 with_floor, floors = R.add_view_floors(self, image[None], [view], rows, cols)
@@ -173,37 +268,67 @@ class GaussianAtomsModel(SplatfactoCompat):
         projection, (h, w) = image[..., None], image.shape
         # A line integral has no depth: the image goes behind the viewer's scene (atom points, frustums).
         depth = torch.full((1, 1, 1), 1e3, device=dev, dtype=dt).expand(h, w, 1)
-        return {"rgb": (projection / DATA_RANGE).clamp(0.0, 1.0).expand(h, w, 3), "projection": projection, "depth": depth, **extra}
+        return {
+            "rgb": (projection / DATA_RANGE).clamp(0.0, 1.0).expand(h, w, 3),
+            "projection": projection,
+            "depth": depth,
+            **extra,
+        }
 
     # ------------------------------------------------------------------ losses and metrics
     @staticmethod
     def _measured(outputs, batch) -> torch.Tensor:
         """The measured projection, binned 2 x 2 when the rendering is (coarse phase); made once
         per step (the metrics and the loss both read it) and kept in ``outputs``."""
-        return outputs["measured"] if "measured" in outputs else outputs.setdefault("measured", R.binned_like(batch["image"].to(outputs["projection"]), outputs["projection"]))
+        return (
+            outputs["measured"]
+            if "measured" in outputs
+            else outputs.setdefault(
+                "measured", R.binned_like(batch["image"].to(outputs["projection"]), outputs["projection"])
+            )
+        )
 
     def get_metrics_dict(self, outputs, batch) -> Dict[str, torch.Tensor]:
-        return {"l1": torch.abs(outputs["projection"] - self._measured(outputs, batch)).mean().detach(), "gaussian_count": torch.tensor(float(self.num_points))}
+        return {
+            "l1": torch.abs(outputs["projection"] - self._measured(outputs, batch)).mean().detach(),
+            "gaussian_count": torch.tensor(float(self.num_points)),
+        }
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
-        pred, gt = R.with_other_views(outputs, self._measured(outputs, batch), self.train_projections)  # one loss over all the step's views
+        # one loss over all the step's views
+        pred, gt = R.with_other_views(outputs, self._measured(outputs, batch), self.train_projections)
         self.floors.accumulate(self, pred, gt)  # the rendered views' floors, in closed form
-        noise = self.noise_read  # + 0 x means: differentiable even when every Gaussian was pruned (a held-out view: no gradient, HeldOutKernel.differentiable)
-        loss = self.kernel_reading.differentiable(data_term(pred, gt, self.data_term, noise.gain if noise else 1.0, noise.read_var if noise else 0.0), self.means, self._held_out_step)
+        # + 0 x means: differentiable even when every Gaussian was pruned (a held-out view: no gradient,
+        # HeldOutKernel.differentiable)
+        noise = self.noise_read
+        loss = self.kernel_reading.differentiable(
+            data_term(pred, gt, self.data_term, noise.gain if noise else 1.0, noise.read_var if noise else 0.0),
+            self.means,
+            self._held_out_step,
+        )
         self.finite_watch.check(loss, self.gauss_params, gt, self.step)
         return {"main_loss": loss}
 
     def get_image_metrics_and_images(self, outputs, batch) -> Tuple[Dict[str, float], Dict[str, torch.Tensor]]:
         gt, pred = batch["image"].to(outputs["projection"]), outputs["projection"]
         mse = torch.mean((pred - gt) ** 2)
-        metrics = {"l1": float(torch.abs(pred - gt).mean()), "psnr": float(10 * torch.log10(DATA_RANGE**2 / mse.clamp_min(1e-12))), "gaussian_count": float(self.num_points)}
+        metrics = {
+            "l1": float(torch.abs(pred - gt).mean()),
+            "psnr": float(10 * torch.log10(DATA_RANGE**2 / mse.clamp_min(1e-12))),
+            "gaussian_count": float(self.num_points),
+        }
         return metrics, {"img": (torch.cat([gt, pred], dim=1) / DATA_RANGE).clamp(0, 1).expand(-1, -1, 3)}
 
     # ------------------------------------------------------------------ training callbacks
-    def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
+    def get_training_callbacks(
+        self, training_callback_attributes: TrainingCallbackAttributes
+    ) -> List[TrainingCallback]:
         attrs, after = training_callback_attributes, [TrainingCallbackLocation.AFTER_TRAIN_ITERATION]
-        cbs = [TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], self.step_cb, args=[attrs.optimizers]),
-               TrainingCallback(after, self.refine_after_step), TrainingCallback(after, self.merge_after_step)]  # fmt: skip
+        cbs = [
+            TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], self.step_cb, args=[attrs.optimizers]),
+            TrainingCallback(after, self.refine_after_step),
+            TrainingCallback(after, self.merge_after_step),
+        ]
         trainer = attrs.trainer
         if trainer is not None:
             last = trainer._start_step + trainer.config.max_num_iterations - 1
@@ -211,7 +336,9 @@ class GaussianAtomsModel(SplatfactoCompat):
             # After the refine and merge callbacks: judged on the atoms as they stand.
             cbs.append(TrainingCallback(after, self._stop_if_converged, args=[trainer, last]))
             if self.config.snapshot_every > 0:
-                cbs.append(TrainingCallback(after, self._snapshot_after_step, args=[Path(trainer.base_dir) / "snapshots"]))
+                cbs.append(
+                    TrainingCallback(after, self._snapshot_after_step, args=[Path(trainer.base_dir) / "snapshots"])
+                )
         return cbs
 
     def step_cb(self, optimizers, step: int) -> None:
@@ -240,19 +367,31 @@ class GaussianAtomsModel(SplatfactoCompat):
 
     @torch.no_grad()
     def finalize(self) -> None:
-        """Last merges and prune (one Gaussian per atom; the residual read by :func:`.residuals.residual_correlations`), then a short refit if they changed anything."""
+        """Last merges and prune (one Gaussian per atom; the residual read by
+        :func:`.residuals.residual_correlations`), then a short refit if they changed anything."""
         self.finite_watch.flush()
         judge_after_fit(self)
-        if self.density.finalize(self.gauss_params, self.optimizers, self._param_lists(), lambda m, s: residual_correlations(self, m, s)) and self.optimizers and self.config.final_refit:
+        if (
+            self.density.finalize(
+                self.gauss_params, self.optimizers, self._param_lists(), lambda m, s: residual_correlations(self, m, s)
+            )
+            and self.optimizers
+            and self.config.final_refit
+        ):
             refit(self)
         self.atoms_in_viewer.refresh()
 
     # ------------------------------------------------------------------ results
     @torch.no_grad()
     def atoms(self, params=None) -> AtomSet:
-        """The current Gaussians (or ``params``, a dict like ``gauss_params``) as atoms in Å, in the frame of the input's truth file."""
+        """The current Gaussians (or ``params``, a dict like ``gauss_params``) as atoms in Å, in the frame of the
+        input's truth file."""
         norm, host, p = self.normalisation, lambda t: t.detach().cpu().double().numpy(), params or self.gauss_params
-        return AtomSet(positions=norm.positions_to_A(host(p["means"])), sigmas=norm.sigmas_to_A(host(widths(p, self.density.min_log_sigma))), amplitudes=norm.amplitudes_to_physical(host(amplitudes(p))))
+        return AtomSet(
+            positions=norm.positions_to_A(host(p["means"])),
+            sigmas=norm.sigmas_to_A(host(widths(p, self.density.min_log_sigma))),
+            amplitudes=norm.amplitudes_to_physical(host(amplitudes(p))),
+        )
 
     def position_std_A(self, atoms: AtomSet, noise: float | None = None):
         """Each atom's position precision (N, 3) in Å and the pixel noise assumed (:mod:`.results`)."""
@@ -261,7 +400,13 @@ class GaussianAtomsModel(SplatfactoCompat):
     def converged(self, step: int) -> bool:
         """True once the atoms are settled (:mod:`.convergence`)."""
         worth = self.density.atoms_worth(self.gauss_params) if self.convergence.checks(step) else None
-        return self.convergence.update(step, self.means, self.normalisation.length_scale, lambda noise: self.position_std_A(self.atoms(), noise), worth)
+        return self.convergence.update(
+            step,
+            self.means,
+            self.normalisation.length_scale,
+            lambda noise: self.position_std_A(self.atoms(), noise),
+            worth,
+        )
 
     def write_results(self, run_dir: Path) -> dict | None:
         """atoms.xyz, atoms.csv, slices.png and evaluation.json (:func:`.results.write_results`)."""
@@ -272,8 +417,10 @@ class GaussianAtomsModel(SplatfactoCompat):
             self.write_results(Path(run_dir))
 
     def _stop_if_converged(self, trainer, last_step: int, step: int) -> None:
-        """At each check: stop once the atoms are settled, else search, settle the set or slow the positions (:mod:`.stopping`)."""
-        if self.kernel_reading.first_pass:  # psf held-out: the reading ends once the kernel is held (.kernel_reading.restart_with_kernel_held)
+        """At each check: stop once the atoms are settled, else search, settle the set or slow the positions
+        (:mod:`.stopping`)."""
+        # psf held-out: the reading ends once the kernel is held (.kernel_reading.restart_with_kernel_held)
+        if self.kernel_reading.first_pass:
             trainer.stop_training = self.kernel_reading.settled
         elif at_check(self, step, last_step):
             if getattr(trainer, "progress", None) is not None:  # the bar ends here, before the results print
@@ -287,4 +434,11 @@ class GaussianAtomsModel(SplatfactoCompat):
         if (step + 1) % self.config.snapshot_every == 0:
             params = self.density.average.mean(self.gauss_params)
             in_field = self.density.in_field(params["means"]).cpu().numpy()  # the mean is detached
-            write_snapshot(self.atoms(params), directory, step + 1, self.num_points, torch.cuda.max_memory_allocated() if self.means.is_cuda else 0, in_field)
+            write_snapshot(
+                self.atoms(params),
+                directory,
+                step + 1,
+                self.num_points,
+                torch.cuda.max_memory_allocated() if self.means.is_cuda else 0,
+                in_field,
+            )

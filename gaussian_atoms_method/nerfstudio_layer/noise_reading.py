@@ -13,7 +13,17 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from gaussian_atoms_method.atoms.initialise import Start
 from gaussian_atoms_method.physics.data_terms import choose_data_term
-from gaussian_atoms_method.physics.noise import NoiseModel, as_array, atom_scale_excess, clipped_frame, detector_floor, frame_mask, frame_surfaces, inflated, measure_noise
+from gaussian_atoms_method.physics.noise import (
+    NoiseModel,
+    as_array,
+    atom_scale_excess,
+    clipped_frame,
+    detector_floor,
+    frame_mask,
+    frame_surfaces,
+    inflated,
+    measure_noise,
+)
 
 FLOOR_Z = 5.0
 """A frame level this many standard errors off zero is a real offset: a one-in-3.5-million
@@ -26,7 +36,9 @@ a few per cent, the pre-fit noise model to 10-20% (:func:`~gaussian_atoms_method
 atoms reaching the frame (a film, a crowded field) add far more."""
 
 
-def read_noise(projections, loss: str, background: str, measured: NoiseModel | None = None) -> tuple[NoiseModel | None, str, float | None, np.ndarray | None]:
+def read_noise(
+    projections, loss: str, background: str, measured: NoiseModel | None = None
+) -> tuple[NoiseModel | None, str, float | None, np.ndarray | None]:
     """The noise model of the (V, H, W) normalised projections (None without data), the data
     term to use, the detected floor and, for a floor that varies within the views, its shape.
 
@@ -59,7 +71,9 @@ def read_noise(projections, loss: str, background: str, measured: NoiseModel | N
         found, smooth = _floor_shape(noise, floor, frame_var, smooth_var, n_frame)
         if background == "auto" and not found:
             # Atoms reach the frame: read the floor from the pixels they leave alone.
-            surfaces, floor, floor_se, frame_var, smooth_var = clipped_frame(data, float(np.sqrt(noise.variance(np.array([floor]))[0])))
+            surfaces, floor, floor_se, frame_var, smooth_var = clipped_frame(
+                data, float(np.sqrt(noise.variance(np.array([floor]))[0]))
+            )
             found, smooth = _floor_shape(noise, floor, frame_var, smooth_var, frame_var / max(floor_se, 1e-300) ** 2)
             found, clipped = found and abs(floor) > FLOOR_Z * floor_se, True
         if background == "smooth" or (found and smooth):
@@ -67,14 +81,24 @@ def read_noise(projections, loss: str, background: str, measured: NoiseModel | N
         else:
             surfaces = None
     said = f"{noise.kind} (read variance {noise.read_var:.3g}, gain {noise.gain:.3g} per count, normalised units)"
-    shape = "a floor that varies smoothly within each view (its frame's quadratic surface) and a constant" if surfaces is not None else "a constant background"
+    shape = (
+        "a floor that varies smoothly within each view (its frame's quadratic surface) and a constant"
+        if surfaces is not None
+        else "a constant background"
+    )
     where = " (its pixels that no atom reaches)" if clipped else ""
-    bg = f"; frame level{where} {floor:.3g} ± {floor_se:.1g}: fitting {shape} per view from it" if found and background == "auto" else ""
+    bg = (
+        f"; frame level{where} {floor:.3g} ± {floor_se:.1g}: fitting {shape} per view from it"
+        if found and background == "auto"
+        else ""
+    )
     CONSOLE.print(f"gaussian-atoms: noise read from the projections: {said}; data term {term}{bg}")
     return noise, term, (floor if found else None), surfaces
 
 
-def _floor_shape(noise: NoiseModel, floor: float, frame_var: float, smooth_var: float, n_pixels: float) -> tuple[bool, bool]:
+def _floor_shape(
+    noise: NoiseModel, floor: float, frame_var: float, smooth_var: float, n_pixels: float
+) -> tuple[bool, bool]:
     """Whether the frame is background (it varies by at most :data:`FLAT_FRAME_RATIO` times the
     noise variance at ``floor``, about its views' means or their quadratic surfaces) and whether
     it is smooth rather than flat (the surfaces explain it better than the means by more than
@@ -92,10 +116,22 @@ def say_start(start: Start, length_scale: float, option: str, ahead: bool = Fals
     found by :mod:`gaussian_atoms_method.start_ahead` while the launcher loaded)."""
     field = start.field
     if field.slice_px is not None:
-        why = f"the views' projected mass grows like 1/cos(tilt) ({field.evidence.z:.1f} standard errors, {field.evidence.outside_fraction:.0%} of the zero-tilt mass)" if option == "auto" else "extended-object on"
-        CONSOLE.print(f"gaussian-atoms: an object wider than the field of view: {why}; Gaussians fill {2 * field.reach / length_scale:.0f} Å across the tilt axis, those above the detector are reported as atoms")
+        why = (
+            f"the views' projected mass grows like 1/cos(tilt) ({field.evidence.z:.1f} standard errors, "
+            f"{field.evidence.outside_fraction:.0%} of the zero-tilt mass)"
+            if option == "auto"
+            else "extended-object on"
+        )
+        CONSOLE.print(
+            f"gaussian-atoms: an object wider than the field of view: {why}; Gaussians fill "
+            f"{2 * field.reach / length_scale:.0f} Å across the tilt axis, those above the detector are reported as "
+            f"atoms"
+        )
     if start.weights is not None:
-        CONSOLE.print(f"gaussian-atoms: {len(start.means)} Gaussians start at back-projection maxima" + (" (found while the launcher loaded)" if ahead else ""))
+        CONSOLE.print(
+            f"gaussian-atoms: {len(start.means)} Gaussians start at back-projection maxima"
+            + (" (found while the launcher loaded)" if ahead else "")
+        )
 
 
 def say_hard_core(species: tuple[str, ...]) -> float | None:
@@ -105,9 +141,15 @@ def say_hard_core(species: tuple[str, ...]) -> float | None:
 
     if species:
         distance = hard_core_from_species(species)
-        CONSOLE.print(f"gaussian-atoms: hard core {distance:.2f} Å ({','.join(species)}: {COVALENT_FRACTION:.2f} of the least sum of covalent radii): no two atoms closer")
+        CONSOLE.print(
+            f"gaussian-atoms: hard core {distance:.2f} Å ({','.join(species)}: {COVALENT_FRACTION:.2f} of the least "
+            f"sum of covalent radii): no two atoms closer"
+        )
         return distance
-    CONSOLE.print(f"gaussian-atoms: hard core read from the confident atoms ({SHELL_FRACTION:.2f} of their first shell's peak; give the elements with --species to set it)")
+    CONSOLE.print(
+        f"gaussian-atoms: hard core read from the confident atoms ({SHELL_FRACTION:.2f} of their first shell's peak; "
+        f"give the elements with --species to set it)"
+    )
     return None
 
 
@@ -138,5 +180,8 @@ def judge_after_fit(model) -> None:
     sigma_px = float(model.sigmas.median()) / model.density.pixel_size
     judged, factor = noise_after_fit(model.density.noise, measured, predicted, sigma_px)
     if factor > 1.0:
-        CONSOLE.print(f"gaussian-atoms: over an atom the fit's residuals vary {factor:.3g} times as much as the noise read before training; the final merges and prune judge in that")
+        CONSOLE.print(
+            f"gaussian-atoms: over an atom the fit's residuals vary {factor:.3g} times as much as the noise read "
+            f"before training; the final merges and prune judge in that"
+        )
     model.density.noise = judged

@@ -23,12 +23,37 @@ SplatfactoModelConfig = import_splatfacto().SplatfactoModelConfig
 
 
 INERT_SPLATFACTO = (
-    "background_color", "camera_optimizer", "collider_params", "color_corrected_metrics", "cull_alpha_thresh", "cull_scale_thresh",
-    "cull_screen_size", "densify_size_thresh", "enable_collider", "eval_num_rays_per_chunk", "grid_shape", "loss_coefficients",
-    "max_gauss_ratio", "n_split_samples", "num_downscales", "output_depth_during_training", "prompt", "random_init", "random_scale",
-    "rasterize_mode", "reset_alpha_every", "resolution_schedule", "sh_degree", "sh_degree_interval", "split_screen_size", "ssim_lambda",
-    "stop_screen_size_at", "use_absgrad", "use_bilateral_grid", "use_scale_regularization",
-)  # fmt: skip
+    "background_color",
+    "camera_optimizer",
+    "collider_params",
+    "color_corrected_metrics",
+    "cull_alpha_thresh",
+    "cull_scale_thresh",
+    "cull_screen_size",
+    "densify_size_thresh",
+    "enable_collider",
+    "eval_num_rays_per_chunk",
+    "grid_shape",
+    "loss_coefficients",
+    "max_gauss_ratio",
+    "n_split_samples",
+    "num_downscales",
+    "output_depth_during_training",
+    "prompt",
+    "random_init",
+    "random_scale",
+    "rasterize_mode",
+    "reset_alpha_every",
+    "resolution_schedule",
+    "sh_degree",
+    "sh_degree_interval",
+    "split_screen_size",
+    "ssim_lambda",
+    "stop_screen_size_at",
+    "use_absgrad",
+    "use_bilateral_grid",
+    "use_scale_regularization",
+)
 """splatfacto's options that do nothing here (colours, alpha compositing, screen-space culling, SSIM,
 cameras' optimisation): kept on the config, so nerfstudio's code and old config.yml files read them,
 and left out of ``--help`` and the command line."""
@@ -42,7 +67,11 @@ def inert_splatfacto_fields() -> dict:
     out = {}
     for name in INERT_SPLATFACTO:
         f = base[name]
-        default = dataclasses.field(default=f.default) if f.default is not dataclasses.MISSING else dataclasses.field(default_factory=f.default_factory)
+        default = (
+            dataclasses.field(default=f.default)
+            if f.default is not dataclasses.MISSING
+            else dataclasses.field(default_factory=f.default_factory)
+        )
         out[name] = (Annotated[hints[name], tyro.conf.Suppress], default)
     return out
 
@@ -278,8 +307,15 @@ class GaussianAtomsOptions(SplatfactoModelConfig, UserFirstOptions):
 
     def per_view_options(self) -> list[str]:
         """The options on that give each view its own parameters (one view per step only)."""
-        return [name for name, on in (("refine-alignment", self.refine_alignment), ("refine-tilts", self.refine_tilts),
-                ("isotropic False", not self.isotropic)) if on]  # fmt: skip
+        return [
+            name
+            for name, on in (
+                ("refine-alignment", self.refine_alignment),
+                ("refine-tilts", self.refine_tilts),
+                ("isotropic False", not self.isotropic),
+            )
+            if on
+        ]
 
     def check(self) -> None:
         """Raise :class:`OptionError` naming the option for settings that cannot work together,
@@ -289,20 +325,38 @@ class GaussianAtomsOptions(SplatfactoModelConfig, UserFirstOptions):
         if self.views_per_step != "auto" and self.views_per_step > 1:
             per_view = self.per_view_options()
             if per_view:
-                raise OptionError(f"--pipeline.model.views-per-step {self.views_per_step} cannot be combined with --pipeline.model.{per_view[0]} (per-view parameters); use 1")
-        positive = {"num-random": self.num_random, "init-sigma-A": self.init_sigma_A, "min-sigma-A": self.min_sigma_A, "max-sigma-A": self.max_sigma_A,
-                    "refine-every": self.refine_every, "merge-every": self.merge_every, "max-gaussians": self.max_gaussians}  # fmt: skip
+                raise OptionError(
+                    f"--pipeline.model.views-per-step {self.views_per_step} cannot be combined with "
+                    f"--pipeline.model.{per_view[0]} (per-view parameters); use 1"
+                )
+        positive = {
+            "num-random": self.num_random,
+            "init-sigma-A": self.init_sigma_A,
+            "min-sigma-A": self.min_sigma_A,
+            "max-sigma-A": self.max_sigma_A,
+            "refine-every": self.refine_every,
+            "merge-every": self.merge_every,
+            "max-gaussians": self.max_gaussians,
+        }
         for name, value in positive.items():
             if not value > 0:
                 raise OptionError(f"--pipeline.model.{name} must be positive, got {value}")
         if not self.min_sigma_A <= self.init_sigma_A <= self.max_sigma_A:
-            raise OptionError(f"--pipeline.model.init-sigma-A {self.init_sigma_A} must lie within [min-sigma-A {self.min_sigma_A}, max-sigma-A {self.max_sigma_A}]")
+            raise OptionError(
+                f"--pipeline.model.init-sigma-A {self.init_sigma_A} must lie within [min-sigma-A {self.min_sigma_A}, "
+                f"max-sigma-A {self.max_sigma_A}]"
+            )
         if not 0 < self.false_alarm_rate < 1:
             raise OptionError(f"--pipeline.model.false-alarm-rate must lie in (0, 1), got {self.false_alarm_rate}")
         if self.position_rate_px is not None and not self.position_rate_px > 0:
-            raise OptionError(f"--pipeline.model.position-rate-px must be positive (detector pixels per step) or None, got {self.position_rate_px}")
+            raise OptionError(
+                f"--pipeline.model.position-rate-px must be positive (detector pixels per step) or None, got "
+                f"{self.position_rate_px}"
+            )
         if not 0 < self.false_discovery_rate < 1:
-            raise OptionError(f"--pipeline.model.false-discovery-rate must lie in (0, 1), got {self.false_discovery_rate}")
+            raise OptionError(
+                f"--pipeline.model.false-discovery-rate must lie in (0, 1), got {self.false_discovery_rate}"
+            )
         if self.start_atoms is not None:
             from gaussian_atoms_method.atoms.atom_set import AtomFileError, read_atoms
 
@@ -314,7 +368,18 @@ class GaussianAtomsOptions(SplatfactoModelConfig, UserFirstOptions):
         from gaussian_atoms_method.physics.psf import KERNEL_WIDTHS_A
 
         if len(self.psf_weights) != len(KERNEL_WIDTHS_A) or min(self.psf_weights) < 0 or sum(self.psf_weights) >= 1:
-            raise OptionError(f"--pipeline.model.psf-weights takes {len(KERNEL_WIDTHS_A)} non-negative fractions (at {', '.join(f'{w:g}' for w in KERNEL_WIDTHS_A)} Å) summing to less than 1, got {' '.join(f'{w:g}' for w in self.psf_weights)}")
-        if self.merge_threshold_A < 0 or self.prune_mass_fraction < 0 or self.coarse_steps < 0 or self.snapshot_every < 0:
-            raise OptionError("--pipeline.model.merge-threshold-A, prune-mass-fraction, coarse-steps and snapshot-every must not be negative")
-
+            raise OptionError(
+                f"--pipeline.model.psf-weights takes {len(KERNEL_WIDTHS_A)} non-negative fractions (at "
+                f"{', '.join(f'{w:g}' for w in KERNEL_WIDTHS_A)} Å) summing to less than 1, got "
+                f"{' '.join(f'{w:g}' for w in self.psf_weights)}"
+            )
+        if (
+            self.merge_threshold_A < 0
+            or self.prune_mass_fraction < 0
+            or self.coarse_steps < 0
+            or self.snapshot_every < 0
+        ):
+            raise OptionError(
+                "--pipeline.model.merge-threshold-A, prune-mass-fraction, coarse-steps and snapshot-every must not be "
+                "negative"
+            )

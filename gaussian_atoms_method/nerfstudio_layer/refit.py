@@ -21,7 +21,8 @@ def refit(model, max_passes: int = 10) -> int:
     settle: no more than the false discovery rate's share of the atoms move by more than their
     own Cramér-Rao precision from one pass to the next (their means over a pass,
     ``average_iterates``, :mod:`gaussian_atoms_method.density.averaging`; the last iterate
-    without), or the passes' means only scatter, no longer drift (:func:`.convergence.drifting`), two passes in a row (the training's stop, :mod:`.convergence`, per atom rather
+    without), or the passes' means only scatter, no longer drift (:func:`.convergence.drifting`), two passes in a row
+    (the training's stop, :mod:`.convergence`, per atom rather
     than as an RMS: after the merge only the merged atoms still move), at most ``max_passes``;
     the positions are then the mean over those passes and the one before, or, unsettled, over
     the second half of the passes (the first half the transient).  After a stop at step 1,200
@@ -47,7 +48,11 @@ def refit(model, max_passes: int = 10) -> int:
             return 0
         # Called where results are written: possibly under no_grad or inference mode.
         with torch.inference_mode(False), torch.enable_grad():
-            passes, first = [model.means.detach().clone()], 1  # the start, then each pass's mean; the streak from passes[first]
+            # the start, then each pass's mean; the streak from passes[first]
+            passes, first = (
+                [model.means.detach().clone()],
+                1,
+            )
             for _ in range(max_passes):
                 average = IterateAverage() if model.density.average_iterates else None
                 steps += _refit_pass(model, cameras, measured_all, names, model.views_per_step, average)
@@ -59,18 +64,31 @@ def refit(model, max_passes: int = 10) -> int:
                 std, noise = result
                 precision_A = np.sqrt((std**2).sum(axis=1))
                 moving = int(np.count_nonzero(moved_A > precision_A))
-                jitter_only = len(passes) >= 3 and not drifting(*(m.cpu().double().numpy() / model.normalisation.length_scale for m in (passes[-2], passes[-1], now)), precision_A)
-                settled = settled + 1 if moving <= model.config.false_discovery_rate * len(moved_A) or jitter_only else 0
+                jitter_only = len(passes) >= 3 and not drifting(
+                    *(
+                        m.cpu().double().numpy() / model.normalisation.length_scale
+                        for m in (passes[-2], passes[-1], now)
+                    ),
+                    precision_A,
+                )
+                settled = (
+                    settled + 1 if moving <= model.config.false_discovery_rate * len(moved_A) or jitter_only else 0
+                )
                 first = first if settled else len(passes)
                 passes.append(now)
                 if settled >= 2:
                     break
-            if average is not None and len(passes) > 1:  # the mean over the settled passes and the one before, or over the second half
-                model.gauss_params["means"].data.copy_(torch.stack(passes[first:] if settled >= 2 else passes[1:][(len(passes) - 1) // 2 :]).mean(dim=0))
+            # the mean over the settled passes and the one before, or over the second half
+            if average is not None and len(passes) > 1:
+                model.gauss_params["means"].data.copy_(
+                    torch.stack(passes[first:] if settled >= 2 else passes[1:][(len(passes) - 1) // 2 :]).mean(dim=0)
+                )
     return steps
 
 
-def _refit_pass(model, cameras, measured_all: torch.Tensor, names, views_per_step: int = 1, average: IterateAverage | None = None) -> int:
+def _refit_pass(
+    model, cameras, measured_all: torch.Tensor, names, views_per_step: int = 1, average: IterateAverage | None = None
+) -> int:
     """One pass over the views, ``views_per_step`` per step (the mean of their losses, as
     training's one loss over a step's views), fitted to ``measured_all`` (V, H, W) on the model's
     device (once a refit: a copy of a step's views at each step waited for the queued step, 8.8 ms
@@ -88,9 +106,17 @@ def _refit_pass(model, cameras, measured_all: torch.Tensor, names, views_per_ste
             model.optimizers[n].zero_grad()
         if together is not None:  # the data term's mean over all the step's pixels: the mean of its views' (one size)
             index = order_on_device[start : start + size]
-            loss = model.get_loss_dict({"projection": render_views(model, index, *together[:3])[..., None]}, {"image": measured_all[index][..., None]})["main_loss"]
+            loss = model.get_loss_dict(
+                {"projection": render_views(model, index, *together[:3])[..., None]},
+                {"image": measured_all[index][..., None]},
+            )["main_loss"]
         else:
-            loss = sum(model.get_loss_dict(model.get_outputs(cameras[v : v + 1]), {"image": measured_all[v][..., None]})["main_loss"] for v in batch.tolist()) / len(batch)
+            loss = sum(
+                model.get_loss_dict(model.get_outputs(cameras[v : v + 1]), {"image": measured_all[v][..., None]})[
+                    "main_loss"
+                ]
+                for v in batch.tolist()
+            ) / len(batch)
         loss.backward()
         for n in names:
             model.optimizers[n].step()

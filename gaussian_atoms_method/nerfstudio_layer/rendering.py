@@ -26,8 +26,13 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch.nn import Parameter
 
 from gaussian_atoms_method.nerfstudio_layer.options import OptionError
-from gaussian_atoms_method.physics.projector import (covariances_from_scales_quats, project_anisotropic_gaussians, project_gaussians,
-                                                     project_gaussians_gsplat, project_gaussians_tiled)
+from gaussian_atoms_method.physics.projector import (
+    covariances_from_scales_quats,
+    project_anisotropic_gaussians,
+    project_gaussians,
+    project_gaussians_gsplat,
+    project_gaussians_tiled,
+)
 from gaussian_atoms_method.physics.psf import KERNEL_WIDTHS_A, apply_kernel
 
 
@@ -57,7 +62,9 @@ def binned_views(images: torch.Tensor, h: int, w: int) -> torch.Tensor:
     return ((x[..., 0::2, 0::2] + x[..., 0::2, 1::2]) + (x[..., 1::2, 0::2] + x[..., 1::2, 1::2])) * 0.25
 
 
-def pixel_coordinates(camera: Cameras, c2w: torch.Tensor, coarse: bool, device, dtype) -> tuple[torch.Tensor, torch.Tensor]:
+def pixel_coordinates(
+    camera: Cameras, c2w: torch.Tensor, coarse: bool, device, dtype
+) -> tuple[torch.Tensor, torch.Tensor]:
     """(H,) and (W,) detector coordinates (normalised lengths) of the pixel centres of one
     camera, along its rows and columns from the tilt centre.
 
@@ -88,7 +95,9 @@ def rotate_about(vectors: list[torch.Tensor], axis: torch.Tensor, angle: torch.T
     return [v * c + torch.linalg.cross(axis, v) * s + axis * torch.dot(axis, v) * (1 - c) for v in vectors]
 
 
-def add_background(image: torch.Tensor, coefficients: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:
+def add_background(
+    image: torch.Tensor, coefficients: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor
+) -> torch.Tensor:
     """(H, W) ``image`` plus a view's background: a constant (1 coefficient), a plane over the
     detector in normalised coordinates (3: constant, row slope, column slope) or a quadratic
     surface (6: those and the row^2, row x column and column^2 terms), :func:`floor_images`."""
@@ -148,9 +157,15 @@ def view_parameters(cfg, n_views: int, floor: float | None, surfaces, series, le
     ``surfaces`` of a floor that varies within the views), the point-spread function's weights,
     shifts and tilt errors, as the options ask."""
     import numpy as np
-    from torch.nn import Parameter
 
-    params, buffers = {}, {"background_surfaces": torch.as_tensor(surfaces if surfaces is not None else np.zeros((0, 1, 1)), dtype=torch.float32)}
+    params, buffers = (
+        {},
+        {
+            "background_surfaces": torch.as_tensor(
+                surfaces if surfaces is not None else np.zeros((0, 1, 1)), dtype=torch.float32
+            )
+        },
+    )
     background = cfg.background if cfg.background != "auto" else ("constant" if floor is not None else "none")
     if background != "none":
         # A floor that varies within the views starts on its frame's quadratic surface and gets
@@ -158,17 +173,22 @@ def view_parameters(cfg, n_views: int, floor: float | None, surfaces, series, le
         # reaches holds the object's tails (on the 20,000-atom a-Si the frame's upper 3-sigma
         # tail held 4 times its lower), and held fixed its misfit went to Gaussians in the vacuum.
         terms = 3 if background == "plane" else 6 if surfaces is not None else 1
-        params["background"] = Parameter(torch.zeros(n_views, terms), requires_grad=False)  # solved, not learned (.floors)
+        # solved, not learned (.floors)
+        params["background"] = Parameter(torch.zeros(n_views, terms), requires_grad=False)
         params["background"].data[:, 0] = floor or 0.0
     if cfg.psf != "none":  # one kernel for every view: the microscope's
         # learned from psf_weights (zeros: the identity, no kernel until the data ask), or held there
-        params["psf"] = Parameter(torch.tensor(cfg.psf_weights, dtype=torch.float32), requires_grad=cfg.psf == "learned")
+        params["psf"] = Parameter(
+            torch.tensor(cfg.psf_weights, dtype=torch.float32), requires_grad=cfg.psf == "learned"
+        )
         buffers["psf_widths"] = torch.tensor(KERNEL_WIDTHS_A) * length_scale
     if cfg.refine_alignment:
         params["view_shifts"] = Parameter(torch.zeros(n_views, 2))
     if cfg.refine_tilts:
         if series is None:
-            raise OptionError("--pipeline.model.refine-tilts needs a single-axis tilt series from the tilt-series dataparser")
+            raise OptionError(
+                "--pipeline.model.refine-tilts needs a single-axis tilt series from the tilt-series dataparser"
+            )
         params["view_tilts"] = Parameter(torch.zeros(n_views, 1))
         buffers["tilt_axis_vector"] = torch.tensor([0.0, 1.0, 0.0] if series.tilt_axis == "y" else [1.0, 0.0, 0.0])
     return params, buffers
@@ -180,10 +200,21 @@ def blur(model, images: torch.Tensor, spacing: float | None) -> torch.Tensor:
     widths are the model's ``psf_widths_host``, read once when its buffers were made)."""
     if "psf" not in model.view_params or spacing is None:
         return images
-    return apply_kernel(images, spacing, model.psf_widths_host, model.view_params["psf"].to(images))  # kept non-negative by project_weights after each step (psf held-out: read, not learned)
+    # kept non-negative by project_weights after each step (psf held-out: read, not learned)
+    return apply_kernel(images, spacing, model.psf_widths_host, model.view_params["psf"].to(images))
 
 
-def one_view(model, c2w: torch.Tensor, view: int | None, rows: torch.Tensor, cols: torch.Tensor, pitch: float | None, means, sigmas, amplitudes) -> torch.Tensor:
+def one_view(
+    model,
+    c2w: torch.Tensor,
+    view: int | None,
+    rows: torch.Tensor,
+    cols: torch.Tensor,
+    pitch: float | None,
+    means,
+    sigmas,
+    amplitudes,
+) -> torch.Tensor:
     """(H, W) the model's projection for one camera from its own (3, 4) pose ``c2w`` (the
     viewer's, evaluation's, or a training view's with a learned shift or tilt error, or
     anisotropic Gaussians), blurred by the model's kernel."""
@@ -191,16 +222,22 @@ def one_view(model, c2w: torch.Tensor, view: int | None, rows: torch.Tensor, col
     (rows_dir, cols_dir), t = detector_axes(c2w), c2w[:, 3]
     if view is not None and "view_tilts" in model.view_params:
         tilts = model.view_params["view_tilts"]  # the error relative to the mean (a common one rotates the particle)
-        rows_dir, cols_dir, t = rotate_about([rows_dir, cols_dir, t], model.tilt_axis_vector.to(dev, dt), (tilts[view, 0] - tilts[:, 0].mean()).to(dt))
+        rows_dir, cols_dir, t = rotate_about(
+            [rows_dir, cols_dir, t], model.tilt_axis_vector.to(dev, dt), (tilts[view, 0] - tilts[:, 0].mean()).to(dt)
+        )
     axes = torch.stack([rows_dir, cols_dir])[None]
     if view is not None and "view_shifts" in model.view_params:  # the content sits shifted by s: evaluate at x - s
         shifts = model.view_params["view_shifts"]
         s = (shifts[view] - shifts.mean(dim=0)).to(dt)
         rows, cols = rows - s[0], cols - s[1]
     if model.config.isotropic:
-        return blur(model, projector_for(model.config.projector, dev)(means - t, sigmas, amplitudes, axes, rows, cols), pitch)[0]
+        return blur(
+            model, projector_for(model.config.projector, dev)(means - t, sigmas, amplitudes, axes, rows, cols), pitch
+        )[0]
     cov = covariances_from_scales_quats(model._log_scales(), model.gauss_params["quats"])
-    return blur(model, project_anisotropic_gaussians(model.means - t, cov, model.amplitudes, axes, rows, cols), pitch)[0]
+    return blur(model, project_anisotropic_gaussians(model.means - t, cov, model.amplitudes, axes, rows, cols), pitch)[
+        0
+    ]
 
 
 def view_floors(model, views, powers: tuple[torch.Tensor, torch.Tensor], dtype) -> torch.Tensor:
@@ -216,7 +253,9 @@ def view_floors(model, views, powers: tuple[torch.Tensor, torch.Tensor], dtype) 
     return floors
 
 
-def add_view_floors(model, images: torch.Tensor, views, rows: torch.Tensor, cols: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def add_view_floors(
+    model, images: torch.Tensor, views, rows: torch.Tensor, cols: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """(V, H, W) ``images`` of the model's ``views`` plus their floors (:func:`view_floors`), and
     the floors; what was rendered is kept for the floors' closed-form solve
     (``model.rendered_floors``: the views, the detector's coordinate powers and the floors)."""
@@ -239,7 +278,9 @@ class ViewGeometry:
         self._powers: dict = {}  # id(rows), id(cols) -> (rows, cols, their coordinate_powers)
         self._surfaces: dict = {}  # (h, w) -> the floors' surfaces binned to (V, h, w)
 
-    def read(self, camera: Cameras, c2w: torch.Tensor, coarse: bool, view_c2w: torch.Tensor, training: bool, device, dtype):
+    def read(
+        self, camera: Cameras, c2w: torch.Tensor, coarse: bool, view_c2w: torch.Tensor, training: bool, device, dtype
+    ):
         """(rows, cols, pitch, view): :func:`pixel_coordinates`, the pitch of the rows as a float
         (None for a single row) and :func:`view_index` of ``camera``."""
         index = (camera.metadata or {}).get("cam_idx") if training else None
@@ -288,9 +329,14 @@ def check_view_batches(views_per_step: int, projections, view_c2w: torch.Tensor)
     if views_per_step <= 1:
         return torch.zeros(0, 1, 1)
     if projections is None or view_c2w.shape[0] < 2:
-        raise OptionError("--pipeline.model.views-per-step > 1 needs a tilt series from the tilt-series dataparser (its projections and view poses)")
+        raise OptionError(
+            "--pipeline.model.views-per-step > 1 needs a tilt series from the tilt-series dataparser (its projections "
+            "and view poses)"
+        )
     if not on_beam_axes(view_c2w):
-        raise OptionError("--pipeline.model.views-per-step > 1 needs every camera on its beam axis through the tilt centre")
+        raise OptionError(
+            "--pipeline.model.views-per-step > 1 needs every camera on its beam axis through the tilt centre"
+        )
     return torch.as_tensor(projections, dtype=torch.float32)
 
 
@@ -300,19 +346,33 @@ def on_beam_axes(view_c2w: torch.Tensor) -> bool:
     camera offset (:func:`step_index`)."""
     if view_c2w.shape[0] == 0:
         return False
-    off_axis = torch.stack([(view_c2w[:, :, 3] * view_c2w[:, :, 0]).sum(-1), (view_c2w[:, :, 3] * view_c2w[:, :, 1]).sum(-1)]).abs().max()
+    off_axis = (
+        torch.stack([(view_c2w[:, :, 3] * view_c2w[:, :, 0]).sum(-1), (view_c2w[:, :, 3] * view_c2w[:, :, 1]).sum(-1)])
+        .abs()
+        .max()
+    )
     return float(off_axis) <= 1e-5
 
 
-def render_views(model, index, rows: torch.Tensor, cols: torch.Tensor, pitch: float | None, floors: bool = True) -> torch.Tensor:
+def render_views(
+    model, index, rows: torch.Tensor, cols: torch.Tensor, pitch: float | None, floors: bool = True
+) -> torch.Tensor:
     """(V, H, W) the model's projections of its training ``views`` (a list, or a (V,) index on the
     model's device) in one projector call, on the detector of ``rows`` and ``cols``: the cameras
     on their beam axes through the tilt centre (``model.indexed_views``), blurred by the model's
     kernel, with their floors (``floors``)."""
     dev, dt = model.means.device, model.means.dtype
     index = index_on(index, dev)
-    images = blur(model, projector_for(model.config.projector, dev)(model.means, model.sigmas, model.amplitudes, detector_axes(model.view_c2w[index].to(dev, dt)), rows, cols), pitch)
-    return add_view_floors(model, images, index, rows, cols)[0] if floors and "background" in model.view_params else images
+    images = blur(
+        model,
+        projector_for(model.config.projector, dev)(
+            model.means, model.sigmas, model.amplitudes, detector_axes(model.view_c2w[index].to(dev, dt)), rows, cols
+        ),
+        pitch,
+    )
+    return (
+        add_view_floors(model, images, index, rows, cols)[0] if floors and "background" in model.view_params else images
+    )
 
 
 RENDER_MEMORY_SHARE = 0.25
@@ -365,7 +425,9 @@ def view_batches(cfg, projections, view_c2w: torch.Tensor) -> tuple[torch.Tensor
     (refine-alignment, refine-tilts, anisotropic Gaussians) or without a tilt series' cameras."""
     views = 1 if cfg.views_per_step == "auto" and cfg.per_view_options() else cfg.views_per_step
     try:
-        return check_view_batches(MAX_VIEWS_PER_STEP if views == "auto" else views, projections, view_c2w), (None if views == "auto" else views)
+        return check_view_batches(MAX_VIEWS_PER_STEP if views == "auto" else views, projections, view_c2w), (
+            None if views == "auto" else views
+        )
     except OptionError:
         if views != "auto":
             raise
@@ -377,9 +439,17 @@ def first_step_views(model) -> int:
     detector and projector on its device (:func:`auto_views_per_step`); printed."""
     _, h, w = model.train_projections.shape
     dev, dt = model.means.device, model.means.dtype
-    rows, cols = torch.arange(h, device=dev, dtype=dt) - 0.5 * (h - 1), torch.arange(w, device=dev, dtype=dt) - 0.5 * (w - 1)
-    views = auto_views_per_step(projector_for(model.config.projector, dev), model.means.shape[0], model.view_c2w.shape[0], rows, cols)
-    CONSOLE.print(f"gaussian-atoms: {views} views per step (auto, {projector_name(model.config.projector, dev)} projector on {dev.type})")
+    rows, cols = (
+        torch.arange(h, device=dev, dtype=dt) - 0.5 * (h - 1),
+        torch.arange(w, device=dev, dtype=dt) - 0.5 * (w - 1),
+    )
+    views = auto_views_per_step(
+        projector_for(model.config.projector, dev), model.means.shape[0], model.view_c2w.shape[0], rows, cols
+    )
+    CONSOLE.print(
+        f"gaussian-atoms: {views} views per step (auto, {projector_name(model.config.projector, dev)} projector on "
+        f"{dev.type})"
+    )
     return views
 
 
@@ -399,7 +469,9 @@ MEMORY_SHARE = 0.5
 for the start's leftovers, the residual search's back-projections and the final stage."""
 
 
-def projector_bytes_per_view(projector, n_gaussians: int, rows: torch.Tensor, cols: torch.Tensor, sample: int = 1024) -> float:
+def projector_bytes_per_view(
+    projector, n_gaussians: int, rows: torch.Tensor, cols: torch.Tensor, sample: int = 1024
+) -> float:
     """Bytes autograd keeps for one view of ``n_gaussians`` through ``projector`` on the
     detector (``rows``, ``cols``) and device of the coordinates: measured on ``sample`` Gaussians
     in two views (the tensors saved for the backward pass, each storage once) and scaled to
@@ -437,7 +509,9 @@ def auto_views_per_step(projector, n_gaussians: int, n_views: int, rows: torch.T
     return best
 
 
-def projector_seconds(projector, n_gaussians: int, views: int, rows: torch.Tensor, cols: torch.Tensor, repeats: int = 3) -> float:
+def projector_seconds(
+    projector, n_gaussians: int, views: int, rows: torch.Tensor, cols: torch.Tensor, repeats: int = 3
+) -> float:
     """Median wall time of the projector's forward and backward pass for ``n_gaussians`` random
     Gaussians in ``views`` views on the coordinates' device (synchronised; after one untimed call)."""
     device = rows.device
@@ -462,8 +536,13 @@ def probe_scene(n_gaussians: int, views: int, rows: torch.Tensor, cols: torch.Te
     sigmas = torch.full((n_gaussians,), 0.01 * extent, device=device, dtype=dtype, requires_grad=True)
     amplitudes = torch.ones(n_gaussians, device=device, dtype=dtype, requires_grad=True)
     angles = torch.linspace(-1.0, 1.0, views, dtype=dtype)
-    axes = torch.stack([torch.stack([torch.zeros_like(angles), torch.ones_like(angles), torch.zeros_like(angles)], -1),
-                        torch.stack([torch.cos(angles), torch.zeros_like(angles), torch.sin(angles)], -1)], 1).to(device)  # fmt: skip
+    axes = torch.stack(
+        [
+            torch.stack([torch.zeros_like(angles), torch.ones_like(angles), torch.zeros_like(angles)], -1),
+            torch.stack([torch.cos(angles), torch.zeros_like(angles), torch.sin(angles)], -1),
+        ],
+        1,
+    ).to(device)
     return means, sigmas, amplitudes, axes
 
 
@@ -489,7 +568,9 @@ def synchronise(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def with_other_views(outputs: dict, measured: torch.Tensor, train_projections: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def with_other_views(
+    outputs: dict, measured: torch.Tensor, train_projections: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """The step's predicted and ``measured`` (H, W, 1) projections, with its other views'
     (``extra_projection``, ``extra_views``; measured from ``train_projections``, whose device the
     model's index is already on) stacked on a leading axis when it has them."""
@@ -497,7 +578,9 @@ def with_other_views(outputs: dict, measured: torch.Tensor, train_projections: t
     if "extra_projection" not in outputs:
         return pred, measured
     extra = outputs["extra_projection"]
-    extra_gt = binned_views(train_projections[index_on(outputs["extra_views"], train_projections.device)], *extra.shape[1:3])[..., None].to(extra)
+    extra_gt = binned_views(
+        train_projections[index_on(outputs["extra_views"], train_projections.device)], *extra.shape[1:3]
+    )[..., None].to(extra)
     return torch.cat([pred[None], extra]), torch.cat([measured[None], extra_gt])
 
 
@@ -528,11 +611,15 @@ class FiniteWatch:
         ``measured`` is read only to name the cause."""
         names = list(params)
         # the loss, then each parameter's count of Gaussians whose values are all finite: ten small operations a step
-        counts = torch.stack([loss.detach().reshape(()).float()] + [torch.isfinite(p.detach()).flatten(1).all(-1).sum(dtype=torch.float32) for p in params.values()])
+        counts = torch.stack(
+            [loss.detach().reshape(()).float()]
+            + [torch.isfinite(p.detach()).flatten(1).all(-1).sum(dtype=torch.float32) for p in params.values()]
+        )
         rows = [len(p) for p in params.values()]
         if counts.device.type != "cuda":  # the CPU (or another device): judged at once
             return self._judge(counts.tolist(), names, rows, measured, step)
-        if torch.cuda.is_current_stream_capturing():  # a step captured as a CUDA graph: each replay queues them (.step_graph)
+        # a step captured as a CUDA graph: each replay queues them (.step_graph)
+        if torch.cuda.is_current_stream_capturing():
             self.captured = (counts, names, rows, measured)
             return None
         return self.queue(counts, names, rows, measured, step)
@@ -561,5 +648,11 @@ class FiniteWatch:
         if math.isfinite(loss) and not any(bad):
             return
         cause = ", ".join(f"{v} Gaussian(s) with non-finite {k}" for k, v in zip(names, bad) if v) or (
-            "the measured projection holds NaN/Inf" if not bool(torch.isfinite(measured).all()) else "the projection overflowed (amplitudes too large for float32?)")  # fmt: skip
-        raise FloatingPointError(f"gaussian-atoms: step {step}: the loss is {loss} and training cannot go on; cause: {cause}. Lower the learning rates or check the input.")
+            "the measured projection holds NaN/Inf"
+            if not bool(torch.isfinite(measured).all())
+            else "the projection overflowed (amplitudes too large for float32?)"
+        )
+        raise FloatingPointError(
+            f"gaussian-atoms: step {step}: the loss is {loss} and training cannot go on; cause: {cause}. Lower the "
+            f"learning rates or check the input."
+        )

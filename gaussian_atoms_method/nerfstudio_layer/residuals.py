@@ -16,7 +16,12 @@ import torch
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from gaussian_atoms_method.atoms.residual_sites import unexplained_sites
-from gaussian_atoms_method.nerfstudio_layer.rendering import pixel_coordinates, render_views, to_device_without_waiting, view_chunks
+from gaussian_atoms_method.nerfstudio_layer.rendering import (
+    pixel_coordinates,
+    render_views,
+    to_device_without_waiting,
+    view_chunks,
+)
 
 
 @contextmanager
@@ -50,7 +55,9 @@ def render_training_views(model, on_device: bool = False) -> np.ndarray | torch.
             rows, cols, pitch, chunks = batched
             views = torch.cat([render_views(model, chunk, rows, cols, pitch) for chunk in chunks])
         else:  # per view, each through its own pose
-            views = torch.stack([model.get_outputs(cameras[i : i + 1])["projection"][..., 0] for i in range(len(cameras))])
+            views = torch.stack(
+                [model.get_outputs(cameras[i : i + 1])["projection"][..., 0] for i in range(len(cameras))]
+            )
         return views if on_device else views.cpu().numpy()
 
 
@@ -88,18 +95,33 @@ def add_missing_atoms(model) -> int:
     ls = model.normalisation.length_scale
     sigma_A = float(model.sigmas.median()) / ls
     sites_A, masses = unexplained_sites(
-        projections.cpu().numpy() - predicted, series.angles_deg, series.pixel_size_A, model.means.detach().cpu().double().numpy() / ls, sigma_A,
-        series.tilt_axis, series.centre_px, false_alarm_rate=model.config.false_alarm_rate, tilt_axis_angle_deg=series.tilt_axis_angle_deg, device=str(model.means.device),
-    )  # fmt: skip
+        projections.cpu().numpy() - predicted,
+        series.angles_deg,
+        series.pixel_size_A,
+        model.means.detach().cpu().double().numpy() / ls,
+        sigma_A,
+        series.tilt_axis,
+        series.centre_px,
+        false_alarm_rate=model.config.false_alarm_rate,
+        tilt_axis_angle_deg=series.tilt_axis_angle_deg,
+        device=str(model.means.device),
+    )
     means = torch.as_tensor(sites_A * ls, dtype=model.means.dtype).reshape(-1, 3)
     # With no site, add() notes that the residuals are clean (no more searches).
-    added = model.density.add(model.gauss_params, model.optimizers, means, sigma_A * ls, torch.as_tensor(masses * ls**2), model._param_lists())
+    added = model.density.add(
+        model.gauss_params, model.optimizers, means, sigma_A * ls, torch.as_tensor(masses * ls**2), model._param_lists()
+    )
     if added:
-        CONSOLE.print(f"gaussian-atoms: step {model.step}: {added} Gaussians added where the residuals hold unexplained mass")
+        CONSOLE.print(
+            f"gaussian-atoms: step {model.step}: {added} Gaussians added where the residuals hold unexplained mass"
+        )
     split = model.density.split_heavy_gaussians(model.gauss_params, model.optimizers, model._param_lists())
     if split:
         model.density.residual_clean = False  # train on and search again
-        CONSOLE.print(f"gaussian-atoms: step {model.step}: {split} Gaussians holding two atoms' mass split in two along the least-resolved direction")
+        CONSOLE.print(
+            f"gaussian-atoms: step {model.step}: {split} Gaussians holding two atoms' mass split in two along the "
+            f"least-resolved direction"
+        )
     return added + split
 
 
@@ -125,10 +147,13 @@ def residual_correlations(model, means: torch.Tensor, sigmas: torch.Tensor) -> n
         {
             "means": torch.nn.Parameter(means.detach().to(own["means"])),
             "log_sigmas": torch.nn.Parameter(torch.log(sigmas.detach().to(own["means"]))[:, None]),
-            "log_amplitudes": torch.nn.Parameter(torch.zeros(len(means), 1, dtype=own["means"].dtype, device=own["means"].device)),
+            "log_amplitudes": torch.nn.Parameter(
+                torch.zeros(len(means), 1, dtype=own["means"].dtype, device=own["means"].device)
+            ),
         }
     )
-    predicted = render_training_views(model, on_device=True)  # on the run's device throughout: one copy back, of the (P,) sums
+    # on the run's device throughout: one copy back, of the (P,) sums
+    predicted = render_training_views(model, on_device=True)
     if predicted is None:
         return None
     weighted = (measured - predicted) / noise.variance(predicted).clamp_min(1e-30)  # w r
@@ -137,7 +162,13 @@ def residual_correlations(model, means: torch.Tensor, sigmas: torch.Tensor) -> n
         model.gauss_params = probe
         try:
             batched = in_chunks(model, cameras)  # the floors do not depend on the probes: left out
-            images = ((chunk, render_views(model, chunk, *batched[:3], floors=False)) for chunk in batched[3]) if batched else ((v, model.get_outputs(cameras[v : v + 1])["projection"][None, ..., 0]) for v in range(len(cameras)))
+            images = (
+                ((chunk, render_views(model, chunk, *batched[:3], floors=False)) for chunk in batched[3])
+                if batched
+                else (
+                    (v, model.get_outputs(cameras[v : v + 1])["projection"][None, ..., 0]) for v in range(len(cameras))
+                )
+            )
             for views, image in images:
                 (grad,) = torch.autograd.grad((image * weighted[views].to(image)).sum(), probe["log_amplitudes"])
                 total += grad[:, 0].detach().double()

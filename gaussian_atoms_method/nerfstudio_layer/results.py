@@ -20,8 +20,8 @@ import numpy as np
 import torch
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms, write_atoms
 from gaussian_atoms_method.atoms import picture_process
+from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms, write_atoms
 from gaussian_atoms_method.atoms.classification import classify_gaussians, in_support
 from gaussian_atoms_method.atoms.hard_core import lighter_of_close_pairs
 from gaussian_atoms_method.atoms.matching import score_atoms
@@ -84,7 +84,11 @@ def write_results(model, run_dir: Path) -> dict | None:
 def _write_results(model, run_dir: Path, drawers) -> dict | None:
     converged_at = getattr(model, "converged_at", None)
     if converged_at is None and model.config.stop_when_converged:
-        CONSOLE.print(f"gaussian-atoms: [bold]stopped at the step limit ({model.step + 1} steps) before the atoms converged[/bold]: they may still move by more than their stated precision; give more steps (--max-num-iterations)")
+        CONSOLE.print(
+            f"gaussian-atoms: [bold]stopped at the step limit ({model.step + 1} steps) before the atoms "
+            f"converged[/bold]: they may still move by more than their stated precision; give more steps "
+            f"(--max-num-iterations)"
+        )
     model.finalize()
     for line in model.density.report():
         CONSOLE.print(f"gaussian-atoms: {line}")
@@ -93,9 +97,22 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
 
         fractions = model.view_params["psf"].detach().cpu().clamp(min=0.0).tolist()
         weights = ", ".join(f"{w:.3f} at {s:g} Å" for w, s in zip(fractions, KERNEL_WIDTHS_A))
-        CONSOLE.print(f"gaussian-atoms: point-spread function ({model.config.psf}): intensity fractions {weights} (the rest in the atoms' own widths)")
-        run_dir.mkdir(parents=True, exist_ok=True)  # hold it in a later run: --pipeline.model.psf fixed --pipeline.model.psf-weights ...
-        (run_dir / "psf.json").write_text(json.dumps({"psf": model.config.psf, "widths_A": list(KERNEL_WIDTHS_A), "intensity_fractions": [round(w, 4) for w in fractions]}) + "\n")
+        CONSOLE.print(
+            f"gaussian-atoms: point-spread function ({model.config.psf}): intensity fractions {weights} (the rest in "
+            f"the atoms' own widths)"
+        )
+        # hold it in a later run: --pipeline.model.psf fixed --pipeline.model.psf-weights ...
+        run_dir.mkdir(parents=True, exist_ok=True)
+        (run_dir / "psf.json").write_text(
+            json.dumps(
+                {
+                    "psf": model.config.psf,
+                    "widths_A": list(KERNEL_WIDTHS_A),
+                    "intensity_fractions": [round(w, 4) for w in fractions],
+                }
+            )
+            + "\n"
+        )
     atoms = model.atoms()
     read = residual_noise(model) if len(atoms) else None
     if read is not None:
@@ -114,13 +131,21 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
                 f"(input units; slope {nm.gain_se:.2g} standard error)"
             )
         CONSOLE.print(
-            f"gaussian-atoms: residual noise {noise:.4g} (input units); median position precision (the Cramér-Rao lower bound: "
-            + ("on simulated atoms the actual errors are 1-3 times it, docs/results.md" if converged_at is not None else "the run did not converge, its errors may be far larger") + ") "
+            f"gaussian-atoms: residual noise {noise:.4g} (input units); median position precision (the Cramér-Rao "
+            f"lower bound: "
+            + (
+                "on simulated atoms the actual errors are 1-3 times it, docs/results.md"
+                if converged_at is not None
+                else "the run did not converge, its errors may be far larger"
+            )
+            + ") "
             + ", ".join(f"{a} {v * 100:.1f} pm" for a, v in zip("xyz", np.median(atoms.position_std_A, axis=0)))
         )
     # atoms() lists the Gaussians in the model's order: the density control's own test of the field
     hard_core_A = model.density.hard_core(model.gauss_params) / model.normalisation.length_scale
-    atoms, non_atoms, population = split_atoms(atoms, model.density.in_field(model.means.detach()).cpu().numpy(), model.means.device, hard_core_A)
+    atoms, non_atoms, population = split_atoms(
+        atoms, model.density.in_field(model.means.detach()).cpu().numpy(), model.means.device, hard_core_A
+    )
     # Each picture goes to a child as soon as its arrays are known (drawn there while this process
     # writes the atoms); without children, the atoms are written first and the pictures after them.
     pictures = [] if population is None else [(write_population_png, *population, run_dir / "classes.png")]
@@ -131,22 +156,38 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
     evidence, r_A, g = structure_evidence(atoms.positions, hard_core_A)
     (run_dir / "structure.json").write_text(json.dumps(evidence, indent=2) + "\n")
     say_structure(evidence)
-    pictures.append((write_rdf_png, r_A, g, evidence["hard_core_A"], evidence["share_under_hard_core"], run_dir / "rdf.png"))
-    CONSOLE.print(f"[bold]gaussian-atoms[/bold]: wrote {len(atoms)} atoms to {run_dir / 'atoms.xyz'} and {len(non_atoms)} non-atoms to non_atoms.xyz")
+    pictures.append(
+        (write_rdf_png, r_A, g, evidence["hard_core_A"], evidence["share_under_hard_core"], run_dir / "rdf.png")
+    )
+    CONSOLE.print(
+        f"[bold]gaussian-atoms[/bold]: wrote {len(atoms)} atoms to {run_dir / 'atoms.xyz'} and {len(non_atoms)} "
+        f"non-atoms to non_atoms.xyz"
+    )
     truth = read_atoms(model.truth_path) if model.truth_path is not None else None
     scores = score_atoms(atoms.positions, truth.positions) if truth is not None else None
     if scores is not None:
-        scores |= {"converged": converged_at is not None, "steps": (converged_at if converged_at is not None else model.step) + 1}
+        scores |= {
+            "converged": converged_at is not None,
+            "steps": (converged_at if converged_at is not None else model.step) + 1,
+        }
         (run_dir / "evaluation.json").write_text(json.dumps(scores, indent=2) + "\n")
     if len(atoms):
         title = f"{len(atoms)} atoms" + (
-            f"; against the truth: TPR {scores['tpr']:.4f}, FP/atom {scores['fp_per_true_atom']:.4f}, RMSD {scores['rmsd_pm']:.1f} pm" if scores else ""
+            f"; against the truth: TPR {scores['tpr']:.4f}, FP/atom {scores['fp_per_true_atom']:.4f}, RMSD "
+            f"{scores['rmsd_pm']:.1f} pm"
+            if scores
+            else ""
         )
-        pictures.append((draw_slices, slice_planes(atoms, truth, device=model.means.device), run_dir / "slices.png", title))
+        pictures.append(
+            (draw_slices, slice_planes(atoms, truth, device=model.means.device), run_dir / "slices.png", title)
+        )
     _hand_over(pictures, drawers)
     for drawer in drawers or ():
         if drawer.picture is not None and not drawer.wait():
-            CONSOLE.print(f"gaussian-atoms: the child process of {drawer.picture[0].__name__} failed ({drawer.error}); the picture is drawn in this one")
+            CONSOLE.print(
+                f"gaussian-atoms: the child process of {drawer.picture[0].__name__} failed ({drawer.error}); the "
+                f"picture is drawn in this one"
+            )
             pictures.append(drawer.picture)
     for function, *args in pictures:  # those no child took, or whose child failed: drawn here
         function(*args)
@@ -172,7 +213,10 @@ def say_structure(evidence: dict) -> None:
     if evidence["first_shell_peak_A"] is not None:
         parts.append(f"first shell at {evidence['first_shell_peak_A']:.2f} Å")
     if evidence["hard_core_A"] is not None:
-        parts.append(f"{evidence['share_under_hard_core']:.1%} of atoms closer than the hard core {evidence['hard_core_A']:.2f} Å")
+        parts.append(
+            f"{evidence['share_under_hard_core']:.1%} of atoms closer than the hard core {evidence['hard_core_A']:.2f} "
+            f"Å"
+        )
     CONSOLE.print("gaussian-atoms: structure: " + ", ".join(parts) + " (rdf.png, structure.json)")
 
 
@@ -194,17 +238,42 @@ def split_atoms(gaussians: AtomSet, in_field: np.ndarray, device="cpu", hard_cor
     reported &= ~close
     labels = np.zeros(len(gaussians), dtype=np.int64)  # 0: a non-atom
     labels[np.flatnonzero(in_field)] = np.where(reported[in_field], classes.classes, 0)
-    gaussians = AtomSet(gaussians.positions, gaussians.sigmas, gaussians.amplitudes, gaussians.species, dict(gaussians.info), gaussians.position_std_A, labels)
+    gaussians = AtomSet(
+        gaussians.positions,
+        gaussians.sigmas,
+        gaussians.amplitudes,
+        gaussians.species,
+        dict(gaussians.info),
+        gaussians.position_std_A,
+        labels,
+    )
     outside, beyond, n_close = int((~classes.atoms).sum()), int((~in_field).sum()), int(close.sum())
-    counts = {f"class {k}": int(np.sum(reported[in_field] & (classes.classes == k))) for k in range(1, len(classes.class_means) + 1)}
+    counts = {
+        f"class {k}": int(np.sum(reported[in_field] & (classes.classes == k)))
+        for k in range(1, len(classes.class_means) + 1)
+    }
     counts = {name: n for name, n in counts.items() if n}  # a class reported whole as non-atoms is not listed
     per_class = ", ".join(f"{v} in {k}" for k, v in counts.items()) if len(counts) > 1 else ""
-    CONSOLE.print(f"gaussian-atoms: {int(reported.sum())} atoms{f' ({per_class}, by mass and width)' if per_class else ''}; "
-                  f"{outside + beyond + n_close} non-atoms: {outside} outside the atoms' support (no neighbour within the material's distances, or a class apart from them), "
-                  f"{n_close} within the hard core of a heavier atom, {beyond} beyond the field of view")  # fmt: skip
+    CONSOLE.print(
+        f"gaussian-atoms: {int(reported.sum())} atoms{f' ({per_class}, by mass and width)' if per_class else ''}; "
+        f"{outside + beyond + n_close} non-atoms: {outside} outside the atoms' support (no neighbour within the "
+        f"material's distances, or a class apart from them), "
+        f"{n_close} within the hard core of a heavier atom, {beyond} beyond the field of view"
+    )
     others = gaussians.subset(~in_field)
 
-    population = (field.masses, field.sigmas, reported[in_field], classes.classes, len(classes.class_means), (others.masses, others.sigmas)) if len(field) else None
+    population = (
+        (
+            field.masses,
+            field.sigmas,
+            reported[in_field],
+            classes.classes,
+            len(classes.class_means),
+            (others.masses, others.sigmas),
+        )
+        if len(field)
+        else None
+    )
     return gaussians.subset(reported), gaussians.subset(~reported), population
 
 
@@ -218,7 +287,14 @@ def reported_as_atoms(positions_A: np.ndarray, in_field: np.ndarray, support: np
     return reported
 
 
-def write_snapshot(atoms: AtomSet, directory: Path, step: int, n_gaussians: int, peak_gpu_bytes: int, in_field: np.ndarray | None = None) -> None:
+def write_snapshot(
+    atoms: AtomSet,
+    directory: Path,
+    step: int,
+    n_gaussians: int,
+    peak_gpu_bytes: int,
+    in_field: np.ndarray | None = None,
+) -> None:
     """The atoms as they stand after ``step`` steps and the wall-clock time:
     ``step-NNNNNN.csv`` and a line ``step,unix_time,gaussians,peak_gpu_bytes`` in ``times.csv``.
 

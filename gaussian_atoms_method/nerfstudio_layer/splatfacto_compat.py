@@ -17,10 +17,8 @@ from torch.nn import Parameter
 
 from gaussian_atoms_method.nerfstudio_layer.checkpoints import with_background_terms
 from gaussian_atoms_method.nerfstudio_layer.lazy_compile import import_splatfacto
-
 from gaussian_atoms_method.nerfstudio_layer.viewer import mass_colours
 from gaussian_atoms_method.physics.projector import gaussian_mass
-
 
 SplatfactoModel = import_splatfacto().SplatfactoModel
 
@@ -84,7 +82,9 @@ class SplatfactoCompat(SplatfactoModel):
         for name, param in self.gauss_params.items():
             self.gauss_params[name] = Parameter(torch.zeros((n,) + tuple(param.shape[1:]), device=param.device))
         self.density.reset(n)
-        state_dict = with_background_terms(state_dict, self.view_params["background"] if "background" in self.view_params else None)
+        state_dict = with_background_terms(
+            state_dict, self.view_params["background"] if "background" in self.view_params else None
+        )
         return torch.nn.Module.load_state_dict(self, state_dict, **kwargs)
 
     def get_gaussian_param_groups(self) -> Dict[str, List[Parameter]]:

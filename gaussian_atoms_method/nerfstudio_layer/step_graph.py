@@ -34,7 +34,9 @@ class StepGraph:
     """The trainer's captured step (:meth:`train_iteration`); the model holds one."""
 
     def __init__(self) -> None:
-        self.index_in_use: torch.Tensor | None = None  # the step's views, read by rendering.step_index while set (a capture)
+        self.index_in_use: torch.Tensor | None = (
+            None  # the step's views, read by rendering.step_index while set (a capture)
+        )
         self._graph = None
         self._key = None  # the set-up the graph was captured for (_key_of)
         self._warm = None  # the set-up of the last eager step
@@ -60,7 +62,9 @@ class StepGraph:
             return None
         camera, batch = trainer.pipeline.datamanager.next_train(step)
         dev, dt = model.means.device, model.means.dtype
-        view = model.view_geometry.read(camera, camera.camera_to_worlds[0].to(dt), key[-3], model.view_c2w, True, dev, dt)[3]
+        view = model.view_geometry.read(
+            camera, camera.camera_to_worlds[0].to(dt), key[-3], model.view_c2w, True, dev, dt
+        )[3]
         views = torch.tensor(step_views(model, view), dtype=torch.long).pin_memory()
         if self._graph is None:
             self._inputs = (torch.empty(len(views), dtype=torch.long, device=dev), torch.empty_like(batch["image"]))
@@ -81,7 +85,14 @@ class StepGraph:
 
     def drop(self) -> None:
         """Forget the captured graph (its memory goes back to the allocator)."""
-        self._graph, self._key, self._grads, self._outputs, self._inputs, self._counts = None, None, [], None, None, None
+        self._graph, self._key, self._grads, self._outputs, self._inputs, self._counts = (
+            None,
+            None,
+            [],
+            None,
+            None,
+            None,
+        )
 
     @staticmethod
     def _key_of(model, step: int) -> tuple:
@@ -93,7 +104,8 @@ class StepGraph:
     def _capture(self, trainer, model, camera, key) -> bool:
         """Capture the step's tensor work (:func:`step_losses` and the backward pass) on the
         inputs; False (and steps eager from now on, with one line saying why) if it cannot be."""
-        trainer.optimizers.zero_grad_some(list(trainer.optimizers.parameters))  # the graph's backward writes the gradients afresh
+        # the graph's backward writes the gradients afresh
+        trainer.optimizers.zero_grad_some(list(trainer.optimizers.parameters))
         graph, index, image = torch.cuda.CUDAGraph(), *self._inputs
         self.index_in_use, model.finite_watch.captured = index, None
         try:
@@ -131,6 +143,7 @@ def detached(loss: torch.Tensor, losses: dict, metrics: dict) -> tuple:
     holds a step's results while the next step runs; kept attached, they keep the parameters'
     gradient accumulators of that step alive, and a capture on the graph's stream then fails
     on the accumulators' stream (CUDA's "operation failed due to a previous error during capture")."""
+
     def plain(value):
         return value.detach() if isinstance(value, torch.Tensor) else value
 
@@ -168,7 +181,9 @@ def why_eager(trainer, model) -> str:
     if trainer.mixed_precision or trainer.config.log_gradients or any(n != 1 for n in accumulate.values()):
         return "mixed precision, gradient logging or gradient accumulation"
     cameras = trainer.pipeline.datamanager.train_dataset.cameras
-    intrinsics = torch.stack([cameras.fx, cameras.fy, cameras.cx, cameras.cy, cameras.width.float(), cameras.height.float()], -1).reshape(len(cameras), -1)
+    intrinsics = torch.stack(
+        [cameras.fx, cameras.fy, cameras.cx, cameras.cy, cameras.width.float(), cameras.height.float()], -1
+    ).reshape(len(cameras), -1)
     if not bool((intrinsics == intrinsics[:1]).all()):
         return "views of different sizes or pixel pitches"
     return ""

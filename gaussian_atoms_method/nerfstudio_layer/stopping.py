@@ -40,7 +40,10 @@ def at_check(model, step: int, last_step: int) -> bool:
     True when the run should stop.  Every run searches the residuals at least once, at the last
     refine before ``stop_split_at``."""
     cfg, density, check = model.config, model.density, model.convergence
-    search, last_search = density.residual_check_open(step), step == min(density.stop_split_at, last_step) - cfg.refine_every
+    search, last_search = (
+        density.residual_check_open(step),
+        step == min(density.stop_split_at, last_step) - cfg.refine_every,
+    )
     if step >= last_step or not (cfg.stop_when_converged or search):
         return False
     settled = model.converged(step)
@@ -53,10 +56,15 @@ def at_check(model, step: int, last_step: int) -> bool:
             density.residual_clean = settled and added <= tolerated
             density.searched_at, density.settled_since_search = step, False
             return False
-    if settled or not cfg.stop_when_converged or not check.checks(step):  # a run told to train on keeps its schedule and its set
+    # a run told to train on keeps its schedule and its set
+    if settled or not cfg.stop_when_converged or not check.checks(step):
         return settled and cfg.stop_when_converged
     if check.positions_settled >= 2 and check.churning >= 2 and not density.settled_since_search:
-        CONSOLE.print(f"gaussian-atoms: step {step}: the positions have settled but the set has not: the merge of unresolved pairs and the final prune removed {settle_set(model)} Gaussians (the merge by likelihood waits for the end)")
+        CONSOLE.print(
+            f"gaussian-atoms: step {step}: the positions have settled but the set has not: the merge of unresolved "
+            f"pairs and the final prune removed {settle_set(model)} Gaussians (the merge by likelihood waits for the "
+            f"end)"
+        )
     elif check.scatter_only and not check.positions_settled and slow_positions(model):
         CONSOLE.print(f"gaussian-atoms: step {step}: the positions only scatter: their learning rate is halved")
     return False
@@ -85,7 +93,11 @@ def set_position_rate(model, optimizers) -> bool:
     if rate_px is None or not pixel_A or optimizer is None or optimizer.param_groups[0].get("rate_px"):
         return False
     group = optimizer.param_groups[0]
-    _scale_rate(optimizers, rate_px * pixel_A * model.normalisation.length_scale / group.get("initial_lr", group["lr"]), rate_px=rate_px)
+    _scale_rate(
+        optimizers,
+        rate_px * pixel_A * model.normalisation.length_scale / group.get("initial_lr", group["lr"]),
+        rate_px=rate_px,
+    )
     return True
 
 

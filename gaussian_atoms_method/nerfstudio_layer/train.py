@@ -2,7 +2,8 @@
 
 ``ns-train`` imports every method nerfstudio ships (and every installed plugin) to build its
 command line before it knows which one was asked for: 3-7 s more start-up than this entry
-point on the 2-core CPU, 1.2-1.5 s on the H100 machine (``docs/performance.md``).  This entry point builds the command line from
+point on the 2-core CPU, 1.2-1.5 s on the H100 machine (``docs/performance.md``).  This entry point builds the command
+line from
 this method's :class:`~nerfstudio.engine.trainer.TrainerConfig` alone and runs nerfstudio's
 own :class:`~nerfstudio.engine.trainer.Trainer` on it, so the options, the run directory, the
 ``config.yml`` (readable by ``ns-viewer``, ``ns-eval`` and ``gaussian-atoms export``), the
@@ -91,14 +92,24 @@ class ProgressBar:
         # In a terminal the bar redraws in place; into a log (no terminal) each drawing is a line
         # of its own, so there it is drawn every tenth of the run.
         live = sys.stderr.isatty()
-        self.bar = tqdm(total=total, desc="gaussian-atoms", unit="step", dynamic_ncols=True, **({} if live else {"miniters": max(total // 10, 1), "mininterval": 0.0}))
+        self.bar = tqdm(
+            total=total,
+            desc="gaussian-atoms",
+            unit="step",
+            dynamic_ncols=True,
+            **({} if live else {"miniters": max(total // 10, 1), "mininterval": 0.0}),
+        )
 
     def follow(self, trainer) -> None:
         """Start over at 0 and count ``trainer``'s steps (called again for a second pass)."""
         from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 
         self.bar.reset()
-        trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], lambda step: self.bar.update(step + 1 - self.bar.n)))
+        trainer.callbacks.append(
+            TrainingCallback(
+                [TrainingCallbackLocation.AFTER_TRAIN_ITERATION], lambda step: self.bar.update(step + 1 - self.bar.n)
+            )
+        )
 
     def end_at(self, step: int) -> None:
         """Count through ``step`` and end the bar there (the run converged at it)."""
@@ -172,5 +183,3 @@ def make_trainer(config, after_saving=None):
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
     return trainer
-
-

@@ -43,7 +43,9 @@ def check_input(config: TrainerConfig) -> None:
     its truth file."""
     check_device(config.machine.device_type)
     if not (isinstance(config.max_num_iterations, int) and config.max_num_iterations >= 1):
-        raise OptionError(f"--max-num-iterations must be a whole number of steps, at least 1, got {config.max_num_iterations!r}")
+        raise OptionError(
+            f"--max-num-iterations must be a whole number of steps, at least 1, got {config.max_num_iterations!r}"
+        )
     model = config.pipeline.model
     if isinstance(model, GaussianAtomsOptions):
         model.check()
@@ -62,7 +64,10 @@ def check_device(device_type: str) -> None:
 
     usable = {"cpu": True, "cuda": torch.cuda.is_available(), "mps": torch.backends.mps.is_available()}
     if not usable.get(device_type, False):
-        raise OptionError(f"--machine.device-type {device_type}: torch sees no such device here; use --machine.device-type cpu (the default where no GPU is seen)")
+        raise OptionError(
+            f"--machine.device-type {device_type}: torch sees no such device here; use --machine.device-type cpu (the "
+            f"default where no GPU is seen)"
+        )
 
 
 @dataclass
@@ -101,7 +106,8 @@ class GaussianAtomsTrainer(Trainer):
         # On a GPU a replay of the step captured as a CUDA graph where the model's step graph serves it (.step_graph).
         graph = getattr(self.pipeline.model, "step_graph", None)
         done = graph.train_iteration(self, step) if graph is not None else None
-        return done if done is not None else detached(*super().train_iteration(step))  # the loop holds them while the next step runs
+        # the loop holds them while the next step runs
+        return done if done is not None else detached(*super().train_iteration(step))
 
     def train(self) -> None:
         from gaussian_atoms_method.nerfstudio_layer.kernel_reading import restart_with_kernel_held

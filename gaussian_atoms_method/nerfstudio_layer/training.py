@@ -43,4 +43,3 @@ def train_views(model, cameras, targets: Sequence[torch.Tensor], steps: int, ref
             model.refine_after_step(step)
             model.merge_after_step(step)
     return loss
-

@@ -67,7 +67,9 @@ def choose_data_term(noise, peak: float | None = None) -> str:
     return "poisson" if peak is None or peak / noise.gain <= MAX_PEAK_COUNTS else "huber"
 
 
-def data_term(predicted: torch.Tensor, measured: torch.Tensor, kind: str, gain: float = 1.0, read_var: float = 0.0) -> torch.Tensor:
+def data_term(
+    predicted: torch.Tensor, measured: torch.Tensor, kind: str, gain: float = 1.0, read_var: float = 0.0
+) -> torch.Tensor:
     """Mean over pixels of the data term ``kind`` (module docstring).
 
     Parameters

@@ -68,14 +68,20 @@ def to_nominal_axis(projections: np.ndarray, tilt_axis_angle_deg: float, centre_
     if float(tilt_axis_angle_deg) == 0.0:
         return projections
     h, w = projections.shape[1:]
-    centre = (np.array([h, w], dtype=np.float64) - 1) / 2 if centre_px is None else np.asarray(centre_px, dtype=np.float64)
+    centre = (
+        (np.array([h, w], dtype=np.float64) - 1) / 2 if centre_px is None else np.asarray(centre_px, dtype=np.float64)
+    )
     rotation = in_plane_rotation(tilt_axis_angle_deg)
     # ideal pixel u (about the centre) is read from the recorded image at R u.
     offset = centre - rotation @ centre
-    return np.stack([ndimage.affine_transform(p, rotation, offset=offset, order=order, mode="constant") for p in projections])
+    return np.stack(
+        [ndimage.affine_transform(p, rotation, offset=offset, order=order, mode="constant") for p in projections]
+    )
 
 
-def detector_axes_from_tilts(angles_deg: np.ndarray, tilt_axis: str = "y", tilt_axis_angle_deg: float = 0.0) -> np.ndarray:
+def detector_axes_from_tilts(
+    angles_deg: np.ndarray, tilt_axis: str = "y", tilt_axis_angle_deg: float = 0.0
+) -> np.ndarray:
     """Detector orientations for single-axis tilts.
 
     Parameters
@@ -123,7 +129,9 @@ def pixel_centres(n_pixels: int, pixel_size: float, centre_index: float | None =
     return (np.arange(n_pixels, dtype=np.float64) - centre_index) * pixel_size
 
 
-def project_volume(volume: np.ndarray, angle_deg: float, tilt_axis: str = "y", order: int = 1, centre=None) -> np.ndarray:
+def project_volume(
+    volume: np.ndarray, angle_deg: float, tilt_axis: str = "y", order: int = 1, centre=None
+) -> np.ndarray:
     """Project a voxel volume at one tilt: rotate with scipy, then sum along the beam.
 
     An independent path to the Gaussian projector (interpolation instead of analytic

@@ -11,7 +11,8 @@ tells them apart: ``gain`` is about 0 for additive noise and the number of proje
 per count for Poisson counts (1 for raw counts).  The quadratic term takes up what grows in
 proportion to the signal itself, a fit's relative error (an atom slightly off in position or
 width leaves residuals proportional to its peak): without it, on additive data trained to
-1 pm, the slope of the peaks' misfit read as a Poisson gain at 3.2 standard errors.  Each bin of ``m`` gives a robust variance
+1 pm, the slope of the peaks' misfit read as a Poisson gain at 3.2 standard errors.  Each bin of ``m`` gives a robust
+variance
 (the normalised median absolute deviation squared, so atoms the fit misses do not inflate it);
 a weighted straight line through the bins gives ``read_var`` and ``gain`` with their standard
 errors, and the Poisson part counts only when its slope is significant (``z_min`` standard
@@ -50,11 +51,18 @@ class NoiseModel:
         """The same noise for the data multiplied by ``factor`` (the misfit, a relative
         variance, is unchanged)."""
         f = float(factor)
-        return NoiseModel(self.read_var * f * f, self.gain * f, self.offset * f, self.read_var_se * f * f, self.gain_se * f, self.misfit)
+        return NoiseModel(
+            self.read_var * f * f,
+            self.gain * f,
+            self.offset * f,
+            self.read_var_se * f * f,
+            self.gain_se * f,
+            self.misfit,
+        )
 
     @property
     def kind(self) -> str:
-        """"additive", "poisson" or "mixed": which terms are significantly above zero."""
+        """ "additive", "poisson" or "mixed": which terms are significantly above zero."""
         poisson = self.gain > 0
         additive = self.read_var > 3 * self.read_var_se
         return "mixed" if poisson and additive else ("poisson" if poisson else "additive")
@@ -69,10 +77,10 @@ class NoiseModel:
         return self.read_var + self.gain * x + self.misfit * x**2
 
 
-
 MIN_SIDE_PX = 5
 """The smallest image side the noise reading takes: its filters compare each pixel with a 5 x 5
 neighbourhood."""
+
 
 def atom_scale_excess(residuals: np.ndarray, variance: np.ndarray, sigma_px: float, device=None) -> float:
     """How much more the (V, H, W) ``residuals`` vary over an atom than the noise model says:
@@ -171,10 +179,14 @@ def _as_float64(values, device):
 def inflated(noise: NoiseModel, factor: float) -> NoiseModel:
     """``noise`` with every variance term times ``factor`` (standard errors alike)."""
     f = float(factor)
-    return NoiseModel(noise.read_var * f, noise.gain * f, noise.offset, noise.read_var_se * f, noise.gain_se * f, noise.misfit * f)
+    return NoiseModel(
+        noise.read_var * f, noise.gain * f, noise.offset, noise.read_var_se * f, noise.gain_se * f, noise.misfit * f
+    )
 
 
-def binned_variance(residuals: np.ndarray, predicted: np.ndarray, bins: int = 16, min_count: int = 200, robust: bool = True, device=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def binned_variance(
+    residuals: np.ndarray, predicted: np.ndarray, bins: int = 16, min_count: int = 200, robust: bool = True, device=None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Residual variance in bins of the predicted value: robust, ``(1.4826 MAD)^2``, or the
     plain sample variance (``robust=False``: for counts of a few electrons, whose residuals
     take a handful of discrete values and whose MAD is quantised: on Poisson counts of mean
@@ -295,7 +307,16 @@ def _solve(matrix: np.ndarray, rhs: np.ndarray) -> np.ndarray:
         return np.linalg.lstsq(matrix, rhs, rcond=None)[0]
 
 
-def fit_noise_model(residuals: np.ndarray, predicted: np.ndarray, offset: float = 0.0, bins: int = 16, z_min: float = 3.0, robust: bool = True, quadratic: bool = True, device=None) -> NoiseModel:
+def fit_noise_model(
+    residuals: np.ndarray,
+    predicted: np.ndarray,
+    offset: float = 0.0,
+    bins: int = 16,
+    z_min: float = 3.0,
+    robust: bool = True,
+    quadratic: bool = True,
+    device=None,
+) -> NoiseModel:
     """Fit ``Var = read_var + gain * x + misfit * x^2`` (``x = max(m - offset, 0)``) to the
     binned robust variances.
 
@@ -341,7 +362,9 @@ pixel variance (the sum of the squared weights)."""
 
 def as_array(projections) -> np.ndarray:
     """(V, H, W) projections, a torch tensor (any device) or array-like, as a float64 array."""
-    return np.asarray(projections.detach().cpu().double() if hasattr(projections, "detach") else projections, dtype=np.float64)
+    return np.asarray(
+        projections.detach().cpu().double() if hasattr(projections, "detach") else projections, dtype=np.float64
+    )
 
 
 def measure_noise(projections, device=None) -> NoiseModel | None:
@@ -353,7 +376,9 @@ def measure_noise(projections, device=None) -> NoiseModel | None:
     return noise_from_projections(projections, device=device)
 
 
-def noise_from_projections(projections: np.ndarray, offset: float = 0.0, smoothing_px: float = 2.0, z_min: float = 3.0, device=None) -> NoiseModel:
+def noise_from_projections(
+    projections: np.ndarray, offset: float = 0.0, smoothing_px: float = 2.0, z_min: float = 3.0, device=None
+) -> NoiseModel:
     """The noise model read from the projections alone, before any fit.
 
     Each pixel's noise is seen through :data:`IMMERKAER_KERNEL` (divided by 6 to give pixel
@@ -389,9 +414,9 @@ def noise_from_projections(projections: np.ndarray, offset: float = 0.0, smoothi
     # it would share their noise, and binning by it would select low-noise pixels into low
     # bins (on the aSi-208 counts at dose 8e3 that faked a Poisson gain of 1.9 counts).  The
     # Gaussian smoothing less its own 3 x 3 centre (separable, so fast on large series).
-    g = np.exp(-np.arange(-1, 2) ** 2 / (2 * smoothing_px**2))
+    g = np.exp(-(np.arange(-1, 2) ** 2) / (2 * smoothing_px**2))
     radius = int(np.ceil(4 * smoothing_px))
-    norm = np.exp(-np.arange(-radius, radius + 1) ** 2 / (2 * smoothing_px**2)).sum()
+    norm = np.exp(-(np.arange(-radius, radius + 1) ** 2) / (2 * smoothing_px**2)).sum()
     centre = np.outer(g, g) / norm**2  # the 3 x 3 centre of the normalised 2D Gaussian
     smooth = ndimage.gaussian_filter(p, (0, smoothing_px, smoothing_px), mode="nearest", truncate=radius / smoothing_px)
     mean = ((smooth - ndimage.correlate(p, centre[None], mode="nearest")) / (1.0 - centre.sum()))[:, 1:-1, 1:-1]
@@ -471,7 +496,9 @@ def masked_least_squares(basis: np.ndarray, values: np.ndarray, keep: np.ndarray
     return (np.linalg.pinv(gram, hermitian=True) @ ((w * values) @ basis)[..., None])[..., 0]
 
 
-def clipped_frame(projections: np.ndarray, noise_std: float, frame_fraction: float = 0.08, max_rounds: int = 10) -> tuple[np.ndarray, float, float, float, float]:
+def clipped_frame(
+    projections: np.ndarray, noise_std: float, frame_fraction: float = 0.08, max_rounds: int = 10
+) -> tuple[np.ndarray, float, float, float, float]:
     """The floor read from the frame pixels that hold only background, where atoms reach the frame.
 
     Every atom adds to a projection and none takes away (a projected potential and an ADF
@@ -511,7 +538,13 @@ def clipped_frame(projections: np.ndarray, noise_std: float, frame_fraction: flo
     about_surface = residual[keep]
     surfaces = np.einsum("nk,khw->nhw", coef, full_basis)
     frame_var = float(about_mean.var())
-    return surfaces, float(np.median(means)), float(np.sqrt(frame_var / about_mean.size)), frame_var, float(about_surface.var())
+    return (
+        surfaces,
+        float(np.median(means)),
+        float(np.sqrt(frame_var / about_mean.size)),
+        frame_var,
+        float(about_surface.var()),
+    )
 
 
 def detector_floor(projections: np.ndarray, frame_fraction: float = 0.08) -> tuple[float, float, float]:

@@ -170,7 +170,9 @@ def tile_pairs(u_px, v_px, radius_r_px, radius_c_px, height: int, width: int, ti
     order = tile_order(tile_id, n_views * tiles_r * tiles_c)
     tile_id, pair_src = tile_id[order], pair_src[order]
     used, per_tile = torch.unique_consecutive(tile_id, return_counts=True)
-    return _tile_lists(used, per_tile, torch.cumsum(per_tile, 0) - per_tile, pair_src, n_views * n, (tiles_r, tiles_c), tile)
+    return _tile_lists(
+        used, per_tile, torch.cumsum(per_tile, 0) - per_tile, pair_src, n_views * n, (tiles_r, tiles_c), tile
+    )
 
 
 def tile_order(tile_id: torch.Tensor, n_tiles: int) -> torch.Tensor:
@@ -198,7 +200,9 @@ def _tile_lists(used, per_tile, starts, pair_src, sentinel: int, grid, tile: int
     return used, index, rows_px, cols_px, grid
 
 
-def _assemble(blocks: torch.Tensor, used: torch.Tensor, n_views: int, grid, tile: int, height: int, width: int) -> torch.Tensor:
+def _assemble(
+    blocks: torch.Tensor, used: torch.Tensor, n_views: int, grid, tile: int, height: int, width: int
+) -> torch.Tensor:
     """(T, tile, tile) blocks of the non-empty tiles -> (V, H, W) images (zeros elsewhere)."""
     tiles_r, tiles_c = grid
     padded = blocks.new_zeros(n_views * tiles_r * tiles_c, tile, tile).index_copy(0, used, blocks)
@@ -246,11 +250,19 @@ def project_gaussians_tiled(
     u, v = _detector_coordinates(detector_axes.to(dt), means)  # (V, N) along rows, columns
     radius = (cutoff_sigmas * sigmas.detach())[None, :]
     used, index, rows_px, cols_px, grid = (pairing or tile_pairs)(
-        (u.detach() - row_coords[0]) / dr, (v.detach() - col_coords[0]) / dc, radius / abs(dr), radius / abs(dc), h, w, tile
+        (u.detach() - row_coords[0]) / dr,
+        (v.detach() - col_coords[0]) / dc,
+        radius / abs(dr),
+        radius / abs(dc),
+        h,
+        w,
+        tile,
     )
     if len(used) == 0:
         return means.new_zeros(n_views, h, w)
-    return _separable_tiles(u, v, sigmas, amplitudes, used, index, rows_px, cols_px, grid, tile, row_coords, col_coords, dr, dc, h, w)
+    return _separable_tiles(
+        u, v, sigmas, amplitudes, used, index, rows_px, cols_px, grid, tile, row_coords, col_coords, dr, dc, h, w
+    )
 
 
 TILE_GROUPS = 4
@@ -260,19 +272,32 @@ the Au series (6,679 atoms, 271 x 271 pixels, tiles of 32) the tiles hold 1-730 
 one padding computed 2.3 times the needed exponentials and products, four groups 1.29 times."""
 
 
-def _separable_tiles(u, v, sigmas, amplitudes, used, index, rows_px, cols_px, grid, tile, row_coords, col_coords, dr, dc, h, w):
+def _separable_tiles(
+    u, v, sigmas, amplitudes, used, index, rows_px, cols_px, grid, tile, row_coords, col_coords, dr, dc, h, w
+):
     """Evaluate isotropic Gaussians on the listed tiles (see :func:`tile_pairs`) and assemble,
     in :data:`TILE_GROUPS` groups of tiles of similar occupancy (each tile's list holds its
     Gaussians first, then the sentinel)."""
     n_views, n = u.shape
     dt = u.dtype
-    per_view = lambda x: x[None, :].expand(n_views, n)
-    peak, rate = per_view(projected_peak(sigmas, amplitudes)), per_view(-0.5 / sigmas**2)  # the exponent's (negative) factor
+
+    def per_view(x):
+        return x[None, :].expand(n_views, n)
+
+    # the exponent's (negative) factor
+    peak, rate = (
+        per_view(projected_peak(sigmas, amplitudes)),
+        per_view(-0.5 / sigmas**2),
+    )
     # (T, tile) pixel coordinates: the given ones, extrapolated past the last tile's edge.
     row_all = _extend(row_coords.to(dt), grid[0] * tile, dr)[rows_px]
     col_all = _extend(col_coords.to(dt), grid[1] * tile, dc)[cols_px]
     held = (index < n_views * n).sum(dim=1)
-    groups = [g for g in torch.tensor_split(torch.argsort(held, descending=True, stable=True), min(TILE_GROUPS, len(held))) if len(g)]
+    groups = [
+        g
+        for g in torch.tensor_split(torch.argsort(held, descending=True, stable=True), min(TILE_GROUPS, len(held)))
+        if len(g)
+    ]
     fullest = held[torch.stack([g[0] for g in groups])].tolist()  # one read of the device for all groups
     blocks = []
     for group, k in zip(groups, fullest):
@@ -310,8 +335,10 @@ class _TileBlocks(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, U, Vc, P, S, row_c, col_c):
-        e_rows = (row_c[:, :, None] - U[:, None, :]).square_().mul_(S[:, None, :]).clamp_(min=EXPONENT_FLOOR).exp_()  # (T, tile, K)
-        g_cols = (col_c[:, None, :] - Vc[:, :, None]).square_().mul_(S[:, :, None]).clamp_(min=EXPONENT_FLOOR).exp_()  # (T, K, tile)
+        # (T, tile, K)
+        e_rows = (row_c[:, :, None] - U[:, None, :]).square_().mul_(S[:, None, :]).clamp_(min=EXPONENT_FLOOR).exp_()
+        # (T, K, tile)
+        g_cols = (col_c[:, None, :] - Vc[:, :, None]).square_().mul_(S[:, :, None]).clamp_(min=EXPONENT_FLOOR).exp_()
         ctx.save_for_backward(U, Vc, P, S, row_c, col_c, e_rows, g_cols)
         return torch.bmm(e_rows * P[:, None, :], g_cols)
 
@@ -357,7 +384,8 @@ def gsplat_tile_pairs(u_px, v_px, radius_r_px, radius_c_px, height: int, width: 
     dev = u_px.device
     tiles_r, tiles_c = -(-height // tile), -(-width // tile)
     # One camera per view looking at points already in pixel units: world (col, row, depth=1).
-    pts = torch.stack([v_px + 0.5, u_px + 0.5, torch.ones_like(u_px)], dim=-1)  # (V, N, 3), gsplat pixel centres at +0.5
+    # (V, N, 3), gsplat pixel centres at +0.5
+    pts = torch.stack([v_px + 0.5, u_px + 0.5, torch.ones_like(u_px)], dim=-1)
     radius = torch.maximum(radius_r_px, radius_c_px).expand(n_views, n)
     means2d_all, radii_all = [], []
     for view in range(n_views):  # gsplat projects all Gaussians into all cameras: one view at a time
@@ -365,10 +393,18 @@ def gsplat_tile_pairs(u_px, v_px, radius_r_px, radius_c_px, height: int, width: 
         var = (radius[view] / 3.0) ** 2
         covars[:, 0], covars[:, 3], covars[:, 5] = var, var, var
         radii, means2d, _, _, _ = fully_fused_projection(
-            pts[view].float().contiguous(), covars, None, None,
-            torch.eye(4, device=dev)[None], torch.eye(3, device=dev)[None], width, height,
-            eps2d=0.0, near_plane=1e-3, camera_model="ortho",
-        )  # fmt: skip
+            pts[view].float().contiguous(),
+            covars,
+            None,
+            None,
+            torch.eye(4, device=dev)[None],
+            torch.eye(3, device=dev)[None],
+            width,
+            height,
+            eps2d=0.0,
+            near_plane=1e-3,
+            camera_model="ortho",
+        )
         radii = radii if radii.dim() == 2 else radii.amax(-1)  # newer gsplat returns (C, N, 2)
         means2d_all.append(means2d)
         radii_all.append(radii)
@@ -401,7 +437,9 @@ def project_gaussians_gsplat(
     torch part (gsplat only decides which tiles each Gaussian reaches)."""
     if means.device.type != "cuda":
         raise ValueError("the gsplat projector needs a CUDA device; use projector 'tiled' on CPU")
-    return project_gaussians_tiled(means, sigmas, amplitudes, detector_axes, row_coords, col_coords, tile, cutoff_sigmas, gsplat_tile_pairs)
+    return project_gaussians_tiled(
+        means, sigmas, amplitudes, detector_axes, row_coords, col_coords, tile, cutoff_sigmas, gsplat_tile_pairs
+    )
 
 
 def covariances_from_scales_quats(log_scales: torch.Tensor, quats: torch.Tensor) -> torch.Tensor:
@@ -411,9 +449,15 @@ def covariances_from_scales_quats(log_scales: torch.Tensor, quats: torch.Tensor)
     w, x, y, z = q.unbind(-1)
     rot = torch.stack(
         [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
         ],
         dim=-1,
     ).reshape(-1, 3, 3)
@@ -464,16 +508,22 @@ def project_anisotropic_gaussians(
         rad_r = cutoff_sigmas * cov2[..., 0, 0].sqrt() / abs(dr)
         rad_c = cutoff_sigmas * cov2[..., 1, 1].sqrt() / abs(dc)
     used, index, rows_px, cols_px, grid = tile_pairs(
-        (centres[..., 0].detach() - row_coords[0]) / dr, (centres[..., 1].detach() - col_coords[0]) / dc, rad_r, rad_c, h, w, tile
+        (centres[..., 0].detach() - row_coords[0]) / dr,
+        (centres[..., 1].detach() - col_coords[0]) / dc,
+        rad_r,
+        rad_c,
+        h,
+        w,
+        tile,
     )
     if len(used) == 0:
         return means.new_zeros(n_views, h, w)
     U, Vc, P = _pad_gather(centres[..., 0], index), _pad_gather(centres[..., 1], index), _pad_gather(peak, index)
-    I = _pad_gather(inv, index, pad=1.0)  # (T, K, 3)
+    inv_k = _pad_gather(inv, index, pad=1.0)  # (T, K, 3)
     row_c = _extend(row_coords.to(dt), grid[0] * tile, dr)[rows_px]
     col_c = _extend(col_coords.to(dt), grid[1] * tile, dc)[cols_px]
     du = row_c[:, None, :, None] - U[:, :, None, None]  # (T, K, tile, 1)
     dv = col_c[:, None, None, :] - Vc[:, :, None, None]  # (T, K, 1, tile)
-    a, b, c = (I[..., j, None, None] for j in range(3))
+    a, b, c = (inv_k[..., j, None, None] for j in range(3))
     blocks = (P[:, :, None, None] * torch.exp(-0.5 * (a * du**2 + 2 * b * du * dv + c * dv**2))).sum(1)
     return _assemble(blocks, used, n_views, grid, tile, h, w)

@@ -70,7 +70,9 @@ def _squared_frequencies(ph: int, pw: int, spacing: float, device, dtype) -> tor
 
 
 @functools.lru_cache(maxsize=16)
-def _gaussian_factors(ph: int, pw: int, spacing: float, widths: tuple[float, ...], device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+def _gaussian_factors(
+    ph: int, pw: int, spacing: float, widths: tuple[float, ...], device: torch.device, dtype: torch.dtype
+) -> torch.Tensor:
     """(ph, pw // 2 + 1, K) ``exp(-2 pi^2 s_k^2 f^2) - 1`` on the ``rfft2`` grid: fixed for a run's
     image grid, so computed once (recomputed, they were 1.1 ms of the 22 ms of a CPU training
     step on the Au series; the transfer is then one product with the weights)."""
@@ -78,7 +80,9 @@ def _gaussian_factors(ph: int, pw: int, spacing: float, widths: tuple[float, ...
     return torch.expm1(-2.0 * math.pi**2 * torch.tensor(widths, device=device, dtype=dtype) ** 2 * freq2[..., None])
 
 
-def apply_kernel(images: torch.Tensor, spacing: float, widths: torch.Tensor | tuple[float, ...], weights: torch.Tensor) -> torch.Tensor:
+def apply_kernel(
+    images: torch.Tensor, spacing: float, widths: torch.Tensor | tuple[float, ...], weights: torch.Tensor
+) -> torch.Tensor:
     """(..., H, W) images convolved with the kernel (pixel ``spacing`` in the widths' unit),
     zero-padded by at least three of the widest width so nothing wraps around (to a fast FFT
     length, :func:`fast_fft_length`); same shape.  All weights
@@ -94,15 +98,24 @@ def apply_kernel(images: torch.Tensor, spacing: float, widths: torch.Tensor | tu
     pad = int(math.ceil(3.0 * widest / spacing))
     ph, pw = fast_fft_length(h + 2 * pad), fast_fft_length(w + 2 * pad)  # the extra zeros after the image
     if isinstance(widths, tuple):
-        transfer = 1.0 + _gaussian_factors(ph, pw, float(spacing), widths, images.device, images.dtype) @ weights.to(images.dtype)
+        transfer = 1.0 + _gaussian_factors(ph, pw, float(spacing), widths, images.device, images.dtype) @ weights.to(
+            images.dtype
+        )
     else:
         transfer = kernel_transfer(_squared_frequencies(ph, pw, spacing, images.device, images.dtype), widths, weights)
     spectrum = torch.fft.rfft2(torch.nn.functional.pad(images, (pad, pw - w - pad, pad, ph - h - pad)))
     return torch.fft.irfft2(spectrum * transfer, s=(ph, pw))[..., pad : pad + h, pad : pad + w]
 
 
-def fit_kernel_weights(images: torch.Tensor, background: torch.Tensor, measured: torch.Tensor, spacing: float, widths: torch.Tensor,
-                       loss, iterations: int = 20) -> torch.Tensor:  # fmt: skip
+def fit_kernel_weights(
+    images: torch.Tensor,
+    background: torch.Tensor,
+    measured: torch.Tensor,
+    spacing: float,
+    widths: torch.Tensor,
+    loss,
+    iterations: int = 20,
+) -> torch.Tensor:
     """(K,) the kernel's weights that best carry (V, H, W) kernel-free projections ``images``
     plus their ``background`` (broadcastable) onto the ``measured`` views, under ``loss``
     (a callable (predicted, measured) -> scalar, the run's data term).
@@ -113,7 +126,9 @@ def fit_kernel_weights(images: torch.Tensor, background: torch.Tensor, measured:
     falls; then :func:`project_weights`) reach the constrained optimum in a few iterations.  Used
     on views the atoms were not fitted to (``psf held-out``)."""
     one = torch.ones(1, dtype=images.dtype, device=images.device)
-    basis = torch.stack([apply_kernel(images, spacing, widths[k : k + 1], one) - images for k in range(len(widths))], dim=-1)
+    basis = torch.stack(
+        [apply_kernel(images, spacing, widths[k : k + 1], one) - images for k in range(len(widths))], dim=-1
+    )
     base = images + background
 
     def objective(w: torch.Tensor) -> torch.Tensor:
@@ -130,7 +145,9 @@ def fit_kernel_weights(images: torch.Tensor, background: torch.Tensor, measured:
             free = ~((weights <= 0) & (grad > 0))
             step = torch.zeros_like(weights)
             if bool(free.any()):
-                h = hess[free][:, free] + 1e-12 * torch.eye(int(free.sum()), dtype=hess.dtype, device=hess.device) * hess.diagonal().abs().max().clamp_min(1e-30)
+                h = hess[free][:, free] + 1e-12 * torch.eye(
+                    int(free.sum()), dtype=hess.dtype, device=hess.device
+                ) * hess.diagonal().abs().max().clamp_min(1e-30)
                 step[free] = -torch.linalg.solve(h, grad[free])
             moved = False
             for _ in range(30):  # backtracking: a Huber or Poisson term is not one quadratic

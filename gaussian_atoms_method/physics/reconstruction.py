@@ -2,7 +2,8 @@
 
 FBP (:func:`filtered_backprojection`, equal to scikit-image's ``iradon``) and scikit-image's
 ``iradon_sart`` reconstruct each slice perpendicular to the tilt axis.  Conventions (checked
-in the tests against our projector): with ``theta = +angle`` the reconstructed slice ``rec[r, c]`` holds the point at in-plane coordinate ``c`` (detector
+in the tests against our projector): with ``theta = +angle`` the reconstructed slice ``rec[r, c]`` holds the point at
+in-plane coordinate ``c`` (detector
 direction at zero tilt) and depth ``z = r``, both about index ``L // 2``; scikit-image puts the
 rotation axis at detector index ``L // 2``, so each sinogram is padded to an odd length and
 shifted (cubic spline) to bring our tilt centre (``centre_px``) there.  Values are returned in
@@ -45,7 +46,10 @@ class Volume:
     def resample(self, shape, voxel_size_A: float) -> np.ndarray:
         """Values on a centred grid of ``shape`` (voxel ``i`` at ``(i - (n - 1) / 2) * voxel_size_A``
         about the tilt centre), by trilinear interpolation; zero outside this volume."""
-        axes = [(np.arange(n) - (n - 1) / 2) * voxel_size_A / self.spacing_A + self.origin_index[a] for a, n in enumerate(shape)]
+        axes = [
+            (np.arange(n) - (n - 1) / 2) * voxel_size_A / self.spacing_A + self.origin_index[a]
+            for a, n in enumerate(shape)
+        ]
         return ndimage.map_coordinates(self.data, np.meshgrid(*axes, indexing="ij"), order=1, mode="constant")
 
 
@@ -64,7 +68,9 @@ def _centred_sinograms(projections: np.ndarray, centre_index: float, axis: int) 
     return sino, length
 
 
-def backprojection_matrix(angles_deg: np.ndarray, length: int, size: int, rows: slice | None = None, dtype=None, device="cpu"):
+def backprojection_matrix(
+    angles_deg: np.ndarray, length: int, size: int, rows: slice | None = None, dtype=None, device="cpu"
+):
     """scikit-image's linear-interpolation back-projection as a sparse matrix.
 
     Output pixel ``p = i * size + j`` of a ``size x size`` slice (centre ``size // 2``) reads,
@@ -113,7 +119,13 @@ def backprojection_matrix(angles_deg: np.ndarray, length: int, size: int, rows: 
     crow = torch.arange(len(pixels) + 1, device=device) * (2 * len(angles))
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", "Sparse CSR tensor support is in beta", UserWarning)
-        return torch.sparse_csr_tensor(crow, cols.reshape(-1), vals.reshape(-1), size=(len(pixels), len(angles) * (length + 1)), check_invariants=False)
+        return torch.sparse_csr_tensor(
+            crow,
+            cols.reshape(-1),
+            vals.reshape(-1),
+            size=(len(pixels), len(angles) * (length + 1)),
+            check_invariants=False,
+        )
 
 
 def _on_host(device) -> bool:
@@ -121,7 +133,9 @@ def _on_host(device) -> bool:
     return str(device) == "cpu"
 
 
-def backprojection_matrix_on_host(angles_deg: np.ndarray, length: int, size: int, rows: slice | None = None, dtype=np.float64):
+def backprojection_matrix_on_host(
+    angles_deg: np.ndarray, length: int, size: int, rows: slice | None = None, dtype=np.float64
+):
     """:func:`backprojection_matrix` built in numpy as a ``scipy.sparse`` CSR matrix of ``dtype``
     (the same entries: the same float64 operations), without torch."""
     from scipy import sparse
@@ -141,7 +155,9 @@ def backprojection_matrix_on_host(angles_deg: np.ndarray, length: int, size: int
     cols = np.stack([block + i0, block + np.minimum(i0 + 1, length)], axis=-1)
     vals = np.stack([1.0 - w, w], axis=-1).astype(dtype)
     crow = np.arange(len(pixels) + 1) * (2 * len(angles))
-    return sparse.csr_matrix((vals.reshape(-1), cols.reshape(-1), crow), shape=(len(pixels), len(angles) * (length + 1)))
+    return sparse.csr_matrix(
+        (vals.reshape(-1), cols.reshape(-1), crow), shape=(len(pixels), len(angles) * (length + 1))
+    )
 
 
 def _numpy_dtype(dtype):
@@ -222,7 +238,9 @@ def filtered_backprojection(
     # iradon's scale taken on the (small) filtered projections, not on the volume
     filtered = torch.fft.irfft(spectrum * half, n=padded, dim=-1)[..., :length] * (np.pi / (2 * n_angles))  # (N, S, L)
     # One zero sample after each angle's detector (read by rays that miss it).
-    filtered = torch.nn.functional.pad(filtered.to(dtype).transpose(1, 2), (0, 0, 0, 1)).reshape(n_angles * (length + 1), n_slices)
+    filtered = torch.nn.functional.pad(filtered.to(dtype).transpose(1, 2), (0, 0, 0, 1)).reshape(
+        n_angles * (length + 1), n_slices
+    )
     if block >= size * size:  # one block: the product is the output, not copied into it
         out = backprojection_matrix(angles_deg, length, size, None, dtype, device) @ filtered
     else:
@@ -234,7 +252,9 @@ def filtered_backprojection(
     return out if as_tensor else out.cpu().numpy()
 
 
-def _backproject_on_host(sinograms: np.ndarray, angles_deg, even_filter: np.ndarray, padded: int, size: int, block: int, dtype) -> np.ndarray:
+def _backproject_on_host(
+    sinograms: np.ndarray, angles_deg, even_filter: np.ndarray, padded: int, size: int, block: int, dtype
+) -> np.ndarray:
     """:func:`filtered_backprojection`'s filter and product in numpy and scipy, without torch
     (a start begun while the launcher imports it, :mod:`gaussian_atoms_method.start_ahead`):
     scipy's sparse product gives torch's to the bit (the Au series in float32), on one core."""
@@ -242,7 +262,8 @@ def _backproject_on_host(sinograms: np.ndarray, angles_deg, even_filter: np.ndar
 
     n_slices, length, n_angles = sinograms.shape
     spectrum = scipy.fft.rfft(np.ascontiguousarray(sinograms.transpose(2, 0, 1)), n=padded, axis=-1)
-    filtered = scipy.fft.irfft(spectrum * even_filter, n=padded, axis=-1)[..., :length] * (np.pi / (2 * n_angles))  # (N, S, L)
+    # (N, S, L)
+    filtered = scipy.fft.irfft(spectrum * even_filter, n=padded, axis=-1)[..., :length] * (np.pi / (2 * n_angles))
     stacked = np.zeros((n_angles, length + 1, n_slices), dtype=dtype)  # one zero sample after each angle's detector
     stacked[:, :length, :] = filtered.transpose(0, 2, 1)
     stacked = stacked.reshape(n_angles * (length + 1), n_slices)
@@ -309,7 +330,8 @@ def reconstruct(
         raise ValueError(f"method must be 'fbp' or 'sart', got {method!r}")
     sino, length, axis_centre = slice_sinograms(projections, tilt_axis, centre_px, tilt_axis_angle_deg)
     theta = np.asarray(angles_deg, dtype=np.float64)
-    size = length if slice_size_px is None or method != "fbp" else max(int(slice_size_px) | 1, length)  # odd: centre at size // 2
+    # odd: centre at size // 2
+    size = length if slice_size_px is None or method != "fbp" else max(int(slice_size_px) | 1, length)
     if method == "fbp":
         recs = filtered_backprojection(sino, theta, filter_name, size, device, dtype=dtype, as_tensor=as_tensor)
     else:
@@ -323,7 +345,16 @@ def reconstruct(
     return slices_to_volume(recs, pixel_size_A, tilt_axis, axis_centre)
 
 
-def backprojection_for_peaks(projections, angles_deg, pixel_size_A: float, tilt_axis: str = "y", centre_px=None, tilt_axis_angle_deg: float = 0.0, slice_size_px: int | None = None, device: str = "cpu") -> Volume:
+def backprojection_for_peaks(
+    projections,
+    angles_deg,
+    pixel_size_A: float,
+    tilt_axis: str = "y",
+    centre_px=None,
+    tilt_axis_angle_deg: float = 0.0,
+    slice_size_px: int | None = None,
+    device: str = "cpu",
+) -> Volume:
     """The Hann FBP a search for atom-like peaks reads (the start's step 1,
     :func:`gaussian_atoms_method.atoms.initialise.backprojection_candidates`), in float32
     (float64 took twice as long on the CPU: the Au series' FBP 1.5 s, its Laplacian of Gaussian
@@ -331,10 +362,25 @@ def backprojection_for_peaks(projections, angles_deg, pixel_size_A: float, tilt_
     with ``device`` :data:`~gaussian_atoms_method.physics.noise.HOST` an array made without
     importing torch (the CPU's own FBP: the same values)."""
     on_host = device == HOST
-    return reconstruct(projections, angles_deg, pixel_size_A, "fbp", tilt_axis, centre_px, filter_name="hann", device="cpu" if on_host else device, tilt_axis_angle_deg=tilt_axis_angle_deg, slice_size_px=slice_size_px, dtype=np.float32, as_tensor=not on_host)
+    return reconstruct(
+        projections,
+        angles_deg,
+        pixel_size_A,
+        "fbp",
+        tilt_axis,
+        centre_px,
+        filter_name="hann",
+        device="cpu" if on_host else device,
+        tilt_axis_angle_deg=tilt_axis_angle_deg,
+        slice_size_px=slice_size_px,
+        dtype=np.float32,
+        as_tensor=not on_host,
+    )
 
 
-def slice_sinograms(projections: np.ndarray, tilt_axis: str = "y", centre_px=None, tilt_axis_angle_deg: float = 0.0) -> tuple[np.ndarray, int, float]:
+def slice_sinograms(
+    projections: np.ndarray, tilt_axis: str = "y", centre_px=None, tilt_axis_angle_deg: float = 0.0
+) -> tuple[np.ndarray, int, float]:
     """The (S, L, N) sinograms of the slices perpendicular to the tilt axis, each padded to odd
     length ``L`` with the tilt centre at ``L // 2`` (the layout :func:`filtered_backprojection`,
     :func:`sirt` and scikit-image take), and the detector index of the tilt centre along the
@@ -364,7 +410,8 @@ def slices_to_volume(recs, pixel_size_A: float, tilt_axis: str, axis_centre: flo
         origin = np.array([axis_centre, size // 2, size // 2], dtype=np.float64)
     # one pass: divided into a contiguous volume of the final layout
     if isinstance(view, np.ndarray):
-        data = np.divide(view, view.dtype.type(pixel_size_A), out=np.empty(view.shape, dtype=view.dtype))  # in the volume's precision, as torch divides
+        # in the volume's precision, as torch divides
+        data = np.divide(view, view.dtype.type(pixel_size_A), out=np.empty(view.shape, dtype=view.dtype))
     else:
         data = _divide_contiguous(view, pixel_size_A)
     return Volume(data, float(pixel_size_A), origin)
