@@ -1,12 +1,7 @@
 """nerfstudio dataparser ``tilt-series``: tilt angles become orthographic cameras.
 
-Each projection becomes a ``CameraType.ORTHOPHOTO`` camera whose pose is the tilt rotation.
-nerfstudio cameras look along their -z axis with x to the right and y up; our detector rows
-run downwards, so the camera-to-world rotation has columns ``(cols, -rows, beam)`` of the
-detector orientation (see :mod:`gaussian_atoms_method.physics.geometry`).  ``fx = fy`` is the number of
-pixels per normalised length and ``(cx, cy)`` the point the tilt centre projects to, in
-nerfstudio's pixel-corner coordinates (``centre_px + 0.5``), so pixel ``(i, j)`` lies at
-detector coordinates ``((i + 0.5 - cy) / fy, (j + 0.5 - cx) / fx)``.
+Each projection becomes a ``CameraType.ORTHOPHOTO`` camera whose pose is the tilt rotation
+(:mod:`gaussian_atoms_method.engine.views`: the conventions, and the same views for the fit).
 """
 
 from __future__ import annotations
@@ -22,7 +17,7 @@ from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserCo
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.plugins.registry_dataparser import DataParserSpecification
 
-from gaussian_atoms_method.physics.geometry import detector_axes_from_tilts
+from gaussian_atoms_method.engine.views import views_from_tilt_series
 from gaussian_atoms_method.physics.units import Normalisation, normalised_projections
 
 from .errors import TiltSeriesError
@@ -30,24 +25,17 @@ from .tilt_series_format import TiltSeries, load_tilt_series
 
 
 def cameras_from_tilt_series(series: TiltSeries, norm: Normalisation) -> Cameras:
-    """Orthographic nerfstudio cameras, one per projection, in normalised units."""
-    axes = torch.from_numpy(
-        detector_axes_from_tilts(series.angles_deg, series.tilt_axis, series.tilt_axis_angle_deg)
-    ).float()
-    rows, cols, beam = axes[:, 0], axes[:, 1], axes[:, 2]
-    c2w = torch.zeros(series.n_views, 3, 4)
-    c2w[:, :, 0], c2w[:, :, 1], c2w[:, :, 2] = cols, -rows, beam
-    c2w[:, :, 3] = beam  # one normalised unit upstream of the centre: outside the volume
-    h, w = series.image_shape
-    pixels_per_unit = 1.0 / (series.pixel_size_A * norm.length_scale)
+    """Orthographic nerfstudio cameras, one per projection, in normalised units
+    (:func:`gaussian_atoms_method.engine.views.views_from_tilt_series`'s views)."""
+    views = views_from_tilt_series(series, norm)
     return Cameras(
-        camera_to_worlds=c2w,
-        fx=pixels_per_unit,
-        fy=pixels_per_unit,
-        cx=float(series.centre_px[1]) + 0.5,
-        cy=float(series.centre_px[0]) + 0.5,
-        width=w,
-        height=h,
+        camera_to_worlds=views.camera_to_worlds,
+        fx=views.fx,
+        fy=views.fy,
+        cx=views.cx,
+        cy=views.cy,
+        width=views.width,
+        height=views.height,
         camera_type=CameraType.ORTHOPHOTO,
     )
 

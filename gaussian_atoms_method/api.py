@@ -25,8 +25,6 @@ from dataparsers.rosetta import stack_from_signal
 from dataparsers.tilt_series_format import TiltSeries, load_tilt_series, write_tilt_series
 from gaussian_atoms_method.atoms.atom_set import AtomFileError, AtomSet, read_atoms
 
-DEVICES = ("auto", "cpu", "cuda")
-
 
 class InputError(ValueError):
     """Input that cannot train; the message is the one line the CLI prints for it."""
@@ -101,17 +99,13 @@ def _as_series(projections, angles_deg, pixel_size_A, tilt_axis: str, species=No
 
 
 def _device(device: str) -> str:
-    import torch
 
-    if device not in DEVICES:
-        raise TiltSeriesError(f"device must be one of {DEVICES}, got {device!r}")
-    if device == "auto":  # the same default as ns-train gaussian-atoms without --machine.device-type
-        from gaussian_atoms_method.nerfstudio_layer.config import available_device
+    from gaussian_atoms_method.physics.devices import resolve
 
-        return available_device()
-    if device == "cuda" and not torch.cuda.is_available():
-        raise TiltSeriesError("device 'cuda': torch sees no CUDA device here; use device='cpu' or 'auto'")
-    return device
+    try:  # "auto": the same default as ns-train gaussian-atoms without --machine.device-type
+        return resolve(device)
+    except ValueError as exc:
+        raise TiltSeriesError(str(exc)) from None
 
 
 def _whole(value, name: str) -> int:
@@ -251,8 +245,8 @@ def _train(config, seed: int, progress: bool) -> Path:
     cause, ``KeyboardInterrupt``) instead of ending the process as the CLI does."""
     from nerfstudio.engine.trainer import Trainer
 
-    from gaussian_atoms_method.nerfstudio_layer.kernel_reading import restart_with_kernel_held
     from gaussian_atoms_method.nerfstudio_layer.train import ProgressBar, make_trainer, quiet_trainer_console
+    from gaussian_atoms_method.nerfstudio_layer.trainer import restart_with_kernel_held
 
     config.machine.seed = seed
     config.set_timestamp()

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from dataparsers.tilt_series_format import load_tilt_series
-from gaussian_atoms_method.physics.noise import HOST
+from gaussian_atoms_method.physics.devices import HOST, gpu
 from gaussian_atoms_method.physics.units import Normalisation, normalised_projections
 
 
@@ -112,11 +112,7 @@ def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float | N
             if ahead.max_atom_sigma_A is None:
                 ahead.max_atom_sigma_A = DensityControl.max_atom_sigma_A
             ahead.projections = torch.from_numpy(scaled)
-            known = (
-                {"noise": noise, "backprojection": volume}
-                if volume is not None and not torch.cuda.is_available()
-                else {}
-            )
+            known = {"noise": noise, "backprojection": volume} if volume is not None and gpu() is None else {}
             ahead.start = compute_start(
                 ahead.series,
                 ahead.projections,

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from gaussian_atoms_method.atoms.matching import score_atoms
-from gaussian_atoms_method.atoms.peaks import suppress_within
+from gaussian_atoms_method.atoms.maxima import suppress_within_host
 from gaussian_atoms_method.harness.simulate import parse_tilts, simulate_tilt_series, spherical_particle
 from gaussian_atoms_method.harness.tracing import trace_atoms
 from gaussian_atoms_method.physics.reconstruction import reconstruct
@@ -45,8 +45,8 @@ def test_minimum_distance_keeps_the_brighter():
 def test_suppress_within_order_and_inclusive_radius():
     pos = np.array([[0.0, 0, 0], [2.0, 0, 0], [4.0, 0, 0]])
     # Visiting the middle first suppresses both ends (exactly 2.0 away counts as within).
-    assert suppress_within(pos, np.array([1, 0, 2]), 2.0).tolist() == [1]
-    assert suppress_within(pos, np.array([0, 1, 2]), 2.0).tolist() == [0, 2]
+    assert suppress_within_host(pos, np.array([1, 0, 2]), 2.0).tolist() == [1]
+    assert suppress_within_host(pos, np.array([0, 1, 2]), 2.0).tolist() == [0, 2]
 
 
 def test_otsu_threshold_rejects_noise_maxima():

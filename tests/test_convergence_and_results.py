@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms
-from gaussian_atoms_method.nerfstudio_layer.convergence import ConvergenceCheck
-from gaussian_atoms_method.nerfstudio_layer.results import write_snapshot
+from gaussian_atoms_method.engine.convergence import ConvergenceCheck
+from gaussian_atoms_method.engine.results import write_snapshot
 
 
 def test_convergence_needs_two_settled_checks_in_a_row():

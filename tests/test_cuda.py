@@ -146,7 +146,7 @@ def test_clusters_on_cuda_equal_the_hosts():
 def test_auto_views_per_step_on_a_gpu_stays_within_its_memory_share():
     """On a GPU auto picks 1 to 8 views, never more than half the free memory holds by the
     projector's measured bytes per view (:func:`.rendering.auto_views_per_step`)."""
-    from gaussian_atoms_method.nerfstudio_layer import rendering as R
+    from gaussian_atoms_method.engine import rendering as R
 
     coords = torch.arange(128.0, device="cuda") - 63.5
     views = R.auto_views_per_step(project_gaussians, 3000, 47, coords, coords)
@@ -233,13 +233,13 @@ def test_separated_maxima_on_cuda_equal_the_hosts():
     search keeps, in the same order."""
     from scipy import ndimage
 
-    from gaussian_atoms_method.atoms import peaks, volume_filters
+    from gaussian_atoms_method.atoms import maxima
 
     field = ndimage.gaussian_filter(np.random.default_rng(6).standard_normal((60, 50, 70)), 1.2)
-    expected = peaks.separated_maxima(field, 0.25, 1.0, 0.01)
+    expected = maxima.separated_maxima_host(field, 0.25, 1.0, 0.01)
     assert len(expected) > 100
     np.testing.assert_array_equal(
-        volume_filters.separated_maxima(torch.as_tensor(field, device="cuda"), 0.25, 1.0, 0.01), expected
+        maxima.separated_maxima_device(torch.as_tensor(field, device="cuda"), 0.25, 1.0, 0.01), expected
     )
 
 

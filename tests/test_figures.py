@@ -42,14 +42,14 @@ def test_slices_png_is_written_complete(tmp_path):
 
 
 def test_dose_figure_reads_ours_and_the_peer_and_draws(tmp_path):
-    """scripts/dose_figure.py: the benchmark-peer CSV gives ours and the peer (doses ascending),
+    """scripts/studies/dose_figure.py: the benchmark-peer CSV gives ours and the peer (doses ascending),
     the benchmark-accuracy CSV one series per method; the figure is written."""
     import importlib.util
     import subprocess
     import sys
     from pathlib import Path
 
-    script = Path(__file__).resolve().parents[1] / "scripts" / "dose_figure.py"
+    script = Path(__file__).resolve().parents[1] / "scripts" / "studies" / "dose_figure.py"
     spec = importlib.util.spec_from_file_location("dose_figure", script)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)

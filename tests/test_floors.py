@@ -1,4 +1,4 @@
-"""The views' floors in closed form (gaussian_atoms_method.nerfstudio_layer.floors)."""
+"""The views' floors in closed form (gaussian_atoms_method.engine.floors)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ from types import SimpleNamespace
 import numpy as np
 import torch
 
-from gaussian_atoms_method.nerfstudio_layer.floors import FloorSolver, agree, floor_moments
-from gaussian_atoms_method.nerfstudio_layer.rendering import (
+from gaussian_atoms_method.engine.floors import FloorSolver, agree, floor_moments
+from gaussian_atoms_method.engine.rendering import (
     FLOOR_TERMS,
     add_background,
     coordinate_powers,

@@ -2,8 +2,8 @@
 
 The layers, lowest first (docs/architecture.md): physics, atoms, density, the tilt-series
 formats (``dataparsers``' readers), the launch (the start begun before nerfstudio loads), the
-nerfstudio layer (with ``dataparsers``' dataparser and dataset), the harness, the CLI.  A module imports only from its
-own layer or lower ones, so
+engine (the fit in plain torch), the nerfstudio layer (with ``dataparsers``' dataparser and
+dataset), the harness, the CLI.  A module imports only from its own layer or lower ones, so
 there is no import cycle, nerfstudio stays in the nerfstudio layer and above, and no library
 module imports the CLI.
 """
@@ -19,7 +19,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("gaussian_atoms_method", "dataparsers")
-LAYERS = ["physics", "atoms", "density", "formats", "launch", "nerfstudio", "api", "harness", "cli"]
+LAYERS = ["physics", "atoms", "density", "formats", "launch", "engine", "nerfstudio", "api", "harness", "cli"]
 
 
 def layer_of(module: str) -> str:
@@ -37,6 +37,7 @@ def layer_of(module: str) -> str:
         "physics": "physics",
         "atoms": "atoms",
         "density": "density",
+        "engine": "engine",
         "nerfstudio_layer": "nerfstudio",
         "harness": "harness",
         "cli": "cli",

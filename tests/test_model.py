@@ -220,7 +220,7 @@ def test_parameters_are_kept_in_range(tmp_path):
 def test_view_shifts_and_background_are_recovered(tmp_path):
     """Per-view in-plane shifts (up to 1 Å) and a constant background per view are learned
     back from simulated data when the atoms are known (the backgrounds in closed form,
-    :mod:`gaussian_atoms_method.nerfstudio_layer.floors`): shifts to 0.05 Å,
+    :mod:`gaussian_atoms_method.engine.floors`): shifts to 0.05 Å,
     backgrounds to 1% of the projection peak (they are 5-20% of it) (L1, 600 steps: a fifth of a 0.25 Å pixel is
     sub-pixel
     registration, what alignment needs for pm atoms)."""

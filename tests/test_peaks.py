@@ -3,7 +3,8 @@
 import numpy as np
 from scipy import ndimage
 
-from gaussian_atoms_method.atoms.peaks import local_maxima, parabola_vertex
+from gaussian_atoms_method.atoms.maxima import local_maxima_host
+from gaussian_atoms_method.atoms.peaks import parabola_vertex
 
 
 def test_local_maxima_above_a_level_equal_the_maximum_filter():
@@ -16,7 +17,7 @@ def test_local_maxima_above_a_level_equal_the_maximum_filter():
     full[[0, -1]] = full[:, [0, -1]] = full[:, :, [0, -1]] = False
     every = np.argwhere(full)
     for level in (-np.inf, 0.0, 0.1, 0.3):
-        np.testing.assert_array_equal(local_maxima(volume, level), every[volume[tuple(every.T)] > level])
+        np.testing.assert_array_equal(local_maxima_host(volume, level), every[volume[tuple(every.T)] > level])
 
 
 def test_parabola_vertex_is_exact_and_clipped():

@@ -1,4 +1,4 @@
-"""The refit after the final prune and merge (:mod:`gaussian_atoms_method.nerfstudio_layer.refit`)."""
+"""The refit after the final prune and merge (:mod:`gaussian_atoms_method.engine.refit`)."""
 
 import math
 
@@ -8,8 +8,8 @@ import torch
 from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
 from dataparsers.tilt_series_format import write_tilt_series
 from gaussian_atoms_method.atoms.atom_set import AtomSet
+from gaussian_atoms_method.engine.refit import refit
 from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
-from gaussian_atoms_method.nerfstudio_layer.refit import refit
 
 TOLERANCE_A = 0.15
 """A refitted atom's distance from the truth (test_refit_passes_until_a_merged_atom_is_back says why)."""
@@ -36,7 +36,7 @@ def test_refit_takes_as_many_views_per_step_as_training(tmp_path):
     """A model that trained on two views per step refits on two per step: two optimiser steps
     per pass of the four views, each on the mean of two views' losses; the atom still comes
     back within TOLERANCE_A."""
-    from gaussian_atoms_method.nerfstudio_layer import refit as R
+    from gaussian_atoms_method.engine import refit as R
 
     model, truth, ls = _two_atoms_one_off(tmp_path)
     model._views_per_step = 2
@@ -85,7 +85,7 @@ def test_drifting_tells_scatter_from_travel():
     with 1% of the atoms travelling two precisions a pass (merged atoms on their way) are, on every
     seed: their 3 |v|^2 = 12 precisions squared over 1% of 6,700 atoms is 0.12 against a standard
     error of about 0.03."""
-    from gaussian_atoms_method.nerfstudio_layer.convergence import drifting
+    from gaussian_atoms_method.engine.convergence import drifting
 
     n, precision = 6700, np.full(6700, 0.065)
     false_drift = 0

@@ -1,4 +1,4 @@
-"""The per-view rendering pieces (nerfstudio_layer/rendering.py), each on a constructed case."""
+"""The per-view rendering pieces (engine/rendering.py), each on a constructed case."""
 
 import math
 
@@ -8,7 +8,7 @@ import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from scipy.spatial.transform import Rotation
 
-from gaussian_atoms_method.nerfstudio_layer import rendering as R
+from gaussian_atoms_method.engine import rendering as R
 from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions, OptionError
 
 
@@ -265,8 +265,8 @@ def test_training_views_rendered_in_chunks_are_the_views_rendered_one_by_one(tmp
     chunks of one view and of all views alike."""
     from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
     from dataparsers.tilt_series_format import write_tilt_series
+    from gaussian_atoms_method.engine import residuals
     from gaussian_atoms_method.harness.simulate import simulate_tilt_series, spherical_particle
-    from gaussian_atoms_method.nerfstudio_layer import residuals
     from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
 
     truth = spherical_particle("Au", radius_A=4.0)
@@ -301,3 +301,10 @@ def test_training_views_rendered_in_chunks_are_the_views_rendered_one_by_one(tmp
             rtol=1e-4,
             atol=1e-6 * np.abs(correlations).max(),
         )
+
+
+def test_the_orthographic_camera_type_is_nerfstudios():
+    """The engine reads cameras by their fields; its orthographic type is nerfstudio's."""
+    from nerfstudio.cameras.cameras import CameraType
+
+    assert R.ORTHOGRAPHIC_CAMERA == CameraType.ORTHOPHOTO.value

@@ -1,4 +1,4 @@
-"""Every file in scripts/ is maintained: it starts and explains itself with --help from a fresh
+"""Every study in scripts/studies/ is maintained: it starts and explains itself with --help from a fresh
 clone, and the start-up profile runs on a tiny series."""
 
 import subprocess
@@ -9,7 +9,9 @@ import pytest
 
 from gaussian_atoms_method.harness.input_cases import valid_series
 
-SCRIPTS = sorted((Path(__file__).resolve().parents[1] / "scripts").iterdir())
+SCRIPTS = sorted(
+    p for p in (Path(__file__).resolve().parents[1] / "scripts" / "studies").iterdir() if p.suffix in (".py", ".sh")
+)
 
 
 def _run(script: Path, *args: str) -> subprocess.CompletedProcess:

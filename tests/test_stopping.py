@@ -8,8 +8,8 @@ import pytest
 import torch
 from nerfstudio.engine.optimizers import Optimizers
 
+from gaussian_atoms_method.engine.stopping import set_position_rate, slow_positions
 from gaussian_atoms_method.nerfstudio_layer.config import gaussian_atoms_trainer_config
-from gaussian_atoms_method.nerfstudio_layer.stopping import set_position_rate, slow_positions
 
 
 def _model_and_optimizers(pixel_A=0.25, detector_px=271, rate_px=1 / math.sqrt(12)):

@@ -3,6 +3,9 @@ read, and one-line errors naming the option."""
 
 import os
 import stat
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -125,3 +128,39 @@ def test_every_bad_argument_of_reconstruct_is_an_input_error_naming_it(bad, name
     projections = np.random.default_rng(0).uniform(size=(7, 24, 24)).astype(np.float32)
     with pytest.raises(ga.InputError, match=named):
         ga.reconstruct(projections, np.linspace(-60, 60, 7), 0.3, progress=False, **bad)
+
+
+def test_the_tool_verbs_name_what_they_cannot_use(tmp_path):
+    """held-out-views with a kernel that is not three fractions, check-precision without a run:
+    one line naming it, exit 2, before anything runs."""
+    from gaussian_atoms_method.harness.input_cases import valid_series
+
+    data = valid_series(tmp_path / "series")
+    bad = subprocess.run(
+        [
+            str(Path(sys.executable).parent / "gaussian-atoms"),
+            "held-out-views",
+            "--data",
+            str(data),
+            "--output",
+            str(tmp_path / "out"),
+            "--kernels",
+            "learned",
+            "0.1,0.2",
+        ],
+        capture_output=True,
+        text=True,
+    )
+    assert bad.returncode == 2 and bad.stderr.strip().count("\n") == 0 and "'0.1,0.2'" in bad.stderr
+    assert not (tmp_path / "out").exists()
+    none = subprocess.run(
+        [
+            str(Path(sys.executable).parent / "gaussian-atoms"),
+            "check-precision",
+            "--load-config",
+            str(tmp_path / "no" / "config.yml"),
+        ],
+        capture_output=True,
+        text=True,
+    )
+    assert none.returncode == 2 and "config.yml: run config not found" in none.stderr

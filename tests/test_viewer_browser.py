@@ -1,4 +1,4 @@
-"""nerfstudio's viewer in headless Chromium shows the atoms (scripts/viewer_screenshot.py).
+"""nerfstudio's viewer in headless Chromium shows the atoms (``gaussian-atoms screenshot``).
 
 Needs Debian's chromium and chromium-driver and the selenium package; skipped without them
 (CI has no browser).
@@ -11,10 +11,10 @@ from pathlib import Path
 
 import pytest
 
+from gaussian_atoms_method.harness import viewer_screenshot
+
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
-sys.path.insert(0, str(ROOT / "scripts"))
-import viewer_screenshot  # noqa: E402
 
 pytestmark = pytest.mark.skipif(
     viewer_screenshot.chromium_paths() is None or importlib.util.find_spec("selenium") is None,

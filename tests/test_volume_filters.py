@@ -6,7 +6,7 @@ import torch
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from gaussian_atoms_method.atoms import peaks, volume_filters
+from gaussian_atoms_method.atoms import maxima, volume_filters
 from gaussian_atoms_method.atoms.point_response import clean_peaks
 
 
@@ -67,11 +67,11 @@ def test_pooled_maxima_equal_the_numpy_search():
     field = ndimage.gaussian_filter(np.random.default_rng(1).standard_normal((30, 26, 28)), 1.5)
     tensor = torch.from_numpy(field)
     for level in (0.0, 0.05):
-        expected = peaks.local_maxima(field, level)
-        np.testing.assert_array_equal(volume_filters.local_maxima(tensor, level, pooled=True), expected)
-        np.testing.assert_array_equal(volume_filters.local_maxima(tensor, level), expected)
+        expected = maxima.local_maxima_host(field, level)
+        np.testing.assert_array_equal(maxima.local_maxima_device(tensor, level, pooled=True), expected)
+        np.testing.assert_array_equal(maxima.local_maxima_device(tensor, level), expected)
     np.testing.assert_array_equal(
-        volume_filters.separated_maxima(tensor, 0.25, 1.0, 0.02), peaks.separated_maxima(field, 0.25, 1.0, 0.02)
+        maxima.separated_maxima_device(tensor, 0.25, 1.0, 0.02), maxima.separated_maxima_host(field, 0.25, 1.0, 0.02)
     )
 
 
@@ -84,13 +84,13 @@ def test_suppression_on_a_device_keeps_what_the_greedy_visit_keeps():
     points = np.unique(rng.integers(0, 40, (4000, 3)), axis=0)
     values = np.round(rng.uniform(0, 5, len(points)), 1)  # many ties
     for spacing_A, min_distance_A in ((0.25, 1.0), (0.25, 0.7), (0.32, 1.0)):
-        expected = peaks.suppress_within(points * spacing_A, np.argsort(-values, kind="stable"), min_distance_A)
-        got = volume_filters.suppress_within_on_device(torch.as_tensor(points), values, spacing_A, min_distance_A)
+        expected = maxima.suppress_within_host(points * spacing_A, np.argsort(-values, kind="stable"), min_distance_A)
+        got = maxima.suppress_within_device(torch.as_tensor(points), values, spacing_A, min_distance_A)
         assert 20 < len(expected) < len(points) // 2
         np.testing.assert_array_equal(got, expected)
     one, none = torch.zeros((1, 3), dtype=torch.long), torch.zeros((0, 3), dtype=torch.long)
-    assert volume_filters.suppress_within_on_device(one, np.ones(1), 0.25, 1.0).tolist() == [0]
-    assert volume_filters.suppress_within_on_device(none, np.zeros(0), 0.25, 1.0).tolist() == []
+    assert maxima.suppress_within_device(one, np.ones(1), 0.25, 1.0).tolist() == [0]
+    assert maxima.suppress_within_device(none, np.zeros(0), 0.25, 1.0).tolist() == []
 
 
 def _clean_reference(found, values, response, centre, level):

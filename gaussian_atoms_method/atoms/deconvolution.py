@@ -36,8 +36,8 @@ import numpy as np
 from scipy import fft, ndimage
 from scipy.spatial import cKDTree
 
-from gaussian_atoms_method.atoms import volume_filters
-from gaussian_atoms_method.atoms.peaks import parabola_vertex, separated_maxima
+from gaussian_atoms_method.atoms.maxima import separated_maxima_device, separated_maxima_host, values_at
+from gaussian_atoms_method.atoms.peaks import parabola_vertex
 from gaussian_atoms_method.atoms.point_response import peak_normalised
 
 DECOY_FALSE_DISCOVERY_RATE = 0.25
@@ -51,10 +51,10 @@ noise 5 this keeps all 97 missing atoms with 26 others; at noise 20 the level is
 
 def _reader(field):
     """A function of (M, 3) voxel indices giving ``field``'s values there: an array's own
-    indexing, or for a tensor a gather on its device (:func:`.volume_filters.values_at`)."""
+    indexing, or for a tensor a gather on its device (:func:`.maxima.values_at`)."""
     if isinstance(field, np.ndarray):
         return lambda indices: field[tuple(indices.T)]
-    return lambda indices: volume_filters.values_at(field, indices)
+    return lambda indices: values_at(field, indices)
 
 
 def _face_neighbours(field, indices: np.ndarray):
@@ -298,10 +298,10 @@ def remainder_sites(
     def apart(peaks):  # more than min_distance_A from every candidate
         return peaks[tree.query(peaks * spacing_A)[0] > min_distance_A] if len(peaks) else peaks
 
-    # an array on the host; a tensor on its device (the same fit and maxima, .volume_filters): only peaks come back
+    # an array on the host; a tensor on its device (the same fit and maxima, .maxima): only peaks come back
     on_host = isinstance(field, np.ndarray)
     fit, maxima = (
-        (fit_amplitudes, separated_maxima) if on_host else (fit_amplitudes_on_device, volume_filters.separated_maxima)
+        (fit_amplitudes, separated_maxima_host) if on_host else (fit_amplitudes_on_device, separated_maxima_device)
     )
     _, model = fit(field, subvoxel_peaks(field, indices), response, centre, iterations)
     remainder = field - model

@@ -94,9 +94,10 @@ from scipy.spatial import cKDTree
 
 from gaussian_atoms_method.atoms import volume_filters
 from gaussian_atoms_method.atoms.deconvolution import matched_response, peak_sharpness, remainder_sites
+from gaussian_atoms_method.atoms.maxima import separated_maxima_device, values_at
 from gaussian_atoms_method.atoms.peaks import random_field_threshold
 from gaussian_atoms_method.atoms.point_response import backprojected_atom, clean_peaks, point_response
-from gaussian_atoms_method.atoms.volume_filters import separated_maxima
+from gaussian_atoms_method.physics.devices import default_device
 from gaussian_atoms_method.physics.field_of_view import FieldOfView, field_of_view
 from gaussian_atoms_method.physics.noise import NoiseModel, measure_noise, noise_from_projections
 from gaussian_atoms_method.physics.reconstruction import Volume, backprojection_for_peaks, reconstruct
@@ -292,7 +293,7 @@ def backprojection_candidates(
         sample, variance = backprojected_noise(projections, angles_deg, pixel_size_A, tilt_axis, device, noise=noise)
         level = noise_level(sample, math.sqrt(float(variance.mean())), on_host(smooth), false_alarm_rate, data.numel())
     # strongest first, so a maximum above the level is only ever suppressed by a stronger one
-    positions = separated_maxima(data, volume.spacing_A, min_distance_A, level)
+    positions = separated_maxima_device(data, volume.spacing_A, min_distance_A, level)
     if max_count is None:
         if len(positions):  # one candidate per atom, not one per maximum of its ridge (step 3)
             response, centre = point_response(
@@ -306,7 +307,7 @@ def backprojection_candidates(
                 device,
             )
             positions = positions[
-                clean_peaks(positions, volume_filters.values_at(data, positions), response, centre, level, device)[0]
+                clean_peaks(positions, values_at(data, positions), response, centre, level, device)[0]
             ]
     positions = positions[:max_count]
     if shoulders and smoothing_A > 0 and (max_count is None or len(positions) < max_count):
@@ -315,14 +316,12 @@ def backprojection_candidates(
         # Only maxima above the strength cut can be kept, and one is only ever suppressed by a
         # stronger one, so the search starts at the cut (a few thousand voxels, not half the volume).
         strength = (
-            shoulder_strength * np.percentile(volume_filters.values_at(laplacian, positions), 90)
-            if len(positions)
-            else -math.inf
+            shoulder_strength * np.percentile(values_at(laplacian, positions), 90) if len(positions) else -math.inf
         )
-        extra = separated_maxima(laplacian, volume.spacing_A, min_distance_A, strength)
+        extra = separated_maxima_device(laplacian, volume.spacing_A, min_distance_A, strength)
         if len(positions) and len(extra):
             distance, _ = cKDTree(positions * volume.spacing_A).query(extra * volume.spacing_A, workers=-1)
-            extra = extra[(distance > min_distance_A) & (volume_filters.values_at(laplacian, extra) >= strength)]
+            extra = extra[(distance > min_distance_A) & (values_at(laplacian, extra) >= strength)]
         del laplacian
         positions = np.concatenate([positions, extra])[:max_count]
     if max_count is None and len(positions) and fine_scale_A != 0:  # step 5: the finest scale the detector samples
@@ -339,7 +338,7 @@ def backprojection_candidates(
             false_alarm_rate,
             data.numel(),
         )
-        maxima = separated_maxima(fine, volume.spacing_A, fine_min_distance_A, fine_level)
+        maxima = separated_maxima_device(fine, volume.spacing_A, fine_min_distance_A, fine_level)
         resolved = np.zeros((0, 3), dtype=np.int64)  # step 5's additions
         if len(maxima):
             distance, _ = cKDTree(positions * volume.spacing_A).query(maxima * volume.spacing_A, workers=-1)
@@ -360,7 +359,7 @@ def backprojection_candidates(
             )
             positions = np.concatenate([positions, extra])
     positions_A = volume.index_to_A(positions)
-    return (positions_A, volume_filters.values_at(data, positions)) if return_values else positions_A
+    return (positions_A, values_at(data, positions)) if return_values else positions_A
 
 
 def starting_positions(
@@ -412,7 +411,7 @@ def starting_positions(
             series.tilt_axis,
             series.centre_px,
             None,
-            device="cuda" if torch.cuda.is_available() else "cpu",
+            device=default_device(),
             return_values=True,
             tilt_axis_angle_deg=series.tilt_axis_angle_deg,
             noise=noise,

@@ -9,53 +9,6 @@ import math
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
-
-from gaussian_atoms_method.atoms import host_filters
-
-
-def local_maxima(volume: np.ndarray, level: float = 0.0) -> np.ndarray:
-    """(M, 3) integer indices of the voxels that are maxima of their 3x3x3 neighbourhood and
-    above ``level`` (and 0), excluding the border voxels (no neighbours for the sub-voxel fit),
-    in C order.  Where few voxels clear the level, only those are compared with their 26
-    neighbours: on the Au series' 271^3 volume at the start's levels that is a few thousandths
-    of the voxels, and the search takes 0.02 s instead of a full maximum filter's 0.5 s."""
-    above = volume > max(level, 0.0)
-    above[[0, -1], :, :] = above[:, [0, -1], :] = above[:, :, [0, -1]] = False
-    if np.count_nonzero(above) > volume.size // 100:  # many: one pass of the maximum filter is cheaper
-        return np.argwhere(above & (volume == host_filters.maximum_filter3(volume)))
-    peaks = np.argwhere(above)
-    value = volume[tuple(peaks.T)]
-    keep = np.ones(len(peaks), dtype=bool)
-    for offset in np.ndindex(3, 3, 3):
-        if offset != (1, 1, 1):
-            keep &= value >= volume[tuple((peaks + np.array(offset) - 1).T)]
-    return peaks[keep]
-
-
-def suppress_within(positions: np.ndarray, order: np.ndarray, min_distance: float) -> np.ndarray:
-    """Indices kept when visiting ``positions`` in ``order`` and dropping any point within
-    ``min_distance`` (inclusive) of one already kept."""
-    tree = cKDTree(positions)
-    neighbours = tree.query_ball_point(positions, min_distance)
-    suppressed = np.zeros(len(positions), dtype=bool)
-    kept = []
-    for i in order:
-        if suppressed[i]:
-            continue
-        kept.append(i)
-        suppressed[neighbours[i]] = True
-    return np.asarray(kept, dtype=np.int64)
-
-
-def separated_maxima(data: np.ndarray, spacing_A: float, min_distance_A: float, level: float = -math.inf) -> np.ndarray:
-    """(M, 3) voxel indices of local maxima of ``data`` above ``level``, strongest first,
-    ``min_distance_A`` apart."""
-    peaks = local_maxima(data, level)
-    if len(peaks) == 0:
-        return np.zeros((0, 3), dtype=np.int64)
-    order = np.argsort(-data[tuple(peaks.T)], kind="stable")
-    return peaks[suppress_within(peaks * spacing_A, order, min_distance_A)]
 
 
 def parabola_vertex(below: np.ndarray, centre: np.ndarray, above: np.ndarray) -> np.ndarray:

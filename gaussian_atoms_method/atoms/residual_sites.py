@@ -36,7 +36,7 @@ import math
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gaussian_atoms_method.atoms import volume_filters
+from gaussian_atoms_method.atoms import maxima, volume_filters
 from gaussian_atoms_method.atoms.peaks import random_field_threshold
 from gaussian_atoms_method.atoms.point_response import clean_peaks, point_response
 from gaussian_atoms_method.physics.noise import mad_std
@@ -96,13 +96,13 @@ def unexplained_sites(
     noise = mad_std(data)
     level = random_field_threshold(data, false_alarm_rate) * noise
     peaks = (
-        volume_filters.separated_maxima(data, volume.spacing_A, min_distance_A, level)
+        maxima.separated_maxima_device(data, volume.spacing_A, min_distance_A, level)
         if noise > 0
         else np.zeros((0, 3), dtype=np.int64)
     )
     if len(peaks) == 0:
         return np.zeros((0, 3)), np.zeros(0)
-    values = volume_filters.values_at(data, peaks)
+    values = maxima.values_at(data, peaks)
     response, centre = point_response(
         residuals.shape, angles_deg, pixel_size_A, sigma_A, tilt_axis, smoothing_A, tilt_axis_angle_deg, device
     )

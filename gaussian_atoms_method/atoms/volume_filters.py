@@ -12,13 +12,10 @@ scipy's own 1-D passes run, over slabs in threads (:mod:`.host_filters`).
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import torch
 
-from gaussian_atoms_method.atoms import host_filters, peaks
-from gaussian_atoms_method.atoms.voxel_pairs import pairs_within
+from gaussian_atoms_method.atoms import host_filters
 from gaussian_atoms_method.physics.noise import gaussian_taps
 
 
@@ -125,88 +122,6 @@ def gaussian_filter_and_laplace(
     x = _pass(volume, sigma_vox, 0, 0, in_torch)
     xy = _pass(x, sigma_vox, 1, 0, in_torch)
     return _pass(xy, sigma_vox, 2, 0, in_torch), _laplace(volume, x, xy, sigma_vox, in_torch)
-
-
-def local_maxima(volume: torch.Tensor, level: float = 0.0, pooled: bool | None = None) -> np.ndarray:
-    """(M, 3) integer indices (C order) of the voxels of a 3D tensor that are maxima of their
-    3x3x3 neighbourhood (ties count) and above ``level`` and 0, excluding the border voxels:
-    :func:`gaussian_atoms_method.atoms.peaks.local_maxima` on the tensor's device, only the
-    indices copied back.  ``pooled`` (default: off the CPU) compares every voxel with a 3x3x3
-    maximum pool; on the CPU the numpy search of only the voxels above the level is faster."""
-    if not _off_cpu(volume, pooled):
-        return peaks.local_maxima(volume.numpy(), level)
-    neighbourhood = torch.nn.functional.max_pool3d(volume[None, None], 3, stride=1, padding=1)[0, 0]
-    peak = (volume >= neighbourhood) & (volume > max(float(level), 0.0))
-    peak[[0, -1], :, :] = False
-    peak[:, [0, -1], :] = False
-    peak[:, :, [0, -1]] = False
-    return torch.nonzero(peak).cpu().numpy()
-
-
-def separated_maxima(
-    volume: torch.Tensor, spacing_A: float, min_distance_A: float, level: float = -math.inf
-) -> np.ndarray:
-    """:func:`gaussian_atoms_method.atoms.peaks.separated_maxima` of a tensor: (M, 3) voxel
-    indices of local maxima above ``level``, strongest first, ``min_distance_A`` apart.  The
-    maxima are found on the tensor's device; the strongest-first suppression there too off the
-    CPU (:func:`suppress_within_on_device`), on the CPU with the host's k-d tree."""
-    found = local_maxima(volume, level)
-    if len(found) == 0:
-        return np.zeros((0, 3), dtype=np.int64)
-    if _off_cpu(volume, None):
-        return found[
-            suppress_within_on_device(
-                torch.as_tensor(found, device=volume.device), values_at(volume, found), spacing_A, min_distance_A
-            )
-        ]
-    order = np.argsort(-values_at(volume, found), kind="stable")
-    return found[peaks.suppress_within(found * spacing_A, order, min_distance_A)]
-
-
-def suppress_within_on_device(
-    points: torch.Tensor, values: np.ndarray, spacing_A: float, min_distance_A: float
-) -> np.ndarray:
-    """:func:`gaussian_atoms_method.atoms.peaks.suppress_within` of the (M, 3) integer voxel
-    ``points`` (a tensor) visited strongest ``values`` first (ties in index order), on their
-    device: the indices kept, in the visit's order.  The pairs within ``min_distance_A``
-    (inclusive) come from :func:`.voxel_pairs.pairs_within`; the visit is solved in rounds, each
-    point kept once every stronger neighbour is decided and none was kept, suppressed once one
-    was kept: the greedy visit's result, in as many rounds as its longest chain of decisions.
-    On the H100 machine the host's suppression took 1.5 s of the 54,000-atom a-Pd's start."""
-    dev, n = points.device, len(points)
-    rank = torch.empty(n, dtype=torch.long, device=dev)
-    rank[torch.as_tensor(np.argsort(-np.asarray(values), kind="stable"), device=dev)] = torch.arange(n, device=dev)
-    reach = int(math.floor(min_distance_A / spacing_A + 1e-9))
-    stronger, weaker = [], []
-    for a, b in pairs_within(points, reach):
-        close = ((points[a].double() * spacing_A - points[b].double() * spacing_A) ** 2).sum(
-            dim=1
-        ) <= min_distance_A**2  # as the k-d tree reads it
-        a, b = a[close], b[close]
-        first = rank[a] < rank[b]
-        stronger.append(torch.where(first, a, b))
-        weaker.append(torch.where(first, b, a))
-    stronger = torch.cat(stronger) if stronger else torch.zeros(0, dtype=torch.long, device=dev)
-    weaker = torch.cat(weaker) if weaker else torch.zeros(0, dtype=torch.long, device=dev)
-    kept = torch.zeros(n, dtype=torch.bool, device=dev)
-    suppressed = torch.zeros(n, dtype=torch.bool, device=dev)
-    while True:
-        hit = torch.zeros(n, dtype=torch.int32, device=dev).index_add_(0, weaker, kept[stronger].int()) > 0
-        open_ = torch.zeros(n, dtype=torch.int32, device=dev).index_add_(
-            0, weaker, (~(kept | suppressed))[stronger].int()
-        )
-        now_kept = ~hit & (open_ == 0)
-        if torch.equal(now_kept, kept) and torch.equal(hit, suppressed):
-            break
-        kept, suppressed = now_kept, hit
-    order = torch.argsort(rank)
-    return order[kept[order]].cpu().numpy()
-
-
-def values_at(volume: torch.Tensor, indices: np.ndarray) -> np.ndarray:
-    """The (M,) float64 values of ``volume`` at (M, 3) integer voxel indices, on the host."""
-    index = torch.as_tensor(np.asarray(indices, dtype=np.int64).reshape(-1, 3), device=volume.device)
-    return volume[index[:, 0], index[:, 1], index[:, 2]].double().cpu().numpy()
 
 
 def as_volume(data, device: str | torch.device = "cpu", dtype: torch.dtype | None = torch.float64) -> torch.Tensor:

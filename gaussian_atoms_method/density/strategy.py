@@ -270,7 +270,7 @@ class DensityControl:
         """The final rules of :meth:`finalize` (merges by likelihood and resolution, the final
         prune, the distance merge) on the Gaussians as they stand; fresh ones keep their interval;
         the merge by likelihood only with ``correlations``.  Called mid-run, without them, once
-        the positions have settled but the set has not (:func:`..nerfstudio_layer.stopping.settle_set`).
+        the positions have settled but the set has not (:func:`..engine.stopping.settle_set`).
         Returns how many Gaussians went."""
         removed = self.join_close_pairs(params, optimizers, param_lists, protect_fresh=True)
         if self.cluster_merge:
@@ -632,7 +632,7 @@ class DensityControl:
         first term is :func:`..atoms.resolution.merge_energy` over the noise at the merged
         Gaussian (:meth:`pixel_variance`), the second reads the residual through
         ``correlations`` (a callable of probe means (P, 3) and widths (P,) returning the (P,)
-        sums ``sum w r g`` for unit-amplitude probes, :func:`..nerfstudio_layer.residuals.residual_correlations`).
+        sums ``sum w r g`` for unit-amplitude probes, :func:`..engine.residuals.residual_correlations`).
         None when it returns None or without a noise model or view directions."""
         if not self.noise_known() or self.view_dirs is None:
             return None

@@ -2,7 +2,7 @@
 
 Each case writes a tilt-series directory; a broken one must stop with one line naming the file
 or option (exit 2, no traceback, nothing written), an odd but valid one must train.  Used by
-``tests/test_front_door.py`` and ``scripts/input_matrix.py`` (which runs every case through
+``tests/test_front_door.py`` and ``gaussian-atoms input-matrix`` (:mod:`.input_matrix`) (which runs every case through
 ``ns-train gaussian-atoms`` and ``gaussian-atoms train``).
 """
 

@@ -7,7 +7,7 @@ batch of detector pixels of one view,
 each ray's line integral estimated by stratified samples along the beam, L1 loss against the
 measured values.  Afterwards the MLP is sampled on the voxel grid and traced like FBP/SART.
 
-The defaults are tuned (``scripts/inr_tune.py`` on the lent H100; docs/results.md, INR
+The defaults are tuned (``scripts/studies/inr_tune.py`` on the lent H100; docs/results.md, INR
 baseline): on the 312-atom Au particle (full tilts, noise 50) the first version (1,500 steps of
 1,024 rays, 64 hidden units, Fourier std 20 per normalised unit, output not scaled) found 9% of
 the atoms with 3.8 false ones per atom: its 64-unit MLP could not hold hundreds of sharp

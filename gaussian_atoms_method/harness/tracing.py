@@ -16,8 +16,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from gaussian_atoms_method.atoms import volume_filters
-from gaussian_atoms_method.atoms.peaks import parabola_vertex, suppress_within
+from gaussian_atoms_method.atoms import maxima, volume_filters
+from gaussian_atoms_method.atoms.maxima import suppress_within_host
+from gaussian_atoms_method.atoms.peaks import parabola_vertex
 
 
 def otsu_threshold(values: np.ndarray) -> float:
@@ -38,12 +39,12 @@ def subvoxel_refine(volume, peaks: np.ndarray) -> np.ndarray:
     field = volume if isinstance(volume, torch.Tensor) else volume_filters.as_volume(volume)
     peaks = np.asarray(peaks, dtype=np.int64)
     out = peaks.astype(np.float64)
-    f0 = volume_filters.values_at(field, peaks)
+    f0 = maxima.values_at(field, peaks)
     for axis in range(3):
         step = np.zeros(3, dtype=np.int64)
         step[axis] = 1
-        fm = volume_filters.values_at(field, peaks - step)
-        fp = volume_filters.values_at(field, peaks + step)
+        fm = maxima.values_at(field, peaks - step)
+        fp = maxima.values_at(field, peaks + step)
         positive = (fm > 0) & (fp > 0) & (f0 > 0)
         with np.errstate(divide="ignore", invalid="ignore"):
             lm, l0, lp = (
@@ -80,13 +81,13 @@ def trace_atoms(
     intensities : (M,) peak values
     """
     field = volume if isinstance(volume, torch.Tensor) else volume_filters.as_volume(volume)
-    peaks = volume_filters.local_maxima(field)
+    peaks = maxima.local_maxima_device(field)
     if len(peaks) == 0:
         return np.zeros((0, 3)), np.zeros(0)
-    values = volume_filters.values_at(field, peaks)
+    values = maxima.values_at(field, peaks)
     thr = threshold if threshold is not None else threshold_scale * otsu_threshold(values)
     strong = values >= thr
     peaks, values = peaks[strong], values[strong]
     order = np.argsort(-values, kind="stable")
-    keep = suppress_within(peaks * spacing_A, order, min_distance_A)
+    keep = suppress_within_host(peaks * spacing_A, order, min_distance_A)
     return subvoxel_refine(field, peaks[keep]), values[keep]

@@ -1,6 +1,7 @@
 """The thin nerfstudio layer: the method's config (:mod:`.config`), the splatfacto subclass
-(:mod:`.model`) with its per-view rendering (:mod:`.rendering`), convergence check
-(:mod:`.convergence`) and result writing (:mod:`.results`), the training launchers
+(:mod:`.model`) with its per-view rendering (:mod:`gaussian_atoms_method.engine.rendering`), convergence check
+(:mod:`gaussian_atoms_method.engine.convergence`) and result writing (:mod:`gaussian_atoms_method.engine.results`), the
+training launchers
 (:mod:`.train`: ``gaussian-atoms train``; :mod:`.training`: a minimal loop for tests), the
 viewer's atom cloud (:mod:`.viewer`) and checkpoint loading (:mod:`.checkpoints`).
 

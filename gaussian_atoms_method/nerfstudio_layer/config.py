@@ -23,6 +23,7 @@ from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
 from dataparsers.tilt_series_dataset import TiltSeriesDataset
 from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
 from gaussian_atoms_method.nerfstudio_layer.trainer import GaussianAtomsTrainerConfig
+from gaussian_atoms_method.physics.devices import default_device
 from gaussian_atoms_method.start_ahead import begin_for
 
 MAX_ITERATIONS = 3000
@@ -31,12 +32,6 @@ if Path(sys.argv[0]).name == "ns-train" and sys.argv[1:2] == ["gaussian-atoms"]:
     # ns-train imports this module while it loads every method it knows, before it parses the
     # command line: the start of the run it was asked for begins now, in a thread (start_ahead).
     begin_for(sys.argv[2:])
-
-
-def available_device() -> str:
-    """The run's default device: the GPU where torch sees one, else the CPU (nerfstudio's own
-    default, CUDA, stops a CPU-only machine with a traceback at the model's first ``.to``)."""
-    return "cuda" if torch.cuda.is_available() else "cpu"
 
 
 class Adam(torch.optim.Adam):
@@ -112,7 +107,7 @@ def gaussian_atoms_trainer_config(max_iterations: int = MAX_ITERATIONS) -> Gauss
         steps_per_eval_all_images=100000,
         max_num_iterations=max_iterations,
         mixed_precision=False,
-        machine=MachineConfig(device_type=available_device()),
+        machine=MachineConfig(device_type=default_device()),
         pipeline=VanillaPipelineConfig(
             datamanager=FullImageDatamanagerConfig(
                 _target=TiltSeriesDatamanager,

@@ -10,11 +10,13 @@ One isotropic Gaussian per atom.  Parameters (normalised units, see
 * ``log_amplitudes`` (N, 1): the 3D peak, ``q = exp(log_amplitude)``.  The exponential keeps it
   positive and makes Adam's steps relative, so faint and bright atoms learn at the same pace.
 
-The model keeps the rendering (composed from :mod:`.rendering`) and the loss (the data term
-chosen from the measured noise, :mod:`.noise_reading`; no SSIM, LPIPS, SH or alpha).  How many
+The model keeps the rendering (composed from :mod:`gaussian_atoms_method.engine.rendering`) and the loss (the data term
+chosen from the measured noise, :mod:`gaussian_atoms_method.engine.noise_reading`; no SSIM, LPIPS, SH or alpha).  How
+many
 Gaussians exist is :mod:`gaussian_atoms_method.density.strategy`'s, called from the callbacks
 registered here; the start :mod:`gaussian_atoms_method.atoms.initialise`'s, the stop
-:mod:`.convergence`'s, the files :mod:`.results`'.  Options: :mod:`.options`.
+:mod:`gaussian_atoms_method.engine.convergence`'s, the files :mod:`gaussian_atoms_method.engine.results`'.  Options:
+:mod:`.options`.
 """
 
 from __future__ import annotations
@@ -27,25 +29,25 @@ from typing import Dict, List, Tuple, Type
 import torch
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
-from nerfstudio.utils.rich_utils import CONSOLE
 from torch.nn import Parameter
 
 from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms
 from gaussian_atoms_method.atoms.initialise import compute_start, starting_amplitude
 from gaussian_atoms_method.density.strategy import DensityControl, amplitudes, widths
-from gaussian_atoms_method.nerfstudio_layer import rendering as R
+from gaussian_atoms_method.engine import rendering as R
+from gaussian_atoms_method.engine.console import CONSOLE
+from gaussian_atoms_method.engine.convergence import ConvergenceCheck
+from gaussian_atoms_method.engine.floors import FloorSolver
+from gaussian_atoms_method.engine.kernel_reading import HeldOutKernel
+from gaussian_atoms_method.engine.noise_reading import judge_after_fit, read_noise, say_hard_core, say_start
+from gaussian_atoms_method.engine.refit import refit
+from gaussian_atoms_method.engine.residuals import residual_correlations
+from gaussian_atoms_method.engine.results import model_position_std_A, write_results, write_snapshot
+from gaussian_atoms_method.engine.stopping import at_check, set_position_rate
 from gaussian_atoms_method.nerfstudio_layer.checkpoints import allow_numpy_scalars_in_checkpoints
-from gaussian_atoms_method.nerfstudio_layer.convergence import ConvergenceCheck
-from gaussian_atoms_method.nerfstudio_layer.floors import FloorSolver
-from gaussian_atoms_method.nerfstudio_layer.kernel_reading import HeldOutKernel
-from gaussian_atoms_method.nerfstudio_layer.noise_reading import judge_after_fit, read_noise, say_hard_core, say_start
 from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions
-from gaussian_atoms_method.nerfstudio_layer.refit import refit
-from gaussian_atoms_method.nerfstudio_layer.residuals import residual_correlations
-from gaussian_atoms_method.nerfstudio_layer.results import model_position_std_A, write_results, write_snapshot
 from gaussian_atoms_method.nerfstudio_layer.splatfacto_compat import SplatfactoCompat
 from gaussian_atoms_method.nerfstudio_layer.step_graph import StepGraph
-from gaussian_atoms_method.nerfstudio_layer.stopping import at_check, set_position_rate
 from gaussian_atoms_method.nerfstudio_layer.viewer import AtomsInViewer
 from gaussian_atoms_method.physics.data_terms import data_term
 from gaussian_atoms_method.physics.psf import project_weights
@@ -181,7 +183,8 @@ class GaussianAtomsModel(SplatfactoCompat):
 
     def _setup_view_params(self, metadata: dict, series, floor: float | None, surfaces=None) -> None:
         """Per-view parameters and the views-per-step batches; a background (solved in closed form,
-        :mod:`.floors`) starts at ``floor``, on the (V, H, W) ``surfaces`` of a floor that varies within the views."""
+        :mod:`gaussian_atoms_method.engine.floors`) starts at ``floor``, on the (V, H, W) ``surfaces`` of a floor that
+        varies within the views."""
         cfg, view_c2w = self.config, metadata.get("view_c2w")
         self.register_buffer(
             "view_c2w", view_c2w.float() if view_c2w is not None else torch.zeros(0, 3, 4), persistent=False
@@ -202,7 +205,7 @@ class GaussianAtomsModel(SplatfactoCompat):
     @property
     def views_per_step(self) -> int:
         """Views fitted per training step (auto: resolved at the first training step,
-        :func:`.rendering.first_step_views`)."""
+        :func:`gaussian_atoms_method.engine.rendering.first_step_views`)."""
         if self._views_per_step is None and self.training:
             self._views_per_step = R.first_step_views(self)
         return self._views_per_step or 1
@@ -368,7 +371,8 @@ class GaussianAtomsModel(SplatfactoCompat):
     @torch.no_grad()
     def finalize(self) -> None:
         """Last merges and prune (one Gaussian per atom; the residual read by
-        :func:`.residuals.residual_correlations`), then a short refit if they changed anything."""
+        :func:`gaussian_atoms_method.engine.residuals.residual_correlations`), then a short refit if they changed
+        anything."""
         self.finite_watch.flush()
         judge_after_fit(self)
         if (
@@ -394,11 +398,12 @@ class GaussianAtomsModel(SplatfactoCompat):
         )
 
     def position_std_A(self, atoms: AtomSet, noise: float | None = None):
-        """Each atom's position precision (N, 3) in Å and the pixel noise assumed (:mod:`.results`)."""
+        """Each atom's position precision (N, 3) in Å and the pixel noise assumed
+        (:mod:`gaussian_atoms_method.engine.results`)."""
         return model_position_std_A(self, atoms, noise)
 
     def converged(self, step: int) -> bool:
-        """True once the atoms are settled (:mod:`.convergence`)."""
+        """True once the atoms are settled (:mod:`gaussian_atoms_method.engine.convergence`)."""
         worth = self.density.atoms_worth(self.gauss_params) if self.convergence.checks(step) else None
         return self.convergence.update(
             step,
@@ -409,7 +414,8 @@ class GaussianAtomsModel(SplatfactoCompat):
         )
 
     def write_results(self, run_dir: Path) -> dict | None:
-        """atoms.xyz, atoms.csv, slices.png and evaluation.json (:func:`.results.write_results`)."""
+        """atoms.xyz, atoms.csv, slices.png and evaluation.json
+        (:func:`gaussian_atoms_method.engine.results.write_results`)."""
         return write_results(self, Path(run_dir))
 
     def _write_results_at(self, last_step: int, run_dir: Path, step: int) -> None:
@@ -418,7 +424,7 @@ class GaussianAtomsModel(SplatfactoCompat):
 
     def _stop_if_converged(self, trainer, last_step: int, step: int) -> None:
         """At each check: stop once the atoms are settled, else search, settle the set or slow the positions
-        (:mod:`.stopping`)."""
+        (:mod:`gaussian_atoms_method.engine.stopping`)."""
         # psf held-out: the reading ends once the kernel is held (.kernel_reading.restart_with_kernel_held)
         if self.kernel_reading.first_pass:
             trainer.stop_training = self.kernel_reading.settled

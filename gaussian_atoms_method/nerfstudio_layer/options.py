@@ -17,6 +17,7 @@ from typing import Annotated, Literal, Optional, Tuple, Union, get_type_hints
 import tyro
 
 from gaussian_atoms_method.density.strategy import DensityControl
+from gaussian_atoms_method.engine.errors import OptionError  # noqa: F401  (raised here, imported from here by callers)
 from gaussian_atoms_method.nerfstudio_layer.lazy_compile import import_splatfacto
 
 SplatfactoModelConfig = import_splatfacto().SplatfactoModelConfig
@@ -76,10 +77,6 @@ def inert_splatfacto_fields() -> dict:
     return out
 
 
-class OptionError(ValueError):
-    """A model option (or a combination of them) that cannot be honoured; the message names it."""
-
-
 @dataclass
 class UserFirstOptions:
     """The options a user sets first: the data's background and probe, a film, the alignment,
@@ -94,7 +91,7 @@ class UserFirstOptions:
     quadratic surface, :func:`gaussian_atoms_method.physics.noise.frame_surfaces`) with a
     constant and quadratic correction (a frame the object reaches holds its tails).  Each is
     solved in closed form on the pixels the Gaussians leave empty, each time its view is
-    rendered, and shared by all views while their fits agree (:mod:`.floors`).  ``auto``:
+    rendered, and shared by all views while their fits agree (:mod:`gaussian_atoms_method.engine.floors`).  ``auto``:
     when the projections' outer frame sits significantly off zero (more than 5 standard errors
     of its mean, :func:`gaussian_atoms_method.physics.noise.detector_floor`: the peer's aSi-208
     counts sit on 1.0 count), a constant if the frame is flat and ``smooth``
@@ -107,9 +104,10 @@ class UserFirstOptions:
     :mod:`gaussian_atoms_method.physics.psf`) convolves the projections, so a probe's tails and
     rings are not explained by extra faint, wide Gaussians; ``fixed``: the kernel of
     ``psf_weights``, held (a probe measured, or chosen on held-out views with
-    ``scripts/held_out_views.py``); ``held-out``: a first pass reads the kernel on the odd views
+    ``gaussian-atoms held-out-views``); ``held-out``: a first pass reads the kernel on the odd views
     while the atoms learn from the even ones, then the run starts again with it held
-    (:mod:`.kernel_reading`: learned with the atoms, a probe's tails can go to extra Gaussians
+    (:mod:`gaussian_atoms_method.engine.kernel_reading`: learned with the atoms, a probe's tails can go to extra
+    Gaussians
     instead; twice the time; where half the views fit poorly the reading is too wide: a dense
     54,000-atom particle without tails read 53% at 2 Å); ``none``: the blur is in the atoms' widths alone (the
     paper's model)."""
@@ -159,8 +157,10 @@ class UserFirstOptions:
     false_discovery_rate of the atoms' worth of Gaussians added or removed, and the RMS step of the others
     (matched within merge_threshold_A) below ``converged_fraction`` of the atoms' noise-limited
     precision (:mod:`gaussian_atoms_method.atoms.uncertainty`), at two checks in a row
-    (:mod:`.convergence`).  Further steps would move the atoms by less than the data can tell
-    apart.  Until then the run acts on what the checks show (:mod:`.stopping`): the final merges
+    (:mod:`gaussian_atoms_method.engine.convergence`).  Further steps would move the atoms by less than the data can
+    tell
+    apart.  Until then the run acts on what the checks show (:mod:`gaussian_atoms_method.engine.stopping`): the final
+    merges
     and prune once only the set still churns, a halved position rate while the positions only
     scatter."""
     seed: int = 0
@@ -235,12 +235,13 @@ class GaussianAtomsOptions(SplatfactoModelConfig, UserFirstOptions):
     judge_after_fit: bool = True
     """The final merges and prune judge significance in what the fit leaves unexplained, as an
     atom sees it (the residuals' variance times their correlation over an atom), never less
-    than the noise read before training (:func:`.noise_reading.noise_after_fit`).  Where the data
+    than the noise read before training (:func:`gaussian_atoms_method.engine.noise_reading.noise_after_fit`).  Where
+    the data
     match the forward model that is the noise and nothing changes; on real data the fit's
     leftover structure is otherwise read as significant atoms and resolved pairs."""
     final_refit: bool = True
     """After the final prune and merge, when they removed anything, one pass over the views so the
-    survivors take up what the removed Gaussians carried (:mod:`.refit`)."""
+    survivors take up what the removed Gaussians carried (:mod:`gaussian_atoms_method.engine.refit`)."""
     isotropic: bool = DensityControl.isotropic
     """One width per Gaussian (the isotropy prior).  False: three widths and a rotation each."""
     average_iterates: bool = DensityControl.average_iterates
@@ -284,7 +285,8 @@ class GaussianAtomsOptions(SplatfactoModelConfig, UserFirstOptions):
     one others drawn at random, rendered in one projector call, one loss over all.  On a GPU a
     batch of views costs about one view's kernel launches and the averaged gradient is smoother
     (docs/performance.md: several views per step); on a CPU each view costs its own time.
-    ``auto``: on a GPU as many as fit (:func:`.rendering.auto_views_per_step`: at most 8, within
+    ``auto``: on a GPU as many as fit (:func:`gaussian_atoms_method.engine.rendering.auto_views_per_step`: at most 8,
+    within
     half the free GPU memory by the projector's measured bytes per Gaussian and view), else 1;
     1 with refine-alignment, refine-tilts or anisotropic Gaussians (per-view parameters), which
     a number above 1 cannot be combined with."""

@@ -25,9 +25,9 @@ from __future__ import annotations
 import functools
 
 import torch
-from nerfstudio.utils.rich_utils import CONSOLE
 
-from gaussian_atoms_method.nerfstudio_layer.rendering import projector_name, step_views
+from gaussian_atoms_method.engine.console import CONSOLE
+from gaussian_atoms_method.engine.rendering import projector_name, step_views
 
 
 class StepGraph:

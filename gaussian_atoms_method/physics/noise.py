@@ -31,6 +31,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from gaussian_atoms_method.physics.devices import HOST, gpu, work_device  # noqa: F401  (HOST: read from here too)
+
 MAD_TO_STD = 1.4826
 """Standard deviation of a normal distribution per median absolute deviation."""
 
@@ -145,25 +147,8 @@ def separable_correlate(padded, taps_rows: np.ndarray, taps_cols: np.ndarray):
     return sum(float(t) * rows[:, :, k : k + w] for k, t in enumerate(taps_cols))
 
 
-HOST = "host"
-"""The device argument that keeps the noise readings, and the start's back-projection
-(:func:`gaussian_atoms_method.physics.reconstruction.backprojection_for_peaks`), in numpy on the
-host without importing torch (a start begun while the launcher imports it,
-:mod:`gaussian_atoms_method.start_ahead`)."""
-
-
-def compute_device(values, device=None):
-    """Where the noise readings of ``values`` run: ``device`` if given (:data:`HOST`: numpy),
-    else a tensor's own device off the CPU, else a GPU where there is one; None: numpy on the host."""
-    if device == HOST:
-        return None
-    import torch
-
-    if device is not None:
-        return torch.device(device)
-    if isinstance(values, torch.Tensor) and values.device.type != "cpu":
-        return values.device
-    return _gpu()
+compute_device = work_device
+"""Where the noise readings run (:func:`gaussian_atoms_method.physics.devices.work_device`)."""
 
 
 def _as_float64(values, device):
@@ -261,13 +246,6 @@ def _binned_variance_torch(residuals, predicted, bins: int, min_count: int, robu
     return np.array(centres), np.array(variances), np.array(counts)
 
 
-def _gpu():
-    """The CUDA device if there is one, else None."""
-    import torch
-
-    return torch.device("cuda") if torch.cuda.is_available() else None
-
-
 def median_on_device(values):
     """numpy's median of a 1D tensor (the mean of the two middle values for an even count), on
     the tensor's device: a sort, where numpy partitions on one CPU core (the residuals' robust
@@ -284,7 +262,7 @@ def mad_std(values, device=None) -> float:
     import torch
 
     if device is None:
-        device = values.device if isinstance(values, torch.Tensor) and values.device.type != "cpu" else _gpu()
+        device = values.device if isinstance(values, torch.Tensor) and values.device.type != "cpu" else gpu()
     if device is None:
         v = np.asarray(values, dtype=np.float64).ravel()
         v = v[np.isfinite(v)]

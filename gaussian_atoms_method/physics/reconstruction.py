@@ -18,8 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from gaussian_atoms_method.physics.devices import HOST
 from gaussian_atoms_method.physics.geometry import to_nominal_axis
-from gaussian_atoms_method.physics.noise import HOST
 
 
 @dataclass
@@ -359,7 +359,7 @@ def backprojection_for_peaks(
     :func:`gaussian_atoms_method.atoms.initialise.backprojection_candidates`), in float32
     (float64 took twice as long on the CPU: the Au series' FBP 1.5 s, its Laplacian of Gaussian
     2.0 s against 0.95 s): a tensor on ``device`` (the filters and the maxima run there), or
-    with ``device`` :data:`~gaussian_atoms_method.physics.noise.HOST` an array made without
+    with ``device`` :data:`~gaussian_atoms_method.physics.devices.HOST` an array made without
     importing torch (the CPU's own FBP: the same values)."""
     on_host = device == HOST
     return reconstruct(

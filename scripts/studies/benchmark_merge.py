@@ -4,7 +4,7 @@ The scene imitates a fit mid-run: atoms on an fcc Au lattice (2.88 Å apart) in 
 fraction of them carrying a second Gaussian within 0.3 Å (a duplicate the merge must fold in).
 Prints a Markdown table and writes it to ``docs/merge_timing.md``.
 
-    python scripts/benchmark_merge.py [--sizes 10000 100000 1000000] [--threshold-A 0.7]
+    python scripts/studies/benchmark_merge.py [--sizes 10000 100000 1000000] [--threshold-A 0.7]
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
 """The start's pair searches on the host and on a device: CLEAN's pairs within the point
 response's box and the strongest-first suppression of maxima, at a large particle's size.
 
-    python scripts/benchmark_pair_search.py [--device cuda] [--peaks 97000] [--maxima 395000]
-    python scripts/benchmark_pair_search.py --device cuda --data DIR   # also the whole start, twice
+    python scripts/studies/benchmark_pair_search.py [--device cuda] [--peaks 97000] [--maxima 395000]
+    python scripts/studies/benchmark_pair_search.py --device cuda --data DIR   # also the whole start, twice
 
 Synthetic peaks fill a sphere of 57 Å on 0.25 Å voxels (a 54,000-atom a-Pd's start holds 96,995
 candidates), with an 81^3 response (the point response's 10 Å box); the maxima are kept 1 Å
@@ -23,9 +23,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from gaussian_atoms_method.atoms import peaks as host_peaks  # noqa: E402
-from gaussian_atoms_method.atoms import volume_filters  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from gaussian_atoms_method.atoms.maxima import suppress_within_device, suppress_within_host  # noqa: E402
 from gaussian_atoms_method.atoms.point_response import _response_pairs, clean_peaks, response_pairs_on_device  # noqa: E402
 
 
@@ -78,13 +77,9 @@ def main() -> None:
         (a, _), th = timed(lambda: clean_peaks(peaks, values, response, centre, 2.0), "cpu")
         (b, _), td = timed(lambda: clean_peaks(peaks, values, response, centre, 2.0, args.device), args.device)
         print(f"| CLEAN ({len(a):,} kept) | {th:.2f} | {td:.2f} | {np.array_equal(a, b)} |", flush=True)
-        a, th = timed(
-            lambda: host_peaks.suppress_within(maxima * 0.25, np.argsort(-heights, kind="stable"), 1.0), "cpu"
-        )
+        a, th = timed(lambda: suppress_within_host(maxima * 0.25, np.argsort(-heights, kind="stable"), 1.0), "cpu")
         b, td = timed(
-            lambda: volume_filters.suppress_within_on_device(
-                torch.as_tensor(maxima, device=args.device), heights, 0.25, 1.0
-            ),
+            lambda: suppress_within_device(torch.as_tensor(maxima, device=args.device), heights, 0.25, 1.0),
             args.device,
         )
         print(

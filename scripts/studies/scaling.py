@@ -6,10 +6,10 @@ pixels).  A 47-view limited tilt series of that size (random values: the cost of
 does not depend on them) is read by the tilt-series dataparser, the model holds N Gaussians,
 and an iteration is what ns-train does per step: render one view, L1 loss, backward, Adam
 step, parameter clamping (densify / prune / merge run every 100 steps and are timed by
-scripts/benchmark_merge.py).  Reported: median seconds per iteration over 30 iterations after
+scripts/studies/benchmark_merge.py).  Reported: median seconds per iteration over 30 iterations after
 5 warm-up ones, and peak memory (GPU: max allocated; CPU: the process's peak RSS).
 
-    python scripts/scaling.py --device cuda --atoms 1000 7000 17000 50000 100000 --output docs/scaling_cuda.md
+    python scripts/studies/scaling.py --device cuda --atoms 1000 7000 17000 50000 100000 --output docs/scaling_cuda.md
 """
 
 from __future__ import annotations
@@ -36,10 +36,10 @@ def time_iterations(n_atoms: int, device: str, iterations: int = 30, warmup: int
 
     from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
     from dataparsers.tilt_series_format import write_tilt_series
+    from gaussian_atoms_method.engine.rendering import projector_name
     from gaussian_atoms_method.harness.simulate import parse_tilts
     from gaussian_atoms_method.nerfstudio_layer.config import gaussian_atoms_trainer_config
     from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
-    from gaussian_atoms_method.nerfstudio_layer.rendering import projector_name
 
     side = detector_pixels(n_atoms)
     angles = parse_tilts("limited")

@@ -9,7 +9,7 @@ A small Au sphere (Lobato potentials, limited tilts, noise 50) is simulated once
   gradient of 10% across the detector, different per view).
 Each dataset is reconstructed by ``ns-train gaussian-atoms`` with the switches off and on.
 
-    python scripts/alignment_background.py --output outputs/alignment [--radius-A 10]
+    python scripts/studies/alignment_background.py --output outputs/alignment [--radius-A 10]
 """
 
 from __future__ import annotations

@@ -6,8 +6,8 @@ difference from the float64 dense projection (fraction of the image peak) and th
 forward + backward pass for 1 view and for all 47 views in one batch (median of 20 after 3
 warm-ups, CUDA-synchronised), and the peak GPU memory.  TF32 stays off (it costs 0.6%).
 
-    python3 scripts/benchmark_projectors.py [--sizes 1000 7000 17000 50000 100000] [--output DIR]
-    python3 scripts/benchmark_projectors.py --device cpu --sizes 1000 7000 17000 --views 1 --repeats 5
+    python3 scripts/studies/benchmark_projectors.py [--sizes 1000 7000 17000 50000 100000] [--output DIR]
+    python3 scripts/studies/benchmark_projectors.py --device cpu --sizes 1000 7000 17000 --views 1 --repeats 5
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from gaussian_atoms_method.physics.geometry import detector_axes_from_tilts  # noqa: E402
 from gaussian_atoms_method.physics.projector import project_gaussians, project_gaussians_gsplat, project_gaussians_tiled  # noqa: E402

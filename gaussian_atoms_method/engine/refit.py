@@ -1,4 +1,5 @@
-"""The refit after the final prune and merge (:meth:`.model.GaussianAtomsModel.finalize`):
+"""The refit after the final prune and merge
+(:meth:`gaussian_atoms_method.nerfstudio_layer.model.GaussianAtomsModel.finalize`):
 the survivors take up what the removed Gaussians carried."""
 
 from __future__ import annotations
@@ -7,9 +8,9 @@ import numpy as np
 import torch
 
 from gaussian_atoms_method.density.averaging import IterateAverage
-from gaussian_atoms_method.nerfstudio_layer.convergence import drifting
-from gaussian_atoms_method.nerfstudio_layer.rendering import index_on, render_views
-from gaussian_atoms_method.nerfstudio_layer.residuals import in_chunks, measured_views, training_views
+from gaussian_atoms_method.engine.convergence import drifting
+from gaussian_atoms_method.engine.rendering import index_on, render_views
+from gaussian_atoms_method.engine.residuals import in_chunks, measured_views, training_views
 
 
 def refit(model, max_passes: int = 10) -> int:

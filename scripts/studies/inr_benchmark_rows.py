@@ -5,7 +5,7 @@ truth_A [, volume, volume_voxel_size_A]) made by ``gaussian-atoms benchmark-accu
 the benchmark's noise (same generator and seed), fits the INR on CUDA, traces atoms and writes
 one ``inr-noise{N}.json`` per noise level in the benchmark's evaluation format.
 
-    python3 scripts/inr_benchmark_rows.py FOLDER OUT --noise 50 200 500 --steps 8000
+    python3 scripts/studies/inr_benchmark_rows.py FOLDER OUT --noise 50 200 500 --steps 8000
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from gaussian_atoms_method.atoms.atom_set import AtomSet  # noqa: E402
 from gaussian_atoms_method.harness.evaluation import evaluate_atoms  # noqa: E402

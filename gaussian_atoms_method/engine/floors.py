@@ -24,10 +24,10 @@ from __future__ import annotations
 import math
 
 import torch
-from nerfstudio.utils.rich_utils import CONSOLE
 
-from gaussian_atoms_method.nerfstudio_layer.noise_reading import FLOOR_Z
-from gaussian_atoms_method.nerfstudio_layer.rendering import FLOOR_TERMS, index_on
+from gaussian_atoms_method.engine.console import CONSOLE
+from gaussian_atoms_method.engine.noise_reading import FLOOR_Z
+from gaussian_atoms_method.engine.rendering import FLOOR_TERMS, index_on
 
 
 def floor_moments(weights: torch.Tensor, row_powers: torch.Tensor, col_powers: torch.Tensor) -> torch.Tensor:

@@ -21,11 +21,10 @@ import time
 
 import numpy as np
 import torch
-from nerfstudio.cameras.cameras import Cameras, CameraType
-from nerfstudio.utils.rich_utils import CONSOLE
 from torch.nn import Parameter
 
-from gaussian_atoms_method.nerfstudio_layer.options import OptionError
+from gaussian_atoms_method.engine.console import CONSOLE
+from gaussian_atoms_method.engine.errors import OptionError
 from gaussian_atoms_method.physics.projector import (
     covariances_from_scales_quats,
     project_anisotropic_gaussians,
@@ -34,6 +33,12 @@ from gaussian_atoms_method.physics.projector import (
     project_gaussians_tiled,
 )
 from gaussian_atoms_method.physics.psf import KERNEL_WIDTHS_A, apply_kernel
+
+ORTHOGRAPHIC_CAMERA = 8
+"""The camera type of an orthographic view: nerfstudio's ``CameraType.ORTHOPHOTO`` value, the
+type the tilt series' cameras have (``tests/test_rendering.py`` holds the two equal).  Cameras
+are read by their fields (``height``, ``width``, ``fx``, ``fy``, ``cx``, ``cy``,
+``camera_type``, ``camera_to_worlds``, ``metadata``), so any object that has them renders."""
 
 
 def detector_axes(c2w: torch.Tensor) -> torch.Tensor:
@@ -62,9 +67,7 @@ def binned_views(images: torch.Tensor, h: int, w: int) -> torch.Tensor:
     return ((x[..., 0::2, 0::2] + x[..., 0::2, 1::2]) + (x[..., 1::2, 0::2] + x[..., 1::2, 1::2])) * 0.25
 
 
-def pixel_coordinates(
-    camera: Cameras, c2w: torch.Tensor, coarse: bool, device, dtype
-) -> tuple[torch.Tensor, torch.Tensor]:
+def pixel_coordinates(camera, c2w: torch.Tensor, coarse: bool, device, dtype) -> tuple[torch.Tensor, torch.Tensor]:
     """(H,) and (W,) detector coordinates (normalised lengths) of the pixel centres of one
     camera, along its rows and columns from the tilt centre.
 
@@ -76,7 +79,7 @@ def pixel_coordinates(
     h, w = int(camera.height.item()), int(camera.width.item())
     rows = (torch.arange(h, device=device, dtype=dtype) + 0.5 - camera.cy[0, 0].to(dtype)) / camera.fy[0, 0].to(dtype)
     cols = (torch.arange(w, device=device, dtype=dtype) + 0.5 - camera.cx[0, 0].to(dtype)) / camera.fx[0, 0].to(dtype)
-    if int(camera.camera_type[0, 0]) != CameraType.ORTHOPHOTO.value:
+    if int(camera.camera_type[0, 0]) != ORTHOGRAPHIC_CAMERA:
         distance = torch.dot(c2w[:, 3], c2w[:, 2]).clamp_min(1e-3)
         rows, cols = rows * distance, cols * distance
     if coarse:
@@ -278,9 +281,7 @@ class ViewGeometry:
         self._powers: dict = {}  # id(rows), id(cols) -> (rows, cols, their coordinate_powers)
         self._surfaces: dict = {}  # (h, w) -> the floors' surfaces binned to (V, h, w)
 
-    def read(
-        self, camera: Cameras, c2w: torch.Tensor, coarse: bool, view_c2w: torch.Tensor, training: bool, device, dtype
-    ):
+    def read(self, camera, c2w: torch.Tensor, coarse: bool, view_c2w: torch.Tensor, training: bool, device, dtype):
         """(rows, cols, pitch, view): :func:`pixel_coordinates`, the pitch of the rows as a float
         (None for a single row) and :func:`view_index` of ``camera``."""
         index = (camera.metadata or {}).get("cam_idx") if training else None
@@ -311,7 +312,7 @@ class ViewGeometry:
         return self._surfaces[(h, w)]
 
 
-def view_index(view_c2w: torch.Tensor, camera: Cameras) -> int | None:
+def view_index(view_c2w: torch.Tensor, camera) -> int | None:
     """Index of the training view (poses ``view_c2w`` (V, 3, 4)) this camera is, or None."""
     if view_c2w.shape[0] == 0:
         return None
@@ -324,7 +325,8 @@ def view_index(view_c2w: torch.Tensor, camera: Cameras) -> int | None:
 def check_view_batches(views_per_step: int, projections, view_c2w: torch.Tensor) -> torch.Tensor:
     """The (V, H, W) measured projections the extra views of a step are fitted to (empty for
     one view per step), after checking the views can share one projector call (the options
-    themselves are checked by :meth:`.options.GaussianAtomsOptions.check`); OptionError
+    themselves are checked by :meth:`gaussian_atoms_method.nerfstudio_layer.options.GaussianAtomsOptions.check`);
+    OptionError
     naming the option otherwise."""
     if views_per_step <= 1:
         return torch.zeros(0, 1, 1)
@@ -392,7 +394,7 @@ def step_index(model, view: int, device: torch.device) -> torch.Tensor:
     """(V,) on ``device``: the training step's views, ``view`` and ``views_per_step - 1`` others
     drawn at random (none for one view a step); one index the projection, the floors, the
     measured views and the floors' solve all read.  While a step is captured as a CUDA graph,
-    the graph's own index, which each replay refills (:mod:`.step_graph`)."""
+    the graph's own index, which each replay refills (:mod:`gaussian_atoms_method.nerfstudio_layer.step_graph`)."""
     in_use = model.step_graph.index_in_use
     return in_use if in_use is not None else index_on(step_views(model, view), device)
 

@@ -3,10 +3,10 @@
 # --pipeline.model.stop-when-converged False and True; prints wall time, the step it ended
 # at and the scores, as a Markdown table.
 set -euo pipefail
-usage() { echo "usage: scripts/convergence_stop.sh OUT DEVICE DATA_DIR...  (DEVICE: cpu or cuda; one table row per data directory and setting)"; }
+usage() { echo "usage: scripts/studies/convergence_stop.sh OUT DEVICE DATA_DIR...  (DEVICE: cpu or cuda; one table row per data directory and setting)"; }
 case "${1:-}" in -h|--help) usage; exit 0 ;; esac
 if [ $# -lt 3 ]; then usage >&2; exit 2; fi
-bin="$(cd "$(dirname "$0")/.." && pwd)/.venv/bin"
+bin="$(cd "$(dirname "$0")/../.." && pwd)/.venv/bin"
 if [ -x "$bin/ns-train" ]; then PATH="$bin:$PATH"; fi
 out=$1; device=$2; shift 2
 mkdir -p "$out"

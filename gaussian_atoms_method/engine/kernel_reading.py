@@ -21,8 +21,8 @@ in its physics, 24 limited tilts a half, read 53% of the intensity at 2 Å and l
 from __future__ import annotations
 
 import torch
-from nerfstudio.utils.rich_utils import CONSOLE
 
+from gaussian_atoms_method.engine.console import CONSOLE
 from gaussian_atoms_method.physics.data_terms import data_term
 from gaussian_atoms_method.physics.psf import fit_kernel_weights
 
@@ -47,7 +47,7 @@ class HeldOutKernel:
     def other_views(self, view: int, views_per_step: int, generator: torch.Generator, step: int) -> torch.Tensor:
         """The other views of a step with ``view`` (:func:`.rendering.other_views`): while
         splitting, even views only."""
-        from gaussian_atoms_method.nerfstudio_layer.rendering import other_views
+        from gaussian_atoms_method.engine.rendering import other_views
 
         if self.splitting(step):
             return 2 * other_views(view // 2, (self.n_views + 1) // 2, views_per_step, generator)
@@ -88,7 +88,7 @@ class HeldOutKernel:
 def read_kernel(model, views) -> torch.Tensor | None:
     """(K,) the kernel's weights fitted to ``views`` with the model's Gaussians and backgrounds
     held, under the model's data term; None without the tilt series."""
-    from gaussian_atoms_method.nerfstudio_layer.residuals import training_views
+    from gaussian_atoms_method.engine.residuals import training_views
 
     measured_all = (model.kwargs.get("metadata", {}) or {}).get("projections")
     weights = model.view_params["psf"]
@@ -121,37 +121,3 @@ def read_kernel(model, views) -> torch.Tensor | None:
         model.psf_widths.to(images),
         lambda p, m: data_term(p, m, kind, gain, read_var),
     )
-
-
-def restart_with_kernel_held(trainer) -> bool:
-    """After the reading pass of ``psf held-out``: hold the kernel read (``psf fixed`` at the
-    reading), start the atoms again from the start on every view, with fresh optimisers and
-    callbacks, and return True; False when the trainer's model had no reading pass.
-
-    Why start again: Gaussians formed on half the views without the kernel keep the satellites
-    that explained the probe's tails (Ta film area 23, the reading pass's own atoms: 0.925 found,
-    0.542 extra per model atom; the kernel held from the start: 0.946, 0.407)."""
-    from nerfstudio.engine.callbacks import TrainingCallbackAttributes
-
-    model = trainer.pipeline.model
-    reading = getattr(model, "kernel_reading", None)
-    if reading is None or not reading.first_pass:
-        return False
-    model.config.psf, model.config.psf_weights = (
-        "fixed",
-        tuple(float(w) for w in model.view_params["psf"].detach().cpu().tolist()),
-    )
-    CONSOLE.print(
-        f"gaussian-atoms: the atoms start again on every view with the point-spread function held at "
-        f"{', '.join(f'{w:.3f}' for w in model.config.psf_weights)} (1, 2, 4 Å)"
-    )
-    model.populate_modules()
-    model.to(trainer.device)
-    trainer.optimizers = trainer.setup_optimizers()
-    trainer.callbacks = trainer.pipeline.get_training_callbacks(
-        TrainingCallbackAttributes(
-            optimizers=trainer.optimizers, grad_scaler=trainer.grad_scaler, pipeline=trainer.pipeline, trainer=trainer
-        )
-    )
-    trainer._start_step = 0
-    return True

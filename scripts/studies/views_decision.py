@@ -1,8 +1,8 @@
 """How steady ``--pipeline.model.views-per-step auto``'s choice is: the projector's forward and
 backward time for 1, 2, 4 and 8 views, and the views auto picks in repeated decisions, for a
-number of Gaussians on a square detector (:func:`gaussian_atoms_method.nerfstudio_layer.rendering.auto_views_per_step`).
+number of Gaussians on a square detector (:func:`gaussian_atoms_method.engine.rendering.auto_views_per_step`).
 
-    python scripts/views_decision.py --gaussians 10438 --pixels 271 --decisions 30
+    python scripts/studies/views_decision.py --gaussians 10438 --pixels 271 --decisions 30
 
 A choice that moves between decisions sits near ``STEP_COST_RATIO``: runs of the same data
 then take different numbers of steps (docs/performance.md, several views per step).
@@ -17,7 +17,7 @@ import time
 import numpy as np
 import torch
 
-from gaussian_atoms_method.nerfstudio_layer.rendering import (
+from gaussian_atoms_method.engine.rendering import (
     STEP_COST_RATIO,
     auto_views_per_step,
     probe_scene,

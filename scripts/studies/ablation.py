@@ -7,7 +7,7 @@ predicted Gaussians within 0.75 Å of each true atom, TPR, FP per atom, RMSD, an
 separation of the integrated masses of the Gaussians matched to Fe and to Pt atoms,
 ``d' = (median_Pt - median_Fe) / sqrt((s_Fe^2 + s_Pt^2) / 2)`` (s: robust standard deviations).
 
-    python scripts/ablation.py --output outputs/ablation [--scale 0.4] [--noise 50] [--init random]
+    python scripts/studies/ablation.py --output outputs/ablation [--scale 0.4] [--noise 50] [--init random]
 """
 
 from __future__ import annotations

@@ -9,9 +9,9 @@ The physics is :mod:`gaussian_atoms_method.physics.noise` (the measurement) and
 from __future__ import annotations
 
 import numpy as np
-from nerfstudio.utils.rich_utils import CONSOLE
 
 from gaussian_atoms_method.atoms.initialise import Start
+from gaussian_atoms_method.engine.console import CONSOLE
 from gaussian_atoms_method.physics.data_terms import choose_data_term
 from gaussian_atoms_method.physics.noise import (
     NoiseModel,
@@ -169,7 +169,7 @@ def judge_after_fit(model) -> None:
     """Before the final merges and prune: set the model's density control to judge in the noise
     after the fit (:func:`noise_after_fit`, at the Gaussians' median width), and say so when it
     is larger than the noise read before training."""
-    from gaussian_atoms_method.nerfstudio_layer.residuals import measured_views, render_training_views
+    from gaussian_atoms_method.engine.residuals import measured_views, render_training_views
 
     if model.density.noise is None or model.num_points == 0 or not model.config.judge_after_fit:
         return

@@ -18,7 +18,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from nerfstudio.utils.rich_utils import CONSOLE
 
 from gaussian_atoms_method.atoms import picture_process
 from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms, write_atoms
@@ -29,8 +28,9 @@ from gaussian_atoms_method.atoms.pictures import draw_slices, write_population_p
 from gaussian_atoms_method.atoms.slices import slice_planes
 from gaussian_atoms_method.atoms.structure_evidence import structure_evidence
 from gaussian_atoms_method.atoms.uncertainty import position_std_A, robust_noise_std
-from gaussian_atoms_method.nerfstudio_layer.rendering import detector_axes
-from gaussian_atoms_method.nerfstudio_layer.residuals import measured_views, render_training_views
+from gaussian_atoms_method.engine.console import CONSOLE
+from gaussian_atoms_method.engine.rendering import detector_axes
+from gaussian_atoms_method.engine.residuals import measured_views, render_training_views
 from gaussian_atoms_method.physics.noise import fit_noise_model
 
 

@@ -9,18 +9,19 @@ and the fraction of errors within one and two predicted standard deviations (0.6
 if the prediction were exact); and, in quartiles of the predicted precision, the actual RMS
 error (does the estimate rank atoms correctly?).
 
-    python scripts/uncertainty_check.py RUN/config.yml [RUN2/config.yml ...] --output docs/uncertainty_check.md
+    gaussian-atoms check-precision RUN/config.yml [RUN2/config.yml ...] --output docs/uncertainty_check.md
 """
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 import numpy as np
 
 
-def check(config: Path) -> dict:
+def check_precision(config: Path) -> dict:
+    """One finished run (``config.yml``) whose data have a truth file: its atoms' stated
+    precision against their actual errors, per axis and by quartile (module text)."""
     from nerfstudio.utils.eval_utils import eval_setup
 
     from gaussian_atoms_method.atoms.atom_set import read_atoms
@@ -53,7 +54,8 @@ def check(config: Path) -> dict:
     }
 
 
-def markdown(rows: list[dict]) -> str:
+def precision_table(rows: list[dict]) -> str:
+    """The rows of :func:`check_precision` as markdown tables."""
     out = (
         "| data | matched | noise (est.) | axis | predicted std (pm, median) | actual RMS (pm) | actual / predicted "
         "| within 1 std | within 2 std |\n"
@@ -71,19 +73,3 @@ def markdown(rows: list[dict]) -> str:
     for r in rows:
         out += f"| {r['data']} | " + " | ".join(f"{p:.1f} -> {a:.1f}" for p, a in r["quartiles"]) + " |\n"
     return out
-
-
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("configs", type=Path, nargs="+")
-    parser.add_argument("--output", type=Path, default=None)
-    args = parser.parse_args()
-    rows = [check(c) for c in args.configs]
-    table = markdown(rows)
-    print(table)
-    if args.output:
-        args.output.write_text(table)
-
-
-if __name__ == "__main__":
-    main()

@@ -13,28 +13,27 @@ from contextlib import contextmanager
 
 import numpy as np
 import torch
-from nerfstudio.utils.rich_utils import CONSOLE
 
 from gaussian_atoms_method.atoms.residual_sites import unexplained_sites
-from gaussian_atoms_method.nerfstudio_layer.rendering import (
+from gaussian_atoms_method.engine.console import CONSOLE
+from gaussian_atoms_method.engine.rendering import (
     pixel_coordinates,
     render_views,
     to_device_without_waiting,
     view_chunks,
 )
+from gaussian_atoms_method.engine.views import views_from_tilt_series
 
 
 @contextmanager
 def training_views(model):
     """The cameras of the model's training views (None without the tilt series), with the
     model in eval mode meanwhile: full resolution, one view per call, whatever the phase."""
-    from dataparsers.tilt_series_dataparser import cameras_from_tilt_series
-
     series = (model.kwargs.get("metadata", {}) or {}).get("tilt_series")
     if series is None:
         yield None
         return
-    cameras = cameras_from_tilt_series(series, model.normalisation).to(model.means.device)
+    cameras = views_from_tilt_series(series, model.normalisation).to(model.means.device)
     training = model.training
     model.eval()
     try:

@@ -9,7 +9,7 @@ views per step (a fresh random order of the views each pass), for a fixed wall t
 no densify / prune / merge during the fit; each snapshot is pruned as the model prunes (mass
 below 0.25 of the typical atom's, or wider than 1.5 Å) and scored against the truth.
 
-    python scripts/batched_views.py DATA --device cuda --batches 1 4 16 47 --seconds 20
+    python scripts/studies/batched_views.py DATA --device cuda --batches 1 4 16 47 --seconds 20
 
 Prints one Markdown row per snapshot (batch, seconds of fitting, steps, views seen, TPR, FP
 per atom, RMSD) and writes batched_views.csv to --output.

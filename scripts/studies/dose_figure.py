@@ -6,7 +6,7 @@ Bottom row: the Au particle as Poisson counts (dose as the expected counts at th
 pixel), ours, FBP and SART, from the ``results.csv`` of
 ``gaussian-atoms benchmark-accuracy --particles au --noise-kind poisson``.
 
-    python scripts/dose_figure.py --peer outputs/benchmark-peer/results.csv \
+    python scripts/studies/dose_figure.py --peer outputs/benchmark-peer/results.csv \
         --au outputs/dose-au/results.csv --output docs/figures/dose.png
 """
 

@@ -9,12 +9,11 @@ A broken case passes when it exits non-zero with exactly one line of its own out
 FutureWarnings torch and nerfstudio print on import are not ours), no traceback and no run
 directory; an odd case passes when it trains and writes atoms.xyz.
 
-    python scripts/input_matrix.py [--launcher ns-train|gaussian-atoms] [--output outputs/input-matrix]
+    gaussian-atoms input-matrix [--launcher ns-train|gaussian-atoms] [--output outputs/input-matrix]
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import shutil
 import subprocess
@@ -23,10 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from dataparsers.tilt_series_format import MANIFEST  # noqa: E402
-from gaussian_atoms_method.harness.input_cases import BROKEN, ODD, edit_manifest, own_lines, valid_series, valid_then  # noqa: E402
+from dataparsers.tilt_series_format import MANIFEST
+from gaussian_atoms_method.harness.input_cases import BROKEN, ODD, edit_manifest, own_lines, valid_series, valid_then
 
 BIN = Path(sys.executable).parent
 
@@ -102,17 +99,13 @@ def run_case(launcher: list[str], data: Path, out: Path) -> tuple[subprocess.Com
     return proc, own_lines(proc.stdout + proc.stderr)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--launcher", choices=["ns-train", "gaussian-atoms"], default="ns-train")
-    ap.add_argument("--output", type=Path, default=Path("outputs/input-matrix"))
-    args = ap.parse_args()
-    launcher = (
-        [str(BIN / "ns-train"), "gaussian-atoms"]
-        if args.launcher == "ns-train"
-        else [str(BIN / "gaussian-atoms"), "train"]
+def run_matrix(launcher: str = "ns-train", output: Path = Path("outputs/input-matrix")) -> list[dict]:
+    """Run every case through ``launcher`` (``ns-train`` or ``gaussian-atoms``), print a table row
+    for each as it ends, write ``input_matrix.json`` in ``output`` and return the rows."""
+    command = (
+        [str(BIN / "ns-train"), "gaussian-atoms"] if launcher == "ns-train" else [str(BIN / "gaussian-atoms"), "train"]
     )
-    shutil.rmtree(args.output, ignore_errors=True)
+    shutil.rmtree(output, ignore_errors=True)
     rows = []
     print(
         "| case | kind | in tests | exit | own lines | traceback | run dir left | passed | message |\n| --- | --- | "
@@ -126,10 +119,10 @@ def main() -> None:
         (n, "odd", False, w, "") for n, w in EXTRA_ODD.items()
     ]
     for i, (name, kind, in_tests, write, fragment) in enumerate(cases):
-        case_dir = args.output / f"case{i:02d}"
+        case_dir = output / f"case{i:02d}"
         data = write(case_dir / "data")
         out = case_dir / "out"
-        proc, lines = run_case(launcher, data, out)
+        proc, lines = run_case(command, data, out)
         traceback = "Traceback" in proc.stderr
         if kind == "broken":
             left = out.exists()
@@ -158,11 +151,5 @@ def main() -> None:
             f"{message.replace('|', '/')[:110]} |",
             flush=True,
         )
-    (args.output / "input_matrix.json").write_text(json.dumps(rows, indent=2) + "\n")
-    failed = [r["case"] for r in rows if not r["passed"]]
-    print(f"{len(rows) - len(failed)} passed, {len(failed)} failed" + (f": {failed}" if failed else ""))
-    raise SystemExit(1 if failed else 0)
-
-
-if __name__ == "__main__":
-    main()
+    (output / "input_matrix.json").write_text(json.dumps(rows, indent=2) + "\n")
+    return rows

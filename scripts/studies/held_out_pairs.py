@@ -1,13 +1,13 @@
 """Do the views a fit never saw demand its close pairs?  Merge costs on fitted and held-out views.
 
-A fit of the even views of a series (``held_out_views.py`` writes the two halves and fits them)
+A fit of the even views of a series (``gaussian-atoms held-out-views`` writes the two halves and fits them)
 is read with every Gaussian; for its close pairs, and for a sample of pairs at first-shell
 distances, merging the pair into one Gaussian is scored on the views it was fitted to and on the
 odd views it never saw (:func:`gaussian_atoms_method.harness.held_out.pair_merge_costs`).  A pair
 the data demand keeps its cost on the unseen views, as pairs of real neighbours do; one that
 only fits the fitted views' own errors loses it.  Prints a table by distance.
 
-    python scripts/held_out_pairs.py --run RUN_DIR --fitted VIEWS/even --held VIEWS/odd \\
+    python scripts/studies/held_out_pairs.py --run RUN_DIR --fitted VIEWS/even --held VIEWS/odd \\
         --kernel 0,0.3,0 --interior-px 10 4
 """
 

@@ -4,7 +4,8 @@ Needs torch, numpy, scipy and scikit-image only (runs on the lent GPU machine wi
 nerfstudio or ASE).  The truth comes from ``truth_A.npy`` beside the tilt series, or its
 truth file.
 
-    python3 scripts/inr_tune.py DATA_DIR --device cuda --configs "steps=1500 rays=1024 hidden=64 scale=1" "hidden=512"
+    python3 scripts/studies/inr_tune.py DATA_DIR --device cuda --configs "steps=1500 rays=1024 hidden=64 scale=1"
+    "hidden=512"
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from dataparsers.tilt_series_format import load_tilt_series  # noqa: E402
 from gaussian_atoms_method.atoms.matching import score_atoms  # noqa: E402

@@ -7,13 +7,12 @@ run; ``a,b,c`` holds a kernel with those intensity fractions at 1, 2 and 4 Å
 (``--pipeline.model.psf fixed --pipeline.model.psf-weights a b c``).  Writes held_out.csv and
 held_out.md; the chosen kernel goes to every run on data from the same microscope.
 
-    python scripts/held_out_views.py --data data/film --output outputs/held-out \\
+    gaussian-atoms held-out-views --data data/film --output outputs/held-out \\
         --kernels learned 0,0.1,0.1 0,0.15,0.2 0,0.2,0.3 [--device cuda] [--interior-px 8 4]
 """
 
 from __future__ import annotations
 
-import argparse
 import csv
 import re
 from pathlib import Path
@@ -37,50 +36,43 @@ def kernel_of_run(run_dir: Path, kernel: str) -> list[float]:
     return [float(v) for v in found.groups()] if found else [0.0, 0.0, 0.0]
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", type=Path, required=True, help="a tilt-series directory (tilt_series.json)")
-    parser.add_argument("--output", type=Path, default=Path("outputs/held-out"))
-    parser.add_argument("--kernels", nargs="+", default=["learned", "0,0.1,0.1", "0,0.15,0.2", "0,0.2,0.3"])
-    parser.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
-    parser.add_argument("--iterations", type=int, default=3000)
-    parser.add_argument(
-        "--interior-px",
-        type=int,
-        nargs=2,
-        default=(0, 0),
-        help="rows and columns left out at each detector edge when scoring",
-    )
-    parser.add_argument(
-        "--train-args",
-        default="",
-        help='further ns-train options, e.g. --train-args="--pipeline.model.background plane"',
-    )
-    args = parser.parse_args()
+class KernelChoiceError(ValueError):
+    """A candidate kernel or the tilt series that cannot be compared; the message names it."""
 
+
+def compare_kernels(
+    data: Path,
+    output: Path,
+    kernels: tuple[str, ...] = ("learned", "0,0.1,0.1", "0,0.15,0.2", "0,0.2,0.3"),
+    device: str = "cpu",
+    iterations: int = 3000,
+    interior_px: tuple[int, int] = (0, 0),
+    train_args: tuple[str, ...] = (),
+) -> list[dict]:
+    """For each candidate kernel: fit the even views, predict the odd ones, and the other way
+    round; rows with the held-out RMS residual each way and their mean.  Writes held_out.csv
+    and held_out.md in ``output``."""
     from dataparsers.tilt_series_format import load_tilt_series
     from gaussian_atoms_method.harness.benchmark import train_ours
     from gaussian_atoms_method.harness.held_out import held_out_rms, run_gaussians, split_views
 
-    try:
-        series = load_tilt_series(args.data)
-    except (OSError, ValueError) as err:
-        raise SystemExit(f"held_out_views: {err}") from None
-    for kernel in args.kernels:
+    for kernel in kernels:
         if kernel != "learned" and not re.fullmatch(r"[\d.]+,[\d.]+,[\d.]+", kernel):
-            raise SystemExit(f"held_out_views: --kernels takes 'learned' or three fractions 'a,b,c', got {kernel!r}")
-    folds = dict(zip(("even", "odd"), split_views(series, args.output / "views")))
+            raise KernelChoiceError(f"--kernels takes 'learned' or three fractions 'a,b,c', got {kernel!r}")
+    try:
+        series = load_tilt_series(data)
+    except (OSError, ValueError) as err:
+        raise KernelChoiceError(str(err)) from None
+    folds = dict(zip(("even", "odd"), split_views(series, output / "views")))
     rows = []
-    for kernel in args.kernels:
+    for kernel in kernels:
         row = {"kernel": kernel}
         for fit, held in (("even", "odd"), ("odd", "even")):
-            run_dir = args.output / "runs" / kernel.replace(",", "_") / fit
-            train_ours(
-                folds[fit], run_dir, args.iterations, args.device, kernel_args(kernel) + tuple(args.train_args.split())
-            )
+            run_dir = output / "runs" / kernel.replace(",", "_") / fit
+            train_ours(folds[fit], run_dir, iterations, device, kernel_args(kernel) + tuple(train_args))
             gaussians = run_gaussians(run_dir / "ours" / "gaussian-atoms" / "run")
             row[f"{fit}->{held}"] = held_out_rms(
-                gaussians, load_tilt_series(folds[held]), kernel_of_run(run_dir, kernel), tuple(args.interior_px)
+                gaussians, load_tilt_series(folds[held]), kernel_of_run(run_dir, kernel), tuple(interior_px)
             )
             row[f"kernel {fit}"] = kernel_of_run(run_dir, kernel)
         row["mean"] = 0.5 * (row["even->odd"] + row["odd->even"])
@@ -89,9 +81,15 @@ def main() -> None:
             f"kernel {kernel}: held-out rms {row['even->odd']:.4g} (even -> odd), {row['odd->even']:.4g} (odd -> even)",
             flush=True,
         )
+    write_kernel_table(rows, output)
+    return rows
+
+
+def write_kernel_table(rows: list[dict], output: Path) -> None:
+    """held_out.csv and held_out.md: each kernel's held-out RMS both ways, and the one preferred."""
     best = min(rows, key=lambda r: r["mean"])
     fields = ["kernel", "even->odd", "odd->even", "mean"]
-    with open(args.output / "held_out.csv", "w", newline="") as f:
+    with open(output / "held_out.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
         writer.writeheader()
         writer.writerows(rows)
@@ -100,9 +98,5 @@ def main() -> None:
         "| --- | --- | --- | --- |",
     ]
     lines += [f"| {r['kernel']} | {r['even->odd']:.5g} | {r['odd->even']:.5g} | {r['mean']:.5g} |" for r in rows]
-    (args.output / "held_out.md").write_text("\n".join(lines) + f"\n\nThe views held out prefer: {best['kernel']}\n")
-    print(f"the views held out prefer {best['kernel']}; wrote {args.output / 'held_out.md'}")
-
-
-if __name__ == "__main__":
-    main()
+    (output / "held_out.md").write_text("\n".join(lines) + f"\n\nThe views held out prefer: {best['kernel']}\n")
+    print(f"the views held out prefer {best['kernel']}; wrote {output / 'held_out.md'}")

@@ -5,14 +5,13 @@ headless Chromium (Selenium with Debian's chromium and chromium-driver; WebGL th
 SwiftShader, no GPU needed), waits for the scene, and saves a PNG.  Exit status 0 only if the
 screenshot shows the atoms: enough pixels in the viridis colours of the atom point cloud.
 
-    python scripts/viewer_screenshot.py RUN/config.yml --output docs/figures/viewer.png
+    gaussian-atoms screenshot --load-config RUN/config.yml --output docs/figures/viewer.png
 
 Needs: ``apt-get install chromium chromium-driver`` and ``pip install selenium``.
 """
 
 from __future__ import annotations
 
-import argparse
 import shutil
 import socket
 import subprocess
@@ -122,20 +121,3 @@ def screenshot(config: Path, output: Path, wait_s: float = 25.0, size=(1280, 800
             viewer.kill()
         log.close()
     return atom_pixel_fraction(output)
-
-
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("config", type=Path)
-    parser.add_argument("--output", type=Path, default=Path("viewer.png"))
-    parser.add_argument("--wait-s", type=float, default=25.0)
-    args = parser.parse_args()
-    fraction = screenshot(args.config, args.output, args.wait_s)
-    print(f"wrote {args.output}: {fraction:.4f} of the pixels are atom-coloured")
-    if fraction < 1e-3:
-        print("the atoms are not visible in the screenshot", file=sys.stderr)
-        raise SystemExit(1)
-
-
-if __name__ == "__main__":
-    main()

@@ -28,9 +28,8 @@ Each rule, and what decided it (H100 unless said; the check's inputs printed at 
 
 from __future__ import annotations
 
-from nerfstudio.utils.rich_utils import CONSOLE
-
-from gaussian_atoms_method.nerfstudio_layer.residuals import add_missing_atoms
+from gaussian_atoms_method.engine.console import CONSOLE
+from gaussian_atoms_method.engine.residuals import add_missing_atoms
 
 POSITIONS = "means"
 

@@ -2,7 +2,7 @@
 tilt series, the back-projection start (on the CPU and, when there is one, the GPU), and
 building the model.
 
-    python scripts/startup_profile.py DATA_DIR
+    python scripts/studies/startup_profile.py DATA_DIR
 
 Prints one line per phase with its wall time (the second GPU line is warm: CUDA's own start-up
 is in the first).

@@ -1,0 +1,68 @@
+"""Where work runs: the one place that chooses a torch device.
+
+A run trains on the GPU where torch sees one, else on the CPU; work done before the model
+exists (the noise reading, the start's back-projection and filters) runs on the GPU where there
+is one, on the device of a tensor it is given, or in numpy on the host (:data:`HOST`, a start
+begun while the launcher still imports torch).  torch is imported only when a device is asked
+for.
+"""
+
+from __future__ import annotations
+
+HOST = "host"
+"""The device argument that keeps work in numpy on the host, without importing torch."""
+
+CHOICES = ("auto", "cpu", "cuda")
+"""What a user may ask for; ``auto`` is :func:`default_device`."""
+
+
+def gpu():
+    """The CUDA device if torch sees one, else None."""
+    import torch
+
+    return torch.device("cuda") if torch.cuda.is_available() else None
+
+
+def default_device() -> str:
+    """A run's device when none is asked for: ``cuda`` where torch sees a GPU, else ``cpu``
+    (nerfstudio's own default, CUDA, stops a CPU-only machine at the model's first ``.to``)."""
+    return "cuda" if gpu() is not None else "cpu"
+
+
+def usable(device_type: str) -> bool:
+    """Whether this machine's torch can run on ``device_type`` (``cpu``, ``cuda``, ``mps``)."""
+    import torch
+
+    if device_type == "cpu":
+        return True
+    if device_type == "cuda":
+        return torch.cuda.is_available()
+    if device_type == "mps":
+        return torch.backends.mps.is_available()
+    return False
+
+
+def resolve(device: str) -> str:
+    """``device`` (one of :data:`CHOICES`) as the device a run uses; ValueError naming it where
+    it is not one of them or this machine cannot use it."""
+    if device not in CHOICES:
+        raise ValueError(f"device must be one of {CHOICES}, got {device!r}")
+    if device == "auto":
+        return default_device()
+    if not usable(device):
+        raise ValueError(f"device {device!r}: torch sees no CUDA device here; use device='cpu' or 'auto'")
+    return device
+
+
+def work_device(values, device=None):
+    """Where work on ``values`` runs: ``device`` if given (:data:`HOST`: None, numpy on the host),
+    else a tensor's own device off the CPU, else the GPU where there is one (None: numpy)."""
+    if device == HOST:
+        return None
+    import torch
+
+    if device is not None:
+        return torch.device(device)
+    if isinstance(values, torch.Tensor) and values.device.type != "cpu":
+        return values.device
+    return gpu()
