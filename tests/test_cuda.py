@@ -96,7 +96,7 @@ def test_noise_readings_on_cuda_equal_the_hosts():
 def test_backprojected_noise_variance_on_cuda_equals_the_hosts():
     """The start's per-pixel noise variance, filtered on the GPU, equals the host's scipy filter;
     so do its mean and its 99th percentile, the levels' scales."""
-    from gaussian_atoms_method.atoms.initialise import backprojected_noise, percentile
+    from gaussian_atoms_method.atoms.candidates import backprojected_noise, percentile
     from gaussian_atoms_method.physics.noise import NoiseModel
 
     rng = np.random.default_rng(6)

@@ -3,7 +3,7 @@
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gaussian_atoms_method.atoms.initialise import backprojection_candidates
+from gaussian_atoms_method.atoms.candidates import backprojection_candidates
 from gaussian_atoms_method.harness.simulate import parse_tilts, simulate_gaussian_tilt_series, spherical_particle
 
 

@@ -13,7 +13,7 @@ from scipy import ndimage
 from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
 from dataparsers.tilt_series_format import load_tilt_series, write_tilt_series
 from gaussian_atoms_method.atoms.atom_set import AtomSet
-from gaussian_atoms_method.atoms.initialise import backprojection_candidates
+from gaussian_atoms_method.atoms.candidates import backprojection_candidates
 from gaussian_atoms_method.atoms.matching import score_atoms
 from gaussian_atoms_method.harness.simulate import project_gaussian_potential, spherical_particle
 from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig

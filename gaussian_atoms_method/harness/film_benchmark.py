@@ -100,7 +100,7 @@ def write_model_start(data_dir: Path, area_dir: Path, area: int) -> Path:
     rest."""
     from dataparsers.tilt_series_format import load_tilt_series
     from gaussian_atoms_method.atoms.atom_set import write_atoms
-    from gaussian_atoms_method.atoms.initialise import backprojection_candidates
+    from gaussian_atoms_method.atoms.candidates import backprojection_candidates
 
     series = load_tilt_series(area_dir)
     model = model_in_area_A(data_dir, area)

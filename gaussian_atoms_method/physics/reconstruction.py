@@ -356,7 +356,7 @@ def backprojection_for_peaks(
     device: str = "cpu",
 ) -> Volume:
     """The Hann FBP a search for atom-like peaks reads (the start's step 1,
-    :func:`gaussian_atoms_method.atoms.initialise.backprojection_candidates`), in float32
+    :func:`gaussian_atoms_method.atoms.candidates.backprojection_candidates`), in float32
     (float64 took twice as long on the CPU: the Au series' FBP 1.5 s, its Laplacian of Gaussian
     2.0 s against 0.95 s): a tensor on ``device`` (the filters and the maxima run there), or
     with ``device`` :data:`~gaussian_atoms_method.physics.devices.HOST` an array made without

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from gaussian_atoms_method.atoms.initialise import backprojection_candidates
+from gaussian_atoms_method.atoms.candidates import backprojection_candidates
 from gaussian_atoms_method.atoms.matching import score_atoms
 from gaussian_atoms_method.harness.evaluation import load_reference
 from gaussian_atoms_method.physics.geometry import detector_axes_from_tilts, pixel_centres

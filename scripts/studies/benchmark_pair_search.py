@@ -87,7 +87,7 @@ def main() -> None:
         )
     if args.data is not None:
         from dataparsers.tilt_series_format import load_tilt_series
-        from gaussian_atoms_method.atoms.initialise import backprojection_candidates
+        from gaussian_atoms_method.atoms.candidates import backprojection_candidates
 
         series = load_tilt_series(args.data)
         for run in range(2):

@@ -65,7 +65,7 @@ def main() -> None:
     import torch
 
     from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
-    from gaussian_atoms_method.atoms.initialise import backprojection_candidates
+    from gaussian_atoms_method.atoms.candidates import backprojection_candidates
     from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
 
     outputs = timed(
