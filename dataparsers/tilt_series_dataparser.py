@@ -1,4 +1,6 @@
-"""nerfstudio dataparser ``tilt-series``: tilt angles become orthographic cameras.
+"""nerfstudio dataparser ``tilt-series``: tilt angles become orthographic cameras, and the
+projections a float dataset served from memory (:class:`TiltSeriesDataset`: nerfstudio's default
+opens image files as 8-bit RGB; a tilt series is one float channel with negative values).
 
 Each projection becomes a ``CameraType.ORTHOPHOTO`` camera whose pose is the tilt rotation
 (:mod:`gaussian_atoms_method.engine.views`: the conventions, and the same views for the fit).
@@ -9,16 +11,17 @@ from __future__ import annotations
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal, Optional, Tuple, Type
+from typing import Dict, Literal, Optional, Tuple, Type
 
 import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserConfig, DataparserOutputs
+from nerfstudio.data.datasets.base_dataset import InputDataset
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.plugins.registry_dataparser import DataParserSpecification
 
 from gaussian_atoms_method.engine.views import views_from_tilt_series
-from gaussian_atoms_method.physics.units import Normalisation, normalised_projections
+from gaussian_atoms_method.physics.units import DATA_RANGE, Normalisation, normalised_projections
 
 from .errors import TiltSeriesError
 from .tilt_series_format import TiltSeries, load_tilt_series
@@ -131,3 +134,33 @@ class TiltSeriesDataParser(DataParser):
 tilt_series_dataparser = DataParserSpecification(
     config=TiltSeriesDataParserConfig(), description="AET tilt series (tilt_series.json directory)"
 )
+
+
+class TiltSeriesDataset(InputDataset):
+    """Projections of a tilt series, normalised to the paper's [0, 256] scale."""
+
+    exclude_batch_keys_from_device = ["image"]
+
+    def __init__(self, dataparser_outputs, scale_factor: float = 1.0):
+        if scale_factor != 1.0:
+            raise ValueError("camera_res_scale_factor must be 1.0 for tilt series: projections are not resampled")
+        super().__init__(dataparser_outputs, scale_factor)
+        self.projections: torch.Tensor = dataparser_outputs.metadata["projections"]
+
+    def __len__(self) -> int:
+        return self.projections.shape[0]
+
+    def get_image_float32(self, image_idx: int) -> torch.Tensor:
+        return self.projections[image_idx][..., None]
+
+    def get_data(self, image_idx: int, image_type: Literal["uint8", "float32"] = "float32") -> Dict:
+        if image_type != "float32":
+            raise ValueError("tilt series are served as float32 only; set cache_images_type to float32")
+        return {"image_idx": image_idx, "image": self.get_image_float32(image_idx)}
+
+    def __getitem__(self, image_idx: int) -> Dict:
+        """For display only (nerfstudio's viewer draws each view's image on its camera
+        frustum, as 8-bit RGB from ``image * 255``): the projection scaled to [0, 1] in three
+        channels.  Training reads :meth:`get_data` (the full-image datamanager caches it)."""
+        image = (self.get_image_float32(image_idx) / DATA_RANGE).clamp(0.0, 1.0).expand(-1, -1, 3)
+        return {"image_idx": image_idx, "image": image}

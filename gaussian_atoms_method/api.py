@@ -120,7 +120,7 @@ def _whole(value, name: str) -> int:
 def build_config(
     data: Path, output_dir: Path, device: str, max_num_iterations: int | None, model_options: dict[str, Any]
 ):
-    """The :class:`~gaussian_atoms_method.nerfstudio_layer.trainer.GaussianAtomsTrainerConfig`
+    """The :class:`~gaussian_atoms_method.nerfstudio_layer.config.GaussianAtomsTrainerConfig`
     that ``ns-train gaussian-atoms --machine.device-type DEVICE tilt-series --data DATA`` builds,
     with ``model_options`` set on ``pipeline.model`` (an unknown name raises ``OptionError``)."""
     from gaussian_atoms_method.nerfstudio_layer.config import MAX_ITERATIONS, gaussian_atoms_trainer_config
@@ -201,8 +201,8 @@ def reconstruct(
     InputError
         For input that cannot train, with the one-line message the CLI prints.
     """
+    from gaussian_atoms_method.nerfstudio_layer.config import check_input
     from gaussian_atoms_method.nerfstudio_layer.options import OptionError
-    from gaussian_atoms_method.nerfstudio_layer.trainer import check_input
 
     keep = output_dir is not None
     work = Path(tempfile.mkdtemp(prefix="gaussian-atoms-"))
@@ -225,11 +225,13 @@ def reconstruct(
             config = build_config(
                 data, Path(output_dir) if keep else work / "outputs", _device(device), max_num_iterations, model_options
             )
-            _whole(seed, "seed")  # checked here, set by _train
+            _whole(seed, "seed")  # checked here, set by train_in_process
             check_input(config)
         except (TiltSeriesError, AtomFileError, OptionError) as exc:
             raise _input_error(exc) from None
-        run_dir = _train(config, seed, progress)
+        from gaussian_atoms_method.nerfstudio_layer.launch import train_in_process
+
+        run_dir = train_in_process(config, seed, progress)
         atoms = read_atoms(run_dir / "atoms.xyz")
         atoms.info["non_atoms"] = read_atoms(run_dir / "non_atoms.xyz")
         if keep:
@@ -237,46 +239,3 @@ def reconstruct(
         return atoms
     finally:
         shutil.rmtree(work, ignore_errors=True)
-
-
-def _train(config, seed: int, progress: bool) -> Path:
-    """Run the trainer ``gaussian-atoms train`` runs on ``config`` in this process; the run
-    directory.  A failure in training raises (``FloatingPointError`` naming the step and the
-    cause, ``KeyboardInterrupt``) instead of ending the process as the CLI does."""
-    from nerfstudio.engine.trainer import Trainer
-
-    from gaussian_atoms_method.nerfstudio_layer.train import ProgressBar, make_trainer, quiet_trainer_console
-    from gaussian_atoms_method.nerfstudio_layer.trainer import restart_with_kernel_held
-
-    config.machine.seed = seed
-    config.set_timestamp()
-    trainer = make_trainer(config)
-    bar = ProgressBar(config.max_num_iterations) if progress else None
-    try:
-        for _ in range(2):  # psf="held-out": a pass that reads the kernel, then the run with it held
-            if bar is not None:
-                bar.follow(trainer)
-                trainer.progress = bar
-            with quiet_trainer_console():  # its closing box would name a run directory that may be temporary
-                Trainer.train(trainer)  # nerfstudio's loop, without the CLI's exit on failure
-            if not restart_with_kernel_held(trainer):
-                break
-    finally:
-        if bar is not None:
-            bar.close()
-        _close_event_writers()
-    return Path(trainer.base_dir)
-
-
-def _close_event_writers() -> None:
-    """nerfstudio keeps its event writers in module lists for the process's life: the next
-    run in the same process (a notebook's second call) would write into this run's directory."""
-    from nerfstudio.utils import writer
-
-    for event_writer in writer.EVENT_WRITERS:
-        close = getattr(getattr(event_writer, "tb_writer", None), "close", None)
-        if close is not None:
-            close()
-    writer.EVENT_WRITERS.clear()
-    writer.EVENT_STORAGE.clear()
-    writer.GLOBAL_BUFFER.clear()

@@ -404,14 +404,11 @@ class View:
 
     def build(self):
         """nerfstudio's ``ns-viewer`` command with these settings, built but not run."""
-        from nerfstudio.scripts.viewer.run_viewer import RunViewer, ViewerConfigWithoutNumRays
+        from gaussian_atoms_method.nerfstudio_layer.viewer import viewer_command
 
         if not self.load_config.is_file():
             raise FileNotFoundError(f"{self.load_config}: run config not found")
-        return RunViewer(
-            load_config=self.load_config,
-            viewer=ViewerConfigWithoutNumRays(websocket_host=self.host, websocket_port=self.port),
-        )
+        return viewer_command(self.load_config, self.host, self.port)
 
     def main(self) -> None:
         self.build().main()
@@ -657,7 +654,7 @@ def parse(argv: list[str]) -> object:
     TrainerConfig (the options of ``ns-train gaussian-atoms``), otherwise the verb's dataclass
     (a sweep with its grid, ns-train's own options passed through after "--")."""
     if argv[:1] == ["train"]:
-        from gaussian_atoms_method.nerfstudio_layer.train import build_config
+        from gaussian_atoms_method.nerfstudio_layer.launch import build_config
 
         return build_config(argv[1:])
     grid: tuple[str, ...] = ()
@@ -680,9 +677,9 @@ def entrypoint(argv: list[str] | None = None) -> None:
         from gaussian_atoms_method.start_ahead import begin_for, end_now
 
         begin_for(argv[1:])  # the start computed in a thread while nerfstudio loads
-        from gaussian_atoms_method.nerfstudio_layer.train import exit_process
-        from gaussian_atoms_method.nerfstudio_layer.train import run as train_run
-        from gaussian_atoms_method.nerfstudio_layer.trainer import INPUT_ERRORS
+        from gaussian_atoms_method.nerfstudio_layer.config import INPUT_ERRORS
+        from gaussian_atoms_method.nerfstudio_layer.launch import exit_process
+        from gaussian_atoms_method.nerfstudio_layer.launch import run as train_run
 
         try:
             config = parse(argv)

@@ -245,7 +245,7 @@ def test_separated_maxima_on_cuda_equal_the_hosts():
 
 def _train(data, out, graphs: bool, steps: int, views: int):
     """A short run on the GPU through nerfstudio's trainer; returns the model."""
-    from gaussian_atoms_method.nerfstudio_layer.train import build_config, make_trainer
+    from gaussian_atoms_method.nerfstudio_layer.launch import build_config, make_trainer
 
     config = build_config(
         [

@@ -59,8 +59,8 @@ def test_slab_reports_only_the_gaussians_above_the_detector(tmp_path, monkeypatc
     detector and reports as atoms only the Gaussians above it: none in atoms.xyz lies beyond the
     detector's half-width across the tilt axis, and the Gaussians beyond it (holding the outer
     film's mass) are written to non_atoms.xyz."""
+    from gaussian_atoms_method.nerfstudio_layer.launch import train_views
     from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
-    from gaussian_atoms_method.nerfstudio_layer.training import train_views
 
     rng = np.random.default_rng(1)
     atoms = _slab(rng, half_width_A=40.0, density_per_A3=0.01)

@@ -11,10 +11,14 @@ import torch
 
 from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
 from gaussian_atoms_method.harness.input_cases import BROKEN, ODD, own_lines
-from gaussian_atoms_method.nerfstudio_layer.config import gaussian_atoms_trainer_config
+from gaussian_atoms_method.nerfstudio_layer.config import (
+    INPUT_ERRORS,
+    GaussianAtomsTrainer,
+    check_input,
+    gaussian_atoms_trainer_config,
+)
+from gaussian_atoms_method.nerfstudio_layer.launch import train_views
 from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
-from gaussian_atoms_method.nerfstudio_layer.trainer import INPUT_ERRORS, GaussianAtomsTrainer, check_input
-from gaussian_atoms_method.nerfstudio_layer.training import train_views
 
 BIN = Path(sys.executable).parent
 

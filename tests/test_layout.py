@@ -28,7 +28,7 @@ def layer_of(module: str) -> str:
     if parts[0] == "dataparsers":
         if len(parts) == 1 or parts[1] in ("errors", "readers", "rosetta", "stack_data", "tilt_series_format"):
             return "formats"
-        if parts[1] in ("tilt_series_dataparser", "tilt_series_dataset"):
+        if parts[1] == "tilt_series_dataparser":
             return "nerfstudio"
         raise KeyError(module)
     if len(parts) == 1:

@@ -10,8 +10,8 @@ from scipy.spatial import cKDTree
 from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
 from dataparsers.tilt_series_format import write_tilt_series
 from gaussian_atoms_method.atoms.atom_set import AtomSet
+from gaussian_atoms_method.nerfstudio_layer.launch import train_views
 from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
-from gaussian_atoms_method.nerfstudio_layer.training import train_views
 from gaussian_atoms_method.physics.geometry import detector_axes_from_tilts, pixel_centres
 from gaussian_atoms_method.physics.projector import project_gaussians
 

@@ -38,7 +38,7 @@ def _parse(argv: list[str]) -> object:
         makefile = (ROOT / "Makefile").read_text()
         return all(re.search(rf"^{re.escape(t)}:", makefile, re.M) for t in argv[1:]) or None
     if program == "ns-train":
-        from gaussian_atoms_method.nerfstudio_layer.train import build_config
+        from gaussian_atoms_method.nerfstudio_layer.launch import build_config
 
         assert argv[1] == "gaussian-atoms"
         return build_config(argv[2:])

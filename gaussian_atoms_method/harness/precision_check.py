@@ -22,13 +22,11 @@ import numpy as np
 def check_precision(config: Path) -> dict:
     """One finished run (``config.yml``) whose data have a truth file: its atoms' stated
     precision against their actual errors, per axis and by quartile (module text)."""
-    from nerfstudio.utils.eval_utils import eval_setup
-
     from gaussian_atoms_method.atoms.atom_set import read_atoms
     from gaussian_atoms_method.atoms.matching import match_atoms
+    from gaussian_atoms_method.nerfstudio_layer.launch import load_model
 
-    _, pipeline, _, _ = eval_setup(config, test_mode="inference")
-    model = pipeline.model
+    model = load_model(config)
     atoms = model.atoms()
     std, noise = model.position_std_A(atoms)
     truth = read_atoms(model.truth_path)

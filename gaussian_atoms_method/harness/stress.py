@@ -112,8 +112,8 @@ def low_snr_case(steps: int = 150) -> Case:
     from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
     from dataparsers.tilt_series_format import write_tilt_series
     from gaussian_atoms_method.harness.simulate import simulate_gaussian_tilt_series, spherical_particle
+    from gaussian_atoms_method.nerfstudio_layer.launch import train_views
     from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
-    from gaussian_atoms_method.nerfstudio_layer.training import train_views
 
     atoms = spherical_particle("Au", radius_A=5.0)
     angles = np.linspace(-60, 60, 13)

@@ -2,7 +2,7 @@
 (:mod:`.model`) with its per-view rendering (:mod:`gaussian_atoms_method.engine.rendering`), convergence check
 (:mod:`gaussian_atoms_method.engine.convergence`) and result writing (:mod:`gaussian_atoms_method.engine.results`), the
 training launchers
-(:mod:`.train`: ``gaussian-atoms train``; :mod:`.training`: a minimal loop for tests), the
+(:mod:`.launch`: ``gaussian-atoms train``; :mod:`.launch`: a minimal loop for tests), the
 viewer's atom cloud (:mod:`.viewer`) and checkpoint loading (:mod:`.checkpoints`).
 
 The only modules of :mod:`gaussian_atoms_method` that import nerfstudio (with the

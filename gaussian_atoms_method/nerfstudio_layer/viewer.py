@@ -76,3 +76,13 @@ class AtomsInViewer(ViewerControl):
             point_size=float(point_size) * VISER_SCALE,
             point_shape="circle",
         )
+
+
+def viewer_command(load_config, host: str = "127.0.0.1", port: int | None = None):
+    """nerfstudio's ``ns-viewer`` on a finished run (``config.yml``), listening on ``host``
+    (127.0.0.1: this machine only) and ``port`` (None: nerfstudio's), built but not run."""
+    from nerfstudio.scripts.viewer.run_viewer import RunViewer, ViewerConfigWithoutNumRays
+
+    return RunViewer(
+        load_config=load_config, viewer=ViewerConfigWithoutNumRays(websocket_host=host, websocket_port=port)
+    )

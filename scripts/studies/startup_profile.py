@@ -23,7 +23,7 @@ LAUNCHERS = {
         "tyro.cli(AnnotatedBaseConfigUnion, args=['gaussian-atoms', 'tilt-series', '--data', sys.argv[1]])"
     ),
     "gaussian-atoms train: import trainer + plugin, parse": (
-        "from gaussian_atoms_method.nerfstudio_layer.train import build_config; build_config(['tilt-series', "
+        "from gaussian_atoms_method.nerfstudio_layer.launch import build_config; build_config(['tilt-series', "
         "'--data', sys.argv[1]])"
     ),
 }

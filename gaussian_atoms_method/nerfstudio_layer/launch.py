@@ -12,6 +12,10 @@ checkpoints and the results are those of ``ns-train gaussian-atoms``::
     gaussian-atoms train [trainer and model options] tilt-series --data DIR
 
 One process on one device; multi-GPU and multi-machine runs go through ``ns-train``.
+
+Also the same training in this process for the Python API (:func:`train_in_process`), a short
+loop without the trainer for tests and stress cases (:func:`train_views`), and a finished run's
+model loaded back (:func:`load_model`).
 """
 
 from __future__ import annotations
@@ -20,6 +24,10 @@ import atexit
 import os
 import random
 import sys
+from pathlib import Path
+from typing import Sequence
+
+import torch
 
 from gaussian_atoms_method.nerfstudio_layer.options import OptionError
 
@@ -183,3 +191,89 @@ def make_trainer(config, after_saving=None):
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
     return trainer
+
+
+def train_views(model, cameras, targets: Sequence[torch.Tensor], steps: int, refine: bool = True):
+    """Train ``model`` for ``steps`` steps, one view per step in turn.
+
+    Parameters
+    ----------
+    model : GaussianAtomsModel
+    cameras : nerfstudio Cameras, one per view
+    targets : per view, the (H, W, 1) measured projection in normalised units
+    steps : int
+    refine : bool
+        Run the densify / prune / merge callbacks as the trainer does.
+
+    Returns
+    -------
+    The loss of the last step (a float).
+    """
+    from nerfstudio.engine.optimizers import Optimizers
+
+    from gaussian_atoms_method.nerfstudio_layer.config import gaussian_atoms_trainer_config
+
+    optimizers = Optimizers(gaussian_atoms_trainer_config().optimizers, model.get_param_groups())
+    loss = float("nan")
+    for step in range(steps):
+        model.step_cb(optimizers, step)
+        optimizers.zero_grad_all()
+        v = step % len(targets)
+        out = model.get_loss_dict(model.get_outputs(cameras[v : v + 1]), {"image": targets[v]})["main_loss"]
+        out.backward()
+        optimizers.optimizer_step_all()
+        loss = float(out.detach())
+        if refine:
+            model.refine_after_step(step)
+            model.merge_after_step(step)
+    return loss
+
+
+def train_in_process(config, seed: int, progress: bool) -> Path:
+    """Run the trainer ``gaussian-atoms train`` runs on ``config`` in this process; the run
+    directory.  A failure in training raises (``FloatingPointError`` naming the step and the
+    cause, ``KeyboardInterrupt``) instead of ending the process as the CLI does."""
+    from nerfstudio.engine.trainer import Trainer
+
+    from gaussian_atoms_method.nerfstudio_layer.config import restart_with_kernel_held
+
+    config.machine.seed = seed
+    config.set_timestamp()
+    trainer = make_trainer(config)
+    bar = ProgressBar(config.max_num_iterations) if progress else None
+    try:
+        for _ in range(2):  # psf="held-out": a pass that reads the kernel, then the run with it held
+            if bar is not None:
+                bar.follow(trainer)
+                trainer.progress = bar
+            with quiet_trainer_console():  # its closing box would name a run directory that may be temporary
+                Trainer.train(trainer)  # nerfstudio's loop, without the CLI's exit on failure
+            if not restart_with_kernel_held(trainer):
+                break
+    finally:
+        if bar is not None:
+            bar.close()
+        _close_event_writers()
+    return Path(trainer.base_dir)
+
+
+def _close_event_writers() -> None:
+    """nerfstudio keeps its event writers in module lists for the process's life: the next
+    run in the same process (a notebook's second call) would write into this run's directory."""
+    from nerfstudio.utils import writer
+
+    for event_writer in writer.EVENT_WRITERS:
+        close = getattr(getattr(event_writer, "tb_writer", None), "close", None)
+        if close is not None:
+            close()
+    writer.EVENT_WRITERS.clear()
+    writer.EVENT_STORAGE.clear()
+    writer.GLOBAL_BUFFER.clear()
+
+
+def load_model(config: Path):
+    """The model of a finished run (its ``config.yml``), loaded as ``ns-viewer`` loads it."""
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    _, pipeline, _, _ = eval_setup(config, test_mode="inference")
+    return pipeline.model
