@@ -145,15 +145,15 @@ def test_clusters_on_cuda_equal_the_hosts():
 @cuda
 def test_auto_views_per_step_on_a_gpu_stays_within_its_memory_share():
     """On a GPU auto picks 1 to 8 views, never more than half the free memory holds by the
-    projector's measured bytes per view (:func:`.rendering.auto_views_per_step`)."""
-    from gaussian_atoms_method.engine import rendering as R
+    projector's measured bytes per view (:func:`gaussian_atoms_method.engine.step_views.auto_views_per_step`)."""
+    from gaussian_atoms_method.engine import step_views as SV
 
     coords = torch.arange(128.0, device="cuda") - 63.5
-    views = R.auto_views_per_step(project_gaussians, 3000, 47, coords, coords)
+    views = SV.auto_views_per_step(project_gaussians, 3000, 47, coords, coords)
     free = torch.cuda.mem_get_info()[0] + torch.cuda.memory_reserved() - torch.cuda.memory_allocated()
-    assert 1 <= views <= R.MAX_VIEWS_PER_STEP
+    assert 1 <= views <= SV.MAX_VIEWS_PER_STEP
     assert (
-        views * R.projector_bytes_per_view(project_gaussians, 3000, coords, coords) <= R.MEMORY_SHARE * free
+        views * SV.projector_bytes_per_view(project_gaussians, 3000, coords, coords) <= SV.MEMORY_SHARE * free
         or views == 1
     )
 

@@ -6,7 +6,8 @@ import pytest
 import torch
 
 from gaussian_atoms_method.physics.data_terms import choose_data_term, data_term
-from gaussian_atoms_method.physics.noise import NoiseModel, detector_floor, noise_from_projections
+from gaussian_atoms_method.physics.detector_floor import detector_floor
+from gaussian_atoms_method.physics.noise import NoiseModel, noise_from_projections
 
 
 def test_poisson_term_weights_each_pixel_by_its_variance():

@@ -113,7 +113,7 @@ def _floor_under_crowded_frame(seed: int = 0):
 
 
 def test_the_floor_under_a_frame_atoms_reach_is_read_from_the_pixels_they_leave():
-    from gaussian_atoms_method.physics.noise import clipped_frame, detector_floor
+    from gaussian_atoms_method.physics.detector_floor import clipped_frame, detector_floor
 
     views = _floor_under_crowded_frame()
     plain, _, plain_var = detector_floor(views)
@@ -164,7 +164,7 @@ def test_readings_in_torch_are_numpys(kind):
 def test_masked_least_squares_equals_lstsq_per_view():
     """The floor's fits of all views at once equal np.linalg.lstsq view by view, on a frame with
     a third of its pixels clipped, and on a view left with too few pixels for a quadratic."""
-    from gaussian_atoms_method.physics.noise import frame_mask, masked_least_squares, quadratic_basis
+    from gaussian_atoms_method.physics.detector_floor import frame_mask, masked_least_squares, quadratic_basis
 
     rng = np.random.default_rng(0)
     mask = frame_mask((97, 81), 0.08)

@@ -173,7 +173,7 @@ def test_tile_blocks_backward_matches_autograd():
     (float64; gradcheck against finite differences too), with padded slots (peak 0, factor -1)
     and terms deep below float32's range (17 widths away) among the tiles' Gaussians; the
     exponent's floor moves a value by at most exp(-87) per term."""
-    from gaussian_atoms_method.physics.projector import tile_blocks, tile_blocks_reference
+    from gaussian_atoms_method.physics.tiles import tile_blocks, tile_blocks_reference
 
     gen = torch.Generator().manual_seed(5)
     n_tiles, tile, k = 6, 8, 5
@@ -203,7 +203,7 @@ def test_tile_blocks_backward_matches_autograd():
 def test_tile_order_is_torchs_stable_order():
     """The tiles' sort (numpy's radix sort of 16-bit indices on the CPU) lists the pairs in
     torch's stable order, with many ties, and past 16 bits too (torch's own sort there)."""
-    from gaussian_atoms_method.physics.projector import tile_order
+    from gaussian_atoms_method.physics.tiles import tile_order
 
     gen = torch.Generator().manual_seed(2)
     for n_tiles in (81, 40_000):

@@ -9,6 +9,7 @@ from nerfstudio.cameras.cameras import Cameras, CameraType
 from scipy.spatial.transform import Rotation
 
 from gaussian_atoms_method.engine import rendering as R
+from gaussian_atoms_method.engine import step_views as SV
 from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions, OptionError
 
 
@@ -199,21 +200,21 @@ def test_finite_watch_on_a_gpu_judges_a_step_later_under_its_own_number():
 def test_other_views_are_distinct_and_never_the_view_itself():
     generator = torch.Generator().manual_seed(0)
     for view in range(5):
-        others = R.other_views(view, 5, 4, generator)
+        others = SV.other_views(view, 5, 4, generator)
         assert len(others) == 3 and len(set(others.tolist())) == 3 and view not in others.tolist()
-    assert len(R.other_views(0, 3, 8, generator)) == 2  # at most every other view
+    assert len(SV.other_views(0, 3, 8, generator)) == 2  # at most every other view
 
 
 def test_view_batches_refuse_what_they_cannot_do_by_name():
     poses = torch.eye(4)[:3].expand(3, 3, 4).clone()
-    assert R.check_view_batches(1, None, poses).numel() == 0  # one view: nothing to check
+    assert SV.check_view_batches(1, None, poses).numel() == 0  # one view: nothing to check
     with pytest.raises(OptionError, match="needs a tilt series"):
-        R.check_view_batches(4, None, poses)
+        SV.check_view_batches(4, None, poses)
     off = poses.clone()
     off[:, 0, 3] = 1.0  # the camera sits off its beam axis
     with pytest.raises(OptionError, match="beam axis"):
-        R.check_view_batches(4, np.zeros((3, 2, 2)), off)
-    assert R.check_view_batches(4, np.ones((3, 2, 2)), poses).shape == (3, 2, 2)
+        SV.check_view_batches(4, np.zeros((3, 2, 2)), off)
+    assert SV.check_view_batches(4, np.ones((3, 2, 2)), poses).shape == (3, 2, 2)
 
 
 def test_auto_views_per_step_counts_the_projectors_memory_and_keeps_one_view_off_a_gpu():
@@ -223,11 +224,11 @@ def test_auto_views_per_step_counts_the_projectors_memory_and_keeps_one_view_off
     from gaussian_atoms_method.physics.projector import project_gaussians
 
     rows, cols = torch.arange(60.0) - 29.5, torch.arange(40.0) - 19.5
-    small, large = (R.projector_bytes_per_view(project_gaussians, 10_000, rows, cols, sample=s) for s in (256, 2048))
+    small, large = (SV.projector_bytes_per_view(project_gaussians, 10_000, rows, cols, sample=s) for s in (256, 2048))
     assert small == pytest.approx(large, rel=1e-3)
     pair = 10_000 * (60 + 40) * 4
     assert pair <= small <= 8 * pair
-    assert R.auto_views_per_step(project_gaussians, 10_000, 47, rows, cols) == 1
+    assert SV.auto_views_per_step(project_gaussians, 10_000, 47, rows, cols) == 1
 
 
 @pytest.mark.parametrize(

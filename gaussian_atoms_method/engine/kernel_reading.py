@@ -45,9 +45,9 @@ class HeldOutKernel:
         return self.splitting(step) and view is not None and view % 2 == 1
 
     def other_views(self, view: int, views_per_step: int, generator: torch.Generator, step: int) -> torch.Tensor:
-        """The other views of a step with ``view`` (:func:`.rendering.other_views`): while
+        """The other views of a step with ``view`` (:func:`gaussian_atoms_method.engine.step_views.other_views`): while
         splitting, even views only."""
-        from gaussian_atoms_method.engine.rendering import other_views
+        from gaussian_atoms_method.engine.step_views import other_views
 
         if self.splitting(step):
             return 2 * other_views(view // 2, (self.n_views + 1) // 2, views_per_step, generator)

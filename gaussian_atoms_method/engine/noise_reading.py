@@ -13,17 +13,8 @@ import numpy as np
 from gaussian_atoms_method.atoms.initialise import Start
 from gaussian_atoms_method.engine.console import CONSOLE
 from gaussian_atoms_method.physics.data_terms import choose_data_term
-from gaussian_atoms_method.physics.noise import (
-    NoiseModel,
-    as_array,
-    atom_scale_excess,
-    clipped_frame,
-    detector_floor,
-    frame_mask,
-    frame_surfaces,
-    inflated,
-    measure_noise,
-)
+from gaussian_atoms_method.physics.detector_floor import clipped_frame, detector_floor, frame_mask, frame_surfaces
+from gaussian_atoms_method.physics.noise import NoiseModel, as_array, atom_scale_excess, inflated, measure_noise
 
 FLOOR_Z = 5.0
 """A frame level this many standard errors off zero is a real offset: a one-in-3.5-million
@@ -44,12 +35,12 @@ def read_noise(
 
     With ``background`` "auto" a floor is found when the frame's level sits significantly off
     zero (:data:`FLOOR_Z`) and the frame is background: smooth, when each view's quadratic frame
-    surface (:func:`~gaussian_atoms_method.physics.noise.frame_surfaces`) explains the frame
+    surface (:func:`~gaussian_atoms_method.physics.detector_floor.frame_surfaces`) explains the frame
     significantly better than a constant (by :data:`FLOOR_Z` standard errors of the variance)
     and leaves no more than the noise (that surface less its mean is added to the view and a
     constant per view is learned); else flat (a constant per view is learned from the floor).
     Where atoms reach the frame the same is asked of the pixels they leave alone
-    (:func:`~gaussian_atoms_method.physics.noise.clipped_frame`); a film's frame, all atoms,
+    (:func:`~gaussian_atoms_method.physics.detector_floor.clipped_frame`); a film's frame, all atoms,
     leaves too few and too rough a floor.  With "smooth" the
     surfaces are used whatever the frame.  Returns (noise, term, floor or None, (V, H, W)
     surfaces or None), normalised units."""

@@ -35,6 +35,7 @@ from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms
 from gaussian_atoms_method.atoms.initialise import compute_start, starting_amplitude
 from gaussian_atoms_method.density.strategy import DensityControl, amplitudes, widths
 from gaussian_atoms_method.engine import rendering as R
+from gaussian_atoms_method.engine import step_views as SV
 from gaussian_atoms_method.engine.console import CONSOLE
 from gaussian_atoms_method.engine.convergence import ConvergenceCheck
 from gaussian_atoms_method.engine.floors import FloorSolver
@@ -197,17 +198,17 @@ class GaussianAtomsModel(SplatfactoCompat):
         # read here, on the host: a read from the GPU each step waited for it
         self.psf_widths_host = tuple(buffers["psf_widths"].tolist()) if "psf_widths" in buffers else ()
         self.view_params = torch.nn.ParameterDict(view_params)
-        batches, self._views_per_step = R.view_batches(cfg, metadata.get("projections"), self.view_c2w)
+        batches, self._views_per_step = SV.view_batches(cfg, metadata.get("projections"), self.view_c2w)
         # a training step's views by one device index (get_outputs)
-        self.indexed_views = not cfg.per_view_options() and R.on_beam_axes(self.view_c2w)
+        self.indexed_views = not cfg.per_view_options() and SV.on_beam_axes(self.view_c2w)
         self.register_buffer("train_projections", batches, persistent=False)
 
     @property
     def views_per_step(self) -> int:
         """Views fitted per training step (auto: resolved at the first training step,
-        :func:`gaussian_atoms_method.engine.rendering.first_step_views`)."""
+        :func:`gaussian_atoms_method.engine.step_views.first_step_views`)."""
         if self._views_per_step is None and self.training:
-            self._views_per_step = R.first_step_views(self)
+            self._views_per_step = SV.first_step_views(self)
         return self._views_per_step or 1
 
     # ------------------------------------------------------------------ parameters
@@ -251,10 +252,10 @@ class GaussianAtomsModel(SplatfactoCompat):
         # the step's views by one device index
         indexed = background and self.training and view is not None and self.indexed_views and not self._held_out_step
         extra = {}
-        # cameras on their beam axes through the tilt centre: no offset (R.step_index; a CUDA graph's replays refill
+        # cameras on their beam axes through the tilt centre: no offset (SV.step_index; a CUDA graph's replays refill
         # it, .step_graph)
         if indexed:
-            index = R.step_index(self, view, dev)
+            index = SV.step_index(self, view, dev)
             images = R.render_views(self, index, rows, cols, pitch)
             image, extra = (
                 images[0],
@@ -299,7 +300,7 @@ class GaussianAtomsModel(SplatfactoCompat):
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
         # one loss over all the step's views
-        pred, gt = R.with_other_views(outputs, self._measured(outputs, batch), self.train_projections)
+        pred, gt = SV.with_other_views(outputs, self._measured(outputs, batch), self.train_projections)
         self.floors.accumulate(self, pred, gt)  # the rendered views' floors, in closed form
         # + 0 x means: differentiable even when every Gaussian was pruned (a held-out view: no gradient,
         # HeldOutKernel.differentiable)

@@ -88,16 +88,16 @@ class UserFirstOptions:
     """A per-projection background fitted with the atoms (carbon support, contamination, a
     detector offset, a phase image's floor): a constant, a plane over the detector, or
     ``smooth``: each view's floor starting as its outer frame shows it (the frame's least-squares
-    quadratic surface, :func:`gaussian_atoms_method.physics.noise.frame_surfaces`) with a
+    quadratic surface, :func:`gaussian_atoms_method.physics.detector_floor.frame_surfaces`) with a
     constant and quadratic correction (a frame the object reaches holds its tails).  Each is
     solved in closed form on the pixels the Gaussians leave empty, each time its view is
     rendered, and shared by all views while their fits agree (:mod:`gaussian_atoms_method.engine.floors`).  ``auto``:
     when the projections' outer frame sits significantly off zero (more than 5 standard errors
-    of its mean, :func:`gaussian_atoms_method.physics.noise.detector_floor`: the peer's aSi-208
+    of its mean, :func:`gaussian_atoms_method.physics.detector_floor.detector_floor`: the peer's aSi-208
     counts sit on 1.0 count), a constant if the frame is flat and ``smooth``
     if it is flat about its quadratic surface (within 1.5 times the noise variance at its level
     either way); where atoms reach the frame, the same read from the frame pixels they leave
-    alone (:func:`gaussian_atoms_method.physics.noise.clipped_frame`)."""
+    alone (:func:`gaussian_atoms_method.physics.detector_floor.clipped_frame`)."""
     psf: Literal["learned", "held-out", "fixed", "none"] = "learned"
     """The microscope's point-spread function: ``learned``, a radially symmetric kernel of unit
     integral shared by every view (Gaussians of 1, 2 and 4 Å weighted by learned weights,
@@ -285,7 +285,7 @@ class GaussianAtomsOptions(SplatfactoModelConfig, UserFirstOptions):
     one others drawn at random, rendered in one projector call, one loss over all.  On a GPU a
     batch of views costs about one view's kernel launches and the averaged gradient is smoother
     (docs/performance.md: several views per step); on a CPU each view costs its own time.
-    ``auto``: on a GPU as many as fit (:func:`gaussian_atoms_method.engine.rendering.auto_views_per_step`: at most 8,
+    ``auto``: on a GPU as many as fit (:func:`gaussian_atoms_method.engine.step_views.auto_views_per_step`: at most 8,
     within
     half the free GPU memory by the projector's measured bytes per Gaussian and view), else 1;
     1 with refine-alignment, refine-tilts or anisotropic Gaussians (per-view parameters), which

@@ -27,7 +27,8 @@ import functools
 import torch
 
 from gaussian_atoms_method.engine.console import CONSOLE
-from gaussian_atoms_method.engine.rendering import projector_name, step_views
+from gaussian_atoms_method.engine.rendering import projector_name
+from gaussian_atoms_method.engine.step_views import step_views
 
 
 class StepGraph:

@@ -1,6 +1,6 @@
 """How steady ``--pipeline.model.views-per-step auto``'s choice is: the projector's forward and
 backward time for 1, 2, 4 and 8 views, and the views auto picks in repeated decisions, for a
-number of Gaussians on a square detector (:func:`gaussian_atoms_method.engine.rendering.auto_views_per_step`).
+number of Gaussians on a square detector (:func:`gaussian_atoms_method.engine.step_views.auto_views_per_step`).
 
     python scripts/studies/views_decision.py --gaussians 10438 --pixels 271 --decisions 30
 
@@ -17,13 +17,8 @@ import time
 import numpy as np
 import torch
 
-from gaussian_atoms_method.engine.rendering import (
-    STEP_COST_RATIO,
-    auto_views_per_step,
-    probe_scene,
-    projector_for,
-    synchronise,
-)
+from gaussian_atoms_method.engine.rendering import projector_for, synchronise
+from gaussian_atoms_method.engine.step_views import STEP_COST_RATIO, auto_views_per_step, probe_scene
 
 
 def main() -> None:

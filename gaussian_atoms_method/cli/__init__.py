@@ -1,0 +1,98 @@
+"""``gaussian-atoms <verb>``: one tyro CLI whose verbs call the physics core.
+
+Verbs: ``simulate`` (write a tilt-series directory with known atoms), ``evaluate`` (score
+predicted atoms against the truth), ``baseline`` (FBP/SART + atom tracing), the benchmarks,
+``stress``, ``export`` and ``sweep``.  Training is ``ns-train gaussian-atoms`` or, with
+the same options and a shorter start-up, ``gaussian-atoms train``.
+"""
+
+from __future__ import annotations
+
+import sys
+from typing import Annotated, Union
+
+import tyro
+
+from gaussian_atoms_method.cli.benchmark_verbs import (
+    Baseline,
+    Benchmark,
+    BenchmarkAccuracy,
+    BenchmarkFilm,
+    BenchmarkPeer,
+    Stress,
+    Sweep,
+    split_grid,
+)
+from gaussian_atoms_method.cli.data_verbs import Evaluate, Export, Simulate, Train, View
+from gaussian_atoms_method.cli.tool_verbs import CheckPrecision, HeldOutViews, InputMatrix, Screenshot
+
+Commands = Union[
+    Annotated[Train, tyro.conf.subcommand("train")],
+    Annotated[Simulate, tyro.conf.subcommand("simulate")],
+    Annotated[Evaluate, tyro.conf.subcommand("evaluate")],
+    Annotated[Baseline, tyro.conf.subcommand("baseline")],
+    Annotated[Benchmark, tyro.conf.subcommand("benchmark")],
+    Annotated[BenchmarkAccuracy, tyro.conf.subcommand("benchmark-accuracy")],
+    Annotated[BenchmarkPeer, tyro.conf.subcommand("benchmark-peer")],
+    Annotated[BenchmarkFilm, tyro.conf.subcommand("benchmark-film")],
+    Annotated[Stress, tyro.conf.subcommand("stress")],
+    Annotated[Export, tyro.conf.subcommand("export")],
+    Annotated[View, tyro.conf.subcommand("view")],
+    Annotated[Sweep, tyro.conf.subcommand("sweep")],
+    Annotated[HeldOutViews, tyro.conf.subcommand("held-out-views")],
+    Annotated[CheckPrecision, tyro.conf.subcommand("check-precision")],
+    Annotated[InputMatrix, tyro.conf.subcommand("input-matrix")],
+    Annotated[Screenshot, tyro.conf.subcommand("screenshot")],
+]
+
+
+def parse(argv: list[str]) -> object:
+    """What ``gaussian-atoms ARGV`` would run, built but not run: for ``train`` its nerfstudio
+    TrainerConfig (the options of ``ns-train gaussian-atoms``), otherwise the verb's dataclass
+    (a sweep with its grid, ns-train's own options passed through after "--")."""
+    if argv[:1] == ["train"]:
+        from gaussian_atoms_method.nerfstudio_layer.launch import build_config
+
+        return build_config(argv[1:])
+    grid: tuple[str, ...] = ()
+    if argv[:1] == ["sweep"] and "--" in argv:
+        cut = argv.index("--")
+        argv, grid = argv[:cut], split_grid(argv[cut + 1 :])
+    command = tyro.cli(Commands, args=argv)
+    if isinstance(command, Sweep):
+        command.grid = grid
+    return command
+
+
+def entrypoint(argv: list[str] | None = None) -> None:
+    """Run one verb; errors in the user's input are reported in one line, exit status 2."""
+    from dataparsers.tilt_series_format import TiltSeriesError
+    from gaussian_atoms_method.atoms.atom_set import AtomFileError
+
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["train"]:
+        from gaussian_atoms_method.start_ahead import begin_for, end_now
+
+        begin_for(argv[1:])  # the start computed in a thread while nerfstudio loads
+        from gaussian_atoms_method.nerfstudio_layer.config import INPUT_ERRORS
+        from gaussian_atoms_method.nerfstudio_layer.launch import exit_process
+        from gaussian_atoms_method.nerfstudio_layer.launch import run as train_run
+
+        try:
+            config = parse(argv)
+        except SystemExit as exc:  # the command line's own errors (and --help), said by tyro
+            end_now(exc.code if isinstance(exc.code, int) else 2)
+            raise
+        try:
+            train_run(config)
+        except INPUT_ERRORS as exc:
+            print(f"gaussian-atoms train: error: {exc}", file=sys.stderr)
+            end_now(2)
+            raise SystemExit(2) from None
+        exit_process(0)  # the run's files are complete: no teardown of what it loaded
+    command = parse(argv)
+    try:
+        command.main()
+    except (TiltSeriesError, AtomFileError, ValueError, FileNotFoundError) as exc:
+        print(f"gaussian-atoms: error: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None

@@ -1,0 +1,266 @@
+"""The verbs on a user's data: ``simulate``, ``train``, ``evaluate``, ``export`` and ``view``."""
+
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal, Optional
+
+
+@dataclass
+class Simulate:
+    """Simulate a tilt series with known atoms and write a tilt_series.json directory."""
+
+    output: Path = Path("data/sim")
+    """Directory to write (tilt_series.json, projections.npy, angles.txt, atoms_true.xyz)."""
+    particle: str = "au"
+    """au, fept, apd, hea, carbon, asi, film (amorphous Pd, 110 x 40 x 20 Å: give --field-of-view-A),
+    sphere (an fcc sphere of --element, --radius-A) or a structure file."""
+    scale: Optional[float] = None
+    """Linear size factor (atom count ~ scale^3) of the named particles (default 1): the generated ones grow or shrink,
+    au and structure files are cut (at most 1)."""
+    element: Optional[str] = None
+    """Element of the fcc sphere (--particle sphere; default Au)."""
+    radius_A: Optional[float] = None
+    """Radius of the fcc sphere, Å (--particle sphere; default 10)."""
+    potential: Literal["lobato", "gaussian"] = "lobato"
+    """abTEM Lobato projected potential (independent physics), or the quick Gaussian model."""
+    tilts: str = "limited"
+    """Tilt scheme: full (-90:1:90), limited (-70:3:68), sampled, wedge, 'start:step:stop' or a comma list (deg)."""
+    pixel_size_A: float = 0.25
+    atom_sigma_A: float = 0.35
+    """Width of each atom of the Gaussian potential, Å (--potential gaussian)."""
+    blur_sigma_A: float = 0.5
+    """Gaussian probe blur, Å."""
+    probe: Literal["gaussian", "aberrated"] = "gaussian"
+    """The blur: a Gaussian of --blur-sigma-A, or an aberrated STEM probe's intensity (20 mrad,
+    300 kV, 40 Å defocus, 10 µm Cs: rings and tails)."""
+    floor_fraction: float = 0.0
+    """A floor under every view, as a fraction of a column's value (0: none)."""
+    floor_variation: float = 0.0
+    """How much the floor varies across a view (a random ramp), as a fraction of the floor."""
+    noise_std: float = 50.0
+    """Standard deviation of the additive Gaussian noise, projection units (V·Å for Lobato)."""
+    field_of_view_A: Optional[float] = None
+    """Side of the detector, Å, when it sees less than the object (a film): the views are
+    projected through all of it and cropped; the truth holds the atoms above the detector.
+    Default: the detector spans the object."""
+    tilt_axis: Literal["x", "y"] = "y"
+    seed: int = 0
+    save_volume: bool = True
+    """Also write the true potential volume, blurred like the data (for the SSIM metric)."""
+
+    @property
+    def particle_scale(self) -> float | None:
+        """The size factor of a named particle (1 unless given); None for the sphere."""
+        return None if self.particle == "sphere" else (1.0 if self.scale is None else self.scale)
+
+    def main(self) -> None:
+        import numpy as np
+
+        from dataparsers.tilt_series_format import update_manifest, write_tilt_series
+        from gaussian_atoms_method.harness.particles import make_particle
+        from gaussian_atoms_method.harness.simulate import (
+            parse_tilts,
+            simulate_tilt_series,
+            spherical_particle,
+            true_potential_volume,
+        )
+
+        # Options that would be ignored are refused: `--element Au --radius-A 11` without
+        # `--particle sphere` once simulated the 6,679-atom Au particle instead.
+        if self.particle == "sphere":
+            if self.scale is not None:
+                raise ValueError("--scale applies to the named particles; give --radius-A for --particle sphere")
+            particle = spherical_particle(self.element or "Au", 10.0 if self.radius_A is None else self.radius_A)
+        else:
+            ignored = [
+                name
+                for name, value in (("--element", self.element), ("--radius-A", self.radius_A))
+                if value is not None
+            ]
+            if ignored:
+                raise ValueError(f"{' and '.join(ignored)} apply to --particle sphere, not --particle {self.particle}")
+            particle = make_particle(self.particle, self.particle_scale, self.seed)
+        # The tilt centre is the particle's centroid; the truth keeps the particle's own frame.
+        origin = particle.positions.mean(axis=0)
+        sim = simulate_tilt_series(
+            particle.shifted(-origin),
+            parse_tilts(self.tilts),
+            potential=self.potential,
+            pixel_size_A=self.pixel_size_A,
+            atom_sigma_A=self.atom_sigma_A,
+            blur_sigma_A=self.blur_sigma_A,
+            noise_std=self.noise_std,
+            tilt_axis=self.tilt_axis,
+            seed=self.seed,
+            probe=self.probe,
+            floor_fraction=self.floor_fraction,
+            floor_variation=self.floor_variation,
+            field_of_view_A=self.field_of_view_A,
+        )
+        truth = sim.truth.shifted(origin)
+        write_tilt_series(
+            self.output,
+            sim.projections,
+            sim.angles_deg,
+            sim.pixel_size_A,
+            truth=truth,
+            origin_A=origin,
+            tilt_axis=self.tilt_axis,
+            extra={
+                "simulation": {
+                    "particle": self.particle,
+                    "scale": self.particle_scale,
+                    "potential": self.potential,
+                    "noise_std": self.noise_std,
+                    "peak_to_noise": sim.peak_to_noise,
+                    "blur_sigma_A": self.blur_sigma_A,
+                    "probe": self.probe,
+                    "floor_fraction": self.floor_fraction,
+                    "floor_variation": self.floor_variation,
+                    "field_of_view_A": self.field_of_view_A,
+                    "seed": self.seed,
+                }
+            },
+        )
+        n, h, w = sim.projections.shape
+        if self.save_volume:
+            volume = true_potential_volume(
+                sim.truth, self.potential, self.pixel_size_A, h, self.atom_sigma_A, self.blur_sigma_A
+            )
+            np.save(self.output / "potential_volume.npy", volume)
+            update_manifest(self.output, volume="potential_volume.npy", volume_voxel_size_A=self.pixel_size_A)
+        print(
+            f"wrote {self.output}: {len(truth)} atoms, {n} tilts "
+            f"({np.min(sim.angles_deg):g}..{np.max(sim.angles_deg):g} deg), "
+            f"{h}x{w} px at {self.pixel_size_A} Å, {self.potential} potential, noise {self.noise_std:g}, peak-to-noise "
+            f"{sim.peak_to_noise:.1f}"
+        )
+
+
+@dataclass
+class Evaluate:
+    """Score predicted atoms against the truth (JSON to stdout, summary to stderr)."""
+
+    pred: Path
+    """Predicted atoms (xyz/extxyz/csv or any ASE format)."""
+    truth: Optional[Path] = None
+    """True atoms; or give --data."""
+    data: Optional[Path] = None
+    """A tilt-series directory: its truth file, and its potential volume for SSIM."""
+    radius_A: float = 0.75
+    """A true atom is found if a predicted atom lies within this distance (Å)."""
+    mean_shift: bool = False
+    """Align first by an iterated global mean shift (the Miao group's scoring)."""
+    interior_A: Optional[float] = None
+    """Score only the true and predicted atoms at least this far inside the detector's footprint
+    (an object wider than the field of view; needs --data)."""
+    output: Optional[Path] = None
+    """Also write the JSON here."""
+
+    def main(self) -> None:
+        from gaussian_atoms_method.atoms.atom_set import read_atoms
+        from gaussian_atoms_method.harness.evaluation import (
+            evaluate_atoms,
+            inside_footprint,
+            load_reference,
+            summary_line,
+        )
+
+        if (self.truth is None) == (self.data is None):
+            raise ValueError("give exactly one of --truth and --data")
+        if self.interior_A is not None and self.data is None:
+            raise ValueError("--interior-A needs --data (the detector's footprint)")
+        pred = read_atoms(self.pred)
+        volume = voxel = None
+        origin = (0.0, 0.0, 0.0)
+        if self.data is not None:
+            series, truth, volume, voxel = load_reference(self.data)
+            origin = series.origin_A
+            if self.interior_A is not None:
+                pred, truth = (a.subset(inside_footprint(a.positions, series, self.interior_A)) for a in (pred, truth))
+                volume = None  # the volume spans the whole cube
+        else:
+            truth = read_atoms(self.truth)
+        if volume is not None and (pred.sigmas is None or pred.amplitudes is None):
+            volume = None  # atoms without widths (a traced baseline): no volume to compare
+        scores = evaluate_atoms(pred, truth, self.radius_A, self.mean_shift, volume, voxel, origin)
+        text = json.dumps(scores, indent=2)
+        if self.output is not None:
+            self.output.write_text(text + "\n")
+        print(text)
+        print(summary_line(scores, str(self.pred)), file=sys.stderr)
+
+
+@dataclass
+class Export:
+    """Write a finished run's atoms as .xyz/.extxyz (with sigma_A, amplitude), .csv or .cif,
+    optionally with species assigned by clustering the atoms' integrated masses."""
+
+    load_config: Path
+    """The run's config.yml (its directory holds the atoms.xyz written at the end of training)."""
+    output: Path
+    species: Optional[str] = None
+    """Comma-separated elements, e.g. Fe,Pt: heavier element = larger integrated mass."""
+
+    def main(self) -> None:
+        from gaussian_atoms_method.atoms.atom_set import read_atoms, write_atoms
+        from gaussian_atoms_method.atoms.species import classify_species
+
+        if not self.load_config.is_file():
+            raise FileNotFoundError(f"{self.load_config}: run config not found")
+        source = self.load_config.parent / "atoms.xyz"
+        if not source.is_file():
+            raise FileNotFoundError(f"{source}: not found; the run writes it when training finishes")
+        atoms = read_atoms(source)
+        if self.species:
+            if atoms.masses is None:
+                raise ValueError(f"{source}: has no sigma_A/amplitude columns to classify species by")
+            atoms.species, report = classify_species(
+                atoms.masses, [e.strip() for e in self.species.split(",") if e.strip()]
+            )
+            print(json.dumps({"species": report}))
+            if not report.get("separated", True):
+                print(
+                    f"gaussian-atoms: the atoms' masses show {report['populations']} separate population(s), not one "
+                    f"per element ({report['test']}): every atom written as {atoms.species[0]}",
+                    file=sys.stderr,
+                )
+        write_atoms(atoms, self.output)
+        print(f"wrote {len(atoms)} atoms to {self.output}")
+
+
+@dataclass
+class View:
+    """Open a finished run in nerfstudio's viewer (the atoms as points coloured by mass over the
+    projections), served to this machine only unless --host says otherwise."""
+
+    load_config: Path
+    """The run's config.yml."""
+    host: str = "127.0.0.1"
+    """The address the viewer listens on: 127.0.0.1 is this machine only; 0.0.0.0 every network."""
+    port: Optional[int] = None
+    """The viewer's port (default nerfstudio's, 7007, or the next free one)."""
+
+    def build(self):
+        """nerfstudio's ``ns-viewer`` command with these settings, built but not run."""
+        from gaussian_atoms_method.nerfstudio_layer.viewer import viewer_command
+
+        if not self.load_config.is_file():
+            raise FileNotFoundError(f"{self.load_config}: run config not found")
+        return viewer_command(self.load_config, self.host, self.port)
+
+    def main(self) -> None:
+        self.build().main()
+
+
+@dataclass
+class Train:
+    """Train on a tilt series with the options of ns-train gaussian-atoms, started sooner
+    (gaussian-atoms train -h lists them)."""
+
+    def main(self) -> None:  # the entry point hands "train ..." to train.run before tyro
+        raise AssertionError("unreachable")
