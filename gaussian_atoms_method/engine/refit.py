@@ -15,32 +15,20 @@ from gaussian_atoms_method.engine.residuals import in_chunks, measured_views, tr
 
 def refit(model, max_passes: int = 10) -> int:
     """After the final prune and merge: passes over the training views in random order at full
-    resolution, as many views per step as training took (``views_per_step``: with one view per
-    step after training on eight, the refit's own jitter took the 54,000-atom a-Pd particle's
-    RMSD from 7.5 to 12.1 pm on the H100), updating the Gaussians with the model's own optimisers
-    (their learning rates where training left them) and no density control, until the atoms
-    settle: no more than the false discovery rate's share of the atoms move by more than their
-    own Cramér-Rao precision from one pass to the next (their means over a pass,
-    ``average_iterates``, :mod:`gaussian_atoms_method.density.averaging`; the last iterate
-    without), or the passes' means only scatter, no longer drift (:func:`.convergence.drifting`), two passes in a row
-    (the training's stop, :mod:`.convergence`, per atom rather
-    than as an RMS: after the merge only the merged atoms still move), at most ``max_passes``;
-    the positions are then the mean over those passes and the one before, or, unsettled, over
-    the second half of the passes (the first half the transient).  After a stop at step 1,200
-    on Au noise 200 (CPU) the passes' means scatter by about the precision (RMS 7 pm between
-    passes, 6.5 pm precision: 45% of the atoms move by more than theirs), so only the drift test
-    settles it: 4 passes and 8.6 pm instead of 10 and 8.5 pm (8.9 pm without the refit; 9.6 pm
-    ending on the last pass's mean); Au noise 500 ends with the same scores either way.  Returns the steps taken
-    (0 without the tilt series).
+    resolution, as many views per step as training took, with the model's own optimisers (their
+    rates where training left them) and no density control, until the atoms settle two passes in
+    a row (at most ``max_passes``); the steps taken (0 without the tilt series).
 
-    Why more than one pass: a merged atom sits at its members' mass-weighted mean, which is
-    where the data put it only when the members were fragments of one atom.  At Au noise 500
-    the unresolved merge joins about 1,900 atoms to a fragment 1.1-2.1 Å away; the mean then
-    lies a median 0.51 Å from the atom (0.32 Å for the atom's own Gaussian), and 443 lie more
-    than 0.75 Å away.  Measured there (H100, the final atoms after each pass): TPR 0.9823,
-    0.9844, 0.9853 and 0.9876 after 1, 2, 3 and 10 passes, false atoms per atom 0.0196 ->
-    0.0144, RMSD 28.3 -> 27.4 pm; atoms moving more than their precision in the pass: 1.2%,
-    0.06%, then none (the steps left, 0.03 Å RMS, are the optimiser's own jitter)."""
+    Settled, per atom as the training's stop (:mod:`.convergence`): no more than the false
+    discovery rate's share of the atoms move by more than their Cramér-Rao precision between
+    passes' means, or the means only scatter, no longer drift (:func:`.convergence.drifting`).
+    The positions are then the mean over those passes and the one before (unsettled: over the
+    second half of the passes, the first half being the transient).
+
+    Why passes: a merged atom sits at its members' mass-weighted mean, where the data put it only
+    when the members were fragments of one atom; at Au noise 500 (H100) ten passes took TPR from
+    0.9823 to 0.9876.  Why training's views per step: with one view a step after training on
+    eight, the refit's own jitter took the 54,000-atom a-Pd particle's RMSD from 7.5 to 12.1 pm."""
     measured_all = measured_views(model)
     names = [n for n in model.gauss_params.keys() if n in model.optimizers]
     steps, settled, noise = 0, 0, None
