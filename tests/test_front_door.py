@@ -1,7 +1,6 @@
 """The front door: every broken tilt series stops in one line naming the file or option (exit
 2, no traceback, no run directory), every odd but valid one trains, through both launchers."""
 
-import subprocess
 import sys
 from pathlib import Path
 
@@ -10,7 +9,7 @@ import pytest
 import torch
 
 from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
-from gaussian_atoms_method.harness.input_cases import BROKEN, ODD, own_lines
+from gaussian_atoms_method.harness.input_cases import BROKEN, ODD
 from gaussian_atoms_method.nerfstudio_layer.config import (
     INPUT_ERRORS,
     GaussianAtomsTrainer,
@@ -56,24 +55,11 @@ def test_integer_counts_stay_integer_on_disk(tmp_path):
 
 @pytest.mark.parametrize("launcher", [["ns-train", "gaussian-atoms"], ["gaussian-atoms", "train"]])
 def test_launchers_stop_in_one_line_and_write_nothing(launcher, tmp_path):
+    from gaussian_atoms_method.harness.input_matrix import run_case
+
     data = BROKEN["NaN pixels"][0](tmp_path / "series")
     out = tmp_path / "out"
-    cmd = [
-        str(BIN / launcher[0]),
-        *launcher[1:],
-        "--data",
-        str(data),
-        "--max-num-iterations",
-        "2",
-        "--machine.device-type",
-        "cpu",
-        "--vis",
-        "tensorboard",
-        "--output-dir",
-        str(out),
-    ]
-    run = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
-    lines = own_lines(run.stdout + run.stderr)
+    run, lines = run_case([str(BIN / launcher[0]), *launcher[1:]], data, out)
     assert run.returncode == 2 and "Traceback" not in run.stderr
     assert len(lines) == 1 and "projections.npy: projections hold 1 NaN/Inf value(s)" in lines[0], lines
     assert not out.exists()

@@ -78,6 +78,8 @@ EXTRA_ODD = {"TIFF stack": _tiff, "IMOD MRC with its tilt-axis angle": _imod_mrc
 
 
 def run_case(launcher: list[str], data: Path, out: Path) -> tuple[subprocess.CompletedProcess, list[str]]:
+    """Train on ``data`` for two steps as a user would, with ``launcher`` (the command and, for
+    ``ns-train``, the method), into ``out``; the process and its own output lines."""
     cmd = [
         *launcher,
         "--data",
