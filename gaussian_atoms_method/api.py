@@ -117,6 +117,15 @@ def _whole(value, name: str) -> int:
     return int(value)
 
 
+def _kept_series_dir(output_dir: Path) -> Path:
+    """A new directory for a kept run's tilt series, ``OUTPUT/reconstruct/tilt_series/<time>_*``."""
+    import time
+
+    parent = output_dir / "reconstruct" / "tilt_series"
+    parent.mkdir(parents=True, exist_ok=True)
+    return Path(tempfile.mkdtemp(prefix=time.strftime("%Y-%m-%d_%H%M%S_"), dir=parent))
+
+
 def build_config(
     data: Path, output_dir: Path, device: str, max_num_iterations: int | None, model_options: dict[str, Any]
 ):
@@ -179,8 +188,9 @@ def reconstruct(
         from the atoms found.
     output_dir : path, optional
         Keep the run here (``reconstruct/gaussian-atoms/<timestamp>``: ``config.yml`` for
-        ``ns-viewer``, ``atoms.xyz``, ``classes.png``, ...); by default it is written to a
-        temporary directory and removed.
+        ``ns-viewer`` and ``gaussian-atoms view``, ``atoms.xyz``, ``classes.png``, ...) with the
+        tilt series it was fitted to (``reconstruct/tilt_series/<time>_*``, which ``config.yml``
+        names); by default both are written to a temporary directory and removed.
     max_num_iterations : int, optional
         As ``--max-num-iterations`` (default 3,000; training stops earlier once converged).
     **model_options
@@ -210,8 +220,11 @@ def reconstruct(
         try:
             series = _as_series(projections, angles_deg, pixel_size_A, tilt_axis, species)
             truth = read_atoms(series.truth_path) if series.truth_path is not None else None
+            # A kept run's config.yml names its data: they are kept beside it, where ns-viewer and
+            # gaussian-atoms view find them; otherwise they go with the temporary directory.
+            series_dir = _kept_series_dir(Path(output_dir)) if keep else work / "series"
             data = write_tilt_series(
-                work / "series",
+                series_dir,
                 series.projections,
                 series.angles_deg,
                 series.pixel_size_A,

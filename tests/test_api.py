@@ -94,6 +94,22 @@ def test_reconstruct_takes_a_hyperspy_signal(particle, tmp_path):
     assert (run / "config.yml").is_file() and (run / "atoms.xyz").is_file()
 
 
+def test_a_kept_run_loads_back_as_the_viewer_loads_it(particle, tmp_path):
+    """With ``output_dir`` the run's config.yml names data that are kept beside it, so the run
+    loads back as ``ns-viewer`` and ``gaussian-atoms view`` load it, with the Gaussians whose
+    atoms were written (to the 1e-8 Å the file keeps)."""
+    from gaussian_atoms_method.nerfstudio_layer.launch import load_model
+
+    truth, angles, projections = particle
+    atoms = ga.reconstruct(
+        projections, angles, 0.25, device="cpu", max_num_iterations=300, progress=False, output_dir=tmp_path
+    )
+    model = load_model(atoms.info["run_dir"] / "config.yml")
+    gaussians = model.atoms().positions
+    nearest = np.min(np.linalg.norm(atoms.positions[:, None] - gaussians[None], axis=-1), axis=1)
+    assert len(gaussians) >= len(atoms) and np.all(nearest < 1e-6)
+
+
 def test_bad_input_raises_the_cli_line(tmp_path):
     """The message of InputError is the line the CLI prints for the same series."""
     data = BROKEN["single projection"][0](tmp_path / "series")
