@@ -73,7 +73,7 @@ def _two_atoms_one_off(tmp_path):
         noise = torch.from_numpy(
             np.random.default_rng(0).normal(0.0, 0.2 * float(clean.max()), clean.shape).astype(np.float32)
         )
-        model.kwargs["metadata"]["projections"].copy_(clean + noise)
+        model.view_set.projections.copy_(clean + noise)
         model.gauss_params["means"][0, 0] += 0.5 * ls
     model.optimizers = {"means": torch.optim.Adam([model.gauss_params["means"]], lr=0.03 * ls)}
     return model, truth, ls

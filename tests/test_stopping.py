@@ -9,6 +9,7 @@ import torch
 from nerfstudio.engine.optimizers import Optimizers
 
 from gaussian_atoms_method.engine.stopping import set_position_rate, slow_positions
+from gaussian_atoms_method.engine.view_set import ViewSet
 from gaussian_atoms_method.nerfstudio_layer.config import gaussian_atoms_trainer_config
 
 
@@ -18,7 +19,7 @@ def _model_and_optimizers(pixel_A=0.25, detector_px=271, rate_px=1 / math.sqrt(1
     optimizers = Optimizers({"means": config.optimizers["means"]}, params)
     model = SimpleNamespace(
         config=SimpleNamespace(position_rate_px=rate_px),
-        kwargs={"metadata": {"pixel_size_A": pixel_A}},
+        view_set=ViewSet(pixel_size_A=pixel_A),
         normalisation=SimpleNamespace(length_scale=1.0 / (detector_px * pixel_A)),
         _optimizers_obj=optimizers,
     )

@@ -90,7 +90,7 @@ def read_kernel(model, views) -> torch.Tensor | None:
     held, under the model's data term; None without the tilt series."""
     from gaussian_atoms_method.engine.residuals import training_views
 
-    measured_all = (model.kwargs.get("metadata", {}) or {}).get("projections")
+    measured_all = model.view_set.projections
     weights = model.view_params["psf"]
     if measured_all is None or model.num_points == 0:
         return None
@@ -111,7 +111,7 @@ def read_kernel(model, views) -> torch.Tensor | None:
     measured = torch.as_tensor(measured_all[list(views)]).to(images)
     noise = model.noise_read
     gain, read_var = (noise.gain, noise.read_var) if noise else (1.0, 0.0)
-    spacing = float(model.kwargs["metadata"]["pixel_size_A"]) * model.normalisation.length_scale
+    spacing = float(model.view_set.pixel_size_A) * model.normalisation.length_scale
     kind = "l2" if model.data_term == "l1" else model.data_term  # L1's curvature is zero: no Newton step
     return fit_kernel_weights(
         images,

@@ -29,7 +29,7 @@ from gaussian_atoms_method.engine.views import views_from_tilt_series
 def training_views(model):
     """The cameras of the model's training views (None without the tilt series), with the
     model in eval mode meanwhile: full resolution, one view per call, whatever the phase."""
-    series = (model.kwargs.get("metadata", {}) or {}).get("tilt_series")
+    series = model.view_set.series
     if series is None:
         yield None
         return
@@ -64,7 +64,7 @@ def measured_views(model) -> torch.Tensor | None:
     """(V, H, W) the measured training views (normalised data units) on the model's device,
     copied there without waiting for its queued work (:func:`.rendering.to_device_without_waiting`:
     a plain copy to the GPU waits for it); None without the tilt series."""
-    projections = (model.kwargs.get("metadata", {}) or {}).get("projections")
+    projections = model.view_set.projections
     return None if projections is None else to_device_without_waiting(torch.as_tensor(projections), model.means.device)
 
 
@@ -86,8 +86,7 @@ def in_chunks(model, cameras):
 def add_missing_atoms(model) -> int:
     """Add a Gaussian at every site where the residuals hold significant unexplained mass; the
     new ones take the Gaussians' median width.  Returns how many were added."""
-    metadata = model.kwargs.get("metadata", {}) or {}
-    series, projections = metadata.get("tilt_series"), metadata.get("projections")
+    series, projections = model.view_set.series, model.view_set.projections
     predicted = render_training_views(model)
     if predicted is None or projections is None or model.num_points == 0:
         return 0

@@ -54,8 +54,7 @@ def model_position_std_A(model, atoms: AtomSet, noise: float | None = None) -> t
     estimated from the residuals of the training views unless given, :func:`residual_noise`)
     (:mod:`gaussian_atoms_method.atoms.uncertainty`); None without the tilt series (a model
     built outside the dataparser)."""
-    metadata = model.kwargs.get("metadata", {}) or {}
-    series, projections = metadata.get("tilt_series"), metadata.get("projections")
+    series, projections = model.view_set.series, model.view_set.projections
     if series is None or projections is None or len(atoms) == 0:
         return None
     if noise is None:

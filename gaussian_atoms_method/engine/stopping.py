@@ -87,7 +87,7 @@ def set_position_rate(model, optimizers) -> bool:
     """Rescale the positions' learning rate (their optimiser's rate and its scheduler's base) to
     ``position_rate_px`` detector pixels, once per optimiser (the mark travels in its state dict:
     a resumed run is not rescaled twice).  Returns whether it was rescaled."""
-    rate_px, pixel_A = model.config.position_rate_px, (model.kwargs.get("metadata", {}) or {}).get("pixel_size_A")
+    rate_px, pixel_A = model.config.position_rate_px, model.view_set.pixel_size_A
     optimizer = getattr(optimizers, "optimizers", {}).get(POSITIONS)
     if rate_px is None or not pixel_A or optimizer is None or optimizer.param_groups[0].get("rate_px"):
         return False

@@ -45,6 +45,7 @@ from gaussian_atoms_method.engine.refit import refit
 from gaussian_atoms_method.engine.residuals import residual_correlations
 from gaussian_atoms_method.engine.results import model_position_std_A, write_results, write_snapshot
 from gaussian_atoms_method.engine.stopping import at_check, set_position_rate
+from gaussian_atoms_method.engine.view_set import ViewSet
 from gaussian_atoms_method.nerfstudio_layer.checkpoints import allow_numpy_scalars_in_checkpoints
 from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions
 from gaussian_atoms_method.nerfstudio_layer.splatfacto_compat import SplatfactoCompat
@@ -74,14 +75,15 @@ class GaussianAtomsModel(SplatfactoCompat):
         # Deliberately not splatfacto's: that builds LPIPS (downloads weights), SH colours,
         # opacities and gsplat's alpha-compositing strategy, none of which apply here.
         allow_numpy_scalars_in_checkpoints()  # nerfstudio loads checkpoints after building the model
-        cfg, metadata = self.config, self.kwargs.get("metadata", {}) or {}
+        cfg = self.config
         cfg.check()
-        self.normalisation: Normalisation = metadata.get("normalisation") or Normalisation(1.0, 1.0)
-        ls, series = self.normalisation.length_scale, metadata.get("tilt_series")
-        self.truth_path: Path | None = Path(metadata["truth_path"]) if metadata.get("truth_path") is not None else None
+        views = self.view_set = ViewSet.from_metadata(self.kwargs.get("metadata"))  # read once
+        self.normalisation: Normalisation = views.normalisation or Normalisation(1.0, 1.0)
+        ls, series = self.normalisation.length_scale, views.series
+        self.truth_path: Path | None = views.truth_path
         self.generator = torch.Generator().manual_seed(cfg.seed)
         projections, start_options = (
-            metadata.get("projections"),
+            views.projections,
             (self.normalisation, cfg.extended_object, cfg.max_atom_sigma_A),
         )
         given = read_atoms(cfg.start_atoms).positions if cfg.start_atoms is not None else None
@@ -110,8 +112,8 @@ class GaussianAtomsModel(SplatfactoCompat):
         n, sigma0 = means.shape[0], cfg.init_sigma_A * ls
         amp0 = starting_amplitude(
             projections,
-            metadata.get("pixel_size_A"),
-            ls if metadata.get("normalisation") else None,
+            views.pixel_size_A,
+            ls if views.normalisation else None,
             n,
             sigma0,
             DATA_RANGE,
@@ -149,14 +151,14 @@ class GaussianAtomsModel(SplatfactoCompat):
             cfg.merge_threshold_A * ls,
         )
         self.noise_read, self.data_term, floor, surfaces = read_noise(
-            metadata.get("projections"), cfg.loss, cfg.background, measured
+            views.projections, cfg.loss, cfg.background, measured
         )
-        self._setup_view_params(metadata, series, floor, surfaces)
-        if self.noise_read is not None and metadata.get("pixel_size_A"):  # the prune judges masses against this noise
+        self._setup_view_params(views, floor, surfaces)
+        if self.noise_read is not None and views.pixel_size_A:  # the prune judges masses against this noise
             self.density.set_noise(
                 self.noise_read,
                 floor or 0.0,
-                metadata["pixel_size_A"] * ls,
+                views.pixel_size_A * ls,
                 self.view_c2w.shape[0],
                 self.data_term,
                 self.view_c2w[:, :3, 2],
@@ -182,11 +184,11 @@ class GaussianAtomsModel(SplatfactoCompat):
             StepGraph(),
         )
 
-    def _setup_view_params(self, metadata: dict, series, floor: float | None, surfaces=None) -> None:
+    def _setup_view_params(self, views: ViewSet, floor: float | None, surfaces=None) -> None:
         """Per-view parameters and the views-per-step batches; a background (solved in closed form,
         :mod:`gaussian_atoms_method.engine.floors`) starts at ``floor``, on the (V, H, W) ``surfaces`` of a floor that
         varies within the views."""
-        cfg, view_c2w = self.config, metadata.get("view_c2w")
+        cfg, view_c2w, series = self.config, views.view_c2w, views.series
         self.register_buffer(
             "view_c2w", view_c2w.float() if view_c2w is not None else torch.zeros(0, 3, 4), persistent=False
         )
@@ -198,7 +200,7 @@ class GaussianAtomsModel(SplatfactoCompat):
         # read here, on the host: a read from the GPU each step waited for it
         self.psf_widths_host = tuple(buffers["psf_widths"].tolist()) if "psf_widths" in buffers else ()
         self.view_params = torch.nn.ParameterDict(view_params)
-        batches, self._views_per_step = SV.view_batches(cfg, metadata.get("projections"), self.view_c2w)
+        batches, self._views_per_step = SV.view_batches(cfg, views.projections, self.view_c2w)
         # a training step's views by one device index (get_outputs)
         self.indexed_views = not cfg.per_view_options() and SV.on_beam_axes(self.view_c2w)
         self.register_buffer("train_projections", batches, persistent=False)
