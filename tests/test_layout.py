@@ -194,3 +194,18 @@ def test_no_library_module_is_over_500_lines():
     500 lines (formatted at 120 columns)."""
     long = {name: path.read_text().count("\n") for name, path in package_modules().items()}
     assert not {name: n for name, n in long.items() if n > 500}
+
+
+def test_nerfstudio_is_an_adapter_of_six_modules(graph):
+    """The fit is the library and nerfstudio its thin user: only the adapter's modules import
+    nerfstudio (the method's config and trainer, the launcher, splatfacto's lazy import, the
+    model, the viewer) and the dataparser."""
+    importers = sorted(name for name, (_, ns) in graph.items() if ns)
+    assert importers == [
+        "dataparsers.tilt_series_dataparser",
+        "gaussian_atoms_method.nerfstudio_layer.config",
+        "gaussian_atoms_method.nerfstudio_layer.launch",
+        "gaussian_atoms_method.nerfstudio_layer.lazy_compile",
+        "gaussian_atoms_method.nerfstudio_layer.model",
+        "gaussian_atoms_method.nerfstudio_layer.viewer",
+    ]
