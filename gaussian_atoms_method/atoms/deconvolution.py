@@ -1,31 +1,20 @@
 """Atoms that no maximum shows: the candidates' fitted responses taken off a sharp filter of the
-back-projection, and the maxima of what is left (the start's step 6, :mod:`.initialise`).
+back-projection, and the maxima of what is left (the start's step 6, :mod:`.candidates`).
 
-An atom that is a shoulder of a bonded neighbour at every scale has no maximum of its own, so no
-search for maxima seats it.  Measured on the 7,000-atom disordered carbon (tilts -72:4:72,
-0.32 Å pixels, noise 5): after the start's steps 1-5, 97 atoms had no candidate, each 1.2-1.45 Å
-from one that sits on a bonded neighbour, and the fit never recovered them (its TPR equalled
-the start's recall).  So:
+An atom that is a shoulder of a bonded neighbour at every scale has no maximum of its own (97
+of the 7,000-atom carbon's atoms at noise 5, never recovered by the fit).  So:
 
 1. each candidate's response through the same filter, at the atom width the data show
-   (:func:`matched_response`), placed at its sub-voxel peak (:func:`subvoxel_peaks`), is fitted to the field with every
-   amplitude at once (:func:`fit_amplitudes`, least squares by conjugate gradients; at the
-   pixel scale the responses of neighbours barely overlap: 5 steps reach a relative gradient
-   of 0.004-0.006 on the carbon and 30 give the same maxima, and 2 steps change the carbon's
-   additions by 4 of 296 and nowhere the recall by more than 0.0003);
+   (:func:`matched_response`), placed at its sub-voxel peak (:func:`subvoxel_peaks`), is fitted
+   to the field with every amplitude at once (:func:`fit_amplitudes`, conjugate gradients);
 2. the maxima of the remainder, more than ``min_distance_A`` from each other and from every
-   candidate, are the sites the candidates do not explain.
+   candidate, are the sites the candidates do not explain, kept above the level the fit's own
+   error reaches: the remainder's negative side, which the error makes as often as the positive
+   and a missing atom never does, counts the error's maxima at each height (*decoys*, as in a
+   target-decoy estimate of the false discovery rate, :func:`decoy_level`).
 
-The remainder holds the model's own error as well as the noise: the response is a Gaussian's,
-not the atom's (Lobato) shape, and the peaks are read on a grid.  At low noise that error
-stands far above the noise (carbon noise 5: 6,027 maxima above the noise level, 97 of them
-atoms).  The error is as often negative as positive, a missing atom only positive, so the
-maxima of the negated remainder (*decoys*, under the same rules) count how many of the positive
-maxima the error alone makes above any height, as in a target-decoy estimate of the false
-discovery rate (:func:`decoy_level`).  Measured on the carbon at noise 5 and 20, at every height
-from 4 to 9 the decoys number 0.8-1.3 times the positive maxima that are not atoms; the missing
-atoms stand 6-9.4 high, the error's maxima 0.9-6.4 (noise 5) and 3.4-8.6 (noise 20) (a
-fixed 0.6 Å response, before the width was read from the data).
+The measurements behind the step count and the decoy level: ``CHANGELOG.md`` ("Docstrings'
+measurements").
 """
 
 from __future__ import annotations

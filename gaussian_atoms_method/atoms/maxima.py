@@ -1,7 +1,7 @@
 """Local maxima of a voxel volume, and the strongest of those closer than a distance: each
 operation twice, on the host (numpy, scipy's k-d tree) and on a tensor's device (torch), side by
 side.  The two give the same voxels in the same order (``tests/test_volume_filters.py``; on a
-GPU ``tests/test_cuda.py``).  The start from a back-projection (:mod:`.initialise`), the
+GPU ``tests/test_cuda.py``).  The start from a back-projection (:mod:`.candidates`), the
 deconvolution's remainders, the residual searches and the baselines' tracing use them."""
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Peaks in a voxel volume: local maxima, keeping the strongest of those closer than a
 distance, and the height a noise field's peaks stay below.  Shared by the start from a back-projection
-(:mod:`.initialise`) and the baselines'
+(:mod:`.candidates`) and the baselines'
 atom tracing (:mod:`gaussian_atoms_method.harness.tracing`)."""
 
 from __future__ import annotations

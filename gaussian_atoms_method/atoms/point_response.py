@@ -6,7 +6,7 @@ list of maxima then holds one atom several times.  So maxima are accepted strong
 Högbom's CLEAN: each accepted one's response (:func:`point_response`, scaled to its value) is
 taken off the values of those not yet visited, which must still clear the level.  A true
 neighbour keeps its own peak after the subtraction; a maximum made of the first atom's ridge
-does not.  Used by the start (:mod:`.initialise`) and the search of the residuals
+does not.  Used by the start (:mod:`.candidates`) and the search of the residuals
 (:mod:`.residual_sites`).
 """
 

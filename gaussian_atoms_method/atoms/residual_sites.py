@@ -3,7 +3,7 @@
 The residual projections (measured minus predicted) of a fit that has found every atom are
 noise; an atom it missed leaves its projection in every view, and a filtered back-projection
 of the residuals gathers those into a peak at the atom.  So, like the start
-(:mod:`.initialise`), but on the residuals:
+(:mod:`.candidates`), but on the residuals:
 
 1. FBP with a Hann filter, smoothed by a Gaussian of ``smoothing_A`` (0.5 Å, about a blurred
    atom's width: a matched filter);

@@ -1,7 +1,7 @@
 """Gaussian smoothing, its Laplacian and local maxima of a voxel volume, in torch on the
 volume's device.
 
-The start (:mod:`.initialise`) filters a back-projection of the whole field (the 271^3 Au
+The start (:mod:`.candidates`) filters a back-projection of the whole field (the 271^3 Au
 volume: 20 million voxels) several times; scipy's ``ndimage`` did that on one CPU core and a
 GPU run waited for it.  Off the CPU these are the same separable filters as scipy's
 ``gaussian_filter`` and ``gaussian_laplace`` (the same sampled kernels, ``truncate`` 4, and scipy's default
