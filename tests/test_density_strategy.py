@@ -80,8 +80,8 @@ def test_too_wide_and_outside_are_pruned():
 def test_pulled_gaussian_is_duplicated_with_half_the_mass_each():
     params, opts, control = _setup([[0.0, 0.0, 0.0], [0.3, 0.0, 0.0]], sigma_A=0.06, densify_grad_thresh=0.2)
     control.length_scale = 0.1
-    control.grad_accum = torch.tensor([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0]]) * 3
-    control.grad_count = 3
+    control.state.grad_accum = torch.tensor([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0]]) * 3
+    control.state.grad_count = 3
     before = _mass(params, control).detach()
     assert control.densify(params, opts) == 1
     after = _mass(params, control).detach()
@@ -248,8 +248,8 @@ def test_a_duplicate_is_not_merged_back_in_the_same_step():
     params, opts, control = _setup([[0.0, 0.0, 0.0]], sigma_A=0.06, warmup_length=0, refine_every=100, merge_every=100)
     control.length_scale = 0.1
     params["means"].grad = torch.zeros_like(params["means"])
-    control.grad_accum = torch.tensor([[1.0, 0.0, 0.0]])  # a persistent pull
-    control.grad_count = 1
+    control.state.grad_accum = torch.tensor([[1.0, 0.0, 0.0]])  # a persistent pull
+    control.state.grad_count = 1
     counts = control.step_post_backward(params, opts, step=200)
     assert counts["duplicated"] == 1 and params["means"].shape[0] == 2
     gap_A = float((params["means"][0] - params["means"][1]).norm()) / 0.1
@@ -263,7 +263,7 @@ def test_added_gaussians_carry_their_mass_fresh_moments_and_are_fresh():
     """DensityControl.add appends Gaussians at the given sites with the given mass and width,
     zero Adam moments, and marks them fresh (neither merged nor pruned for one interval)."""
     params, opts, control = _setup([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0]], sigma_A=0.06)
-    control.step = 700
+    control.state.step = 700
     added = control.add(params, opts, torch.tensor([[0.2, 0.1, 0.0]], dtype=torch.float64), 0.2, torch.tensor([3.0]))
     assert added == 1 and params["means"].shape[0] == 3
     assert float(_mass(params, control)[2]) == pytest.approx(3.0, rel=1e-9)
@@ -433,7 +433,7 @@ def test_settling_mid_run_applies_the_final_prune_but_spares_fresh_additions():
     z_unit = float(control.mass_significance(params)[0])
     with torch.no_grad():
         params["log_amplitudes"][:] = torch.log(torch.tensor([[110.0 / z_unit], [2.0 / z_unit]], dtype=torch.float64))
-    control.step = 700
+    control.state.step = 700
     control.add(
         params,
         opts,

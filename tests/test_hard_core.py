@@ -140,7 +140,7 @@ def test_training_joins_a_split_atom_and_pushes_two_atoms_apart_to_the_hard_core
     dc.reset(len(positions))
     optimizers = {k: torch.optim.Adam([p], lr=1e-3) for k, p in params.items()}
     removed = dc.join_close_pairs(params, optimizers)
-    assert removed == 1 and dc.joined_close == 1
+    assert removed == 1 and dc.state.joined_close == 1
     means = params["means"].detach().double().numpy()
     assert len(means) == len(positions) - 1
     np.testing.assert_allclose(means[: len(lattice)], lattice, atol=1e-6)

@@ -30,11 +30,11 @@ class Growth:
         where one can be, and a copy started half a width away could not leave the hard core
         within its interval before :meth:`join_close_pairs` took it back; otherwise the pair
         starts half a width apart in a random direction."""
-        if self.grad_count == 0:
+        if self.state.grad_count == 0:
             return 0
         core = self.hard_core(params)
         n = params["means"].shape[0]
-        mean_grad = (self.grad_accum / self.grad_count).norm(dim=-1)
+        mean_grad = (self.state.grad_accum / self.state.grad_count).norm(dim=-1)
         idx = torch.nonzero(mean_grad > self.densify_grad_thresh).flatten()
         room = self.max_gaussians - n
         if room <= 0 or len(idx) == 0:
@@ -48,7 +48,7 @@ class Growth:
         both = torch.cat([idx, torch.arange(n, n + len(idx))]).to(dev)
         params["log_amplitudes"].data[both] -= math.log(2.0)
         if math.isfinite(core):
-            pull = -self.grad_accum[:n].to(dev)[idx.to(dev)]
+            pull = -self.state.grad_accum[:n].to(dev)[idx.to(dev)]
             params["means"].data[n:] += core * pull / pull.norm(dim=-1, keepdim=True).clamp_min(1e-30)
         else:
             direction = torch.randn(len(idx), 3, generator=self.generator).to(dev)
@@ -56,8 +56,8 @@ class Growth:
             offset = 0.5 * direction * widths(params, self.min_log_sigma)[idx.to(dev), None]
             params["means"].data[idx.to(dev)] += offset
             params["means"].data[n:] -= offset
-        self.born[idx] = self.step
-        self.born[n:] = self.step
+        self.state.born[idx] = self.state.step
+        self.state.born[n:] = self.state.step
         return len(idx)
 
     @torch.no_grad()
@@ -75,7 +75,7 @@ class Growth:
         Returns how many were added (they are fresh: not merged or pruned for one interval)."""
         n = params["means"].shape[0]
         means, masses = self.outside_hard_core(params, means, masses)
-        self.residual_clean = len(means) == 0  # nothing found, or nothing where an atom can be
+        self.state.residual_clean = len(means) == 0  # nothing found, or nothing where an atom can be
         k = min(len(means), self.max_gaussians - n)
         if k <= 0 or n == 0:
             return 0
@@ -90,7 +90,7 @@ class Growth:
             for value in state.values():
                 if torch.is_tensor(value) and value.dim() > 0 and value.shape[0] == n + k:
                     value[n:] = 0
-        self.born[n:] = self.step
+        self.state.born[n:] = self.state.step
         return k
 
     @torch.no_grad()
@@ -108,9 +108,9 @@ class Growth:
         missed atoms lay beside such a Gaussian: matched to a neighbour 1.75 Å away (median),
         mostly along the beam, holding a median 1.78 typical masses, 30% wider than the rest.
         Returns how many were split."""
-        if self.heavy_split or not self.split_heavy or self.view_dirs is None or not self.isotropic:
+        if self.state.heavy_split or not self.split_heavy or self.view_dirs is None or not self.isotropic:
             return 0
-        self.heavy_split = True
+        self.state.heavy_split = True
         closest, _ = self.shortest_distance(params)
         if not math.isfinite(closest) or closest <= 0:
             return 0
@@ -139,6 +139,6 @@ class Growth:
         params["log_amplitudes"].data[both, 0] = torch.log(torch.cat([half_amp, half_amp])).to(
             dev, params["log_amplitudes"].dtype
         )
-        self.born[idx] = self.step
-        self.born[n:] = self.step
+        self.state.born[idx] = self.state.step
+        self.state.born[n:] = self.state.step
         return len(idx)

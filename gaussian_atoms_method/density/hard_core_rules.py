@@ -89,7 +89,7 @@ class HardCoreRules:
         if self.hard_core_A is not None:
             return self.hard_core_A * self.length_scale
         n = params["means"].shape[0]
-        read_at, distance = self._hard_core_read
+        read_at, distance = self.state.hard_core_read
         if read_at and abs(n - read_at) <= 0.1 * read_at:
             return distance
         if not self.noise_known():
@@ -108,7 +108,7 @@ class HardCoreRules:
             mass[confident.numpy()],
             self.typical_atom_mass(params),
         )
-        self._hard_core_read = (n, distance) if math.isfinite(distance) else (0, math.inf)
+        self.state.hard_core_read = (n, distance) if math.isfinite(distance) else (0, math.inf)
         return distance
 
     @torch.no_grad()
@@ -144,7 +144,7 @@ class HardCoreRules:
             return pairs[~two]
 
         joined = self._merge_pairs_in_rounds(params, optimizers, param_lists, too_close, max_rounds=4)
-        self.joined_close += joined
+        self.state.joined_close += joined
         return joined
 
     def _push_apart(self, params: Params, pairs: np.ndarray, distance: float) -> None:

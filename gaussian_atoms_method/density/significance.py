@@ -167,8 +167,8 @@ class Significance:
                 keep |= ~self.in_field(params["means"])
         keep &= self.atom_width(sigmas)
         inside = self.inside(params["means"])
-        self.pruned_outside += int((~inside).sum())
-        self.pruned_outside_atom_like += int((keep & ~inside).sum())
+        self.state.pruned_outside += int((~inside).sum())
+        self.state.pruned_outside_atom_like += int((keep & ~inside).sum())
         keep &= inside
         removed = int((~keep).sum())
         if removed:

@@ -48,7 +48,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from gaussian_atoms_method.density.averaging import IterateAverage
 from gaussian_atoms_method.density.growth import Growth
 from gaussian_atoms_method.density.hard_core_rules import HardCoreRules
 from gaussian_atoms_method.density.merging import Merging
@@ -62,6 +61,7 @@ from gaussian_atoms_method.density.parameters import (  # noqa: F401
 )
 from gaussian_atoms_method.density.remap import apply_remap
 from gaussian_atoms_method.density.significance import Significance
+from gaussian_atoms_method.density.state import DensityState
 
 
 @dataclass
@@ -119,38 +119,11 @@ class DensityControl(Growth, Significance, Merging, HardCoreRules):
     whole volume.  Beyond it (an object wider than the field of view) Gaussians only explain the
     rays that reach the detector through material outside the field; the final prune leaves
     them (a faint one there, pruned, would hand its signal to the atoms above the detector)."""
-    grad_accum: torch.Tensor = field(default_factory=lambda: torch.zeros(0, 3))
-    """(N, 3) sum of the means' gradient vectors since the last refine (CPU)."""
-    grad_count: int = 0
-    average: IterateAverage = field(default_factory=IterateAverage)
-    """The iterates of the open refine interval (:mod:`.averaging`)."""
-    born: torch.Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.long))
-    """(N,) step at which each Gaussian was made (0 for the start); fresh ones are not merged."""
-    step: int = 0
-    residual_clean: bool = False
-    """A residual check found nothing to add: the later ones are skipped."""
-    searched_at: int = 0
-    """The step of the last residual search that added Gaussians (0: none yet)."""
-    settled_since_search: bool = False
-    """The final rules were applied mid-run since that search (:meth:`settle`)."""
     hard_core_A: float | None = None
     """The material's hard core from its species (Å, :func:`..atoms.hard_core.hard_core_from_species`);
     None: read from the confident atoms (:meth:`hard_core`)."""
-    _hard_core_read: tuple = (0, math.inf)
-    """The last reading from the atoms: (Gaussians then, hard core normalised)."""
-    joined_close: int = 0
-    """Gaussians joined into a partner closer than the hard core over the run (:meth:`join_close_pairs`)."""
-    heavy_split: bool = False
-    """The heavy Gaussians were split (:meth:`split_heavy_gaussians`: once a run)."""
-    clamp_counts: torch.Tensor | None = None
-    """(4,) Gaussian-steps held at the width floor, the width ceiling, the amplitude ceiling and
-    the edge of the position box (kept on the parameters' device: no sync per step)."""
-    pruned_outside: int = 0
-    """Gaussians pruned for leaving the reconstruction volume ..."""
-    pruned_outside_atom_like: int = 0
-    """... of which heavy and narrow enough to be atoms (real atoms lost if centre_px is off)."""
-    _boxes: dict = field(default_factory=dict, repr=False)
-    """The position boxes as tensors, per device and dtype (:meth:`_box`)."""
+    state: DensityState = field(default_factory=DensityState)
+    """What the rules keep between steps (:class:`.state.DensityState`)."""
 
     # ------------------------------------------------------------------ helpers
     @property
@@ -161,23 +134,23 @@ class DensityControl(Growth, Significance, Merging, HardCoreRules):
         """(3,) ``half_extent`` as a tensor on ``like``'s device and dtype, made once (a copy to
         the GPU at every step's clamp waited for it)."""
         key = (tuple(half_extent), like.device, like.dtype)
-        if key not in self._boxes:
-            self._boxes[key] = torch.as_tensor(half_extent, device=like.device, dtype=like.dtype)
-        return self._boxes[key]
+        if key not in self.state.boxes:
+            self.state.boxes[key] = torch.as_tensor(half_extent, device=like.device, dtype=like.dtype)
+        return self.state.boxes[key]
 
     def reset(self, n: int, device: torch.device | str | None = None) -> None:
         """Forget the accumulated gradients, for ``n`` Gaussians (kept on ``device``, default
         where they were: the parameters' device, so accumulating costs no copy to the host)."""
-        self.grad_accum = torch.zeros(n, 3, device=self.grad_accum.device if device is None else device)
-        self.grad_count = 0
+        self.state.grad_accum = torch.zeros(n, 3, device=self.state.grad_accum.device if device is None else device)
+        self.state.grad_count = 0
         self._births(n)
 
     def _births(self, n: int) -> torch.Tensor:
         """The (n,) birth steps, started over at 0 (the start) when they are not for ``n``
         Gaussians (a strategy handed parameters it did not make)."""
-        if self.born.shape[0] != n:
-            self.born = torch.zeros(n, dtype=torch.long)
-        return self.born
+        if self.state.born.shape[0] != n:
+            self.state.born = torch.zeros(n, dtype=torch.long)
+        return self.state.born
 
     def remap(
         self, params: Params, optimizers: Optimizers, src, dst, n_out: int, new_values=None, param_lists=None
@@ -187,10 +160,12 @@ class DensityControl(Growth, Significance, Merging, HardCoreRules):
         Gaussian is as young as its youngest member)."""
         dev, n_in = params["means"].device, params["means"].shape[0]
         apply_remap(params, optimizers, src.to(dev), dst.to(dev), n_out, new_values, param_lists)
-        at = self.grad_accum.device
-        self.grad_accum = torch.zeros(n_out, 3, device=at).index_add_(0, dst.to(at), self.grad_accum[src.to(at)])
+        at = self.state.grad_accum.device
+        self.state.grad_accum = torch.zeros(n_out, 3, device=at).index_add_(
+            0, dst.to(at), self.state.grad_accum[src.to(at)]
+        )
         src, dst = src.cpu(), dst.cpu()
-        self.born = torch.zeros(n_out, dtype=torch.long).scatter_reduce_(
+        self.state.born = torch.zeros(n_out, dtype=torch.long).scatter_reduce_(
             0, dst, self._births(n_in)[src], reduce="amax", include_self=False
         )
 
@@ -199,21 +174,21 @@ class DensityControl(Growth, Significance, Merging, HardCoreRules):
     def step_post_backward(self, params: Params, optimizers: Optimizers, step: int, param_lists=None) -> dict[str, int]:
         """After each optimiser step: clamp, accumulate the positional gradient and, every
         ``refine_every`` steps after the warm-up, duplicate and prune.  Returns the counts."""
-        self.step = step
+        self.state.step = step
         self.clamp(params)
         if self.average_iterates:
-            self.average.add(params)
+            self.state.average.add(params)
             if step % self.refine_every == 0:  # the interval closes before the refine changes the set
-                self.average.close(params)
+                self.state.average.close(params)
         grad = params["means"].grad
         if grad is not None:
-            if self.grad_accum.shape[0] != grad.shape[0] or self.grad_accum.device != grad.device:
+            if self.state.grad_accum.shape[0] != grad.shape[0] or self.state.grad_accum.device != grad.device:
                 self.reset(grad.shape[0], grad.device)
             # Sum the gradient vectors, not their norms: with an L1 loss the per-step gradient of
             # a well-fitted Gaussian is noise that cancels, a persistent pull towards unexplained
             # signal does not.
-            self.grad_accum += grad.detach()
-            self.grad_count += 1
+            self.state.grad_accum += grad.detach()
+            self.state.grad_count += 1
         if step < self.warmup_length or step % self.refine_every != 0:
             return {}
         # Pairs closer than the hard core are joined before the densify: a duplicate pair has had
@@ -228,7 +203,7 @@ class DensityControl(Growth, Significance, Merging, HardCoreRules):
     @torch.no_grad()
     def merge_step(self, params: Params, optimizers: Optimizers, step: int, param_lists=None) -> int:
         """Every ``merge_every`` steps after the warm-up (when ``cluster_merge``), merge."""
-        self.step = step
+        self.state.step = step
         if self.cluster_merge and step >= self.warmup_length and step % self.merge_every == 0:
             return self.merge(params, optimizers, param_lists, protect_fresh=True)
         return 0
@@ -240,8 +215,8 @@ class DensityControl(Growth, Significance, Merging, HardCoreRules):
         holds one Gaussian per atom; returns how many Gaussians went (the model refits when any
         did)."""
         if self.average_iterates:  # the last interval's mean: the estimate the final rules judge
-            self.average.close(params)
-        self.born = torch.zeros_like(self.born)  # at the end every Gaussian is judged
+            self.state.average.close(params)
+        self.state.born = torch.zeros_like(self.state.born)  # at the end every Gaussian is judged
         return self.settle(params, optimizers, param_lists, correlations)
 
     @torch.no_grad()
@@ -267,7 +242,7 @@ class DensityControl(Growth, Significance, Merging, HardCoreRules):
     def descendants(self, step: int) -> int:
         """How many Gaussians were made at ``step`` (or merged from one made then): what is left
         of the Gaussians a residual search added at ``step``."""
-        return int((self.born == step).sum()) if step > 0 else 0
+        return int((self.state.born == step).sum()) if step > 0 else 0
 
     # ------------------------------------------------------------------ the rules
     @torch.no_grad()
@@ -290,10 +265,10 @@ class DensityControl(Growth, Significance, Merging, HardCoreRules):
         held = torch.stack(
             [low.sum(), high.sum(), (log_amps > self.max_log_amplitude).sum(), (means.abs() > bound).any(-1).sum()]
         )
-        if self.clamp_counts is None:
-            self.clamp_counts = held
+        if self.state.clamp_counts is None:
+            self.state.clamp_counts = held
         else:
-            self.clamp_counts.add_(held.to(self.clamp_counts.device))
+            self.state.clamp_counts.add_(held.to(self.state.clamp_counts.device))
         log_sigmas.clamp_(lo, hi)
         log_amps.clamp_(max=self.max_log_amplitude)
         means.clamp_(min=lower, max=bound)
@@ -302,21 +277,22 @@ class DensityControl(Growth, Significance, Merging, HardCoreRules):
         """What the safeguards did over the run, one sentence each (empty when nothing): the
         clamps of :meth:`clamp` and the prunes of Gaussians that left the volume."""
         lines = []
-        if self.clamp_counts is not None:
+        if self.state.clamp_counts is not None:
             names = (
                 f"widths held at the {self.min_sigma_A} Å floor",
                 f"widths held at the {self.max_sigma_A} Å ceiling",
                 "amplitudes held at the ceiling (1000x the measured mass)",
                 "positions held at the edge of twice the volume",
             )
-            held = [f"{int(n)} {name}" for n, name in zip(self.clamp_counts.tolist(), names) if n]
+            held = [f"{int(n)} {name}" for n, name in zip(self.state.clamp_counts.tolist(), names) if n]
             if held:
                 lines.append("clamped (Gaussian-steps): " + ", ".join(held))
-        if self.pruned_outside:
-            line = f"{self.pruned_outside} Gaussians left the reconstruction volume and were pruned"
-            if self.pruned_outside_atom_like:
+        if self.state.pruned_outside:
+            line = f"{self.state.pruned_outside} Gaussians left the reconstruction volume and were pruned"
+            if self.state.pruned_outside_atom_like:
                 line += (
-                    f", {self.pruned_outside_atom_like} of them atom-like (check centre_px and pixel_size_A: atoms "
+                    f", {self.state.pruned_outside_atom_like} of them atom-like (check centre_px and pixel_size_A: "
+                    f"atoms "
                     f"may lie outside the volume)"
                 )
             lines.append(line)
@@ -336,9 +312,9 @@ class DensityControl(Growth, Significance, Merging, HardCoreRules):
         """Whether the residuals are still to be searched for missing atoms (the model does it
         once the atoms are settled): ``add_from_residuals``, before ``stop_split_at`` (as
         duplication), and until a search finds nothing."""
-        return self.add_from_residuals and not self.residual_clean and step < self.stop_split_at
+        return self.add_from_residuals and not self.state.residual_clean and step < self.stop_split_at
 
     def fresh(self, n: int) -> torch.Tensor:
         """(n,) bool: made (duplicated or added) within the last ``refine_every`` steps."""
         born = self._births(n)
-        return (born > 0) & (born > self.step - max(self.refine_every, self.merge_every))
+        return (born > 0) & (born > self.state.step - max(self.refine_every, self.merge_every))

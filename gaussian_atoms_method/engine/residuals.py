@@ -115,7 +115,7 @@ def add_missing_atoms(model) -> int:
         )
     split = model.density.split_heavy_gaussians(model.gauss_params, model.optimizers, model._param_lists())
     if split:
-        model.density.residual_clean = False  # train on and search again
+        model.density.state.residual_clean = False  # train on and search again
         CONSOLE.print(
             f"gaussian-atoms: step {model.step}: {split} Gaussians holding two atoms' mass split in two along the "
             f"least-resolved direction"

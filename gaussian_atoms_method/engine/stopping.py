@@ -48,17 +48,17 @@ def at_check(model, step: int, last_step: int) -> bool:
     settled = model.converged(step)
     tolerated = check.changed_fraction * model.num_points
     if search and (settled or last_search):
-        if settled and density.searched_at and density.descendants(density.searched_at) <= tolerated:
-            density.residual_clean = True  # the last search's additions did not survive: searching is over
+        if settled and density.state.searched_at and density.descendants(density.state.searched_at) <= tolerated:
+            density.state.residual_clean = True  # the last search's additions did not survive: searching is over
         elif added := add_missing_atoms(model):
             model.atoms_in_viewer.refresh()
-            density.residual_clean = settled and added <= tolerated
-            density.searched_at, density.settled_since_search = step, False
+            density.state.residual_clean = settled and added <= tolerated
+            density.state.searched_at, density.state.settled_since_search = step, False
             return False
     # a run told to train on keeps its schedule and its set
     if settled or not cfg.stop_when_converged or not check.checks(step):
         return settled and cfg.stop_when_converged
-    if check.positions_settled >= 2 and check.churning >= 2 and not density.settled_since_search:
+    if check.positions_settled >= 2 and check.churning >= 2 and not density.state.settled_since_search:
         CONSOLE.print(
             f"gaussian-atoms: step {step}: the positions have settled but the set has not: the merge of unresolved "
             f"pairs and the final prune removed {settle_set(model)} Gaussians (the merge by likelihood waits for the "
@@ -76,7 +76,7 @@ def settle_set(model) -> int:
     and compare the next check with what is left; returns how many Gaussians went.  The merge by
     likelihood waits for the end: its test holds where the residual is noise, at a converged fit."""
     removed = model.density.settle(model.gauss_params, model.optimizers, model._param_lists())
-    model.density.settled_since_search = True
+    model.density.state.settled_since_search = True
     model.convergence.restart(model.means, model.density.atoms_worth(model.gauss_params))
     if removed:
         model.atoms_in_viewer.refresh()

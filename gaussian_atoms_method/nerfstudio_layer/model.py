@@ -441,7 +441,7 @@ class GaussianAtomsModel(SplatfactoCompat):
 
     def _snapshot_after_step(self, directory: Path, step: int) -> None:  # after step k*N-1, k*N steps are done
         if (step + 1) % self.config.snapshot_every == 0:
-            params = self.density.average.mean(self.gauss_params)
+            params = self.density.state.average.mean(self.gauss_params)
             in_field = self.density.in_field(params["means"]).cpu().numpy()  # the mean is detached
             write_snapshot(
                 self.atoms(params),
