@@ -127,13 +127,19 @@ class GaussianAtomsTrainer(Trainer):
         # the loop holds them while the next step runs
         return done if done is not None else detached(*super().train_iteration(step))
 
+    def train_passes(self) -> None:
+        """nerfstudio's loop; with ``psf held-out`` the reading pass, then the run with the kernel
+        held (:func:`restart_with_kernel_held`).  A failure raises (the API's in-process run,
+        :func:`.launch.train_in_process`, gets it as is)."""
+        super().train()
+        if restart_with_kernel_held(self):
+            if getattr(self, "progress", None) is not None:  # the restart made the callbacks anew
+                self.progress.follow(self)
+            super().train()
+
     def train(self) -> None:
         try:
-            super().train()
-            if restart_with_kernel_held(self):
-                if getattr(self, "progress", None) is not None:  # the restart made the callbacks anew
-                    self.progress.follow(self)
-                super().train()
+            self.train_passes()
         except FloatingPointError as exc:  # the model names the step and the cause
             fail(str(exc), 1)
         except KeyboardInterrupt:

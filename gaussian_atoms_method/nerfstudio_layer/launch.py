@@ -233,23 +233,16 @@ def train_in_process(config, seed: int, progress: bool) -> Path:
     """Run the trainer ``gaussian-atoms train`` runs on ``config`` in this process; the run
     directory.  A failure in training raises (``FloatingPointError`` naming the step and the
     cause, ``KeyboardInterrupt``) instead of ending the process as the CLI does."""
-    from nerfstudio.engine.trainer import Trainer
-
-    from gaussian_atoms_method.nerfstudio_layer.config import restart_with_kernel_held
-
     config.machine.seed = seed
     config.set_timestamp()
     trainer = make_trainer(config)
     bar = ProgressBar(config.max_num_iterations) if progress else None
     try:
-        for _ in range(2):  # psf="held-out": a pass that reads the kernel, then the run with it held
-            if bar is not None:
-                bar.follow(trainer)
-                trainer.progress = bar
-            with quiet_trainer_console():  # its closing box would name a run directory that may be temporary
-                Trainer.train(trainer)  # nerfstudio's loop, without the CLI's exit on failure
-            if not restart_with_kernel_held(trainer):
-                break
+        if bar is not None:
+            bar.follow(trainer)
+            trainer.progress = bar
+        with quiet_trainer_console():  # its closing box would name a run directory that may be temporary
+            trainer.train_passes()  # psf held-out's two passes, without the CLI's exit on failure
     finally:
         if bar is not None:
             bar.close()
