@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from gaussian_atoms_method.density.strategy import DensityControl, amplitudes, widths
+from gaussian_atoms_method.density.parameters import amplitudes, widths
+from gaussian_atoms_method.density.strategy import DensityControl
 from gaussian_atoms_method.physics.projector import gaussian_mass
 
 

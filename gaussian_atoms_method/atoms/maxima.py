@@ -13,13 +13,8 @@ import torch
 from scipy.spatial import cKDTree
 
 from gaussian_atoms_method.atoms import host_filters
+from gaussian_atoms_method.atoms.volume_filters import off_cpu
 from gaussian_atoms_method.atoms.voxel_pairs import pairs_within
-
-
-def _off_cpu(volume: torch.Tensor, choice: bool | None) -> bool:
-    """``choice`` if given, else whether ``volume`` lives off the CPU."""
-    return volume.device.type != "cpu" if choice is None else choice
-
 
 # ---------------------------------------------------------------- on the host
 
@@ -80,7 +75,7 @@ def local_maxima_device(volume: torch.Tensor, level: float = 0.0, pooled: bool |
     :func:`local_maxima_host` on the tensor's device, only the
     indices copied back.  ``pooled`` (default: off the CPU) compares every voxel with a 3x3x3
     maximum pool; on the CPU the numpy search of only the voxels above the level is faster."""
-    if not _off_cpu(volume, pooled):
+    if not off_cpu(volume, pooled):
         return local_maxima_host(volume.numpy(), level)
     neighbourhood = torch.nn.functional.max_pool3d(volume[None, None], 3, stride=1, padding=1)[0, 0]
     peak = (volume >= neighbourhood) & (volume > max(float(level), 0.0))
@@ -100,7 +95,7 @@ def separated_maxima_device(
     found = local_maxima_device(volume, level)
     if len(found) == 0:
         return np.zeros((0, 3), dtype=np.int64)
-    if _off_cpu(volume, None):
+    if off_cpu(volume, None):
         return found[
             suppress_within_device(
                 torch.as_tensor(found, device=volume.device), values_at(volume, found), spacing_A, min_distance_A

@@ -19,7 +19,7 @@ from gaussian_atoms_method.atoms import host_filters
 from gaussian_atoms_method.physics.noise import gaussian_taps
 
 
-def _off_cpu(volume: torch.Tensor, choice: bool | None) -> bool:
+def off_cpu(volume: torch.Tensor, choice: bool | None) -> bool:
     """``choice``, or by default whether ``volume`` lies off the CPU (where torch's kernels are
     the fast ones)."""
     return volume.device.type != "cpu" if choice is None else choice
@@ -85,7 +85,7 @@ def gaussian_filter(
     axes : tuple of int, optional
         Filter along these axes only (scipy's sigma 0 along the others); default every axis.
     """
-    in_torch = _off_cpu(volume, in_torch)
+    in_torch = off_cpu(volume, in_torch)
     for axis in range(volume.ndim) if axes is None else axes:
         volume = _pass(volume, sigma_vox, axis, 0, in_torch)
     return volume
@@ -108,7 +108,7 @@ def gaussian_laplace(volume: torch.Tensor, sigma_vox: float, in_torch: bool | No
     axes of the Gaussian's second derivative along that axis and the Gaussian along the
     others.  The smoothing along x is shared between two terms (eight 1D passes, not nine).
     ``in_torch``: as :func:`gaussian_filter`."""
-    in_torch = _off_cpu(volume, in_torch)
+    in_torch = off_cpu(volume, in_torch)
     x = _pass(volume, sigma_vox, 0, 0, in_torch)
     return _laplace(volume, x, _pass(x, sigma_vox, 1, 0, in_torch), sigma_vox, in_torch)
 
@@ -118,7 +118,7 @@ def gaussian_filter_and_laplace(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`gaussian_filter` and :func:`gaussian_laplace` of a 3D tensor at one width, the
     smoothings along x and x then y made once for both (nine 1D passes, not twelve)."""
-    in_torch = _off_cpu(volume, in_torch)
+    in_torch = off_cpu(volume, in_torch)
     x = _pass(volume, sigma_vox, 0, 0, in_torch)
     xy = _pass(x, sigma_vox, 1, 0, in_torch)
     return _pass(xy, sigma_vox, 2, 0, in_torch), _laplace(volume, x, xy, sigma_vox, in_torch)

@@ -51,13 +51,9 @@ import torch
 from gaussian_atoms_method.density.growth import Growth
 from gaussian_atoms_method.density.hard_core_rules import HardCoreRules
 from gaussian_atoms_method.density.merging import Merging
-from gaussian_atoms_method.density.parameters import (  # noqa: F401
-    SPLIT_MASS,
-    TRAINING_SIGNIFICANCE,
+from gaussian_atoms_method.density.parameters import (
     Optimizers,
     Params,
-    amplitudes,
-    widths,
 )
 from gaussian_atoms_method.density.remap import apply_remap
 from gaussian_atoms_method.density.significance import Significance

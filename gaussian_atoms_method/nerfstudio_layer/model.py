@@ -33,7 +33,8 @@ from torch.nn import Parameter
 
 from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms
 from gaussian_atoms_method.atoms.initialise import compute_start, starting_amplitude
-from gaussian_atoms_method.density.strategy import DensityControl, amplitudes, widths
+from gaussian_atoms_method.density.parameters import amplitudes, widths
+from gaussian_atoms_method.density.strategy import DensityControl
 from gaussian_atoms_method.engine import rendering as R
 from gaussian_atoms_method.engine import step_views as SV
 from gaussian_atoms_method.engine.console import CONSOLE
@@ -80,7 +81,6 @@ class GaussianAtomsModel(SplatfactoCompat):
         views = self.view_set = ViewSet.from_metadata(self.kwargs.get("metadata"))  # read once
         self.normalisation: Normalisation = views.normalisation or Normalisation(1.0, 1.0)
         ls, series = self.normalisation.length_scale, views.series
-        self.truth_path: Path | None = views.truth_path
         self.generator = torch.Generator().manual_seed(cfg.seed)
         projections, start_options = (
             views.projections,
@@ -204,6 +204,11 @@ class GaussianAtomsModel(SplatfactoCompat):
         # a training step's views by one device index (get_outputs)
         self.indexed_views = not cfg.per_view_options() and SV.on_beam_axes(self.view_c2w)
         self.register_buffer("train_projections", batches, persistent=False)
+
+    @property
+    def truth_path(self) -> Path | None:
+        """The input's truth file, if it has one (the view set's)."""
+        return self.view_set.truth_path
 
     @property
     def views_per_step(self) -> int:

@@ -21,8 +21,8 @@ errors; 3: a one-in-700 false alarm for Gaussian errors).
 This module is the measurement only: what the fit does with it (the data term, thresholds in
 units of the noise) is density control's and the model's.  Arrays are read with numpy on a
 machine without a GPU; with one (or given tensors on one) the filters, sorts and medians run in
-torch there (:func:`compute_device`), since a series of millions of pixels took about a second
-a reading on the H100 machine's CPU.
+torch there (:func:`~gaussian_atoms_method.physics.devices.work_device`), since a series of
+millions of pixels took about a second a reading on the H100 machine's CPU.
 """
 
 from __future__ import annotations
@@ -94,11 +94,11 @@ def atom_scale_excess(residuals: np.ndarray, variance: np.ndarray, sigma_px: flo
     1-5 pixels); what a fit leaves on real data is larger and correlated over an atom
     (denoised projections, a probe's tails, the model's misfit), and every chi-square over
     pixels that treats it as the model's noise overstates a difference at the atom's scale by
-    this factor.  ``device``: where it runs (default :func:`compute_device`)."""
+    this factor.  ``device``: where it runs (default :func:`~gaussian_atoms_method.physics.devices.work_device`)."""
     from scipy import ndimage
 
     radius = int(np.ceil(4.0 * sigma_px))
-    device = compute_device(residuals, device)
+    device = work_device(residuals, device)
     if device is not None:
         return _atom_scale_excess_torch(residuals, variance, sigma_px, radius, device)
     w = np.asarray(residuals, dtype=np.float64) / np.sqrt(np.maximum(np.asarray(variance, dtype=np.float64), 1e-300))
@@ -147,10 +147,6 @@ def separable_correlate(padded, taps_rows: np.ndarray, taps_cols: np.ndarray):
     return sum(float(t) * rows[:, :, k : k + w] for k, t in enumerate(taps_cols))
 
 
-compute_device = work_device
-"""Where the noise readings run (:func:`gaussian_atoms_method.physics.devices.work_device`)."""
-
-
 def _as_float64(values, device):
     """``values`` (an array or tensor) as a float64 tensor on ``device``."""
     import torch
@@ -176,8 +172,9 @@ def binned_variance(
     plain sample variance (``robust=False``: for counts of a few electrons, whose residuals
     take a handful of discrete values and whose MAD is quantised: on Poisson counts of mean
     1-2 the MAD read the variance 1.3-2x too high).  The sort and the bins are read in torch on
-    ``device`` (default :func:`compute_device`: at 20,000 atoms the host's sort, gathers and
-    copies took 0.6 s a reading on the H100 machine), else with numpy.
+    ``device`` (default :func:`~gaussian_atoms_method.physics.devices.work_device`: at 20,000
+    atoms the host's sort, gathers and copies took 0.6 s a reading on the H100 machine), else
+    with numpy.
 
     Returns
     -------
@@ -185,7 +182,7 @@ def binned_variance(
     variances : (B,) (1.4826 * MAD)^2 of the residuals in the bin
     counts : (B,) pixels per bin (bins with fewer than ``min_count`` are dropped)
     """
-    device = compute_device(residuals, device)
+    device = work_device(residuals, device)
     if device is not None:
         return _binned_variance_torch(residuals, predicted, bins, min_count, robust, device)
     r, m = as_array(residuals).ravel(), as_array(predicted).ravel()
@@ -375,7 +372,7 @@ def noise_from_projections(
     offset : float
         Signal level below which no Poisson noise grows (a detector's dark level).
     device : torch device, optional
-        Where the filters and the fit's bins run (default :func:`compute_device`).
+        Where the filters and the fit's bins run (default :func:`~gaussian_atoms_method.physics.devices.work_device`).
     """
     from scipy import ndimage
 
@@ -383,7 +380,7 @@ def noise_from_projections(
     shape = tuple(projections.shape)
     if len(shape) != 3 or min(shape[1:]) < MIN_SIDE_PX:
         raise ValueError(f"need (N, H, W) projections at least {MIN_SIDE_PX} x {MIN_SIDE_PX}, got shape {shape}")
-    device = compute_device(projections, device)
+    device = work_device(projections, device)
     if device is not None:
         return _noise_from_projections_torch(projections, offset, smoothing_px, z_min, device)
     p = as_array(projections)

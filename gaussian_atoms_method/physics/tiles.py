@@ -7,8 +7,6 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from gaussian_atoms_method.physics.geometry import pixel_centres  # noqa: F401
-
 
 def uniform_spacing(coords: torch.Tensor, what: str) -> float:
     if coords.ndim != 1 or len(coords) == 0:
