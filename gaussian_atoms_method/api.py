@@ -110,7 +110,7 @@ def _device(device: str) -> str:
 
 def _whole(value, name: str) -> int:
     """``value`` as an int, or :class:`OptionError` naming the argument."""
-    from gaussian_atoms_method.nerfstudio_layer.options import OptionError
+    from gaussian_atoms_method.engine.errors import OptionError
 
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
         raise OptionError(f"{name} must be a whole number, got {value!r}")
@@ -132,8 +132,8 @@ def build_config(
     """The :class:`~gaussian_atoms_method.nerfstudio_layer.config.GaussianAtomsTrainerConfig`
     that ``ns-train gaussian-atoms --machine.device-type DEVICE tilt-series --data DATA`` builds,
     with ``model_options`` set on ``pipeline.model`` (an unknown name raises ``OptionError``)."""
+    from gaussian_atoms_method.engine.errors import OptionError
     from gaussian_atoms_method.nerfstudio_layer.config import MAX_ITERATIONS, gaussian_atoms_trainer_config
-    from gaussian_atoms_method.nerfstudio_layer.options import OptionError
 
     config = gaussian_atoms_trainer_config(
         MAX_ITERATIONS if max_num_iterations is None else _whole(max_num_iterations, "max_num_iterations")
@@ -211,8 +211,8 @@ def reconstruct(
     InputError
         For input that cannot train, with the one-line message the CLI prints.
     """
+    from gaussian_atoms_method.engine.errors import OptionError
     from gaussian_atoms_method.nerfstudio_layer.config import check_input
-    from gaussian_atoms_method.nerfstudio_layer.options import OptionError
 
     keep = output_dir is not None
     work = Path(tempfile.mkdtemp(prefix="gaussian-atoms-"))

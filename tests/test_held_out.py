@@ -104,8 +104,9 @@ def test_a_fixed_kernel_is_held_and_bad_weights_are_named(tmp_path):
     ``learned`` starts from them; weights that are not a non-negative kernel are refused with the
     option's name."""
     from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
+    from gaussian_atoms_method.engine.errors import OptionError
     from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
-    from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions, OptionError
+    from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions
 
     _series(tmp_path)
     outputs = TiltSeriesDataParserConfig(data=tmp_path / "series").setup().get_dataparser_outputs("train")

@@ -10,7 +10,8 @@ from scipy.spatial.transform import Rotation
 
 from gaussian_atoms_method.engine import rendering as R
 from gaussian_atoms_method.engine import step_views as SV
-from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions, OptionError
+from gaussian_atoms_method.engine.errors import OptionError
+from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions
 
 
 def _camera(c2w, h=6, w=8, f=10.0, kind=CameraType.ORTHOPHOTO):

@@ -38,8 +38,9 @@ from dataparsers.errors import TiltSeriesError
 from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig, TiltSeriesDataset
 from gaussian_atoms_method.atoms.atom_set import AtomFileError, read_atoms
 from gaussian_atoms_method.engine.console import CONSOLE
+from gaussian_atoms_method.engine.errors import OptionError
 from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
-from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions, OptionError
+from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions
 from gaussian_atoms_method.nerfstudio_layer.step_graph import detached
 from gaussian_atoms_method.physics.devices import default_device
 from gaussian_atoms_method.start_ahead import begin_for, end_now

@@ -29,7 +29,7 @@ from typing import Sequence
 
 import torch
 
-from gaussian_atoms_method.nerfstudio_layer.options import OptionError
+from gaussian_atoms_method.engine.errors import OptionError
 
 
 def build_config(argv: list[str]):

@@ -1,23 +1,18 @@
-"""The model's options (``--pipeline.model.*``): what each does and where its value comes from.
-
-:class:`GaussianAtomsOptions` holds them all; :class:`~.model.GaussianAtomsModelConfig` adds
-only the model class it builds.  The density-control defaults are
-:class:`~gaussian_atoms_method.density.strategy.DensityControl`'s (one source of truth); their
-reasons are given here, where ``--help`` shows them.  Where each option takes effect is drawn in
-``docs/architecture.md``.
+"""The model's options as nerfstudio sees them (``--pipeline.model.*``): splatfacto's config with
+the fit's options (:class:`~gaussian_atoms_method.engine.options.FitOptions`) in place of its
+own, and splatfacto's that do nothing here hidden.  :class:`~.model.GaussianAtomsModelConfig`
+adds only the model class it builds.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Annotated, Literal, Optional, Tuple, Union, get_type_hints
+from typing import Annotated, get_type_hints
 
 import tyro
 
-from gaussian_atoms_method.density.strategy import DensityControl
-from gaussian_atoms_method.engine.errors import OptionError  # noqa: F401  (raised here, imported from here by callers)
+from gaussian_atoms_method.engine.options import FitOptions
 from gaussian_atoms_method.nerfstudio_layer.lazy_compile import import_splatfacto
 
 SplatfactoModelConfig = import_splatfacto().SplatfactoModelConfig
@@ -67,321 +62,43 @@ def inert_splatfacto_fields() -> dict:
     base = {f.name: f for f in dataclasses.fields(SplatfactoModelConfig)}
     out = {}
     for name in INERT_SPLATFACTO:
-        f = base[name]
-        default = (
-            dataclasses.field(default=f.default)
-            if f.default is not dataclasses.MISSING
-            else dataclasses.field(default_factory=f.default_factory)
-        )
-        out[name] = (Annotated[hints[name], tyro.conf.Suppress], default)
+        out[name] = (Annotated[hints[name], tyro.conf.Suppress], _copy(base[name]))
     return out
 
 
-@dataclass
-class UserFirstOptions:
-    """The options a user sets first: the data's background and probe, a film, the alignment,
-    the data term, the start, the false discoveries accepted, when to stop, the seed.  A base of
-    :class:`GaussianAtomsOptions` after splatfacto's config, so that ``--help`` lists them first
-    (a dataclass takes its fields from its last base first)."""
+def fit_fields_over_splatfacto() -> dict:
+    """For each option splatfacto's config also has (``refine_every``, ``warmup_length``, ...):
+    the fit's type, help and field, so that the fit's value and text, not splatfacto's, are
+    the default and the ``--help``."""
+    from tyro._docstrings import get_field_docstring
 
-    background: Literal["auto", "none", "constant", "plane", "smooth"] = "auto"
-    """A per-projection background fitted with the atoms (carbon support, contamination, a
-    detector offset, a phase image's floor): a constant, a plane over the detector, or
-    ``smooth``: each view's floor starting as its outer frame shows it (the frame's least-squares
-    quadratic surface, :func:`gaussian_atoms_method.physics.detector_floor.frame_surfaces`) with a
-    constant and quadratic correction (a frame the object reaches holds its tails).  Each is
-    solved in closed form on the pixels the Gaussians leave empty, each time its view is
-    rendered, and shared by all views while their fits agree (:mod:`gaussian_atoms_method.engine.floors`).  ``auto``:
-    when the projections' outer frame sits significantly off zero (more than 5 standard errors
-    of its mean, :func:`gaussian_atoms_method.physics.detector_floor.detector_floor`: the peer's aSi-208
-    counts sit on 1.0 count), a constant if the frame is flat and ``smooth``
-    if it is flat about its quadratic surface (within 1.5 times the noise variance at its level
-    either way); where atoms reach the frame, the same read from the frame pixels they leave
-    alone (:func:`gaussian_atoms_method.physics.detector_floor.clipped_frame`)."""
-    psf: Literal["learned", "held-out", "fixed", "none"] = "learned"
-    """The microscope's point-spread function: ``learned``, a radially symmetric kernel of unit
-    integral shared by every view (Gaussians of 1, 2 and 4 Å weighted by learned weights,
-    :mod:`gaussian_atoms_method.physics.psf`) convolves the projections, so a probe's tails and
-    rings are not explained by extra faint, wide Gaussians; ``fixed``: the kernel of
-    ``psf_weights``, held (a probe measured, or chosen on held-out views with
-    ``gaussian-atoms held-out-views``); ``held-out``: a first pass reads the kernel on the odd views
-    while the atoms learn from the even ones, then the run starts again with it held
-    (:mod:`gaussian_atoms_method.engine.kernel_reading`: learned with the atoms, a probe's tails can go to extra
-    Gaussians
-    instead; twice the time; where half the views fit poorly the reading is too wide: a dense
-    54,000-atom particle without tails read 53% at 2 Å); ``none``: the blur is in the atoms' widths alone (the
-    paper's model)."""
-    psf_weights: Tuple[float, float, float] = (0.0, 0.0, 0.0)
-    """The kernel's intensity fractions in its Gaussians of 1, 2 and 4 Å (the rest in the delta,
-    that is in the atoms' own widths): held with ``psf fixed``, the start with ``psf learned``."""
-    extended_object: Literal["auto", "on", "off"] = "auto"
-    """An object wider than the field of view (a film): Gaussians also fill the slab beyond the
-    detector across the tilt axis, as far as the rays that reach the detector travel, so the
-    high-tilt views' material outside the box is explained there, and only the Gaussians above
-    the detector are reported as atoms (the rest go to ``non_atoms.xyz``).  ``auto``: when the
-    views' projected mass grows like 1/cos(tilt)
-    (:func:`gaussian_atoms_method.physics.field_of_view.film_evidence`, 3 standard errors)."""
-    refine_alignment: bool = False
-    """Learn a per-projection in-plane shift with the atoms (residual misalignment of the tilt
-    series).  Shifts are taken relative to their mean over the views (an overall shift of
-    every view is the same as moving the particle)."""
-    refine_tilts: bool = False
-    """Learn a per-projection tilt-angle offset (about the tilt axis) with the atoms: errors of
-    the goniometer readings.  Offsets are taken relative to their mean (a common offset is the
-    same as rotating the particle).  Single-axis tilt series only."""
-    loss: Literal["auto", "l1", "l2", "huber", "poisson"] = "auto"
-    """Data term (:mod:`gaussian_atoms_method.physics.data_terms`): ``auto`` reads the noise
-    from the projections before training (:func:`gaussian_atoms_method.physics.noise.noise_from_projections`)
-    and takes the Poisson likelihood where the variance grows significantly with the signal
-    (electron counts), else Huber's (least squares within 1.345 noise standard deviations,
-    L1 beyond: additive noise, robust to the model's misfit); or force ``l1`` (the paper's),
-    ``l2``, ``huber`` or ``poisson``.  Every run prints the noise it read and the term it chose."""
-    init: Literal["backprojection", "random"] = "backprojection"
-    """Where the Gaussians start: at the strongest local maxima of a smoothed filtered
-    back-projection (see :mod:`gaussian_atoms_method.atoms.initialise`), or at random positions (the
-    paper).  Back-projection needs single-axis tilts; otherwise random is used."""
-    start_atoms: Optional[Path] = None
-    """Start from these atoms instead (any atom file :func:`~gaussian_atoms_method.atoms.atom_set.read_atoms`
-    reads; positions in Å in the series' frame, as ``atoms.xyz`` writes them): refine a model
-    traced elsewhere, or ask whether the data hold it (the fit moves off what they do not)."""
-    false_discovery_rate: float = DensityControl.false_discovery_rate
-    """The final prune keeps the Gaussians whose mass significance clears the Benjamini-Hochberg
-    level at this rate (noise Gaussians expected among those kept: at most this fraction), never
-    stricter than the false_alarm_rate level
-    (:meth:`gaussian_atoms_method.density.strategy.DensityControl.discovery_threshold`).  0.001:
-    one in a thousand, ten times below the 0.01 false atoms per atom the benchmarks ask for, so
-    noise never dominates the false atoms (at Au noise 500 the rates 0.0005-0.005 gave the same
-    false atoms: fragments of atoms, not noise)."""
-    stop_when_converged: bool = True
-    """End training early once the atoms are settled: over a refine interval at most
-    false_discovery_rate of the atoms' worth of Gaussians added or removed, and the RMS step of the others
-    (matched within merge_threshold_A) below ``converged_fraction`` of the atoms' noise-limited
-    precision (:mod:`gaussian_atoms_method.atoms.uncertainty`), at two checks in a row
-    (:mod:`gaussian_atoms_method.engine.convergence`).  Further steps would move the atoms by less than the data can
-    tell
-    apart.  Until then the run acts on what the checks show (:mod:`gaussian_atoms_method.engine.stopping`): the final
-    merges
-    and prune once only the set still churns, a halved position rate while the positions only
-    scatter."""
-    seed: int = 0
-    """Seed of the random initialisation and duplications."""
+    hints = get_type_hints(FitOptions, include_extras=True)
+    splatfacto = {f.name for f in dataclasses.fields(SplatfactoModelConfig)}
+    return {
+        f.name: (
+            Annotated[hints[f.name], tyro.conf.arg(help=get_field_docstring(FitOptions, f.name, ()))],
+            _copy(f),
+        )
+        for f in dataclasses.fields(FitOptions)
+        if f.name in splatfacto
+    }
+
+
+def _copy(f: dataclasses.Field):
+    if f.default is not dataclasses.MISSING:
+        return dataclasses.field(default=f.default)
+    return dataclasses.field(default_factory=f.default_factory)
 
 
 @dataclass
-class GaussianAtomsOptions(SplatfactoModelConfig, UserFirstOptions):
+class GaussianAtomsOptions(SplatfactoModelConfig, FitOptions):
     """Gaussian atoms: isotropic 3D Gaussians fitted to a tilt series.
 
-    The options a user sets first come first (:class:`UserFirstOptions`); the fit's own settings
-    follow."""
+    The fit's options come first (:class:`FitOptions`, the last base); splatfacto's own follow,
+    hidden."""
 
-    init_mass: Literal["backprojection", "equal"] = "backprojection"
-    """How the measured mass is shared among the starting Gaussians: in proportion to the
-    smoothed back-projection at each (noise candidates start faint and are pruned sooner;
-    back-projection start only), or equally."""
-    num_random: int = 10000
-    """Number of Gaussians of a random start (``init random``, the paper's).  The
-    back-projection start takes as many candidates as the data hold above their noise
-    (:mod:`gaussian_atoms_method.atoms.initialise`): no cap."""
-    init_sigma_A: float = 0.7
-    """Initial width of every Gaussian, Å."""
-    init_extent: float = 0.8
-    """Side of the cube (normalised units, the detector's longer side is 1) that the random
-    Gaussians start in."""
-    min_sigma_A: float = DensityControl.min_sigma_A
-    """Floor on the width, Å: no atom (after probe blur) is narrower; keeps the fit finite."""
-    max_atom_sigma_A: float = DensityControl.max_atom_sigma_A
-    """Gaussians wider than this (Å) are not atoms (an atom blurred by a 0.5 Å probe is about
-    0.6 Å wide): they are pruned and left out of the typical atom mass."""
-    max_sigma_A: float = DensityControl.max_sigma_A
-    """Ceiling on the width, Å: far wider than any atom; keeps a runaway Gaussian finite."""
-    warmup_length: int = DensityControl.warmup_length
-    """Steps before the first densify / prune / merge."""
-    refine_every: int = DensityControl.refine_every
-    """Steps between densify / prune / merge."""
-    stop_split_at: int = DensityControl.stop_split_at
-    """No more duplication after this step (pruning and merging continue)."""
-    densify_grad_thresh: float = DensityControl.densify_grad_thresh
-    """Duplicate Gaussians whose mean positional gradient (norm of the average gradient vector
-    over a refine interval, normalised units) exceeds this.  Measured on the demo data, a
-    fitted atom's sits at 0.02-0.1 (L1 noise), so 0.2 only duplicates under a persistent pull.
-    The paper's 0.005 is on gsplat's screen-space scale and would duplicate everything here."""
-    max_gaussians: int = DensityControl.max_gaussians
-    """Never hold more Gaussians than this."""
-    prune_mass_fraction: float = DensityControl.prune_mass_fraction
-    """Only where the noise is unknown (a model built without a tilt series): prune Gaussians
-    whose integrated mass is below this fraction of a typical atom's (the mass-weighted median
-    mass).  With data, the prune is by significance (false_alarm_rate)."""
-    false_alarm_rate: float = DensityControl.false_alarm_rate
-    """Chance that a noise blob anywhere in the volume survives the prune: a Gaussian stays
-    while its mass over its Cramér-Rao standard deviation (in the measured noise) exceeds the
-    normal quantile at this rate shared over the volume's 1 Å^3 cells
-    (:meth:`gaussian_atoms_method.density.strategy.DensityControl.significance_threshold`;
-    4.5 sigma for a 25 Å box at 5%)."""
-    add_from_residuals: bool = DensityControl.add_from_residuals
-    """Once the atoms are settled (the convergence check), back-project the residuals of every
-    view and add a Gaussian wherever they hold significant unexplained mass
-    (:mod:`gaussian_atoms_method.atoms.residual_sites`: above the level a noise peak reaches in
-    the volume with chance false_alarm_rate), then train on; stop only when a search finds
-    nothing (or at stop_split_at).  Each search costs a rendering of every view and two
-    back-projections.  Searching earlier, every 500 steps, also added Gaussians at the
-    unsettled atoms' misfit (29 on the demo, which has no atom missing) and kept the
-    convergence check from stopping."""
-    split_heavy: bool = DensityControl.split_heavy
-    """At the first residual search, split each Gaussian holding more than 1.5 typical atoms'
-    mass into two, the material's shortest distance apart along the least-resolved direction
-    (:meth:`gaussian_atoms_method.density.strategy.DensityControl.split_heavy_gaussians`: in a
-    thick particle one Gaussian can hold two atoms along the beam); the final likelihood merge
-    rejoins any the data prefer as one."""
-    judge_after_fit: bool = True
-    """The final merges and prune judge significance in what the fit leaves unexplained, as an
-    atom sees it (the residuals' variance times their correlation over an atom), never less
-    than the noise read before training (:func:`gaussian_atoms_method.engine.noise_reading.noise_after_fit`).  Where
-    the data
-    match the forward model that is the noise and nothing changes; on real data the fit's
-    leftover structure is otherwise read as significant atoms and resolved pairs."""
-    final_refit: bool = True
-    """After the final prune and merge, when they removed anything, one pass over the views so the
-    survivors take up what the removed Gaussians carried (:mod:`gaussian_atoms_method.engine.refit`)."""
-    isotropic: bool = DensityControl.isotropic
-    """One width per Gaussian (the isotropy prior).  False: three widths and a rotation each."""
-    average_iterates: bool = DensityControl.average_iterates
-    """The Gaussians' estimate is the mean of the optimiser's iterates over each refine interval,
-    written into them when it closes and at the end (Polyak-Ruppert averaging,
-    :mod:`gaussian_atoms_method.density.averaging`): one-view steps jitter the atoms by more than
-    the data's precision, and the mean cancels that.  False: the last iterate."""
-    cluster_merge: bool = DensityControl.cluster_merge
-    """Merge Gaussians closer than merge_threshold_A (the minimum-distance prior)."""
-    merge_every: int = DensityControl.merge_every
-    """Steps between cluster merges (after the warm-up)."""
-    merge_threshold_A: float = DensityControl.merge_threshold_A
-    """Gaussians closer than this (Å) merge into one."""
-    merge_amplitude: Literal["mass", "mean"] = DensityControl.merge_amplitude
-    """Amplitude of a merged Gaussian: conserve the summed mass, or the mean amplitude (paper)."""
-    projector: Literal["auto", "tiled", "dense", "gsplat"] = "auto"
-    """Projection backend (all exact to float32; docs/performance.md): ``dense``, the full-image
-    separable matmul (fastest on a GPU: 1.4-3 ms per 280x280 view for 1k-50k Gaussians on an
-    H100); ``tiled``, each Gaussian only on the tiles it reaches (about 6x faster than dense on
-    a CPU at 7k-17k Gaussians); ``gsplat``, tiled with stock gsplat's tile intersection (CUDA only; correct but
-    slower than dense at these sizes).  ``auto``: dense on CUDA, tiled on CPU."""
-    coarse_steps: int = 300
-    """Coarse to fine: the first this many steps fit the projections binned 2 x 2 (a quarter of
-    the pixels to evaluate), then full resolution.  0: always full resolution.  300 covers the
-    warm-up and the first prune, where the atoms are found and the noise candidates go: on the
-    Au particle that reaches the accuracy targets 7-9 s sooner on a CPU with the same final
-    result (docs/performance.md, skips)."""
-    position_rate_px: Optional[float] = 0.2887
-    """Adam's rate for the positions at the start, in detector pixels (the optimiser's
-    configured rate for ``means`` is rescaled to it; its schedule's tenfold decay is kept).  A
-    start on the back-projection's voxels (the detector's pixels) is off by up to half a voxel
-    per axis: a uniform error of standard deviation 1/sqrt(12) = 0.2887 voxel, about what
-    Adam's first steps move.  In pixels, the rate in Å does not grow with the field of view: the
-    normalised rate (1e-3 of the detector) was 0.07 Å on the 271-pixel Au series and 0.12 Å on a
-    497-pixel one, where the positions then settled 800 steps later (54,000-atom a-Pd, H100).
-    None: the configured rate as it is."""
-    converged_fraction: float = 1.0
-    """See stop_when_converged."""
-    views_per_step: Union[int, Literal["auto"]] = "auto"
-    """Training views fitted per step: the view nerfstudio hands the model and this many minus
-    one others drawn at random, rendered in one projector call, one loss over all.  On a GPU a
-    batch of views costs about one view's kernel launches and the averaged gradient is smoother
-    (docs/performance.md: several views per step); on a CPU each view costs its own time.
-    ``auto``: on a GPU as many as fit (:func:`gaussian_atoms_method.engine.step_views.auto_views_per_step`: at most 8,
-    within
-    half the free GPU memory by the projector's measured bytes per Gaussian and view), else 1;
-    1 with refine-alignment, refine-tilts or anisotropic Gaussians (per-view parameters), which
-    a number above 1 cannot be combined with."""
-    cuda_graphs: bool = True
-    """On a CUDA GPU, capture a training step's tensor work (the projection, the floors, the
-    loss and its gradients) once as a CUDA graph and replay it each step, captured again when the
-    Gaussians change (:mod:`.step_graph`): at 20,000 atoms and more a step is bound by the
-    host's dispatch of its ~300 small operations, not by the GPU.  False: every operation
-    dispatched from Python, as nerfstudio does (the same arithmetic)."""
-    snapshot_every: int = 0
-    """Every this many steps (0: never) write the current atoms to ``snapshots/`` in the run
-    directory with the wall-clock time, for time-to-accuracy benchmarks: the Gaussians the run
-    would report as atoms were it stopped there (in the field of view and the support, as
-    ``atoms.xyz``), before the final merges and prune."""
-
-    for _name, (_type, _field) in inert_splatfacto_fields().items():  # redeclared, hidden from the command line
-        __annotations__[_name] = _type
+    __annotations__ = {}  # filled below (a class body without annotations has none)
+    for _name, (_type, _field) in (inert_splatfacto_fields() | fit_fields_over_splatfacto()).items():
+        __annotations__[_name] = _type  # redeclared: the fit's default, or hidden from the command line
         vars()[_name] = _field
     del _name, _type, _field
-
-    def per_view_options(self) -> list[str]:
-        """The options on that give each view its own parameters (one view per step only)."""
-        return [
-            name
-            for name, on in (
-                ("refine-alignment", self.refine_alignment),
-                ("refine-tilts", self.refine_tilts),
-                ("isotropic False", not self.isotropic),
-            )
-            if on
-        ]
-
-    def check(self) -> None:
-        """Raise :class:`OptionError` naming the option for settings that cannot work together,
-        before anything is built (the model checks what needs the data when it is built)."""
-        if self.views_per_step != "auto" and not (isinstance(self.views_per_step, int) and self.views_per_step >= 1):
-            raise OptionError(f"--pipeline.model.views-per-step must be auto or at least 1, got {self.views_per_step}")
-        if self.views_per_step != "auto" and self.views_per_step > 1:
-            per_view = self.per_view_options()
-            if per_view:
-                raise OptionError(
-                    f"--pipeline.model.views-per-step {self.views_per_step} cannot be combined with "
-                    f"--pipeline.model.{per_view[0]} (per-view parameters); use 1"
-                )
-        positive = {
-            "num-random": self.num_random,
-            "init-sigma-A": self.init_sigma_A,
-            "min-sigma-A": self.min_sigma_A,
-            "max-sigma-A": self.max_sigma_A,
-            "refine-every": self.refine_every,
-            "merge-every": self.merge_every,
-            "max-gaussians": self.max_gaussians,
-        }
-        for name, value in positive.items():
-            if not value > 0:
-                raise OptionError(f"--pipeline.model.{name} must be positive, got {value}")
-        if not self.min_sigma_A <= self.init_sigma_A <= self.max_sigma_A:
-            raise OptionError(
-                f"--pipeline.model.init-sigma-A {self.init_sigma_A} must lie within [min-sigma-A {self.min_sigma_A}, "
-                f"max-sigma-A {self.max_sigma_A}]"
-            )
-        if not 0 < self.false_alarm_rate < 1:
-            raise OptionError(f"--pipeline.model.false-alarm-rate must lie in (0, 1), got {self.false_alarm_rate}")
-        if self.position_rate_px is not None and not self.position_rate_px > 0:
-            raise OptionError(
-                f"--pipeline.model.position-rate-px must be positive (detector pixels per step) or None, got "
-                f"{self.position_rate_px}"
-            )
-        if not 0 < self.false_discovery_rate < 1:
-            raise OptionError(
-                f"--pipeline.model.false-discovery-rate must lie in (0, 1), got {self.false_discovery_rate}"
-            )
-        if self.start_atoms is not None:
-            from gaussian_atoms_method.atoms.atom_set import AtomFileError, read_atoms
-
-            try:
-                if len(read_atoms(self.start_atoms)) == 0:
-                    raise AtomFileError(f"{self.start_atoms}: holds no atoms")
-            except AtomFileError as error:
-                raise OptionError(f"--pipeline.model.start-atoms: {error}") from None
-        from gaussian_atoms_method.physics.psf import KERNEL_WIDTHS_A
-
-        if len(self.psf_weights) != len(KERNEL_WIDTHS_A) or min(self.psf_weights) < 0 or sum(self.psf_weights) >= 1:
-            raise OptionError(
-                f"--pipeline.model.psf-weights takes {len(KERNEL_WIDTHS_A)} non-negative fractions (at "
-                f"{', '.join(f'{w:g}' for w in KERNEL_WIDTHS_A)} Å) summing to less than 1, got "
-                f"{' '.join(f'{w:g}' for w in self.psf_weights)}"
-            )
-        if (
-            self.merge_threshold_A < 0
-            or self.prune_mass_fraction < 0
-            or self.coarse_steps < 0
-            or self.snapshot_every < 0
-        ):
-            raise OptionError(
-                "--pipeline.model.merge-threshold-A, prune-mass-fraction, coarse-steps and snapshot-every must not be "
-                "negative"
-            )
