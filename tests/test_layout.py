@@ -183,7 +183,7 @@ def test_importing_has_no_side_effects():
     )
     code = (
         "import torch, gaussian_atoms_method.nerfstudio_layer.config; "
-        "from gaussian_atoms_method.nerfstudio_layer.checkpoints import numpy_checkpoint_globals; "
+        "from gaussian_atoms_method.engine.checkpoints import numpy_checkpoint_globals; "
         "print(sum(g in torch.serialization.get_safe_globals() for g in numpy_checkpoint_globals()))"
     )
     assert _run(code) == "0"

@@ -52,7 +52,7 @@ def step_index(model, view: int, device: torch.device) -> torch.Tensor:
     """(V,) on ``device``: the training step's views, ``view`` and ``views_per_step - 1`` others
     drawn at random (none for one view a step); one index the projection, the floors, the
     measured views and the floors' solve all read.  While a step is captured as a CUDA graph,
-    the graph's own index, which each replay refills (:mod:`gaussian_atoms_method.nerfstudio_layer.step_graph`)."""
+    the graph's own index, which each replay refills (:mod:`gaussian_atoms_method.engine.step_graph`)."""
     in_use = model.step_graph.index_in_use
     return in_use if in_use is not None else index_on(step_views(model, view), device)
 

@@ -51,7 +51,7 @@ def at_check(model, step: int, last_step: int) -> bool:
         if settled and density.state.searched_at and density.descendants(density.state.searched_at) <= tolerated:
             density.state.residual_clean = True  # the last search's additions did not survive: searching is over
         elif added := add_missing_atoms(model):
-            model.atoms_in_viewer.refresh()
+            model.atoms_changed()
             density.state.residual_clean = settled and added <= tolerated
             density.state.searched_at, density.state.settled_since_search = step, False
             return False
@@ -79,7 +79,7 @@ def settle_set(model) -> int:
     model.density.state.settled_since_search = True
     model.convergence.restart(model.means, model.density.atoms_worth(model.gauss_params))
     if removed:
-        model.atoms_in_viewer.refresh()
+        model.atoms_changed()
     return removed
 
 

@@ -37,11 +37,10 @@ from nerfstudio.plugins.types import MethodSpecification
 from dataparsers.errors import TiltSeriesError
 from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig, TiltSeriesDataset
 from gaussian_atoms_method.atoms.atom_set import AtomFileError, read_atoms
-from gaussian_atoms_method.engine.console import CONSOLE
 from gaussian_atoms_method.engine.errors import OptionError
+from gaussian_atoms_method.engine.step_graph import detached
 from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
 from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions
-from gaussian_atoms_method.nerfstudio_layer.step_graph import detached
 from gaussian_atoms_method.physics.devices import default_device
 from gaussian_atoms_method.start_ahead import begin_for, end_now
 
@@ -150,27 +149,12 @@ class GaussianAtomsTrainer(Trainer):
 
 
 def restart_with_kernel_held(trainer) -> bool:
-    """After the reading pass of ``psf held-out``: hold the kernel read (``psf fixed`` at the
-    reading), start the atoms again from the start on every view, with fresh optimisers and
-    callbacks, and return True; False when the trainer's model had no reading pass.
-
-    Why start again: Gaussians formed on half the views without the kernel keep the satellites
-    that explained the probe's tails (Ta film area 23, the reading pass's own atoms: 0.925 found,
-    0.542 extra per model atom; the kernel held from the start: 0.946, 0.407)."""
+    """After the reading pass of ``psf held-out``: the fit starts again with the kernel held
+    (:meth:`~gaussian_atoms_method.engine.fit.AtomFit.restart_with_kernel_held`), with fresh
+    optimisers and callbacks; False when the trainer's model had no reading pass."""
     model = trainer.pipeline.model
-    reading = getattr(model, "kernel_reading", None)
-    if reading is None or not reading.first_pass:
+    if not hasattr(model, "restart_with_kernel_held") or not model.restart_with_kernel_held():
         return False
-    model.config.psf, model.config.psf_weights = (
-        "fixed",
-        tuple(float(w) for w in model.view_params["psf"].detach().cpu().tolist()),
-    )
-    CONSOLE.print(
-        f"gaussian-atoms: the atoms start again on every view with the point-spread function held at "
-        f"{', '.join(f'{w:.3f}' for w in model.config.psf_weights)} (1, 2, 4 Å)"
-    )
-    model.populate_modules()
-    model.to(trainer.device)
     trainer.optimizers = trainer.setup_optimizers()
     trainer.callbacks = trainer.pipeline.get_training_callbacks(
         TrainingCallbackAttributes(

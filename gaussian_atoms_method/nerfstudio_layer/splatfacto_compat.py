@@ -9,13 +9,9 @@ colours by integrated mass.
 
 from __future__ import annotations
 
-from typing import Dict, List
-
 import numpy as np
 import torch
-from torch.nn import Parameter
 
-from gaussian_atoms_method.nerfstudio_layer.checkpoints import with_background_terms
 from gaussian_atoms_method.nerfstudio_layer.lazy_compile import import_splatfacto
 from gaussian_atoms_method.nerfstudio_layer.viewer import mass_colours
 from gaussian_atoms_method.physics.projector import gaussian_mass
@@ -25,9 +21,10 @@ SplatfactoModel = import_splatfacto().SplatfactoModel
 
 class SplatfactoCompat(SplatfactoModel):
     """splatfacto with its per-Gaussian properties in our terms: the base of
-    :class:`~gaussian_atoms_method.nerfstudio_layer.model.GaussianAtomsModel`, which provides
-    ``gauss_params``, ``means``, ``sigmas``, ``amplitudes``, ``num_points``, ``_log_scales``
-    and ``density``."""
+    :class:`~gaussian_atoms_method.nerfstudio_layer.model.GaussianAtomsModel`, whose fit
+    (:class:`~gaussian_atoms_method.engine.fit.AtomFit`) provides ``gauss_params``, ``means``,
+    ``sigmas``, ``amplitudes``, ``num_points``, ``_log_scales``, ``density`` and
+    ``load_state_dict``."""
 
     @torch.no_grad()
     def _viewer_atoms(self) -> tuple[np.ndarray, np.ndarray, float]:
@@ -75,17 +72,3 @@ class SplatfactoCompat(SplatfactoModel):
     @property
     def shs_rest(self) -> torch.Tensor:
         return self.features_rest
-
-    def load_state_dict(self, state_dict, **kwargs):  # type: ignore[override]
-        # Resize the parameters to the checkpoint's number of Gaussians before loading.
-        n = state_dict["gauss_params.means"].shape[0]
-        for name, param in self.gauss_params.items():
-            self.gauss_params[name] = Parameter(torch.zeros((n,) + tuple(param.shape[1:]), device=param.device))
-        self.density.reset(n)
-        state_dict = with_background_terms(
-            state_dict, self.view_params["background"] if "background" in self.view_params else None
-        )
-        return torch.nn.Module.load_state_dict(self, state_dict, **kwargs)
-
-    def get_gaussian_param_groups(self) -> Dict[str, List[Parameter]]:
-        return {name: [param] for name, param in self.gauss_params.items()}
