@@ -60,7 +60,7 @@ def test_tensorly_and_dynamo_wait_until_something_uses_them():
         import gaussian_atoms_method.nerfstudio_layer
         import nerfstudio.models.splatfacto
         import torch
-        from gaussian_atoms_method.nerfstudio_layer.config import Adam
+        from gaussian_atoms_method.engine.optimisers import Adam
         assert "tensorly" in sys.modules and "torch._dynamo" not in sys.modules
         p, q = torch.nn.Parameter(torch.ones(3)), torch.nn.Parameter(torch.ones(3))
         opt, stock = Adam([p], lr=0.1), torch.optim.Adam([q], lr=0.1)

@@ -7,7 +7,8 @@ projection of the step's views, the floors, the loss, the floors' closed-form so
 backward pass are one launch; what stays with the host is nerfstudio's choice of view, two
 copies into the graph's inputs (the views' device index and the measured image), Adam's fused
 kernels with their schedule and the callbacks (the clamp, the iterates' mean, the density
-control).
+control).  The loop that drives it (the engine's, :mod:`.training`, or nerfstudio's trainer)
+hands it a :class:`Steps`: where the views, the gradients and the optimisers are.
 
 A graph reads fixed addresses, so it is captured again whenever a tensor it reads moved or its
 shape changed: a refine or a merge replaced the parameters, the coarse phase ended, the views'
@@ -23,12 +24,31 @@ precision, gradient accumulation).  Eager and captured steps run the same code
 from __future__ import annotations
 
 import functools
+from typing import Protocol
 
 import torch
 
 from gaussian_atoms_method.engine.console import CONSOLE
 from gaussian_atoms_method.engine.rendering import projector_name
 from gaussian_atoms_method.engine.step_views import step_views
+
+
+class Steps(Protocol):
+    """What a training loop gives the graph: its fit, the next view, and its optimisers."""
+
+    fit: torch.nn.Module
+
+    def next_view(self, step: int) -> tuple:
+        """The step's camera and its batch (``{"image": (H, W, 1)}``), in the loop's order."""
+
+    def zero_grads(self) -> None:
+        """Every gradient set to None."""
+
+    def optimiser_step(self, step: int) -> None:
+        """Adam's step for every group with a gradient, then the schedules'."""
+
+    def eager_reason(self) -> str:
+        """Why the loop's own settings need eager steps ('' where they do not)."""
 
 
 class StepGraph:
@@ -48,20 +68,20 @@ class StepGraph:
         self._off: str | None = None  # why steps run eagerly for the whole run, once found
         self.replays, self.captures = 0, 0  # steps served and graphs captured, over the run
 
-    def train_iteration(self, trainer, step: int):
-        """Run the trainer's step ``step`` as a replay of the captured graph (capturing it first
-        where the set-up changed) and return nerfstudio's (loss, loss_dict, metrics_dict); None
-        where the step should run eagerly (:meth:`nerfstudio.engine.trainer.Trainer.train_iteration`)."""
-        model = trainer.pipeline.model
+    def train_iteration(self, steps: Steps, step: int):
+        """Run the loop's step ``step`` as a replay of the captured graph (capturing it first
+        where the set-up changed) and return (loss, loss_dict, metrics_dict); None where the
+        step should run eagerly (the loop's own step)."""
+        model = steps.fit
         if self._off is None:
-            self._off = why_eager(trainer, model)
+            self._off = why_eager(model, steps.eager_reason())
         key = None if self._off else self._key_of(model, step)
         if key != self._key:
             self.drop()
         if key is None or (key != self._key and key != self._warm):
             self._warm = key  # this step eagerly: the next one with this set-up is captured
             return None
-        camera, batch = trainer.pipeline.datamanager.next_train(step)
+        camera, batch = steps.next_view(step)
         dev, dt = model.means.device, model.means.dtype
         view = model.view_geometry.read(
             camera, camera.camera_to_worlds[0].to(dt), key[-3], model.view_c2w, True, dev, dt
@@ -72,8 +92,8 @@ class StepGraph:
         index, image = self._inputs
         index.copy_(views, non_blocking=True)
         image.copy_(batch["image"])
-        if self._graph is None and not self._capture(trainer, model, camera, key):
-            return self._eager(trainer, model, camera, step)  # the views drawn for it
+        if self._graph is None and not self._capture(steps, model, camera, key):
+            return self._eager(steps, model, camera, step)  # the views drawn for it
         self._graph.replay()
         self.replays += 1
         for param, grad in self._grads:  # nerfstudio's zero_grad set them to None; the graph writes these
@@ -81,7 +101,7 @@ class StepGraph:
         loss, losses, metrics = self._outputs
         if self._counts is not None:
             model.finite_watch.queue(*self._counts, step)
-        optimiser_step(trainer, step)
+        steps.optimiser_step(step)
         return loss, losses, metrics
 
     def drop(self) -> None:
@@ -102,11 +122,10 @@ class StepGraph:
         params = tuple((p.data_ptr(), tuple(p.shape)) for p in model.parameters())
         return params + (step < model.config.coarse_steps, model.floors.shared, model.views_per_step)
 
-    def _capture(self, trainer, model, camera, key) -> bool:
+    def _capture(self, steps: Steps, model, camera, key) -> bool:
         """Capture the step's tensor work (:func:`step_losses` and the backward pass) on the
         inputs; False (and steps eager from now on, with one line saying why) if it cannot be."""
-        # the graph's backward writes the gradients afresh
-        trainer.optimizers.zero_grad_some(list(trainer.optimizers.parameters))
+        steps.zero_grads()  # the graph's backward writes the gradients afresh
         graph, index, image = torch.cuda.CUDAGraph(), *self._inputs
         self.index_in_use, model.finite_watch.captured = index, None
         try:
@@ -126,16 +145,16 @@ class StepGraph:
         self._counts = model.finite_watch.captured
         return True
 
-    def _eager(self, trainer, model, camera, step: int):
+    def _eager(self, steps: Steps, model, camera, step: int):
         """The step on ``camera`` and the views and image already in the inputs, run eagerly."""
-        trainer.optimizers.zero_grad_some(list(trainer.optimizers.parameters))
+        steps.zero_grads()
         self.index_in_use, image = self._inputs
         try:
             loss, losses, metrics = step_losses(model, camera, {"image": image})
             loss.backward()
         finally:
             self.index_in_use, self._inputs = None, None
-        optimiser_step(trainer, step)
+        steps.optimiser_step(step)
         return detached(loss, losses, metrics)
 
 
@@ -160,15 +179,9 @@ def step_losses(model, camera, batch: dict) -> tuple:
     return functools.reduce(torch.add, losses.values()), losses, metrics
 
 
-def optimiser_step(trainer, step: int) -> None:
-    """Adam's step for every group with a gradient and the schedule's, as nerfstudio's trainer
-    does them without mixed precision or gradient accumulation (:func:`why_eager`)."""
-    trainer.optimizers.optimizer_scaler_step_some(trainer.grad_scaler, list(trainer.optimizers.parameters))
-    trainer.optimizers.scheduler_step_all(step)
-
-
-def why_eager(trainer, model) -> str:
-    """Why the trainer's steps cannot be served by a graph ('' where they can)."""
+def why_eager(model, loop_reason: str = "") -> str:
+    """Why the steps of ``model`` cannot be served by a graph ('' where they can);
+    ``loop_reason``: the loop's own (:meth:`Steps.eager_reason`)."""
     cfg = model.config
     if not cfg.cuda_graphs:
         return "--pipeline.model.cuda-graphs False"
@@ -178,13 +191,4 @@ def why_eager(trainer, model) -> str:
         return "per-view parameters, or a kernel not learned with the atoms"
     if projector_name(cfg.projector, model.means.device) != "dense":
         return "a projector other than the dense one"
-    accumulate = getattr(trainer, "gradient_accumulation_steps", {})
-    if trainer.mixed_precision or trainer.config.log_gradients or any(n != 1 for n in accumulate.values()):
-        return "mixed precision, gradient logging or gradient accumulation"
-    cameras = trainer.pipeline.datamanager.train_dataset.cameras
-    intrinsics = torch.stack(
-        [cameras.fx, cameras.fy, cameras.cx, cameras.cy, cameras.width.float(), cameras.height.float()], -1
-    ).reshape(len(cameras), -1)
-    if not bool((intrinsics == intrinsics[:1]).all()):
-        return "views of different sizes or pixel pitches"
-    return ""
+    return loop_reason

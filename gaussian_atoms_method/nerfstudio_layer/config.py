@@ -18,7 +18,6 @@ failure (a non-finite loss, which names its step and cause) or Ctrl+C into one l
 
 from __future__ import annotations
 
-import inspect
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,7 +26,7 @@ from typing import Type
 import torch
 from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
 from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanager, FullImageDatamanagerConfig
-from nerfstudio.engine.callbacks import TrainingCallbackAttributes
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
@@ -38,6 +37,7 @@ from dataparsers.errors import TiltSeriesError
 from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig, TiltSeriesDataset
 from gaussian_atoms_method.atoms.atom_set import AtomFileError, read_atoms
 from gaussian_atoms_method.engine.errors import OptionError
+from gaussian_atoms_method.engine.optimisers import RATES, adam
 from gaussian_atoms_method.engine.step_graph import detached
 from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
 from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions
@@ -123,7 +123,7 @@ class GaussianAtomsTrainer(Trainer):
     def train_iteration(self, step: int):
         # On a GPU a replay of the step captured as a CUDA graph where the model's step graph serves it (.step_graph).
         graph = getattr(self.pipeline.model, "step_graph", None)
-        done = graph.train_iteration(self, step) if graph is not None else None
+        done = graph.train_iteration(TrainerSteps(self), step) if graph is not None else None
         # the loop holds them while the next step runs
         return done if done is not None else detached(*super().train_iteration(step))
 
@@ -134,7 +134,7 @@ class GaussianAtomsTrainer(Trainer):
         super().train()
         if restart_with_kernel_held(self):
             if getattr(self, "progress", None) is not None:  # the restart made the callbacks anew
-                self.progress.follow(self)
+                follow(self.progress, self)
             super().train()
 
     def train(self) -> None:
@@ -146,6 +146,38 @@ class GaussianAtomsTrainer(Trainer):
             # Ctrl+C, also how a viewer left open after training is closed.  Results are written
             # at the last step only, so an interrupted run leaves none half-written.
             fail("gaussian-atoms: interrupted", 130)
+
+
+def follow(bar, trainer) -> None:
+    """Start ``bar`` (:class:`~gaussian_atoms_method.engine.progress.ProgressBar`) over and count
+    ``trainer``'s steps after each (again for a second pass)."""
+    bar.reset()
+    trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], bar.count))
+
+
+class TrainerSteps:
+    """nerfstudio's trainer as the step graph's :class:`~gaussian_atoms_method.engine.step_graph.Steps`."""
+
+    def __init__(self, trainer: Trainer) -> None:
+        self.trainer, self.fit = trainer, trainer.pipeline.model
+
+    def next_view(self, step: int):
+        return self.trainer.pipeline.datamanager.next_train(step)
+
+    def zero_grads(self) -> None:
+        self.trainer.optimizers.zero_grad_some(list(self.trainer.optimizers.parameters))
+
+    def optimiser_step(self, step: int) -> None:
+        optimizers = self.trainer.optimizers
+        optimizers.optimizer_scaler_step_some(self.trainer.grad_scaler, list(optimizers.parameters))
+        optimizers.scheduler_step_all(step)
+
+    def eager_reason(self) -> str:
+        trainer = self.trainer
+        accumulate = getattr(trainer, "gradient_accumulation_steps", {})
+        if trainer.mixed_precision or trainer.config.log_gradients or any(n != 1 for n in accumulate.values()):
+            return "mixed precision, gradient logging or gradient accumulation"
+        return ""
 
 
 def restart_with_kernel_held(trainer) -> bool:
@@ -173,42 +205,27 @@ if Path(sys.argv[0]).name == "ns-train" and sys.argv[1:2] == ["gaussian-atoms"]:
     begin_for(sys.argv[2:])
 
 
-class Adam(torch.optim.Adam):
-    """PyTorch's Adam, whose step does not import torch's compiler front end (dynamo) while
-    nothing else has: the stock step imports it at its first call to mark graph breaks for
-    compiled code (0.7 s on the H100 machine, 2.8 s on the 2-core CPU, on the way to the first
-    training step); in eager mode those marks do nothing, and the step is the update itself
-    with gradients off, as the stock one runs it (test_deferred_imports)."""
-
-    def step(self, closure=None):
-        if "torch._dynamo" in sys.modules and _WITH_GRAPH_BREAKS is not None:  # something compiles, or may
-            return _WITH_GRAPH_BREAKS(self, closure)
-        with torch.set_grad_enabled(self.defaults["differentiable"]):
-            return _UPDATE(self, closure)
-
-
-def _wrapper_layer(fn, name: str):
-    """The layer of the decorated ``fn`` whose code is named ``name`` (None if none is)."""
-    while fn is not None and getattr(getattr(fn, "__code__", None), "co_name", None) != name:
-        fn = getattr(fn, "__wrapped__", None)
-    return fn
-
-
-_UPDATE = inspect.unwrap(torch.optim.Adam.step)  # the update, without the stock step's wrappers
-# the stock step without its profiling hooks (this class's own step has them)
-_WITH_GRAPH_BREAKS = _wrapper_layer(torch.optim.Adam.step, "_use_grad")
-
-
 @dataclass
 class AdamConfig(AdamOptimizerConfig):
-    """nerfstudio's Adam (:class:`Adam`), fused into one kernel a step where its parameters lie
-    on a GPU (PyTorch's ``fused``; its default there launches about ten per parameter group a
-    step, and the five groups' steps took 1.8 ms of an 8 ms step at 20,000 atoms on the H100)."""
+    """nerfstudio's Adam config building the engine's Adam
+    (:func:`gaussian_atoms_method.engine.optimisers.adam`)."""
 
     def setup(self, params) -> torch.optim.Optimizer:
-        params = list(params)
-        fused = bool(params) and all(p.is_cuda for p in params)
-        return Adam(params, lr=self.lr, eps=self.eps, weight_decay=self.weight_decay, fused=fused or None)
+        return adam(params, lr=self.lr, eps=self.eps, weight_decay=self.weight_decay)
+
+
+def nerfstudio_optimizers(max_iterations: int) -> dict:
+    """The engine's rates (:data:`~gaussian_atoms_method.engine.optimisers.RATES`) as
+    nerfstudio's optimizer and scheduler configs, the schedules over ``max_iterations``."""
+    return {
+        name: {
+            "optimizer": AdamConfig(lr=rate.lr, eps=rate.eps),
+            "scheduler": ExponentialDecaySchedulerConfig(lr_final=rate.lr_final, max_steps=max_iterations)
+            if rate.lr_final is not None
+            else None,
+        }
+        for name, rate in RATES.items()
+    }
 
 
 class TiltSeriesDatamanager(FullImageDatamanager[TiltSeriesDataset]):
@@ -257,37 +274,7 @@ def gaussian_atoms_trainer_config(max_iterations: int = MAX_ITERATIONS) -> Gauss
             ),
             model=GaussianAtomsModelConfig(),
         ),
-        optimizers={
-            "means": {
-                "optimizer": AdamConfig(lr=1e-3, eps=1e-15),
-                "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=max_iterations),
-            },
-            "log_sigmas": {"optimizer": AdamConfig(lr=5e-3, eps=1e-15), "scheduler": None},
-            "log_amplitudes": {"optimizer": AdamConfig(lr=2e-2, eps=1e-15), "scheduler": None},
-            # Only with --pipeline.model.isotropic False (the ablation).
-            "quats": {"optimizer": AdamConfig(lr=1e-3, eps=1e-15), "scheduler": None},
-            # With a background: solved in closed form (floors.py), not by this optimiser, whose
-            # group stays so that checkpoints with its state load.
-            "background": {"optimizer": AdamConfig(lr=1e-1, eps=1e-15), "scheduler": None},
-            # The point-spread function's weights (--pipeline.model.psf learned, physics/psf.py):
-            # shared by every view, so they move every step; Adam's step is about the rate, so
-            # 2e-3 takes a weight from 0 to a fifth of the intensity in about 100 steps and
-            # leaves it within 0.2% once fitted.
-            "psf": {"optimizer": AdamConfig(lr=2e-3, eps=1e-15), "scheduler": None},
-            # Only with --pipeline.model.refine-alignment True (normalised lengths).  Each view's
-            # shift moves only on the steps that render it (1 in 47 on the Au series, ~64 in
-            # 3,000 steps): 2e-3 per update (0.14 Å on a 70 Å detector) lets a 1 Å error close
-            # within the first third of the run; 1e-4 at the end keeps it steady.
-            "view_shifts": {
-                "optimizer": AdamConfig(lr=2e-3, eps=1e-15),
-                "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=max_iterations),
-            },
-            # Only with --pipeline.model.refine-tilts True (radians; 5e-4 per update ~ 0.03 deg).
-            "view_tilts": {
-                "optimizer": AdamConfig(lr=5e-4, eps=1e-15),
-                "scheduler": ExponentialDecaySchedulerConfig(lr_final=2e-5, max_steps=max_iterations),
-            },
-        },
+        optimizers=nerfstudio_optimizers(max_iterations),
         # this machine only, unless --viewer.websocket-host says more
         viewer=ViewerConfig(num_rays_per_chunk=1 << 15, websocket_host="127.0.0.1"),
         vis="viewer",

@@ -30,6 +30,7 @@ from typing import Sequence
 import torch
 
 from gaussian_atoms_method.engine.errors import OptionError
+from gaussian_atoms_method.engine.progress import ProgressBar
 
 
 def build_config(argv: list[str]):
@@ -75,11 +76,13 @@ def run(config) -> None:
         if config.logging.profiler == "basic":  # nerfstudio's timing table would follow the results; ns-train keeps it
             config.logging.profiler = "none"
 
+    from gaussian_atoms_method.nerfstudio_layer.config import follow
+
     trainer = make_trainer(config, console_of_our_own)
     try:
         with quiet_trainer_console():
             if bar is not None:
-                bar.follow(trainer)
+                follow(bar, trainer)
                 trainer.progress = bar
             trainer.train()  # GaussianAtomsTrainer: failures and Ctrl+C end in one line
     finally:
@@ -88,51 +91,6 @@ def run(config) -> None:
         from nerfstudio.utils import profiler
 
         profiler.flush_profiler(config.logging)
-
-
-class ProgressBar:
-    """A progress bar of training steps that ends at the step the run stopped at: the step limit,
-    or the step where the atoms converged (then it reads that step as 100%)."""
-
-    def __init__(self, total: int) -> None:
-        from tqdm.auto import tqdm
-
-        # In a terminal the bar redraws in place; into a log (no terminal) each drawing is a line
-        # of its own, so there it is drawn every tenth of the run.
-        live = sys.stderr.isatty()
-        self.bar = tqdm(
-            total=total,
-            desc="gaussian-atoms",
-            unit="step",
-            dynamic_ncols=True,
-            **({} if live else {"miniters": max(total // 10, 1), "mininterval": 0.0}),
-        )
-
-    def follow(self, trainer) -> None:
-        """Start over at 0 and count ``trainer``'s steps (called again for a second pass)."""
-        from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
-
-        self.bar.reset()
-        trainer.callbacks.append(
-            TrainingCallback(
-                [TrainingCallbackLocation.AFTER_TRAIN_ITERATION], lambda step: self.bar.update(step + 1 - self.bar.n)
-            )
-        )
-
-    def end_at(self, step: int) -> None:
-        """Count through ``step`` and end the bar there (the run converged at it)."""
-        if not self.bar.disable:
-            self.bar.update(step + 1 - self.bar.n)
-        self.close()
-
-    def close(self) -> None:
-        """End the bar at the step reached (once; the results print after it)."""
-        if self.bar.disable:
-            return
-        if self.bar.n < self.bar.total:  # stopped early: the run's own end is 100%
-            self.bar.total = self.bar.n
-            self.bar.refresh()
-        self.bar.close()
 
 
 class quiet_trainer_console:
@@ -233,13 +191,15 @@ def train_in_process(config, seed: int, progress: bool) -> Path:
     """Run the trainer ``gaussian-atoms train`` runs on ``config`` in this process; the run
     directory.  A failure in training raises (``FloatingPointError`` naming the step and the
     cause, ``KeyboardInterrupt``) instead of ending the process as the CLI does."""
+    from gaussian_atoms_method.nerfstudio_layer.config import follow
+
     config.machine.seed = seed
     config.set_timestamp()
     trainer = make_trainer(config)
     bar = ProgressBar(config.max_num_iterations) if progress else None
     try:
         if bar is not None:
-            bar.follow(trainer)
+            follow(bar, trainer)
             trainer.progress = bar
         with quiet_trainer_console():  # its closing box would name a run directory that may be temporary
             trainer.train_passes()  # psf held-out's two passes, without the CLI's exit on failure

@@ -1,0 +1,47 @@
+"""The progress bar of a run's training steps (in place of nerfstudio's table of steps)."""
+
+from __future__ import annotations
+
+import sys
+
+
+class ProgressBar:
+    """A progress bar of training steps that ends at the step the run stopped at: the step limit,
+    or the step where the atoms converged (then it reads that step as 100%)."""
+
+    def __init__(self, total: int) -> None:
+        from tqdm.auto import tqdm
+
+        # In a terminal the bar redraws in place; into a log (no terminal) each drawing is a line
+        # of its own, so there it is drawn every tenth of the run.
+        live = sys.stderr.isatty()
+        self.bar = tqdm(
+            total=total,
+            desc="gaussian-atoms",
+            unit="step",
+            dynamic_ncols=True,
+            **({} if live else {"miniters": max(total // 10, 1), "mininterval": 0.0}),
+        )
+
+    def reset(self) -> None:
+        """Start over at 0 (a second pass)."""
+        self.bar.reset()
+
+    def count(self, step: int) -> None:
+        """Count through ``step`` (after each step)."""
+        self.bar.update(step + 1 - self.bar.n)
+
+    def end_at(self, step: int) -> None:
+        """Count through ``step`` and end the bar there (the run converged at it)."""
+        if not self.bar.disable:
+            self.bar.update(step + 1 - self.bar.n)
+        self.close()
+
+    def close(self) -> None:
+        """End the bar at the step reached (once; the results print after it)."""
+        if self.bar.disable:
+            return
+        if self.bar.n < self.bar.total:  # stopped early: the run's own end is 100%
+            self.bar.total = self.bar.n
+            self.bar.refresh()
+        self.bar.close()
