@@ -18,6 +18,7 @@ failure (a non-finite loss, which names its step and cause) or Ctrl+C into one l
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -285,3 +286,37 @@ gaussian_atoms_method = MethodSpecification(
     config=gaussian_atoms_trainer_config(),
     description="Atomic electron tomography: one isotropic 3D Gaussian per atom, fitted to a tilt series.",
 )
+
+
+def trainer_config_of_run(
+    place: dict,
+    data: str,
+    dataparser: dict,
+    model: dict,
+    max_num_iterations: int,
+    schedule_steps: int,
+    seed: int,
+    device_type: str,
+    vis: str,
+) -> GaussianAtomsTrainerConfig:
+    """The nerfstudio config of a run the engine trained (its ``config.yml`` calls this when
+    loaded, :mod:`gaussian_atoms_method.engine.run_files`): the one ``ns-train gaussian-atoms``
+    would have saved for the same settings."""
+    config = gaussian_atoms_trainer_config(schedule_steps)
+    config.max_num_iterations, config.vis = max_num_iterations, vis
+    config.output_dir, config.experiment_name, config.timestamp = (
+        Path(place["output_dir"]),
+        place["experiment_name"],
+        place["timestamp"],
+    )
+    config.machine.seed, config.machine.device_type = seed, device_type
+    config.pipeline.datamanager.data = Path(data)
+    for target, values in ((config.pipeline.datamanager.dataparser, dataparser), (config.pipeline.model, model)):
+        hints = {f.name: str(f.type) for f in dataclasses.fields(target)}
+        for name, value in values.items():
+            if isinstance(value, list):
+                value = tuple(value)
+            elif isinstance(value, str) and "Path" in hints.get(name, ""):
+                value = Path(value)
+            setattr(target, name, value)
+    return config
