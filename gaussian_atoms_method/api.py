@@ -1,13 +1,13 @@
-"""The Python API: a tilt series as arrays in, atoms out, through the same trainer as the CLI.
+"""The Python API: a tilt series as arrays in, atoms out, through the same engine as the CLI.
 
     >>> import gaussian_atoms_method as ga
     >>> atoms = ga.reconstruct(projections, angles_deg, pixel_size_A=0.25)   # (N, H, W) arrays
     >>> atoms.positions, atoms.sigmas, atoms.position_std_A, atoms.atom_class
 
-:func:`reconstruct` writes the arrays as a tilt-series directory, builds the configuration
-``ns-train gaussian-atoms`` builds (the same defaults; model options by their Python names) and
-runs nerfstudio's trainer on it, with a progress bar in place of nerfstudio's table.  Bad input
-raises :class:`InputError`, whose message is the line the CLI prints for the same input.
+:func:`reconstruct` fits the arrays in memory with the engine ``gaussian-atoms train`` runs
+(:mod:`gaussian_atoms_method.engine.run`: the same defaults; model options by their Python
+names), with no nerfstudio import.  Bad input raises :class:`InputError`, whose message is the
+line the CLI prints for the same input.
 """
 
 from __future__ import annotations
@@ -126,32 +126,23 @@ def _kept_series_dir(output_dir: Path) -> Path:
     return Path(tempfile.mkdtemp(prefix=time.strftime("%Y-%m-%d_%H%M%S_"), dir=parent))
 
 
-def build_config(
-    data: Path, output_dir: Path, device: str, max_num_iterations: int | None, model_options: dict[str, Any]
-):
-    """The :class:`~gaussian_atoms_method.nerfstudio_layer.config.GaussianAtomsTrainerConfig`
-    that ``ns-train gaussian-atoms --machine.device-type DEVICE tilt-series --data DATA`` builds,
-    with ``model_options`` set on ``pipeline.model`` (an unknown name raises ``OptionError``)."""
+def fit_options(model_options: dict[str, Any]):
+    """The fit's options (:class:`~gaussian_atoms_method.engine.options.FitOptions`) with
+    ``model_options`` set; an unknown name raises ``OptionError``."""
     from gaussian_atoms_method.engine.errors import OptionError
-    from gaussian_atoms_method.nerfstudio_layer.config import MAX_ITERATIONS, gaussian_atoms_trainer_config
+    from gaussian_atoms_method.engine.options import FitOptions
 
-    config = gaussian_atoms_trainer_config(
-        MAX_ITERATIONS if max_num_iterations is None else _whole(max_num_iterations, "max_num_iterations")
-    )
-    names = {f.name for f in dataclasses.fields(config.pipeline.model) if not f.name.startswith("_")}
+    options = FitOptions()
+    names = {f.name for f in dataclasses.fields(options)}
     for name, value in model_options.items():
         if name not in names:
             raise OptionError(
                 f"{name}: not a model option; the options are those of `ns-train gaussian-atoms --help` under "
                 f"--pipeline.model, e.g. {sorted(names)[:4]}"
             )
-        setattr(config.pipeline.model, name, value)
-    config.pipeline.datamanager.data = data
-    config.machine.device_type = device
-    config.vis = "tensorboard"
-    config.logging.local_writer.enable = False  # the progress bar says how far it is
-    config.output_dir, config.experiment_name = output_dir, "reconstruct"
-    return config
+        setattr(options, name, value)
+    options.check()
+    return options
 
 
 def reconstruct(
@@ -212,43 +203,53 @@ def reconstruct(
         For input that cannot train, with the one-line message the CLI prints.
     """
     from gaussian_atoms_method.engine.errors import OptionError
-    from gaussian_atoms_method.nerfstudio_layer.config import check_input
+    from gaussian_atoms_method.engine.run import MAX_ITERATIONS, RunSettings, check_settings, fit_tilt_series
+    from gaussian_atoms_method.engine.run_files import RunPlace
 
     keep = output_dir is not None
-    work = Path(tempfile.mkdtemp(prefix="gaussian-atoms-"))
+    work = None if keep else Path(tempfile.mkdtemp(prefix="gaussian-atoms-"))
     try:
         try:
             series = _as_series(projections, angles_deg, pixel_size_A, tilt_axis, species)
             truth = read_atoms(series.truth_path) if series.truth_path is not None else None
-            # A kept run's config.yml names its data: they are kept beside it, where ns-viewer and
-            # gaussian-atoms view find them; otherwise they go with the temporary directory.
-            series_dir = _kept_series_dir(Path(output_dir)) if keep else work / "series"
-            data = write_tilt_series(
-                series_dir,
-                series.projections,
-                series.angles_deg,
-                series.pixel_size_A,
-                truth,
-                series.origin_A,
-                series.tilt_axis,
-                centre_px=series.centre_px,
-                tilt_axis_angle_deg=series.tilt_axis_angle_deg,
-                species=series.species,
+            steps = MAX_ITERATIONS if max_num_iterations is None else _whole(max_num_iterations, "max_num_iterations")
+            settings = RunSettings(
+                RunPlace(Path(output_dir) if keep else work, "reconstruct"),
+                _device(device),
+                steps,
+                steps,
+                _whole(seed, "seed"),
+                progress,
             )
-            config = build_config(
-                data, Path(output_dir) if keep else work / "outputs", _device(device), max_num_iterations, model_options
-            )
-            _whole(seed, "seed")  # checked here, set by train_in_process
-            check_input(config)
+            check_settings(settings)
+            options = fit_options(model_options)
         except (TiltSeriesError, AtomFileError, OptionError) as exc:
             raise _input_error(exc) from None
-        from gaussian_atoms_method.nerfstudio_layer.launch import train_in_process
-
-        run_dir = train_in_process(config, seed, progress)
+        # A kept run's config.yml names its data: they are written beside it, where ns-viewer and
+        # gaussian-atoms view find them; the fit itself reads the arrays in memory.
+        data = _keep_series(series, truth, Path(output_dir)) if keep else Path("in-memory")
+        run_dir = fit_tilt_series(series, options, settings, data)
         atoms = read_atoms(run_dir / "atoms.xyz")
         atoms.info["non_atoms"] = read_atoms(run_dir / "non_atoms.xyz")
         if keep:
             atoms.info["run_dir"] = run_dir
         return atoms
     finally:
-        shutil.rmtree(work, ignore_errors=True)
+        if work is not None:
+            shutil.rmtree(work, ignore_errors=True)
+
+
+def _keep_series(series: TiltSeries, truth, output_dir: Path) -> Path:
+    """``series`` written as a tilt-series directory under ``output_dir`` (:func:`_kept_series_dir`)."""
+    return write_tilt_series(
+        _kept_series_dir(output_dir),
+        series.projections,
+        series.angles_deg,
+        series.pixel_size_A,
+        truth,
+        series.origin_A,
+        series.tilt_axis,
+        centre_px=series.centre_px,
+        tilt_axis_angle_deg=series.tilt_axis_angle_deg,
+        species=series.species,
+    )

@@ -3,7 +3,8 @@
 Verbs: ``simulate`` (write a tilt-series directory with known atoms), ``evaluate`` (score
 predicted atoms against the truth), ``baseline`` (FBP/SART + atom tracing), the benchmarks,
 ``stress``, ``export`` and ``sweep``.  Training is ``ns-train gaussian-atoms`` or, with
-the same options and a shorter start-up, ``gaussian-atoms train``.
+the same options, ``gaussian-atoms train``, which runs the engine without nerfstudio where
+nerfstudio's trainer is not needed (:mod:`.train_command`).
 """
 
 from __future__ import annotations
@@ -74,6 +75,14 @@ def entrypoint(argv: list[str] | None = None) -> None:
         from gaussian_atoms_method.start_ahead import begin_for, end_now
 
         begin_for(argv[1:])  # the start computed in a thread while nerfstudio loads
+        from gaussian_atoms_method.cli import train_command
+
+        if train_command.engine_runs(argv[1:]):
+            try:
+                train_command.run(argv[1:])
+            except SystemExit as exc:  # the command line's own errors, said by tyro
+                end_now(exc.code if isinstance(exc.code, int) else 2)
+                raise
         from gaussian_atoms_method.nerfstudio_layer.config import INPUT_ERRORS
         from gaussian_atoms_method.nerfstudio_layer.launch import exit_process
         from gaussian_atoms_method.nerfstudio_layer.launch import run as train_run

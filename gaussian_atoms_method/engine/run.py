@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from gaussian_atoms_method.engine.errors import OptionError
 from gaussian_atoms_method.engine.fit import AtomFit
 from gaussian_atoms_method.engine.options import FitOptions
 from gaussian_atoms_method.engine.progress import ProgressBar
@@ -50,6 +51,21 @@ class RunSettings:
     progress: bool = True
     tensorboard: bool = True
     save_every: int = 1000
+
+
+def check_settings(settings: RunSettings) -> None:
+    """Raise :class:`~.errors.OptionError`, naming the option, for a device this machine's torch
+    cannot use or a step limit below 1."""
+    from gaussian_atoms_method.physics.devices import usable
+
+    if not usable(settings.device):
+        raise OptionError(
+            f"--machine.device-type {settings.device}: torch sees no such device here; use --machine.device-type cpu "
+            f"(the default where no GPU is seen)"
+        )
+    steps = settings.max_num_iterations
+    if isinstance(steps, bool) or not (isinstance(steps, int) and steps >= 1):
+        raise OptionError(f"--max-num-iterations must be a whole number of steps, at least 1, got {steps!r}")
 
 
 def seed_everything(seed: int) -> None:
