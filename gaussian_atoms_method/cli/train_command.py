@@ -180,6 +180,7 @@ def run(argv: list[str]) -> None:
         options.logging.local_writer.enable,
         True,
         options.steps_per_save,
+        options.logging.steps_per_log,
     )
     try:
         series = check(options, tilt, settings)

@@ -51,6 +51,8 @@ class RunSettings:
     progress: bool = True
     tensorboard: bool = True
     save_every: int = 1000
+    log_every: int = 10
+    """Steps between the loss's TensorBoard scalars (``--logging.steps-per-log``)."""
 
 
 def check_settings(settings: RunSettings) -> None:
@@ -119,7 +121,7 @@ def fit_tilt_series(
     loop = FitLoop(fit, views, view_set.projections, settings.schedule_steps)
     write_transforms(run_dir)
     bar = ProgressBar(settings.max_num_iterations) if settings.progress else None
-    scalars = Scalars(run_dir) if settings.tensorboard else None
+    scalars = Scalars(run_dir, settings.log_every) if settings.tensorboard else None
     loop_settings = LoopSettings(settings.max_num_iterations, settings.schedule_steps, settings.save_every)
     try:
         train(loop, run_dir, loop_settings, bar, scalars)

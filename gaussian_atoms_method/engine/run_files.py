@@ -121,22 +121,25 @@ def write_checkpoint(run_dir: Path, step: int, fit: torch.nn.Module, optimisers)
 
 
 class Scalars:
-    """The run's TensorBoard scalars, under nerfstudio's names (``Train Loss``, ``learning_rate/*``,
-    ...), every ``every`` steps."""
+    """The run's TensorBoard scalars under nerfstudio's names and at its steps: every step the
+    decaying rates (``learning_rate/*``), every ``every`` steps the loss and the step's metrics
+    (``Train Loss``, ``Train Loss Dict/*``, ``Train Metrics Dict/*``, ``GPU Memory (MB)``)."""
 
     def __init__(self, run_dir: Path, every: int = 10) -> None:
         from torch.utils.tensorboard import SummaryWriter
 
         self.writer, self.every = SummaryWriter(log_dir=str(run_dir)), every
 
-    def write(self, step: int, loss: torch.Tensor, metrics: dict, optimisers) -> None:
-        if step % self.every:
-            return
-        self.writer.add_scalar("Train Loss", float(loss), step)
-        for name, value in metrics.items():
-            self.writer.add_scalar(f"Train Metrics Dict/{name}", float(value), step)
+    def write(self, step: int, loss: torch.Tensor, losses: dict, metrics: dict, optimisers) -> None:
         for name, scheduler in optimisers.schedulers.items():
             self.writer.add_scalar(f"learning_rate/{name}", scheduler.get_last_lr()[0], step)
+        if not self.every or step % self.every:
+            return
+        self.writer.add_scalar("Train Loss", float(loss), step)
+        for group, values in (("Train Loss Dict", losses), ("Train Metrics Dict", metrics)):
+            for name, value in values.items():
+                self.writer.add_scalar(f"{group}/{name}", float(value), step)
+        self.writer.add_scalar("GPU Memory (MB)", torch.cuda.max_memory_allocated() / 1024**2, step)
 
     def close(self) -> None:
         self.writer.close()

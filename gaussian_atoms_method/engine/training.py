@@ -49,13 +49,11 @@ class ViewOrder:
 @dataclass
 class LoopSettings:
     """``max_steps``: the step limit; ``schedule_steps``: the decaying rates' steps;
-    ``save_every``: steps between checkpoints (0: at the end only); ``log_every``: steps
-    between TensorBoard scalars (0: none)."""
+    ``save_every``: steps between checkpoints (0: at the end only)."""
 
     max_steps: int = 3000
     schedule_steps: int = 3000
     save_every: int = 1000
-    log_every: int = 10
 
 
 class FitLoop:
@@ -118,7 +116,7 @@ def run_pass(loop: FitLoop, run_dir: Path, settings: LoopSettings, progress=None
             break
         fit.train()
         fit.step_cb(loop.optimisers, step)
-        loss, _, metrics = loop.train_step(step)
+        loss, losses, metrics = loop.train_step(step)
         fit.refine_after_step(step)
         fit.merge_after_step(step)
         fit.write_results_at(last, run_dir, step)
@@ -127,8 +125,8 @@ def run_pass(loop: FitLoop, run_dir: Path, settings: LoopSettings, progress=None
             fit.snapshot_after_step(snapshots, step)
         if progress is not None:
             progress.count(step)
-        if scalars is not None and settings.log_every and step % settings.log_every == 0:
-            scalars.write(step, loss, metrics, loop.optimisers)
+        if scalars is not None:
+            scalars.write(step, loss, losses, metrics, loop.optimisers)
         if settings.save_every and step and step % settings.save_every == 0:
             write_checkpoint(run_dir, step, fit, loop.optimisers)
     write_checkpoint(run_dir, step, fit, loop.optimisers)

@@ -310,7 +310,7 @@ def trainer_config_of_run(
         place["timestamp"],
     )
     config.machine.seed, config.machine.device_type = seed, device_type
-    config.pipeline.datamanager.data = Path(data)
+    config.pipeline.datamanager.dataparser.data = Path(data)
     for target, values in ((config.pipeline.datamanager.dataparser, dataparser), (config.pipeline.model, model)):
         hints = {f.name: str(f.type) for f in dataclasses.fields(target)}
         for name, value in values.items():
