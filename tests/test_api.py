@@ -1,4 +1,4 @@
-"""The Python API: arrays (or a HyperSpy signal) in, atoms out, through the CLI's trainer."""
+"""The Python API: arrays (or a HyperSpy signal) in, atoms out, through the CLI's engine."""
 
 import subprocess
 import sys
@@ -38,6 +38,33 @@ def test_reconstruct_arrays_gives_the_atoms(particle):
     )
     assert np.all(atoms.atom_class >= 1)  # every reported atom has a class; non-atoms are apart
     assert len(atoms.info["non_atoms"]) == 0
+
+
+def test_reconstruct_imports_no_nerfstudio_and_keeps_a_run_the_viewer_reads(tmp_path):
+    """The engine runs the fit from the arrays in memory: neither nerfstudio nor torchvision
+    (with torch's compiler front end) is imported; a kept run's config.yml builds the config
+    nerfstudio's tools read (its data: the copy kept beside the run)."""
+    code = (
+        "import sys, numpy as np, gaussian_atoms_method as ga\n"
+        "from gaussian_atoms_method.harness.simulate import simulate_tilt_series, spherical_particle\n"
+        "truth = spherical_particle('Au', radius_A=5.0); angles = np.arange(-70.0, 71.0, 10.0)\n"
+        "sim = simulate_tilt_series(truth, angles, potential='gaussian', noise_std=20.0, seed=0)\n"
+        f"atoms = ga.reconstruct(sim.projections, angles, 0.25, device='cpu', max_num_iterations=30, progress=False, "
+        f"output_dir={str(tmp_path)!r})\n"
+        "print('found', sorted({m.split('.')[0] for m in sys.modules} & {'nerfstudio', 'torchvision', 'gsplat'}), "
+        "'torch._dynamo' in sys.modules)\n"
+        "print(atoms.info['run_dir'])\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    out = run.strip().split("\n")[-2:]  # after the run's own lines
+    assert out[0] == "found [] False", run
+    import yaml
+
+    config = yaml.load((Path(out[1]) / "config.yml").read_text(), Loader=yaml.Loader)
+    assert type(config).__name__ == "GaussianAtomsTrainerConfig" and config.max_num_iterations == 30
+    series = config.pipeline.datamanager.dataparser.data
+    assert (series / "tilt_series.json").is_file() and series.parent == tmp_path / "reconstruct" / "tilt_series"
+    assert config.get_base_dir() == Path(out[1]) and list(Path(out[1]).glob("nerfstudio_models/step-*.ckpt"))
 
 
 def test_a_given_start_keeps_what_the_data_hold_and_drops_the_rest(particle, tmp_path):

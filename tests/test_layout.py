@@ -26,7 +26,14 @@ def layer_of(module: str) -> str:
     """The layer a module belongs to (a KeyError for a module outside the layout)."""
     parts = module.split(".")
     if parts[0] == "dataparsers":
-        if len(parts) == 1 or parts[1] in ("errors", "readers", "rosetta", "stack_data", "tilt_series_format"):
+        if len(parts) == 1 or parts[1] in (
+            "errors",
+            "readers",
+            "rosetta",
+            "stack_data",
+            "tilt_series_format",
+            "tilt_series_options",
+        ):
             return "formats"
         if parts[1] == "tilt_series_dataparser":
             return "nerfstudio"

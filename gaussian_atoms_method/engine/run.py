@@ -18,6 +18,7 @@ import torch
 
 from gaussian_atoms_method.engine.errors import OptionError
 from gaussian_atoms_method.engine.fit import AtomFit
+from gaussian_atoms_method.engine.lean_torch import lean_torch
 from gaussian_atoms_method.engine.options import FitOptions
 from gaussian_atoms_method.engine.progress import ProgressBar
 from gaussian_atoms_method.engine.run_files import (
@@ -100,6 +101,7 @@ def fit_tilt_series(
     experiment named after ``data``, the series' directory or file, which ``config.yml``
     records with ``dataparser_options``).  Raises ``FloatingPointError`` naming the step and
     the cause where the loss stops being finite."""
+    lean_torch()  # torch's compiler front end and symbolic shapes stay unimported
     place = settings.place.resolved(data)
     run_dir = place.run_dir
     run_dir.mkdir(parents=True, exist_ok=True)

@@ -1,0 +1,106 @@
+"""torch run without the parts of it a fit never uses, which torch imports on first use.
+
+* torch's compiler front end (``torch._dynamo``): ``torch.optim.Optimizer`` imports it the first
+  time one of its methods runs (``torch._disable_dynamo``, which keeps the compiler out of those
+  methods); :func:`defer_dynamo` leaves it unimported until something else imports it (0.7 s on
+  the H100 machine, 2.8 s on the 2-core CPU, at the optimisers' set-up).
+* torch's symbolic shapes (``torch.fx.experimental.symbolic_shapes``, and sympy with it):
+  ``torch.broadcast_shapes`` imports them on its first call, which nerfstudio's cameras make
+  each time one is built or indexed; :func:`defer_symbolic_shapes` broadcasts plain integer
+  shapes without them (0.8 s of the start on the 2-core CPU).
+
+Both are put in place by :func:`lean_torch` before a run (the engine's and nerfstudio's), and
+change nothing once something else has imported the module they defer.
+"""
+
+from __future__ import annotations
+
+import sys
+
+
+def lean_torch() -> None:
+    """:func:`defer_dynamo` and :func:`defer_symbolic_shapes` (each once)."""
+    defer_dynamo()
+    defer_symbolic_shapes()
+
+
+def defer_dynamo() -> int:
+    """Let ``torch.optim.Optimizer``'s methods run without importing ``torch._dynamo`` while no
+    one else has imported it: each method ``torch._disable_dynamo`` wrapped calls its function
+    as it is until then (nothing is being compiled without dynamo), and takes dynamo's disabled
+    form, as torch would, once dynamo is imported.  Returns the methods changed (none where
+    torch wraps them otherwise)."""
+    import torch
+    import torch._compile
+
+    inner = torch._compile._disable_dynamo(lambda: None).__code__
+    changed = 0
+    for method in vars(torch.optim.Optimizer).values():
+        fn = getattr(method, "__wrapped__", None)
+        if (
+            getattr(method, "__code__", None) is not inner
+            or fn is None
+            or getattr(fn, "__dynamo_disable", None) is not None
+        ):
+            continue
+        fn.__dynamo_disable = _until_dynamo(fn, method)
+        changed += 1
+    return changed
+
+
+def defer_symbolic_shapes() -> bool:
+    """Let ``torch.broadcast_shapes`` broadcast shapes of plain ``int`` sizes without importing
+    torch's symbolic shapes (and sympy): the same result, by the same rule; anything else
+    (symbolic or nested sizes, a negative size, shapes that do not broadcast) goes to torch's own
+    function, which raises its own errors.  Returns whether it was put in place."""
+    import torch._refs
+
+    original = torch._refs._broadcast_shapes
+    if getattr(original, "_plain_ints", False):
+        return False
+
+    def broadcast(*shapes):
+        common = _plain_broadcast(shapes)
+        return original(*shapes) if common is None else common
+
+    broadcast._plain_ints = True
+    torch._refs._broadcast_shapes = broadcast
+    return True
+
+
+def _plain_broadcast(shapes) -> list[int] | None:
+    """The broadcast of ``shapes`` (ints or sequences of ints, None entries skipped) as a list,
+    where every size is a non-negative plain ``int`` and they broadcast; None otherwise (and
+    for no shapes, which torch answers itself)."""
+    sizes = []
+    for shape in shapes:
+        if shape is None:
+            continue
+        shape = (shape,) if type(shape) is int else shape  # torch.Size is a tuple
+        if not isinstance(shape, (tuple, list)) or any(type(n) is not int or n < 0 for n in shape):
+            return None
+        sizes.append(shape)
+    if not sizes:
+        return None
+    common = [1] * max(len(s) for s in sizes)
+    for shape in sizes:
+        for i in range(-1, -1 - len(shape), -1):
+            if shape[i] == common[i] or shape[i] == 1:
+                continue
+            if common[i] != 1:
+                return None  # incompatible: torch's own function says so
+            common[i] = shape[i]
+    return common
+
+
+def _until_dynamo(fn, method):
+    """``fn`` itself while ``torch._dynamo`` is not imported; from then on torch's own
+    ``method`` (which makes and caches dynamo's disabled ``fn``)."""
+
+    def call(*args, **kwargs):
+        if "torch._dynamo" not in sys.modules:
+            return fn(*args, **kwargs)
+        del fn.__dynamo_disable
+        return method(*args, **kwargs)
+
+    return call
