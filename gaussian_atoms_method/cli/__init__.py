@@ -48,10 +48,15 @@ Commands = Union[
 
 
 def parse(argv: list[str]) -> object:
-    """What ``gaussian-atoms ARGV`` would run, built but not run: for ``train`` its nerfstudio
-    TrainerConfig (the options of ``ns-train gaussian-atoms``), otherwise the verb's dataclass
+    """What ``gaussian-atoms ARGV`` would run, built but not run: for ``train`` the engine's
+    options (:func:`.train_command.parse`), or nerfstudio's TrainerConfig where nerfstudio's
+    trainer runs it (:func:`.train_command.engine_runs`), otherwise the verb's dataclass
     (a sweep with its grid, ns-train's own options passed through after "--")."""
     if argv[:1] == ["train"]:
+        from gaussian_atoms_method.cli import train_command
+
+        if train_command.engine_runs(argv[1:]):
+            return train_command.parse(argv[1:])
         from gaussian_atoms_method.nerfstudio_layer.launch import build_config
 
         return build_config(argv[1:])

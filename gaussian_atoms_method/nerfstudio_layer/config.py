@@ -130,8 +130,7 @@ class GaussianAtomsTrainer(Trainer):
 
     def train_passes(self) -> None:
         """nerfstudio's loop; with ``psf held-out`` the reading pass, then the run with the kernel
-        held (:func:`restart_with_kernel_held`).  A failure raises (the API's in-process run,
-        :func:`.launch.train_in_process`, gets it as is)."""
+        held (:func:`restart_with_kernel_held`).  A failure raises."""
         super().train()
         if restart_with_kernel_held(self):
             if getattr(self, "progress", None) is not None:  # the restart made the callbacks anew

@@ -1,21 +1,16 @@
-"""``gaussian-atoms train``: the same training as ``ns-train gaussian-atoms``, started faster.
-
-``ns-train`` imports every method nerfstudio ships (and every installed plugin) to build its
-command line before it knows which one was asked for: 3-7 s more start-up than this entry
-point on the 2-core CPU, 1.2-1.5 s on the H100 machine (``docs/performance.md``).  This entry point builds the command
-line from
-this method's :class:`~nerfstudio.engine.trainer.TrainerConfig` alone and runs nerfstudio's
-own :class:`~nerfstudio.engine.trainer.Trainer` on it, so the options, the run directory, the
-``config.yml`` (readable by ``ns-viewer``, ``ns-eval`` and ``gaussian-atoms export``), the
-checkpoints and the results are those of ``ns-train gaussian-atoms``::
+"""``gaussian-atoms train`` through nerfstudio's trainer, for what only it does (the viewer while
+training, other loggers, a loaded config; :func:`gaussian_atoms_method.cli.train_command.engine_runs`
+sends those here), with the same options, run directory and results as ``ns-train
+gaussian-atoms``, started sooner: ``ns-train`` imports every method nerfstudio ships (and every
+installed plugin) to build its command line; this builds it from this method's
+:class:`~nerfstudio.engine.trainer.TrainerConfig` alone::
 
     gaussian-atoms train [trainer and model options] tilt-series --data DIR
 
 One process on one device; multi-GPU and multi-machine runs go through ``ns-train``.
 
-Also the same training in this process for the Python API (:func:`train_in_process`), a short
-loop without the trainer for tests and stress cases (:func:`train_views`), and a finished run's
-model loaded back (:func:`load_model`).
+Also a short loop without the trainer for tests and stress cases (:func:`train_views`) and a
+finished run's model loaded back (:func:`load_model`).
 """
 
 from __future__ import annotations
@@ -185,43 +180,6 @@ def train_views(model, cameras, targets: Sequence[torch.Tensor], steps: int, ref
             model.refine_after_step(step)
             model.merge_after_step(step)
     return loss
-
-
-def train_in_process(config, seed: int, progress: bool) -> Path:
-    """Run the trainer ``gaussian-atoms train`` runs on ``config`` in this process; the run
-    directory.  A failure in training raises (``FloatingPointError`` naming the step and the
-    cause, ``KeyboardInterrupt``) instead of ending the process as the CLI does."""
-    from gaussian_atoms_method.nerfstudio_layer.config import follow
-
-    config.machine.seed = seed
-    config.set_timestamp()
-    trainer = make_trainer(config)
-    bar = ProgressBar(config.max_num_iterations) if progress else None
-    try:
-        if bar is not None:
-            follow(bar, trainer)
-            trainer.progress = bar
-        with quiet_trainer_console():  # its closing box would name a run directory that may be temporary
-            trainer.train_passes()  # psf held-out's two passes, without the CLI's exit on failure
-    finally:
-        if bar is not None:
-            bar.close()
-        _close_event_writers()
-    return Path(trainer.base_dir)
-
-
-def _close_event_writers() -> None:
-    """nerfstudio keeps its event writers in module lists for the process's life: the next
-    run in the same process (a notebook's second call) would write into this run's directory."""
-    from nerfstudio.utils import writer
-
-    for event_writer in writer.EVENT_WRITERS:
-        close = getattr(getattr(event_writer, "tb_writer", None), "close", None)
-        if close is not None:
-            close()
-    writer.EVENT_WRITERS.clear()
-    writer.EVENT_STORAGE.clear()
-    writer.GLOBAL_BUFFER.clear()
 
 
 def load_model(config: Path):

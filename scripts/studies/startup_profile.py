@@ -22,9 +22,13 @@ LAUNCHERS = {
         "import tyro; from nerfstudio.configs.method_configs import AnnotatedBaseConfigUnion; "
         "tyro.cli(AnnotatedBaseConfigUnion, args=['gaussian-atoms', 'tilt-series', '--data', sys.argv[1]])"
     ),
-    "gaussian-atoms train: import trainer + plugin, parse": (
+    "gaussian-atoms train --vis viewer: import nerfstudio's trainer + plugin, parse": (
         "from gaussian_atoms_method.nerfstudio_layer.launch import build_config; build_config(['tilt-series', "
         "'--data', sys.argv[1]])"
+    ),
+    "gaussian-atoms train --vis tensorboard: import the engine, parse": (
+        "import gaussian_atoms_method.engine.run; from gaussian_atoms_method.cli.train_command import parse; "
+        "parse(['--vis', 'tensorboard', 'tilt-series', '--data', sys.argv[1]])"
     ),
 }
 
