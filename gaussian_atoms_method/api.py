@@ -220,6 +220,8 @@ def reconstruct(
                 steps,
                 _whole(seed, "seed"),
                 progress,
+                tensorboard=keep,  # a run not kept keeps no logs or checkpoints
+                checkpoints=keep,
             )
             check_settings(settings)
             options = fit_options(model_options)

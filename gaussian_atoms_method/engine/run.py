@@ -52,8 +52,11 @@ class RunSettings:
     progress: bool = True
     tensorboard: bool = True
     save_every: int = 1000
+    """Steps between checkpoints (0: none but the last; see ``checkpoints``)."""
     log_every: int = 10
     """Steps between the loss's TensorBoard scalars (``--logging.steps-per-log``)."""
+    checkpoints: bool = True
+    """Write checkpoints (``nerfstudio_models/``; the viewer and ``export`` read them)."""
 
 
 def check_settings(settings: RunSettings) -> None:
@@ -124,7 +127,9 @@ def fit_tilt_series(
     write_transforms(run_dir)
     bar = ProgressBar(settings.max_num_iterations) if settings.progress else None
     scalars = Scalars(run_dir, settings.log_every) if settings.tensorboard else None
-    loop_settings = LoopSettings(settings.max_num_iterations, settings.schedule_steps, settings.save_every)
+    loop_settings = LoopSettings(
+        settings.max_num_iterations, settings.schedule_steps, settings.save_every, settings.checkpoints
+    )
     try:
         train(loop, run_dir, loop_settings, bar, scalars)
     finally:

@@ -123,23 +123,44 @@ def write_checkpoint(run_dir: Path, step: int, fit: torch.nn.Module, optimisers)
 class Scalars:
     """The run's TensorBoard scalars under nerfstudio's names and at its steps: every step the
     decaying rates (``learning_rate/*``), every ``every`` steps the loss and the step's metrics
-    (``Train Loss``, ``Train Loss Dict/*``, ``Train Metrics Dict/*``, ``GPU Memory (MB)``)."""
+    (``Train Loss``, ``Train Loss Dict/*``, ``Train Metrics Dict/*``, ``GPU Memory (MB)``).
 
-    def __init__(self, run_dir: Path, every: int = 10) -> None:
+    The loss and metrics stay on the device until ``flush_every`` of them are queued, then come
+    to the host in one copy: reading each at its step would make the host wait for the GPU's
+    queue every ``every`` steps."""
+
+    def __init__(self, run_dir: Path, every: int = 10, flush_every: int = 10) -> None:
         from torch.utils.tensorboard import SummaryWriter
 
-        self.writer, self.every = SummaryWriter(log_dir=str(run_dir)), every
+        self.writer, self.every, self.flush_every = SummaryWriter(log_dir=str(run_dir)), every, flush_every
+        self.queued: list[tuple[int, dict, float]] = []
 
     def write(self, step: int, loss: torch.Tensor, losses: dict, metrics: dict, optimisers) -> None:
         for name, scheduler in optimisers.schedulers.items():
             self.writer.add_scalar(f"learning_rate/{name}", scheduler.get_last_lr()[0], step)
         if not self.every or step % self.every:
             return
-        self.writer.add_scalar("Train Loss", float(loss), step)
-        for group, values in (("Train Loss Dict", losses), ("Train Metrics Dict", metrics)):
-            for name, value in values.items():
-                self.writer.add_scalar(f"{group}/{name}", float(value), step)
-        self.writer.add_scalar("GPU Memory (MB)", torch.cuda.max_memory_allocated() / 1024**2, step)
+        values = {"Train Loss": loss}
+        values |= {f"Train Loss Dict/{k}": v for k, v in losses.items()}
+        values |= {f"Train Metrics Dict/{k}": v for k, v in metrics.items()}
+        self.queued.append((step, values, torch.cuda.max_memory_allocated() / 1024**2))
+        if len(self.queued) >= self.flush_every:
+            self.flush()
+
+    def flush(self) -> None:
+        """Write the queued scalars (one copy from the device)."""
+        if not self.queued:
+            return
+        tensors = [
+            torch.as_tensor(v, dtype=torch.float64).reshape(()) for _, values, _ in self.queued for v in values.values()
+        ]
+        host = iter(torch.stack([t.to(tensors[0].device) for t in tensors]).cpu().tolist())
+        for step, values, memory in self.queued:
+            for name in values:
+                self.writer.add_scalar(name, next(host), step)
+            self.writer.add_scalar("GPU Memory (MB)", memory, step)
+        self.queued = []
 
     def close(self) -> None:
+        self.flush()
         self.writer.close()

@@ -49,11 +49,13 @@ class ViewOrder:
 @dataclass
 class LoopSettings:
     """``max_steps``: the step limit; ``schedule_steps``: the decaying rates' steps;
-    ``save_every``: steps between checkpoints (0: at the end only)."""
+    ``save_every``: steps between checkpoints (0: at the end only); ``checkpoints``: False for
+    none (a run whose directory is not kept)."""
 
     max_steps: int = 3000
     schedule_steps: int = 3000
     save_every: int = 1000
+    checkpoints: bool = True
 
 
 class FitLoop:
@@ -127,9 +129,10 @@ def run_pass(loop: FitLoop, run_dir: Path, settings: LoopSettings, progress=None
             progress.count(step)
         if scalars is not None:
             scalars.write(step, loss, losses, metrics, loop.optimisers)
-        if settings.save_every and step and step % settings.save_every == 0:
+        if settings.checkpoints and settings.save_every and step and step % settings.save_every == 0:
             write_checkpoint(run_dir, step, fit, loop.optimisers)
-    write_checkpoint(run_dir, step, fit, loop.optimisers)
+    if settings.checkpoints:
+        write_checkpoint(run_dir, step, fit, loop.optimisers)
 
 
 def train(loop: FitLoop, run_dir: Path, settings: LoopSettings, progress=None, scalars: Scalars | None = None) -> None:
