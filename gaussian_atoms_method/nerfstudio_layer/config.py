@@ -61,11 +61,9 @@ def check_input(config: TrainerConfig) -> None:
     """Raise one of :data:`INPUT_ERRORS`, naming the file or option, for input that cannot
     train: the model options, the tilt series (read and validated as the dataparser will) and
     its truth file."""
-    check_device(config.machine.device_type)
-    if not (isinstance(config.max_num_iterations, int) and config.max_num_iterations >= 1):
-        raise OptionError(
-            f"--max-num-iterations must be a whole number of steps, at least 1, got {config.max_num_iterations!r}"
-        )
+    from gaussian_atoms_method.engine.run import RunSettings, check_settings
+
+    check_settings(RunSettings(device=config.machine.device_type, max_num_iterations=config.max_num_iterations))
     model = config.pipeline.model
     if isinstance(model, GaussianAtomsOptions):
         model.check()
@@ -76,17 +74,6 @@ def check_input(config: TrainerConfig) -> None:
         series = dataparser.load(data)
         if series.truth_path is not None:
             read_atoms(series.truth_path)
-
-
-def check_device(device_type: str) -> None:
-    """Raise :class:`OptionError` for a ``--machine.device-type`` this machine's torch cannot use."""
-    from gaussian_atoms_method.physics.devices import usable
-
-    if not usable(device_type):
-        raise OptionError(
-            f"--machine.device-type {device_type}: torch sees no such device here; use --machine.device-type cpu (the "
-            f"default where no GPU is seen)"
-        )
 
 
 @dataclass
