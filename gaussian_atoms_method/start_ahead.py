@@ -12,14 +12,9 @@ input is the same; otherwise None, and it computes its own.  A run's result neve
 whether the thread ran.  No nerfstudio import: the thread must not wait for the imports it
 overlaps.
 
-Measured (Au noise 200, `gaussian-atoms train`, step 50's time after launch, seven pairs of
-runs alternated on the 2-core CPU): 8.2-8.7 s against 9.1-10.4 s without it.  On a GPU too, now
-that the start runs there (its filters, maxima and noise reading): the thread's start takes
-about twice as long beside the imports (it waits for the interpreter's lock they hold) but
-overlaps them; H100, step 0 after launch, alternated: Au 4.88, 4.91, 5.15 s against 5.27, 5.13,
-5.68 s; 20,000 atoms 4.78 against 5.87 s.  A thread and not a process: one of its own imports
-torch again beside the launcher (this CPU: no sooner) and pays CUDA's first-use costs that the
-run pays again (H100: 9.3 s both).
+A thread and not a process: a process imports torch again beside the launcher and pays CUDA's
+first-use costs that the run pays again.  Measured: Au noise 200, step 50's time after launch on
+the 2-core CPU, 8.2-8.7 s against 9.1-10.4 s without it.
 """
 
 from __future__ import annotations

@@ -2,28 +2,11 @@
 settled; until then, search the residuals for missing atoms, apply the final merges and prune
 early when only the set still churns, and slow the positions when they only scatter.
 
-Each rule, and what decided it (H100 unless said; the check's inputs printed at each check):
-
-* **The set churns after the positions have settled.**  The training prune and merge take weak
-  and shared Gaussians one by one as their mass fades; the final rules remove them at once.  So
-  once the positions have settled and the set churned at two checks in a row, the final rules
-  that do not read the residual run then (:func:`settle_set`), once per search.  Without them Au
-  noise 500 (this CPU) ends with 0.0025 false atoms per atom instead of 0.0004, and the peer's
-  aSi-208 at 8e3 e/Å² with one false atom.  The merge by likelihood is left to the end: it asks
-  whether the data prefer one Gaussian to two, a test that holds where the residual is noise.
-  Mid-run on the 100,000-atom a-Si (H100) it joined pairs of atoms in columns that had not
-  converged (missed atoms 5,513 -> 7,012 at step 500, scored against the truth); the set then
-  looked settled and the run stopped at step 1,200 at TPR 0.9656 / FP 0.0296; without it, step
-  1,400 and 0.9837 / 0.0240 (without any mid-run rule: step 2,200, 0.9909 / 0.0200).
-* **The positions scatter rather than drift.**  Adam's steps are about the learning rate
-  whatever the gradient's noise, so scatter at the schedule's rate is all that further steps
-  add; once the checks' means only scatter (:func:`.convergence.drifting`) the positions' rate is
-  halved, down to the schedule's final rate (:func:`slow_positions`).  Rare in practice: the
-  20,000-atom a-Si read scatter at 3 of 27 checks, the 54,000-atom a-Pd and Au at none.
-* **A residual search whose additions the prune took back is the last.**  At 8 views per step
-  every search on Au noise 200 added 8-11 Gaussians, more than the 6.7 the check tolerates, and
-  the next prune removed most of them, until step 2,500; now the next search is skipped when less
-  than that is left of the previous one's: the run stops at step 1,000-1,200.
+The rules: once the positions have settled while the set still churns, the final rules that
+do not read the residual run then (:func:`settle_set`; without them Au noise 500 ended with
+0.0025 false atoms per atom instead of 0.0004), the merge by likelihood left to the end; once
+the positions only scatter, their rate is halved down to the schedule's final rate
+(:func:`slow_positions`); a residual search whose additions the prune took back is the last.
 """
 
 from __future__ import annotations
