@@ -19,7 +19,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("gaussian_atoms_method", "dataparsers")
-LAYERS = ["physics", "atoms", "density", "formats", "launch", "engine", "nerfstudio", "api", "harness", "cli"]
+LAYERS = ["physics", "atoms", "density", "formats", "launch", "engine", "film", "nerfstudio", "api", "harness", "cli"]
 
 
 def layer_of(module: str) -> str:
@@ -45,6 +45,7 @@ def layer_of(module: str) -> str:
         "atoms": "atoms",
         "density": "density",
         "engine": "engine",
+        "film": "film",
         "nerfstudio_layer": "nerfstudio",
         "harness": "harness",
         "cli": "cli",

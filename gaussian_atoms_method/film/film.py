@@ -1,0 +1,119 @@
+"""A whole film from its sub-areas: fit each (:mod:`.runner`), join them in the film's frame
+(:mod:`.stitch`) and write the film's atoms, its non-atoms, the overlap's evidence and a figure.
+
+Outputs in ``output_dir``: ``film.json`` (the sub-areas), ``runs/<sub-area>/`` (each fit),
+``atoms.xyz`` (the confirmed atoms, Å in the film's frame), ``non_atoms.xyz`` (the rest),
+``atoms.csv`` (every joined atom with ``found_in``, ``covered_by`` and whether confirmed),
+``film.png`` (the film seen from above, coloured by ``found_in / covered_by``) and
+``summary.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import fields
+from pathlib import Path
+
+import numpy as np
+
+from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms, write_atoms
+from gaussian_atoms_method.engine.console import CONSOLE
+from gaussian_atoms_method.film.runner import run_subareas
+from gaussian_atoms_method.film.stitch import FilmAtoms, Reports, join_reports
+from gaussian_atoms_method.film.subareas import SubArea, write_plan
+
+
+class FilmError(RuntimeError):
+    """Sub-areas that failed (named in the message); the others' fits are kept for a resume."""
+
+
+def reconstruct_film(
+    subareas: list[SubArea],
+    output_dir: Path,
+    device: str = "cpu",
+    species: str | None = None,
+    max_steps: int = 3000,
+    address: str | None = None,
+    progress: bool = True,
+    **model_options,
+) -> FilmAtoms:
+    """Fit ``subareas``, join them and write the film (module text).  ``species`` sets the hard
+    core that joins reports (else the median of the fits' own readings); ``model_options`` are
+    the fit's options by their Python names.  Raises :class:`FilmError` naming the sub-areas
+    that failed after a retry; the others' fits stay, and a second call runs only those."""
+    from gaussian_atoms_method.atoms.hard_core import hard_core_from_species
+    from gaussian_atoms_method.engine.options import FitOptions
+
+    output_dir = Path(output_dir)
+    output_dir.mkdir(parents=True, exist_ok=True)
+    write_plan(subareas, output_dir / "film.json")
+    names = {f.name for f in fields(FitOptions)}
+    unknown = sorted(set(model_options) - names)
+    if unknown:
+        raise ValueError(f"{unknown[0]}: not a model option (the options of `ns-train gaussian-atoms --help`)")
+    FitOptions(**model_options).check()
+    records, failures = run_subareas(subareas, output_dir / "runs", model_options, device, max_steps, address, progress)
+    if failures:
+        named = "; ".join(f"{name}: {why}" for name, why in sorted(failures.items()))
+        raise FilmError(f"{len(failures)} of {len(subareas)} sub-areas failed ({named}); run again to retry them")
+    cores = [r["hard_core_A"] for r in records.values() if r.get("hard_core_A")]
+    hard_core_A = hard_core_from_species(species) if species else float(np.median(cores)) if cores else math.nan
+    reports = [
+        Reports(s.name, read_atoms(records[s.name]["atoms"]).positions + np.asarray(s.offset_A), s.interior_A)
+        for s in subareas
+    ]
+    film = join_reports(reports, hard_core_A)
+    write_film(film, output_dir, hard_core_A, [s.name for s in subareas])
+    return film
+
+
+def write_film(film: FilmAtoms, output_dir: Path, hard_core_A: float, names: list[str]) -> None:
+    """The film's files (module text) and its summary line."""
+    output_dir = Path(output_dir)
+    atoms = AtomSet(positions=film.positions[film.confirmed])
+    rest = AtomSet(positions=film.positions[~film.confirmed])
+    write_atoms(atoms, output_dir / "atoms.xyz")
+    write_atoms(rest, output_dir / "non_atoms.xyz")
+    table = np.column_stack([film.positions, film.found_in, film.covered_by, film.confirmed.astype(int)])
+    np.savetxt(
+        output_dir / "atoms.csv",
+        table,
+        delimiter=",",
+        header="x_A,y_A,z_A,found_in,covered_by,confirmed",
+        comments="",
+        fmt=["%.4f", "%.4f", "%.4f", "%d", "%d", "%d"],
+    )
+    share = film.found_in / np.maximum(film.covered_by, 1)
+    median = f"{np.median(film.found_in[film.confirmed])}/{np.median(film.covered_by[film.confirmed])}"
+    summary = {
+        "sub_areas": names,
+        "atoms": int(film.confirmed.sum()),
+        "non_atoms": int((~film.confirmed).sum()),
+        "hard_core_A": hard_core_A,
+        "recurrence_real": film.rate_real,
+        "recurrence_artefact": film.rate_artefact,
+        "median_found_in_of_covered_by": median if film.confirmed.any() else None,
+    }
+    (output_dir / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
+    _draw(film.positions, share, output_dir / "film.png")
+    CONSOLE.print(
+        f"gaussian-atoms film: {summary['atoms']} atoms confirmed by the overlapping fits of {len(names)} sub-areas "
+        f"(median found in {median}; a real atom recurs in {film.rate_real:.0%} of the fits that cover it, an "
+        f"artefact in {film.rate_artefact:.0%}); {summary['non_atoms']} non-atoms; {output_dir / 'atoms.xyz'}"
+    )
+
+
+def _draw(positions: np.ndarray, share: np.ndarray, path: Path) -> None:
+    from gaussian_atoms_method.atoms.pictures import pyplot
+
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(8, 4))
+    points = ax.scatter(positions[:, 0], positions[:, 1], c=share, s=4, cmap="viridis", vmin=0, vmax=1)
+    fig.colorbar(points, ax=ax, label="found in / covered by")
+    ax.set_xlabel("x (Å, across the tilt axis)")
+    ax.set_ylabel("y (Å, along it)")
+    ax.set_aspect("equal")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

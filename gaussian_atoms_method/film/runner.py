@@ -1,0 +1,104 @@
+"""Each sub-area's fit as a Ray task: local by default, a cluster with an address; resumable,
+retried once, a failure reported by name while the others finish.
+
+A sub-area's fit is :func:`fit_subarea` (the engine's run, :mod:`gaussian_atoms_method.engine.run`,
+on the sub-area's tilt series).  It writes ``done.json`` in its run directory last, so a run
+stopped midway starts again at the sub-areas without one.  On a machine with GPUs each task
+takes one; otherwise a task takes :func:`cores_per_task` cores and torch uses that many threads.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+from gaussian_atoms_method.film.subareas import SubArea
+
+DONE = "done.json"
+
+
+def fit_subarea(subarea: dict, runs_dir: str, options: dict, device: str, max_steps: int, threads: int) -> dict:
+    """Fit one sub-area (``subarea``: :meth:`SubArea.to_json`) unless its ``done.json`` exists;
+    return that record: the name, the atoms file and the hard core its run read."""
+    import torch
+
+    from dataparsers.tilt_series_format import load_tilt_series
+    from gaussian_atoms_method.engine.options import FitOptions
+    from gaussian_atoms_method.engine.run import RunSettings, fit_tilt_series
+    from gaussian_atoms_method.engine.run_files import RunPlace
+
+    sub = SubArea.from_json(subarea)
+    place = RunPlace(Path(runs_dir), sub.name, "run")
+    done = place.run_dir / DONE
+    if done.is_file():
+        return json.loads(done.read_text())
+    if device == "cpu" and threads > 0:
+        torch.set_num_threads(threads)
+    series = load_tilt_series(sub.data)
+    settings = RunSettings(place, device, max_steps, progress=False, tensorboard=False, checkpoints=False)
+    run_dir = fit_tilt_series(series, FitOptions(**options), settings, sub.data)
+    structure = json.loads((run_dir / "structure.json").read_text())
+    record = {"name": sub.name, "atoms": str(run_dir / "atoms.xyz"), "hard_core_A": structure.get("hard_core_A")}
+    tmp = done.with_suffix(".tmp")
+    tmp.write_text(json.dumps(record) + "\n")
+    tmp.replace(done)
+    return record
+
+
+def cores_per_task(n_tasks: int) -> int:
+    """Cores for one CPU task: this machine's shared among at most ``n_tasks`` tasks, at least 2
+    each (torch's matrix products and the projector's tiles use two threads well; one task a
+    core would leave each at half speed)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(2, cores // max(1, min(n_tasks, cores // 2 or 1))) if cores >= 2 else 1
+
+
+def run_subareas(
+    subareas: list[SubArea],
+    runs_dir: Path,
+    options: dict,
+    device: str,
+    max_steps: int,
+    address: str | None = None,
+    progress: bool = True,
+) -> tuple[dict[str, dict], dict[str, str]]:
+    """Fit every sub-area as a Ray task; ``({name: record}, {name: why it failed})``.  Sub-areas
+    already done are read back, not run; a failed task is retried once."""
+    try:
+        import ray
+    except ImportError as exc:
+        raise RuntimeError("the film's sub-areas run on Ray: pip install 'gaussian-atoms[ray]'") from exc
+    from tqdm.auto import tqdm
+
+    records: dict[str, dict] = {}
+    todo = []
+    for sub in subareas:
+        done = Path(runs_dir) / sub.name / "gaussian-atoms" / "run" / DONE
+        if done.is_file():
+            records[sub.name] = json.loads(done.read_text())
+        else:
+            todo.append(sub)
+    failures: dict[str, str] = {}
+    bar = tqdm(total=len(subareas), initial=len(records), desc="sub-areas", unit="area", disable=not progress)
+    if todo:
+        gpu = device == "cuda"
+        threads = 0 if gpu else cores_per_task(len(todo))
+        if not ray.is_initialized():
+            ray.init(address=address, include_dashboard=False, log_to_driver=False, configure_logging=False)
+        resources = {"num_gpus": 1} if gpu else {"num_cpus": threads}
+        task = ray.remote(max_retries=1, retry_exceptions=True, **resources)(fit_subarea)
+        pending = {
+            task.remote(sub.to_json(), str(runs_dir), options, device, max_steps, threads): sub.name for sub in todo
+        }
+        while pending:
+            ready, _ = ray.wait(list(pending), num_returns=1)
+            name = pending.pop(ready[0])
+            try:
+                records[name] = ray.get(ready[0])
+            except Exception as exc:  # a task failed twice: say which, keep the others
+                cause = getattr(exc, "cause", None) or exc
+                failures[name] = " ".join(str(cause).split())[:300]
+            bar.update(1)
+    bar.close()
+    return records, failures

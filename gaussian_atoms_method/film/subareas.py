@@ -1,0 +1,184 @@
+"""A film's sub-areas: tilt series cut from one field, each with its place in the film.
+
+A sub-area is a tilt-series directory whose atoms come out in its own frame (Å about its tilt
+centre), its ``offset_A`` (where that frame's origin lies in the film's frame) and its
+interior (the detector less ``edge_px`` on each side: atoms near a sub-area's edge leave the
+field at some tilts, and differ between neighbouring fits).
+
+Two sources:
+
+* :func:`published_subareas`: sub-area stacks as sub-area AET publishes them
+  (``Projections_area<N>.mat`` with ``Proj_sub`` (x, y, tilt), ``angles.mat`` and
+  ``alignPara.mat``'s ``CropCen`` and ``CropHalf``, voxels of the full volume);
+* :func:`tile_series`: one large aligned series cut into overlapping sub-areas along the axis
+  across the tilt axis and along it.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from dataparsers.errors import TiltSeriesError
+from dataparsers.tilt_series_format import TiltSeries, load_tilt_series, write_tilt_series
+
+EDGE_PX = (10, 4)
+"""Pixels left out of a sub-area's interior at each edge, (across, along the tilt axis): the
+sub-area AET data's own scoring interior (``../shared/data/ta_film/README.md``: 10 px in x, 4 in
+y for sub-areas 131-151 x 61-77 px)."""
+
+
+@dataclass
+class SubArea:
+    """One sub-area: ``name``, its tilt-series directory ``data``, ``offset_A`` (3,) of its
+    frame in the film's, its detector ``shape_px`` and tilt centre ``centre_px`` (row, col), the
+    pixel size, and ``edge_px`` (rows, cols) left out of its interior."""
+
+    name: str
+    data: Path
+    offset_A: tuple[float, float, float]
+    shape_px: tuple[int, int]
+    centre_px: tuple[float, float]
+    pixel_size_A: float
+    edge_px: tuple[int, int] = EDGE_PX
+
+    @property
+    def interior_A(self) -> np.ndarray:
+        """(2, 2) lower and upper (x, y) corners of the interior in the film's frame, Å."""
+        lo = (np.array(self.edge_px, float) - np.array(self.centre_px)) * self.pixel_size_A
+        hi = (
+            np.array(self.shape_px, float) - 1 - np.array(self.edge_px) - np.array(self.centre_px)
+        ) * self.pixel_size_A
+        offset = np.asarray(self.offset_A[:2], dtype=np.float64)
+        return np.stack([lo + offset, hi + offset])
+
+    def to_json(self) -> dict:
+        return {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_json(cls, d: dict) -> SubArea:
+        return cls(
+            d["name"],
+            Path(d["data"]),
+            tuple(d["offset_A"]),
+            tuple(d["shape_px"]),
+            tuple(d["centre_px"]),
+            float(d["pixel_size_A"]),
+            tuple(d["edge_px"]),
+        )
+
+
+def write_plan(subareas: list[SubArea], path: Path) -> Path:
+    """The sub-areas as ``film.json`` (what a resumed run reads back)."""
+    Path(path).write_text(json.dumps([s.to_json() for s in subareas], indent=1) + "\n")
+    return Path(path)
+
+
+def read_plan(path: Path) -> list[SubArea]:
+    return [SubArea.from_json(d) for d in json.loads(Path(path).read_text())]
+
+
+def _mat(path: Path, name: str) -> np.ndarray:
+    from dataparsers.readers import _mat_variables
+
+    if not path.is_file():
+        raise TiltSeriesError(f"{path}: not found")
+    variables = _mat_variables(path)
+    if name not in variables:
+        raise TiltSeriesError(f"{path}: no variable {name!r}; it holds {sorted(variables)}")
+    return np.asarray(variables[name], dtype=np.float64)
+
+
+def published_subareas(
+    data_dir: Path, areas: list[int], out_dir: Path, pixel_size_A: float, full_centre_vox: tuple[float, float, float]
+) -> list[SubArea]:
+    """The sub-areas ``areas`` (1-based rows of ``alignPara.mat``) of a sub-area AET data set
+    written as tilt-series directories under ``out_dir``.  A sub-area's frame is centred on
+    ``CropHalf`` of its crop, so its origin lies at ``(CropCen - full_centre_vox + 1) *
+    pixel_size_A`` in the film's frame (``full_centre_vox``: the film frame's origin, 1-based
+    voxels of the full volume).  A file that cannot be read raises ``TiltSeriesError`` naming it."""
+    data_dir, out_dir = Path(data_dir), Path(out_dir)
+    align = data_dir / "alignPara.mat"
+    cen_all, half_all = _mat(align, "CropCen"), _mat(align, "CropHalf")
+    angles = _mat(data_dir / "angles.mat", "angle")
+    angles = angles[:, 1] if angles.ndim == 2 and angles.shape[1] == 3 else angles.reshape(-1)
+    out = []
+    for area in areas:
+        if not 1 <= area <= len(cen_all):
+            raise TiltSeriesError(f"{align}: no sub-area {area}; it holds 1-{len(cen_all)}")
+        cen, half = cen_all[area - 1], half_all[area - 1]
+        name = f"area{area}"
+        target = out_dir / name
+        if not (target / "tilt_series.json").is_file():
+            stack = _mat(data_dir / f"Projections_area{area}.mat", "Proj_sub")  # (x, y, tilt)
+            write_tilt_series(
+                target,
+                np.moveaxis(stack, 2, 0).astype(np.float32),
+                angles,
+                pixel_size_A,
+                centre_px=(float(half[0]), float(half[1])),
+            )
+        series = load_tilt_series(target)
+        offset = (cen - np.asarray(full_centre_vox) + 1.0) * pixel_size_A
+        out.append(
+            SubArea(
+                name,
+                target,
+                tuple(float(v) for v in offset),
+                tuple(int(v) for v in series.projections.shape[1:]),
+                tuple(float(v) for v in series.centre_px),
+                pixel_size_A,
+            )
+        )
+    return out
+
+
+def tile_series(series: TiltSeries, size_px: tuple[int, int], step_px: tuple[int, int], out_dir: Path) -> list[SubArea]:
+    """Cut ``series`` into sub-areas of ``size_px`` (rows across the tilt axis, cols along it)
+    every ``step_px``, each written as a tilt-series directory under ``out_dir``, as sub-area AET
+    cuts them: each view's crop follows the sub-area's centre on the film's mid-plane (a point
+    ``d`` across the axis projects to ``d cos(tilt)``; sampled linearly between pixels), so each
+    sub-area turns about its own centre.  The film's frame is the series' own (Å about its tilt
+    centre).  The last tiles end at the field's edge.  Single-axis series about ``y`` with the
+    axis along the columns only (a ``ValueError`` otherwise)."""
+    from scipy.ndimage import map_coordinates
+
+    if series.tilt_axis != "y" or series.tilt_axis_angle_deg != 0.0:
+        raise ValueError("tiling needs the tilt axis along the detector's columns (tilt_axis y, tilt_axis_angle_deg 0)")
+    h, w = series.projections.shape[1:]
+    size = (min(int(size_px[0]), h), min(int(size_px[1]), w))
+    if min(step_px) < 1 or min(size) < 1:
+        raise ValueError(f"tile size {size_px} and step {step_px} must be positive")
+
+    def starts(extent: int, length: int, step: int) -> list[int]:
+        out = list(range(0, max(extent - length, 0) + 1, step))
+        return out if out[-1] == extent - length else out + [extent - length]
+
+    cr, cc = (float(v) for v in series.centre_px)
+    cos = np.cos(np.deg2rad(series.angles_deg))
+    middle = ((size[0] - 1) / 2.0, (size[1] - 1) / 2.0)
+    out = []
+    for r in starts(h, size[0], step_px[0]):
+        for c in starts(w, size[1], step_px[1]):
+            across_px = r + middle[0] - cr  # the tile's centre across the axis, from the tilt centre
+            views = np.empty((len(cos), *size), dtype=np.float32)
+            cols = np.arange(c, c + size[1], dtype=np.float64)
+            for v, cv in enumerate(cos):
+                rows = cr + across_px * cv - middle[0] + np.arange(size[0], dtype=np.float64)
+                grid = np.meshgrid(rows, cols, indexing="ij")
+                views[v] = map_coordinates(series.projections[v], grid, order=1, mode="nearest")
+            name = f"tile_r{r}_c{c}"
+            target = write_tilt_series(
+                Path(out_dir) / name,
+                views,
+                series.angles_deg,
+                series.pixel_size_A,
+                centre_px=middle,
+                species=series.species,
+            )
+            offset = (across_px * series.pixel_size_A, (c + middle[1] - cc) * series.pixel_size_A, 0.0)
+            out.append(SubArea(name, target, offset, size, middle, series.pixel_size_A))
+    return out
