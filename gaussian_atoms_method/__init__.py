@@ -13,6 +13,7 @@ Subpackages, lowest layer first (each imports only from the layers before it;
 * ``dataparsers.tilt_series_format`` / ``dataparsers.readers`` (top level): the input formats;
 * :mod:`.nerfstudio_layer`: config, model, launchers, viewer (with ``dataparsers``'
   dataparser and dataset, the only nerfstudio importers);
+* :mod:`.film`: a film in overlapping sub-areas on Ray, joined (``reconstruct_film``, ``tile_series``);
 * :mod:`.api`: :func:`reconstruct` and :func:`read_tilt_series`, the Python entrance;
 * :mod:`.harness`: simulation, baselines, metrics, benchmarks, sweeps, stress cases;
 * :mod:`.cli`: the ``gaussian-atoms`` verbs.
@@ -22,10 +23,15 @@ Importing this package imports nothing else: the API's names load on first use.
 
 __version__ = "0.1.0"
 
-__all__ = ["AtomSet", "InputError", "TiltSeries", "read_tilt_series", "reconstruct"]
+__all__ = ["AtomSet", "InputError", "TiltSeries", "read_tilt_series", "reconstruct", "reconstruct_film", "tile_series"]
+_FILM = {"reconstruct_film": "gaussian_atoms_method.film.film", "tile_series": "gaussian_atoms_method.film.subareas"}
 
 
 def __getattr__(name: str):
+    if name in _FILM:
+        import importlib
+
+        return getattr(importlib.import_module(_FILM[name]), name)
     if name in __all__:
         from gaussian_atoms_method import api
 

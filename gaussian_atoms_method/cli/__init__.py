@@ -25,6 +25,7 @@ from gaussian_atoms_method.cli.benchmark_verbs import (
     split_grid,
 )
 from gaussian_atoms_method.cli.data_verbs import Evaluate, Export, Simulate, Train, View
+from gaussian_atoms_method.cli.film_verb import Film
 from gaussian_atoms_method.cli.tool_verbs import CheckPrecision, HeldOutViews, InputMatrix, Screenshot
 
 Commands = Union[
@@ -39,6 +40,7 @@ Commands = Union[
     Annotated[Stress, tyro.conf.subcommand("stress")],
     Annotated[Export, tyro.conf.subcommand("export")],
     Annotated[View, tyro.conf.subcommand("view")],
+    Annotated[Film, tyro.conf.subcommand("film")],
     Annotated[Sweep, tyro.conf.subcommand("sweep")],
     Annotated[HeldOutViews, tyro.conf.subcommand("held-out-views")],
     Annotated[CheckPrecision, tyro.conf.subcommand("check-precision")],
@@ -105,8 +107,13 @@ def entrypoint(argv: list[str] | None = None) -> None:
             raise SystemExit(2) from None
         exit_process(0)  # the run's files are complete: no teardown of what it loaded
     command = parse(argv)
+    from gaussian_atoms_method.film.film import FilmError
+
     try:
         command.main()
     except (TiltSeriesError, AtomFileError, ValueError, FileNotFoundError) as exc:
         print(f"gaussian-atoms: error: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
+    except FilmError as exc:  # sub-areas failed; the others' fits are kept for a resume
+        print(f"gaussian-atoms film: error: {exc}", file=sys.stderr)
+        raise SystemExit(1) from None

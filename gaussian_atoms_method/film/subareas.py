@@ -105,10 +105,11 @@ def published_subareas(
     cen_all, half_all = _mat(align, "CropCen"), _mat(align, "CropHalf")
     angles = _mat(data_dir / "angles.mat", "angle")
     angles = angles[:, 1] if angles.ndim == 2 and angles.shape[1] == 3 else angles.reshape(-1)
+    missing = [a for a in areas if not 1 <= a <= len(cen_all)]
+    if missing:  # before anything is written
+        raise TiltSeriesError(f"{align}: no sub-area {missing[0]}; it holds 1-{len(cen_all)}")
     out = []
     for area in areas:
-        if not 1 <= area <= len(cen_all):
-            raise TiltSeriesError(f"{align}: no sub-area {area}; it holds 1-{len(cen_all)}")
         cen, half = cen_all[area - 1], half_all[area - 1]
         name = f"area{area}"
         target = out_dir / name

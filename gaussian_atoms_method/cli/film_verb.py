@@ -1,0 +1,80 @@
+"""``gaussian-atoms film``: a film wider than the field, fitted in overlapping sub-areas on Ray
+and joined (:mod:`gaussian_atoms_method.film`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal, Optional
+
+
+@dataclass
+class Film:
+    """Fit a film in overlapping sub-areas as Ray tasks and join them into one set of atoms.
+
+    Input: sub-area stacks as sub-area AET publishes them (``--published DIR --areas 1-16
+    --pixel-size-A 0.3216 --full-centre-vox 201 176 171``), or one aligned tilt series cut
+    into tiles (``--series DIR --tile-px 131 61 --step-px 18 61``)."""
+
+    output: Path
+    """Where the sub-areas' series, their fits (``runs/``) and the film's files go; a second run
+    into it resumes (finished sub-areas are read back)."""
+    published: Optional[Path] = None
+    """A folder of ``Projections_area<N>.mat``, ``angles.mat`` and ``alignPara.mat``."""
+    areas: str = ""
+    """The published sub-areas to use: ``1-16``, ``8,21,23`` or a mix."""
+    pixel_size_A: Optional[float] = None
+    """The published stacks' pixel size, Å (the .mat files do not hold it)."""
+    full_centre_vox: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """The film frame's origin, 1-based voxels of the published full volume (``CropCen``'s frame)."""
+    series: Optional[Path] = None
+    """One aligned tilt series (a directory with tilt_series.json, or a file) to cut into tiles."""
+    tile_px: tuple[int, int] = (0, 0)
+    """A tile's size (rows across the tilt axis, columns along it), pixels."""
+    step_px: tuple[int, int] = (0, 0)
+    """Between tiles, pixels."""
+    device: Literal["cpu", "cuda"] = "cpu"
+    """Where each sub-area trains (cuda: one GPU a task)."""
+    address: Optional[str] = None
+    """A Ray cluster's address (default: a local cluster on this machine)."""
+    species: Optional[str] = None
+    """The film's elements, e.g. Ta: they set the hard core that joins reports of one atom."""
+    max_num_iterations: int = 3000
+
+    def subareas(self):
+        """The sub-areas the options name (written as tilt series under ``output/data``)."""
+        from gaussian_atoms_method.film.subareas import published_subareas, tile_series
+
+        if (self.published is None) == (self.series is None):
+            raise ValueError("give either --published DIR (with --areas) or --series DIR (with --tile-px, --step-px)")
+        data = self.output / "data"
+        if self.published is not None:
+            if self.pixel_size_A is None:
+                raise ValueError("--pixel-size-A: the published stacks' pixel size is needed (Å)")
+            return published_subareas(
+                self.published, parse_areas(self.areas), data, self.pixel_size_A, self.full_centre_vox
+            )
+        if min(self.tile_px) < 1 or min(self.step_px) < 1:
+            raise ValueError("--tile-px and --step-px: give a tile's size and the step between tiles (pixels)")
+        from dataparsers.tilt_series_format import load_tilt_series
+
+        return tile_series(load_tilt_series(self.series), self.tile_px, self.step_px, data)
+
+    def main(self) -> None:
+        from gaussian_atoms_method.film.film import reconstruct_film
+
+        reconstruct_film(self.subareas(), self.output, self.device, self.species, self.max_num_iterations, self.address)
+
+
+def parse_areas(text: str) -> list[int]:
+    """``"1-3,8"`` -> ``[1, 2, 3, 8]``; a ``ValueError`` naming ``--areas`` otherwise."""
+    out: list[int] = []
+    try:
+        for part in filter(None, (p.strip() for p in text.split(","))):
+            lo, _, hi = part.partition("-")
+            out += list(range(int(lo), int(hi or lo) + 1))
+    except ValueError:
+        raise ValueError(f"--areas {text!r}: expected numbers and ranges, e.g. 1-16 or 8,21,23") from None
+    if not out:
+        raise ValueError("--areas: name the sub-areas, e.g. 1-16")
+    return out
