@@ -132,8 +132,19 @@ class BenchmarkFilm:
     start_from_model: bool = False
     """Start each fit at the authors' model instead of the back-projection's candidates: how much
     of the model the data hold (the fit moves off the rest)."""
+    strips: tuple[int, ...] = ()
+    """Instead of single sub-areas: these published strips (1: areas 1-16, 2: areas 17-29), each
+    fitted on Ray (`gaussian-atoms film`), joined and scored in the strip's interior."""
 
     def main(self) -> None:
+        if self.strips:
+            import json
+
+            from gaussian_atoms_method.harness.film_strip import run_strip
+
+            for strip in self.strips:
+                print(f"Ta film strip {strip}: " + json.dumps(run_strip(strip, self.data, self.output, self.device)))
+            return
         from gaussian_atoms_method.harness.film_benchmark import FilmBenchmark
 
         FilmBenchmark(
