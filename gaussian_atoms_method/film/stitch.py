@@ -79,7 +79,7 @@ def join_reports(reports: list[Reports], hard_core_A: float) -> FilmAtoms:
     trees = [cKDTree(p) if len(p) else None for p in kept]
     for a in range(len(kept)):
         for b in range(a + 1, len(kept)):
-            if trees[a] is None or trees[b] is None:
+            if trees[a] is None or trees[b] is None or not _overlap(reports[a], reports[b], hard_core_A / 2):
                 continue
             d_ab, j_ab = trees[b].query(kept[a], distance_upper_bound=hard_core_A / 2)
             _, j_ba = trees[a].query(kept[b], distance_upper_bound=hard_core_A / 2)
@@ -100,6 +100,14 @@ def join_reports(reports: list[Reports], hard_core_A: float) -> FilmAtoms:
     covered_by = np.maximum(covered_by, found_in)  # a mean may sit just outside an edge it was found inside
     confirmed, rate_real, rate_artefact = confirm(found_in, covered_by)
     return FilmAtoms(positions, found_in, covered_by, confirmed, rate_real, rate_artefact)
+
+
+def _overlap(a: Reports, b: Reports, margin_A: float) -> bool:
+    """Whether two sub-areas' interiors, widened by ``margin_A``, overlap (else no report of one
+    can join a report of the other)."""
+    return bool(
+        np.all(a.interior_A[0] - margin_A <= b.interior_A[1]) and np.all(b.interior_A[0] - margin_A <= a.interior_A[1])
+    )
 
 
 def confirm(found_in: np.ndarray, covered_by: np.ndarray, iterations: int = 200) -> tuple[np.ndarray, float, float]:
