@@ -136,7 +136,18 @@ class BenchmarkFilm:
     """Instead of single sub-areas: these published strips (1: areas 1-16, 2: areas 17-29), each
     fitted on Ray (`gaussian-atoms film`), joined and scored in the strip's interior."""
 
+    simulated: bool = False
+    """Instead: the harness's film (Lobato, wider than each tile) cut into tiles, fitted on Ray,
+    joined and scored against its truth, the seams included."""
+
     def main(self) -> None:
+        if self.simulated:
+            import json
+
+            from gaussian_atoms_method.harness.film_strip import simulated_film
+
+            print("simulated film: " + json.dumps(simulated_film(self.output / "simulated", device=self.device)))
+            return
         if self.strips:
             import json
 

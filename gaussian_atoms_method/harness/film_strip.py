@@ -87,3 +87,53 @@ def run_strip(strip: int, data_dir: Path, output: Path, device: str = "cpu", add
     scores = score_strip(output, data_dir)
     (output / "scores.json").write_text(json.dumps(scores, indent=1) + "\n")
     return scores
+
+
+def simulated_film(
+    output: Path, scale: float = 0.5, noise_std: float = 50.0, device: str = "cpu", address: str | None = None
+) -> dict:
+    """The harness's film (amorphous Pd, 110 x 50 x 20 Å times ``scale`` across, Lobato potentials,
+    limited tilts), measured as one series over its whole width, cut into tiles 40 Å across
+    every 15 Å (along the axis: the whole field), fitted on Ray and joined; scored against the
+    truth in the tiles' interiors: found, false per true atom, RMSD, and the atoms lost or
+    doubled (pairs under the hard core) within 3 Å of a tile's interior edge, the seams."""
+    from scipy.spatial import cKDTree
+
+    from dataparsers.tilt_series_format import TiltSeries
+    from gaussian_atoms_method.atoms.hard_core import hard_core_from_species
+    from gaussian_atoms_method.atoms.matching import score_atoms
+    from gaussian_atoms_method.film.film import reconstruct_film
+    from gaussian_atoms_method.film.stitch import Reports
+    from gaussian_atoms_method.film.subareas import tile_series
+    from gaussian_atoms_method.harness.particles import make_particle
+    from gaussian_atoms_method.harness.simulate import parse_tilts, simulate_tilt_series
+
+    output = Path(output)
+    truth = make_particle("film", scale=scale)
+    sim = simulate_tilt_series(truth, parse_tilts("limited"), potential="lobato", noise_std=noise_std, seed=0)
+    series = TiltSeries(sim.projections, sim.angles_deg, sim.pixel_size_A, "y")
+    px = sim.pixel_size_A
+    subareas = tile_series(
+        series, (round(40 / px), series.projections.shape[2]), (round(15 / px), 10**6), output / "data"
+    )
+    film = reconstruct_film(subareas, output, device, "Pd", address=address)
+    reported = film.positions[film.confirmed]
+    true = sim.truth.positions
+    union = np.zeros(len(true), dtype=bool)
+    for s in subareas:
+        union |= Reports(s.name, true, s.interior_A).inside(true)
+    scores = score_atoms(reported, true[union])
+    edges = np.concatenate([s.interior_A[:, 0] for s in subareas])
+    seam = np.min(np.abs(true[union][:, :1] - edges[None, :]), axis=1) < 3.0
+    _, ti = match_atoms(reported, true[union], MATCH_RADIUS_A)
+    lost = np.ones(int(union.sum()), dtype=bool)
+    lost[ti] = False
+    doubled = len(cKDTree(reported).query_pairs(hard_core_from_species("Pd")))
+    result = scores | {
+        "sub_areas": len(subareas),
+        "lost_at_seams": int((lost & seam).sum()),
+        "true_at_seams": int(seam.sum()),
+        "pairs_under_hard_core": doubled,
+    }
+    (output / "scores.json").write_text(json.dumps(result, indent=1) + "\n")
+    return result
