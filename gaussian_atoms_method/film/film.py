@@ -45,14 +45,14 @@ def reconstruct_film(
     from gaussian_atoms_method.atoms.hard_core import hard_core_from_species
     from gaussian_atoms_method.engine.options import FitOptions
 
+    names = {f.name for f in fields(FitOptions)}
+    unknown = sorted(set(model_options) - names)
+    if unknown:  # before anything is written
+        raise ValueError(f"{unknown[0]}: not a model option (the options of `ns-train gaussian-atoms --help`)")
+    FitOptions(**model_options).check()
     output_dir = Path(output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
     write_plan(subareas, output_dir / "film.json")
-    names = {f.name for f in fields(FitOptions)}
-    unknown = sorted(set(model_options) - names)
-    if unknown:
-        raise ValueError(f"{unknown[0]}: not a model option (the options of `ns-train gaussian-atoms --help`)")
-    FitOptions(**model_options).check()
     records, failures = run_subareas(subareas, output_dir / "runs", model_options, device, max_steps, address, progress)
     if failures:
         named = "; ".join(f"{name}: {why}" for name, why in sorted(failures.items()))
