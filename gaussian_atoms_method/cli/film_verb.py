@@ -33,8 +33,9 @@ class Film:
     """A tile's size (rows across the tilt axis, columns along it), pixels."""
     step_px: tuple[int, int] = (0, 0)
     """Between tiles, pixels."""
-    device: Literal["cpu", "cuda"] = "cpu"
-    """Where each sub-area trains (cuda: one GPU a task)."""
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    """Where each sub-area trains: cuda (one GPU a task), cpu (two or more cores a task), auto
+    (the GPUs where torch sees them)."""
     address: Optional[str] = None
     """A Ray cluster's address (default: a local cluster on this machine)."""
     species: Optional[str] = None
