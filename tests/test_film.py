@@ -130,3 +130,24 @@ def test_a_film_runs_on_ray_resumes_and_names_a_broken_sub_area(small_film):
     assert len(cKDTree(reported).query_pairs(2.0)) == 0  # none doubled at the seam
     for name in ("atoms.xyz", "non_atoms.xyz", "atoms.csv", "film.png", "summary.json"):
         assert (root / "out" / name).is_file()
+
+
+@pytest.mark.parametrize(
+    "args, named",
+    [
+        ([], "--published DIR"),
+        (["--published", "/nonexistent", "--areas", "1"], "--pixel-size-A"),
+        (["--published", "/nonexistent", "--areas", "one", "--pixel-size-A", "0.32"], "--areas"),
+        (["--published", "/nonexistent", "--areas", "1", "--pixel-size-A", "0.32"], "/nonexistent/alignPara.mat"),
+        (["--series", "/nonexistent", "--tile-px", "0", "0"], "--tile-px"),
+    ],
+)
+def test_film_input_errors_are_one_line_and_write_nothing(tmp_path, capsys, args, named):
+    from gaussian_atoms_method.cli import entrypoint
+
+    out = tmp_path / "film"
+    with pytest.raises(SystemExit) as exit_info:
+        entrypoint(["film", "--output", str(out), "--device", "cpu", *args])
+    err = capsys.readouterr().err.strip()
+    assert exit_info.value.code == 2 and len(err.splitlines()) == 1 and named in err, err
+    assert not out.exists()
