@@ -139,7 +139,7 @@ def test_a_film_runs_on_ray_resumes_and_names_a_broken_sub_area(small_film):
         (["--published", "/nonexistent", "--areas", "1"], "--pixel-size-A"),
         (["--published", "/nonexistent", "--areas", "one", "--pixel-size-A", "0.32"], "--areas"),
         (["--published", "/nonexistent", "--areas", "1", "--pixel-size-A", "0.32"], "/nonexistent/alignPara.mat"),
-        (["--series", "/nonexistent", "--tile-px", "0", "0"], "--tile-px"),
+        (["--series", "/nonexistent"], "/nonexistent"),
     ],
 )
 def test_film_input_errors_are_one_line_and_write_nothing(tmp_path, capsys, args, named):
@@ -151,3 +151,26 @@ def test_film_input_errors_are_one_line_and_write_nothing(tmp_path, capsys, args
     err = capsys.readouterr().err.strip()
     assert exit_info.value.code == 2 and len(err.splitlines()) == 1 and named in err, err
     assert not out.exists()
+
+
+def test_the_film_thickness_is_read_from_the_series():
+    """A Pd slab 12 Å thick, tilts -60..60: the back-projected section's half-maximum width is
+    the slab's depth, widened by the atoms' own width (0.6 Å blurred, on each face) and the
+    missing wedge's stretch, narrowed where the faces' half maximum falls inside the outermost
+    atoms: within 15% below the atoms' depth span and half as much again above."""
+    from dataparsers.tilt_series_format import TiltSeries
+    from gaussian_atoms_method.film.subareas import default_tiling, film_thickness_A
+    from gaussian_atoms_method.harness.particles import amorphous_packing
+    from gaussian_atoms_method.harness.simulate import simulate_tilt_series
+
+    atoms = amorphous_packing(
+        0, ("Pd",), 2.5, np.random.default_rng(0), number_density_per_A3=0.04, box_A=(50.0, 12.0, 12.0)
+    )
+    angles = np.arange(-60.0, 61.0, 4.0)
+    series = TiltSeries(
+        simulate_tilt_series(atoms, angles, potential="gaussian", seed=0).projections, angles, 0.25, "y"
+    )
+    span = np.ptp(atoms.positions[:, 2])
+    assert 0.85 * span <= film_thickness_A(series) <= 1.5 * span
+    (across, along), (step, _) = default_tiling(series)
+    assert along == series.projections.shape[2] and 6 <= across / step <= 8

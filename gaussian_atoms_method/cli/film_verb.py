@@ -14,7 +14,7 @@ class Film:
 
     Input: sub-area stacks as sub-area AET publishes them (``--published DIR --areas 1-16
     --pixel-size-A 0.3216 --full-centre-vox 201 176 171``), or one aligned tilt series cut
-    into tiles (``--series DIR --tile-px 131 61 --step-px 18 61``)."""
+    into tiles (``--series DIR``; ``--tile-px 131 61 --step-px 18 61`` to choose them)."""
 
     output: Path
     """Where the sub-areas' series, their fits (``runs/``) and the film's files go; a second run
@@ -30,9 +30,10 @@ class Film:
     series: Optional[Path] = None
     """One aligned tilt series (a directory with tilt_series.json, or a file) to cut into tiles."""
     tile_px: tuple[int, int] = (0, 0)
-    """A tile's size (rows across the tilt axis, columns along it), pixels."""
+    """A tile's size (rows across the tilt axis, columns along it), pixels; 0 0: twice the film's
+    thickness read from the series across, the whole field along (:func:`default_tiling`)."""
     step_px: tuple[int, int] = (0, 0)
-    """Between tiles, pixels."""
+    """Between tiles, pixels; 0 0: each point in about 7 tiles."""
     device: Literal["auto", "cpu", "cuda"] = "auto"
     """Where each sub-area trains: cuda (one GPU a task), cpu (two or more cores a task), auto
     (the GPUs where torch sees them)."""
@@ -55,11 +56,16 @@ class Film:
             return published_subareas(
                 self.published, parse_areas(self.areas), data, self.pixel_size_A, self.full_centre_vox
             )
-        if min(self.tile_px) < 1 or min(self.step_px) < 1:
-            raise ValueError("--tile-px and --step-px: give a tile's size and the step between tiles (pixels)")
         from dataparsers.tilt_series_format import load_tilt_series
+        from gaussian_atoms_method.film.subareas import default_tiling
 
-        return tile_series(load_tilt_series(self.series), self.tile_px, self.step_px, data)
+        if min(self.tile_px) < 0 or min(self.step_px) < 0:
+            raise ValueError("--tile-px and --step-px: pixels, positive (0 0: chosen from the film's thickness)")
+        series = load_tilt_series(self.series)
+        tile, step = default_tiling(series)
+        tile = tuple(t if given == 0 else given for t, given in zip(tile, self.tile_px))
+        step = tuple(t if given == 0 else given for t, given in zip(step, self.step_px))
+        return tile_series(series, tile, step, data)
 
     def main(self) -> None:
         from gaussian_atoms_method.film.film import reconstruct_film

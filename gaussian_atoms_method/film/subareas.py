@@ -137,6 +137,47 @@ def published_subareas(
     return out
 
 
+OVERLAP = 7
+"""Sub-areas that cover each point of a film: sub-area AET's own (the Ta film's strips put each
+point inside about 7 sub-areas, ``../shared/data/ta_film/README.md``)."""
+WIDTH_PER_THICKNESS = 2.0
+"""A tile's width across the tilt axis per thickness of film: the Ta film's sub-areas are 42-49
+Å across for a film whose atoms spread over 20-35 Å in depth (the data's README)."""
+
+
+def film_thickness_A(series: TiltSeries) -> float:
+    """The film's thickness, Å, read from the series: the views averaged along the tilt axis are
+    one sinogram of the film's mean cross-section, filtered back-projected (Hann); the
+    thickness is the full width at half maximum of its profile across the slab above the
+    profile's median (the narrower of the two axes of a film wider than it is thick).  On Pd
+    slabs 8-20 Å thick (tilts -60..60) it read 9.0, 13.5, 16.5 and 19.5 Å for 8, 12, 16 and 20."""
+    from gaussian_atoms_method.physics.reconstruction import filtered_backprojection
+
+    h = series.projections.shape[1]
+    mean = series.projections.mean(axis=2)  # (V, H): the film's mean section
+    shift = int(round(h // 2 - float(series.centre_px[0])))
+    sinogram = np.roll(mean, shift, axis=1).T[None]  # (1, H, V), the tilt centre at H // 2
+    section = np.clip(np.asarray(filtered_backprojection(sinogram, series.angles_deg, "hann"))[0], 0, None)
+
+    def fwhm(profile: np.ndarray) -> float:
+        profile = profile - np.median(profile)  # the noise's floor: most depths of the square section are empty
+        above = np.flatnonzero(profile >= profile.max() / 2)
+        return float(above[-1] - above[0] + 1) if len(above) else float(len(profile))
+
+    return min(fwhm(section.mean(axis=0)), fwhm(section.mean(axis=1))) * series.pixel_size_A
+
+
+def default_tiling(series: TiltSeries) -> tuple[tuple[int, int], tuple[int, int]]:
+    """Tile size and step (pixels) for ``series``: :data:`WIDTH_PER_THICKNESS` times the film's
+    thickness across the tilt axis (at most the field), the whole field along it, and
+    :data:`OVERLAP` tiles over each point."""
+    h, w = series.projections.shape[1:]
+    across = min(
+        h, max(2 * EDGE_PX[0] + 8, round(WIDTH_PER_THICKNESS * film_thickness_A(series) / series.pixel_size_A))
+    )
+    return (across, w), (max(1, round(across / OVERLAP)), w)
+
+
 def tile_series(series: TiltSeries, size_px: tuple[int, int], step_px: tuple[int, int], out_dir: Path) -> list[SubArea]:
     """Cut ``series`` into sub-areas of ``size_px`` (rows across the tilt axis, cols along it)
     every ``step_px``, each written as a tilt-series directory under ``out_dir``, as sub-area AET
