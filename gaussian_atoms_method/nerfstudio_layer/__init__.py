@@ -1,9 +1,7 @@
-"""The thin nerfstudio layer: the method's config (:mod:`.config`), the splatfacto subclass
-(:mod:`.model`) with its per-view rendering (:mod:`gaussian_atoms_method.engine.rendering`), convergence check
-(:mod:`gaussian_atoms_method.engine.convergence`) and result writing (:mod:`gaussian_atoms_method.engine.results`), the
-training launchers
-(:mod:`.launch`: ``gaussian-atoms train``; :mod:`.launch`: a minimal loop for tests), and the
-viewer's atom cloud (:mod:`.viewer`).
+"""The thin nerfstudio layer: the method's config and trainer (:mod:`.config`), the splatfacto
+subclass that is the engine's fit (:mod:`.model`, :class:`gaussian_atoms_method.engine.fit.AtomFit`),
+the nerfstudio trainer's launcher for what only it serves (:mod:`.launch`) and the viewer's atom
+cloud (:mod:`.viewer`).
 
 The only modules of :mod:`gaussian_atoms_method` that import nerfstudio (with the
 dataparser and dataset in :mod:`dataparsers`)."""
