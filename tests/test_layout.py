@@ -51,6 +51,7 @@ def layer_of(module: str) -> str:
         "cli": "cli",
         "api": "api",
         "start_ahead": "launch",
+        "process_exit": "launch",
     }
     return sub[parts[1]]
 

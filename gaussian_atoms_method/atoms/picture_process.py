@@ -29,7 +29,7 @@ SPARE_CORES = 4
 two children and two left to the final stage, whose torch work runs on two threads on a CPU
 (on the 2-core CI machine the children's imports would take the final stage's cores; on the
 16-core H100 machine the 20,000-atom run ended 2-3.5 s sooner with them and the quick exit of
-``nerfstudio_layer.train.exit_process``, 1.0-1.2 s of which is the exit's)."""
+``process_exit.exit_process``, 1.0-1.2 s of which is the exit's)."""
 
 
 def spare_cores() -> bool:

@@ -13,8 +13,6 @@ Both give the same atoms, run directory and files.
 from __future__ import annotations
 
 import dataclasses
-import os
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Optional
@@ -169,6 +167,7 @@ def run(argv: list[str]) -> None:
     from gaussian_atoms_method.engine.errors import OptionError
     from gaussian_atoms_method.engine.run import RunSettings, fit_tilt_series
     from gaussian_atoms_method.engine.run_files import RunPlace, options_dict
+    from gaussian_atoms_method.process_exit import exit_process, fail
 
     options, tilt = parse(argv)
     settings = RunSettings(
@@ -185,35 +184,12 @@ def run(argv: list[str]) -> None:
     try:
         series = check(options, tilt, settings)
     except (TiltSeriesError, AtomFileError, OptionError) as exc:
-        _fail(f"gaussian-atoms: error: {exc}", 2)
+        fail(f"gaussian-atoms: error: {exc}", 2)
     dataparser = {k: v for k, v in options_dict(tilt).items() if k != "data"}
     try:
         fit_tilt_series(series, options.pipeline.model, settings, data_of(options, tilt), dataparser)
     except FloatingPointError as exc:  # the fit names the step and the cause
-        _fail(str(exc), 1)
+        fail(str(exc), 1)
     except KeyboardInterrupt:  # results are written at the end only: none half-written
-        _fail("gaussian-atoms: interrupted", 130)
+        fail("gaussian-atoms: interrupted", 130)
     exit_process(0)
-
-
-def _fail(message: str, status: int) -> None:
-    from gaussian_atoms_method.start_ahead import end_now
-
-    print(" ".join(str(message).split()), file=sys.stderr)
-    end_now(status)
-    raise SystemExit(status)
-
-
-def exit_process(status: int) -> None:
-    """End the process once its files are complete: the exit handlers run and the streams
-    flushed, then ``os._exit``, skipping the interpreter's and CUDA's teardown of what it loaded
-    (about 1 s on the H100 machine)."""
-    import atexit
-
-    atexit._run_exitfuncs()
-    for stream in (sys.stdout, sys.stderr):
-        try:
-            stream.flush()
-        except (OSError, ValueError, AttributeError):
-            pass
-    os._exit(status)

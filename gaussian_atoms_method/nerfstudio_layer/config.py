@@ -43,18 +43,11 @@ from gaussian_atoms_method.engine.step_graph import detached
 from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
 from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions
 from gaussian_atoms_method.physics.devices import default_device
-from gaussian_atoms_method.start_ahead import begin_for, end_now
+from gaussian_atoms_method.process_exit import fail
+from gaussian_atoms_method.start_ahead import begin_for
 
 INPUT_ERRORS = (TiltSeriesError, AtomFileError, OptionError)
 """Errors in what the user gave: reported in one line, exit status 2."""
-
-
-def fail(message: str, status: int) -> None:
-    """Print ``message`` as one line on stderr and exit with ``status`` (no traceback; at once
-    where a start begun ahead is still running, :func:`~gaussian_atoms_method.start_ahead.end_now`)."""
-    print(" ".join(str(message).split()), file=sys.stderr)
-    end_now(status)
-    raise SystemExit(status)
 
 
 def check_input(config: TrainerConfig) -> None:

@@ -15,10 +15,7 @@ finished run's model loaded back (:func:`load_model`).
 
 from __future__ import annotations
 
-import atexit
-import os
 import random
-import sys
 from pathlib import Path
 from typing import Sequence
 
@@ -105,26 +102,17 @@ class quiet_trainer_console:
 
 
 def exit_process(status: int = 0) -> None:
-    """End the process with ``status`` once its outputs are complete: nerfstudio's TensorBoard
-    writers closed (nerfstudio leaves their files to the interpreter's shutdown), the exit
-    handlers run (logging, wandb, comet, the viewer), the console flushed; then ``os._exit``,
-    which skips the interpreter's and CUDA's teardown of the loaded libraries and the device's
-    memory: 1.0-1.2 s of every run on the H100 machine (Au and the 20,000-atom a-Si, launch to
-    exit), 0.75 s after a bare CUDA product.  Only the command line calls this, after a run
-    that ended normally."""
+    """:func:`gaussian_atoms_method.process_exit.exit_process`, nerfstudio's TensorBoard writers
+    closed first (nerfstudio leaves their files to the interpreter's shutdown)."""
     from nerfstudio.utils import writer
+
+    from gaussian_atoms_method.process_exit import exit_process as end
 
     for event_writer in writer.EVENT_WRITERS:
         tensorboard = getattr(event_writer, "tb_writer", None)
         if tensorboard is not None:
             tensorboard.close()
-    atexit._run_exitfuncs()  # what the interpreter's exit runs first
-    for stream in (sys.stdout, sys.stderr):
-        try:
-            stream.flush()
-        except (OSError, ValueError, AttributeError):  # a closed pipe or stream, or none
-            pass
-    os._exit(status)
+    end(status)
 
 
 def make_trainer(config, after_saving=None):
