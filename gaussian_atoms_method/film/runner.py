@@ -18,6 +18,13 @@ from gaussian_atoms_method.film.subareas import SubArea
 DONE = "done.json"
 
 
+def place_of(runs_dir: Path | str, name: str):
+    """The run place of sub-area ``name`` under ``runs_dir`` (its ``done.json`` in its run directory)."""
+    from gaussian_atoms_method.engine.run_files import RunPlace
+
+    return RunPlace(Path(runs_dir), name, "run")
+
+
 def fit_subarea(subarea: dict, runs_dir: str, options: dict, device: str, max_steps: int, threads: int) -> dict:
     """Fit one sub-area (``subarea``: :meth:`SubArea.to_json`) unless its ``done.json`` exists;
     return that record: the name, the atoms file and the hard core its run read."""
@@ -26,10 +33,9 @@ def fit_subarea(subarea: dict, runs_dir: str, options: dict, device: str, max_st
     from dataparsers.tilt_series_format import load_tilt_series
     from gaussian_atoms_method.engine.options import FitOptions
     from gaussian_atoms_method.engine.run import RunSettings, fit_tilt_series
-    from gaussian_atoms_method.engine.run_files import RunPlace
 
     sub = SubArea.from_json(subarea)
-    place = RunPlace(Path(runs_dir), sub.name, "run")
+    place = place_of(runs_dir, sub.name)
     done = place.run_dir / DONE
     if done.is_file():
         return json.loads(done.read_text())
@@ -51,7 +57,9 @@ def cores_per_task(n_tasks: int) -> int:
     each (torch's matrix products and the projector's tiles use two threads well; one task a
     core would leave each at half speed)."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    return max(2, cores // max(1, min(n_tasks, cores // 2 or 1))) if cores >= 2 else 1
+    if cores < 2:
+        return 1
+    return max(2, cores // max(1, min(n_tasks, cores // 2)))
 
 
 def run_subareas(
@@ -74,7 +82,7 @@ def run_subareas(
     records: dict[str, dict] = {}
     todo = []
     for sub in subareas:
-        done = Path(runs_dir) / sub.name / "gaussian-atoms" / "run" / DONE
+        done = place_of(runs_dir, sub.name).run_dir / DONE
         if done.is_file():
             records[sub.name] = json.loads(done.read_text())
         else:

@@ -95,7 +95,8 @@ def join_reports(reports: list[Reports], hard_core_A: float) -> FilmAtoms:
     np.add.at(positions, cluster, points)
     counts = np.bincount(cluster, minlength=n)
     positions /= np.maximum(counts, 1)[:, None]
-    found_in = np.array([len(set(owner[cluster == k])) for k in range(n)], dtype=np.int64)
+    pairs = np.unique(np.stack([cluster, owner]), axis=1)  # each (atom, sub-area) once
+    found_in = np.bincount(pairs[0], minlength=n).astype(np.int64)
     covered_by = np.sum([r.inside(positions) for r in reports], axis=0).astype(np.int64) if reports else found_in
     covered_by = np.maximum(covered_by, found_in)  # a mean may sit just outside an edge it was found inside
     confirmed, rate_real, rate_artefact = confirm(found_in, covered_by)
