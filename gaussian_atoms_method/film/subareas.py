@@ -81,7 +81,9 @@ def read_plan(path: Path) -> list[SubArea]:
     return [SubArea.from_json(d) for d in json.loads(Path(path).read_text())]
 
 
-def _mat(path: Path, name: str) -> np.ndarray:
+def mat_variable(path: Path, name: str) -> np.ndarray:
+    """Variable ``name`` of a MATLAB file as float64; ``TiltSeriesError`` naming the file where it
+    is missing or lacks the variable."""
     from dataparsers.readers import _mat_variables
 
     if not path.is_file():
@@ -102,8 +104,8 @@ def published_subareas(
     voxels of the full volume).  A file that cannot be read raises ``TiltSeriesError`` naming it."""
     data_dir, out_dir = Path(data_dir), Path(out_dir)
     align = data_dir / "alignPara.mat"
-    cen_all, half_all = _mat(align, "CropCen"), _mat(align, "CropHalf")
-    angles = _mat(data_dir / "angles.mat", "angle")
+    cen_all, half_all = mat_variable(align, "CropCen"), mat_variable(align, "CropHalf")
+    angles = mat_variable(data_dir / "angles.mat", "angle")
     angles = angles[:, 1] if angles.ndim == 2 and angles.shape[1] == 3 else angles.reshape(-1)
     missing = [a for a in areas if not 1 <= a <= len(cen_all)]
     if missing:  # before anything is written
@@ -114,7 +116,7 @@ def published_subareas(
         name = f"area{area}"
         target = out_dir / name
         if not (target / "tilt_series.json").is_file():
-            stack = _mat(data_dir / f"Projections_area{area}.mat", "Proj_sub")  # (x, y, tilt)
+            stack = mat_variable(data_dir / f"Projections_area{area}.mat", "Proj_sub")  # (x, y, tilt)
             write_tilt_series(
                 target,
                 np.moveaxis(stack, 2, 0).astype(np.float32),

@@ -48,11 +48,11 @@ CITATION = "Yuan et al., Nature Materials 21, 95-102 (2022)"
 
 
 def _mat(path: Path, name: str) -> np.ndarray:
-    from dataparsers.readers import _mat_variables
+    from gaussian_atoms_method.film.subareas import mat_variable
 
     if not path.is_file():
         raise FileNotFoundError(f"{path}: not found (the Ta film data, ../shared/data/ta_film)")
-    return np.asarray(_mat_variables(path)[name], dtype=np.float64)
+    return mat_variable(path, name)
 
 
 def area_geometry(data_dir: Path, area: int) -> tuple[np.ndarray, np.ndarray]:
@@ -145,8 +145,17 @@ def score_area(
     pred_A: np.ndarray, model_A: np.ndarray, shape_px: tuple[int, int], centre_px: tuple[float, float]
 ) -> dict:
     """Found fraction, extra atoms per model atom and RMSD in the scored region (module text)."""
-    pred = np.asarray(pred_A, dtype=np.float64).reshape(-1, 3)
     box, inside = scored_region(model_A, shape_px, centre_px)
+    return score_in_region(pred_A, model_A, box, inside)
+
+
+def score_in_region(pred_A: np.ndarray, model_A: np.ndarray, box: np.ndarray, inside: np.ndarray) -> dict:
+    """The scores of atoms ``pred_A`` against the model's atoms ``inside`` the region ``box``
+    ((2, 3) lower and upper corners, Å), after the global shift: found (within
+    :data:`MATCH_RADIUS_A`, one-to-one), extra per model atom (atoms in the box matched to no
+    model atom anywhere), RMSD over the found, and the share of atoms in the box with a
+    neighbour under :data:`CLOSE_PAIR_A`."""
+    pred = np.asarray(pred_A, dtype=np.float64).reshape(-1, 3)
     shift = global_shift(pred, model_A[inside], MATCH_RADIUS_A) if len(pred) else np.zeros(3)
     pred = pred + shift
     pi, ti = match_atoms(pred, model_A, MATCH_RADIUS_A)

@@ -15,16 +15,15 @@ from pathlib import Path
 
 import numpy as np
 
-from gaussian_atoms_method.atoms.matching import global_shift, match_atoms
-from gaussian_atoms_method.atoms.pair_distribution import nearest_neighbour_distances
+from gaussian_atoms_method.atoms.matching import match_atoms
 from gaussian_atoms_method.harness.film_benchmark import (
     CITATION,
-    CLOSE_PAIR_A,
     DEPTH_MARGIN_A,
     FULL_VOLUME_CENTRE_VOX,
     MATCH_RADIUS_A,
     PIXEL_SIZE_A,
     _mat,
+    score_in_region,
 )
 
 STRIPS = {1: tuple(range(1, 17)), 2: tuple(range(17, 30))}
@@ -48,28 +47,12 @@ def score_strip(film_dir: Path, data_dir: Path) -> dict:
     z = model[in_xy, 2]
     lo, hi = np.r_[lo_xy, z.min() - DEPTH_MARGIN_A], np.r_[hi_xy, z.max() + DEPTH_MARGIN_A]
     inside = np.all((model >= lo) & (model <= hi), axis=1)
-    shift = global_shift(pred, model[inside], MATCH_RADIUS_A)
-    pred = pred + shift
-    pi, ti = match_atoms(pred, model, MATCH_RADIUS_A)
-    found = inside[ti]
-    pred_inside = np.all((pred >= lo) & (pred <= hi), axis=1)
-    matched = np.zeros(len(pred), dtype=bool)
-    matched[pi] = True
-    err = pred[pi[found]] - model[ti[found]]
-    close = nearest_neighbour_distances(pred)[pred_inside] < CLOSE_PAIR_A
-    n = int(inside.sum())
+    scores = score_in_region(pred, model, np.stack([lo, hi]), inside)
     share = found_in[confirmed] / np.maximum(covered_by[confirmed], 1)
-    return {
-        "n_model": n,
-        "n_pred": int(pred_inside.sum()),
-        "found": float(found.sum()) / n,
-        "extra_per_model_atom": float((pred_inside & ~matched).sum()) / n,
-        "rmsd_pm": float(np.sqrt((err**2).sum(axis=1).mean()) * 100.0),
-        "share_close": float(close.mean()) if len(close) else 0.0,
+    return scores | {
         "median_found_in": float(np.median(found_in[confirmed])),
         "median_covered_by": float(np.median(covered_by[confirmed])),
         "median_share_found": float(np.median(share)),
-        "shift_A": shift.tolist(),
         "citation": CITATION,
     }
 
