@@ -101,10 +101,6 @@ def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float | N
                 )
             import torch
 
-            from gaussian_atoms_method.physics import gpu_libraries
-
-            if gpu() is not None:
-                gpu_libraries.load_in_background("cuda")  # the training's libraries, beside the start
             from gaussian_atoms_method.atoms.initialise import compute_start
             from gaussian_atoms_method.density.strategy import DensityControl
 

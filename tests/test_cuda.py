@@ -310,16 +310,3 @@ def test_steps_replayed_as_a_cuda_graph_train_as_eager_steps(tmp_path, views):
         torch.testing.assert_close(graphed.gauss_params[name], eager.gauss_params[name], rtol=0, atol=1e-4)
     for name, param in eager.view_params.items():
         torch.testing.assert_close(graphed.view_params[name], param, rtol=1e-4, atol=1e-6)
-
-
-def test_gpu_libraries_loaded_ahead_only_on_a_gpu_and_without_random_draws():
-    from gaussian_atoms_method.physics import gpu_libraries
-
-    assert not gpu_libraries.load_in_background("cpu")  # nothing to load off a GPU
-    gpu_libraries.wait()
-    if not torch.cuda.is_available():
-        return
-    before = torch.cuda.get_rng_state()
-    gpu_libraries.load("cuda")
-    assert not gpu_libraries.load("cuda")  # once a process
-    assert torch.equal(torch.cuda.get_rng_state(), before)  # a run's random draws are its own

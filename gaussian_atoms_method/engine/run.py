@@ -32,7 +32,6 @@ from gaussian_atoms_method.engine.run_files import (
 from gaussian_atoms_method.engine.training import FitLoop, LoopSettings, train
 from gaussian_atoms_method.engine.view_set import ViewSet
 from gaussian_atoms_method.engine.views import views_from_tilt_series
-from gaussian_atoms_method.physics import gpu_libraries
 from gaussian_atoms_method.physics.units import normalised_projections
 
 MAX_ITERATIONS = 3000
@@ -106,7 +105,6 @@ def fit_tilt_series(
     records with ``dataparser_options``).  Raises ``FloatingPointError`` naming the step and
     the cause where the loss stops being finite."""
     lean_torch()  # torch's compiler front end and symbolic shapes stay unimported
-    gpu_libraries.load_in_background(settings.device)  # beside the start (where the launcher has not begun it)
     place = settings.place.resolved(data)
     run_dir = place.run_dir
     run_dir.mkdir(parents=True, exist_ok=True)

@@ -31,7 +31,6 @@ import torch
 from gaussian_atoms_method.engine.console import CONSOLE
 from gaussian_atoms_method.engine.rendering import projector_name
 from gaussian_atoms_method.engine.step_views import step_views
-from gaussian_atoms_method.physics import gpu_libraries
 
 
 class Steps(Protocol):
@@ -126,7 +125,6 @@ class StepGraph:
     def _capture(self, steps: Steps, model, camera, key) -> bool:
         """Capture the step's tensor work (:func:`step_losses` and the backward pass) on the
         inputs; False (and steps eager from now on, with one line saying why) if it cannot be."""
-        gpu_libraries.wait()  # no other thread's allocation while capturing
         steps.zero_grads()  # the graph's backward writes the gradients afresh
         graph, index, image = torch.cuda.CUDAGraph(), *self._inputs
         self.index_in_use, model.finite_watch.captured = index, None
