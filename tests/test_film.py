@@ -1,6 +1,7 @@
 """A film wider than the field, fitted in overlapping sub-areas on Ray and joined
 (gaussian_atoms_method/film/)."""
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -130,6 +131,11 @@ def test_a_film_runs_on_ray_resumes_and_names_a_broken_sub_area(small_film):
     assert len(cKDTree(reported).query_pairs(2.0)) == 0  # none doubled at the seam
     for name in ("atoms.xyz", "non_atoms.xyz", "atoms.csv", "film.png", "summary.json"):
         assert (root / "out" / name).is_file()
+    # each task's cost, recorded by the task and read back with it: a fit takes time, a worker
+    # holds at least torch's own import (hundreds of MB), and CPU tasks have no GPU peak
+    tasks = json.loads((root / "out" / "summary.json").read_text())["tasks"]
+    assert 0 < tasks["median_fit_s"] <= tasks["max_fit_s"]
+    assert tasks["max_worker_rss_GB"] > 0.1 and tasks["max_peak_gpu_GB"] is None
 
 
 @pytest.mark.parametrize(

@@ -64,12 +64,32 @@ def reconstruct_film(
         for s in subareas
     ]
     film = join_reports(reports, hard_core_A)
-    write_film(film, output_dir, hard_core_A, [s.name for s in subareas])
+    write_film(film, output_dir, hard_core_A, [s.name for s in subareas], task_summary(records.values()))
     return film
 
 
-def write_film(film: FilmAtoms, output_dir: Path, hard_core_A: float, names: list[str]) -> None:
-    """The film's files (module text) and its summary line."""
+def task_summary(records) -> dict:
+    """The sub-area tasks' costs (:func:`~.runner.task_costs`) over ``records``: the median and
+    largest fit time, the largest GPU peak and worker memory (None where no record has it: fits
+    made before the costs were recorded, or on the CPU for the GPU's)."""
+
+    def values(key):
+        return [r[key] for r in records if r.get(key) is not None]
+
+    fit_s, gpu, rss = values("fit_s"), values("peak_gpu_GB"), values("worker_rss_GB")
+    return {
+        "median_fit_s": float(np.median(fit_s)) if fit_s else None,
+        "max_fit_s": max(fit_s) if fit_s else None,
+        "max_peak_gpu_GB": max(gpu) if gpu else None,
+        "max_worker_rss_GB": max(rss) if rss else None,
+    }
+
+
+def write_film(
+    film: FilmAtoms, output_dir: Path, hard_core_A: float, names: list[str], tasks: dict | None = None
+) -> None:
+    """The film's files (module text) and its summary line; ``tasks``: the sub-areas' costs
+    (:func:`task_summary`), in the summary."""
     output_dir = Path(output_dir)
     atoms = AtomSet(positions=film.positions[film.confirmed])
     rest = AtomSet(positions=film.positions[~film.confirmed])
@@ -94,6 +114,7 @@ def write_film(film: FilmAtoms, output_dir: Path, hard_core_A: float, names: lis
         "recurrence_real": film.rate_real,
         "recurrence_artefact": film.rate_artefact,
         "median_found_in_of_covered_by": median if film.confirmed.any() else None,
+        "tasks": tasks or {},
     }
     (output_dir / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     _draw(film.positions, share, output_dir / "film.png")

@@ -27,7 +27,10 @@ def place_of(runs_dir: Path | str, name: str):
 
 def fit_subarea(subarea: dict, runs_dir: str, options: dict, device: str, max_steps: int, threads: int) -> dict:
     """Fit one sub-area (``subarea``: :meth:`SubArea.to_json`) unless its ``done.json`` exists;
-    return that record: the name, the atoms file and the hard core its run read."""
+    return that record: the name, the atoms file, the hard core its run read and what the task
+    cost (:func:`task_costs`)."""
+    import time
+
     import torch
 
     from dataparsers.tilt_series_format import load_tilt_series
@@ -41,15 +44,40 @@ def fit_subarea(subarea: dict, runs_dir: str, options: dict, device: str, max_st
         return json.loads(done.read_text())
     if device == "cpu" and threads > 0:
         torch.set_num_threads(threads)
+    if device == "cuda":
+        torch.cuda.reset_peak_memory_stats()
+    started = time.perf_counter()
     series = load_tilt_series(sub.data)
     settings = RunSettings(place, device, max_steps, progress=False, tensorboard=False, checkpoints=False)
     run_dir = fit_tilt_series(series, FitOptions(**options), settings, sub.data)
     structure = json.loads((run_dir / "structure.json").read_text())
-    record = {"name": sub.name, "atoms": str(run_dir / "atoms.xyz"), "hard_core_A": structure.get("hard_core_A")}
+    record = {
+        "name": sub.name,
+        "atoms": str(run_dir / "atoms.xyz"),
+        "hard_core_A": structure.get("hard_core_A"),
+        **task_costs(time.perf_counter() - started, device),
+    }
     tmp = done.with_suffix(".tmp")
     tmp.write_text(json.dumps(record) + "\n")
     tmp.replace(done)
     return record
+
+
+def task_costs(seconds: float, device: str) -> dict:
+    """What a sub-area's task cost: ``fit_s`` (reading the series to the written atoms),
+    ``peak_gpu_GB`` (torch's largest allocation on the GPU during the fit; None off a GPU) and
+    ``worker_rss_GB`` (the largest resident memory of the worker process so far: a Ray worker
+    runs several tasks, so an upper bound for this one's)."""
+    import resource
+
+    import torch
+
+    rss_kB = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # kilobytes on Linux
+    return {
+        "fit_s": round(seconds, 2),
+        "peak_gpu_GB": round(torch.cuda.max_memory_allocated() / 1e9, 3) if device == "cuda" else None,
+        "worker_rss_GB": round(rss_kB * 1024 / 1e9, 3),
+    }
 
 
 def cores_per_task(n_tasks: int) -> int:
