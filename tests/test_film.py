@@ -146,6 +146,7 @@ def test_a_film_runs_on_ray_resumes_and_names_a_broken_sub_area(small_film):
         (["--published", "/nonexistent", "--areas", "one", "--pixel-size-A", "0.32"], "--areas"),
         (["--published", "/nonexistent", "--areas", "1", "--pixel-size-A", "0.32"], "/nonexistent/alignPara.mat"),
         (["--series", "/nonexistent"], "/nonexistent"),
+        (["--series", "/nonexistent", "--tasks-per-gpu", "0"], "--tasks-per-gpu"),
     ],
 )
 def test_film_input_errors_are_one_line_and_write_nothing(tmp_path, capsys, args, named):
@@ -180,3 +181,12 @@ def test_the_film_thickness_is_read_from_the_series():
     assert 0.85 * span <= film_thickness_A(series) <= 1.5 * span
     (across, along), (step, _) = default_tiling(series)
     assert along == series.projections.shape[2] and 6 <= across / step <= 8
+
+
+@pytest.mark.parametrize("tasks_per_gpu", [0, 1.5, True])
+def test_tasks_per_gpu_must_be_a_whole_number_and_nothing_is_written(tmp_path, tasks_per_gpu):
+    from gaussian_atoms_method.film.film import reconstruct_film
+
+    with pytest.raises(ValueError, match="tasks_per_gpu"):
+        reconstruct_film([], tmp_path / "film", tasks_per_gpu=tasks_per_gpu)
+    assert not (tmp_path / "film").exists()

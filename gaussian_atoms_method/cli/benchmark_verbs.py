@@ -135,6 +135,8 @@ class BenchmarkFilm:
     strips: tuple[int, ...] = ()
     """Instead of single sub-areas: these published strips (1: areas 1-16, 2: areas 17-29), each
     fitted on Ray (`gaussian-atoms film`), joined and scored in the strip's interior."""
+    tasks_per_gpu: int = 1
+    """With --strips on GPUs: sub-areas fitted at once on each GPU."""
 
     simulated: bool = False
     """Instead: the harness's film (Lobato, wider than each tile) cut into tiles, fitted on Ray,
@@ -154,7 +156,12 @@ class BenchmarkFilm:
             from gaussian_atoms_method.harness.film_strip import run_strip
 
             for strip in self.strips:
-                print(f"Ta film strip {strip}: " + json.dumps(run_strip(strip, self.data, self.output, self.device)))
+                print(
+                    f"Ta film strip {strip}: "
+                    + json.dumps(
+                        run_strip(strip, self.data, self.output, self.device, tasks_per_gpu=self.tasks_per_gpu)
+                    )
+                )
             return
         from gaussian_atoms_method.harness.film_benchmark import FilmBenchmark
 

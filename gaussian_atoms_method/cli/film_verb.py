@@ -42,6 +42,9 @@ class Film:
     species: Optional[str] = None
     """The film's elements, e.g. Ta: they set the hard core that joins reports of one atom."""
     max_num_iterations: int = 3000
+    tasks_per_gpu: int = 1
+    """Sub-areas fitted at once on each GPU: a sub-area's fit holds about 1 GB of it and leaves
+    most of its time to kernel launches, so several can share one."""
 
     def subareas(self):
         """The sub-areas the options name (written as tilt series under ``output/data``)."""
@@ -70,7 +73,17 @@ class Film:
     def main(self) -> None:
         from gaussian_atoms_method.film.film import reconstruct_film
 
-        reconstruct_film(self.subareas(), self.output, self.device, self.species, self.max_num_iterations, self.address)
+        if self.tasks_per_gpu < 1:
+            raise ValueError(f"--tasks-per-gpu {self.tasks_per_gpu}: expected at least 1")
+        reconstruct_film(
+            self.subareas(),
+            self.output,
+            self.device,
+            self.species,
+            self.max_num_iterations,
+            self.address,
+            tasks_per_gpu=self.tasks_per_gpu,
+        )
 
 
 def parse_areas(text: str) -> list[int]:

@@ -36,11 +36,13 @@ def reconstruct_film(
     max_steps: int = 3000,
     address: str | None = None,
     progress: bool = True,
+    tasks_per_gpu: int = 1,
     **model_options,
 ) -> FilmAtoms:
     """Fit ``subareas``, join them and write the film (module text).  ``species`` sets the hard
-    core that joins reports (else the median of the fits' own readings); ``model_options`` are
-    the fit's options by their Python names.  Raises :class:`FilmError` naming the sub-areas
+    core that joins reports (else the median of the fits' own readings); ``tasks_per_gpu``
+    sub-areas share each GPU (:func:`~.runner.run_subareas`); ``model_options`` are the fit's
+    options by their Python names.  Raises :class:`FilmError` naming the sub-areas
     that failed after a retry; the others' fits stay, and a second call runs only those."""
     from gaussian_atoms_method.atoms.hard_core import hard_core_from_species
     from gaussian_atoms_method.engine.options import FitOptions
@@ -50,10 +52,14 @@ def reconstruct_film(
     if unknown:  # before anything is written
         raise ValueError(f"{unknown[0]}: not a model option (the options of `ns-train gaussian-atoms --help`)")
     FitOptions(**model_options).check()
+    if isinstance(tasks_per_gpu, bool) or not isinstance(tasks_per_gpu, int) or tasks_per_gpu < 1:
+        raise ValueError(f"tasks_per_gpu {tasks_per_gpu!r}: expected a whole number of tasks, at least 1")
     output_dir = Path(output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
     write_plan(subareas, output_dir / "film.json")
-    records, failures = run_subareas(subareas, output_dir / "runs", model_options, device, max_steps, address, progress)
+    records, failures = run_subareas(
+        subareas, output_dir / "runs", model_options, device, max_steps, address, progress, tasks_per_gpu
+    )
     if failures:
         named = "; ".join(f"{name}: {why}" for name, why in sorted(failures.items()))
         raise FilmError(f"{len(failures)} of {len(subareas)} sub-areas failed ({named}); run again to retry them")

@@ -98,9 +98,12 @@ def run_subareas(
     max_steps: int,
     address: str | None = None,
     progress: bool = True,
+    tasks_per_gpu: int = 1,
 ) -> tuple[dict[str, dict], dict[str, str]]:
     """Fit every sub-area as a Ray task; ``({name: record}, {name: why it failed})``.  Sub-areas
-    already done are read back, not run; a failed task is retried once."""
+    already done are read back, not run; a failed task is retried once.  On GPUs,
+    ``tasks_per_gpu`` tasks share each GPU (a sub-area's fit is bound by its kernel launches, not
+    the GPU's arithmetic, and holds about 1 GB of it: :func:`task_costs`)."""
     try:
         import ray
     except ImportError as exc:
@@ -122,7 +125,7 @@ def run_subareas(
         threads = 0 if gpu else cores_per_task(len(todo))
         if not ray.is_initialized():
             ray.init(address=address, include_dashboard=False, log_to_driver=False, configure_logging=False)
-        resources = {"num_gpus": 1} if gpu else {"num_cpus": threads}
+        resources = {"num_gpus": 1 / tasks_per_gpu} if gpu else {"num_cpus": threads}
         task = ray.remote(max_retries=1, retry_exceptions=True, **resources)(fit_subarea)
         pending = {
             task.remote(sub.to_json(), str(runs_dir), options, device, max_steps, threads): sub.name for sub in todo

@@ -57,7 +57,14 @@ def score_strip(film_dir: Path, data_dir: Path) -> dict:
     }
 
 
-def run_strip(strip: int, data_dir: Path, output: Path, device: str = "cpu", address: str | None = None) -> dict:
+def run_strip(
+    strip: int,
+    data_dir: Path,
+    output: Path,
+    device: str = "cpu",
+    address: str | None = None,
+    tasks_per_gpu: int = 1,
+) -> dict:
     """Fit and join a published strip of the Ta film (resumable) and score it."""
     from gaussian_atoms_method.film.film import reconstruct_film
     from gaussian_atoms_method.film.subareas import published_subareas
@@ -66,7 +73,7 @@ def run_strip(strip: int, data_dir: Path, output: Path, device: str = "cpu", add
     subareas = published_subareas(
         data_dir, list(STRIPS[strip]), output / "data", PIXEL_SIZE_A, tuple(FULL_VOLUME_CENTRE_VOX)
     )
-    reconstruct_film(subareas, output, device, "Ta", address=address)
+    reconstruct_film(subareas, output, device, "Ta", address=address, tasks_per_gpu=tasks_per_gpu)
     scores = score_strip(output, data_dir)
     (output / "scores.json").write_text(json.dumps(scores, indent=1) + "\n")
     return scores
