@@ -99,3 +99,39 @@ def test_a_device_this_machine_lacks_is_named_in_one_line(monkeypatch, tmp_path)
     assert "--machine.device-type cuda" in str(info.value) and "\n" not in str(info.value)
     config.machine.device_type = "cpu"
     check_input(config)
+
+
+@pytest.mark.parametrize(
+    "argv, prog, named",
+    [
+        (["simulate", "--noise-std", "abc"], "gaussian-atoms simulate", "--noise-std"),
+        (["film", "--output", "x", "--full-centre-vox", "1", "2"], "gaussian-atoms film", "--full-centre-vox"),
+        (["simulat"], "gaussian-atoms", "simulat"),
+        (  # the engine's own parse
+            ["train", "--vis", "tensorboard", "--max-num-iterations", "abc", "tilt-series", "--data", "x"],
+            "gaussian-atoms train",
+            "--max-num-iterations",
+        ),
+        (  # an option the engine does not know: nerfstudio's parse
+            ["train", "--vis", "tensorboard", "tilt-series", "--data", "x", "--bogus", "3"],
+            "gaussian-atoms train",
+            "--bogus",
+        ),
+    ],
+)
+def test_a_malformed_command_line_is_one_line_naming_the_option(argv, prog, named, capsys):
+    from gaussian_atoms_method.cli import entrypoint
+
+    with pytest.raises(SystemExit) as exit_info:
+        entrypoint(argv)
+    lines = [line for line in capsys.readouterr().err.splitlines() if "Warning" not in line and "warn" not in line]
+    assert exit_info.value.code == 2 and len(lines) == 1, lines
+    assert lines[0].startswith(f"{prog}: error: ") and named in lines[0] and f"{prog} --help" in lines[0]
+
+
+def test_help_still_reaches_the_user(capsys):
+    from gaussian_atoms_method.cli import entrypoint
+
+    with pytest.raises(SystemExit) as exit_info:
+        entrypoint(["film", "--help"])
+    assert exit_info.value.code == 0 and "--tasks-per-gpu" in capsys.readouterr().out

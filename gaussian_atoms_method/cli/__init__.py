@@ -10,6 +10,7 @@ nerfstudio's trainer is not needed (:mod:`.train_command`).
 from __future__ import annotations
 
 import sys
+import typing
 from typing import Annotated, Union
 
 import tyro
@@ -26,6 +27,7 @@ from gaussian_atoms_method.cli.benchmark_verbs import (
 )
 from gaussian_atoms_method.cli.data_verbs import Evaluate, Export, Simulate, Train, View
 from gaussian_atoms_method.cli.film_verb import Film
+from gaussian_atoms_method.cli.parse_errors import one_line_errors
 from gaussian_atoms_method.cli.tool_verbs import CheckPrecision, HeldOutViews, InputMatrix, Screenshot
 
 Commands = Union[
@@ -48,6 +50,9 @@ Commands = Union[
     Annotated[Screenshot, tyro.conf.subcommand("screenshot")],
 ]
 
+VERBS = tuple(m.name for verb in typing.get_args(Commands) for m in verb.__metadata__ if hasattr(m, "name"))
+"""The verbs' names, as the command line spells them."""
+
 
 def parse(argv: list[str]) -> object:
     """What ``gaussian-atoms ARGV`` would run, built but not run: for ``train`` the engine's
@@ -61,12 +66,15 @@ def parse(argv: list[str]) -> object:
             return train_command.parse(argv[1:])
         from gaussian_atoms_method.nerfstudio_layer.launch import build_config
 
-        return build_config(argv[1:])
+        with one_line_errors("gaussian-atoms train"):
+            return build_config(argv[1:])
     grid: tuple[str, ...] = ()
     if argv[:1] == ["sweep"] and "--" in argv:
         cut = argv.index("--")
         argv, grid = argv[:cut], split_grid(argv[cut + 1 :])
-    command = tyro.cli(Commands, args=argv)
+    verb = f"gaussian-atoms {argv[0]}" if argv and argv[0] in VERBS else "gaussian-atoms"
+    with one_line_errors(verb):
+        command = tyro.cli(Commands, args=argv)
     if isinstance(command, Sweep):
         command.grid = grid
     return command

@@ -124,19 +124,25 @@ def engine_runs(argv: list[str]) -> bool:
 
 
 def parse(argv: list[str]) -> tuple[TrainOptions, TiltSeriesOptions]:
-    """The options of ``gaussian-atoms train ARGV`` (tyro's one-line errors and exit 2 for a
-    malformed command line)."""
+    """The options of ``gaussian-atoms train ARGV`` (one line and exit 2 for a malformed command
+    line, :func:`~.parse_errors.one_line_errors`)."""
     import tyro
+
+    from gaussian_atoms_method.cli.parse_errors import one_line_errors
 
     trainer, tilt = split_at_subcommand(argv)
     # booleans take a value, as ns-train's (--pipeline.model.cluster-merge False)
-    options = tyro.cli(TrainOptions, args=trainer, config=(tyro.conf.FlagConversionOff,), prog="gaussian-atoms train")
-    series = tyro.cli(
-        TiltSeriesOptions,
-        args=tilt,
-        config=(tyro.conf.FlagConversionOff,),
-        prog=f"gaussian-atoms train {SUBCOMMAND}",
-    )
+    with one_line_errors("gaussian-atoms train"):
+        options = tyro.cli(
+            TrainOptions, args=trainer, config=(tyro.conf.FlagConversionOff,), prog="gaussian-atoms train"
+        )
+    with one_line_errors(f"gaussian-atoms train {SUBCOMMAND}"):
+        series = tyro.cli(
+            TiltSeriesOptions,
+            args=tilt,
+            config=(tyro.conf.FlagConversionOff,),
+            prog=f"gaussian-atoms train {SUBCOMMAND}",
+        )
     return options, series
 
 
