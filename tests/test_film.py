@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from gaussian_atoms_method.film.stitch import Reports, confirm, join_reports
 
@@ -190,3 +191,25 @@ def test_tasks_per_gpu_must_be_a_whole_number_and_nothing_is_written(tmp_path, t
     with pytest.raises(ValueError, match="tasks_per_gpu"):
         reconstruct_film([], tmp_path / "film", tasks_per_gpu=tasks_per_gpu)
     assert not (tmp_path / "film").exists()
+
+
+def test_the_tasks_device_follows_the_cluster():
+    from gaussian_atoms_method.film.runner import cluster_device
+
+    assert cluster_device("auto", 0, None) == "cpu" and cluster_device("auto", 2.0, None) == "cuda"
+    assert cluster_device("cpu", 4.0, None) == "cpu" and cluster_device("cuda", 1.0, "h:1") == "cuda"
+    with pytest.raises(ValueError, match="cluster at h:1 has no GPU"):  # its tasks would wait forever
+        cluster_device("cuda", 0, "h:1")
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="a machine without a GPU")
+def test_device_cuda_without_a_gpu_is_one_line_and_writes_nothing(tmp_path, capsys):
+    from gaussian_atoms_method.cli import entrypoint
+
+    out = tmp_path / "film"
+    argv = ["film", "--published", "/nonexistent", "--areas", "1", "--pixel-size-A", "0.32", "--device", "cuda"]
+    with pytest.raises(SystemExit) as exit_info:
+        entrypoint([*argv, "--output", str(out)])
+    err = capsys.readouterr().err.strip()
+    assert exit_info.value.code == 2 and len(err.splitlines()) == 1 and "--device cuda" in err, err
+    assert not out.exists()

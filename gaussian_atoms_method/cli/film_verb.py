@@ -75,6 +75,11 @@ class Film:
 
         if self.tasks_per_gpu < 1:
             raise ValueError(f"--tasks-per-gpu {self.tasks_per_gpu}: expected at least 1")
+        if self.address is None and self.device == "cuda":  # a local cluster: its GPUs are this machine's
+            from gaussian_atoms_method.physics.devices import usable
+
+            if not usable("cuda"):
+                raise ValueError("--device cuda: torch sees no GPU on this machine; use --device cpu or auto")
         reconstruct_film(
             self.subareas(),
             self.output,

@@ -31,7 +31,7 @@ class FilmError(RuntimeError):
 def reconstruct_film(
     subareas: list[SubArea],
     output_dir: Path,
-    device: str = "cpu",
+    device: str = "auto",
     species: str | None = None,
     max_steps: int = 3000,
     address: str | None = None,
@@ -39,7 +39,9 @@ def reconstruct_film(
     tasks_per_gpu: int = 1,
     **model_options,
 ) -> FilmAtoms:
-    """Fit ``subareas``, join them and write the film (module text).  ``species`` sets the hard
+    """Fit ``subareas``, join them and write the film (module text).  ``device``: ``auto`` (the
+    GPUs where the cluster has them), ``cpu`` or ``cuda``, checked before anything is written on
+    a local cluster (a ValueError naming it).  ``species`` sets the hard
     core that joins reports (else the median of the fits' own readings); ``tasks_per_gpu``
     sub-areas share each GPU (:func:`~.runner.run_subareas`); ``model_options`` are the fit's
     options by their Python names.  Raises :class:`FilmError` naming the sub-areas
@@ -54,6 +56,10 @@ def reconstruct_film(
     FitOptions(**model_options).check()
     if isinstance(tasks_per_gpu, bool) or not isinstance(tasks_per_gpu, int) or tasks_per_gpu < 1:
         raise ValueError(f"tasks_per_gpu {tasks_per_gpu!r}: expected a whole number of tasks, at least 1")
+    if address is None:  # a local cluster: this machine's devices (on another cluster, its own: runner)
+        from gaussian_atoms_method.physics.devices import resolve
+
+        device = resolve(device)
     output_dir = Path(output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
     write_plan(subareas, output_dir / "film.json")

@@ -80,6 +80,18 @@ def task_costs(seconds: float, device: str) -> dict:
     }
 
 
+def cluster_device(device: str, cluster_gpus: float, address: str | None) -> str:
+    """The tasks' device on a Ray cluster with ``cluster_gpus`` GPUs: ``auto`` is ``cuda`` where it
+    has any, else ``cpu``; ``cuda`` on a cluster without one is a ValueError naming it (its tasks
+    would wait for a GPU forever)."""
+    if device == "auto":
+        return "cuda" if cluster_gpus > 0 else "cpu"
+    if device == "cuda" and cluster_gpus <= 0:
+        where = f"the Ray cluster at {address}" if address else "this machine's Ray cluster"
+        raise ValueError(f"device cuda: {where} has no GPU; use cpu or auto")
+    return device
+
+
 def cores_per_task(n_tasks: int) -> int:
     """Cores for one CPU task: this machine's shared among at most ``n_tasks`` tasks, at least 2
     each (torch's matrix products and the projector's tiles use two threads well; one task a
@@ -121,10 +133,11 @@ def run_subareas(
     failures: dict[str, str] = {}
     bar = tqdm(total=len(subareas), initial=len(records), desc="sub-areas", unit="area", disable=not progress)
     if todo:
-        gpu = device == "cuda"
-        threads = 0 if gpu else cores_per_task(len(todo))
         if not ray.is_initialized():
             ray.init(address=address, include_dashboard=False, log_to_driver=False, configure_logging=False)
+        device = cluster_device(device, ray.cluster_resources().get("GPU", 0), address)
+        gpu = device == "cuda"
+        threads = 0 if gpu else cores_per_task(len(todo))
         resources = {"num_gpus": 1 / tasks_per_gpu} if gpu else {"num_cpus": threads}
         task = ray.remote(max_retries=1, retry_exceptions=True, **resources)(fit_subarea)
         pending = {
