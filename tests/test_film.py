@@ -119,6 +119,10 @@ def test_a_film_runs_on_ray_resumes_and_names_a_broken_sub_area(small_film):
     finally:
         ray.shutdown()
     assert first.stat().st_mtime_ns == stamp  # read back, not run again
+    from gaussian_atoms_method.atoms.hard_core import hard_core_from_species
+
+    # the film's species set each fit's hard core, not only the join's
+    assert json.loads(first.read_text())["hard_core_A"] == pytest.approx(hard_core_from_species("Pd"))
     reported = film.positions[film.confirmed]
     union = np.zeros(len(truth), dtype=bool)
     for s in subareas:
@@ -148,6 +152,8 @@ def test_a_film_runs_on_ray_resumes_and_names_a_broken_sub_area(small_film):
         (["--published", "/nonexistent", "--areas", "1", "--pixel-size-A", "0.32"], "/nonexistent/alignPara.mat"),
         (["--series", "/nonexistent"], "/nonexistent"),
         (["--series", "/nonexistent", "--tasks-per-gpu", "0"], "--tasks-per-gpu"),
+        (["--series", "/nonexistent", "--max-num-iterations", "0"], "--max-num-iterations"),
+        (["--series", "/nonexistent", "--species", "Ta,Xx"], "unknown element 'Xx'"),
     ],
 )
 def test_film_input_errors_are_one_line_and_write_nothing(tmp_path, capsys, args, named):
@@ -184,12 +190,21 @@ def test_the_film_thickness_is_read_from_the_series():
     assert along == series.projections.shape[2] and 6 <= across / step <= 8
 
 
-@pytest.mark.parametrize("tasks_per_gpu", [0, 1.5, True])
-def test_tasks_per_gpu_must_be_a_whole_number_and_nothing_is_written(tmp_path, tasks_per_gpu):
+@pytest.mark.parametrize(
+    "options, named",
+    [
+        ({"tasks_per_gpu": 0}, "tasks_per_gpu"),
+        ({"tasks_per_gpu": 1.5}, "tasks_per_gpu"),
+        ({"tasks_per_gpu": True}, "tasks_per_gpu"),
+        ({"max_steps": 0}, "max_steps"),
+        ({"species": "Xx"}, "unknown element 'Xx'"),
+    ],
+)
+def test_reconstruct_film_checks_its_arguments_before_writing(tmp_path, options, named):
     from gaussian_atoms_method.film.film import reconstruct_film
 
-    with pytest.raises(ValueError, match="tasks_per_gpu"):
-        reconstruct_film([], tmp_path / "film", tasks_per_gpu=tasks_per_gpu)
+    with pytest.raises(ValueError, match=named):
+        reconstruct_film([], tmp_path / "film", **options)
     assert not (tmp_path / "film").exists()
 
 
@@ -213,3 +228,12 @@ def test_device_cuda_without_a_gpu_is_one_line_and_writes_nothing(tmp_path, caps
     err = capsys.readouterr().err.strip()
     assert exit_info.value.code == 2 and len(err.splitlines()) == 1 and "--device cuda" in err, err
     assert not out.exists()
+
+
+def test_areas_are_read_as_numbers_and_ranges_each_once():
+    from gaussian_atoms_method.cli.film_verb import parse_areas
+
+    assert parse_areas("1-3,8") == [1, 2, 3, 8]
+    assert parse_areas("8, 8,2-3,3") == [8, 2, 3]  # a sub-area named twice is fitted once
+    with pytest.raises(ValueError, match="--areas"):
+        parse_areas("1-x")

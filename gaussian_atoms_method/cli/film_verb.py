@@ -40,7 +40,8 @@ class Film:
     address: Optional[str] = None
     """A Ray cluster's address (default: a local cluster on this machine)."""
     species: Optional[str] = None
-    """The film's elements, e.g. Ta: they set the hard core that joins reports of one atom."""
+    """The film's elements, e.g. Ta: they set the hard core of every sub-area's fit and of the join
+    of their reports."""
     max_num_iterations: int = 3000
     tasks_per_gpu: int = 1
     """Sub-areas fitted at once on each GPU: a sub-area's fit holds about 1 GB of it and leaves
@@ -75,6 +76,12 @@ class Film:
 
         if self.tasks_per_gpu < 1:
             raise ValueError(f"--tasks-per-gpu {self.tasks_per_gpu}: expected at least 1")
+        if self.max_num_iterations < 1:
+            raise ValueError(f"--max-num-iterations {self.max_num_iterations}: expected at least 1 training step")
+        if self.species:
+            from gaussian_atoms_method.atoms.hard_core import parse_species
+
+            parse_species(self.species)  # an unknown element named before anything is written
         if self.address is None and self.device == "cuda":  # a local cluster: its GPUs are this machine's
             from gaussian_atoms_method.physics.devices import usable
 
@@ -92,7 +99,7 @@ class Film:
 
 
 def parse_areas(text: str) -> list[int]:
-    """``"1-3,8"`` -> ``[1, 2, 3, 8]``; a ``ValueError`` naming ``--areas`` otherwise."""
+    """``"1-3,8"`` -> ``[1, 2, 3, 8]`` (each once); a ``ValueError`` naming ``--areas`` otherwise."""
     out: list[int] = []
     try:
         for part in filter(None, (p.strip() for p in text.split(","))):
@@ -102,4 +109,4 @@ def parse_areas(text: str) -> list[int]:
         raise ValueError(f"--areas {text!r}: expected numbers and ranges, e.g. 1-16 or 8,21,23") from None
     if not out:
         raise ValueError("--areas: name the sub-areas, e.g. 1-16")
-    return out
+    return list(dict.fromkeys(out))  # each once, in the order given

@@ -42,11 +42,11 @@ def reconstruct_film(
     """Fit ``subareas``, join them and write the film (module text).  ``device``: ``auto`` (the
     GPUs where the cluster has them), ``cpu`` or ``cuda``, checked before anything is written on
     a local cluster (a ValueError naming it).  ``species`` sets the hard
-    core that joins reports (else the median of the fits' own readings); ``tasks_per_gpu``
+    core of every sub-area's fit and of the join (else the median of the fits' own readings); ``tasks_per_gpu``
     sub-areas share each GPU (:func:`~.runner.run_subareas`); ``model_options`` are the fit's
     options by their Python names.  Raises :class:`FilmError` naming the sub-areas
     that failed after a retry; the others' fits stay, and a second call runs only those."""
-    from gaussian_atoms_method.atoms.hard_core import hard_core_from_species
+    from gaussian_atoms_method.atoms.hard_core import hard_core_from_species, parse_species
     from gaussian_atoms_method.engine.options import FitOptions
 
     names = {f.name for f in fields(FitOptions)}
@@ -56,6 +56,10 @@ def reconstruct_film(
     FitOptions(**model_options).check()
     if isinstance(tasks_per_gpu, bool) or not isinstance(tasks_per_gpu, int) or tasks_per_gpu < 1:
         raise ValueError(f"tasks_per_gpu {tasks_per_gpu!r}: expected a whole number of tasks, at least 1")
+    if species:
+        species = ",".join(parse_species(species))  # an unknown element named before anything runs
+    if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
+        raise ValueError(f"max_steps {max_steps!r}: expected a whole number of training steps, at least 1")
     if address is None:  # a local cluster: this machine's devices (on another cluster, its own: runner)
         from gaussian_atoms_method.physics.devices import resolve
 
@@ -64,7 +68,7 @@ def reconstruct_film(
     output_dir.mkdir(parents=True, exist_ok=True)
     write_plan(subareas, output_dir / "film.json")
     records, failures = run_subareas(
-        subareas, output_dir / "runs", model_options, device, max_steps, address, progress, tasks_per_gpu
+        subareas, output_dir / "runs", model_options, device, max_steps, address, progress, tasks_per_gpu, species
     )
     if failures:
         named = "; ".join(f"{name}: {why}" for name, why in sorted(failures.items()))

@@ -25,10 +25,13 @@ def place_of(runs_dir: Path | str, name: str):
     return RunPlace(Path(runs_dir), name, "run")
 
 
-def fit_subarea(subarea: dict, runs_dir: str, options: dict, device: str, max_steps: int, threads: int) -> dict:
-    """Fit one sub-area (``subarea``: :meth:`SubArea.to_json`) unless its ``done.json`` exists;
-    return that record: the name, the atoms file, the hard core its run read and what the task
-    cost (:func:`task_costs`)."""
+def fit_subarea(
+    subarea: dict, runs_dir: str, options: dict, device: str, max_steps: int, threads: int, species: str | None = None
+) -> dict:
+    """Fit one sub-area (``subarea``: :meth:`SubArea.to_json`) unless its ``done.json`` exists,
+    with the film's ``species`` (its hard core) where given, else its series' own; return that
+    record: the name, the atoms file, the hard core its run read and what the task cost
+    (:func:`task_costs`)."""
     import time
 
     import torch
@@ -47,7 +50,7 @@ def fit_subarea(subarea: dict, runs_dir: str, options: dict, device: str, max_st
     if device == "cuda":
         torch.cuda.reset_peak_memory_stats()
     started = time.perf_counter()
-    series = load_tilt_series(sub.data)
+    series = load_tilt_series(sub.data, species=species or None)
     settings = RunSettings(place, device, max_steps, progress=False, tensorboard=False, checkpoints=False)
     run_dir = fit_tilt_series(series, FitOptions(**options), settings, sub.data)
     structure = json.loads((run_dir / "structure.json").read_text())
@@ -111,9 +114,11 @@ def run_subareas(
     address: str | None = None,
     progress: bool = True,
     tasks_per_gpu: int = 1,
+    species: str | None = None,
 ) -> tuple[dict[str, dict], dict[str, str]]:
     """Fit every sub-area as a Ray task; ``({name: record}, {name: why it failed})``.  Sub-areas
-    already done are read back, not run; a failed task is retried once.  On GPUs,
+    already done are read back, not run; a failed task is retried once.  Each fit uses
+    ``species`` where given (:func:`fit_subarea`).  On GPUs,
     ``tasks_per_gpu`` tasks share each GPU (a sub-area's fit is bound by its kernel launches, not
     the GPU's arithmetic, and holds about 1 GB of it: :func:`task_costs`)."""
     try:
@@ -141,7 +146,8 @@ def run_subareas(
         resources = {"num_gpus": 1 / tasks_per_gpu} if gpu else {"num_cpus": threads}
         task = ray.remote(max_retries=1, retry_exceptions=True, **resources)(fit_subarea)
         pending = {
-            task.remote(sub.to_json(), str(runs_dir), options, device, max_steps, threads): sub.name for sub in todo
+            task.remote(sub.to_json(), str(runs_dir), options, device, max_steps, threads, species): sub.name
+            for sub in todo
         }
         while pending:
             ready, _ = ray.wait(list(pending), num_returns=1)
