@@ -237,3 +237,18 @@ def test_areas_are_read_as_numbers_and_ranges_each_once():
     assert parse_areas("8, 8,2-3,3") == [8, 2, 3]  # a sub-area named twice is fitted once
     with pytest.raises(ValueError, match="--areas"):
         parse_areas("1-x")
+
+
+def test_a_tile_without_an_interior_is_one_line_and_writes_nothing(tmp_path, capsys):
+    from dataparsers.tilt_series_format import write_tilt_series
+    from gaussian_atoms_method.cli import entrypoint
+
+    series = write_tilt_series(tmp_path / "series", np.ones((3, 40, 40), np.float32), [-30.0, 0.0, 30.0], 0.25)
+    out = tmp_path / "film"
+    with pytest.raises(SystemExit) as exit_info:
+        entrypoint(
+            ["film", "--series", str(series), "--tile-px", "5", "5", "--step-px", "1", "1", "--output", str(out)]
+        )
+    err = capsys.readouterr().err.strip()
+    assert exit_info.value.code == 2 and len(err.splitlines()) == 1 and "leaves no interior" in err, err
+    assert not out.exists()

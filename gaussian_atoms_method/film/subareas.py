@@ -196,6 +196,12 @@ def tile_series(series: TiltSeries, size_px: tuple[int, int], step_px: tuple[int
     size = (min(int(size_px[0]), h), min(int(size_px[1]), w))
     if min(step_px) < 1 or min(size) < 1:
         raise ValueError(f"tile size {size_px} and step {step_px} must be positive")
+    smallest = tuple(2 * e + 1 for e in EDGE_PX)
+    if size[0] < smallest[0] or size[1] < smallest[1]:
+        raise ValueError(
+            f"tile size {size[0]} x {size[1]} px leaves no interior (its edges take {EDGE_PX[0]} px across the axis "
+            f"and {EDGE_PX[1]} along it on each side); use at least {smallest[0]} x {smallest[1]}"
+        )
 
     def starts(extent: int, length: int, step: int) -> list[int]:
         out = list(range(0, max(extent - length, 0) + 1, step))
