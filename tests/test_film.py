@@ -198,6 +198,7 @@ def test_the_film_thickness_is_read_from_the_series():
         ({"tasks_per_gpu": True}, "tasks_per_gpu"),
         ({"max_steps": 0}, "max_steps"),
         ({"species": "Xx"}, "unknown element 'Xx'"),
+        ({}, "subareas: none given"),
     ],
 )
 def test_reconstruct_film_checks_its_arguments_before_writing(tmp_path, options, named):

@@ -39,31 +39,18 @@ def reconstruct_film(
     tasks_per_gpu: int = 1,
     **model_options,
 ) -> FilmAtoms:
-    """Fit ``subareas``, join them and write the film (module text).  ``device``: ``auto`` (the
-    GPUs where the cluster has them), ``cpu`` or ``cuda``, checked before anything is written on
-    a local cluster (a ValueError naming it).  ``species`` sets the hard
-    core of every sub-area's fit and of the join (else the median of the fits' own readings); ``tasks_per_gpu``
-    sub-areas share each GPU (:func:`~.runner.run_subareas`); ``model_options`` are the fit's
-    options by their Python names.  Raises :class:`FilmError` naming the sub-areas
-    that failed after a retry; the others' fits stay, and a second call runs only those."""
-    from gaussian_atoms_method.atoms.hard_core import hard_core_from_species, parse_species
-    from gaussian_atoms_method.engine.options import FitOptions
+    """Fit ``subareas``, join them and write the film (module text).
 
-    names = {f.name for f in fields(FitOptions)}
-    unknown = sorted(set(model_options) - names)
-    if unknown:  # before anything is written
-        raise ValueError(f"{unknown[0]}: not a model option (the options of `ns-train gaussian-atoms --help`)")
-    FitOptions(**model_options).check()
-    if isinstance(tasks_per_gpu, bool) or not isinstance(tasks_per_gpu, int) or tasks_per_gpu < 1:
-        raise ValueError(f"tasks_per_gpu {tasks_per_gpu!r}: expected a whole number of tasks, at least 1")
-    if species:
-        species = ",".join(parse_species(species))  # an unknown element named before anything runs
-    if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
-        raise ValueError(f"max_steps {max_steps!r}: expected a whole number of training steps, at least 1")
-    if address is None:  # a local cluster: this machine's devices (on another cluster, its own: runner)
-        from gaussian_atoms_method.physics.devices import resolve
+    ``device``: ``auto`` (the GPUs where the cluster has them), ``cpu`` or ``cuda``.  ``species``
+    sets the hard core of every sub-area's fit and of the join (else the median of the fits' own
+    readings).  ``tasks_per_gpu`` sub-areas share each GPU (:func:`~.runner.run_subareas`);
+    ``model_options`` are the fit's options by their Python names.  The arguments are checked
+    before anything is written (:func:`checked_arguments`).  Raises :class:`FilmError` naming
+    the sub-areas that failed after a retry; the others' fits stay, and a second call runs only
+    those."""
+    from gaussian_atoms_method.atoms.hard_core import hard_core_from_species
 
-        device = resolve(device)
+    species, device = checked_arguments(subareas, device, species, max_steps, address, tasks_per_gpu, model_options)
     output_dir = Path(output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
     write_plan(subareas, output_dir / "film.json")
@@ -82,6 +69,32 @@ def reconstruct_film(
     film = join_reports(reports, hard_core_A)
     write_film(film, output_dir, hard_core_A, [s.name for s in subareas], task_summary(records.values()))
     return film
+
+
+def checked_arguments(subareas, device, species, max_steps, address, tasks_per_gpu, model_options) -> tuple:
+    """:func:`reconstruct_film`'s arguments checked before anything is written (a ValueError
+    naming the first that is wrong); returns the species as one string ("" for none) and the
+    device (``auto`` resolved on a local cluster)."""
+    from gaussian_atoms_method.atoms.hard_core import parse_species
+    from gaussian_atoms_method.engine.options import FitOptions
+
+    names = {f.name for f in fields(FitOptions)}
+    unknown = sorted(set(model_options) - names)
+    if unknown:
+        raise ValueError(f"{unknown[0]}: not a model option (the options of `ns-train gaussian-atoms --help`)")
+    FitOptions(**model_options).check()
+    if isinstance(tasks_per_gpu, bool) or not isinstance(tasks_per_gpu, int) or tasks_per_gpu < 1:
+        raise ValueError(f"tasks_per_gpu {tasks_per_gpu!r}: expected a whole number of tasks, at least 1")
+    species = ",".join(parse_species(species)) if species else ""
+    if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
+        raise ValueError(f"max_steps {max_steps!r}: expected a whole number of training steps, at least 1")
+    if address is None:  # a local cluster: this machine's devices (on another cluster, its own: runner)
+        from gaussian_atoms_method.physics.devices import resolve
+
+        device = resolve(device)
+    if not subareas:
+        raise ValueError("subareas: none given (read them with published_subareas or tile_series)")
+    return species, device
 
 
 def task_summary(records) -> dict:
