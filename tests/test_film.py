@@ -154,6 +154,7 @@ def test_a_film_runs_on_ray_resumes_and_names_a_broken_sub_area(small_film):
         (["--series", "/nonexistent", "--tasks-per-gpu", "0"], "--tasks-per-gpu"),
         (["--series", "/nonexistent", "--max-num-iterations", "0"], "--max-num-iterations"),
         (["--series", "/nonexistent", "--species", "Ta,Xx"], "unknown element 'Xx'"),
+        (["--series", "/nonexistent", "--address", "127.0.0.1:1"], "no Ray cluster answers"),
     ],
 )
 def test_film_input_errors_are_one_line_and_write_nothing(tmp_path, capsys, args, named):
@@ -199,6 +200,8 @@ def test_the_film_thickness_is_read_from_the_series():
         ({"max_steps": 0}, "max_steps"),
         ({"species": "Xx"}, "unknown element 'Xx'"),
         ({}, "subareas: none given"),
+        ({"address": "127.0.0.1:1"}, "no Ray cluster answers"),
+        ({"address": "nowhere"}, "expected HOST:PORT"),
     ],
 )
 def test_reconstruct_film_checks_its_arguments_before_writing(tmp_path, options, named):

@@ -82,6 +82,10 @@ class Film:
             from gaussian_atoms_method.atoms.hard_core import parse_species
 
             parse_species(self.species)  # an unknown element named before anything is written
+        if self.address is not None:
+            from gaussian_atoms_method.film.runner import check_address
+
+            check_address(self.address)
         if self.address is None and self.device == "cuda":  # a local cluster: its GPUs are this machine's
             from gaussian_atoms_method.physics.devices import usable
 

@@ -19,7 +19,7 @@ import numpy as np
 
 from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms, write_atoms
 from gaussian_atoms_method.engine.console import CONSOLE
-from gaussian_atoms_method.film.runner import run_subareas
+from gaussian_atoms_method.film.runner import check_address, run_subareas
 from gaussian_atoms_method.film.stitch import FilmAtoms, Reports, join_reports
 from gaussian_atoms_method.film.subareas import SubArea, write_plan
 
@@ -92,6 +92,8 @@ def checked_arguments(subareas, device, species, max_steps, address, tasks_per_g
         from gaussian_atoms_method.physics.devices import resolve
 
         device = resolve(device)
+    else:
+        check_address(address)
     if not subareas:
         raise ValueError("subareas: none given (read them with published_subareas or tile_series)")
     return species, device

@@ -83,6 +83,29 @@ def task_costs(seconds: float, device: str) -> dict:
     }
 
 
+CONNECT_TIMEOUT_S = 5.0
+"""How long :func:`check_address` waits for a cluster's head to accept a connection: a head on
+the same network answers in milliseconds; Ray's own client keeps retrying for minutes."""
+
+
+def check_address(address: str | None, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
+    """A ValueError naming ``address`` (``HOST:PORT`` or ``ray://HOST:PORT``; None or ``auto``:
+    nothing to check) where it is malformed or nothing accepts a connection there, so a wrong
+    address stops at once instead of leaving Ray retrying."""
+    import socket
+
+    if address is None or address == "auto":
+        return
+    host, _, port = address.split("://", 1)[-1].rpartition(":")
+    if not host or not port.isdigit():
+        raise ValueError(f"address {address!r}: expected HOST:PORT or ray://HOST:PORT")
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s):
+            pass
+    except OSError as exc:
+        raise ValueError(f"address {address}: no Ray cluster answers there ({exc.strerror or exc})") from None
+
+
 def cluster_device(device: str, cluster_gpus: float, address: str | None) -> str:
     """The tasks' device on a Ray cluster with ``cluster_gpus`` GPUs: ``auto`` is ``cuda`` where it
     has any, else ``cpu``; ``cuda`` on a cluster without one is a ValueError naming it (its tasks
