@@ -256,3 +256,17 @@ def test_a_tile_without_an_interior_is_one_line_and_writes_nothing(tmp_path, cap
     err = capsys.readouterr().err.strip()
     assert exit_info.value.code == 2 and len(err.splitlines()) == 1 and "leaves no interior" in err, err
     assert not out.exists()
+
+
+def test_a_sub_area_finished_with_other_settings_is_fitted_again(tmp_path):
+    from gaussian_atoms_method.film.runner import finished, fit_settings
+
+    done = tmp_path / "done.json"
+    asked = fit_settings({"loss": "huber"}, 3000, "Ta")
+    assert finished(done, asked) is None  # not run yet
+    done.write_text(json.dumps({"name": "a", "settings": asked}) + "\n")
+    assert finished(done, asked)["name"] == "a"  # the same settings: read back
+    assert finished(done, fit_settings({"loss": "huber"}, 3000, "")) is None  # another species
+    assert finished(done, fit_settings({"loss": "huber"}, 1500, "Ta")) is None  # another step limit
+    done.write_text(json.dumps({"name": "a"}) + "\n")  # recorded before the settings were
+    assert finished(done, asked) is None

@@ -2,8 +2,9 @@
 retried once, a failure reported by name while the others finish.
 
 A sub-area's fit is :func:`fit_subarea` (the engine's run, :mod:`gaussian_atoms_method.engine.run`,
-on the sub-area's tilt series).  It writes ``done.json`` in its run directory last, so a run
-stopped midway starts again at the sub-areas without one.  On a machine with GPUs each task
+on the sub-area's tilt series).  It writes ``done.json`` in its run directory last, with the
+settings it was fitted with, so a run stopped midway starts again at the sub-areas without one
+(or fitted with other settings).  On a machine with GPUs each task
 takes one; otherwise a task takes :func:`cores_per_task` cores and torch uses that many threads.
 """
 
@@ -43,8 +44,10 @@ def fit_subarea(
     sub = SubArea.from_json(subarea)
     place = place_of(runs_dir, sub.name)
     done = place.run_dir / DONE
-    if done.is_file():
-        return json.loads(done.read_text())
+    asked = fit_settings(options, max_steps, species)
+    record = finished(done, asked)
+    if record is not None:
+        return record
     if device == "cpu" and threads > 0:
         torch.set_num_threads(threads)
     if device == "cuda":
@@ -59,11 +62,28 @@ def fit_subarea(
         "atoms": str(run_dir / "atoms.xyz"),
         "hard_core_A": structure.get("hard_core_A"),
         **task_costs(time.perf_counter() - started, device),
+        "settings": asked,
     }
     tmp = done.with_suffix(".tmp")
     tmp.write_text(json.dumps(record) + "\n")
     tmp.replace(done)
     return record
+
+
+def fit_settings(options: dict, max_steps: int, species: str | None) -> dict:
+    """What decides a sub-area's atoms, as ``done.json`` records it: the fit's options, its step
+    limit and the species (the device only changes the sums' rounding)."""
+    return json.loads(json.dumps({"options": options, "max_steps": max_steps, "species": species or ""}))
+
+
+def finished(done: Path, settings: dict) -> dict | None:
+    """The record in ``done`` where it exists and was fitted with ``settings`` (:func:`fit_settings`);
+    None otherwise: a sub-area finished with other settings, or before they were recorded, is
+    fitted again rather than joined with the others as if it were theirs."""
+    if not done.is_file():
+        return None
+    record = json.loads(done.read_text())
+    return record if record.get("settings") == settings else None
 
 
 def task_costs(seconds: float, device: str) -> dict:
@@ -139,11 +159,12 @@ def run_subareas(
     tasks_per_gpu: int = 1,
     species: str | None = None,
 ) -> tuple[dict[str, dict], dict[str, str]]:
-    """Fit every sub-area as a Ray task; ``({name: record}, {name: why it failed})``.  Sub-areas
-    already done are read back, not run; a failed task is retried once.  Each fit uses
-    ``species`` where given (:func:`fit_subarea`).  On GPUs,
-    ``tasks_per_gpu`` tasks share each GPU (a sub-area's fit is bound by its kernel launches, not
-    the GPU's arithmetic, and holds about 1 GB of it: :func:`task_costs`)."""
+    """Fit every sub-area as a Ray task; ``({name: record}, {name: why it failed})``.
+
+    Sub-areas already done with the same settings are read back, not run (:func:`finished`); a
+    failed task is retried once.  Each fit uses ``species`` where given (:func:`fit_subarea`).  On
+    GPUs, ``tasks_per_gpu`` tasks share each GPU (a sub-area's fit is bound by its kernel
+    launches, not the GPU's arithmetic, and holds about 1 GB of it: :func:`task_costs`)."""
     try:
         import ray
     except ImportError as exc:
@@ -152,10 +173,11 @@ def run_subareas(
 
     records: dict[str, dict] = {}
     todo = []
+    asked = fit_settings(options, max_steps, species)
     for sub in subareas:
-        done = place_of(runs_dir, sub.name).run_dir / DONE
-        if done.is_file():
-            records[sub.name] = json.loads(done.read_text())
+        record = finished(place_of(runs_dir, sub.name).run_dir / DONE, asked)
+        if record is not None:
+            records[sub.name] = record
         else:
             todo.append(sub)
     failures: dict[str, str] = {}
