@@ -135,3 +135,23 @@ def test_help_still_reaches_the_user(capsys):
     with pytest.raises(SystemExit) as exit_info:
         entrypoint(["film", "--help"])
     assert exit_info.value.code == 0 and "--tasks-per-gpu" in capsys.readouterr().out
+
+
+def test_a_parse_error_box_is_read_down_to_its_first_section():
+    from gaussian_atoms_method.cli.parse_errors import first_section
+
+    box = (
+        "╭─ Value error ─────────────────────────╮\n"
+        "│ Error parsing --noise-std: could not  │\n"
+        "│ convert string to float: 'abc'        │\n"
+        "│ ───────────────────────────────────── │\n"
+        "│ Argument helptext:                    │\n"
+        "╰───────────────────────────────────────╯\n"
+    )
+    assert first_section(box) == "Error parsing --noise-std: could not convert string to float: 'abc'"
+    plain = (  # rich's plain drawing of the same box (no terminal, as under pytest)
+        " Value error \n ------------------ \n  Error parsing --noise-std: could not\n"
+        "  convert string to float: 'abc' \n  ------------------\n  Argument helptext:\n"
+    )
+    assert first_section(plain) == "Error parsing --noise-std: could not convert string to float: 'abc'"
+    assert first_section("usage: x\nerror: unrecognized arguments: --y\n") == "error: unrecognized arguments: --y"

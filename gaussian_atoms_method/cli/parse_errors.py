@@ -19,29 +19,29 @@ _BOX = "│╭╮╰╯┃"
 
 
 def first_section(text: str) -> str:
-    """The first section of a tyro error box in ``text`` (its lines joined), else the text's last
-    non-empty line."""
-    lines = [_ANSI.sub("", line).strip() for line in text.splitlines()]
+    """What was wrong, from a tyro error in ``text``: the first section of its box (drawn with
+    box characters on a terminal, or as a title and dashed rules where rich draws plain text),
+    its lines joined; the text's last line where it has no sections."""
+    lines = [line for line in (_ANSI.sub("", raw).strip() for raw in text.splitlines()) if line]
+
+    def inner(line: str) -> str:
+        return line.strip(_BOX).strip()
+
+    def rule(line: str) -> bool:
+        return line.startswith(("╭", "╰")) or (bool(inner(line)) and set(inner(line)) <= set("─━-"))
+
+    if not any(rule(line) for line in lines):
+        return lines[-1] if lines else ""
+    start = 2 if len(lines) >= 2 and not rule(lines[0]) and rule(lines[1]) else 0  # a plain title, its rule
     body: list[str] = []
-    title = ""
-    for line in lines:
-        if line.startswith("╭"):
-            title = line.strip("╭╮─ ")
-            continue
-        if line.startswith("╰"):
-            break
-        inner = line.strip(_BOX).strip()
-        if not inner:
-            continue
-        if set(inner) <= {"─", "━"}:
+    for line in lines[start:]:
+        if rule(line):
             if body:
                 break
             continue
-        body.append(inner)
-    if body:
-        return " ".join(body)
-    rest = [line for line in lines if line.strip(_BOX + "─ ")]
-    return title or (rest[-1] if rest else "")
+        if inner(line):
+            body.append(inner(line))
+    return " ".join(body) if body else lines[-1]
 
 
 @contextlib.contextmanager
