@@ -138,7 +138,7 @@ def test_help_still_reaches_the_user(capsys):
 
 
 def test_a_parse_error_box_is_read_down_to_its_first_section():
-    from gaussian_atoms_method.cli.parse_errors import first_section
+    from gaussian_atoms_method.parse_errors import first_section
 
     box = (
         "╭─ Value error ─────────────────────────╮\n"
@@ -155,3 +155,20 @@ def test_a_parse_error_box_is_read_down_to_its_first_section():
     )
     assert first_section(plain) == "Error parsing --noise-std: could not convert string to float: 'abc'"
     assert first_section("usage: x\nerror: unrecognized arguments: --y\n") == "error: unrecognized arguments: --y"
+
+
+def test_ns_train_says_a_malformed_command_line_in_one_line(tmp_path):
+    import subprocess
+
+    run = subprocess.run(
+        [str(BIN / "ns-train"), "gaussian-atoms", "--max-num-iterations", "abc", "tilt-series", "--data", "x"],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        timeout=300,
+    )
+    from gaussian_atoms_method.harness.input_matrix import own_lines
+
+    lines = own_lines(run.stdout + run.stderr)  # less the warnings torch raises on nerfstudio's import
+    assert run.returncode == 2 and len(lines) == 1, run.stderr
+    assert lines[0].startswith("ns-train gaussian-atoms: error: ") and "--max-num-iterations" in lines[0]

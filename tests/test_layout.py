@@ -52,6 +52,7 @@ def layer_of(module: str) -> str:
         "api": "api",
         "start_ahead": "launch",
         "process_exit": "launch",
+        "parse_errors": "launch",
     }
     return sub[parts[1]]
 

@@ -27,8 +27,8 @@ from gaussian_atoms_method.cli.benchmark_verbs import (
 )
 from gaussian_atoms_method.cli.data_verbs import Evaluate, Export, Simulate, Train, View
 from gaussian_atoms_method.cli.film_verb import Film
-from gaussian_atoms_method.cli.parse_errors import one_line_errors
 from gaussian_atoms_method.cli.tool_verbs import CheckPrecision, HeldOutViews, InputMatrix, Screenshot
+from gaussian_atoms_method.parse_errors import one_line_errors
 
 Commands = Union[
     Annotated[Train, tyro.conf.subcommand("train")],

@@ -125,10 +125,10 @@ def engine_runs(argv: list[str]) -> bool:
 
 def parse(argv: list[str]) -> tuple[TrainOptions, TiltSeriesOptions]:
     """The options of ``gaussian-atoms train ARGV`` (one line and exit 2 for a malformed command
-    line, :func:`~.parse_errors.one_line_errors`)."""
+    line, :func:`~gaussian_atoms_method.parse_errors.one_line_errors`)."""
     import tyro
 
-    from gaussian_atoms_method.cli.parse_errors import one_line_errors
+    from gaussian_atoms_method.parse_errors import one_line_errors
 
     trainer, tilt = split_at_subcommand(argv)
     # booleans take a value, as ns-train's (--pipeline.model.cluster-merge False)

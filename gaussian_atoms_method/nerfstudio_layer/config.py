@@ -42,6 +42,7 @@ from gaussian_atoms_method.engine.optimisers import RATES, adam
 from gaussian_atoms_method.engine.step_graph import detached
 from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
 from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions
+from gaussian_atoms_method.parse_errors import one_line_tyro_errors
 from gaussian_atoms_method.physics.devices import default_device
 from gaussian_atoms_method.process_exit import fail
 from gaussian_atoms_method.start_ahead import begin_for
@@ -181,8 +182,10 @@ MAX_ITERATIONS = 3000
 
 if Path(sys.argv[0]).name == "ns-train" and sys.argv[1:2] == ["gaussian-atoms"]:
     # ns-train imports this module while it loads every method it knows, before it parses the
-    # command line: the start of the run it was asked for begins now, in a thread (start_ahead).
+    # command line: the start of the run it was asked for begins now, in a thread (start_ahead),
+    # and a malformed command line will be said in one line, as gaussian-atoms says it.
     begin_for(sys.argv[2:])
+    one_line_tyro_errors("ns-train gaussian-atoms")
 
 
 @dataclass
