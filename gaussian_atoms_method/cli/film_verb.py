@@ -7,6 +7,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, Optional
 
+OPTIONS = {"device": "--device", "max_steps": "--max-num-iterations", "tasks_per_gpu": "--tasks-per-gpu"}
+"""The options :func:`gaussian_atoms_method.film.film.check_settings` names, as this verb spells them."""
+
 
 @dataclass
 class Film:
@@ -72,25 +75,12 @@ class Film:
         return tile_series(series, tile, step, data)
 
     def main(self) -> None:
-        from gaussian_atoms_method.film.film import reconstruct_film
+        from gaussian_atoms_method.film.film import check_settings, reconstruct_film
 
-        if self.tasks_per_gpu < 1:
-            raise ValueError(f"--tasks-per-gpu {self.tasks_per_gpu}: expected at least 1")
-        if self.max_num_iterations < 1:
-            raise ValueError(f"--max-num-iterations {self.max_num_iterations}: expected at least 1 training step")
-        if self.species:
-            from gaussian_atoms_method.atoms.hard_core import parse_species
-
-            parse_species(self.species)  # an unknown element named before anything is written
-        if self.address is not None:
-            from gaussian_atoms_method.film.runner import check_address
-
-            check_address(self.address)
-        if self.address is None and self.device == "cuda":  # a local cluster: its GPUs are this machine's
-            from gaussian_atoms_method.physics.devices import usable
-
-            if not usable("cuda"):
-                raise ValueError("--device cuda: torch sees no GPU on this machine; use --device cpu or auto")
+        # the library's own checks, by the options' names, before the sub-areas are written
+        check_settings(
+            self.device, self.species, self.max_num_iterations, self.address, self.tasks_per_gpu, {}, OPTIONS
+        )
         reconstruct_film(
             self.subareas(),
             self.output,

@@ -45,12 +45,14 @@ def reconstruct_film(
     sets the hard core of every sub-area's fit and of the join (else the median of the fits' own
     readings).  ``tasks_per_gpu`` sub-areas share each GPU (:func:`~.runner.run_subareas`);
     ``model_options`` are the fit's options by their Python names.  The arguments are checked
-    before anything is written (:func:`checked_arguments`).  Raises :class:`FilmError` naming
+    before anything is written (:func:`check_settings`).  Raises :class:`FilmError` naming
     the sub-areas that failed after a retry; the others' fits stay, and a second call runs only
     those."""
     from gaussian_atoms_method.atoms.hard_core import hard_core_from_species
 
-    species, device = checked_arguments(subareas, device, species, max_steps, address, tasks_per_gpu, model_options)
+    species, device = check_settings(device, species, max_steps, address, tasks_per_gpu, model_options)
+    if not subareas:
+        raise ValueError("subareas: none given (read them with published_subareas or tile_series)")
     output_dir = Path(output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
     write_plan(subareas, output_dir / "film.json")
@@ -71,32 +73,35 @@ def reconstruct_film(
     return film
 
 
-def checked_arguments(subareas, device, species, max_steps, address, tasks_per_gpu, model_options) -> tuple:
-    """:func:`reconstruct_film`'s arguments checked before anything is written (a ValueError
-    naming the first that is wrong); returns the species as one string ("" for none) and the
-    device (``auto`` resolved on a local cluster)."""
+ARGUMENT_NAMES = {"device": "device", "max_steps": "max_steps", "tasks_per_gpu": "tasks_per_gpu"}
+"""How :func:`check_settings` names the arguments it checks (the command line passes its options')."""
+
+
+def check_settings(
+    device, species, max_steps, address, tasks_per_gpu, model_options, names: dict = ARGUMENT_NAMES
+) -> tuple[str, str]:
+    """:func:`reconstruct_film`'s settings checked before anything is written (a ValueError
+    naming the first that is wrong, by ``names``); returns the species as one string ("" for
+    none) and the device (``auto`` resolved on a local cluster)."""
     from gaussian_atoms_method.atoms.hard_core import parse_species
     from gaussian_atoms_method.engine.options import FitOptions
+    from gaussian_atoms_method.physics.devices import resolve, usable
 
-    names = {f.name for f in fields(FitOptions)}
-    unknown = sorted(set(model_options) - names)
+    unknown = sorted(set(model_options) - {f.name for f in fields(FitOptions)})
     if unknown:
         raise ValueError(f"{unknown[0]}: not a model option (the options of `ns-train gaussian-atoms --help`)")
     FitOptions(**model_options).check()
     if isinstance(tasks_per_gpu, bool) or not isinstance(tasks_per_gpu, int) or tasks_per_gpu < 1:
-        raise ValueError(f"tasks_per_gpu {tasks_per_gpu!r}: expected a whole number of tasks, at least 1")
+        raise ValueError(f"{names['tasks_per_gpu']} {tasks_per_gpu!r}: expected a whole number of tasks, at least 1")
     species = ",".join(parse_species(species)) if species else ""
     if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
-        raise ValueError(f"max_steps {max_steps!r}: expected a whole number of training steps, at least 1")
-    if address is None:  # a local cluster: this machine's devices (on another cluster, its own: runner)
-        from gaussian_atoms_method.physics.devices import resolve
-
-        device = resolve(device)
-    else:
+        raise ValueError(f"{names['max_steps']} {max_steps!r}: expected a whole number of training steps, at least 1")
+    if address is not None:  # another cluster: its devices, asked of it once joined (runner.cluster_device)
         check_address(address)
-    if not subareas:
-        raise ValueError("subareas: none given (read them with published_subareas or tile_series)")
-    return species, device
+        return species, device
+    if device == "cuda" and not usable("cuda"):  # a local cluster: this machine's devices
+        raise ValueError(f"{names['device']} cuda: torch sees no GPU on this machine; use cpu or auto")
+    return species, resolve(device)
 
 
 def task_summary(records) -> dict:
