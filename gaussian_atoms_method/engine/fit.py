@@ -21,6 +21,7 @@ Parameters (normalised units, see :mod:`gaussian_atoms_method.physics.units`):
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import fields
 from pathlib import Path
 from typing import Dict, List
@@ -59,6 +60,8 @@ class AtomFit(torch.nn.Module):
     Built without arguments it is empty (nerfstudio's model builds it, then :meth:`setup`)."""
 
     config: FitOptions
+    snapshots_s: float = 0.0
+    """Seconds the run's snapshots have cost it so far (:meth:`snapshot_after_step`)."""
 
     def __init__(self, config: FitOptions | None = None, views: ViewSet | None = None) -> None:
         super().__init__()
@@ -439,13 +442,16 @@ class AtomFit(torch.nn.Module):
         if (step + 1) % self.config.snapshot_every == 0:
             params = self.density.state.average.mean(self.gauss_params)
             in_field = self.density.in_field(params["means"]).cpu().numpy()  # the mean is detached
-            write_snapshot(
+            stamp = time.time()  # the step's atoms are ready (the copy waited for the device)
+            self.snapshots_s += write_snapshot(
                 self.atoms(params),
                 directory,
                 step + 1,
                 self.num_points,
                 torch.cuda.max_memory_allocated() if self.means.is_cuda else 0,
                 in_field,
+                stamp,
+                self.snapshots_s,
             )
 
     def restart_with_kernel_held(self) -> bool:
