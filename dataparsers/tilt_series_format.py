@@ -3,7 +3,8 @@
 A directory holds ``tilt_series.json``::
 
     {"projections": "projections.npy",   # (N, H, W) float array
-     "angles_deg": "angles.txt",         # N tilt angles in degrees, one per line
+     "angles_deg": "angles.txt",         # N tilt angles in degrees, one per line (or N rows of
+                                         # ZYZ Euler angles phi theta psi, as GENFIRE and RESIRE)
      "pixel_size_A": 0.25,
      "tilt_axis": "y",                   # optional, "y" (default) or "x"
      "truth": "atoms_true.xyz",          # optional, the true atoms
@@ -27,11 +28,16 @@ from pathlib import Path
 
 import numpy as np
 
-from gaussian_atoms_method.physics.geometry import TILT_AXES, imod_axis_angle
+from gaussian_atoms_method.physics.geometry import (
+    TILT_AXES,
+    detector_axes_from_euler,
+    detector_axes_from_tilts,
+    imod_axis_angle,
+)
 from gaussian_atoms_method.physics.noise import MIN_SIDE_PX
 
 from .errors import TiltSeriesError
-from .readers import read_angles, read_stack, single_axis_from_euler
+from .readers import read_angles, read_stack
 
 __all__ = ["MANIFEST", "TiltSeries", "TiltSeriesError", "load_tilt_series", "write_tilt_series", "update_manifest"]
 
@@ -42,6 +48,26 @@ MIN_SPAN_DEG = 5.0
 """Tilt angles spanning less than this tell no depth (two atoms 2 Å apart along the beam move by
 2 Å x sin(5 deg) = 0.17 Å between the extreme views, under any pixel): where the same numbers read
 as radians span more, they were given in radians."""
+
+
+MAX_START_OFFSET_A = 1.0
+"""How far (Å) a view with Euler angles may move a point of the fitted volume from where the
+single-axis tilt ``theta`` puts it.  The start back-projects about ``theta`` alone; a candidate
+that lands less than an atom's projected half width (about 1 Å: an atom's sigma of 0.3-0.8 Å
+with the probe's) from its atom is within the fit's reach, and the fit projects with the full
+orientation."""
+
+
+def start_offset_A(euler_deg: np.ndarray, image_shape, centre_px, pixel_size_A: float) -> float:
+    """The largest detector displacement (Å) between the Euler orientation and the tilt
+    ``theta`` alone, over the corners of the volume the fit spans (the detector's field, as
+    deep as its longer side)."""
+    h, w = (np.asarray(image_shape, dtype=np.float64) - 1) / 2
+    half = np.array([h + abs(np.asarray(centre_px)[0] - h), w + abs(np.asarray(centre_px)[1] - w), max(h, w)])
+    corners = np.array(np.meshgrid(*[(-x, x) for x in half], indexing="ij")).reshape(3, -1) * pixel_size_A
+    exact = detector_axes_from_euler(euler_deg)[:, :2] @ corners
+    single = detector_axes_from_tilts(np.asarray(euler_deg)[:, 1], "y")[:, :2] @ corners
+    return float(np.abs(exact - single).max())
 
 
 @dataclass
@@ -70,6 +96,12 @@ class TiltSeries:
     species : tuple of str
         The elements the specimen holds (``("Ta",)``, ``("Fe", "Pt")``); () when not given.  They
         set the material's hard core (:mod:`gaussian_atoms_method.atoms.hard_core`).
+    euler_deg : (N, 3) float64 array or None
+        ZYZ Euler angles ``(phi, theta, psi)`` per view, as GENFIRE and RESIRE refine them (given
+        as ``angles_deg`` of shape (N, 3)); ``angles_deg`` then holds ``theta``.  None when every
+        ``phi`` and ``psi`` is zero: a single-axis series.  The fit projects with the full
+        orientation (:meth:`detector_axes`); the start back-projects about ``theta`` alone, so
+        the views may leave the single axis by no more than :data:`MAX_START_OFFSET_A`.
     """
 
     projections: np.ndarray
@@ -82,6 +114,7 @@ class TiltSeries:
     centre_px: np.ndarray | None = None
     tilt_axis_angle_deg: float = 0.0
     species: tuple = ()
+    euler_deg: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         where = str(self.source) if self.source is not None else "tilt series"
@@ -103,7 +136,10 @@ class TiltSeries:
         if not np.any(proj):
             raise TiltSeriesError(f"{where}: projections are all zero: there is nothing to reconstruct")
         self.projections = proj.astype(np.float32, copy=False)
-        angles = np.asarray(self.angles_deg, dtype=np.float64).reshape(-1)
+        angles = np.asarray(self.angles_deg, dtype=np.float64)
+        if angles.ndim == 2 and angles.shape[1] == 3:  # Euler angles (phi, theta, psi)
+            self.euler_deg, angles = angles, angles[:, 1]
+        angles = angles.reshape(-1)
         if len(angles) != proj.shape[0]:
             raise TiltSeriesError(f"{where}: {len(angles)} tilt angles for {proj.shape[0]} projections")
         if not np.all(np.isfinite(angles)):
@@ -149,12 +185,49 @@ class TiltSeries:
             ) from None
         if not np.isfinite(self.tilt_axis_angle_deg):
             raise TiltSeriesError(f"{where}: tilt_axis_angle_deg must be finite, got {self.tilt_axis_angle_deg}")
+        if self.euler_deg is not None:
+            self.euler_deg = self._checked_euler(where, angles)
         from gaussian_atoms_method.atoms.hard_core import SpeciesError, parse_species
 
         try:
             self.species = parse_species(self.species)
         except SpeciesError as exc:
             raise TiltSeriesError(f"{where}: {exc}") from None
+
+    def _checked_euler(self, where: str, theta: np.ndarray) -> np.ndarray | None:
+        """The Euler angles, validated; None where every phi and psi is zero."""
+        euler = np.asarray(self.euler_deg, dtype=np.float64)
+        if euler.shape != (len(theta), 3) or not np.all(np.isfinite(euler)):
+            raise TiltSeriesError(
+                f"{where}: Euler angles must be N x 3 finite numbers (phi, theta, psi) for {len(theta)} projections, "
+                f"got shape {euler.shape}"
+            )
+        if not np.array_equal(euler[:, 1], theta):
+            raise TiltSeriesError(f"{where}: the Euler angles' theta column differs from the tilt angles")
+        if not np.any(euler[:, [0, 2]]):
+            return None
+        if self.tilt_axis != "y" or self.tilt_axis_angle_deg:
+            raise TiltSeriesError(
+                f"{where}: Euler angles give the whole orientation of each view (tilting about y, as GENFIRE and "
+                f"RESIRE); tilt_axis must be 'y' and tilt_axis_angle_deg 0, got {self.tilt_axis!r} and "
+                f"{self.tilt_axis_angle_deg:g}"
+            )
+        offset = start_offset_A(euler, self.projections.shape[1:], self.centre_px, self.pixel_size_A)
+        if offset > MAX_START_OFFSET_A:
+            off_axis = np.abs(euler[:, [0, 2]]).max()
+            raise TiltSeriesError(
+                f"{where}: Euler angles with phi or psi up to {off_axis:g} deg move the field's corners {offset:.2f} Å "
+                f"from where theta alone puts them (the start back-projects about theta; at most "
+                f"{MAX_START_OFFSET_A:g} Å): series tilted in more than one direction are not supported"
+            )
+        return euler
+
+    def detector_axes(self) -> np.ndarray:
+        """(N, 3, 3) float64: each view's detector rows, columns and beam in the world
+        (:mod:`gaussian_atoms_method.physics.geometry`), from the Euler angles where given."""
+        if self.euler_deg is not None:
+            return detector_axes_from_euler(self.euler_deg)
+        return detector_axes_from_tilts(self.angles_deg, self.tilt_axis, self.tilt_axis_angle_deg)
 
     @property
     def n_views(self) -> int:
@@ -186,8 +259,8 @@ def load_tilt_series(
     :mod:`dataparsers.readers` (numpy, TIFF, MRC, EMD/HDF5, MATLAB; text, IMOD .tlt, .mat
     angles).  ``dataset`` names the variable or dataset inside a file that holds several,
     ``tilt_index_axis`` the array axis of the tilt index, ``angles_variable`` the variable of
-    a .mat angle file; N x 3 Euler angles (ZYZ, as GENFIRE and RESIRE) must describe a
-    single-axis series.  Without a pixel size, an MRC header's is used; without an angle file,
+    a .mat angle file; N x 3 Euler angles (ZYZ, as GENFIRE and RESIRE) are kept
+    (:attr:`TiltSeries.euler_deg`).  Without a pixel size, an MRC header's is used; without an angle file,
     an EMD file's angle dimension; without a tilt-axis angle, the one IMOD writes into an MRC
     header's labels (with ``tilt_axis`` "x", IMOD's reference direction, unless given).
     ``species`` ("Ta", "Fe,Pt") names the specimen's elements (manifest key ``species``: a
@@ -276,13 +349,11 @@ def load_tilt_series(
     elif angles_name is not None:
         angles_path = root / angles_name
         angles = read_angles(angles_path, pick(angles_variable, "angles_variable"))
-        if angles.ndim == 2 and angles.shape[1] == 3:
-            angles = single_axis_from_euler(angles, angles_path)
     elif stack.angles_deg is not None:
         angles_path, angles = proj_path, stack.angles_deg
     else:
         raise TiltSeriesError(f"{where}: 'angles_deg' is missing (give it in {MANIFEST} or as an option)")
-    if angles.ndim != 1:
+    if angles.ndim != 1 and angles.shape[1:] != (3,):
         raise TiltSeriesError(
             f"{angles_path}: expected N single-axis tilt angles (one column) or N x 3 Euler angles, got shape "
             f"{angles.shape}"
@@ -363,7 +434,8 @@ def write_tilt_series(
     out.mkdir(parents=True, exist_ok=True)
     (out / MANIFEST).unlink(missing_ok=True)
     np.save(out / "projections.npy", series.projections)
-    np.savetxt(out / "angles.txt", series.angles_deg, fmt="%.6f")
+    angles = series.angles_deg if series.euler_deg is None else series.euler_deg  # phi, theta, psi a row
+    np.savetxt(out / "angles.txt", angles, fmt="%.6f")
     manifest = {
         "projections": "projections.npy",
         "angles_deg": "angles.txt",

@@ -121,8 +121,11 @@ def test_dataparser_reads_matlab_stack_and_euler_angles(tmp_path):
     np.testing.assert_allclose(series.projections, np.moveaxis(stack, 2, 0).astype(np.float32))
     np.testing.assert_array_equal(series.angles_deg, [-30, -10, 10, 30])
     np.testing.assert_array_equal(series.centre_px, [6, 5])
-    scipy.io.savemat(tmp_path / "bad.mat", {"angles": euler + [[0, 0, 5]] * 4})
-    with pytest.raises(TiltSeriesError, match=r"bad\.mat: Euler angles with phi or psi != 0"):
+    assert series.euler_deg is None  # phi = psi = 0: a single-axis series
+    # A 30-degree psi moves the 6 x 5 x 6 Å volume's corners 2.7 Å from the single axis the
+    # start back-projects about: more than MAX_START_OFFSET_A, one line naming the file.
+    scipy.io.savemat(tmp_path / "bad.mat", {"angles": euler + [[0, 0, 30]] * 4})
+    with pytest.raises(TiltSeriesError, match=r"bad\.mat: Euler angles with phi or psi up to 30 deg move"):
         load_tilt_series(tmp_path, "projs.mat", "bad.mat", 0.5)
 
 

@@ -19,7 +19,6 @@ from dataclasses import dataclass, fields, replace
 import torch
 
 from gaussian_atoms_method.engine.rendering import ORTHOGRAPHIC_CAMERA
-from gaussian_atoms_method.physics.geometry import detector_axes_from_tilts
 from gaussian_atoms_method.physics.units import Normalisation
 
 
@@ -59,9 +58,7 @@ class OrthographicViews:
 def views_from_tilt_series(series, norm: Normalisation) -> OrthographicViews:
     """One orthographic view per projection of ``series`` (a
     :class:`~dataparsers.tilt_series_format.TiltSeries`), in the normalised units of ``norm``."""
-    axes = torch.from_numpy(
-        detector_axes_from_tilts(series.angles_deg, series.tilt_axis, series.tilt_axis_angle_deg)
-    ).float()
+    axes = torch.from_numpy(series.detector_axes()).float()
     rows, cols, beam = axes[:, 0], axes[:, 1], axes[:, 2]
     n = series.n_views
     c2w = torch.zeros(n, 3, 4)

@@ -105,8 +105,8 @@ def published_subareas(
     data_dir, out_dir = Path(data_dir), Path(out_dir)
     align = data_dir / "alignPara.mat"
     cen_all, half_all = mat_variable(align, "CropCen"), mat_variable(align, "CropHalf")
-    angles = mat_variable(data_dir / "angles.mat", "angle")
-    angles = angles[:, 1] if angles.ndim == 2 and angles.shape[1] == 3 else angles.reshape(-1)
+    angles = mat_variable(data_dir / "angles.mat", "angle")  # N x 3 Euler angles are kept (TiltSeries.euler_deg)
+    angles = angles if angles.ndim == 2 and angles.shape[1] == 3 else angles.reshape(-1)
     missing = [a for a in areas if not 1 <= a <= len(cen_all)]
     if missing:  # before anything is written
         raise TiltSeriesError(f"{align}: no sub-area {missing[0]}; it holds 1-{len(cen_all)}")
@@ -186,8 +186,9 @@ def tile_series(series: TiltSeries, size_px: tuple[int, int], step_px: tuple[int
     cuts them: each view's crop follows the sub-area's centre on the film's mid-plane (a point
     ``d`` across the axis projects to ``d cos(tilt)``; sampled linearly between pixels), so each
     sub-area turns about its own centre.  The film's frame is the series' own (Å about its tilt
-    centre).  The last tiles end at the field's edge.  Single-axis series about ``y`` with the
-    axis along the columns only (a ``ValueError`` otherwise)."""
+    centre).  The last tiles end at the field's edge.  Series about ``y`` with the axis along the
+    columns only (a ``ValueError`` otherwise); with Euler angles each crop follows the tile's
+    centre as each view's full orientation projects it."""
     from scipy.ndimage import map_coordinates
 
     if series.tilt_axis != "y" or series.tilt_axis_angle_deg != 0.0:
@@ -209,6 +210,9 @@ def tile_series(series: TiltSeries, size_px: tuple[int, int], step_px: tuple[int
 
     cr, cc = (float(v) for v in series.centre_px)
     cos = np.cos(np.deg2rad(series.angles_deg))
+    # With Euler angles a view turns in its plane too: the crop follows the detector position
+    # D (across, along, 0) of the tile's centre, so each tile keeps the series' orientations.
+    in_plane = series.detector_axes()[:, :2, :2] if series.euler_deg is not None else None
     middle = ((size[0] - 1) / 2.0, (size[1] - 1) / 2.0)
     out = []
     for r in starts(h, size[0], step_px[0]):
@@ -216,19 +220,24 @@ def tile_series(series: TiltSeries, size_px: tuple[int, int], step_px: tuple[int
             across_px = r + middle[0] - cr  # the tile's centre across the axis, from the tilt centre
             views = np.empty((len(cos), *size), dtype=np.float32)
             cols = np.arange(c, c + size[1], dtype=np.float64)
+            along_px = c + middle[1] - cc
             for v, cv in enumerate(cos):
                 rows = cr + across_px * cv - middle[0] + np.arange(size[0], dtype=np.float64)
+                if in_plane is not None:
+                    shift = in_plane[v] @ np.array([across_px, along_px])
+                    rows = cr + shift[0] - middle[0] + np.arange(size[0], dtype=np.float64)
+                    cols = cc + shift[1] - middle[1] + np.arange(size[1], dtype=np.float64)
                 grid = np.meshgrid(rows, cols, indexing="ij")
                 views[v] = map_coordinates(series.projections[v], grid, order=1, mode="nearest")
             name = f"tile_r{r}_c{c}"
             target = write_tilt_series(
                 Path(out_dir) / name,
                 views,
-                series.angles_deg,
+                series.angles_deg if series.euler_deg is None else series.euler_deg,
                 series.pixel_size_A,
                 centre_px=middle,
                 species=series.species,
             )
-            offset = (across_px * series.pixel_size_A, (c + middle[1] - cc) * series.pixel_size_A, 0.0)
+            offset = (across_px * series.pixel_size_A, along_px * series.pixel_size_A, 0.0)
             out.append(SubArea(name, target, offset, size, middle, series.pixel_size_A))
     return out

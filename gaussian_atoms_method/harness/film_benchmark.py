@@ -77,7 +77,7 @@ def prepare_area(data_dir: Path, out_dir: Path, area: int, species: str = "") ->
 
     data_dir = Path(data_dir)
     stack = _mat(data_dir / f"Projections_area{area}.mat", "Proj_sub")  # (x, y, tilt)
-    angles = _mat(data_dir / "angles.mat", "angle")[:, 1]  # theta; phi and psi are within 0.4 degrees (README)
+    angles = _mat(data_dir / "angles.mat", "angle")  # (phi, theta, psi): phi and psi within 0.4 degrees (README)
     _, half = area_geometry(data_dir, area)
     model = model_in_area_A(data_dir, area)
     return write_tilt_series(

@@ -22,7 +22,7 @@ import torch
 
 from gaussian_atoms_method.atoms.atom_set import AtomSet
 from gaussian_atoms_method.atoms.merge import merged_values
-from gaussian_atoms_method.physics.geometry import detector_axes_from_tilts, pixel_centres
+from gaussian_atoms_method.physics.geometry import pixel_centres
 from gaussian_atoms_method.physics.projector import project_gaussians
 from gaussian_atoms_method.physics.psf import KERNEL_WIDTHS_A, apply_kernel
 
@@ -63,7 +63,7 @@ def predicted_views(atoms: AtomSet, series, kernel_weights=None, chunk: int = 4)
     centre = series.centre_px if series.centre_px is not None else ((h - 1) / 2.0, (w - 1) / 2.0)
     rows = torch.as_tensor(pixel_centres(h, series.pixel_size_A, centre[0]))
     cols = torch.as_tensor(pixel_centres(w, series.pixel_size_A, centre[1]))
-    axes = torch.as_tensor(detector_axes_from_tilts(series.angles_deg, series.tilt_axis, series.tilt_axis_angle_deg))
+    axes = torch.as_tensor(series.detector_axes())
     means = torch.as_tensor(
         np.asarray(atoms.positions, dtype=np.float64) - np.asarray(series.origin_A, dtype=np.float64)
     )

@@ -30,6 +30,10 @@ The convention (also written down in README.md)
   measured from Y, the rows: it is this angle for ``tilt_axis="x"``, and this angle minus 90
   deg for ``tilt_axis="y"`` (:func:`imod_axis_angle`).
 
+* Euler angles ``(phi, theta, psi)`` (degrees, ZYZ, as GENFIRE and RESIRE refine them): the
+  detector is ``Rz(-psi) Ry(-theta) Rz(-phi)`` (:func:`detector_axes_from_euler`), GENFIRE's
+  projection matrix; ``phi = psi = 0`` is the tilt ``theta`` about ``y``.
+
 A detector orientation is a 3x3 matrix ``D`` whose rows are the world directions of the
 detector row axis, the detector column axis and the beam; ``D @ r`` gives the detector
 coordinates (row, column, depth) of a world point ``r``.
@@ -115,6 +119,31 @@ def detector_axes_from_tilts(
         # recorded coordinates R (D_ideal r): the recorded axes are R's combinations of the ideal ones.
         rotation = in_plane_rotation(tilt_axis_angle_deg)
         rows, cols = rotation[0, 0] * rows + rotation[0, 1] * cols, rotation[1, 0] * rows + rotation[1, 1] * cols
+    return np.stack([rows, cols, beam], axis=1)
+
+
+def detector_axes_from_euler(euler_deg: np.ndarray) -> np.ndarray:
+    """Detector orientations for ZYZ Euler angles, as GENFIRE and RESIRE project.
+
+    GENFIRE's ``calculate3Dprojection`` samples the slice ``R' [kx; ky; 0]`` with
+    ``R = Rz(-psi) Ry(-theta) Rz(-phi)`` (standard right-handed rotations, ``kx`` along the
+    array's rows): ``R``'s rows are the detector's row and column directions and the beam.
+    At ``phi = psi = 0`` this is :func:`detector_axes_from_tilts` about ``y``.
+
+    Parameters
+    ----------
+    euler_deg : (N, 3) array
+        ``(phi, theta, psi)`` per view, degrees.
+
+    Returns
+    -------
+    D : (N, 3, 3) float64 array
+    """
+    phi, theta, psi = np.deg2rad(np.asarray(euler_deg, dtype=np.float64).reshape(-1, 3)).T
+    cf, sf, ct, st, cp, sp = np.cos(phi), np.sin(phi), np.cos(theta), np.sin(theta), np.cos(psi), np.sin(psi)
+    rows = np.stack([cp * ct * cf - sp * sf, cp * ct * sf + sp * cf, -cp * st], axis=-1)
+    cols = np.stack([-sp * ct * cf - cp * sf, -sp * ct * sf + cp * cf, sp * st], axis=-1)
+    beam = np.stack([st * cf, st * sf, ct], axis=-1)
     return np.stack([rows, cols, beam], axis=1)
 
 
