@@ -167,8 +167,9 @@ def reconstruct(
         Line integrals of the potential, one image per tilt.  A HyperSpy signal gives its pixel
         size (image axes in nm, Å or pm) and its angles (an angle-valued navigation axis, or
         ``metadata.Tomography.tilts``) unless they are passed.
-    angles_deg : (N,) array
-        Tilt angles in degrees, about ``tilt_axis``.
+    angles_deg : (N,) or (N, 3) array
+        Tilt angles in degrees, about ``tilt_axis``; or ZYZ Euler angles (phi, theta, psi), as
+        GENFIRE and RESIRE refine them (:attr:`TiltSeries.euler_deg`).
     pixel_size_A : float
         Detector pixel size in Å.
     device : {"auto", "cpu", "cuda"}
