@@ -25,25 +25,9 @@ def test_ns_train_lists_method_and_dataparser():
     assert method.returncode == 0 and "tilt-series" in method.stdout
 
 
-def test_simulate_train_evaluate(tmp_path):
+def test_simulate_train_evaluate(tmp_path, simulate_sphere):
     data = tmp_path / "data"
-    sim = _run(
-        BIN / "gaussian-atoms",
-        "simulate",
-        "--output",
-        data,
-        "--particle",
-        "sphere",
-        "--potential",
-        "gaussian",
-        "--radius-A",
-        "6",
-        "--tilts",
-        "-70:5:70",
-        "--noise-std",
-        "20",
-    )
-    assert sim.returncode == 0, sim.stderr
+    simulate_sphere(data, 6, "-70:5:70")
     train = _run(
         BIN / "ns-train",
         "gaussian-atoms",
@@ -147,29 +131,13 @@ def test_cli_errors_are_one_line(tmp_path):
     assert ev.stderr.strip().count("\n") == 0 and "none.xyz: atom file not found" in ev.stderr
 
 
-def test_gaussian_atoms_train_is_ns_train(tmp_path):
+def test_gaussian_atoms_train_is_ns_train(tmp_path, simulate_sphere):
     """`gaussian-atoms train` runs the same trainer with the same options as `ns-train
     gaussian-atoms`: on the CPU (deterministic, same seed) the same atoms to the last digit
     written, and a config.yml that differs only in the names given on the command line; a
     boolean option with the value False works in both."""
     data = tmp_path / "data"
-    sim = _run(
-        BIN / "gaussian-atoms",
-        "simulate",
-        "--output",
-        data,
-        "--particle",
-        "sphere",
-        "--potential",
-        "gaussian",
-        "--radius-A",
-        "5",
-        "--tilts",
-        "-70:10:70",
-        "--noise-std",
-        "20",
-    )
-    assert sim.returncode == 0, sim.stderr
+    simulate_sphere(data, 5, "-70:10:70")
     runs = {}
     for name, launcher in (("ga", [BIN / "gaussian-atoms", "train"]), ("ns", [BIN / "ns-train", "gaussian-atoms"])):
         train = _run(
@@ -261,29 +229,13 @@ def _scalar_steps(run: Path) -> dict:
     return {tag: [e.step for e in accumulator.Scalars(tag)] for tag in accumulator.Tags()["scalars"]}
 
 
-def test_time_to_accuracy_benchmark(tmp_path):
+def test_time_to_accuracy_benchmark(tmp_path, simulate_sphere):
     """`gaussian-atoms benchmark`: snapshots during training are scored next to FBP and SART;
     times increase, the written atoms (after the final stage) are the last row, files are written."""
     import csv
 
     data = tmp_path / "data"
-    sim = _run(
-        BIN / "gaussian-atoms",
-        "simulate",
-        "--output",
-        data,
-        "--particle",
-        "sphere",
-        "--potential",
-        "gaussian",
-        "--radius-A",
-        "5",
-        "--tilts",
-        "-70:10:70",
-        "--noise-std",
-        "20",
-    )
-    assert sim.returncode == 0, sim.stderr
+    simulate_sphere(data, 5, "-70:10:70")
     out = tmp_path / "bench"
     bench = _run(
         BIN / "gaussian-atoms",

@@ -269,7 +269,7 @@ def test_view_shifts_and_background_are_recovered(tmp_path):
     np.testing.assert_allclose(learned_bg, backgrounds, rtol=0, atol=0.01 * sim.projections.max())
 
 
-def test_tilt_offsets_are_recovered(tmp_path):
+def test_tilt_offsets_are_recovered(tmp_path, fit_view_parameter):
     """Projections taken at angles off their nominal values by up to 0.5 deg (goniometer
     error), atoms known: the learned per-view offsets match the errors (mean removed) to
     0.05 deg.  A tilt error moves an atom by its distance from the axis times the angle: the
@@ -287,25 +287,7 @@ def test_tilt_offsets_are_recovered(tmp_path):
     sim = simulate_gaussian_tilt_series(atoms, angles + errors, noise_std=0.0)
     write_tilt_series(tmp_path, sim.projections.astype(np.float32), angles, sim.pixel_size_A, truth=sim.truth)
     model, outputs = _model(tmp_path, num_random=len(atoms), init="random", refine_tilts=True)
-    norm = model.normalisation
-    with torch.no_grad():
-        model.gauss_params["means"].copy_(torch.as_tensor(norm.positions_from_A(atoms.positions), dtype=torch.float32))
-        model.gauss_params["log_sigmas"].fill_(math.log(sim.truth.sigmas[0] * norm.length_scale))
-    opt = torch.optim.Adam(
-        [
-            {"params": [model.view_params["view_tilts"]], "lr": 1e-3},
-            {"params": [model.gauss_params["log_amplitudes"]], "lr": 2e-2},
-        ]
-    )
-    targets = [outputs.metadata["projections"][v][..., None] for v in range(len(angles))]
-    for step in range(900):
-        opt.zero_grad()
-        v = step % len(angles)
-        model.get_loss_dict(model.get_outputs(outputs.cameras[v : v + 1]), {"image": targets[v]})[
-            "main_loss"
-        ].backward()
-        opt.step()
-    t = model.view_params["view_tilts"].detach().double().numpy()[:, 0]
+    t = fit_view_parameter(model, outputs, atoms, sim, "view_tilts", 1e-3, 900).double().numpy()[:, 0]
     learned_deg = np.rad2deg(t - t.mean())
     np.testing.assert_allclose(learned_deg, errors, atol=0.05)
 

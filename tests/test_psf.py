@@ -92,7 +92,7 @@ def _blurred_series_and_model(tmp_path, true_weights: torch.Tensor, **options):
     return atoms, sim, angles, outputs, model
 
 
-def test_kernel_is_recovered_from_a_simulated_series(tmp_path):
+def test_kernel_is_recovered_from_a_simulated_series(tmp_path, fit_view_parameter):
     """Projections blurred by a kernel with 30% of the intensity in a 2 Å tail (the ladder's
     middle width): with the atoms known, the weights learned with the amplitudes (Adam, 800
     steps, noise-free) give back the kernel: its transfer function (the microscope's MTF) to 0.03
@@ -100,26 +100,9 @@ def test_kernel_is_recovered_from_a_simulated_series(tmp_path):
     ladder's neighbours, 1 and 4 Å, take up a few per cent of it: they overlap over a small image)."""
     true_weights = torch.tensor([0.0, 0.3, 0.0], dtype=torch.float64)
     atoms, sim, angles, outputs, model = _blurred_series_and_model(tmp_path, true_weights)
-    norm = model.normalisation
-    with torch.no_grad():
-        model.gauss_params["means"].copy_(torch.as_tensor(norm.positions_from_A(atoms.positions), dtype=torch.float32))
-        model.gauss_params["log_sigmas"].fill_(math.log(sim.truth.sigmas[0] * norm.length_scale))
-    opt = torch.optim.Adam(
-        [
-            {"params": [model.view_params["psf"]], "lr": 1e-2},
-            {"params": [model.gauss_params["log_amplitudes"]], "lr": 2e-2},
-        ]
-    )
-    targets = [outputs.metadata["projections"][v][..., None] for v in range(len(angles))]
-    for step in range(800):
-        opt.zero_grad()
-        v = step % len(angles)
-        model.get_loss_dict(model.get_outputs(outputs.cameras[v : v + 1]), {"image": targets[v]})[
-            "main_loss"
-        ].backward()
-        opt.step()
-        project_weights(model.view_params["psf"].data)
-    learned = model.view_params["psf"].detach().double()
+    psf = model.view_params["psf"]
+    learned = fit_view_parameter(model, outputs, atoms, sim, "psf", 1e-2, 800, lambda: project_weights(psf.data))
+    learned = learned.double()
     widths = torch.tensor(KERNEL_WIDTHS_A, dtype=torch.float64)
     freq2 = torch.linspace(0.0, (0.5 / sim.pixel_size_A) ** 2, 200, dtype=torch.float64)
     assert (

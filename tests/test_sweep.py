@@ -104,32 +104,12 @@ def test_sweep_on_ray_local_cluster(tmp_path):
     assert all(r["pid"] != __import__("os").getpid() for r in rows)  # ran in Ray workers
 
 
-def test_sweep_cli_trains_each_setting(tmp_path):
+def test_sweep_cli_trains_each_setting(tmp_path, simulate_sphere):
     """Two real runs side by side on a small Gaussian-potential sphere: each run's config holds
     its own setting (a boolean given as False too), and both are scored against the truth (an
     easy particle: all 55 atoms)."""
     data = tmp_path / "data"
-    sim = subprocess.run(
-        [
-            str(BIN / "gaussian-atoms"),
-            "simulate",
-            "--output",
-            str(data),
-            "--particle",
-            "sphere",
-            "--potential",
-            "gaussian",
-            "--radius-A",
-            "6",
-            "--tilts",
-            "-70:5:70",
-            "--noise-std",
-            "20",
-        ],
-        capture_output=True,
-        text=True,
-    )
-    assert sim.returncode == 0, sim.stderr
+    simulate_sphere(data)
     out = tmp_path / "sweep"
     cmd = [
         str(BIN / "gaussian-atoms"),

@@ -22,28 +22,9 @@ pytestmark = pytest.mark.skipif(
 )
 
 
-def test_viewer_screenshot_shows_atoms(tmp_path):
+def test_viewer_screenshot_shows_atoms(tmp_path, simulate_sphere):
     data = tmp_path / "data"
-    subprocess.run(
-        [
-            str(BIN / "gaussian-atoms"),
-            "simulate",
-            "--output",
-            str(data),
-            "--particle",
-            "sphere",
-            "--potential",
-            "gaussian",
-            "--radius-A",
-            "6",
-            "--tilts",
-            "-70:5:70",
-            "--noise-std",
-            "20",
-        ],
-        check=True,
-        capture_output=True,
-    )
+    simulate_sphere(data)
     train = subprocess.run(
         [
             str(BIN / "ns-train"),
