@@ -32,6 +32,7 @@ from gaussian_atoms_method.physics.geometry import (
     TILT_AXES,
     detector_axes_from_euler,
     detector_axes_from_tilts,
+    detector_axes_of,
     imod_axis_angle,
 )
 from gaussian_atoms_method.physics.noise import MIN_SIDE_PX
@@ -222,12 +223,16 @@ class TiltSeries:
             )
         return euler
 
+    @property
+    def orientations_deg(self) -> np.ndarray:
+        """The views' angles as given: the (N, 3) Euler angles where there are any, else the
+        (N,) tilts."""
+        return self.angles_deg if self.euler_deg is None else self.euler_deg
+
     def detector_axes(self) -> np.ndarray:
         """(N, 3, 3) float64: each view's detector rows, columns and beam in the world
-        (:mod:`gaussian_atoms_method.physics.geometry`), from the Euler angles where given."""
-        if self.euler_deg is not None:
-            return detector_axes_from_euler(self.euler_deg)
-        return detector_axes_from_tilts(self.angles_deg, self.tilt_axis, self.tilt_axis_angle_deg)
+        (:func:`~gaussian_atoms_method.physics.geometry.detector_axes_of`)."""
+        return detector_axes_of(self.orientations_deg, self.tilt_axis, self.tilt_axis_angle_deg)
 
     @property
     def n_views(self) -> int:
@@ -434,8 +439,7 @@ def write_tilt_series(
     out.mkdir(parents=True, exist_ok=True)
     (out / MANIFEST).unlink(missing_ok=True)
     np.save(out / "projections.npy", series.projections)
-    angles = series.angles_deg if series.euler_deg is None else series.euler_deg  # phi, theta, psi a row
-    np.savetxt(out / "angles.txt", angles, fmt="%.6f")
+    np.savetxt(out / "angles.txt", series.orientations_deg, fmt="%.6f")  # Euler angles: phi, theta, psi a row
     manifest = {
         "projections": "projections.npy",
         "angles_deg": "angles.txt",

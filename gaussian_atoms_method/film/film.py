@@ -91,17 +91,21 @@ def check_settings(
     if unknown:
         raise ValueError(f"{unknown[0]}: not a model option (the options of `ns-train gaussian-atoms --help`)")
     FitOptions(**model_options).check()
-    if isinstance(tasks_per_gpu, bool) or not isinstance(tasks_per_gpu, int) or tasks_per_gpu < 1:
-        raise ValueError(f"{names['tasks_per_gpu']} {tasks_per_gpu!r}: expected a whole number of tasks, at least 1")
+    _check_count(tasks_per_gpu, names["tasks_per_gpu"], "tasks")
     species = ",".join(parse_species(species)) if species else ""
-    if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
-        raise ValueError(f"{names['max_steps']} {max_steps!r}: expected a whole number of training steps, at least 1")
+    _check_count(max_steps, names["max_steps"], "training steps")
     if address is not None:  # another cluster: its devices, asked of it once joined (runner.cluster_device)
         check_address(address)
         return species, device
     if device == "cuda" and not usable("cuda"):  # a local cluster: this machine's devices
         raise ValueError(f"{names['device']} cuda: torch sees no GPU on this machine; use cpu or auto")
     return species, resolve(device)
+
+
+def _check_count(value, name: str, what: str) -> None:
+    """A ValueError naming ``name`` unless ``value`` is a whole number (not a bool) of at least 1."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"{name} {value!r}: expected a whole number of {what}, at least 1")
 
 
 def task_summary(records) -> dict:

@@ -218,22 +218,24 @@ def tile_series(series: TiltSeries, size_px: tuple[int, int], step_px: tuple[int
     for r in starts(h, size[0], step_px[0]):
         for c in starts(w, size[1], step_px[1]):
             across_px = r + middle[0] - cr  # the tile's centre across the axis, from the tilt centre
-            views = np.empty((len(cos), *size), dtype=np.float32)
-            cols = np.arange(c, c + size[1], dtype=np.float64)
             along_px = c + middle[1] - cc
-            for v, cv in enumerate(cos):
-                rows = cr + across_px * cv - middle[0] + np.arange(size[0], dtype=np.float64)
-                if in_plane is not None:
-                    shift = in_plane[v] @ np.array([across_px, along_px])
-                    rows = cr + shift[0] - middle[0] + np.arange(size[0], dtype=np.float64)
-                    cols = cc + shift[1] - middle[1] + np.arange(size[1], dtype=np.float64)
+            # (V, 2) the tile centre's detector position in each view, from the tilt centre
+            shifts = (
+                np.c_[across_px * cos, np.full(len(cos), along_px)]
+                if in_plane is None
+                else in_plane @ np.array([across_px, along_px])
+            )
+            views = np.empty((len(cos), *size), dtype=np.float32)
+            for v, (shift_row, shift_col) in enumerate(shifts):
+                rows = cr + shift_row - middle[0] + np.arange(size[0], dtype=np.float64)
+                cols = c + (shift_col - along_px) + np.arange(size[1], dtype=np.float64)
                 grid = np.meshgrid(rows, cols, indexing="ij")
                 views[v] = map_coordinates(series.projections[v], grid, order=1, mode="nearest")
             name = f"tile_r{r}_c{c}"
             target = write_tilt_series(
                 Path(out_dir) / name,
                 views,
-                series.angles_deg if series.euler_deg is None else series.euler_deg,
+                series.orientations_deg,
                 series.pixel_size_A,
                 centre_px=middle,
                 species=series.species,

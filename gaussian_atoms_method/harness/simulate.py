@@ -23,7 +23,7 @@ import torch
 from scipy import ndimage
 
 from gaussian_atoms_method.atoms.atom_set import AtomSet
-from gaussian_atoms_method.physics.geometry import detector_axes_from_euler, detector_axes_from_tilts, pixel_centres
+from gaussian_atoms_method.physics.geometry import detector_axes_of, pixel_centres
 from gaussian_atoms_method.physics.projector import project_gaussians
 
 #: Integrated potential of one atom in the Gaussian model, per unit of atomic number
@@ -91,14 +91,6 @@ def gaussian_potential_parameters(species, atom_sigma_A: float = 0.35) -> tuple[
     return sigmas, amplitudes
 
 
-def view_axes(angles_deg, tilt_axis: str = "y") -> np.ndarray:
-    """(N, 3, 3) detector orientations: tilts about ``tilt_axis``, or (N, 3) ZYZ Euler angles."""
-    angles = np.asarray(angles_deg, dtype=np.float64)
-    if angles.ndim == 2 and angles.shape[1] == 3:
-        return detector_axes_from_euler(angles)
-    return detector_axes_from_tilts(angles, tilt_axis)
-
-
 def _detector_size(atoms: AtomSet, pixel_size_A: float, margin_A: float) -> int:
     extent = 2 * (np.abs(atoms.positions).max() + margin_A)
     return int(np.ceil(extent / pixel_size_A))
@@ -114,7 +106,7 @@ def project_gaussian_potential(
 ) -> np.ndarray:
     """Exact projections ``(N, P, P)`` of the quick Gaussian potential (positions about the tilt centre)."""
     sigmas, amplitudes = gaussian_potential_parameters(atoms.species, atom_sigma_A)
-    axes = torch.from_numpy(view_axes(angles_deg, tilt_axis))
+    axes = torch.from_numpy(detector_axes_of(angles_deg, tilt_axis))
     coords = torch.from_numpy(pixel_centres(detector_pixels, pixel_size_A))
     means = torch.from_numpy(atoms.positions)
     images = []
@@ -146,7 +138,7 @@ def project_lobato_potential(
     abtem.config.set({"device": "cpu", "progress_bar": False})
     side = detector_pixels * pixel_size_A
     centre = (detector_pixels - 1) / 2 * pixel_size_A
-    axes = view_axes(angles_deg, tilt_axis)
+    axes = detector_axes_of(angles_deg, tilt_axis)
     depth = 2 * np.abs(atoms.positions).max() + 10.0
     out = np.empty((len(axes), detector_pixels, detector_pixels), dtype=np.float64)
     symbols = list(atoms.species)

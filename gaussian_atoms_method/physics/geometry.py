@@ -147,6 +147,16 @@ def detector_axes_from_euler(euler_deg: np.ndarray) -> np.ndarray:
     return np.stack([rows, cols, beam], axis=1)
 
 
+def detector_axes_of(angles_deg, tilt_axis: str = "y", tilt_axis_angle_deg: float = 0.0) -> np.ndarray:
+    """(N, 3, 3) detector orientations of ``angles_deg``: (N,) tilts about ``tilt_axis``
+    (:func:`detector_axes_from_tilts`), or (N, 3) ZYZ Euler angles, which give each view's whole
+    orientation (:func:`detector_axes_from_euler`)."""
+    angles = np.asarray(angles_deg, dtype=np.float64)
+    if angles.ndim == 2 and angles.shape[1] == 3:
+        return detector_axes_from_euler(angles)
+    return detector_axes_from_tilts(angles, tilt_axis, tilt_axis_angle_deg)
+
+
 def pixel_centres(n_pixels: int, pixel_size: float, centre_index: float | None = None) -> np.ndarray:
     """Coordinates of the pixel centres along one detector axis, relative to the tilt axis.
 

@@ -64,7 +64,6 @@ def main() -> None:
     import torch
 
     from dataparsers.tilt_series_format import load_tilt_series
-    from gaussian_atoms_method.physics.geometry import detector_axes_from_tilts
     from gaussian_atoms_method.physics.projector import project_gaussians
 
     series = load_tilt_series(args.data)
@@ -79,7 +78,7 @@ def main() -> None:
         torch.tensor(means),
         torch.tensor(sigmas),
         torch.tensor(amplitudes),
-        torch.tensor(detector_axes_from_tilts(np.asarray(series.angles_deg), "y")),
+        torch.tensor(series.detector_axes()),
         torch.tensor(rows_A),
         torch.tensor(cols_A),
     ).numpy()
