@@ -109,6 +109,27 @@ def test_batched_filtered_backprojection_equals_scikit_image():
         filtered_backprojection(sino, theta[:-1])
 
 
+def test_the_filter_as_a_matrix_is_the_ffts_filter():
+    """A GPU's FBP filters by one matrix product (no cuFFT); the matrix gives the host's FFT
+    filtering (zero-padded to ``padded``, the first L samples kept) to float64 rounding, for an
+    odd and an even detector and both filters the package uses."""
+    import scipy.fft
+    from skimage.transform.radon_transform import _get_fourier_filter
+
+    from gaussian_atoms_method.physics.reconstruction import filter_matrix
+
+    rng = np.random.default_rng(2)
+    for length, name in ((41, "ramp"), (64, "hann")):
+        padded = max(64, int(2 ** np.ceil(np.log2(2 * length))))
+        h = _get_fourier_filter(padded, name)[:, 0]
+        even = 0.5 * (h + np.roll(h[::-1], 1))[: padded // 2 + 1]
+        projections = rng.normal(size=(5, length))
+        expected = scipy.fft.irfft(scipy.fft.rfft(projections, n=padded) * even, n=padded)[:, :length] * (np.pi / 34)
+        matrix = filter_matrix(even, padded, length, 17)
+        np.testing.assert_allclose(matrix, matrix.T, rtol=0, atol=1e-15 * np.abs(matrix).max())
+        np.testing.assert_allclose(projections @ matrix, expected, rtol=0, atol=1e-13 * np.abs(expected).max())
+
+
 def test_the_hosts_backprojection_matrix_is_torchs():
     """The CPU's FBP builds its sparse matrix in numpy for scipy (without torch): the same
     entries as the torch builder the GPU and SIRT use, to the bit, whole and in blocks of rows."""

@@ -310,3 +310,21 @@ def test_steps_replayed_as_a_cuda_graph_train_as_eager_steps(tmp_path, views):
         torch.testing.assert_close(graphed.gauss_params[name], eager.gauss_params[name], rtol=0, atol=1e-4)
     for name, param in eager.view_params.items():
         torch.testing.assert_close(graphed.view_params[name], param, rtol=1e-4, atol=1e-6)
+
+
+@cuda
+def test_kernel_on_cuda_by_matrices_equals_the_hosts_fft():
+    """On a GPU the point-spread function is applied by matrix products (no cuFFT): the host's
+    FFT blur to float64 rounding (1e-9 of the peak, as tests/test_psf.py argues), with the
+    weights' gradient."""
+    from gaussian_atoms_method.physics.psf import KERNEL_WIDTHS_A, apply_kernel
+
+    image = torch.rand(2, 48, 61, dtype=torch.float64, generator=torch.Generator().manual_seed(5))
+    results = []
+    for device in ("cpu", "cuda"):
+        weights = torch.tensor([0.2, 0.1, 0.3], dtype=torch.float64, device=device, requires_grad=True)
+        blurred = apply_kernel(image.to(device), 0.3, tuple(KERNEL_WIDTHS_A), weights)
+        (grad,) = torch.autograd.grad((blurred * image.to(device)).sum(), weights)
+        results.append((blurred.detach().cpu(), grad.cpu()))
+    assert float((results[0][0] - results[1][0]).abs().max()) < 1e-9 * float(results[0][0].max())
+    assert torch.allclose(results[0][1], results[1][1], rtol=1e-9, atol=0.0)

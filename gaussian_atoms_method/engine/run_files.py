@@ -130,9 +130,9 @@ class Scalars:
     queue every ``every`` steps."""
 
     def __init__(self, run_dir: Path, every: int = 10, flush_every: int = 10) -> None:
-        from torch.utils.tensorboard import SummaryWriter
+        from gaussian_atoms_method.engine.event_file import ScalarEvents
 
-        self.writer, self.every, self.flush_every = SummaryWriter(log_dir=str(run_dir)), every, flush_every
+        self.writer, self.every, self.flush_every = ScalarEvents(run_dir), every, flush_every
         self.queued: list[tuple[int, dict, float]] = []
 
     def write(self, step: int, loss: torch.Tensor, losses: dict, metrics: dict, optimisers) -> None:
@@ -150,6 +150,7 @@ class Scalars:
     def flush(self) -> None:
         """Write the queued scalars (one copy from the device)."""
         if not self.queued:
+            self.writer.flush()
             return
         tensors = [
             torch.as_tensor(v, dtype=torch.float64).reshape(()) for _, values, _ in self.queued for v in values.values()
@@ -160,6 +161,7 @@ class Scalars:
                 self.writer.add_scalar(name, next(host), step)
             self.writer.add_scalar("GPU Memory (MB)", memory, step)
         self.queued = []
+        self.writer.flush()
 
     def close(self) -> None:
         self.flush()
