@@ -109,19 +109,32 @@ def test_batched_filtered_backprojection_equals_scikit_image():
         filtered_backprojection(sino, theta[:-1])
 
 
+def test_the_fourier_filters_are_scikit_images():
+    """Every filter iradon offers, computed without importing skimage.transform: its values to
+    the bit, at a power-of-two size and the smallest one the FBP uses (64)."""
+    from skimage.transform.radon_transform import _get_fourier_filter
+
+    from gaussian_atoms_method.physics.fbp_filters import fourier_filter_of
+
+    for size in (64, 512):
+        for name in ("ramp", "shepp-logan", "cosine", "hamming", "hann", None):
+            np.testing.assert_array_equal(fourier_filter_of(size, name), _get_fourier_filter(size, name)[:, 0])
+    with pytest.raises(ValueError, match="filter_name"):
+        fourier_filter_of(64, "parzen")
+
+
 def test_the_filter_as_a_matrix_is_the_ffts_filter():
     """A GPU's FBP filters by one matrix product (no cuFFT); the matrix gives the host's FFT
     filtering (zero-padded to ``padded``, the first L samples kept) to float64 rounding, for an
     odd and an even detector and both filters the package uses."""
     import scipy.fft
-    from skimage.transform.radon_transform import _get_fourier_filter
 
-    from gaussian_atoms_method.physics.reconstruction import filter_matrix
+    from gaussian_atoms_method.physics.fbp_filters import filter_matrix, fourier_filter_of
 
     rng = np.random.default_rng(2)
     for length, name in ((41, "ramp"), (64, "hann")):
         padded = max(64, int(2 ** np.ceil(np.log2(2 * length))))
-        h = _get_fourier_filter(padded, name)[:, 0]
+        h = fourier_filter_of(padded, name)
         even = 0.5 * (h + np.roll(h[::-1], 1))[: padded // 2 + 1]
         projections = rng.normal(size=(5, length))
         expected = scipy.fft.irfft(scipy.fft.rfft(projections, n=padded) * even, n=padded)[:, :length] * (np.pi / 34)

@@ -27,7 +27,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from gaussian_atoms_method.atoms import volume_filters
@@ -72,6 +71,8 @@ def backprojected_noise(
     p = np.asarray(projections, dtype=np.float64)
     noise = noise_from_projections(p) if noise is None else noise
     if torch.device(device).type == "cpu":
+        from scipy import ndimage
+
         variance = np.clip(noise.variance(ndimage.gaussian_filter(p, (0, 2.0, 2.0))), 0.0, None)
     # the same filter on the device (0.45 s on the host at 20,000 atoms on the H100 machine); a float64 tensor there
     else:

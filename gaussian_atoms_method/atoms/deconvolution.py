@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy import fft, ndimage
+import scipy
 from scipy.spatial import cKDTree
 
 from gaussian_atoms_method.atoms.maxima import separated_maxima_device, separated_maxima_host, values_at
@@ -87,7 +87,7 @@ def matched_response(
 
     def response(width, volume=narrow):
         return peak_normalised(
-            sharp(ndimage.gaussian_filter(volume, math.sqrt(max(width**2 - narrow_sigma_A**2, 0.0)) / spacing_A))
+            sharp(scipy.ndimage.gaussian_filter(volume, math.sqrt(max(width**2 - narrow_sigma_A**2, 0.0)) / spacing_A))
         )
 
     # the search reads only the peak: a box of 4 widest blurs about it (an eighth of the volume's cost)
@@ -126,7 +126,7 @@ def _wrapped_kernel(response: np.ndarray, centre, shape) -> np.ndarray:
 
 def _kernel_spectrum(response: np.ndarray, centre, shape) -> np.ndarray:
     """The real FFT of :func:`_wrapped_kernel`."""
-    return fft.rfftn(_wrapped_kernel(response, centre, shape), workers=-1)
+    return scipy.fft.rfftn(_wrapped_kernel(response, centre, shape), workers=-1)
 
 
 def _trilinear_corners(positions_vox: np.ndarray, field_shape, shape) -> tuple[np.ndarray, np.ndarray]:
@@ -174,7 +174,7 @@ def fit_amplitudes(
     Au series' 271 voxels is a prime: 0.35 s a transform, against 0.1 s at 275); the normal
     operator is one convolution with the response's autocorrelation, so each step costs one
     pair of transforms."""
-    shape = tuple(fft.next_fast_len(n, real=True) for n in field.shape)
+    shape = tuple(scipy.fft.next_fast_len(n, real=True) for n in field.shape)
     spectrum = _kernel_spectrum(response, centre, shape)
     power = (spectrum * np.conj(spectrum)).real.astype(np.float32)
     last = np.array(field.shape) - 1
@@ -183,10 +183,10 @@ def fit_amplitudes(
 
     def splat(amplitudes):
         spikes = np.bincount(flat, weights=np.tile(amplitudes, 8) * weights, minlength=int(np.prod(shape)))
-        return fft.rfftn(spikes.reshape(shape).astype(np.float32), workers=-1)
+        return scipy.fft.rfftn(spikes.reshape(shape).astype(np.float32), workers=-1)
 
     def sample(spectrum_):
-        volume = fft.irfftn(spectrum_, s=shape, workers=-1).ravel()
+        volume = scipy.fft.irfftn(spectrum_, s=shape, workers=-1).ravel()
         return (weights * volume[flat]).reshape(8, count).sum(axis=0)
 
     def normal(amplitudes):  # A^T A a
@@ -195,9 +195,9 @@ def fit_amplitudes(
     padded = np.zeros(shape, dtype=np.float32)
     padded[tuple(slice(0, n) for n in field.shape)] = field
     amplitudes = np.asarray(field[tuple(np.rint(positions_vox).astype(np.int64).clip(0, last).T)], dtype=np.float64)
-    gradient = sample(fft.rfftn(padded, workers=-1) * np.conj(spectrum)) - normal(amplitudes)
+    gradient = sample(scipy.fft.rfftn(padded, workers=-1) * np.conj(spectrum)) - normal(amplitudes)
     _conjugate_gradients(amplitudes, gradient, normal, iterations)
-    model = fft.irfftn(splat(amplitudes) * spectrum, s=shape, workers=-1)
+    model = scipy.fft.irfftn(splat(amplitudes) * spectrum, s=shape, workers=-1)
     return amplitudes, model[tuple(slice(0, n) for n in field.shape)]
 
 
@@ -210,7 +210,7 @@ def fit_amplitudes_on_device(field, positions_vox: np.ndarray, response: np.ndar
     import torch
 
     dev = field.device
-    shape = tuple(fft.next_fast_len(n, real=True) for n in field.shape)
+    shape = tuple(scipy.fft.next_fast_len(n, real=True) for n in field.shape)
     spectrum = torch.fft.rfftn(torch.as_tensor(_wrapped_kernel(response, centre, shape), device=dev))
     power = (spectrum * spectrum.conj()).real
     flat, weights = (torch.as_tensor(x, device=dev) for x in _trilinear_corners(positions_vox, field.shape, shape))

@@ -13,7 +13,7 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import Callable
 
 import numpy as np
-from scipy import ndimage
+import scipy
 
 _POOL: dict[int, ThreadPoolExecutor] = {}
 
@@ -55,7 +55,7 @@ def gaussian_pass(volume: np.ndarray, sigma: float, axis: int, order: int = 0) -
     return along_axis(
         volume,
         axis,
-        lambda part, ax, out: ndimage.gaussian_filter1d(
+        lambda part, ax, out: scipy.ndimage.gaussian_filter1d(
             part, sigma, ax, order, output=out, mode="reflect", truncate=4.0
         ),
     )
@@ -65,6 +65,6 @@ def maximum_filter3(volume: np.ndarray) -> np.ndarray:
     """scipy's ``maximum_filter(volume, size=3, mode="nearest")``: its 1-D passes along each axis in turn."""
     for axis in range(volume.ndim):
         volume = along_axis(
-            volume, axis, lambda part, ax, out: ndimage.maximum_filter1d(part, 3, ax, output=out, mode="nearest")
+            volume, axis, lambda part, ax, out: scipy.ndimage.maximum_filter1d(part, 3, ax, output=out, mode="nearest")
         )
     return volume

@@ -9,7 +9,6 @@ matching of minimal total distance, solved exactly per connected group of candid
 from __future__ import annotations
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
@@ -64,6 +63,8 @@ def match_atoms(pred_A: np.ndarray, true_A: np.ndarray, radius_A: float = 0.75) 
         big = (e - s + 1) * (radius_A + 1.0)
         cost = np.full((len(up), len(ut)), big)
         cost[ip, it] = d[s:e]
+        from scipy.optimize import linear_sum_assignment  # 40 ms to import; only where pairs compete
+
         rows, cols = linear_sum_assignment(cost)
         keep = cost[rows, cols] < big
         out_p.append(up[rows[keep]])

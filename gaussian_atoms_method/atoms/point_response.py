@@ -13,8 +13,9 @@ does not.  Used by the start (:mod:`.candidates`) and the search of the residual
 from __future__ import annotations
 
 import numpy as np
+import scipy
 import torch
-from scipy import ndimage, sparse
+from scipy import sparse
 from scipy.spatial import cKDTree
 
 from gaussian_atoms_method.atoms.voxel_pairs import pairs_within
@@ -79,7 +80,7 @@ def point_response(
     volume = backprojected_atom(
         shape, angles_deg, pixel_size_A, sigma_A, tilt_axis, tilt_axis_angle_deg, device, half_width_A
     )
-    return peak_normalised(ndimage.gaussian_filter(volume.data, smoothing_A / volume.spacing_A))
+    return peak_normalised(scipy.ndimage.gaussian_filter(volume.data, smoothing_A / volume.spacing_A))
 
 
 def peak_normalised(response: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -16,9 +16,10 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
+import scipy
 
 from gaussian_atoms_method.physics.devices import HOST
+from gaussian_atoms_method.physics.fbp_filters import filter_matrix, fourier_filter_of
 from gaussian_atoms_method.physics.geometry import to_nominal_axis
 
 
@@ -50,7 +51,7 @@ class Volume:
             (np.arange(n) - (n - 1) / 2) * voxel_size_A / self.spacing_A + self.origin_index[a]
             for a, n in enumerate(shape)
         ]
-        return ndimage.map_coordinates(self.data, np.meshgrid(*axes, indexing="ij"), order=1, mode="constant")
+        return scipy.ndimage.map_coordinates(self.data, np.meshgrid(*axes, indexing="ij"), order=1, mode="constant")
 
 
 def _centred_sinograms(projections: np.ndarray, centre_index: float, axis: int) -> tuple[np.ndarray, int]:
@@ -64,7 +65,7 @@ def _centred_sinograms(projections: np.ndarray, centre_index: float, axis: int) 
     sino[:, :across, :] = np.swapaxes(stack, 1, 2)
     shift = length // 2 - centre_index
     if abs(shift) > 1e-9:
-        sino = ndimage.shift(sino, (0, shift, 0), order=3, mode="constant")
+        sino = scipy.ndimage.shift(sino, (0, shift, 0), order=3, mode="constant")
     return sino, length
 
 
@@ -208,8 +209,6 @@ def filtered_backprojection(
     -------
     (S, output_size, output_size) array (or tensor), equal to ``iradon`` of each slice.
     """
-    from skimage.transform.radon_transform import _get_fourier_filter
-
     sinograms = np.asarray(sinograms, dtype=np.float64)
     n_slices, length, n_angles = sinograms.shape
     if n_angles != len(angles_deg):
@@ -219,7 +218,7 @@ def filtered_backprojection(
     # iradon takes the real part of ifft(fft(p) H); for real p that is irfft(rfft(p) E), with E
     # the even part of H (scikit-image's Hann window is not quite even): half the spectrum, along
     # a contiguous axis (the Au series' filtering 0.65 -> 0.05 s on the 2-core CPU).
-    fourier_filter = _get_fourier_filter(padded, filter_name)[:, 0]
+    fourier_filter = fourier_filter_of(padded, filter_name)
     even = 0.5 * (fourier_filter + np.roll(fourier_filter[::-1], 1))[: padded // 2 + 1]
     block = max(1, max_matrix_entries // (2 * n_angles))  # output pixels per block
     if _on_host(device):
@@ -232,12 +231,13 @@ def filtered_backprojection(
     import torch
 
     dtype = torch.float32 if _numpy_dtype(dtype) is np.float32 else torch.float64
-    sino = torch.as_tensor(sinograms, device=device)
-    # (N, S, L): the filter as one matrix product (cuBLAS), not an FFT (cuFFT's first use in a
-    # process costs a GPU run 0.25 s or more; the product of 40 x 271 rows of 300 is microseconds)
-    filtered = sino.permute(2, 0, 1) @ torch.as_tensor(filter_matrix(even, padded, length, n_angles), device=device)
+    sino = torch.as_tensor(sinograms, device=device, dtype=dtype)
+    # (N, S, L): the filter as one matrix product (cuBLAS) in the result's precision, not an FFT
+    # (cuFFT's first use in a process costs a GPU run 0.25 s or more; the product is microseconds)
+    matrix = torch.as_tensor(filter_matrix(even, padded, length, n_angles), device=device, dtype=dtype)
+    filtered = sino.permute(2, 0, 1) @ matrix
     # One zero sample after each angle's detector (read by rays that miss it).
-    filtered = torch.nn.functional.pad(filtered.to(dtype).transpose(1, 2), (0, 0, 0, 1)).reshape(
+    filtered = torch.nn.functional.pad(filtered.transpose(1, 2), (0, 0, 0, 1)).reshape(
         n_angles * (length + 1), n_slices
     )
     if block >= size * size:  # one block: the product is the output, not copied into it
@@ -249,17 +249,6 @@ def filtered_backprojection(
             out[rows] = backprojection_matrix(angles_deg, length, size, rows, dtype, device) @ filtered
     out = out.T.reshape(n_slices, size, size)
     return out if as_tensor else out.cpu().numpy()
-
-
-def filter_matrix(even_filter: np.ndarray, padded: int, length: int, n_angles: int) -> np.ndarray:
-    """(L, L) float64 matrix ``F`` with ``p @ F`` equal to :func:`filtered_backprojection`'s
-    filtering of a projection ``p`` (L,): ``irfft(rfft(p, padded) E)[:L]``, times iradon's
-    scale ``pi / (2 N)``.  A zero-padded circular convolution with the filter's kernel
-    ``k = irfft(E)``, so ``F[m, n] = k[(n - m) mod padded]`` (symmetric: ``E`` is real and
-    even).  Equal to the FFT's filtering to float64 rounding (``tests/test_reconstruction.py``)."""
-    kernel = np.fft.irfft(even_filter, n=padded) * (np.pi / (2 * n_angles))
-    offsets = np.arange(length)
-    return kernel[(offsets[None, :] - offsets[:, None]) % padded]
 
 
 def _backproject_on_host(
@@ -334,8 +323,6 @@ def reconstruct(
     Volume
         ``data[x, y, z]``, voxel size ``pixel_size_A``, values per Å.
     """
-    from skimage.transform import iradon_sart
-
     if method not in ("fbp", "sart"):
         raise ValueError(f"method must be 'fbp' or 'sart', got {method!r}")
     sino, length, axis_centre = slice_sinograms(projections, tilt_axis, centre_px, tilt_axis_angle_deg)
@@ -345,6 +332,8 @@ def reconstruct(
     if method == "fbp":
         recs = filtered_backprojection(sino, theta, filter_name, size, device, dtype=dtype, as_tensor=as_tensor)
     else:
+        from skimage.transform import iradon_sart  # not on an FBP's path: 0.1 s to import
+
         recs = []
         for s in sino:
             rec = None
