@@ -331,3 +331,22 @@ def test_kernel_on_cuda_by_matrices_equals_the_hosts_fft():
         results.append((blurred.detach().cpu(), grad.cpu()))
     assert float((results[0][0] - results[1][0]).abs().max()) < 1e-9 * float(results[0][0].max())
     assert torch.allclose(results[0][1], results[1][1], rtol=1e-9, atol=0.0)
+
+
+@cuda
+def test_large_images_on_cuda_are_blurred_by_fft(monkeypatch):
+    """Beyond MATRIX_BLUR_MAX_SIDE_PX a GPU blurs by FFT (the products' work grows as the side
+    cubed): the same images as the host's to float64 rounding, without the matrices."""
+    from gaussian_atoms_method.physics import psf
+
+    side = psf.MATRIX_BLUR_MAX_SIDE_PX + 1
+    image = torch.rand(1, side, 40, dtype=torch.float64, generator=torch.Generator().manual_seed(6))
+    weights = torch.tensor([0.2, 0.1, 0.3], dtype=torch.float64)
+    host = psf.apply_kernel(image, 0.3, tuple(psf.KERNEL_WIDTHS_A), weights)
+
+    def refused(*args):
+        raise AssertionError("a large image was blurred by matrices")
+
+    monkeypatch.setattr(psf, "apply_kernel_by_matrices", refused)
+    gpu = psf.apply_kernel(image.cuda(), 0.3, tuple(psf.KERNEL_WIDTHS_A), weights.cuda()).cpu()
+    assert float((gpu - host).abs().max()) < 1e-12 * float(host.max())
