@@ -17,7 +17,8 @@ Unconstrained weights on the Ta film went to -1.4 at 1 Å: a sharpening kernel t
 put more, not fewer, Gaussians (0.71 extra atoms per model atom against 0.56).  Below the ladder the kernel
 and the atoms' widths are one and the same thing (a narrower blur widens every atom alike), so
 the kernel starts where an atom ends and an atom's width still holds its own share of the blur.
-Applied by FFT on the zero-padded image.  Pure torch.
+Applied by FFT on the zero-padded image (on a GPU, images up to :data:`MATRIX_BLUR_MAX_SIDE_PX`
+by separable matrices: no cuFFT).  Pure torch.
 """
 
 from __future__ import annotations
@@ -135,9 +136,9 @@ def apply_kernel_by_matrices(
     """:func:`apply_kernel` by matrix products, a GPU's way: every kernel Gaussian is separable,
     so ``G_k * X = A_k X B_k`` with :func:`_gaussian_matrices` along the rows and the columns.
     No FFT: cuFFT's first use in a process costs a GPU run a quarter of a second or more, and
-    every run applies the kernel from its first step.  The same images as the FFT's to float64
-    rounding (the FFT's own aliasing, ``exp(-pi^2 s^2 / (2 spacing^2))``, is below 1e-8 for a
-    width of two pixels or more; ``tests/test_psf.py``)."""
+    every run applies the kernel from its first step.  The FFT's images and gradients to 1e-9 of
+    the peak: what differs is the FFT's own aliasing, ``exp(-pi^2 s^2 / (2 spacing^2))``, about
+    3e-9 at a width of two pixels (``tests/test_psf.py``)."""
     widths = tuple(float(x) for x in (widths if isinstance(widths, tuple) else widths.tolist()))
     if not widths:
         return images
