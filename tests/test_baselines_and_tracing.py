@@ -129,13 +129,11 @@ def test_the_filter_as_a_matrix_is_the_ffts_filter():
     odd and an even detector and both filters the package uses."""
     import scipy.fft
 
-    from gaussian_atoms_method.physics.fbp_filters import filter_matrix, fourier_filter_of
+    from gaussian_atoms_method.physics.fbp_filters import even_filter, filter_matrix
 
     rng = np.random.default_rng(2)
     for length, name in ((41, "ramp"), (64, "hann")):
-        padded = max(64, int(2 ** np.ceil(np.log2(2 * length))))
-        h = fourier_filter_of(padded, name)
-        even = 0.5 * (h + np.roll(h[::-1], 1))[: padded // 2 + 1]
+        padded, even = even_filter(length, name)
         projections = rng.normal(size=(5, length))
         expected = scipy.fft.irfft(scipy.fft.rfft(projections, n=padded) * even, n=padded)[:, :length] * (np.pi / 34)
         matrix = filter_matrix(even, padded, length, 17)

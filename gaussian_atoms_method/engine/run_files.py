@@ -148,19 +148,19 @@ class Scalars:
             self.flush()
 
     def flush(self) -> None:
-        """Write the queued scalars (one copy from the device)."""
-        if not self.queued:
-            self.writer.flush()
-            return
-        tensors = [
-            torch.as_tensor(v, dtype=torch.float64).reshape(()) for _, values, _ in self.queued for v in values.values()
-        ]
-        host = iter(torch.stack([t.to(tensors[0].device) for t in tensors]).cpu().tolist())
-        for step, values, memory in self.queued:
-            for name in values:
-                self.writer.add_scalar(name, next(host), step)
-            self.writer.add_scalar("GPU Memory (MB)", memory, step)
-        self.queued = []
+        """Write the queued scalars (one copy from the device) and the rates to the file."""
+        if self.queued:
+            tensors = [
+                torch.as_tensor(v, dtype=torch.float64).reshape(())
+                for _, values, _ in self.queued
+                for v in values.values()
+            ]
+            host = iter(torch.stack([t.to(tensors[0].device) for t in tensors]).cpu().tolist())
+            for step, values, memory in self.queued:
+                for name in values:
+                    self.writer.add_scalar(name, next(host), step)
+                self.writer.add_scalar("GPU Memory (MB)", memory, step)
+            self.queued = []
         self.writer.flush()
 
     def close(self) -> None:

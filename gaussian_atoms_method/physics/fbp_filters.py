@@ -38,6 +38,16 @@ def fourier_filter_of(size: int, filter_name: str | None) -> np.ndarray:
     return fourier_filter
 
 
+def even_filter(length: int, filter_name: str | None) -> tuple[int, np.ndarray]:
+    """The FFT length iradon pads an L-sample projection to, and the even part ``E`` of its
+    filter over the first ``padded // 2 + 1`` frequencies: iradon takes the real part of
+    ``ifft(fft(p) H)``, which for a real ``p`` is ``irfft(rfft(p) E)`` (scikit-image's Hann
+    window is not quite even), half the spectrum."""
+    padded = max(64, int(2 ** np.ceil(np.log2(2 * length))))
+    fourier_filter = fourier_filter_of(padded, filter_name)
+    return padded, 0.5 * (fourier_filter + np.roll(fourier_filter[::-1], 1))[: padded // 2 + 1]
+
+
 def filter_matrix(even_filter: np.ndarray, padded: int, length: int, n_angles: int) -> np.ndarray:
     """(L, L) float64 matrix ``F`` with ``p @ F`` the filtering of
     :func:`~gaussian_atoms_method.physics.reconstruction.filtered_backprojection` of a projection

@@ -39,7 +39,7 @@ MATRIX_BLUR_MAX_SIDE_PX = 320
 by FFT.  The products' work grows as the side cubed, the FFT's barely: on an H100, 8 views,
 forward and backward, 1.46 ms against the FFT's 1.02 at 600 px, 2.97 against 0.95 at 800.  At
 320 px (about 0.2 ms a step, scaled from 600) a 3,000-step run's extra time equals what the
-matrices spare it: cuFFT's first use in the process, 0.3-0.9 s."""
+matrices spare it: cuFFT's first use in the process, 0.3-0.9 s (``scripts/studies/psf_blur_cost.py``)."""
 
 
 @torch.no_grad()
@@ -105,6 +105,13 @@ def apply_kernel(
         return images
     if images.is_cuda and max(images.shape[-2:]) <= MATRIX_BLUR_MAX_SIDE_PX:
         return apply_kernel_by_matrices(images, spacing, widths, weights)
+    return apply_kernel_by_fft(images, spacing, widths, weights)
+
+
+def apply_kernel_by_fft(
+    images: torch.Tensor, spacing: float, widths: torch.Tensor | tuple[float, ...], weights: torch.Tensor
+) -> torch.Tensor:
+    """:func:`apply_kernel` by FFT, always (the host's way, and a GPU's for large images)."""
     h, w = images.shape[-2:]
     widest = (max(widths) if isinstance(widths, tuple) else float(widths.max())) if len(widths) else 0.0
     pad = int(math.ceil(3.0 * widest / spacing))
