@@ -81,8 +81,7 @@ def backprojected_noise(
         ).clamp_min(0.0)
     h, w = min(size_px, p.shape[1]), min(size_px, p.shape[2])
     draw = np.random.default_rng(seed).standard_normal((p.shape[0], h, w))
-    # its FBP on the host, where it is read (:func:`backprojected_atom` says why)
-    volume = reconstruct(draw, angles_deg, pixel_size_A, "fbp", tilt_axis, None, filter_name="hann", device="cpu")
+    volume = reconstruct(draw, angles_deg, pixel_size_A, "fbp", tilt_axis, None, filter_name="hann", device=device)
     return volume.data, variance
 
 
@@ -225,7 +224,7 @@ def _strongest_maxima(search: CandidateSearch) -> None:
     if s.counted and len(positions):
         response, centre = point_response(
             s.projections.shape, s.angles_deg, s.pixel_size_A, s.smoothing_A, s.tilt_axis, s.smoothing_A,
-            s.tilt_axis_angle_deg,
+            s.tilt_axis_angle_deg, s.device,
         )  # fmt: skip
         positions = positions[
             clean_peaks(positions, values_at(s.data, positions), response, centre, s.level, s.device)[0]
@@ -285,7 +284,7 @@ def _remainders(search: CandidateSearch) -> None:
     fine = s.fine.numpy() if s.fine.device.type == "cpu" else s.fine
     narrow_A = max(0.3, 0.7 * s.pixel_size_A)  # sampled by the detector
     narrow = backprojected_atom(
-        s.projections.shape, s.angles_deg, s.pixel_size_A, narrow_A, s.tilt_axis, s.tilt_axis_angle_deg
+        s.projections.shape, s.angles_deg, s.pixel_size_A, narrow_A, s.tilt_axis, s.tilt_axis_angle_deg, s.device
     ).data
     # the strongest quarter: atoms
     sharpness = float(np.median(peak_sharpness(fine, s.fine_maxima[: max(len(s.fine_maxima) // 4, 1)])))

@@ -29,18 +29,14 @@ def backprojected_atom(
     sigma_A: float,
     tilt_axis="y",
     tilt_axis_angle_deg: float = 0.0,
+    device: str = "cpu",
     half_width_A: float = 10.0,
 ):
     """The Hann-filtered back-projection (a volume) of one Gaussian atom of width ``sigma_A``
     at the tilt centre, in the geometry of a tilt series of ``shape`` (N, H, W), on a detector
     cut to ``half_width_A`` about its middle (:func:`point_response` says why).  Projection and
     filtered back-projection are linear and shift-invariant, so a wider atom's is this one
-    blurred by a 3D Gaussian of the difference in quadrature.
-
-    Made on the host, where it is read, whatever device the run uses: a small float64 volume,
-    whose FBP on a GPU launches float64 kernels the run uses nowhere else (their first launches
-    cost an H100 run's first call about 0.6 s with the start's noise sample's,
-    :func:`~gaussian_atoms_method.atoms.candidates.backprojected_noise`)."""
+    blurred by a 3D Gaussian of the difference in quadrature."""
     n, h, w = shape
     half = int(np.ceil(half_width_A / pixel_size_A))
     h, w = min(h, 2 * half + 1), min(w, 2 * half + 1)
@@ -55,7 +51,7 @@ def backprojected_atom(
         tilt_axis,
         None,
         filter_name="hann",
-        device="cpu",
+        device=device,
         tilt_axis_angle_deg=tilt_axis_angle_deg,
     )
 
@@ -68,6 +64,7 @@ def point_response(
     tilt_axis="y",
     smoothing_A: float = 0.5,
     tilt_axis_angle_deg: float = 0.0,
+    device: str = "cpu",
     half_width_A: float = 10.0,
 ):
     """The smoothed Hann-filtered back-projection of one Gaussian atom of width ``sigma_A`` at
@@ -80,7 +77,9 @@ def point_response(
     10 Å (20 widths of a blurred atom) only the missing wedge's faint streaks remain, which
     :func:`clean_peaks` may ignore (it subtracts less, so keeps more).  The full 280-pixel Au
     detector took seconds of start-up; 81 pixels, a fraction of one."""
-    volume = backprojected_atom(shape, angles_deg, pixel_size_A, sigma_A, tilt_axis, tilt_axis_angle_deg, half_width_A)
+    volume = backprojected_atom(
+        shape, angles_deg, pixel_size_A, sigma_A, tilt_axis, tilt_axis_angle_deg, device, half_width_A
+    )
     return peak_normalised(scipy.ndimage.gaussian_filter(volume.data, smoothing_A / volume.spacing_A))
 
 

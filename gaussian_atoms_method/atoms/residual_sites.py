@@ -104,7 +104,7 @@ def unexplained_sites(
         return np.zeros((0, 3)), np.zeros(0)
     values = maxima.values_at(data, peaks)
     response, centre = point_response(
-        residuals.shape, angles_deg, pixel_size_A, sigma_A, tilt_axis, smoothing_A, tilt_axis_angle_deg
+        residuals.shape, angles_deg, pixel_size_A, sigma_A, tilt_axis, smoothing_A, tilt_axis_angle_deg, device
     )
     accepted, values = clean_peaks(peaks, values, response, centre, level, device)
     positions_A = volume.index_to_A(peaks[accepted])
