@@ -148,3 +148,29 @@ def test_merge_costs_keep_a_demanded_pair_and_drop_a_split_atom(tmp_path):
     )
     split = pair_merge_costs(halves, np.array([[0, 1]]), even, odd)[0]
     assert np.all(split < 0) and np.all(-split < 0.01 * costs.min())
+
+
+def test_move_costs_find_the_place_the_unseen_views_say(tmp_path):
+    """Noise-free views of three atoms, split into even and odd views.  Moving a true atom 1 Å
+    along the beam costs on both halves; moving an atom placed 1 Å off back to its place gains on
+    both, by the same amount (the cost is the difference of two squared distances from the data)."""
+    from dataparsers.tilt_series_format import load_tilt_series
+    from gaussian_atoms_method.harness.held_out import move_costs, predicted_views, split_views
+
+    series = _series(tmp_path, n_views=8)
+    truth = AtomSet(
+        positions=np.array([[0.0, 0.0, 0.0], [2.6, 0.0, 0.0], [-3.0, 3.0, 1.0]]),
+        sigmas=np.array([0.5, 0.5, 0.5]),
+        amplitudes=np.array([40.0, 40.0, 40.0]),
+    )
+    series.projections = predicted_views(truth, series).astype(np.float32)
+    even, odd = (load_tilt_series(p) for p in split_views(series, tmp_path / "views"))
+    away = truth.positions[1] + np.array([0.0, 0.0, 1.0])
+    costs = move_costs(truth, np.array([1]), away[None], even, odd)[0]
+    assert np.all(costs > 0)
+
+    off = AtomSet(positions=truth.positions.copy(), sigmas=truth.sigmas, amplitudes=truth.amplitudes)
+    off.positions[1] = away
+    back = move_costs(off, np.array([1]), truth.positions[1:2], even, odd)[0]
+    # float32 views: the perfect fit's residual is rounding, 1e-6 of the cost
+    np.testing.assert_allclose(back, -costs, rtol=1e-4)

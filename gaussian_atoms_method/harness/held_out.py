@@ -86,11 +86,7 @@ def held_out_rms(atoms: AtomSet, series, kernel_weights=None, interior_px: tuple
     """Root-mean-square of measured minus :func:`predicted_views` over the views of ``series``,
     after one constant per view (least squares on that view), over the detector's interior
     (``interior_px`` rows and columns in from each edge), data units."""
-    measured = np.asarray(series.projections, dtype=np.float64)
-    residual = measured - predicted_views(atoms, series, kernel_weights)
-    r0, c0 = interior_px
-    residual = residual[:, r0 : residual.shape[1] - r0, c0 : residual.shape[2] - c0]
-    residual = residual - residual.mean(axis=(1, 2), keepdims=True)
+    (residual,) = _residuals(atoms, (series,), kernel_weights, interior_px)
     return float(np.sqrt(np.mean(residual**2)))
 
 
@@ -108,6 +104,25 @@ def run_gaussians(run_dir: str | Path) -> AtomSet:
         sigmas=np.concatenate([p.sigmas for p in parts]),
         amplitudes=np.concatenate([p.amplitudes for p in parts]),
     )
+
+
+def _interior(images: np.ndarray, interior_px: tuple[int, int]) -> np.ndarray:
+    """(V, H, W) images cut to the detector's interior (``interior_px`` rows and columns in from
+    each edge), less their mean: one constant per view."""
+    r0, c0 = interior_px
+    images = images[:, r0 : images.shape[1] - r0, c0 : images.shape[2] - c0]
+    return images - images.mean(axis=(1, 2), keepdims=True)
+
+
+def _residuals(atoms: AtomSet, series_list, kernel_weights, interior_px) -> list[np.ndarray]:
+    """Measured minus :func:`predicted_views` of ``atoms`` in each series, over the interior."""
+    return [
+        _interior(
+            np.asarray(series.projections, dtype=np.float64) - predicted_views(atoms, series, kernel_weights),
+            interior_px,
+        )
+        for series in series_list
+    ]
 
 
 def pair_merge_costs(
@@ -134,16 +149,7 @@ def pair_merge_costs(
     -------
     (K, 2) array: the cost on ``fitted`` and on ``held``, squared data units.
     """
-    r0, c0 = interior_px
-
-    def interior(images: np.ndarray) -> np.ndarray:  # and less its mean, one constant per view
-        images = images[:, r0 : images.shape[1] - r0, c0 : images.shape[2] - c0]
-        return images - images.mean(axis=(1, 2), keepdims=True)
-
-    residuals = [
-        interior(np.asarray(series.projections, dtype=np.float64) - predicted_views(atoms, series, kernel_weights))
-        for series in (fitted, held)
-    ]
+    residuals = _residuals(atoms, (fitted, held), kernel_weights, interior_px)
     squares = [float((residual**2).sum()) for residual in residuals]
     pos, sig, amp = (
         torch.as_tensor(np.asarray(v, dtype=np.float64)) for v in (atoms.positions, atoms.sigmas, atoms.amplitudes)
@@ -157,9 +163,56 @@ def pair_merge_costs(
         scale = None
         for col, (series, residual) in enumerate(zip((fitted, held), residuals)):
             # the residual with the pair taken out
-            without = residual + interior(predicted_views(pair, series, kernel_weights))
-            one = interior(predicted_views(merged, series, kernel_weights))
+            without = residual + _interior(predicted_views(pair, series, kernel_weights), interior_px)
+            one = _interior(predicted_views(merged, series, kernel_weights), interior_px)
             if scale is None:
                 scale = float((without * one).sum() / max((one * one).sum(), 1e-300))
             costs[k, col] = float(((without - scale * one) ** 2).sum()) - squares[col]
+    return costs
+
+
+def move_costs(
+    atoms: AtomSet,
+    indices: np.ndarray,
+    targets_A: np.ndarray,
+    fitted,
+    held,
+    kernel_weights=None,
+    interior_px: tuple[int, int] = (0, 0),
+) -> np.ndarray:
+    """What moving each of some Gaussians elsewhere costs, on the views the fit saw and on views
+    it did not: the rise in the sum of squared residuals (after one constant per view, over the
+    detector's interior) when Gaussian ``indices[k]`` alone moves to ``targets_A[k]``, its width
+    and mass kept, every other Gaussian held.  Negative on ``held``: the unseen views prefer the
+    target.  Where the data fix an atom's place, a move of an ångström costs on both; where they
+    hardly tell two places apart (along the missing wedge), it costs little either way.
+
+    Parameters
+    ----------
+    atoms : AtomSet
+        Every Gaussian of a fit of ``fitted`` (:func:`run_gaussians`), Å, with sigmas and amplitudes.
+    indices : (K,) int array
+        Into ``atoms``.
+    targets_A : (K, 3) array
+        Where each goes, Å in ``atoms``' frame.
+    fitted, held : tilt series
+        The views the fit saw and views it did not (:func:`split_views`).
+
+    Returns
+    -------
+    (K, 2) array: the cost on ``fitted`` and on ``held``, squared data units.
+    """
+    residuals = _residuals(atoms, (fitted, held), kernel_weights, interior_px)
+    targets_A = np.asarray(targets_A, dtype=np.float64).reshape(-1, 3)
+    costs = np.zeros((len(targets_A), 2))
+    for k, (i, target) in enumerate(zip(np.asarray(indices, dtype=np.int64), targets_A)):
+        width, height = atoms.sigmas[i : i + 1], atoms.amplitudes[i : i + 1]
+        before = AtomSet(positions=atoms.positions[i : i + 1], sigmas=width, amplitudes=height)
+        after = AtomSet(positions=target[None], sigmas=width, amplitudes=height)
+        for col, (series, residual) in enumerate(zip((fitted, held), residuals)):
+            change = _interior(
+                predicted_views(after, series, kernel_weights) - predicted_views(before, series, kernel_weights),
+                interior_px,
+            )
+            costs[k, col] = float((change * change).sum() - 2.0 * (residual * change).sum())
     return costs

@@ -1,0 +1,88 @@
+"""Do the views a fit never saw put our misplaced Ta atoms where we do, or where the model does?
+
+A fit of one half of a Ta sub-area's views (``gaussian-atoms held-out-views`` writes the two
+halves and fits them) is matched to the authors' model in the scored region, after the
+benchmark's global shift.  Its extra atoms beside exactly one missed model atom (within
+``--near-A``) are the same atom placed elsewhere (``film_misses.py``).  Each is moved alone to
+the model's place, and the cost is read on the views it was fitted to and on the half it never
+saw (:func:`gaussian_atoms_method.harness.held_out.move_costs`).  As a control, matched atoms are
+moved by the same offsets.
+
+    python scripts/studies/held_out_depths.py --views outputs/held-out-23/views \\
+        --runs outputs/held-out-23/runs/learned --area 23 --interior-px 10 4
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--views", type=Path, required=True, help="held-out-views' views folder (even, odd)")
+    parser.add_argument("--runs", type=Path, required=True, help="held-out-views' runs folder of one kernel")
+    parser.add_argument("--area", type=int, required=True)
+    parser.add_argument("--film", type=Path, default=Path("../shared/data/ta_film"), help="the film's folder")
+    parser.add_argument("--kernel", default="0,0,0", help="the runs' kernel: intensity fractions at 1, 2, 4 Å")
+    parser.add_argument("--interior-px", type=int, nargs=2, default=(0, 0), help="rows and columns left out")
+    parser.add_argument("--near-A", type=float, default=1.5, help="an extra atom this close to a missed one is it")
+    parser.add_argument("--controls", type=int, default=60, help="matched atoms moved as a control")
+    args = parser.parse_args()
+
+    from scipy.spatial import cKDTree
+
+    from dataparsers.tilt_series_format import load_tilt_series
+    from gaussian_atoms_method.atoms.atom_set import read_atoms
+    from gaussian_atoms_method.atoms.matching import global_shift, match_atoms
+    from gaussian_atoms_method.harness import film_benchmark as fb
+    from gaussian_atoms_method.harness.held_out import move_costs, run_gaussians
+
+    model = fb.model_in_area_A(args.film, args.area)
+    kernel = [float(v) for v in args.kernel.split(",")]
+    rng = np.random.default_rng(0)
+    print(
+        "| fit | moved | atoms | cost on fitted views (median) | on unseen views (median) | "
+        "unseen views prefer the move |"
+    )
+    print("| --- | --- | --- | --- | --- | --- |")
+    for half, other in (("even", "odd"), ("odd", "even")):
+        fitted, held = load_tilt_series(args.views / half), load_tilt_series(args.views / other)
+        centre = tuple(json.loads((args.views / half / "tilt_series.json").read_text())["centre_px"])
+        run = args.runs / half / "ours" / "gaussian-atoms" / "run"
+        reported, gaussians = read_atoms(run / "atoms.xyz"), run_gaussians(run)  # atoms.xyz comes first
+        box, inside = fb.scored_region(model, fitted.projections.shape[1:], centre)
+        shift = global_shift(reported.positions, model[inside], fb.MATCH_RADIUS_A)
+        pred = reported.positions + shift
+        pred_i, model_i = match_atoms(pred, model, fb.MATCH_RADIUS_A)
+        matched = np.zeros(len(pred), dtype=bool)
+        matched[pred_i] = True
+        found = np.zeros(len(model), dtype=bool)
+        found[model_i] = True
+        missed = np.flatnonzero(inside & ~found)
+        in_box = np.all((pred >= box[0]) & (pred <= box[1]), axis=1)
+        extra = np.flatnonzero(in_box & ~matched)
+        near = cKDTree(model[missed]).query_ball_point(pred[extra], args.near_A)
+        moved = np.array([e for e, n in zip(extra, near) if len(n) == 1], dtype=np.int64)
+        targets = np.array([model[missed[n[0]]] - shift for n in near if len(n) == 1]).reshape(-1, 3)
+        if len(moved) == 0:
+            continue
+        offsets = targets - reported.positions[moved]
+        controls = rng.choice(np.flatnonzero(matched & in_box), size=min(args.controls, int((matched & in_box).sum())))
+        control_targets = reported.positions[controls] + offsets[np.arange(len(controls)) % len(offsets)]
+        for label, idx, where in (
+            ("misplaced, to the model's place", moved, targets),
+            ("matched, by the same offsets", controls, control_targets),
+        ):
+            cost = move_costs(gaussians, idx, where, fitted, held, kernel, tuple(args.interior_px))
+            print(
+                f"| {half} | {label} | {len(idx)} | {np.median(cost[:, 0]):.3g} | {np.median(cost[:, 1]):.3g} | "
+                f"{int((cost[:, 1] < 0).sum())} |"
+            )
+
+
+if __name__ == "__main__":
+    main()
