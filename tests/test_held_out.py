@@ -121,14 +121,10 @@ def test_a_fixed_kernel_is_held_and_bad_weights_are_named(tmp_path):
             GaussianAtomsOptions(psf_weights=weights).check()
 
 
-def test_merge_costs_keep_a_demanded_pair_and_drop_a_split_atom(tmp_path):
-    """Noise-free views of two atoms 2.6 Å apart, split into even and odd views.  Read as two
-    Gaussians (the truth), merging them costs on both halves, in proportion to the views each
-    holds (to 25%: the halves see the pair at different angles).  An atom read as two halves of
-    its mass 0.2 Å apart is better merged on both halves (the merged Gaussian is the atom), by
-    far less than the real pair costs."""
+def _three_atoms_in_halves(tmp_path):
+    """Three atoms (two 2.6 Å apart) and their noise-free views, split into even and odd views."""
     from dataparsers.tilt_series_format import load_tilt_series
-    from gaussian_atoms_method.harness.held_out import pair_merge_costs, predicted_views, split_views
+    from gaussian_atoms_method.harness.held_out import predicted_views, split_views
 
     series = _series(tmp_path, n_views=8)
     truth = AtomSet(
@@ -138,6 +134,18 @@ def test_merge_costs_keep_a_demanded_pair_and_drop_a_split_atom(tmp_path):
     )
     series.projections = predicted_views(truth, series).astype(np.float32)
     even, odd = (load_tilt_series(p) for p in split_views(series, tmp_path / "views"))
+    return truth, even, odd
+
+
+def test_merge_costs_keep_a_demanded_pair_and_drop_a_split_atom(tmp_path):
+    """Noise-free views of two atoms 2.6 Å apart, split into even and odd views.  Read as two
+    Gaussians (the truth), merging them costs on both halves, in proportion to the views each
+    holds (to 25%: the halves see the pair at different angles).  An atom read as two halves of
+    its mass 0.2 Å apart is better merged on both halves (the merged Gaussian is the atom), by
+    far less than the real pair costs."""
+    from gaussian_atoms_method.harness.held_out import pair_merge_costs
+
+    truth, even, odd = _three_atoms_in_halves(tmp_path)
     costs = pair_merge_costs(truth, np.array([[0, 1]]), even, odd)[0]
     assert costs[0] > 0 and costs[1] == pytest.approx(costs[0], rel=0.25)
 
@@ -154,17 +162,9 @@ def test_move_costs_find_the_place_the_unseen_views_say(tmp_path):
     """Noise-free views of three atoms, split into even and odd views.  Moving a true atom 1 Å
     along the beam costs on both halves; moving an atom placed 1 Å off back to its place gains on
     both, by the same amount (the cost is the difference of two squared distances from the data)."""
-    from dataparsers.tilt_series_format import load_tilt_series
-    from gaussian_atoms_method.harness.held_out import move_costs, predicted_views, split_views
+    from gaussian_atoms_method.harness.held_out import move_costs
 
-    series = _series(tmp_path, n_views=8)
-    truth = AtomSet(
-        positions=np.array([[0.0, 0.0, 0.0], [2.6, 0.0, 0.0], [-3.0, 3.0, 1.0]]),
-        sigmas=np.array([0.5, 0.5, 0.5]),
-        amplitudes=np.array([40.0, 40.0, 40.0]),
-    )
-    series.projections = predicted_views(truth, series).astype(np.float32)
-    even, odd = (load_tilt_series(p) for p in split_views(series, tmp_path / "views"))
+    truth, even, odd = _three_atoms_in_halves(tmp_path)
     away = truth.positions[1] + np.array([0.0, 0.0, 1.0])
     costs = move_costs(truth, np.array([1]), away[None], even, odd)[0]
     assert np.all(costs > 0)

@@ -149,16 +149,39 @@ def score_area(
     return score_in_region(pred_A, model_A, box, inside)
 
 
+def matched_to_model(pred_A: np.ndarray, model_A: np.ndarray, inside: np.ndarray):
+    """Atoms ``pred_A`` (M, 3) moved by the global shift onto the model's atoms ``inside`` the
+    scored region, and matched one-to-one to the model within :data:`MATCH_RADIUS_A`: the
+    shifted (M, 3) positions, the (3,) shift (Å) and the matched pairs' indices into them and
+    into ``model_A``."""
+    pred = np.asarray(pred_A, dtype=np.float64).reshape(-1, 3)
+    shift = global_shift(pred, model_A[inside], MATCH_RADIUS_A) if len(pred) else np.zeros(3)
+    pred = pred + shift
+    pred_i, model_i = match_atoms(pred, model_A, MATCH_RADIUS_A)
+    return pred, shift, pred_i, model_i
+
+
+def misses_and_extras(pred_A: np.ndarray, model_A: np.ndarray, box: np.ndarray, inside: np.ndarray):
+    """:func:`matched_to_model`, sorted for a study of what went wrong: the shifted (M, 3)
+    positions, the (3,) shift, the (M,) mask of those matched, the (M,) mask of those in the
+    region ``box``, and the indices of the model atoms ``inside`` that none matches and of the
+    atoms in the region that match none."""
+    pred, shift, pred_i, model_i = matched_to_model(pred_A, model_A, inside)
+    matched = np.zeros(len(pred), dtype=bool)
+    matched[pred_i] = True
+    found = np.zeros(len(model_A), dtype=bool)
+    found[model_i] = True
+    in_box = np.all((pred >= box[0]) & (pred <= box[1]), axis=1)
+    return pred, shift, matched, in_box, np.flatnonzero(inside & ~found), np.flatnonzero(in_box & ~matched)
+
+
 def score_in_region(pred_A: np.ndarray, model_A: np.ndarray, box: np.ndarray, inside: np.ndarray) -> dict:
     """The scores of atoms ``pred_A`` against the model's atoms ``inside`` the region ``box``
     ((2, 3) lower and upper corners, Å), after the global shift: found (within
     :data:`MATCH_RADIUS_A`, one-to-one), extra per model atom (atoms in the box matched to no
     model atom anywhere), RMSD over the found, and the share of atoms in the box with a
     neighbour under :data:`CLOSE_PAIR_A`."""
-    pred = np.asarray(pred_A, dtype=np.float64).reshape(-1, 3)
-    shift = global_shift(pred, model_A[inside], MATCH_RADIUS_A) if len(pred) else np.zeros(3)
-    pred = pred + shift
-    pi, ti = match_atoms(pred, model_A, MATCH_RADIUS_A)
+    pred, shift, pi, ti = matched_to_model(pred_A, model_A, inside)
     found = inside[ti]
     pred_inside = np.all((pred >= box[0]) & (pred <= box[1]), axis=1)
     matched = np.zeros(len(pred), dtype=bool)

@@ -189,14 +189,12 @@ def move_costs(
 
     Parameters
     ----------
-    atoms : AtomSet
-        Every Gaussian of a fit of ``fitted`` (:func:`run_gaussians`), Å, with sigmas and amplitudes.
+    atoms, fitted, held, kernel_weights, interior_px
+        As :func:`pair_merge_costs` takes them.
     indices : (K,) int array
         Into ``atoms``.
     targets_A : (K, 3) array
         Where each goes, Å in ``atoms``' frame.
-    fitted, held : tilt series
-        The views the fit saw and views it did not (:func:`split_views`).
 
     Returns
     -------

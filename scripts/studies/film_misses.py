@@ -32,7 +32,6 @@ def main() -> None:
     from scipy.spatial import cKDTree
 
     from gaussian_atoms_method.atoms.atom_set import read_atoms
-    from gaussian_atoms_method.atoms.matching import global_shift, match_atoms
     from gaussian_atoms_method.harness import film_benchmark as fb
 
     data = args.output / "data" / f"area{args.area}"
@@ -41,14 +40,9 @@ def main() -> None:
     model = fb.model_in_area_A(args.film, args.area)
     atoms = read_atoms(args.output / "runs" / f"area{args.area}" / "ours" / "gaussian-atoms" / "run" / "atoms.xyz")
     box, inside = fb.scored_region(model, shape, tuple(meta["centre_px"]))
-    pred = atoms.positions + global_shift(atoms.positions, model[inside], fb.MATCH_RADIUS_A)
-    pred_i, model_i = match_atoms(pred, model, fb.MATCH_RADIUS_A)
-    found = np.zeros(len(model), dtype=bool)
-    found[model_i] = True
-    matched = np.zeros(len(pred), dtype=bool)
-    matched[pred_i] = True
-    missed = np.flatnonzero(inside & ~found)
-    extra = np.flatnonzero(np.all((pred >= box[0]) & (pred <= box[1]), axis=1) & ~matched)
+    pred, _, matched, _, missed, extra = fb.misses_and_extras(atoms.positions, model, box, inside)
+    found = inside.copy()
+    found[missed] = False
     mass = atoms.amplitudes * (2 * np.pi * atoms.sigmas**2) ** 1.5
     typical = np.median(mass[matched])
 
@@ -78,10 +72,7 @@ def main() -> None:
             f"depth offset {np.mean(np.sign(offset[:, 2])):+.2f}"
         )
     nn = cKDTree(model).query(model, k=2)[0][:, 1]
-    print(
-        f"model nearest neighbour (median): missed {np.median(nn[missed]):.2f} Å, "
-        f"found {np.median(nn[inside & found]):.2f} Å"
-    )
+    print(f"model nearest neighbour (median): missed {np.median(nn[missed]):.2f} Å, found {np.median(nn[found]):.2f} Å")
 
 
 if __name__ == "__main__":

@@ -37,7 +37,6 @@ def main() -> None:
 
     from dataparsers.tilt_series_format import load_tilt_series
     from gaussian_atoms_method.atoms.atom_set import read_atoms
-    from gaussian_atoms_method.atoms.matching import global_shift, match_atoms
     from gaussian_atoms_method.harness import film_benchmark as fb
     from gaussian_atoms_method.harness.held_out import move_costs, run_gaussians
 
@@ -55,16 +54,7 @@ def main() -> None:
         run = args.runs / half / "ours" / "gaussian-atoms" / "run"
         reported, gaussians = read_atoms(run / "atoms.xyz"), run_gaussians(run)  # atoms.xyz comes first
         box, inside = fb.scored_region(model, fitted.projections.shape[1:], centre)
-        shift = global_shift(reported.positions, model[inside], fb.MATCH_RADIUS_A)
-        pred = reported.positions + shift
-        pred_i, model_i = match_atoms(pred, model, fb.MATCH_RADIUS_A)
-        matched = np.zeros(len(pred), dtype=bool)
-        matched[pred_i] = True
-        found = np.zeros(len(model), dtype=bool)
-        found[model_i] = True
-        missed = np.flatnonzero(inside & ~found)
-        in_box = np.all((pred >= box[0]) & (pred <= box[1]), axis=1)
-        extra = np.flatnonzero(in_box & ~matched)
+        pred, shift, matched, in_box, missed, extra = fb.misses_and_extras(reported.positions, model, box, inside)
         near = cKDTree(model[missed]).query_ball_point(pred[extra], args.near_A)
         moved = np.array([e for e, n in zip(extra, near) if len(n) == 1], dtype=np.int64)
         targets = np.array([model[missed[n[0]]] - shift for n in near if len(n) == 1]).reshape(-1, 3)
