@@ -72,7 +72,11 @@ def main() -> None:
             f"depth offset {np.mean(np.sign(offset[:, 2])):+.2f}"
         )
     nn = cKDTree(model).query(model, k=2)[0][:, 1]
-    print(f"model nearest neighbour (median): missed {np.median(nn[missed]):.2f} Å, found {np.median(nn[found]):.2f} Å")
+    alone = missed[distance >= args.near_A]
+    print(
+        f"model nearest neighbour (median): missed {np.median(nn[missed]):.2f} Å (those with nothing near "
+        f"{np.median(nn[alone]) if len(alone) else np.nan:.2f} Å), found {np.median(nn[found]):.2f} Å"
+    )
 
 
 if __name__ == "__main__":
