@@ -28,7 +28,14 @@ def main() -> None:
     parser.add_argument("--film", type=Path, default=Path("../shared/data/ta_film"), help="the film's folder")
     parser.add_argument("--near-A", type=float, default=1.5, help="an extra atom this close to a missed one is it")
     args = parser.parse_args()
+    try:
+        report(args)
+    except (OSError, ValueError) as err:  # a missing run or file, a series that cannot be read
+        raise SystemExit(f"film_misses.py: {err}") from None
 
+
+def report(args) -> None:
+    """Print the study's tables for the parsed command line."""
     from scipy.spatial import cKDTree
 
     from gaussian_atoms_method.atoms.atom_set import read_atoms

@@ -32,7 +32,14 @@ def main() -> None:
     parser.add_argument("--near-A", type=float, default=1.5, help="an extra atom this close to a missed one is it")
     parser.add_argument("--controls", type=int, default=60, help="matched atoms moved as a control")
     args = parser.parse_args()
+    try:
+        report(args)
+    except (OSError, ValueError) as err:  # a missing run or file, a series that cannot be read
+        raise SystemExit(f"held_out_depths.py: {err}") from None
 
+
+def report(args) -> None:
+    """Print the study's tables for the parsed command line."""
     from scipy.spatial import cKDTree
 
     from dataparsers.tilt_series_format import load_tilt_series
@@ -43,11 +50,11 @@ def main() -> None:
     model = fb.model_in_area_A(args.film, args.area)
     kernel = [float(v) for v in args.kernel.split(",")]
     rng = np.random.default_rng(0)
-    print(
+    rows = [
         "| fit | moved | atoms | cost on fitted views (median) | on unseen views (median) | "
-        "unseen views prefer the move |"
-    )
-    print("| --- | --- | --- | --- | --- | --- |")
+        "unseen views prefer the move |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
     for half, other in (("even", "odd"), ("odd", "even")):
         fitted, held = load_tilt_series(args.views / half), load_tilt_series(args.views / other)
         centre = tuple(json.loads((args.views / half / "tilt_series.json").read_text())["centre_px"])
@@ -68,10 +75,11 @@ def main() -> None:
             ("matched, by the same offsets", controls, control_targets),
         ):
             cost = move_costs(gaussians, idx, where, fitted, held, kernel, tuple(args.interior_px))
-            print(
+            rows.append(
                 f"| {half} | {label} | {len(idx)} | {np.median(cost[:, 0]):.3g} | {np.median(cost[:, 1]):.3g} | "
                 f"{int((cost[:, 1] < 0).sum())} |"
             )
+    print("\n".join(rows))  # once both halves are read: nothing printed for a run that fails
 
 
 if __name__ == "__main__":
