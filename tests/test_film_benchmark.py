@@ -69,3 +69,18 @@ def test_the_model_as_a_start_is_the_part_the_detector_sees_on_the_data_frame(tm
     assert scores["found"] == 1.0 and scores["rmsd_pm"] < 1e-6
     assert 0.3 < np.linalg.norm(scores["shift_A"]) < 1.0
     assert len(start) < 0.5 * len(model)  # the film goes on far beyond this sub-area's reach
+
+
+def test_an_extra_atom_beside_one_miss_names_it():
+    """Three model atoms, two missed: an extra atom 1 Å from one miss is paired with it, one
+    between both misses counts two and names none, one far from both counts none."""
+    from gaussian_atoms_method.harness.film_benchmark import missed_nearby
+
+    model = np.array([[0.0, 0.0, 0.0], [2.4, 0.0, 0.0], [9.0, 0.0, 0.0]])
+    pred = np.array([[0.0, 0.0, 1.0], [1.2, 0.0, 0.0], [5.0, 5.0, 5.0]])
+    count, partner = missed_nearby(pred, model, np.array([0, 1]), np.array([0, 1, 2]), 1.5)
+    np.testing.assert_array_equal(count, [1, 2, 0])
+    np.testing.assert_array_equal(partner, [0, -1, -1])
+    count, partner = missed_nearby(pred, model, np.array([], dtype=np.int64), np.array([0]), 1.5)
+    np.testing.assert_array_equal(count, [0])
+    np.testing.assert_array_equal(partner, [-1])

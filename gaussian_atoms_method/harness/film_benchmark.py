@@ -175,6 +175,21 @@ def misses_and_extras(pred_A: np.ndarray, model_A: np.ndarray, box: np.ndarray, 
     return pred, shift, matched, in_box, np.flatnonzero(inside & ~found), np.flatnonzero(in_box & ~matched)
 
 
+def missed_nearby(pred_A: np.ndarray, model_A: np.ndarray, missed: np.ndarray, extra: np.ndarray, near_A: float):
+    """For each atom ``extra`` (indices into the shifted ``pred_A`` of :func:`misses_and_extras`):
+    how many of the ``missed`` model atoms (indices into ``model_A``) lie within ``near_A``, and
+    the one (its index into ``model_A``) where exactly one does, else -1: an extra atom beside
+    exactly one miss is that atom placed elsewhere."""
+    count, partner = np.zeros(len(extra), dtype=np.int64), np.full(len(extra), -1, dtype=np.int64)
+    if len(missed) and len(extra):
+        from scipy.spatial import cKDTree
+
+        near = cKDTree(model_A[missed]).query_ball_point(pred_A[extra], near_A)
+        count = np.array([len(n) for n in near], dtype=np.int64)
+        partner = np.array([missed[n[0]] if len(n) == 1 else -1 for n in near], dtype=np.int64)
+    return count, partner
+
+
 def score_in_region(pred_A: np.ndarray, model_A: np.ndarray, box: np.ndarray, inside: np.ndarray) -> dict:
     """The scores of atoms ``pred_A`` against the model's atoms ``inside`` the region ``box``
     ((2, 3) lower and upper corners, Å), after the global shift: found (within

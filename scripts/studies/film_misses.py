@@ -53,8 +53,7 @@ def report(args) -> None:
     mass = atoms.amplitudes * (2 * np.pi * atoms.sigmas**2) ** 1.5
     typical = np.median(mass[matched])
 
-    near_missed = cKDTree(model[missed]).query_ball_point(pred[extra], args.near_A)
-    count = np.array([len(n) for n in near_missed])
+    count, partner = fb.missed_nearby(pred, model, missed, extra, args.near_A)
     print(f"sub-area {args.area}: {int(inside.sum())} model atoms scored, {len(missed)} missed, {len(extra)} extra")
     distance, _ = cKDTree(pred[extra]).query(model[missed]) if len(extra) else (np.full(len(missed), np.inf), None)
     print(
@@ -69,9 +68,9 @@ def report(args) -> None:
         if len(idx):
             width = np.median(atoms.sigmas[idx])
             print(f"| {label} | {len(idx)} | {np.median(mass[idx]) / typical:.2f} | {width:.2f} |")
-    one = extra[count == 1]
-    if len(one):
-        offset = pred[one] - model[missed][cKDTree(model[missed]).query(pred[one])[1]]
+    one = count == 1
+    if one.any():
+        offset = pred[extra[one]] - model[partner[one]]
         length = np.linalg.norm(offset, axis=1)
         print(
             f"beside one missed: offset {np.median(length):.2f} Å (median), {np.median(np.abs(offset[:, 2])):.2f} Å of "
