@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from gaussian_atoms_method.atoms.atom_set import read_atoms
 from gaussian_atoms_method.film.stitch import Reports, confirm, join_reports
 
 HARD_CORE_A = 2.2
@@ -136,6 +137,7 @@ def test_a_film_runs_on_ray_resumes_and_names_a_broken_sub_area(small_film):
     assert len(cKDTree(reported).query_pairs(2.0)) == 0  # none doubled at the seam
     for name in ("atoms.xyz", "non_atoms.xyz", "atoms.csv", "film.png", "summary.json"):
         assert (root / "out" / name).is_file()
+    assert set(read_atoms(root / "out" / "atoms.xyz").species) == {"Pd"}  # the film's one element names them
     # each task's cost, recorded by the task and read back with it: a fit takes time, a worker
     # holds at least torch's own import (hundreds of MB), and CPU tasks have no GPU peak
     tasks = json.loads((root / "out" / "summary.json").read_text())["tasks"]

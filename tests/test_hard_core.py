@@ -214,7 +214,9 @@ def test_an_atom_with_a_profile_the_model_lacks_is_fitted_without_a_reported_pai
         timeout=600,
     )
     assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]
-    found = read_atoms(tmp_path / "out" / "e" / "gaussian-atoms" / "t" / "atoms.xyz").positions
+    reported = read_atoms(tmp_path / "out" / "e" / "gaussian-atoms" / "t" / "atoms.xyz")
+    assert set(reported.species) == {"Au"}  # the series' one element names every reported atom
+    found = reported.positions
     scores = score_atoms(found, atoms.positions)
     assert scores["tpr"] >= 0.95 and scores["fp_per_true_atom"] <= 0.05, scores
     assert len(close_pairs(found, hard_core_from_species("Au"))) == 0

@@ -43,6 +43,21 @@ def test_one_population_gets_one_element_whatever_the_elements_named():
     assert report["separated"] is True and set(species) == {"Fe", "Pt"}
 
 
+def test_a_run_names_its_atoms_by_the_series_species(capsys):
+    """The run's report (``engine.results.name_species``): one element names every atom; two
+    elements a factor 3 apart in mass (15% scatter) name each atom by its mass, the heavier
+    population Pt, and the counts are printed; fewer atoms than elements take the heaviest."""
+    from gaussian_atoms_method.engine.results import name_species
+
+    rng = np.random.default_rng(1)
+    truth = np.array(["Fe"] * 150 + ["Pt"] * 100)
+    masses = np.where(truth == "Pt", 3.0, 1.0) * np.exp(rng.normal(scale=0.15, size=len(truth)))
+    assert set(name_species(masses, ("Ta",))) == {"Ta"}
+    assert np.mean(name_species(masses, ("Pt", "Fe")) == truth) >= 0.99
+    assert "Pt" in capsys.readouterr().out
+    assert list(name_species(masses[:1], ("Fe", "Pt"))) == ["Pt"]
+
+
 def test_kmeans_orders_clusters_by_mean():
     labels = kmeans_1d(np.array([5.0, 5.1, 0.0, 0.1, 9.9, 10.0]), 3)
     np.testing.assert_array_equal(labels, [1, 1, 0, 0, 2, 2])

@@ -145,6 +145,9 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
     atoms, non_atoms, population = split_atoms(
         atoms, model.density.in_field(model.means.detach()).cpu().numpy(), model.means.device, hard_core_A
     )
+    series = getattr(getattr(model, "view_set", None), "series", None)
+    if series is not None and series.species and len(atoms):
+        atoms.species = name_species(atoms.masses, series.species)
     # Each picture goes to a child as soon as its arrays are known (drawn there while this process
     # writes the atoms); without children, the atoms are written first and the pictures after them.
     pictures = [] if population is None else [(write_population_png, *population, run_dir / "classes.png")]
@@ -194,6 +197,27 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
         return None
     CONSOLE.print(f"[bold]gaussian-atoms[/bold]: against {model.truth_path}: {json.dumps(scores)}")
     return scores
+
+
+def name_species(masses: np.ndarray, elements: tuple[str, ...]) -> np.ndarray:
+    """The (N,) element of each reported atom of integrated masses ``masses``, from the series'
+    ``elements``: every atom the one element given, or by mass, heavier element for the heavier
+    population (:func:`gaussian_atoms_method.atoms.species.classify_species`); prints the counts,
+    and says so where the masses hold fewer populations than elements (then every atom is the
+    heaviest element given)."""
+    from gaussian_atoms_method.atoms.species import classify_species
+
+    species, report = classify_species(masses, list(elements))
+    counts = ", ".join(f"{n} {element}" for element, n in report["counts"].items())
+    if report.get("separated", True):
+        how = f", by mass ({report['test']})" if "test" in report else ""
+        CONSOLE.print(f"gaussian-atoms: species {counts}{how}")
+    else:
+        CONSOLE.print(
+            f"gaussian-atoms: the atoms' masses show {report['populations']} separate population(s), not one per "
+            f"element ({report['test']}): every atom written as {species[0]}"
+        )
+    return species
 
 
 def _hand_over(pictures: list, drawers) -> None:

@@ -69,7 +69,7 @@ def reconstruct_film(
         for s in subareas
     ]
     film = join_reports(reports, hard_core_A)
-    write_film(film, output_dir, hard_core_A, [s.name for s in subareas], task_summary(records.values()))
+    write_film(film, output_dir, hard_core_A, [s.name for s in subareas], task_summary(records.values()), species)
     return film
 
 
@@ -126,12 +126,23 @@ def task_summary(records) -> dict:
 
 
 def write_film(
-    film: FilmAtoms, output_dir: Path, hard_core_A: float, names: list[str], tasks: dict | None = None
+    film: FilmAtoms,
+    output_dir: Path,
+    hard_core_A: float,
+    names: list[str],
+    tasks: dict | None = None,
+    species: str = "",
 ) -> None:
     """The film's files (module text) and its summary line; ``tasks``: the sub-areas' costs
-    (:func:`task_summary`), in the summary."""
+    (:func:`task_summary`), in the summary; ``species`` ("Ta"): a film of one element names its
+    atoms by it (of several, the joined atoms keep no mass to tell them apart by: ``X``)."""
     output_dir = Path(output_dir)
-    atoms = AtomSet(positions=film.positions[film.confirmed])
+    elements = species.split(",") if species else []
+    confirmed = int(film.confirmed.sum())
+    atoms = AtomSet(
+        positions=film.positions[film.confirmed],
+        species=np.array(elements * confirmed) if len(elements) == 1 else None,
+    )
     rest = AtomSet(positions=film.positions[~film.confirmed])
     write_atoms(atoms, output_dir / "atoms.xyz")
     write_atoms(rest, output_dir / "non_atoms.xyz")
