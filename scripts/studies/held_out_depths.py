@@ -6,7 +6,9 @@ benchmark's global shift.  Its extra atoms beside exactly one missed model atom 
 ``--near-A``) are the same atom placed elsewhere (``film_misses.py``).  Each is moved alone to
 the model's place, and the cost is read on the views it was fitted to and on the half it never
 saw (:func:`gaussian_atoms_method.harness.held_out.move_costs`).  As a control, matched atoms are
-moved by the same offsets.
+moved by the same offsets.  With ``--taken-out``, each atom in the region is also taken out alone
+(moved out of every view), matched and unmatched apart: a Gaussian the unseen views do not need
+costs them nothing to lose.
 
     python scripts/studies/held_out_depths.py --views outputs/held-out-23/views \\
         --runs outputs/held-out-23/runs/learned --area 23 --interior-px 10 4
@@ -31,6 +33,9 @@ def main() -> None:
     parser.add_argument("--interior-px", type=int, nargs=2, default=(0, 0), help="rows and columns left out")
     parser.add_argument("--near-A", type=float, default=1.5, help="an extra atom this close to a missed one is it")
     parser.add_argument("--controls", type=int, default=60, help="matched atoms moved as a control")
+    parser.add_argument(
+        "--taken-out", action="store_true", help="also take each atom in the region out alone (matched or not)"
+    )
     args = parser.parse_args()
     try:
         report(args)
@@ -62,25 +67,36 @@ def report(args) -> None:
         pred, shift, matched, in_box, missed, extra = fb.misses_and_extras(reported.positions, model, box, inside)
         count, partner = fb.missed_nearby(pred, model, missed, extra, args.near_A)
         moved, targets = extra[count == 1], model[partner[count == 1]] - shift
-        if len(moved) == 0:
-            continue
         offsets = targets - reported.positions[moved]
-        controls = rng.choice(np.flatnonzero(matched & in_box), size=min(args.controls, int((matched & in_box).sum())))
-        control_targets = reported.positions[controls] + offsets[np.arange(len(controls)) % len(offsets)]
-        # one call for both groups: the views' residuals are rendered once a half
+        controls = (
+            rng.choice(np.flatnonzero(matched & in_box), size=min(args.controls, int((matched & in_box).sum())))
+            if len(moved)
+            else np.zeros(0, dtype=np.int64)
+        )
+        control_targets = reported.positions[controls] + offsets[np.arange(len(controls)) % max(len(offsets), 1)]
+        groups = [
+            ("misplaced, to the model's place", moved, targets),
+            ("matched, by the same offsets", controls, control_targets),
+        ]
+        if args.taken_out:  # out of every view: far along the tilt axis
+            for label, sel in (("matched, taken out", matched & in_box), ("unmatched, taken out", ~matched & in_box)):
+                idx = np.flatnonzero(sel)
+                groups.append((label, idx, reported.positions[idx] + np.array([0.0, 1e4, 0.0])))
+        groups = [g for g in groups if len(g[1])]
+        if not groups:
+            continue
+        # one call for every group: the views' residuals are rendered once a half
         cost = move_costs(
             gaussians,
-            np.concatenate([moved, controls]),
-            np.concatenate([targets, control_targets]),
+            np.concatenate([g[1] for g in groups]),
+            np.concatenate([g[2] for g in groups]),
             fitted,
             held,
             kernel,
             tuple(args.interior_px),
         )
-        for label, part in (
-            ("misplaced, to the model's place", cost[: len(moved)]),
-            ("matched, by the same offsets", cost[len(moved) :]),
-        ):
+        ends = np.cumsum([len(g[1]) for g in groups])
+        for (label, _, _), part in zip(groups, np.split(cost, ends[:-1])):
             rows.append(
                 f"| {half} | {label} | {len(part)} | {np.median(part[:, 0]):.3g} | {np.median(part[:, 1]):.3g} | "
                 f"{int((part[:, 1] < 0).sum())} |"
