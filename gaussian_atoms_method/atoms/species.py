@@ -127,3 +127,12 @@ def classify_species(masses: np.ndarray, elements: list[str]) -> tuple[np.ndarra
             float((b.mean() - a.mean()) / pooled) if pooled > 0 else float("inf")
         )
     return species, report
+
+
+def one_population_note(report: dict, element: str) -> str:
+    """The line said where :func:`classify_species` found fewer mass populations than elements
+    (``report["separated"]`` False) and wrote every atom as ``element``."""
+    return (
+        f"gaussian-atoms: the atoms' masses show {report['populations']} separate population(s), not one per "
+        f"element ({report['test']}): every atom written as {element}"
+    )

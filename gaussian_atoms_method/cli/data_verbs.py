@@ -208,7 +208,7 @@ class Export:
 
     def main(self) -> None:
         from gaussian_atoms_method.atoms.atom_set import read_atoms, write_atoms
-        from gaussian_atoms_method.atoms.species import classify_species
+        from gaussian_atoms_method.atoms.species import classify_species, one_population_note
 
         if not self.load_config.is_file():
             raise FileNotFoundError(f"{self.load_config}: run config not found")
@@ -224,11 +224,7 @@ class Export:
             )
             print(json.dumps({"species": report}))
             if not report.get("separated", True):
-                print(
-                    f"gaussian-atoms: the atoms' masses show {report['populations']} separate population(s), not one "
-                    f"per element ({report['test']}): every atom written as {atoms.species[0]}",
-                    file=sys.stderr,
-                )
+                print(one_population_note(report, atoms.species[0]), file=sys.stderr)
         write_atoms(atoms, self.output)
         print(f"wrote {len(atoms)} atoms to {self.output}")
 

@@ -145,7 +145,7 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
     atoms, non_atoms, population = split_atoms(
         atoms, model.density.in_field(model.means.detach()).cpu().numpy(), model.means.device, hard_core_A
     )
-    series = getattr(getattr(model, "view_set", None), "series", None)
+    series = model.view_set.series
     if series is not None and series.species and len(atoms):
         atoms.species = name_species(atoms.masses, series.species)
     # Each picture goes to a child as soon as its arrays are known (drawn there while this process
@@ -205,7 +205,7 @@ def name_species(masses: np.ndarray, elements: tuple[str, ...]) -> np.ndarray:
     population (:func:`gaussian_atoms_method.atoms.species.classify_species`); prints the counts,
     and says so where the masses hold fewer populations than elements (then every atom is the
     heaviest element given)."""
-    from gaussian_atoms_method.atoms.species import classify_species
+    from gaussian_atoms_method.atoms.species import classify_species, one_population_note
 
     species, report = classify_species(masses, list(elements))
     counts = ", ".join(f"{n} {element}" for element, n in report["counts"].items())
@@ -213,10 +213,7 @@ def name_species(masses: np.ndarray, elements: tuple[str, ...]) -> np.ndarray:
         how = f", by mass ({report['test']})" if "test" in report else ""
         CONSOLE.print(f"gaussian-atoms: species {counts}{how}")
     else:
-        CONSOLE.print(
-            f"gaussian-atoms: the atoms' masses show {report['populations']} separate population(s), not one per "
-            f"element ({report['test']}): every atom written as {species[0]}"
-        )
+        CONSOLE.print(one_population_note(report, species[0]))
     return species
 
 

@@ -18,7 +18,6 @@ over the atoms' box, each with its own non-negative height, for misfit that is n
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -56,15 +55,14 @@ def report(args) -> None:
 
     data = args.output / "data" / f"area{args.area}"
     run = args.output / "runs" / f"area{args.area}" / "ours" / "gaussian-atoms" / "run"
-    json.loads((data / "tilt_series.json").read_text())  # a missing sub-area: one line, before the work
-    series = load_tilt_series(data)
+    series = load_tilt_series(data)  # a missing sub-area: one line (a ValueError), before the work
     every, ours = run_gaussians(run), read_atoms(run / "atoms.xyz")
     model = fb.model_in_area_A(args.film, args.area)
     box, inside = fb.scored_region(model, series.projections.shape[1:], tuple(series.centre_px))
     pos, sig, amp = (np.array(v, dtype=np.float64) for v in (every.positions, every.sigmas, every.amplitudes))
     is_atom = np.arange(len(pos)) < len(ours)  # run_gaussians lists atoms.xyz first
     if args.start == "model":
-        shift = np.asarray(fb.score_in_region(ours.positions, model, box, inside)["shift_A"])
+        _, shift, _, _ = fb.matched_to_model(ours.positions, model, inside)
         replaced = is_atom & np.all((pos + shift >= box[0]) & (pos + shift <= box[1]), axis=1)
         start = model[inside] - shift
         pos = np.concatenate([pos[~replaced], start])
