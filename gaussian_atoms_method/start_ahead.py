@@ -101,6 +101,10 @@ def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float | N
                 )
             import torch
 
+            if gpu_possible() and gpu() is not None:
+                from gaussian_atoms_method.physics.kernel_warmup import begin as warm_kernels
+
+                warm_kernels("cuda")  # beside the launcher's imports and this start
             from gaussian_atoms_method.atoms.initialise import compute_start
             from gaussian_atoms_method.density.strategy import DensityControl
 

@@ -1,0 +1,29 @@
+"""The kernel warm-up touches nothing a run reads (physics/kernel_warmup.py)."""
+
+import pytest
+import torch
+
+from gaussian_atoms_method.physics import kernel_warmup
+
+
+def test_warm_runs_every_operation_and_leaves_the_random_state():
+    """Each operation of the list runs (on the CPU here; the GPU's are the same calls) and the
+    global generator is where it was: the warm-up draws only from its own."""
+    state = torch.random.get_rng_state()
+    kernel_warmup.warm("cpu")
+    assert torch.equal(state, torch.random.get_rng_state())
+
+
+def test_begin_starts_no_thread_off_a_gpu(monkeypatch):
+    monkeypatch.setattr(kernel_warmup, "_thread", None)
+    kernel_warmup.begin("cpu")
+    assert kernel_warmup._thread is None
+    kernel_warmup.wait()  # nothing to wait for
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_gpu_warm_up_leaves_the_cuda_generator():
+    state = torch.cuda.get_rng_state()
+    kernel_warmup.begin("cuda")
+    kernel_warmup.wait()
+    assert torch.equal(state, torch.cuda.get_rng_state())
