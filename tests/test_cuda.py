@@ -350,3 +350,50 @@ def test_large_images_on_cuda_are_blurred_by_fft(monkeypatch):
     monkeypatch.setattr(psf, "apply_kernel_by_matrices", refused)
     gpu = psf.apply_kernel(image.cuda(), 0.3, tuple(psf.KERNEL_WIDTHS_A), weights.cuda()).cpu()
     assert float((gpu - host).abs().max()) < 1e-12 * float(host.max())
+
+
+def _engine_run(series, out, graphs: bool, steps: int, device: str = "cuda"):
+    """The engine's own loop (``gaussian-atoms train``, ``ga.reconstruct``) on ``series``, as
+    :func:`_train` sets nerfstudio's up."""
+    from gaussian_atoms_method.engine.fit import AtomFit
+    from gaussian_atoms_method.engine.options import FitOptions
+    from gaussian_atoms_method.engine.run import seed_everything, view_set_of
+    from gaussian_atoms_method.engine.training import FitLoop, LoopSettings, run_pass
+
+    options = FitOptions(
+        cuda_graphs=graphs,
+        coarse_steps=20,
+        warmup_length=30,
+        refine_every=20,
+        merge_every=20,
+        stop_when_converged=False,
+    )
+    seed_everything(0)
+    view_set, views = view_set_of(series)
+    fit = AtomFit(options, view_set).to(device)
+    loop = FitLoop(fit, views, view_set.projections, steps)
+    run_pass(loop, out, LoopSettings(steps, steps, 0, checkpoints=False))
+    return fit
+
+
+@cuda
+def test_the_engines_replayed_steps_train_as_its_eager_steps(tmp_path):
+    """The engine's own loop (not nerfstudio's trainer, tested above) replays its captured steps
+    to the arithmetic of its eager ones: after 70 steps through the coarse phase's end, refines
+    and merges, the same Gaussians to float32 rounding carried over 70 Adam steps (as above)."""
+    from gaussian_atoms_method.api import _as_series
+    from gaussian_atoms_method.harness.simulate import simulate_tilt_series, spherical_particle
+
+    truth = spherical_particle("Au", radius_A=5.0)
+    sim = simulate_tilt_series(
+        truth, np.arange(-70.0, 71.0, 10.0), potential="gaussian", noise_std=20.0, floor_fraction=0.05, seed=0
+    )
+    series = _as_series(sim.projections, sim.angles_deg, sim.pixel_size_A, "y", ())
+    eager = _engine_run(series, tmp_path / "eager", False, 70)
+    graphed = _engine_run(series, tmp_path / "graphed", True, 70)
+    assert graphed.step_graph._off == "" and graphed.step_graph.captures >= 3 and graphed.step_graph.replays >= 50
+    assert eager.step_graph.replays == 0 and graphed.num_points == eager.num_points
+    pixel = 1.0 / max(sim.projections.shape[1:])
+    torch.testing.assert_close(graphed.means, eager.means, rtol=0, atol=1e-4 * pixel)
+    for name in ("log_sigmas", "log_amplitudes"):
+        torch.testing.assert_close(graphed.gauss_params[name], eager.gauss_params[name], rtol=0, atol=1e-4)
