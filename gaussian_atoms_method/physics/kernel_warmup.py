@@ -1,8 +1,9 @@
 """The fit's CUDA kernels loaded in a thread while a process's first run imports and starts.
 
 CUDA loads a kernel's module at its first use (lazy loading), and that first use waits for the
-GPU's queued work.  On an H100 the operation families a fit uses cost 10-70 ms each cold (0.6-0.8
-s in all; 0.1 ms warm), paid one after another on the way to the first steps.  :func:`begin`
+GPU's queued work.  On an H100 an operation family costs 10-100 ms cold (0.7 s for the 25 that
+``scripts/studies/kernel_first_use.py`` times; 0.1-0.5 ms warm), paid one after another on the
+way to the first steps.  :func:`begin`
 runs each family once on a few elements in a thread, in the order the fit first uses them,
 while the other threads import the engine and make the start; torch's operations release the
 interpreter's lock, so they overlap.  The libraries that keep per-thread handles (cuBLAS,
