@@ -118,7 +118,7 @@ def _warm_kernels(device) -> None:
         return
     from gaussian_atoms_method.physics.kernel_warmup import begin
 
-    begin(resolved)
+    begin(resolved, libraries_first=True)  # the GPU is idle while the call imports the engine
 
 
 def _whole(value, name: str) -> int:

@@ -10,6 +10,7 @@ def test_warm_runs_every_operation_and_leaves_the_random_state():
     """Each operation of the list runs (on the CPU here; the GPU's are the same calls) and the
     global generator is where it was: the warm-up draws only from its own."""
     state = torch.random.get_rng_state()
+    kernel_warmup.libraries("cpu")
     kernel_warmup.warm("cpu")
     assert torch.equal(state, torch.random.get_rng_state())
 

@@ -1,20 +1,20 @@
 """The fit's CUDA kernels loaded in a thread while a process's first run imports and starts.
 
 CUDA loads a kernel's module at its first use (lazy loading), and that first use waits for the
-GPU's queued work.  On an H100 an operation family costs 10-100 ms cold (0.7 s for the 25 that
-``scripts/studies/kernel_first_use.py`` times; 0.1-0.5 ms warm), paid one after another on the
-way to the first steps.  :func:`begin`
-runs each family once on a few elements in a thread, in the order the fit first uses them,
-while the other threads import the engine and make the start; torch's operations release the
-interpreter's lock, so they overlap.  The libraries that keep per-thread handles (cuBLAS,
-cuSOLVER, cuSPARSE) and the optimiser are left to the fit: loaded from a second thread they
-delayed the first ``ga.reconstruct`` by 0.6-0.8 s instead.
+GPU's queued work: on an H100 10-100 ms an operation family cold, 0.1-0.5 ms warm
+(``scripts/studies/kernel_first_use.py``), paid one after another on the way to the first
+steps.  :func:`begin` runs each family the fit uses once on a few elements in a thread, in the
+order of their first use, while the other threads import the engine and make the start (torch's
+operations release the interpreter's lock).  Where the GPU stays idle meanwhile (beside
+``ga.reconstruct``'s imports) the libraries' first calls come first (:func:`libraries`); beside
+the train start, which uses the GPU at once, they slowed the run, so there the fit makes them.
 
 The warm-up touches only its own tensors and a private random generator, so a run's numbers do
 not depend on it; a CUDA graph's capture waits for it (:func:`wait`: a launch from another
 thread during a capture would break the capture).  Measured on one H100, Au noise 200, three
-alternated pairs: ``gaussian-atoms train`` at its target 4.4-5.2 s from launch against 4.9-5.5 s
-without (torch with CUDA's start 1.8-2.3 s there).
+alternated pairs each: ``gaussian-atoms train`` at its target 4.4-5.2 s from launch against
+4.9-5.5 s without (4.8-5.8 s against 4.5-5.1 s with the libraries too); the first
+``ga.reconstruct`` 1.91-1.97 s with the libraries first against 1.99-2.22 s without them.
 """
 
 from __future__ import annotations
@@ -25,15 +25,19 @@ _thread: threading.Thread | None = None
 _devices: set[str] = set()
 
 
-def begin(device: str) -> None:
+def begin(device: str, libraries_first: bool = False) -> None:
     """Start loading the fit's kernels on ``device`` in a thread, once per process and CUDA
-    device; nothing elsewhere (a CPU's kernels need no loading)."""
+    device; nothing elsewhere (a CPU's kernels need no loading).  ``libraries_first``: the
+    libraries' first calls too (:func:`libraries`), where the GPU stays idle while the warm-up
+    begins (beside ``ga.reconstruct``'s imports; beside the train start, which uses the GPU at
+    once, they slowed it)."""
     global _thread
     if not str(device).startswith("cuda") or str(device) in _devices:
         return
     _devices.add(str(device))
     # Not a daemon: a process that exits while a daemon thread is inside a torch operation aborts.
-    _thread = threading.Thread(target=_quietly, args=(str(device),), name="gaussian-atoms kernels", daemon=False)
+    parts = (libraries, warm) if libraries_first else (warm,)
+    _thread = threading.Thread(target=_quietly, args=(str(device), parts), name="gaussian-atoms kernels", daemon=False)
     _thread.start()
 
 
@@ -43,11 +47,35 @@ def wait() -> None:
         _thread.join()
 
 
-def _quietly(device: str) -> None:
-    try:
-        warm(device)
-    except Exception:  # noqa: BLE001 - a warm-up that fails leaves the loading to the fit
-        pass
+def _quietly(device: str, parts) -> None:
+    for part in parts:
+        try:
+            part(device)
+        except Exception:  # noqa: BLE001 - a warm-up that fails leaves the loading to the fit
+            pass
+
+
+def libraries(device: str) -> None:
+    """The first calls of the libraries the fit uses before its first steps: cuBLAS (the FBP's
+    filter and the kernel's matrices), cuSPARSE (the back-projection), cuSOLVER (the floors'
+    solve) and Adam's fused update, in float32 and float64.  Adam's update is called as the
+    kernel itself: the stock optimiser's first step imports torch's compiler front end."""
+    import torch
+
+    with torch.no_grad():
+        for dtype in (torch.float32, torch.float64):
+            a = torch.ones(2, 3, 3, device=device, dtype=dtype)
+            a @ a, a[0] @ a[0], a[0] @ a[0, 0]
+            indices = torch.tensor([[0, 1, 2], [0, 1, 2]], device=device)  # COO: no beta warning, as CSR has
+            torch.sparse.mm(torch.sparse_coo_tensor(indices, a[0, 0], (3, 3), check_invariants=False), a[0])
+            torch.linalg.solve_ex(a + 2 * torch.eye(3, device=device, dtype=dtype), a[..., :1])
+        p = [torch.ones(3, device=device)]
+        torch._foreach_add_([torch.zeros((), device=device)], 1)
+        torch._fused_adam_(
+            p, [torch.ones(3, device=device)], [torch.zeros(3, device=device)], [torch.zeros(3, device=device)], [],
+            [torch.ones((), device=device)], lr=1e-3, beta1=0.9, beta2=0.999, weight_decay=0.0, eps=1e-8,
+            amsgrad=False, maximize=False,
+        )  # fmt: skip
 
 
 def warm(device: str) -> None:
