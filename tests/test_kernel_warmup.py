@@ -23,8 +23,11 @@ def test_begin_starts_no_thread_off_a_gpu(monkeypatch):
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
-def test_gpu_warm_up_leaves_the_cuda_generator():
+def test_gpu_warm_up_runs_and_leaves_the_cuda_generator():
+    """On the GPU the libraries' calls run (called here, not in the thread that hides their
+    errors), and neither part draws from the CUDA generator."""
     state = torch.cuda.get_rng_state()
-    kernel_warmup.begin("cuda")
+    kernel_warmup.libraries("cuda")
+    kernel_warmup.begin("cuda", libraries_first=True)
     kernel_warmup.wait()
     assert torch.equal(state, torch.cuda.get_rng_state())
