@@ -66,7 +66,7 @@ def libraries(device: str) -> None:
         for dtype in (torch.float32, torch.float64):
             a = torch.ones(2, 3, 3, device=device, dtype=dtype)
             a @ a, a[0] @ a[0], a[0] @ a[0, 0]
-            indices = torch.tensor([[0, 1, 2], [0, 1, 2]], device=device)  # COO: no beta warning, as CSR has
+            indices = torch.tensor([[0, 1, 2], [0, 1, 2]], device=device)  # COO: CSR construction warns "beta"
             torch.sparse.mm(torch.sparse_coo_tensor(indices, a[0, 0], (3, 3), check_invariants=False), a[0])
             torch.linalg.solve_ex(a + 2 * torch.eye(3, device=device, dtype=dtype), a[..., :1])
         p = [torch.ones(3, device=device)]
