@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms, write_atoms
+from gaussian_atoms_method.atoms.hard_core import hard_core_from_species, parse_species
 from gaussian_atoms_method.engine.console import CONSOLE
 from gaussian_atoms_method.film.runner import check_address, run_subareas
 from gaussian_atoms_method.film.stitch import FilmAtoms, Reports, join_reports
@@ -48,8 +49,6 @@ def reconstruct_film(
     before anything is written (:func:`check_settings`).  Raises :class:`FilmError` naming
     the sub-areas that failed after a retry; the others' fits stay, and a second call runs only
     those."""
-    from gaussian_atoms_method.atoms.hard_core import hard_core_from_species
-
     species, device = check_settings(device, species, max_steps, address, tasks_per_gpu, model_options)
     if not subareas:
         raise ValueError("subareas: none given (read them with published_subareas or tile_series)")
@@ -83,7 +82,6 @@ def check_settings(
     """:func:`reconstruct_film`'s settings checked before anything is written (a ValueError
     naming the first that is wrong, by ``names``); returns the species as one string ("" for
     none) and the device (``auto`` resolved on a local cluster)."""
-    from gaussian_atoms_method.atoms.hard_core import parse_species
     from gaussian_atoms_method.engine.options import FitOptions
     from gaussian_atoms_method.physics.devices import resolve, usable
 
@@ -137,11 +135,10 @@ def write_film(
     (:func:`task_summary`), in the summary; ``species`` ("Ta"): a film of one element names its
     atoms by it (of several, the joined atoms keep no mass to tell them apart by: ``X``)."""
     output_dir = Path(output_dir)
-    elements = species.split(",") if species else []
-    confirmed = int(film.confirmed.sum())
+    elements = parse_species(species)
     atoms = AtomSet(
         positions=film.positions[film.confirmed],
-        species=np.array(elements * confirmed) if len(elements) == 1 else None,
+        species=np.full(int(film.confirmed.sum()), elements[0]) if len(elements) == 1 else None,
     )
     rest = AtomSet(positions=film.positions[~film.confirmed])
     write_atoms(atoms, output_dir / "atoms.xyz")
