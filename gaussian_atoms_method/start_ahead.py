@@ -101,7 +101,7 @@ def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float | N
                 )
             import torch
 
-            if gpu_possible() and gpu() is not None:
+            if gpu() is not None:  # torch is imported: ask it
                 from gaussian_atoms_method.physics.kernel_warmup import begin as warm_kernels
 
                 warm_kernels("cuda")  # beside the launcher's imports and this start

@@ -16,9 +16,9 @@ def test_warm_runs_every_operation_and_leaves_the_random_state():
 
 
 def test_begin_starts_no_thread_off_a_gpu(monkeypatch):
-    monkeypatch.setattr(kernel_warmup, "_thread", None)
+    monkeypatch.setattr(kernel_warmup, "_threads", {})
     kernel_warmup.begin("cpu")
-    assert kernel_warmup._thread is None
+    assert kernel_warmup._threads == {}
     kernel_warmup.wait()  # nothing to wait for
 
 

@@ -21,8 +21,7 @@ from __future__ import annotations
 
 import threading
 
-_thread: threading.Thread | None = None
-_devices: set[str] = set()
+_threads: dict[str, threading.Thread] = {}  # device -> its warm-up, one per process
 
 
 def begin(device: str, libraries_first: bool = False) -> None:
@@ -31,20 +30,19 @@ def begin(device: str, libraries_first: bool = False) -> None:
     libraries' first calls too (:func:`libraries`), where the GPU stays idle while the warm-up
     begins (beside ``ga.reconstruct``'s imports; beside the train start, which uses the GPU at
     once, they slowed it)."""
-    global _thread
-    if not str(device).startswith("cuda") or str(device) in _devices:
+    device = str(device)
+    if not device.startswith("cuda") or device in _threads:
         return
-    _devices.add(str(device))
-    # Not a daemon: a process that exits while a daemon thread is inside a torch operation aborts.
     parts = (libraries, warm) if libraries_first else (warm,)
-    _thread = threading.Thread(target=_quietly, args=(str(device), parts), name="gaussian-atoms kernels", daemon=False)
-    _thread.start()
+    # Not a daemon: a process that exits while a daemon thread is inside a torch operation aborts.
+    _threads[device] = threading.Thread(target=_quietly, args=(device, parts), name="gaussian-atoms kernels")
+    _threads[device].start()
 
 
 def wait() -> None:
-    """Return once the warm-up (if any) has launched all its operations."""
-    if _thread is not None:
-        _thread.join()
+    """Return once every warm-up begun has launched all its operations."""
+    for thread in list(_threads.values()):
+        thread.join()
 
 
 def _quietly(device: str, parts) -> None:
