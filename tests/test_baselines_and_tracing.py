@@ -152,3 +152,18 @@ def test_the_hosts_backprojection_matrix_is_torchs():
         in_torch = backprojection_matrix(theta, 41, size, rows, torch.float32)
         assert on_host.dtype == np.float32 and on_host.shape == tuple(in_torch.shape)
         np.testing.assert_array_equal(on_host.toarray(), in_torch.to_dense().numpy())
+
+
+@pytest.mark.parametrize("shift_px", [0.5, -3.3])
+def test_sinograms_shifted_by_one_matrix_equal_scipys_shift_of_the_stack(shift_px):
+    """An even detector's sinograms move half a pixel to centre the tilt axis: one product with
+    :func:`shift_matrix` along the detector axis, the same as scipy's cubic-spline shift of the
+    whole (S, L, N) stack (which interpolates the unshifted axes at their samples, so exactly)
+    to float64 rounding."""
+    import scipy.ndimage
+
+    from gaussian_atoms_method.physics.reconstruction import shift_matrix
+
+    stack = np.random.default_rng(0).standard_normal((6, 21, 5))
+    expected = scipy.ndimage.shift(stack, (0, shift_px, 0), order=3, mode="constant")
+    np.testing.assert_allclose(np.matmul(shift_matrix(21, shift_px), stack), expected, rtol=0, atol=1e-12)

