@@ -22,6 +22,7 @@ from __future__ import annotations
 import os
 import sys
 import threading
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -29,6 +30,7 @@ import numpy as np
 
 from dataparsers.tilt_series_format import load_tilt_series
 from gaussian_atoms_method.physics.devices import HOST, gpu
+from gaussian_atoms_method.physics.handover import quick_handover
 from gaussian_atoms_method.physics.units import Normalisation, normalised_projections
 
 
@@ -65,9 +67,11 @@ def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float | N
     The thread starts before the launcher has imported torch (this module does not import it):
     it reads the series and, where no GPU can be seen (:func:`gpu_possible`), their noise and
     the candidates' back-projection in numpy and scipy meanwhile, on a core the import leaves
-    idle; then it imports torch (waiting for the launcher's import) for the rest.  Both are the
-    run's own where torch then sees no GPU (the CPU's are numpy's and scipy's); with a GPU they
-    are made there, as the run makes them."""
+    idle; then it imports torch (waiting for the launcher's import) for the rest.  With a GPU
+    the two are made there first, as the run makes them, before the thread imports the
+    candidates' modules: the device's work releases the interpreter's lock, so it runs while
+    the launcher imports those modules itself (:func:`start_parts`, with the lock handed back
+    quickly: :mod:`.physics.handover`)."""
     global _ahead
     ahead = _Ahead(Path(data), extended_object, None if max_atom_sigma_A is None else float(max_atom_sigma_A))
 
@@ -77,55 +81,64 @@ def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float | N
                 ahead.series = load_tilt_series(ahead.data)
             finally:
                 ahead.read.set()
-            from gaussian_atoms_method.physics.field_of_view import field_of_view
-            from gaussian_atoms_method.physics.noise import measure_noise
-            from gaussian_atoms_method.physics.reconstruction import backprojection_for_peaks
-
             series = ahead.series
             ahead.normalisation, scaled = normalised_projections(series)
-            noise = volume = None
-            if not gpu_possible():  # with a GPU both are made there: host work beside the import would only slow it
-                noise = measure_noise(scaled, device=HOST)
-                slice_px = field_of_view(
-                    series, scaled, ahead.normalisation.length_scale, ahead.extended_object
-                ).slice_px
-                volume = backprojection_for_peaks(
-                    series.projections,
-                    series.angles_deg,
-                    series.pixel_size_A,
-                    series.tilt_axis,
-                    series.centre_px,
-                    series.tilt_axis_angle_deg,
-                    slice_px,
-                    HOST,
-                )
+            # with a GPU, host work beside the import would only slow it
+            known = start_parts(ahead, scaled, HOST) if not gpu_possible() else None
             import torch
 
-            if gpu() is not None:  # torch is imported: ask it
-                from gaussian_atoms_method.physics.kernel_warmup import begin as warm_kernels
+            device = gpu()  # torch is imported: ask it
+            with quick_handover() if device is not None else nullcontext():
+                if device is not None:
+                    from gaussian_atoms_method.physics.kernel_warmup import begin as warm_kernels
 
-                warm_kernels("cuda")  # beside the launcher's imports and this start
-            from gaussian_atoms_method.atoms.initialise import compute_start
-            from gaussian_atoms_method.density.strategy import DensityControl
+                    warm_kernels("cuda")  # beside the launcher's imports and this start
+                    known = start_parts(ahead, scaled, str(device))
+                from gaussian_atoms_method.atoms.initialise import compute_start
+                from gaussian_atoms_method.density.strategy import DensityControl
 
-            if ahead.max_atom_sigma_A is None:
-                ahead.max_atom_sigma_A = DensityControl.max_atom_sigma_A
-            ahead.projections = torch.from_numpy(scaled)
-            known = {"noise": noise, "backprojection": volume} if volume is not None and gpu() is None else {}
-            ahead.start = compute_start(
-                ahead.series,
-                ahead.projections,
-                ahead.normalisation,
-                ahead.extended_object,
-                ahead.max_atom_sigma_A,
-                **known,
-            )
+                if ahead.max_atom_sigma_A is None:
+                    ahead.max_atom_sigma_A = DensityControl.max_atom_sigma_A
+                ahead.projections = torch.from_numpy(scaled)
+                ahead.start = compute_start(
+                    ahead.series,
+                    ahead.projections,
+                    ahead.normalisation,
+                    ahead.extended_object,
+                    ahead.max_atom_sigma_A,
+                    **(known or {}),
+                )
         except Exception:  # noqa: BLE001 - the run computes its own start and reports the error there
             ahead.start = None
 
     ahead.thread = threading.Thread(target=work, name="gaussian-atoms start", daemon=False)
     _ahead = ahead
     ahead.thread.start()
+
+
+def start_parts(ahead: _Ahead, scaled: np.ndarray, device) -> dict | None:
+    """The start's noise reading and back-projection of ``ahead``'s series (``scaled``: its
+    normalised projections) on ``device`` (:data:`HOST`: numpy and scipy, without torch), as
+    :func:`~gaussian_atoms_method.atoms.initialise.compute_start` would make them there: its
+    ``noise`` and ``backprojection`` arguments.  Needs only the physics modules."""
+    from gaussian_atoms_method.physics.field_of_view import field_of_view
+    from gaussian_atoms_method.physics.noise import measure_noise
+    from gaussian_atoms_method.physics.reconstruction import backprojection_for_peaks
+
+    series = ahead.series
+    noise = measure_noise(scaled, device=device)
+    slice_px = field_of_view(series, scaled, ahead.normalisation.length_scale, ahead.extended_object).slice_px
+    volume = backprojection_for_peaks(
+        series.projections,
+        series.angles_deg,
+        series.pixel_size_A,
+        series.tilt_axis,
+        series.centre_px,
+        series.tilt_axis_angle_deg,
+        slice_px,
+        device,
+    )
+    return {"noise": noise, "backprojection": volume}
 
 
 GPU_NODES = ("/dev/nvidiactl", "/dev/nvidia0", "/proc/driver/nvidia", "/dev/kfd")

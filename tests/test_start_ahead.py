@@ -36,9 +36,14 @@ def _inputs(data: Path):
 
 
 def test_the_start_begun_ahead_is_the_one_computed_in_line(series_dir):
+    """On a GPU the thread makes the noise reading and back-projection there first
+    (start_ahead.start_parts), on this CPU in numpy before torch: the same start either way.  The
+    interpreter's switch interval is its own again once the thread is done."""
     series, projections, normalisation = _inputs(series_dir)
+    interval = sys.getswitchinterval()
     start_ahead.begin(series_dir)
     ahead = start_ahead.take(series, projections, normalisation, "auto", 1.5)
+    assert sys.getswitchinterval() == interval
     in_line = compute_start(series, projections, normalisation, "auto", 1.5)
     assert ahead is not None and len(in_line.means) > 0
     # The same functions on the same data: the same bits, whichever thread ran them.

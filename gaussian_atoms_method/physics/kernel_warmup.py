@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import threading
 
+from gaussian_atoms_method.physics.handover import quick_handover
+
 _threads: dict[str, threading.Thread] = {}  # device -> its warm-up, one per process
 
 
@@ -46,11 +48,12 @@ def wait() -> None:
 
 
 def _quietly(device: str, parts) -> None:
-    for part in parts:
-        try:
-            part(device)
-        except Exception:  # noqa: BLE001 - a warm-up that fails leaves the loading to the fit
-            pass
+    with quick_handover():  # beside the imports: each operation gets the lock back quickly
+        for part in parts:
+            try:
+                part(device)
+            except Exception:  # noqa: BLE001 - a warm-up that fails leaves the loading to the fit
+                pass
 
 
 def libraries(device: str) -> None:
