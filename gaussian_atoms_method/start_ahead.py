@@ -116,7 +116,7 @@ def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float | N
     ahead.thread.start()
 
 
-def start_parts(ahead: _Ahead, scaled: np.ndarray, device) -> dict | None:
+def start_parts(ahead: _Ahead, scaled: np.ndarray, device) -> dict:
     """The start's noise reading and back-projection of ``ahead``'s series (``scaled``: its
     normalised projections) on ``device`` (:data:`HOST`: numpy and scipy, without torch), as
     :func:`~gaussian_atoms_method.atoms.initialise.compute_start` would make them there: its
