@@ -167,3 +167,22 @@ def test_sinograms_shifted_by_one_matrix_equal_scipys_shift_of_the_stack(shift_p
     stack = np.random.default_rng(0).standard_normal((6, 21, 5))
     expected = scipy.ndimage.shift(stack, (0, shift_px, 0), order=3, mode="constant")
     np.testing.assert_allclose(np.matmul(shift_matrix(21, shift_px), stack), expected, rtol=0, atol=1e-12)
+
+
+def test_torchs_sparse_notes_are_hidden_for_our_matrices_only():
+    """torch says once per process that sparse CSR is in beta and that invariant checks are off;
+    for the matrices the physics builds valid by construction the note is hidden, for the same
+    words raised from a user's own code it is not."""
+    import warnings
+
+    from gaussian_atoms_method.physics import quiet_sparse_notes
+
+    words = "Sparse invariant checks are implicitly disabled. Memory errors (e.g. SEGFAULT) will occur"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        quiet_sparse_notes()  # as at import, in front of the test's own filter
+        for module in ("gaussian_atoms_method.physics.reconstruction", "gaussian_atoms_method.physics.kernel_warmup"):
+            warnings.warn_explicit(words, UserWarning, "ours.py", 1, module=module)
+        warnings.warn_explicit("Sparse CSR tensor support is in beta state", UserWarning, "ours.py", 2, module=module)
+        warnings.warn_explicit(words, UserWarning, "mine.py", 1, module="my_analysis")
+    assert [w.filename for w in caught] == ["mine.py"]

@@ -12,7 +12,6 @@ projection units per Å (V for projected potentials in V·Å).
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -128,15 +127,13 @@ def backprojection_matrix(
     cols = torch.stack([block + i0, block + torch.clamp(i0 + 1, max=length)], dim=-1)  # (P, N, 2), sorted
     vals = torch.stack([1.0 - w, w], dim=-1).to(dtype or torch.float64)
     crow = torch.arange(len(pixels) + 1, device=device) * (2 * len(angles))
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", "Sparse CSR tensor support is in beta", UserWarning)
-        return torch.sparse_csr_tensor(
-            crow,
-            cols.reshape(-1),
-            vals.reshape(-1),
-            size=(len(pixels), len(angles) * (length + 1)),
-            check_invariants=False,
-        )
+    return torch.sparse_csr_tensor(  # torch's note on it is hidden (physics/__init__)
+        crow,
+        cols.reshape(-1),
+        vals.reshape(-1),
+        size=(len(pixels), len(angles) * (length + 1)),
+        check_invariants=False,
+    )
 
 
 def _on_host(device) -> bool:
