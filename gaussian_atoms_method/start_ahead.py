@@ -19,6 +19,7 @@ the 2-core CPU, 8.2-8.7 s against 9.1-10.4 s without it.
 
 from __future__ import annotations
 
+import importlib
 import os
 import sys
 import threading
@@ -45,6 +46,8 @@ class _Ahead:
     thread: threading.Thread | None = None
     read: threading.Event = field(default_factory=threading.Event)
     """Set once the thread has read the series (or failed to)."""
+    imported: threading.Event = field(default_factory=threading.Event)
+    """Set once the thread has imported :data:`SHARED_IMPORTS` (or failed to)."""
     series: object = None
     projections: object = None
     """(V, H, W) tensor: the normalised projections."""
@@ -77,6 +80,11 @@ def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float | N
 
     def work() -> None:
         try:
+            try:
+                for name in SHARED_IMPORTS:
+                    importlib.import_module(name)
+            finally:
+                ahead.imported.set()
             try:
                 ahead.series = load_tilt_series(ahead.data)
             finally:
@@ -114,6 +122,33 @@ def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float | N
     ahead.thread = threading.Thread(target=work, name="gaussian-atoms start", daemon=False)
     _ahead = ahead
     ahead.thread.start()
+
+
+SHARED_IMPORTS = (
+    "scipy.linalg",
+    "scipy.sparse",
+    "scipy.sparse.csgraph",
+    "scipy.spatial",
+    "scipy.ndimage",
+    "scipy.special",
+    "scipy.fft",
+)
+"""scipy's packages that both the start's thread and the launcher import, imported by the thread
+first, while the launcher imports torch (which imports none of them), and waited for by the
+launcher before its own (:func:`settle_imports`).  scipy's packages import one another in
+cycles (``scipy.linalg`` and its compiled ``cython_lapack``): two threads importing them at once
+can each hold a module the other needs, and Python then stops one of them with
+``_DeadlockError`` (seen once in a CPU run of ``gaussian-atoms train``, in the launcher).  Once
+these are imported, what the two threads still import at once is this package's own modules,
+which import no cycle (tests/test_layout.py)."""
+
+
+def settle_imports() -> None:
+    """Return once a start begun ahead has imported :data:`SHARED_IMPORTS` (at once where none
+    was begun): a launcher calls it before importing the engine."""
+    ahead = _ahead
+    if ahead is not None:
+        ahead.imported.wait()
 
 
 def start_parts(ahead: _Ahead, scaled: np.ndarray, device) -> dict:

@@ -200,3 +200,20 @@ def test_where_a_gpu_may_be_seen_the_thread_leaves_the_host_work_to_the_start(se
     in_line = compute_start(series, projections, normalisation, "auto", 1.5)
     assert ahead is not None and torch.equal(ahead.means, in_line.means) and torch.equal(ahead.weights, in_line.weights)
     assert ahead.noise == in_line.noise
+
+
+def test_the_thread_imports_scipys_packages_before_the_launcher_imports_them(series_dir):
+    """scipy's packages import one another in cycles: the start's thread imports them first (while
+    the launcher imports torch) and the launcher waits for that (settle_imports) before its own
+    imports of them, so the two threads never import them at once."""
+    code = (
+        "import sys\n"
+        "from gaussian_atoms_method import start_ahead\n"
+        "assert not any(m in sys.modules for m in start_ahead.SHARED_IMPORTS), 'imported before the thread'\n"
+        f"start_ahead.begin({str(series_dir)!r})\n"
+        "start_ahead.settle_imports()\n"
+        "missing = [m for m in start_ahead.SHARED_IMPORTS if m not in sys.modules]\n"
+        "assert not missing, missing\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr[-2000:]

@@ -87,9 +87,12 @@ def entrypoint(argv: list[str] | None = None) -> None:
 
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["train"]:
-        from gaussian_atoms_method.start_ahead import begin_for, end_now
+        from gaussian_atoms_method.start_ahead import begin_for, end_now, settle_imports
 
-        begin_for(argv[1:])  # the start computed in a thread while nerfstudio loads
+        if begin_for(argv[1:]):  # the start computed in a thread while the launcher loads
+            import torch  # noqa: F401 - first: the thread imports scipy's packages meanwhile
+
+            settle_imports()  # before the engine imports them too
         from gaussian_atoms_method.cli import train_command
 
         if train_command.engine_runs(argv[1:]):
