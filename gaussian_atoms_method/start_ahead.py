@@ -68,13 +68,13 @@ def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float | N
     through :func:`end_now`.
 
     The thread starts before the launcher has imported torch (this module does not import it):
-    it reads the series and, where no GPU can be seen (:func:`gpu_possible`), their noise and
-    the candidates' back-projection in numpy and scipy meanwhile, on a core the import leaves
-    idle; then it imports torch (waiting for the launcher's import) for the rest.  With a GPU
-    the two are made there first, as the run makes them, before the thread imports the
-    candidates' modules: the device's work releases the interpreter's lock, so it runs while
-    the launcher imports those modules itself (:func:`start_parts`, with the lock handed back
-    quickly: :mod:`.physics.handover`)."""
+    it imports scipy's shared packages (:data:`SHARED_IMPORTS`), reads the series and, where no
+    GPU can be seen (:func:`gpu_possible`), their noise and the candidates' back-projection in
+    numpy and scipy meanwhile, on a core the import leaves idle; then it imports torch (waiting
+    for the launcher's import) for the rest.  With a GPU the two are made there first, as the
+    run makes them, before the thread imports the candidates' modules: the device's work
+    releases the interpreter's lock, so it runs while the launcher imports those modules itself
+    (:func:`start_parts`, with the lock handed back quickly: :mod:`.physics.handover`)."""
     global _ahead
     ahead = _Ahead(Path(data), extended_object, None if max_atom_sigma_A is None else float(max_atom_sigma_A))
 

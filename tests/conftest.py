@@ -7,6 +7,15 @@ import pytest
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 
+@pytest.fixture(autouse=True)
+def _physics_sparse_notes_hidden():
+    """The filter the physics installs at import (physics.quiet_sparse_notes), again in each
+    test: pytest gives every test a fresh copy of the warning filters."""
+    from gaussian_atoms_method.physics import quiet_sparse_notes
+
+    quiet_sparse_notes()
+
+
 @pytest.fixture
 def shared_data() -> Path:
     """The project's shared public data (../shared/data beside the checkout)."""
