@@ -144,3 +144,28 @@ def test_binned_kernel_density_stays_within_its_binning_bound_of_the_direct_sum(
         assert np.argmax(fast) == np.argmax(slow)
         onset = lambda density: np.nonzero(density[: np.argmax(density) + 1] < 0.5 * density.max())[0][-1]  # noqa: E731
         assert onset(fast) == onset(slow)
+
+
+def test_binned_kernel_density_is_the_direct_sum_over_its_bins():
+    """The binned density is read as a correlation of the bins' masses with one sampled kernel
+    cut KERNEL_WIDTHS bandwidths out (exp(-50) of its peak): it equals the float64 direct sum
+    over the occupied bins to rounding, for kernels from a tenth of a bin to wider than all the
+    bins (the direct sum's own branch)."""
+    from gaussian_atoms_method.atoms.pair_distribution import (
+        BINS_PER_GRID_STEP,
+        GRID_POINTS,
+        kernel_density_reference,
+        weighted_kernel_density,
+    )
+
+    rng = np.random.default_rng(3)
+    d = np.concatenate([rng.normal(2.9, 0.1, 20000), rng.uniform(0.5, 5.8, 5000)])
+    w = 1.0 / d**2
+    for top in (d.max(), 3.0 * d.max()):
+        grid = np.linspace(0.0, top, GRID_POINTS)
+        step = (grid[1] - grid[0]) / BINS_PER_GRID_STEP
+        mass = np.bincount(np.rint(d / step).astype(np.int64), weights=w)
+        occupied = np.nonzero(mass)[0]
+        for h in (0.1 * step, 0.01, 0.08, 0.5, 50.0):
+            direct = kernel_density_reference(occupied * step, mass[occupied], grid, h)
+            assert np.max(np.abs(weighted_kernel_density(d, w, grid, h) - direct)) <= 1e-12 * direct.max()
