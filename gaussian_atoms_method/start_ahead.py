@@ -48,6 +48,10 @@ class _Ahead:
     """Set once the thread has read the series (or failed to)."""
     imported: threading.Event = field(default_factory=threading.Event)
     """Set once the thread has imported :data:`SHARED_IMPORTS` (or failed to)."""
+    noise_known: threading.Event = field(default_factory=threading.Event)
+    """Set once the thread has measured the noise (or will not)."""
+    noise: object = None
+    """The start's measured noise (:func:`measured_noise`), once ``noise_known``."""
     series: object = None
     projections: object = None
     """(V, H, W) tensor: the normalised projections."""
@@ -102,6 +106,8 @@ def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float | N
 
                     warm_kernels("cuda")  # beside the launcher's imports and this start
                     known = start_parts(ahead, scaled, str(device))
+                ahead.noise = (known or {}).get("noise")
+                ahead.noise_known.set()
                 from gaussian_atoms_method.atoms.initialise import compute_start
                 from gaussian_atoms_method.density.strategy import DensityControl
 
@@ -118,6 +124,8 @@ def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float | N
                 )
         except Exception:  # noqa: BLE001 - the run computes its own start and reports the error there
             ahead.start = None
+        finally:
+            ahead.noise_known.set()
 
     ahead.thread = threading.Thread(target=work, name="gaussian-atoms start", daemon=False)
     _ahead = ahead
@@ -189,6 +197,30 @@ def gpu_possible() -> bool:
     return any(os.path.exists(node) for node in GPU_NODES)
 
 
+def measured_noise(series):
+    """The noise the start begun ahead measured (:func:`start_parts`), once measured, where it
+    was begun for the file ``series`` was read from; None otherwise.  Not handed out: the run
+    reads the noise beside the candidates with it, and keeps that reading only where the start
+    it takes (:func:`take`) holds this same noise."""
+    ahead = _ahead
+    if ahead is None or series is None or series.source is None:
+        return None
+    ahead.read.wait()
+    if not _same_file(ahead, series):
+        return None
+    ahead.noise_known.wait()
+    return ahead.noise
+
+
+def _same_file(ahead: _Ahead, series) -> bool:
+    return (
+        ahead.series is not None
+        and ahead.series.source is not None
+        and series.source is not None
+        and Path(series.source).resolve() == Path(ahead.series.source).resolve()
+    )
+
+
 def take(series, projections, normalisation: Normalisation, extended_object: str, max_atom_sigma_A: float):
     """The start :func:`begin` computed, if it was for these inputs (the tilt series' data and
     geometry, the normalised ``projections``, ``normalisation`` and the options); None
@@ -199,12 +231,7 @@ def take(series, projections, normalisation: Normalisation, extended_object: str
     if ahead is None or series is None or projections is None:
         return None
     ahead.read.wait()
-    if (
-        ahead.series is None
-        or ahead.series.source is None
-        or series.source is None
-        or Path(series.source).resolve() != Path(ahead.series.source).resolve()
-    ):
+    if not _same_file(ahead, series):
         return None  # another file: not waited for
     ahead.thread.join()
     if ahead.start is None or not same_start_inputs(

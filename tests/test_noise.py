@@ -219,3 +219,30 @@ def test_equal_count_bins_are_the_stable_sorts():
         label, sizes = equal_count_bins(values, bins)
         np.testing.assert_array_equal(label, expected)
         np.testing.assert_array_equal(sizes, [len(c) for c in chunks])
+
+
+def test_the_noise_read_beside_the_start_is_the_one_read_in_line():
+    """engine.noise_reading.NoiseReadingBeside reads in a thread what noise_reading reads in line
+    (float64 data, the same bits), reads again in line for another noise (a start begun ahead
+    and not taken), and raises the thread's error in the caller."""
+    from dataclasses import replace
+
+    import torch
+
+    from gaussian_atoms_method.engine.noise_reading import NoiseReadingBeside, noise_reading
+    from gaussian_atoms_method.physics.noise import measure_noise
+
+    rng = np.random.default_rng(5)
+    data = 1.5 + rng.normal(0.0, 0.2, (6, 48, 48))
+    data[:, 18:30, 18:30] += 4.0
+    projections = torch.from_numpy(data)
+    noise = measure_noise(projections)
+    in_line = noise_reading(projections, "auto", "auto", noise)
+    beside = NoiseReadingBeside(projections, "auto", "auto", noise).result(noise)
+    assert beside[0] == in_line[0] and beside[1:3] == in_line[1:3] and beside[4] == in_line[4]
+    assert (beside[3] is None) == (in_line[3] is None)
+    assert beside[3] is None or np.array_equal(beside[3], in_line[3])
+    other = replace(noise, read_var=2.0 * noise.read_var)
+    assert NoiseReadingBeside(projections, "auto", "auto", noise).result(other)[0] == other
+    with pytest.raises(ValueError):  # one image row: no frame to read
+        NoiseReadingBeside(projections[0, 0], "auto", "auto", noise).result(noise)

@@ -52,6 +52,19 @@ def test_the_start_begun_ahead_is_the_one_computed_in_line(series_dir):
     assert start_ahead.take(series, projections, normalisation, "auto", 1.5) is None  # handed out once
 
 
+def test_the_noise_measured_ahead_is_the_taken_starts_own(series_dir, tmp_path):
+    """The run reads the noise beside the candidates from the noise the thread measured
+    (start_ahead.measured_noise): for the same file, the very noise the start it then takes
+    holds, without handing the start out; for another file, none."""
+    series, projections, normalisation = _inputs(series_dir)
+    start_ahead.begin(series_dir)
+    other = write_tilt_series(tmp_path / "other", np.load(series_dir / "projections.npy"), series.angles_deg, 0.25)
+    assert start_ahead.measured_noise(load_tilt_series(other)) is None
+    noise = start_ahead.measured_noise(series)
+    assert noise is not None and noise == compute_start(series, projections, normalisation, "auto", 1.5).noise
+    assert start_ahead.take(series, projections, normalisation, "auto", 1.5).noise is noise
+
+
 @pytest.mark.parametrize("change", ["option", "width", "normalisation", "pixel size", "projections"])
 def test_a_start_for_other_inputs_is_not_taken(series_dir, change):
     series, projections, normalisation = _inputs(series_dir)

@@ -40,7 +40,13 @@ from gaussian_atoms_method.engine.console import CONSOLE
 from gaussian_atoms_method.engine.convergence import ConvergenceCheck
 from gaussian_atoms_method.engine.floors import FloorSolver
 from gaussian_atoms_method.engine.kernel_reading import HeldOutKernel
-from gaussian_atoms_method.engine.noise_reading import judge_after_fit, read_noise, say_hard_core, say_start
+from gaussian_atoms_method.engine.noise_reading import (
+    NoiseReadingBeside,
+    judge_after_fit,
+    say_hard_core,
+    say_noise_reading,
+    say_start,
+)
 from gaussian_atoms_method.engine.options import FitOptions
 from gaussian_atoms_method.engine.refit import refit
 from gaussian_atoms_method.engine.residuals import residual_correlations
@@ -49,8 +55,10 @@ from gaussian_atoms_method.engine.step_graph import StepGraph
 from gaussian_atoms_method.engine.stopping import at_check, set_position_rate
 from gaussian_atoms_method.engine.view_set import ViewSet
 from gaussian_atoms_method.physics.data_terms import data_term
+from gaussian_atoms_method.physics.noise import measure_noise
 from gaussian_atoms_method.physics.psf import project_weights
 from gaussian_atoms_method.physics.units import DATA_RANGE, Normalisation
+from gaussian_atoms_method.start_ahead import measured_noise
 from gaussian_atoms_method.start_ahead import take as take_start
 
 
@@ -95,20 +103,28 @@ class AtomFit(torch.nn.Module):
             (self.normalisation, cfg.extended_object, cfg.max_atom_sigma_A),
         )
         given = read_atoms(cfg.start_atoms).positions if cfg.start_atoms is not None else None
-        # begun while the launcher loaded
-        ahead = (
-            take_start(series, projections, *start_options) if cfg.init == "backprojection" and given is None else None
-        )
-        start = ahead or compute_start(
-            series,
-            projections,
-            *start_options,
-            cfg.init == "backprojection",
-            cfg.num_random,
-            cfg.init_extent,
-            self.generator,
-            positions_A=given,
-        )
+        # begun while the launcher loaded; the noise is read beside the candidates (either way)
+        reading, from_ahead = None, cfg.init == "backprojection" and given is None
+        if from_ahead and (early := measured_noise(series)) is not None:
+            reading = NoiseReadingBeside(projections, cfg.loss, cfg.background, early)
+        ahead = take_start(series, projections, *start_options) if from_ahead else None
+        if ahead is None:
+            noise = measure_noise(projections)
+            reading = NoiseReadingBeside(projections, cfg.loss, cfg.background, noise)
+            start = compute_start(
+                series,
+                projections,
+                *start_options,
+                cfg.init == "backprojection",
+                cfg.num_random,
+                cfg.init_extent,
+                self.generator,
+                noise=noise,
+                positions_A=given,
+            )
+        else:
+            start = ahead
+            reading = reading or NoiseReadingBeside(projections, cfg.loss, cfg.background, ahead.noise)
         say_start(start, ls, cfg.extended_object, ahead is not None)
         measured, means, weights, half_extent, self.field_half_extent = (
             start.noise,
@@ -158,9 +174,7 @@ class AtomFit(torch.nn.Module):
             cfg.false_discovery_rate,
             cfg.merge_threshold_A * ls,
         )
-        self.noise_read, self.data_term, floor, surfaces = read_noise(
-            views.projections, cfg.loss, cfg.background, measured
-        )
+        self.noise_read, self.data_term, floor, surfaces = say_noise_reading(reading.result(measured))
         self._setup_view_params(views, floor, surfaces)
         if self.noise_read is not None and views.pixel_size_A:  # the prune judges masses against this noise
             self.density.set_noise(

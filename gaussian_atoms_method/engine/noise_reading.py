@@ -8,6 +8,8 @@ The physics is :mod:`gaussian_atoms_method.physics.noise` (the measurement) and
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 
 from gaussian_atoms_method.atoms.initialise import Start
@@ -31,7 +33,16 @@ def read_noise(
     projections, loss: str, background: str, measured: NoiseModel | None = None
 ) -> tuple[NoiseModel | None, str, float | None, np.ndarray | None]:
     """The noise model of the (V, H, W) normalised projections (None without data), the data
-    term to use, the detected floor and, for a floor that varies within the views, its shape.
+    term to use, the detected floor and, for a floor that varies within the views, its shape
+    (:func:`noise_reading`, ``measured`` the noise if already measured), said on one line."""
+    noise = measured if measured is not None else measure_noise(projections)
+    return say_noise_reading(noise_reading(projections, loss, background, noise))
+
+
+def noise_reading(projections, loss: str, background: str, measured: NoiseModel | None) -> tuple:
+    """What :func:`read_noise` reads from the (V, H, W) normalised projections and their
+    ``measured`` noise (None: none could be measured), and its line (None without noise), said
+    by :func:`say_noise_reading`; host work only, so it runs beside the start (:class:`NoiseReadingBeside`).
 
     With ``background`` "auto" a floor is found when the frame's level sits significantly off
     zero (:data:`FLOOR_Z`) and the frame is background: smooth, when each view's quadratic frame
@@ -43,10 +54,10 @@ def read_noise(
     (:func:`~gaussian_atoms_method.physics.detector_floor.clipped_frame`); a film's frame, all atoms,
     leaves too few and too rough a floor.  With "smooth" the
     surfaces are used whatever the frame.  Returns (noise, term, floor or None, (V, H, W)
-    surfaces or None), normalised units."""
-    noise = measured if measured is not None else measure_noise(projections)
+    surfaces or None, line), normalised units."""
+    noise = measured
     if noise is None:
-        return None, ("l1" if loss == "auto" else loss), None, None
+        return None, ("l1" if loss == "auto" else loss), None, None, None
     data = as_array(projections)
     term = choose_data_term(noise, float(np.percentile(data, 99.9))) if loss == "auto" else loss
     if term == "poisson" and noise.gain <= 0:
@@ -83,8 +94,44 @@ def read_noise(
         if found and background == "auto"
         else ""
     )
-    CONSOLE.print(f"gaussian-atoms: noise read from the projections: {said}; data term {term}{bg}")
-    return noise, term, (floor if found else None), surfaces
+    line = f"gaussian-atoms: noise read from the projections: {said}; data term {term}{bg}"
+    return noise, term, (floor if found else None), surfaces, line
+
+
+def say_noise_reading(reading: tuple) -> tuple[NoiseModel | None, str, float | None, np.ndarray | None]:
+    """Say :func:`noise_reading`'s line and return the rest of it."""
+    *read, line = reading
+    if line is not None:
+        CONSOLE.print(line)
+    return tuple(read)
+
+
+class NoiseReadingBeside:
+    """:func:`noise_reading` in a thread, begun once the noise is measured, while the start's
+    candidates are found (the GPU's work and numpy's release the interpreter's lock): on an
+    H100's host the reading took 0.1 s of a warm ``ga.reconstruct`` (Au noise 200), in line
+    between the start and the first step.  :meth:`result` hands it over, or reads again in
+    line for another noise (a start begun ahead and not taken)."""
+
+    def __init__(self, projections, loss: str, background: str, measured: NoiseModel | None) -> None:
+        self.args, self.measured, self.reading, self.error = (projections, loss, background), measured, None, None
+        self.thread = threading.Thread(target=self._read, name="gaussian-atoms noise reading")
+        self.thread.start()
+
+    def _read(self) -> None:
+        try:
+            self.reading = noise_reading(*self.args, self.measured)
+        except BaseException as error:  # noqa: BLE001 - raised again in the caller's thread
+            self.error = error
+
+    def result(self, measured: NoiseModel | None) -> tuple:
+        """The reading for ``measured`` (the start's noise)."""
+        self.thread.join()
+        if measured is not self.measured:
+            return noise_reading(*self.args, measured)
+        if self.error is not None:
+            raise self.error
+        return self.reading
 
 
 def _floor_shape(
