@@ -43,6 +43,7 @@ from gaussian_atoms_method.engine.step_graph import detached
 from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
 from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions
 from gaussian_atoms_method.parse_errors import one_line_tyro_errors
+from gaussian_atoms_method.physics import cuda_context
 from gaussian_atoms_method.physics.devices import default_device
 from gaussian_atoms_method.process_exit import fail
 from gaussian_atoms_method.start_ahead import begin_for, settle_imports
@@ -184,6 +185,7 @@ if Path(sys.argv[0]).name == "ns-train" and sys.argv[1:2] == ["gaussian-atoms"]:
     # ns-train imports this module while it loads every method it knows, before it parses the
     # command line: the start of the run it was asked for begins now, in a thread (start_ahead),
     # and a malformed command line will be said in one line, as gaussian-atoms says it.
+    cuda_context.begin_for(sys.argv[2:])  # the GPU's context made while nerfstudio loads
     begin_for(sys.argv[2:])
     settle_imports()  # nerfstudio goes on importing: not scipy's packages beside the thread's
     one_line_tyro_errors("ns-train gaussian-atoms")
