@@ -312,8 +312,7 @@ def requested_start(argv: list[str]) -> dict | None:
         lowered = {name.lower(): key for name, key in known.items()}
         i = 0
         while i < len(tokens):
-            name, has_value, value = tokens[i].partition("=")
-            name = name.replace("_", "-").lower() if name.startswith("--") else name
+            name, has_value, value = _option(tokens[i])
             if name in {n.lower() for n in NOT_AHEAD}:
                 return None
             if name in lowered:
@@ -335,6 +334,33 @@ def requested_start(argv: list[str]) -> dict | None:
         }
     except ValueError:
         return None
+
+
+def _option(token: str) -> tuple[str, bool, str]:
+    """A command-line token as (its name, whether it holds its value, that value), a long name
+    in one spelling (``_`` as ``-``, lower case), as tyro reads it."""
+    name, has_value, value = token.partition("=")
+    return (name.replace("_", "-").lower() if name.startswith("--") else name), bool(has_value), value
+
+
+DEVICE_OPTION = "--machine.device-type"
+
+
+def runs_on_cuda(argv: list[str]) -> bool:
+    """Whether a training command line (``gaussian-atoms train`` or ``ns-train gaussian-atoms``
+    options) runs on CUDA, so that its launcher makes the GPU's context while torch imports
+    (:mod:`.physics.cuda_context`): its :data:`DEVICE_OPTION` is ``cuda`` or not given (the
+    default is CUDA where torch sees a GPU; where it sees none the driver finds none either);
+    not for help."""
+    for i, token in enumerate(argv):
+        name, has_value, value = _option(token)
+        if name in ("-h", "--help"):
+            return False
+        if name == DEVICE_OPTION:
+            value = value if has_value else (argv[i + 1] if i + 1 < len(argv) else "")
+            if value.lower() != "cuda":
+                return False
+    return True
 
 
 def begin_for(argv: list[str]) -> bool:

@@ -88,9 +88,10 @@ def entrypoint(argv: list[str] | None = None) -> None:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["train"]:
         from gaussian_atoms_method.physics import cuda_context
-        from gaussian_atoms_method.start_ahead import begin_for, end_now, settle_imports
+        from gaussian_atoms_method.start_ahead import begin_for, end_now, runs_on_cuda, settle_imports
 
-        cuda_context.begin_for(argv[1:])  # the GPU's context made while torch imports
+        if runs_on_cuda(argv[1:]):
+            cuda_context.begin()  # the GPU's context made while torch imports
         if begin_for(argv[1:]):  # the start computed in a thread while the launcher loads
             import torch  # noqa: F401 - first: the thread imports scipy's packages meanwhile
 

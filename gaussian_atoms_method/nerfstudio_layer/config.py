@@ -46,7 +46,7 @@ from gaussian_atoms_method.parse_errors import one_line_tyro_errors
 from gaussian_atoms_method.physics import cuda_context
 from gaussian_atoms_method.physics.devices import default_device
 from gaussian_atoms_method.process_exit import fail
-from gaussian_atoms_method.start_ahead import begin_for, settle_imports
+from gaussian_atoms_method.start_ahead import begin_for, runs_on_cuda, settle_imports
 
 INPUT_ERRORS = (TiltSeriesError, AtomFileError, OptionError)
 """Errors in what the user gave: reported in one line, exit status 2."""
@@ -185,7 +185,8 @@ if Path(sys.argv[0]).name == "ns-train" and sys.argv[1:2] == ["gaussian-atoms"]:
     # ns-train imports this module while it loads every method it knows, before it parses the
     # command line: the start of the run it was asked for begins now, in a thread (start_ahead),
     # and a malformed command line will be said in one line, as gaussian-atoms says it.
-    cuda_context.begin_for(sys.argv[2:])  # the GPU's context made while nerfstudio loads
+    if runs_on_cuda(sys.argv[2:]):
+        cuda_context.begin()  # the GPU's context made while nerfstudio loads
     begin_for(sys.argv[2:])
     settle_imports()  # nerfstudio goes on importing: not scipy's packages beside the thread's
     one_line_tyro_errors("ns-train gaussian-atoms")

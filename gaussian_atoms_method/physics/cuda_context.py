@@ -41,30 +41,3 @@ def _retain(ordinal: int) -> bool:
         and driver.cuDeviceGet(ctypes.byref(device), ordinal) == 0
         and driver.cuDevicePrimaryCtxRetain(ctypes.byref(context), device) == 0
     )
-
-
-def wait(timeout_s: float | None = None) -> None:
-    """Return once the context begun is made (or failed), or after ``timeout_s``."""
-    if _thread is not None:
-        _thread.join(timeout_s)
-
-
-DEVICE_OPTION = "--machine.device-type"
-
-
-def begin_for(argv: list[str]) -> bool:
-    """:func:`begin` for a training command line (``gaussian-atoms train`` or
-    ``ns-train gaussian-atoms`` options) that will run on CUDA: its ``--machine.device-type`` is
-    ``cuda`` or not given (the default is CUDA where torch sees a GPU; where it sees none the
-    driver finds none either); not for help.  Returns whether it was begun."""
-    for i, token in enumerate(argv):
-        name, has_value, value = token.partition("=")
-        name = name.replace("_", "-").lower()
-        if name in ("-h", "--help"):
-            return False
-        if name == DEVICE_OPTION:
-            value = value if has_value else (argv[i + 1] if i + 1 < len(argv) else "")
-            if value.lower() != "cuda":
-                return False
-    begin()
-    return True
