@@ -246,3 +246,26 @@ def test_the_noise_read_beside_the_start_is_the_one_read_in_line():
     assert NoiseReadingBeside(projections, "auto", "auto", noise).result(other)[0] == other
     with pytest.raises(ValueError):  # one image row: no frame to read
         NoiseReadingBeside(projections[0, 0], "auto", "auto", noise).result(noise)
+
+
+def test_host_mad_leaves_its_input_and_equals_the_plain_formula():
+    """The host's MAD (medians partitioned in place, in its own copy) equals the formula written
+    plainly in float64, with and without non-finite values, and leaves the caller's array as it
+    was."""
+    import torch
+
+    from gaussian_atoms_method.physics.noise import MAD_TO_STD, mad_std
+
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 7, 10001):
+        x = rng.standard_normal(n) * 3.0 + 1.0
+        if n > 2:
+            x[[0, n // 2]] = [np.nan, np.inf]
+        kept = x.copy()
+        v = x[np.isfinite(x)]
+        assert mad_std(x) == float(MAD_TO_STD * np.median(np.abs(v - np.median(v))))
+        np.testing.assert_array_equal(x, kept)
+        as_float32 = torch.as_tensor(x, dtype=torch.float32)
+        v32 = as_float32.numpy().astype(np.float64)
+        v32 = v32[np.isfinite(v32)]
+        assert mad_std(as_float32) == float(MAD_TO_STD * np.median(np.abs(v32 - np.median(v32))))
