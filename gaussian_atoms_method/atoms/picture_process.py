@@ -2,14 +2,13 @@
 
 A run's last seconds go to its pictures (:mod:`.pictures`): matplotlib's import and its first
 text (0.6-0.9 s on the H100 machine, more where its font cache is built) and two figures drawn
-one after the other (``classes.png`` 0.25 s, ``slices.png`` about 1 s at 20,000 atoms).  A
+one after the other.  A
 :class:`PictureProcess` is a child Python process that imports matplotlib and draws a first
 text as soon as it starts (while the run's final stage works), then waits for one picture's
 arrays on its standard input; one child per picture draws them side by side while the run
 writes its atoms.  The arrays are written to the child from a thread: a pipe takes 64 KB before
 the child reads it, and the child reads only once matplotlib is loaded, so a plain write made
-the run wait for that import (the pipe's write: 0.9 s a picture in a profile on the H100
-machine; ``ga.reconstruct`` on Au, three calls each, alternated: 6.4 s against 6.8 s mean).
+the run wait for that import.
 The child imports numpy and matplotlib, not torch.
 
 Where the machine has no cores to spare (:func:`spare_cores`) the pictures are drawn in the

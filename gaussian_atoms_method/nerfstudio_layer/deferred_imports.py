@@ -8,14 +8,13 @@ something first reads them.
   pictures (written after the atoms) import it when they are drawn.
 * ``tensorly``: nerfstudio's bilateral grid (a splatfacto option this method does not build)
   imports it and sets its backend at import; the stand-in keeps the backend for the real
-  package (0.45 s on the H100 machine, 0.7 s on the 2-core CPU).
+  package.
 
 torch's own late imports (its compiler front end, its symbolic shapes) are the engine's
 (:mod:`gaussian_atoms_method.engine.lean_torch`).
 
-Importing ``gaussian-atoms train`` took 8.9 s on the 2-core CPU, 3.0 s of it torchvision and
-0.5 s matplotlib (``python -X importtime``); on the lent H200, 4.0-4.9 -> 2.6-3.6 s with
-torchvision deferred.  :func:`defer_imports` puts stand-ins for those modules in ``sys.modules``;
+Importing ``gaussian-atoms train`` took 8.9 s on the 2-core CPU, 3.0 s of it torchvision
+(``python -X importtime``).  :func:`defer_imports` puts stand-ins for those modules in ``sys.modules``;
 the first attribute read of one (or an import of another of its submodules) imports the real
 package, and the stand-ins forward to it from then on.  A package already imported
 (``ns-train`` imports every method first) or not installed is left alone.

@@ -11,10 +11,9 @@ the train start, which uses the GPU at once, they slowed the run, so there the f
 
 The warm-up touches only its own tensors and a private random generator, so a run's numbers do
 not depend on it; a CUDA graph's capture waits for it (:func:`wait`: a launch from another
-thread during a capture would break the capture).  Measured on one H100, Au noise 200, three
-alternated pairs each: ``gaussian-atoms train`` at its target 4.4-5.2 s from launch against
-4.9-5.5 s without (4.8-5.8 s against 4.5-5.1 s with the libraries too); the first
-``ga.reconstruct`` 1.91-1.97 s with the libraries first against 1.99-2.22 s without them.
+thread during a capture would break the capture).  On one H100, Au noise 200, three alternated
+pairs: ``gaussian-atoms train`` reached its target 4.4-5.2 s from launch against 4.9-5.5 s
+without it (the other runs behind its choices: CHANGELOG.md).
 """
 
 from __future__ import annotations
