@@ -37,7 +37,12 @@ def test_smooth_floor_is_recovered_from_the_frames():
     surface reproduce the true floor to 0.4% of its level (the noise, 1% of the level per pixel,
     averaged by a 6-term fit over each view's ~1,000 frame pixels: about 0.1% per term, up to 0.3%
     at the corners)."""
-    from gaussian_atoms_method.engine.noise_reading import read_noise
+    from gaussian_atoms_method.engine.noise_reading import noise_reading
+    from gaussian_atoms_method.physics.noise import measure_noise
+
+    def read_noise(data, loss, background, noise=None):
+        noise = measure_noise(data) if noise is None else noise
+        return noise_reading(data, loss, background, noise)[:4]
 
     rng = np.random.default_rng(0)
     clean = blur_and_noise(

@@ -16,7 +16,7 @@ from gaussian_atoms_method.atoms.initialise import Start
 from gaussian_atoms_method.engine.console import CONSOLE
 from gaussian_atoms_method.physics.data_terms import choose_data_term
 from gaussian_atoms_method.physics.detector_floor import clipped_frame, detector_floor, frame_mask, frame_surfaces
-from gaussian_atoms_method.physics.noise import NoiseModel, as_array, atom_scale_excess, inflated, measure_noise
+from gaussian_atoms_method.physics.noise import NoiseModel, as_array, atom_scale_excess, inflated
 
 FLOOR_Z = 5.0
 """A frame level this many standard errors off zero is a real offset: a one-in-3.5-million
@@ -29,20 +29,12 @@ a few per cent, the pre-fit noise model to 10-20% (:func:`~gaussian_atoms_method
 atoms reaching the frame (a film, a crowded field) add far more."""
 
 
-def read_noise(
-    projections, loss: str, background: str, measured: NoiseModel | None = None
-) -> tuple[NoiseModel | None, str, float | None, np.ndarray | None]:
-    """The noise model of the (V, H, W) normalised projections (None without data), the data
-    term to use, the detected floor and, for a floor that varies within the views, its shape
-    (:func:`noise_reading`, ``measured`` the noise if already measured), said on one line."""
-    noise = measured if measured is not None else measure_noise(projections)
-    return say_noise_reading(noise_reading(projections, loss, background, noise))
-
-
-def noise_reading(projections, loss: str, background: str, measured: NoiseModel | None) -> tuple:
-    """What :func:`read_noise` reads from the (V, H, W) normalised projections and their
-    ``measured`` noise (None: none could be measured), and its line (None without noise), said
-    by :func:`say_noise_reading`; host work only, so it runs beside the start (:class:`NoiseReadingBeside`).
+def noise_reading(projections, loss: str, background: str, noise: NoiseModel | None) -> tuple:
+    """The noise model of the (V, H, W) normalised projections, ``noise`` as measured
+    (:func:`~gaussian_atoms_method.physics.noise.measure_noise`; None: none could be measured),
+    the data term to use, the detected floor, for a floor that varies within the views its shape,
+    and the line that says them (None without noise; said by :func:`say_noise_reading`).  Host
+    work only, so it runs beside the start (:class:`NoiseReadingBeside`).
 
     With ``background`` "auto" a floor is found when the frame's level sits significantly off
     zero (:data:`FLOOR_Z`) and the frame is background: smooth, when each view's quadratic frame
@@ -55,7 +47,6 @@ def noise_reading(projections, loss: str, background: str, measured: NoiseModel 
     leaves too few and too rough a floor.  With "smooth" the
     surfaces are used whatever the frame.  Returns (noise, term, floor or None, (V, H, W)
     surfaces or None, line), normalised units."""
-    noise = measured
     if noise is None:
         return None, ("l1" if loss == "auto" else loss), None, None, None
     data = as_array(projections)
