@@ -4,7 +4,9 @@ A directory holds ``tilt_series.json``::
 
     {"projections": "projections.npy",   # (N, H, W) float array
      "angles_deg": "angles.txt",         # N tilt angles in degrees, one per line (or N rows of
-                                         # ZYZ Euler angles phi theta psi, as GENFIRE and RESIRE)
+                                         # Euler angles phi theta psi)
+     "euler_convention": "zyz",          # optional, the Euler angles' axes: "zyz" (default, as
+                                         # GENFIRE writes them) or "zyx" (as RESIRE does)
      "pixel_size_A": 0.25,
      "tilt_axis": "y",                   # optional, "y" (default) or "x"
      "truth": "atoms_true.xyz",          # optional, the true atoms
@@ -29,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from gaussian_atoms_method.physics.geometry import (
+    EULER_CONVENTIONS,
     TILT_AXES,
     detector_axes_from_euler,
     detector_axes_from_tilts,
@@ -59,14 +62,16 @@ with the probe's) from its atom is within the fit's reach, and the fit projects 
 orientation."""
 
 
-def start_offset_A(euler_deg: np.ndarray, image_shape, centre_px, pixel_size_A: float) -> float:
+def start_offset_A(
+    euler_deg: np.ndarray, image_shape, centre_px, pixel_size_A: float, euler_convention: str = "zyz"
+) -> float:
     """The largest detector displacement (Å) between the Euler orientation and the tilt
     ``theta`` alone, over the corners of the volume the fit spans (the detector's field, as
     deep as its longer side)."""
     h, w = (np.asarray(image_shape, dtype=np.float64) - 1) / 2
     half = np.array([h + abs(np.asarray(centre_px)[0] - h), w + abs(np.asarray(centre_px)[1] - w), max(h, w)])
     corners = np.array(np.meshgrid(*[(-x, x) for x in half], indexing="ij")).reshape(3, -1) * pixel_size_A
-    exact = detector_axes_from_euler(euler_deg)[:, :2] @ corners
+    exact = detector_axes_from_euler(euler_deg, euler_convention)[:, :2] @ corners
     single = detector_axes_from_tilts(np.asarray(euler_deg)[:, 1], "y")[:, :2] @ corners
     return float(np.abs(exact - single).max())
 
@@ -98,11 +103,14 @@ class TiltSeries:
         The elements the specimen holds (``("Ta",)``, ``("Fe", "Pt")``); () when not given.  They
         set the material's hard core (:mod:`gaussian_atoms_method.atoms.hard_core`).
     euler_deg : (N, 3) float64 array or None
-        ZYZ Euler angles ``(phi, theta, psi)`` per view, as GENFIRE and RESIRE refine them (given
+        Euler angles ``(phi, theta, psi)`` per view, as GENFIRE and RESIRE refine them (given
         as ``angles_deg`` of shape (N, 3)); ``angles_deg`` then holds ``theta``.  None when every
         ``phi`` and ``psi`` is zero: a single-axis series.  The fit projects with the full
         orientation (:meth:`detector_axes`); the start back-projects about ``theta`` alone, so
         the views may leave the single axis by no more than :data:`MAX_START_OFFSET_A`.
+    euler_convention : {"zyz", "zyx"}
+        The axes of ``euler_deg``: Z-Y-Z as GENFIRE writes them (the default), Z-Y-X as RESIRE
+        does (:func:`~gaussian_atoms_method.physics.geometry.detector_axes_from_euler`).
     """
 
     projections: np.ndarray
@@ -116,6 +124,7 @@ class TiltSeries:
     tilt_axis_angle_deg: float = 0.0
     species: tuple = ()
     euler_deg: np.ndarray | None = None
+    euler_convention: str = "zyz"
 
     def __post_init__(self) -> None:
         where = str(self.source) if self.source is not None else "tilt series"
@@ -186,6 +195,10 @@ class TiltSeries:
             ) from None
         if not np.isfinite(self.tilt_axis_angle_deg):
             raise TiltSeriesError(f"{where}: tilt_axis_angle_deg must be finite, got {self.tilt_axis_angle_deg}")
+        if self.euler_convention not in EULER_CONVENTIONS:
+            raise TiltSeriesError(
+                f"{where}: euler_convention must be one of {list(EULER_CONVENTIONS)}, got {self.euler_convention!r}"
+            )
         if self.euler_deg is not None:
             self.euler_deg = self._checked_euler(where, angles)
         from gaussian_atoms_method.atoms.hard_core import SpeciesError, parse_species
@@ -213,7 +226,9 @@ class TiltSeries:
                 f"RESIRE); tilt_axis must be 'y' and tilt_axis_angle_deg 0, got {self.tilt_axis!r} and "
                 f"{self.tilt_axis_angle_deg:g}"
             )
-        offset = start_offset_A(euler, self.projections.shape[1:], self.centre_px, self.pixel_size_A)
+        offset = start_offset_A(
+            euler, self.projections.shape[1:], self.centre_px, self.pixel_size_A, self.euler_convention
+        )
         if offset > MAX_START_OFFSET_A:
             off_axis = np.abs(euler[:, [0, 2]]).max()
             raise TiltSeriesError(
@@ -232,7 +247,9 @@ class TiltSeries:
     def detector_axes(self) -> np.ndarray:
         """(N, 3, 3) float64: each view's detector rows, columns and beam in the world
         (:func:`~gaussian_atoms_method.physics.geometry.detector_axes_of`)."""
-        return detector_axes_of(self.orientations_deg, self.tilt_axis, self.tilt_axis_angle_deg)
+        return detector_axes_of(
+            self.orientations_deg, self.tilt_axis, self.tilt_axis_angle_deg, self.euler_convention
+        )
 
     @property
     def n_views(self) -> int:
@@ -256,6 +273,7 @@ def load_tilt_series(
     centre_px=None,
     tilt_axis_angle_deg: float | None = None,
     species: str | None = None,
+    euler_convention: str | None = None,
 ) -> TiltSeries:
     """Read a tilt series from a directory with ``tilt_series.json`` and/or explicit options.
 
@@ -264,8 +282,8 @@ def load_tilt_series(
     :mod:`dataparsers.readers` (numpy, TIFF, MRC, EMD/HDF5, MATLAB; text, IMOD .tlt, .mat
     angles).  ``dataset`` names the variable or dataset inside a file that holds several,
     ``tilt_index_axis`` the array axis of the tilt index, ``angles_variable`` the variable of
-    a .mat angle file; N x 3 Euler angles (ZYZ, as GENFIRE and RESIRE) are kept
-    (:attr:`TiltSeries.euler_deg`).  Without a pixel size, an MRC header's is used; without an angle file,
+    a .mat angle file; N x 3 Euler angles are kept (:attr:`TiltSeries.euler_deg`), about the
+    axes ``euler_convention`` names ("zyz" as GENFIRE, the default; "zyx" as RESIRE).  Without a pixel size, an MRC header's is used; without an angle file,
     an EMD file's angle dimension; without a tilt-axis angle, the one IMOD writes into an MRC
     header's labels (with ``tilt_axis`` "x", IMOD's reference direction, unless given).
     ``species`` ("Ta", "Fe,Pt") names the specimen's elements (manifest key ``species``: a
@@ -306,6 +324,7 @@ def load_tilt_series(
             "angles_variable",
             "tilt_axis_angle_deg",
             "species",
+            "euler_convention",
         }
         unknown = set(manifest) - known
         if unknown:
@@ -394,6 +413,7 @@ def load_tilt_series(
             source=proj_path,
             centre_px=centre_px if centre_px is not None else manifest.get("centre_px"),
             species=pick(species, "species") or (),
+            euler_convention=pick(euler_convention, "euler_convention") or "zyz",
         )
     except TiltSeriesError as exc:
         # Name the file the problem most likely lives in.
@@ -401,7 +421,11 @@ def load_tilt_series(
         culprit = (
             angles_path
             if "angle" in msg and "axis" not in msg
-            else (where if any(k in msg for k in ("pixel", "axis", "origin", "centre", "species")) else proj_path)
+            else (
+                where
+                if any(k in msg for k in ("pixel", "axis", "origin", "centre", "species", "convention"))
+                else proj_path
+            )
         )
         raise TiltSeriesError(f"{culprit}: {msg}") from None
 
@@ -418,6 +442,7 @@ def write_tilt_series(
     centre_px=None,
     tilt_axis_angle_deg: float = 0.0,
     species=(),
+    euler_convention: str = "zyz",
 ) -> Path:
     """Write a ``tilt_series.json`` directory; ``truth`` is an AtomSet in its own frame.
 
@@ -434,6 +459,7 @@ def write_tilt_series(
         centre_px=centre_px,
         tilt_axis_angle_deg=tilt_axis_angle_deg,
         species=species,
+        euler_convention=euler_convention,
     )
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -452,6 +478,8 @@ def write_tilt_series(
         manifest["tilt_axis_angle_deg"] = series.tilt_axis_angle_deg
     if series.species:
         manifest["species"] = ",".join(series.species)
+    if series.euler_deg is not None and series.euler_convention != "zyz":
+        manifest["euler_convention"] = series.euler_convention
     if truth is not None:
         write_atoms(truth, out / "atoms_true.xyz")
         manifest["truth"] = "atoms_true.xyz"

@@ -46,6 +46,9 @@ class TiltSeriesOptions:
     species: Optional[str] = None
     """The specimen's elements, e.g. Ta or Fe,Pt: they set the shortest distance two atoms may
     keep (the hard core); without them it is read from the atoms found.  Overrides the manifest."""
+    euler_convention: Optional[Literal["zyz", "zyx"]] = None
+    """Axes of N x 3 Euler angles (phi, theta, psi): zyz as GENFIRE writes them (default), zyx
+    as RESIRE does.  Overrides the manifest."""
 
     def load(self, data: Optional[Path] = None) -> TiltSeries:
         """The tilt series these options name (``data`` overrides the directory); raises
@@ -63,4 +66,5 @@ class TiltSeriesOptions:
             self.centre_px,
             self.tilt_axis_angle_deg,
             self.species,
+            self.euler_convention,
         )

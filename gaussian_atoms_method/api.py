@@ -75,9 +75,12 @@ def _from_hyperspy(signal, angles_deg, pixel_size_A):
     )
 
 
-def _as_series(projections, angles_deg, pixel_size_A, tilt_axis: str, species=None) -> TiltSeries:
+def _as_series(
+    projections, angles_deg, pixel_size_A, tilt_axis: str, species=None, euler_convention: str | None = None
+) -> TiltSeries:
     if isinstance(projections, TiltSeries):
-        return dataclasses.replace(projections, species=species) if species is not None else projections
+        changes = {"species": species, "euler_convention": euler_convention}
+        return dataclasses.replace(projections, **{k: v for k, v in changes.items() if v is not None})
     if hasattr(projections, "axes_manager") and hasattr(projections, "metadata"):  # a HyperSpy signal
         projections, angles_deg, pixel_size_A = _from_hyperspy(projections, angles_deg, pixel_size_A)
     if angles_deg is None:
@@ -95,6 +98,7 @@ def _as_series(projections, angles_deg, pixel_size_A, tilt_axis: str, species=No
         tilt_axis,
         source=Path("projections"),
         species=species or (),
+        euler_convention=euler_convention or "zyz",
     )
 
 
@@ -166,6 +170,7 @@ def reconstruct(
     device: str = "auto",
     tilt_axis: str = "y",
     species: str | None = None,
+    euler_convention: str | None = None,
     output_dir: str | Path | None = None,
     max_num_iterations: int | None = None,
     progress: bool = True,
@@ -181,7 +186,7 @@ def reconstruct(
         size (image axes in nm, Å or pm) and its angles (an angle-valued navigation axis, or
         ``metadata.Tomography.tilts``) unless they are passed.
     angles_deg : (N,) or (N, 3) array
-        Tilt angles in degrees, about ``tilt_axis``; or ZYZ Euler angles (phi, theta, psi), as
+        Tilt angles in degrees, about ``tilt_axis``; or Euler angles (phi, theta, psi), as
         GENFIRE and RESIRE refine them (:attr:`TiltSeries.euler_deg`).
     pixel_size_A : float
         Detector pixel size in Å.
@@ -191,6 +196,9 @@ def reconstruct(
         The specimen's elements, e.g. ``"Ta"`` or ``"Fe,Pt"``: they set the shortest distance two
         atoms may keep (:mod:`gaussian_atoms_method.atoms.hard_core`); without them it is read
         from the atoms found.
+    euler_convention : {"zyz", "zyx"}, optional
+        The axes of N x 3 Euler angles: Z-Y-Z as GENFIRE writes them (the default, or a
+        :class:`TiltSeries`'s own), Z-Y-X as RESIRE does.
     output_dir : path, optional
         Keep the run here (``reconstruct/gaussian-atoms/<timestamp>``: ``config.yml`` for
         ``ns-viewer`` and ``gaussian-atoms view``, ``atoms.xyz``, ``classes.png``, ...) with the
@@ -225,7 +233,7 @@ def reconstruct(
     work = None if keep else Path(tempfile.mkdtemp(prefix="gaussian-atoms-"))
     try:
         try:
-            series = _as_series(projections, angles_deg, pixel_size_A, tilt_axis, species)
+            series = _as_series(projections, angles_deg, pixel_size_A, tilt_axis, species, euler_convention)
             truth = read_atoms(series.truth_path) if series.truth_path is not None else None
             steps = MAX_ITERATIONS if max_num_iterations is None else _whole(max_num_iterations, "max_num_iterations")
             settings = RunSettings(
@@ -261,7 +269,7 @@ def _keep_series(series: TiltSeries, truth, output_dir: Path) -> Path:
     return write_tilt_series(
         _kept_series_dir(output_dir),
         series.projections,
-        series.angles_deg,
+        series.orientations_deg,
         series.pixel_size_A,
         truth,
         series.origin_A,
@@ -269,4 +277,5 @@ def _keep_series(series: TiltSeries, truth, output_dir: Path) -> Path:
         centre_px=series.centre_px,
         tilt_axis_angle_deg=series.tilt_axis_angle_deg,
         species=series.species,
+        euler_convention=series.euler_convention,
     )

@@ -1,8 +1,9 @@
-"""ZYZ Euler angles (GENFIRE's and RESIRE's refined orientations): read, kept, projected with.
+"""Euler angles (GENFIRE's and RESIRE's refined orientations): read, kept, projected with.
 
-The reference orientation is scipy's intrinsic ZYZ rotation, an implementation independent of
-ours: GENFIRE projects along the third row of ``R = (Rz(phi) Ry(theta) Rz(psi))^T``, with the
-first two rows the detector's rows and columns (``calculate3Dprojection``'s ``R' [kx; ky; 0]``).
+The references are scipy's intrinsic rotations and matrices written out by hand, both
+independent of ours: GENFIRE projects along the third row of ``(Rz(phi) Ry(theta) Rz(psi))^T``
+(its ``vector1..3`` z, y, z), RESIRE along that of ``(Rz(phi) Ry(theta) Rx(psi))^T`` (z, y, x),
+with the first two rows the detector's rows and columns (``R' [kx; ky; 0]``).
 """
 
 import numpy as np
@@ -33,6 +34,49 @@ def test_euler_detector_is_genfires_projection():
     np.testing.assert_allclose(
         detector_axes_from_euler(np.c_[0 * theta, theta, 0 * theta]), detector_axes_from_tilts(theta, "y"), atol=1e-12
     )
+
+
+def _hand_built(axis: str, angle_deg: float) -> np.ndarray:
+    """A right-handed rotation about ``axis``, as ``MatrixQuaternionRot`` builds it."""
+    c, s = np.cos(np.deg2rad(angle_deg)), np.sin(np.deg2rad(angle_deg))
+    return {
+        "x": np.array([[1, 0, 0], [0, c, -s], [0, s, c]]),
+        "y": np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]]),
+        "z": np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]),
+    }[axis]
+
+
+@pytest.mark.parametrize("convention, scipy_axes", [("zyz", "ZYZ"), ("zyx", "ZYX")])
+def test_each_convention_is_its_packages_rotation(convention, scipy_axes):
+    angles = np.random.default_rng(3).uniform(-80, 80, size=(12, 3))
+    ours = detector_axes_from_euler(angles, convention)
+    for (phi, theta, psi), detector in zip(angles, ours):
+        r = _hand_built("z", phi) @ _hand_built("y", theta) @ _hand_built(convention[2], psi)
+        np.testing.assert_allclose(detector, r.T, atol=1e-12)
+    reference = Rotation.from_euler(scipy_axes, angles, degrees=True).as_matrix().transpose(0, 2, 1)
+    np.testing.assert_allclose(ours, reference, atol=1e-12)
+    # the two differ once psi is not zero, and agree where it is
+    other = "zyx" if convention == "zyz" else "zyz"
+    assert np.abs(ours - detector_axes_from_euler(angles, other)).max() > 0.1
+    no_psi = angles * [1, 1, 0]
+    np.testing.assert_allclose(detector_axes_from_euler(no_psi, convention), detector_axes_from_euler(no_psi, other))
+    with pytest.raises(ValueError, match="euler_convention must be one of"):
+        detector_axes_from_euler(angles, "xyz")
+
+
+def test_a_series_projects_with_its_convention_and_keeps_it_on_disk(tmp_path):
+    euler = EULER + [0, 0, 0.3]
+    series = _series(euler, shape=(20, 20), euler_convention="zyx")
+    np.testing.assert_allclose(series.detector_axes(), detector_axes_from_euler(euler, "zyx"))
+    back = load_tilt_series(
+        write_tilt_series(tmp_path / "s", series.projections, euler, 0.25, euler_convention="zyx")
+    )
+    assert back.euler_convention == "zyx"
+    np.testing.assert_allclose(back.detector_axes(), series.detector_axes(), atol=1e-6)
+    # an option overrides the manifest; an unknown name is refused in one line naming the manifest
+    assert load_tilt_series(tmp_path / "s", euler_convention="zyz").euler_convention == "zyz"
+    with pytest.raises(TiltSeriesError, match=r"tilt_series\.json: euler_convention must be one of"):
+        load_tilt_series(tmp_path / "s", euler_convention="zxz")
 
 
 def _series(euler, shape=(40, 30), pixel_A=0.25, **kw):

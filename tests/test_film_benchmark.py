@@ -56,8 +56,10 @@ def test_a_sub_area_is_written_as_a_tilt_series(tmp_path):
 
 def test_the_model_as_a_start_is_the_part_the_detector_sees_on_the_data_frame(tmp_path):
     """``--start-from-model``: every scored model atom is in the start, the film's atoms no tilt
-    brings onto the detector are not, and the frames are put together by a shift of about a voxel
-    (0.32 Å per axis, the data's README) that the scorer's own shift of the start undoes."""
+    brings onto the detector are not, and the model's frame is the data's: the shift that takes
+    the views' own back-projection peaks onto the model is a small part of a voxel (0.3216 Å;
+    the frame one voxel off, as the data's README once gave it, put it at 0.3-1.0 Å), and the
+    scorer's own shift of the start undoes it."""
     from gaussian_atoms_method.atoms.atom_set import read_atoms
     from gaussian_atoms_method.harness.film_benchmark import write_model_start
 
@@ -67,8 +69,24 @@ def test_the_model_as_a_start_is_the_part_the_detector_sees_on_the_data_frame(tm
     _, half = area_geometry(DATA, 8)
     scores = score_area(start, model, (131, 61), tuple(half[:2]))
     assert scores["found"] == 1.0 and scores["rmsd_pm"] < 1e-6
-    assert 0.3 < np.linalg.norm(scores["shift_A"]) < 1.0
+    assert np.linalg.norm(scores["shift_A"]) < 0.5 * 0.3216
     assert len(start) < 0.5 * len(model)  # the film goes on far beyond this sub-area's reach
+
+
+def test_the_models_frame_puts_a_full_volume_voxel_on_its_sub_volume_index(monkeypatch):
+    """The authors' model is ``(1-based full-volume voxel - [201, 176, 171]) * 0.3216`` Å and their
+    stitching puts a sub-volume's 0-based index ``i`` at the full volume's 1-based
+    ``CropCen - CropHalf + i``: a model atom on full voxel ``CropCen - CropHalf + i`` sits at
+    ``(i - CropHalf) * 0.3216`` Å in the sub-area's centred frame, on every axis."""
+    from gaussian_atoms_method.harness import film_benchmark
+    from gaussian_atoms_method.harness.film_benchmark import FULL_VOLUME_CENTRE_VOX, PIXEL_SIZE_A
+
+    cen, half = area_geometry(DATA, 23)
+    index = np.array([[0.0, 0.0, 0.0], [17.0, 5.0, 40.0]])
+    model = ((cen - half + index) - FULL_VOLUME_CENTRE_VOX) * PIXEL_SIZE_A
+    original = film_benchmark._mat
+    monkeypatch.setattr(film_benchmark, "_mat", lambda path, name: model.T if name == "model" else original(path, name))
+    np.testing.assert_allclose(model_in_area_A(DATA, 23), (index - half) * PIXEL_SIZE_A, atol=1e-12)
 
 
 def test_an_extra_atom_beside_one_miss_names_it():

@@ -30,6 +30,8 @@ class Film:
     """The published stacks' pixel size, Å (the .mat files do not hold it)."""
     full_centre_vox: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """The film frame's origin, 1-based voxels of the published full volume (``CropCen``'s frame)."""
+    euler_convention: Literal["zyz", "zyx"] = "zyx"
+    """Axes of the published Euler angles: zyx as RESIRE (sub-area AET) writes them, zyz as GENFIRE."""
     series: Optional[Path] = None
     """One aligned tilt series (a directory with tilt_series.json, or a file) to cut into tiles."""
     tile_px: tuple[int, int] = (0, 0)
@@ -61,7 +63,12 @@ class Film:
             if self.pixel_size_A is None:
                 raise ValueError("--pixel-size-A: the published stacks' pixel size is needed (Å)")
             return published_subareas(
-                self.published, parse_areas(self.areas), data, self.pixel_size_A, self.full_centre_vox
+                self.published,
+                parse_areas(self.areas),
+                data,
+                self.pixel_size_A,
+                self.full_centre_vox,
+                self.euler_convention,
             )
         from dataparsers.tilt_series_format import load_tilt_series
         from gaussian_atoms_method.film.subareas import default_tiling

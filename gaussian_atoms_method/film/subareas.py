@@ -95,13 +95,21 @@ def mat_variable(path: Path, name: str) -> np.ndarray:
 
 
 def published_subareas(
-    data_dir: Path, areas: list[int], out_dir: Path, pixel_size_A: float, full_centre_vox: tuple[float, float, float]
+    data_dir: Path,
+    areas: list[int],
+    out_dir: Path,
+    pixel_size_A: float,
+    full_centre_vox: tuple[float, float, float],
+    euler_convention: str = "zyx",
 ) -> list[SubArea]:
     """The sub-areas ``areas`` (1-based rows of ``alignPara.mat``) of a sub-area AET data set
     written as tilt-series directories under ``out_dir``.  A sub-area's frame is centred on
-    ``CropHalf`` of its crop, so its origin lies at ``(CropCen - full_centre_vox + 1) *
-    pixel_size_A`` in the film's frame (``full_centre_vox``: the film frame's origin, 1-based
-    voxels of the full volume).  A file that cannot be read raises ``TiltSeriesError`` naming it."""
+    ``CropHalf`` of its crop, so its origin lies at ``(CropCen - full_centre_vox) *
+    pixel_size_A`` in the film's frame (a sub-volume's 0-based index ``i`` is the full volume's
+    1-based ``CropCen - CropHalf + i``) (``full_centre_vox``: the film frame's origin, 1-based
+    voxels of the full volume).  ``euler_convention`` names the axes of N x 3 Euler angles
+    (sub-area AET is RESIRE's, whose angles are Z-Y-X).  A file that cannot be read raises
+    ``TiltSeriesError`` naming it."""
     data_dir, out_dir = Path(data_dir), Path(out_dir)
     align = data_dir / "alignPara.mat"
     cen_all, half_all = mat_variable(align, "CropCen"), mat_variable(align, "CropHalf")
@@ -123,9 +131,10 @@ def published_subareas(
                 angles,
                 pixel_size_A,
                 centre_px=(float(half[0]), float(half[1])),
+                euler_convention=euler_convention,
             )
         series = load_tilt_series(target)
-        offset = (cen - np.asarray(full_centre_vox) + 1.0) * pixel_size_A
+        offset = (cen - np.asarray(full_centre_vox)) * pixel_size_A
         out.append(
             SubArea(
                 name,
@@ -239,6 +248,7 @@ def tile_series(series: TiltSeries, size_px: tuple[int, int], step_px: tuple[int
                 series.pixel_size_A,
                 centre_px=middle,
                 species=series.species,
+                euler_convention=series.euler_convention,
             )
             offset = (across_px * series.pixel_size_A, along_px * series.pixel_size_A, 0.0)
             out.append(SubArea(name, target, offset, size, middle, series.pixel_size_A))

@@ -63,10 +63,12 @@ def area_geometry(data_dir: Path, area: int) -> tuple[np.ndarray, np.ndarray]:
 
 def model_in_area_A(data_dir: Path, area: int) -> np.ndarray:
     """(M, 3) the authors' whole-film model in the sub-area's frame, Å about its tilt centre
-    (README's geometry: ``local = model / px + centre - (CropCen - CropHalf) - 1``)."""
+    (README's geometry: ``local = model / px + centre - (CropCen - CropHalf)``, 0-based voxels
+    of the sub-volume: the model is ``(1-based full-volume voxel - centre) * px``, and a
+    sub-volume's 0-based index ``i`` is the full volume's 1-based ``CropCen - CropHalf + i``)."""
     cen, half = area_geometry(data_dir, area)
     model = _mat(Path(data_dir) / "Final_atomic_model_Ta_film.mat", "model").T
-    local = model / PIXEL_SIZE_A + FULL_VOLUME_CENTRE_VOX - (cen - half) - 1
+    local = model / PIXEL_SIZE_A + FULL_VOLUME_CENTRE_VOX - (cen - half)
     return (local - half) * PIXEL_SIZE_A
 
 
@@ -89,14 +91,14 @@ def prepare_area(data_dir: Path, out_dir: Path, area: int, species: str = "") ->
         centre_px=(float(half[0]), float(half[1])),
         extra={"description": f"Ta film sub-area {area}, ADF-STEM, {CITATION}"},
         species=species or (),
+        euler_convention="zyx",  # RESIRE's Z-Y-X
     )
 
 
 def write_model_start(data_dir: Path, area_dir: Path, area: int) -> Path:
     """Write the authors' model as a start (``--pipeline.model.start-atoms``): the model's atoms
     that reach the detector at some tilt, moved onto the data's frame by the global shift
-    that takes our back-projection candidates onto the model (the two frames differ by about a
-    voxel, README).  A fit started there keeps what the data hold of the model and moves off the
+    that takes our back-projection candidates onto the model (a small residual shift, README).  A fit started there keeps what the data hold of the model and moves off the
     rest."""
     from dataparsers.tilt_series_format import load_tilt_series
     from gaussian_atoms_method.atoms.atom_set import write_atoms

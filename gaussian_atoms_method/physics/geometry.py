@@ -30,9 +30,10 @@ The convention (also written down in README.md)
   measured from Y, the rows: it is this angle for ``tilt_axis="x"``, and this angle minus 90
   deg for ``tilt_axis="y"`` (:func:`imod_axis_angle`).
 
-* Euler angles ``(phi, theta, psi)`` (degrees, ZYZ, as GENFIRE and RESIRE refine them): the
-  detector is ``Rz(-psi) Ry(-theta) Rz(-phi)`` (:func:`detector_axes_from_euler`), GENFIRE's
-  projection matrix; ``phi = psi = 0`` is the tilt ``theta`` about ``y``.
+* Euler angles ``(phi, theta, psi)`` (degrees): each view is ``R = Ra(phi) Rb(theta) Rc(psi)``
+  (standard right-handed rotations) and the detector is ``R^T`` (:func:`detector_axes_from_euler`).
+  GENFIRE writes Z-Y-Z (``convention="zyz"``: its ``vector1..3`` are z, y, z), RESIRE Z-Y-X
+  (``"zyx"``: z, y, x); ``phi = psi = 0`` is the tilt ``theta`` about ``y`` in both.
 
 A detector orientation is a 3x3 matrix ``D`` whose rows are the world directions of the
 detector row axis, the detector column axis and the beam; ``D @ r`` gives the detector
@@ -44,6 +45,9 @@ from __future__ import annotations
 import numpy as np
 
 TILT_AXES = ("x", "y")
+
+EULER_CONVENTIONS = ("zyz", "zyx")
+"""The axes of ``(phi, theta, psi)``: Z-Y-Z as GENFIRE writes them, Z-Y-X as RESIRE does."""
 
 
 def in_plane_rotation(tilt_axis_angle_deg: float) -> np.ndarray:
@@ -122,38 +126,59 @@ def detector_axes_from_tilts(
     return np.stack([rows, cols, beam], axis=1)
 
 
-def detector_axes_from_euler(euler_deg: np.ndarray) -> np.ndarray:
-    """Detector orientations for ZYZ Euler angles, as GENFIRE and RESIRE project.
+def rotation_about(axis: str, angles_deg) -> np.ndarray:
+    """(N, 3, 3) right-handed rotations by ``angles_deg`` (N,) about the world ``axis`` ("x",
+    "y" or "z"), as GENFIRE's and RESIRE's ``MatrixQuaternionRot``."""
+    a = np.deg2rad(np.asarray(angles_deg, dtype=np.float64).reshape(-1))
+    c, s = np.cos(a), np.sin(a)
+    i, j = {"x": (1, 2), "y": (2, 0), "z": (0, 1)}[axis]
+    r = np.zeros((len(a), 3, 3))
+    r[:, 3 - i - j, 3 - i - j] = 1.0
+    r[:, i, i], r[:, j, j], r[:, i, j], r[:, j, i] = c, c, -s, s
+    return r
 
-    GENFIRE's ``calculate3Dprojection`` samples the slice ``R' [kx; ky; 0]`` with
-    ``R = Rz(-psi) Ry(-theta) Rz(-phi)`` (standard right-handed rotations, ``kx`` along the
-    array's rows): ``R``'s rows are the detector's row and column directions and the beam.
-    At ``phi = psi = 0`` this is :func:`detector_axes_from_tilts` about ``y``.
+
+def detector_axes_from_euler(euler_deg: np.ndarray, convention: str = "zyz") -> np.ndarray:
+    """Detector orientations for Euler angles, as GENFIRE and RESIRE project.
+
+    Both build each view as ``R = Ra(phi) Rb(theta) Rc(psi)`` from right-handed rotations about
+    their ``vector1..3`` and sample the volume along ``R^T``'s first two rows (``kx`` along the
+    array's rows): ``R^T``'s rows are the detector's row and column directions and the beam.
+    GENFIRE's axes are z, y, z (``convention="zyz"``); RESIRE's are z, y, x (``"zyx"``).  At
+    ``phi = psi = 0`` both are :func:`detector_axes_from_tilts` about ``y``.
 
     Parameters
     ----------
     euler_deg : (N, 3) array
         ``(phi, theta, psi)`` per view, degrees.
+    convention : {"zyz", "zyx"}
 
     Returns
     -------
     D : (N, 3, 3) float64 array
+
+    Examples
+    --------
+    >>> d = detector_axes_from_euler([[0.0, 30.0, 0.0]], "zyx")
+    >>> np.allclose(d, detector_axes_from_tilts([30.0]))
+    True
     """
-    phi, theta, psi = np.deg2rad(np.asarray(euler_deg, dtype=np.float64).reshape(-1, 3)).T
-    cf, sf, ct, st, cp, sp = np.cos(phi), np.sin(phi), np.cos(theta), np.sin(theta), np.cos(psi), np.sin(psi)
-    rows = np.stack([cp * ct * cf - sp * sf, cp * ct * sf + sp * cf, -cp * st], axis=-1)
-    cols = np.stack([-sp * ct * cf - cp * sf, -sp * ct * sf + cp * cf, sp * st], axis=-1)
-    beam = np.stack([st * cf, st * sf, ct], axis=-1)
-    return np.stack([rows, cols, beam], axis=1)
+    if convention not in EULER_CONVENTIONS:
+        raise ValueError(f"euler_convention must be one of {list(EULER_CONVENTIONS)}, got {convention!r}")
+    phi, theta, psi = np.asarray(euler_deg, dtype=np.float64).reshape(-1, 3).T
+    rotation = rotation_about("z", phi) @ rotation_about("y", theta) @ rotation_about(convention[2], psi)
+    return np.ascontiguousarray(np.swapaxes(rotation, 1, 2))
 
 
-def detector_axes_of(angles_deg, tilt_axis: str = "y", tilt_axis_angle_deg: float = 0.0) -> np.ndarray:
+def detector_axes_of(
+    angles_deg, tilt_axis: str = "y", tilt_axis_angle_deg: float = 0.0, euler_convention: str = "zyz"
+) -> np.ndarray:
     """(N, 3, 3) detector orientations of ``angles_deg``: (N,) tilts about ``tilt_axis``
-    (:func:`detector_axes_from_tilts`), or (N, 3) ZYZ Euler angles, which give each view's whole
-    orientation (:func:`detector_axes_from_euler`)."""
+    (:func:`detector_axes_from_tilts`), or (N, 3) Euler angles in ``euler_convention``, which
+    give each view's whole orientation (:func:`detector_axes_from_euler`)."""
     angles = np.asarray(angles_deg, dtype=np.float64)
     if angles.ndim == 2 and angles.shape[1] == 3:
-        return detector_axes_from_euler(angles)
+        return detector_axes_from_euler(angles, euler_convention)
     return detector_axes_from_tilts(angles, tilt_axis, tilt_axis_angle_deg)
 
 
