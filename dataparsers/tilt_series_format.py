@@ -48,6 +48,9 @@ __all__ = ["MANIFEST", "TiltSeries", "TiltSeriesError", "load_tilt_series", "wri
 MANIFEST = "tilt_series.json"
 
 
+MANIFEST_WORDS = ("pixel", "axis", "origin", "centre", "species", "convention")
+"""Words of a refusal that names the manifest (or its option), not the projections' file."""
+
 MIN_SPAN_DEG = 5.0
 """Tilt angles spanning less than this tell no depth (two atoms 2 Å apart along the beam move by
 2 Å x sin(5 deg) = 0.17 Å between the extreme views, under any pixel): where the same numbers read
@@ -109,8 +112,7 @@ class TiltSeries:
         orientation (:meth:`detector_axes`); the start back-projects about ``theta`` alone, so
         the views may leave the single axis by no more than :data:`MAX_START_OFFSET_A`.
     euler_convention : {"zyz", "zyx"}
-        The axes of ``euler_deg``: Z-Y-Z as GENFIRE writes them (the default), Z-Y-X as RESIRE
-        does (:func:`~gaussian_atoms_method.physics.geometry.detector_axes_from_euler`).
+        The axes of ``euler_deg``: Z-Y-Z as GENFIRE writes them (the default), Z-Y-X as RESIRE.
     """
 
     projections: np.ndarray
@@ -247,9 +249,7 @@ class TiltSeries:
     def detector_axes(self) -> np.ndarray:
         """(N, 3, 3) float64: each view's detector rows, columns and beam in the world
         (:func:`~gaussian_atoms_method.physics.geometry.detector_axes_of`)."""
-        return detector_axes_of(
-            self.orientations_deg, self.tilt_axis, self.tilt_axis_angle_deg, self.euler_convention
-        )
+        return detector_axes_of(self.orientations_deg, self.tilt_axis, self.tilt_axis_angle_deg, self.euler_convention)
 
     @property
     def n_views(self) -> int:
@@ -283,11 +283,11 @@ def load_tilt_series(
     angles).  ``dataset`` names the variable or dataset inside a file that holds several,
     ``tilt_index_axis`` the array axis of the tilt index, ``angles_variable`` the variable of
     a .mat angle file; N x 3 Euler angles are kept (:attr:`TiltSeries.euler_deg`), about the
-    axes ``euler_convention`` names ("zyz" as GENFIRE, the default; "zyx" as RESIRE).  Without a pixel size, an MRC header's is used; without an angle file,
-    an EMD file's angle dimension; without a tilt-axis angle, the one IMOD writes into an MRC
-    header's labels (with ``tilt_axis`` "x", IMOD's reference direction, unless given).
-    ``species`` ("Ta", "Fe,Pt") names the specimen's elements (manifest key ``species``: a
-    string or a list).
+    axes ``euler_convention`` names ("zyz" as GENFIRE, the default; "zyx" as RESIRE).  Without
+    a pixel size, an MRC header's is used; without an angle file, an EMD file's angle dimension;
+    without a tilt-axis angle, the one IMOD writes into an MRC header's labels (with
+    ``tilt_axis`` "x", IMOD's reference direction, unless given).  ``species`` ("Ta", "Fe,Pt")
+    names the specimen's elements (manifest key ``species``: a string or a list).
     """
 
     data = Path(data)
@@ -421,11 +421,7 @@ def load_tilt_series(
         culprit = (
             angles_path
             if "angle" in msg and "axis" not in msg
-            else (
-                where
-                if any(k in msg for k in ("pixel", "axis", "origin", "centre", "species", "convention"))
-                else proj_path
-            )
+            else (where if any(k in msg for k in MANIFEST_WORDS) else proj_path)
         )
         raise TiltSeriesError(f"{culprit}: {msg}") from None
 

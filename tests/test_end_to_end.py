@@ -74,6 +74,15 @@ def test_simulate_train_evaluate(tmp_path, simulate_sphere):
     # near 70 and 29 views, about a pm per axis, never above the 5 pm the RMSD is held to below.
     std = atoms.arrays["position_std_A"]
     assert std.shape == (len(atoms), 3) and np.all((std > 1e-3) & (std < 0.05))
+    # Each atom's evidence (atoms/evidence.py): at that peak-to-noise a lone atom's significance is
+    # about its peak over the noise times the root of its pixels in every view (hundreds), far
+    # above the proof level (3.5 for 250 atoms); its depth fixed to a few pm, far inside half the
+    # hard core. Both in the CSV too.
+    assert np.all(atoms.arrays["proven"] == 1) and np.all(atoms.arrays["significance"] > 20)
+    assert np.all(atoms.arrays["depth_open"] == 0) and np.all(atoms.arrays["depth_halfwidth_A"] < 0.1)
+    header = (run / "atoms.csv").read_text().splitlines()[0].split(",")
+    assert {"significance", "proven", "depth_halfwidth_A", "depth_open"} <= set(header)
+    assert "atoms proven, 0 open" in " ".join(train.stdout.split())
     ev = _run(BIN / "gaussian-atoms", "evaluate", "--pred", run / "atoms.xyz", "--truth", data / "atoms_true.xyz")
     assert ev.returncode == 0, ev.stderr
     scores = json.loads(ev.stdout)

@@ -68,9 +68,7 @@ def test_a_series_projects_with_its_convention_and_keeps_it_on_disk(tmp_path):
     euler = EULER + [0, 0, 0.3]
     series = _series(euler, shape=(20, 20), euler_convention="zyx")
     np.testing.assert_allclose(series.detector_axes(), detector_axes_from_euler(euler, "zyx"))
-    back = load_tilt_series(
-        write_tilt_series(tmp_path / "s", series.projections, euler, 0.25, euler_convention="zyx")
-    )
+    back = load_tilt_series(write_tilt_series(tmp_path / "s", series.projections, euler, 0.25, euler_convention="zyx"))
     assert back.euler_convention == "zyx"
     np.testing.assert_allclose(back.detector_axes(), series.detector_axes(), atol=1e-6)
     # an option overrides the manifest; an unknown name is refused in one line naming the manifest

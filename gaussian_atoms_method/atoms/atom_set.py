@@ -19,6 +19,19 @@ from pathlib import Path
 
 import numpy as np
 
+EVIDENCE_FIELDS = {
+    "atom_class": np.int64,
+    "significance": np.float64,
+    "proven": np.int64,
+    "depth_halfwidth_A": np.float64,
+    "depth_open": np.int64,
+}
+"""The per-atom (N,) columns after the position's precision: the class and each atom's evidence
+(:mod:`gaussian_atoms_method.atoms.evidence`), by name and type."""
+
+CSV_INTEGER_COLUMNS = frozenset({"class", "proven", "depth_open"})
+"""The CSV columns written as whole numbers."""
+
 
 class AtomFileError(ValueError):
     """A file of atoms could not be read: names the file and the problem."""
@@ -42,6 +55,15 @@ class AtomSet:
     atom_class : (N,) int array, or None
         Each Gaussian's class (:mod:`gaussian_atoms_method.atoms.classification`): 1..k by
         increasing mass for atoms, 0 for a non-atom.
+    significance : (N,) float array, or None
+        What the views lose if the atom is taken out with its neighbours re-fitted, in standard
+        deviations of the noise (:mod:`gaussian_atoms_method.atoms.evidence`).
+    proven : (N,) int array, or None
+        1 where the significance proves the atom, 0 where the data leave it open.
+    depth_halfwidth_A : (N,) float array, or None
+        Half-width of the 95% interval along the direction the views fix least (the beam).
+    depth_open : (N,) int array, or None
+        1 where that interval is wider than half the hard core.
     """
 
     positions: np.ndarray
@@ -51,6 +73,10 @@ class AtomSet:
     info: dict = field(default_factory=dict)
     position_std_A: np.ndarray | None = None
     atom_class: np.ndarray | None = None
+    significance: np.ndarray | None = None
+    proven: np.ndarray | None = None
+    depth_halfwidth_A: np.ndarray | None = None
+    depth_open: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.positions = np.asarray(self.positions, dtype=np.float64).reshape(-1, 3)
@@ -66,10 +92,13 @@ class AtomSet:
             self.position_std_A = np.asarray(self.position_std_A, dtype=np.float64).reshape(-1, 3)
             if len(self.position_std_A) != n:
                 raise ValueError(f"position_std_A has {len(self.position_std_A)} rows for {n} atoms")
-        if self.atom_class is not None:
-            self.atom_class = np.asarray(self.atom_class, dtype=np.int64).reshape(-1)
-            if len(self.atom_class) != n:
-                raise ValueError(f"atom_class has {len(self.atom_class)} entries for {n} atoms")
+        for name, dtype in EVIDENCE_FIELDS.items():
+            value = getattr(self, name)
+            if value is not None:
+                value = np.asarray(value, dtype=dtype).reshape(-1)
+                if len(value) != n:
+                    raise ValueError(f"{name} has {len(value)} entries for {n} atoms")
+                setattr(self, name, value)
         if self.species is not None:
             self.species = np.asarray(self.species, dtype=str).reshape(-1)
             if len(self.species) != n:
@@ -98,7 +127,7 @@ class AtomSet:
             pick(self.species),
             dict(self.info),
             pick(self.position_std_A),
-            pick(self.atom_class),
+            **{name: pick(getattr(self, name)) for name in EVIDENCE_FIELDS},
         )
 
     def shifted(self, offset_A) -> "AtomSet":
@@ -110,7 +139,7 @@ class AtomSet:
             self.species,
             dict(self.info),
             self.position_std_A,
-            self.atom_class,
+            **{name: getattr(self, name) for name in EVIDENCE_FIELDS},
         )
 
     # ------------------------------------------------------------------ ASE
@@ -126,8 +155,9 @@ class AtomSet:
             atoms.new_array("amplitude", self.amplitudes)
         if self.position_std_A is not None:
             atoms.new_array("position_std_A", self.position_std_A)
-        if self.atom_class is not None:
-            atoms.new_array("atom_class", self.atom_class)
+        for name in EVIDENCE_FIELDS:
+            if getattr(self, name) is not None:
+                atoms.new_array(name, getattr(self, name))
         return atoms
 
     @classmethod
@@ -140,7 +170,7 @@ class AtomSet:
             amplitudes=arrays.get("amplitude"),
             species=species,
             position_std_A=arrays.get("position_std_A"),
-            atom_class=arrays.get("atom_class"),
+            **{name: arrays.get(name) for name in EVIDENCE_FIELDS},
         )
 
 
@@ -195,6 +225,10 @@ EXTXYZ_COLUMNS = {
     "amplitude": ("amplitudes", "R", 1),
     "position_std_A": ("position_std_A", "R", 3),
     "atom_class": ("atom_class", "I", 1),
+    "significance": ("significance", "R", 1),
+    "proven": ("proven", "I", 1),
+    "depth_halfwidth_A": ("depth_halfwidth_A", "R", 1),
+    "depth_open": ("depth_open", "I", 1),
 }
 """The per-atom columns of this package's extended XYZ after the species, in the order
 :meth:`AtomSet.to_ase` adds them: name -> (:class:`AtomSet` field, ASE's type letter, width)."""
@@ -244,8 +278,9 @@ def _write_csv(atoms: AtomSet, path: Path) -> None:
     if atoms.position_std_A is not None:
         for k, axis in enumerate("xyz"):
             columns[f"std_{axis}_A"] = atoms.position_std_A[:, k]
-    if atoms.atom_class is not None:
-        columns["class"] = atoms.atom_class
+    for name in EVIDENCE_FIELDS:
+        if getattr(atoms, name) is not None:
+            columns["class" if name == "atom_class" else name] = getattr(atoms, name)
     # Each value as csv.writer writes repr(float) and str(int), a row at a time (csv.writer's
     # own loop took 1.15 s for 54,000 atoms on the 2-core CPU); species with a comma or a quote
     # go through csv's quoting.
@@ -253,15 +288,14 @@ def _write_csv(atoms: AtomSet, path: Path) -> None:
         f'"{x.replace(chr(34), chr(34) * 2)}"' if ("," in x or '"' in x) else x
         for x in np.asarray(columns["species"]).astype(str).tolist()
     ]
-    floats = np.stack(
-        [np.asarray(columns[k], dtype=np.float64) for k in list(columns)[1:] if k != "class"], axis=1
-    ).tolist()
-    classes = [str(int(c)) for c in columns["class"]] if "class" in columns else None
+    names = list(columns)[1:]
+    integer = [k in CSV_INTEGER_COLUMNS for k in names]
+    rows = np.stack([np.asarray(columns[k], dtype=np.float64) for k in names], axis=1).tolist()
     with open(path, "w", newline="") as f:
         f.write(",".join(columns.keys()) + "\r\n")
         f.writelines(
-            ",".join([s, *map(repr, r)] + ([classes[i]] if classes else [])) + "\r\n"
-            for i, (s, r) in enumerate(zip(species, floats))
+            ",".join([s, *(str(int(v)) if whole else repr(v) for v, whole in zip(r, integer))]) + "\r\n"
+            for s, r in zip(species, rows)
         )
 
 
@@ -373,14 +407,18 @@ def _read_csv(path: Path) -> AtomSet:
     amp = np.array([float(r.get("amplitude", "nan")) for r in rows])
     species = np.array([r.get("species", "X") for r in rows])
     std = np.array([[float(r[f"std_{a}_A"]) for a in "xyz"] for r in rows]) if "std_x_A" in rows[0] else None
-    classes = np.array([int(float(r["class"])) for r in rows]) if "class" in rows[0] else None
+    evidence = {
+        name: np.array([float(r["class" if name == "atom_class" else name]) for r in rows])
+        for name in EVIDENCE_FIELDS
+        if ("class" if name == "atom_class" else name) in rows[0]
+    }
     return AtomSet(
         pos,
         None if np.isnan(sig).all() else sig,
         None if np.isnan(amp).all() else amp,
         species,
         position_std_A=std,
-        atom_class=classes,
+        **evidence,
     )
 
 

@@ -126,6 +126,7 @@ class AtomFit(torch.nn.Module):
             start = ahead
             reading = reading or NoiseReadingBeside(projections, cfg.loss, cfg.background, ahead.noise)
         say_start(start, ls, cfg.extended_object, ahead is not None)
+        self.measured_noise = start.noise  # the views' own noise before any fit (normalised units)
         measured, means, weights, half_extent, self.field_half_extent = (
             start.noise,
             start.means,

@@ -11,6 +11,7 @@ scores against a truth file, and snapshots during training.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -121,6 +122,8 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
         scale = model.normalisation.data_scale
         model.noise_model = fit_noise_model(read[1] / scale, read[2] / scale)
     precision = model_position_std_A(model, atoms, read[0] if read is not None else None)
+    # atoms() lists the Gaussians in the model's order: the density control's own test of the field
+    hard_core_A = model.density.hard_core(model.gauss_params) / model.normalisation.length_scale
     if precision is not None:
         atoms.position_std_A, noise = precision
         nm = getattr(model, "noise_model", None)
@@ -129,19 +132,7 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
                 f"gaussian-atoms: residual noise is {nm.kind}: variance {nm.read_var:.4g} + {nm.gain:.4g} x signal "
                 f"(input units; slope {nm.gain_se:.2g} standard error)"
             )
-        CONSOLE.print(
-            f"gaussian-atoms: residual noise {noise:.4g} (input units); median position precision (the Cramér-Rao "
-            f"lower bound: "
-            + (
-                "on simulated atoms the actual errors are 1-3 times it, docs/results.md"
-                if converged_at is not None
-                else "the run did not converge, its errors may be far larger"
-            )
-            + ") "
-            + ", ".join(f"{a} {v * 100:.1f} pm" for a, v in zip("xyz", np.median(atoms.position_std_A, axis=0)))
-        )
-    # atoms() lists the Gaussians in the model's order: the density control's own test of the field
-    hard_core_A = model.density.hard_core(model.gauss_params) / model.normalisation.length_scale
+        attach_evidence(model, atoms, noise, read, hard_core_A, converged_at is not None)
     atoms, non_atoms, population = split_atoms(
         atoms, model.density.in_field(model.means.detach()).cpu().numpy(), model.means.device, hard_core_A
     )
@@ -152,6 +143,7 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
     # writes the atoms); without children, the atoms are written first and the pictures after them.
     pictures = [] if population is None else [(write_population_png, *population, run_dir / "classes.png")]
     _hand_over(pictures, drawers)
+    say_evidence(atoms)
     write_atoms(atoms, run_dir / "atoms.xyz")
     write_atoms(atoms, run_dir / "atoms.csv")
     write_atoms(non_atoms, run_dir / "non_atoms.xyz")
@@ -197,6 +189,75 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
         return None
     CONSOLE.print(f"[bold]gaussian-atoms[/bold]: against {model.truth_path}: {json.dumps(scores)}")
     return scores
+
+
+def attach_evidence(model, atoms: AtomSet, noise: float, read, hard_core_A: float, converged: bool) -> None:
+    """Each of the model's Gaussians ``atoms`` with its evidence
+    (:func:`gaussian_atoms_method.atoms.evidence.atom_evidence`): ``significance``, ``proven``,
+    ``depth_halfwidth_A``, ``depth_open`` and ``position_std_A`` (neighbours re-fitted, at the
+    residual's level and spectrum ``read`` (:func:`residual_noise`), ``noise`` in input units);
+    prints what the residual holds beyond the views' own noise and the precision against the
+    isolated atom's Cramér-Rao bound (the ``position_std_A`` it replaces)."""
+    from gaussian_atoms_method.atoms.evidence import atom_evidence, residual_spectrum_factors
+
+    series = model.view_set.series
+    scale = model.normalisation.data_scale
+    residuals, predicted = (read[1] / scale).cpu().numpy(), (read[2] / scale).cpu().numpy()
+    sigma_px = float(np.median(atoms.sigmas)) / series.pixel_size_A
+    position_factor, amplitude_factor = residual_spectrum_factors(residuals, noise, sigma_px)
+    axes = detector_axes(model.view_c2w.cpu().double()).numpy()
+    loss = "l1" if model.data_term == "l1" else "l2"
+    evidence = atom_evidence(
+        atoms.positions,
+        atoms.sigmas,
+        atoms.amplitudes,
+        axes,
+        series.pixel_size_A,
+        noise,
+        hard_core_A if np.isfinite(hard_core_A) else None,
+        loss,
+        position_factor,
+        amplitude_factor,
+    )
+    crb = atoms.position_std_A
+    atoms.position_std_A = evidence.position_std_A
+    atoms.significance, atoms.proven = evidence.significance, evidence.proven
+    atoms.depth_halfwidth_A, atoms.depth_open = evidence.depth_halfwidth_A, evidence.depth_open
+    atoms.info["proof_level"] = evidence.proof_level
+    measured = getattr(model, "measured_noise", None)
+    if measured is not None:
+        expected = float(np.mean(measured.scaled(1.0 / scale).variance(np.clip(predicted, 0, None))))
+        unexplained = max(0.0, 1.0 - expected / noise**2)
+        CONSOLE.print(
+            f"gaussian-atoms: residual {noise:.4g} (input units), {noise / np.sqrt(expected):.2f} times the noise "
+            f"the views hold (read from them before the fit): {unexplained:.0%} of its variance is structure no "
+            f"atom explains; at the atoms' scale it weighs {position_factor:.2f} (positions) and "
+            f"{amplitude_factor:.2f} (amplitudes) times white noise of its level"
+        )
+    ratio = np.median(evidence.position_std_A / np.maximum(crb, 1e-12), axis=0)
+    CONSOLE.print(
+        "gaussian-atoms: median position precision, neighbours re-fitted, at the residual's level and spectrum: "
+        + ", ".join(f"{a} {v * 100:.1f} pm" for a, v in zip("xyz", np.median(evidence.position_std_A, axis=0)))
+        + " ("
+        + "/".join(f"{r:.2f}" for r in ratio)
+        + " times the isolated atom's Cramér-Rao bound"
+        + ("" if converged else "; the run did not converge, its errors may be far larger")
+        + ")"
+    )
+
+
+def say_evidence(atoms: AtomSet) -> None:
+    """The summary line of the reported ``atoms``' evidence: how many the views prove, leave
+    open, and leave open in depth."""
+    if atoms.proven is None or not len(atoms):
+        return
+    proven, depth_open = int(atoms.proven.sum()), int(atoms.depth_open.sum())
+    CONSOLE.print(
+        f"gaussian-atoms: evidence: {proven} atoms proven, {len(atoms) - proven} open (the views lose less than "
+        f"{atoms.info['proof_level']:.1f} noise standard deviations without them, their neighbours re-fitted); "
+        f"{depth_open} open in depth (95% interval along the beam wider than half the hard core); median "
+        f"significance {np.median(atoms.significance):.1f}"
+    )
 
 
 def name_species(masses: np.ndarray, elements: tuple[str, ...]) -> np.ndarray:
@@ -258,15 +319,7 @@ def split_atoms(gaussians: AtomSet, in_field: np.ndarray, device="cpu", hard_cor
     reported &= ~close
     labels = np.zeros(len(gaussians), dtype=np.int64)  # 0: a non-atom
     labels[np.flatnonzero(in_field)] = np.where(reported[in_field], classes.classes, 0)
-    gaussians = AtomSet(
-        gaussians.positions,
-        gaussians.sigmas,
-        gaussians.amplitudes,
-        gaussians.species,
-        dict(gaussians.info),
-        gaussians.position_std_A,
-        labels,
-    )
+    gaussians = dataclasses.replace(gaussians, info=dict(gaussians.info), atom_class=labels)
     outside, beyond, n_close = int((~classes.atoms).sum()), int((~in_field).sum()), int(close.sum())
     counts = {
         f"class {k}": int(np.sum(reported[in_field] & (classes.classes == k)))

@@ -98,8 +98,8 @@ def prepare_area(data_dir: Path, out_dir: Path, area: int, species: str = "") ->
 def write_model_start(data_dir: Path, area_dir: Path, area: int) -> Path:
     """Write the authors' model as a start (``--pipeline.model.start-atoms``): the model's atoms
     that reach the detector at some tilt, moved onto the data's frame by the global shift
-    that takes our back-projection candidates onto the model (a small residual shift, README).  A fit started there keeps what the data hold of the model and moves off the
-    rest."""
+    that takes our back-projection candidates onto the model (a small residual shift, README).
+    A fit started there keeps what the data hold of the model and moves off the rest."""
     from dataparsers.tilt_series_format import load_tilt_series
     from gaussian_atoms_method.atoms.atom_set import write_atoms
     from gaussian_atoms_method.atoms.candidates import backprojection_candidates

@@ -1,0 +1,330 @@
+"""Each atom with its evidence: what the views lose without it, how far its depth is open, and
+its position precision with its neighbours re-fitted.
+
+The views are the projections of isotropic Gaussians: in a view with detector axes ``P_v``
+(2 x 3) an atom (position ``r``, width ``sigma``, 3D peak ``q``) is the 2D Gaussian
+``g(u) = q sigma sqrt(2 pi) exp(-|u - P_v r|^2 / (2 sigma^2))``.  Under pixel noise of standard
+deviation ``s`` (pixel side ``p``) the curvature of the least-squares cost about the fit, the
+Fisher information, couples every pair of parameters through the overlap of their derivatives::
+
+    F_ab = 1 / (s^2 p^2) sum_v integral (dg/da)(dg/db) du
+
+and for two Gaussians the integral is closed: their product is a Gaussian (centre ``m``,
+variance ``tau^2`` per axis), and each derivative is a polynomial in ``u - m`` whose moments
+under it are known (:func:`pair_information`).  From ``F`` restricted to an atom and its
+neighbours (the atoms whose information about each other is not negligible,
+:data:`COUPLING_FLOOR`):
+
+* **existence**: the cost the views gain when the atom is taken out and its neighbours re-fitted,
+  ``q^2 / [M^-1]_qq`` with ``M`` the information of the atom's amplitude and every parameter of
+  its neighbours (the Schur complement: the neighbours take up what they can of its image).  Its
+  square root is a significance in units of the noise: the views' misfit without the atom, in
+  standard deviations.  An atom is **proven** where it exceeds the level a pure-noise site would
+  reach by chance among as many sites as atoms reported (:func:`proof_level`), else **open**;
+* **depth**: the covariance of the atom's position with every neighbour re-fitted is the
+  quadratic profile of the cost; its widest axis is the direction the views fix least (the beam,
+  for a missing wedge).  The 95% interval along it is the depth interval, **open in depth** where
+  it is wider than half the hard core (two atoms could trade places along it);
+* **precision**: the same covariance's diagonal, ``std_x/y/z`` (the isolated atom's Cramér-Rao
+  bound, :mod:`.uncertainty`, is its lower bound: neighbours only widen it).
+
+The noise level ``s`` is the residual that is there (its level and, through
+:func:`residual_spectrum_factors`, the weight of its spectrum at the atoms' scale), not only the
+noise the data were measured to hold: a misfit the model cannot explain widens every interval and
+lowers every significance as it should.  All in the continuum limit (pixel sums as integrals:
+exact to far below a percent for a Gaussian wider than a pixel) and with the whole detector in
+each view.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Two-sided 95% quantile of the normal distribution.
+Z95 = 1.959963984540054
+
+COUPLING_FLOOR = 0.02
+"""Neighbours are the atoms whose amplitudes' information correlation with the atom,
+``|F_qiqj| / sqrt(F_qiqi F_qjqj)``, reaches this.  A coupling ``rho`` changes a marginal variance by
+about ``rho^2`` of itself: those left out change a variance by well under a percent each."""
+
+NEIGHBOUR_SEARCH_A = 6.0
+"""The pairs whose coupling is computed lie within this many Å of each other: beyond it two
+atoms' images share at most the few views in which one lies behind the other along the beam
+(at 6 Å and sigma 0.5 Å, the views within 6 degrees of it: about 0.05 of the information of a
++-70 degree series)."""
+
+FAMILY_FALSE_ALARM = 0.05
+"""The chance that any one of the reported atoms would be called proven were its site pure
+noise (the family-wise error of :func:`proof_level`)."""
+
+
+def proof_level(n_atoms: int, family_false_alarm: float = FAMILY_FALSE_ALARM) -> float:
+    """The significance (noise standard deviations) above which an atom is called proven: the
+    one-sided normal quantile at ``family_false_alarm / n_atoms`` (Bonferroni over the atoms
+    reported), so that among ``n_atoms`` sites of pure noise none would pass with probability
+    ``1 - family_false_alarm``.
+
+    >>> round(proof_level(1000), 2)
+    3.89
+    """
+    from scipy.special import ndtri
+
+    return float(-ndtri(family_false_alarm / max(int(n_atoms), 1)))
+
+
+def _gaussian_products(mu_i, mu_j, s_i, s_j):
+    """Product of two 2D Gaussians of centres ``mu`` (..., 2) and widths ``s`` (...): the
+    weight ``exp(-|mu_i - mu_j|^2 / (2 S)) 2 pi tau^2`` and the offsets ``a = m - mu`` of each centre
+    from the product's centre ``m``, and ``tau^2``."""
+    s2i, s2j = s_i**2, s_j**2
+    total = s2i + s2j
+    tau2 = s2i * s2j / total
+    d = mu_i - mu_j
+    weight = np.exp(-np.einsum("...k,...k->...", d, d) / (2 * total)) * 2 * np.pi * tau2
+    m = (mu_i * s2j[..., None] + mu_j * s2i[..., None]) / total[..., None]
+    return weight, m - mu_i, m - mu_j, tau2
+
+
+def pair_information(r_i, r_j, sigma_i, sigma_j, q_i, q_j, axes, pixel_size_A: float) -> np.ndarray:
+    """``sum_v integral (dg_i/da)(dg_j/db) du / p^2`` for P pairs of atoms: (P, 5, 5) blocks, rows
+    the derivatives of atom i by (x, y, z, sigma, q), columns those of atom j.  Divide by the
+    pixel noise's variance for the Fisher information.
+
+    Parameters
+    ----------
+    r_i, r_j : (P, 3) arrays, Å
+    sigma_i, sigma_j, q_i, q_j : (P,) arrays
+        Widths (Å) and 3D peaks (projection units per Å).
+    axes : (V, 2, 3) array
+        Each view's detector rows and columns in the world.
+    pixel_size_A : float
+
+    Examples
+    --------
+    One atom alone: its amplitude's information is ``sum_v pi sigma^2 (A/q)^2 / p^2``.
+
+    >>> axes = np.array([[[1.0, 0, 0], [0, 1, 0]]])
+    >>> block = pair_information(np.zeros((1, 3)), np.zeros((1, 3)), np.ones(1), np.ones(1),
+    ...                          np.ones(1), np.ones(1), axes, 1.0)
+    >>> bool(np.isclose(block[0, 4, 4], np.pi * 2 * np.pi))
+    True
+    """
+    axes = np.asarray(axes, dtype=np.float64)[:, :2, :]
+    r_i, r_j = np.asarray(r_i, np.float64), np.asarray(r_j, np.float64)
+    sigma_i, sigma_j = np.asarray(sigma_i, np.float64), np.asarray(sigma_j, np.float64)
+    q_i, q_j = np.asarray(q_i, np.float64), np.asarray(q_j, np.float64)
+    mu_i = np.einsum("vkc,pc->pvk", axes, r_i)  # (P, V, 2)
+    mu_j = np.einsum("vkc,pc->pvk", axes, r_j)
+    si, sj = np.broadcast_to(sigma_i[:, None], mu_i.shape[:2]), np.broadcast_to(sigma_j[:, None], mu_i.shape[:2])
+    weight, a_i, a_j, tau2 = _gaussian_products(mu_i, mu_j, si, sj)
+    peak_i, peak_j = q_i * sigma_i * math.sqrt(2 * math.pi), q_j * sigma_j * math.sqrt(2 * math.pi)
+    c = weight * (peak_i * peak_j)[:, None] / pixel_size_A**2  # (P, V)
+    s2i, s2j = si**2, sj**2
+    eye = np.eye(2)
+    # E[(w + a_i)(w + a_j)^T] = tau^2 I + a_i a_j^T, over sigma_i^2 sigma_j^2
+    mm = (tau2[..., None, None] * eye + a_i[..., :, None] * a_j[..., None, :]) / (s2i * s2j)[..., None, None]
+    ai2, aj2, aiaj = (a_i**2).sum(-1), (a_j**2).sum(-1), (a_i * a_j).sum(-1)
+    ex, ey = 2 * tau2 + ai2, 2 * tau2 + aj2  # E|w + a_i|^2, E|w + a_j|^2
+    exy = 8 * tau2**2 + 2 * tau2 * (ai2 + aj2) + 4 * tau2 * aiaj + ai2 * aj2
+    # E[(w + a_i) |w + a_j|^2] = 2 tau^2 a_j + a_i (2 tau^2 + |a_j|^2), and with i, j exchanged
+    wi_yj = 2 * tau2[..., None] * a_j + a_i * ey[..., None]
+    wj_xi = 2 * tau2[..., None] * a_i + a_j * ex[..., None]
+    mu_sigma = (a_i / sj[..., None] + wi_yj / (sj**3)[..., None]) / s2i[..., None]  # d mu_i, d sigma_j
+    sigma_mu = (a_j / si[..., None] + wj_xi / (si**3)[..., None]) / s2j[..., None]  # d sigma_i, d mu_j
+    ss = 1 / (si * sj) + ey / (si * sj**3) + ex / (si**3 * sj) + exy / (si**3 * sj**3)
+    qi, qj = q_i[:, None], q_j[:, None]
+    mu_q = a_i / (s2i * qj)[..., None]  # d mu_i, d q_j
+    q_mu = a_j / (s2j * qi)[..., None]  # d q_i, d mu_j
+    sigma_q = (1 / si + ex / si**3) / qj
+    q_sigma = (1 / sj + ey / sj**3) / qi
+    qq = 1 / (qi * qj) * np.ones_like(si)
+    out = np.zeros((len(r_i), 5, 5))
+    # positions: P_v^T (.) P_v, summed over the views with the weights c
+    out[:, :3, :3] = np.einsum("pv,vkc,pvkl,vld->pcd", c, axes, mm, axes)
+    out[:, :3, 3] = np.einsum("pv,vkc,pvk->pc", c, axes, mu_sigma)
+    out[:, 3, :3] = np.einsum("pv,vkc,pvk->pc", c, axes, sigma_mu)
+    out[:, :3, 4] = np.einsum("pv,vkc,pvk->pc", c, axes, mu_q)
+    out[:, 4, :3] = np.einsum("pv,vkc,pvk->pc", c, axes, q_mu)
+    out[:, 3, 3] = (c * ss).sum(1)
+    out[:, 3, 4] = (c * sigma_q).sum(1)
+    out[:, 4, 3] = (c * q_sigma).sum(1)
+    out[:, 4, 4] = (c * qq).sum(1)
+    return out
+
+
+@dataclass
+class AtomEvidence:
+    """Per atom: ``significance`` (N,), the views' misfit without it, neighbours re-fitted,
+    in noise standard deviations; ``proven`` (N,) bool, significance at or above ``proof_level``;
+    ``position_std_A`` (N, 3), its precision along x, y, z with its neighbours re-fitted;
+    ``depth_halfwidth_A`` (N,), the 95% half-width along ``depth_axis`` (N, 3), the direction
+    the views fix least; ``depth_open`` (N,) bool, that interval wider than half the hard core."""
+
+    significance: np.ndarray
+    proven: np.ndarray
+    position_std_A: np.ndarray
+    depth_halfwidth_A: np.ndarray
+    depth_axis: np.ndarray
+    depth_open: np.ndarray
+    proof_level: float
+    hard_core_A: float | None
+
+
+def _pairs(positions: np.ndarray, radius_A: float) -> np.ndarray:
+    from scipy.spatial import cKDTree
+
+    if len(positions) < 2:
+        return np.zeros((0, 2), dtype=np.int64)
+    return cKDTree(positions).query_pairs(radius_A, output_type="ndarray").astype(np.int64)
+
+
+def atom_evidence(
+    positions_A: np.ndarray,
+    sigmas_A: np.ndarray,
+    amplitudes: np.ndarray,
+    detector_axes: np.ndarray,
+    pixel_size_A: float,
+    noise_std: float,
+    hard_core_A: float | None = None,
+    loss: str = "l2",
+    position_factor: float = 1.0,
+    amplitude_factor: float = 1.0,
+    chunk_pairs: int = 4096,
+) -> AtomEvidence:
+    """Existence, depth and precision of every atom from the views' information (module docstring).
+
+    Parameters
+    ----------
+    positions_A : (N, 3) array
+    sigmas_A, amplitudes : (N,) arrays
+        Widths (Å) and 3D peaks (projection units per Å), as :class:`~.atom_set.AtomSet` holds them.
+    detector_axes : (V, 2, 3) or (V, 3, 3) array
+    pixel_size_A : float
+    noise_std : float
+        The residual's pixel standard deviation, projection units.
+    hard_core_A : float, optional
+        The shortest distance two atoms keep; without it no atom is called open in depth.
+    loss : {"l1", "l2"}
+        The data term the positions were fitted with: an L1 fit's variance is ``pi / 2`` times
+        the least-squares one under Gaussian noise (:data:`.uncertainty.L1_EFFICIENCY_FACTOR`).
+    position_factor, amplitude_factor : float
+        The residual spectrum's weight at the atoms' scale against white noise of ``noise_std``,
+        for a position's and an amplitude's template (:func:`residual_spectrum_factors`): the
+        standard deviations are multiplied, the significances divided, by them.
+
+    Returns
+    -------
+    AtomEvidence
+    """
+    from gaussian_atoms_method.atoms.uncertainty import L1_EFFICIENCY_FACTOR
+
+    positions = np.asarray(positions_A, dtype=np.float64).reshape(-1, 3)
+    sigmas, amps = np.asarray(sigmas_A, np.float64).ravel(), np.asarray(amplitudes, np.float64).ravel()
+    n = len(positions)
+    if not (pixel_size_A > 0 and noise_std > 0):
+        raise ValueError(f"need pixel_size_A > 0 and noise_std > 0, got {pixel_size_A} and {noise_std}")
+    axes = np.asarray(detector_axes, dtype=np.float64)[:, :2, :]
+    level = proof_level(n)
+    if n == 0:
+        empty = np.zeros(0)
+        return AtomEvidence(
+            empty, empty.astype(bool), np.zeros((0, 3)), empty, np.zeros((0, 3)), empty.astype(bool), level, hard_core_A
+        )
+    # the information within each atom and between the pairs that may couple
+    diagonal = pair_information(positions, positions, sigmas, sigmas, amps, amps, axes, pixel_size_A)
+    pairs = _pairs(positions, NEIGHBOUR_SEARCH_A)
+    blocks = np.zeros((len(pairs), 5, 5))
+    for start in range(0, len(pairs), chunk_pairs):
+        i, j = pairs[start : start + chunk_pairs].T
+        blocks[start : start + chunk_pairs] = pair_information(
+            positions[i], positions[j], sigmas[i], sigmas[j], amps[i], amps[j], axes, pixel_size_A
+        )
+    if len(pairs):
+        rho = np.abs(blocks[:, 4, 4]) / np.sqrt(diagonal[pairs[:, 0], 4, 4] * diagonal[pairs[:, 1], 4, 4])
+        keep = rho >= COUPLING_FLOOR
+        pairs, blocks = pairs[keep], blocks[keep]
+    neighbours: list[list[int]] = [[] for _ in range(n)]
+    block_of: dict[tuple[int, int], np.ndarray] = {}
+    for (i, j), block in zip(pairs.tolist(), blocks):
+        neighbours[i].append(j)
+        neighbours[j].append(i)
+        block_of[(i, j)] = block
+    variance = noise_std**2 * (L1_EFFICIENCY_FACTOR if loss == "l1" else 1.0)
+    significance = np.zeros(n)
+    covariances = np.zeros((n, 3, 3))
+    for a in range(n):
+        local = [a, *neighbours[a]]
+        k = len(local)
+        info = np.zeros((5 * k, 5 * k))
+        where = {atom: slot for slot, atom in enumerate(local)}
+        for slot, atom in enumerate(local):
+            info[5 * slot : 5 * slot + 5, 5 * slot : 5 * slot + 5] = diagonal[atom]
+        for s1 in range(k):
+            for atom in neighbours[local[s1]]:
+                s2 = where.get(atom)
+                if s2 is None or s2 <= s1:
+                    continue
+                i, j = local[s1], atom
+                block = block_of[(i, j)] if (i, j) in block_of else block_of[(j, i)].T
+                info[5 * s1 : 5 * s1 + 5, 5 * s2 : 5 * s2 + 5] = block
+                info[5 * s2 : 5 * s2 + 5, 5 * s1 : 5 * s1 + 5] = block.T
+        # a parameter the views do not fix (an amplitude of zero, a width at its bound) would make
+        # the information singular: a ridge of 1e-9 of the diagonal leaves the rest unchanged
+        info[np.diag_indices_from(info)] += 1e-9 * np.maximum(np.diag(info), 1e-300)
+        covariance = np.linalg.inv(info)
+        covariances[a] = covariance[:3, :3]
+        # taken out: the atom's amplitude against every parameter of its neighbours
+        keep = np.r_[4, np.arange(5, 5 * k)]
+        sub = info[np.ix_(keep, keep)]
+        q_variance = np.linalg.inv(sub)[0, 0] if k > 1 else 1.0 / sub[0, 0]
+        significance[a] = abs(amps[a]) / math.sqrt(max(q_variance, 1e-300))
+    noise_units = math.sqrt(variance) * position_factor
+    covariances = covariances * noise_units**2
+    position_std = np.sqrt(np.clip(np.einsum("nii->ni", covariances), 0, None))
+    values, vectors = np.linalg.eigh(covariances)
+    depth_half = Z95 * np.sqrt(np.clip(values[:, -1], 0, None))
+    depth_axis = vectors[:, :, -1] * np.sign(vectors[:, 2:3, -1] + 1e-300)  # pointing up the beam
+    significance = significance / (noise_std * amplitude_factor)
+    proven = significance >= level
+    depth_open = (
+        2 * depth_half > 0.5 * hard_core_A
+        if hard_core_A is not None and np.isfinite(hard_core_A)
+        else np.zeros(n, bool)
+    )
+    return AtomEvidence(significance, proven, position_std, depth_half, depth_axis, depth_open, level, hard_core_A)
+
+
+def residual_spectrum_factors(residuals: np.ndarray, noise_std: float, sigma_px: float) -> tuple[float, float]:
+    """How much more the residual weighs at the atoms' scale than white noise of ``noise_std``:
+    for a matched template ``t`` (an atom's image, or its derivative along a detector axis) the
+    variance of its fit under noise of power spectrum ``P(k)`` is ``sum |T(k)|^2 P(k)`` against
+    ``s^2 sum |T(k)|^2`` for white noise.  Returns the square roots for the position's template
+    (``|T|^2 ~ k^2 exp(-k^2 sigma^2)``) and the amplitude's (``exp(-k^2 sigma^2)``): 1 for white
+    noise of ``noise_std``, above 1 where the residual holds more at the atoms' scale (a smooth
+    misfit weighs on the amplitude, a grainy one on the position).
+
+    Parameters
+    ----------
+    residuals : (V, H, W) array
+        Measured minus predicted views, projection units.
+    noise_std : float
+        The level the evidence assumes (white), projection units.
+    sigma_px : float
+        The atoms' typical width, pixels.
+    """
+    res = np.asarray(residuals, dtype=np.float64)
+    res = res - res.mean(axis=(1, 2), keepdims=True)
+    h, w = res.shape[1:]
+    power = (np.abs(np.fft.fft2(res)) ** 2).mean(axis=0) / (h * w)  # white noise of s: s^2 at every k
+    ky, kx = np.meshgrid(2 * np.pi * np.fft.fftfreq(h), 2 * np.pi * np.fft.fftfreq(w), indexing="ij")
+    k2 = kx**2 + ky**2
+    amplitude_template = np.exp(-k2 * sigma_px**2)
+    position_template = k2 * amplitude_template
+    s2 = noise_std**2
+    amplitude = float((amplitude_template * power).sum() / (s2 * amplitude_template.sum()))
+    position = float((position_template * power).sum() / (s2 * position_template.sum()))
+    return math.sqrt(max(position, 0.0)), math.sqrt(max(amplitude, 0.0))
