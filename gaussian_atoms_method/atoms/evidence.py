@@ -328,3 +328,54 @@ def residual_spectrum_factors(residuals: np.ndarray, noise_std: float, sigma_px:
     amplitude = float((amplitude_template * power).sum() / (s2 * amplitude_template.sum()))
     position = float((position_template * power).sum() / (s2 * position_template.sum()))
     return math.sqrt(max(position, 0.0)), math.sqrt(max(amplitude, 0.0))
+
+
+def evidence_scores(pred, truth, radius_A: float = 0.75, mean_shift: bool = False) -> dict:
+    """Whether each atom's stated evidence holds against the truth (``pred``, ``truth``:
+    :class:`~.atom_set.AtomSet`, the first with its evidence).
+
+    * ``coverage_95_xyz``: the share of found atoms whose error along x, y, z lies within their
+      stated 95% interval (``1.96 position_std_A``; 0.95 if the statement were exact);
+      ``depth_coverage_95``: within the depth interval (``depth_halfwidth_A``, along the beam);
+    * ``proven_found``: the share of proven atoms that lie on a true one;
+    * ``open_share_of_false``: the share of false atoms (on no true one) called open (not proven,
+      or open in depth); ``open_share_of_misses``: the share of missed true atoms with an open
+      atom within twice ``radius_A`` (the atom the data placed elsewhere, or could not prove);
+      ``open_share_of_disagreement``: both together.
+    """
+    from scipy.spatial import cKDTree
+
+    from gaussian_atoms_method.atoms.matching import global_shift, match_atoms
+
+    shift = global_shift(pred.positions, truth.positions, radius_A) if mean_shift else np.zeros(3)
+    positions = pred.positions + shift
+    pi, ti = match_atoms(positions, truth.positions, radius_A)
+    error = positions[pi] - truth.positions[ti]
+    is_open = (pred.proven == 0) | (pred.depth_open == 1)
+    matched = np.zeros(len(pred), dtype=bool)
+    matched[pi] = True
+    missed = np.ones(len(truth), dtype=bool)
+    missed[ti] = False
+    near_open = np.zeros(int(missed.sum()), dtype=bool)
+    if is_open.any() and missed.any():
+        distance, _ = cKDTree(positions[is_open]).query(truth.positions[missed], distance_upper_bound=2 * radius_A)
+        near_open = np.isfinite(distance)
+    false = ~matched
+    scores = {
+        "proven": int(pred.proven.sum()),
+        "open": int((pred.proven == 0).sum()),
+        "depth_open": int(pred.depth_open.sum()),
+        "proven_found": float(matched[pred.proven == 1].mean()) if pred.proven.any() else None,
+        "open_share_of_false": float(is_open[false].mean()) if false.any() else None,
+        "open_share_of_misses": float(near_open.mean()) if missed.any() else None,
+        "open_share_of_disagreement": (
+            float((is_open[false].sum() + near_open.sum()) / (false.sum() + missed.sum()))
+            if false.any() or missed.any()
+            else None
+        ),
+    }
+    if len(pi) and pred.position_std_A is not None:
+        scores["coverage_95_xyz"] = np.mean(np.abs(error) <= Z95 * pred.position_std_A[pi], axis=0).tolist()
+    if len(pi) and pred.depth_halfwidth_A is not None:
+        scores["depth_coverage_95"] = float(np.mean(np.abs(error[:, 2]) <= pred.depth_halfwidth_A[pi]))
+    return scores

@@ -51,6 +51,17 @@ class Simulate:
     seed: int = 0
     save_volume: bool = True
     """Also write the true potential volume, blurred like the data (for the SSIM metric)."""
+    like: Optional[Path] = None
+    """A real tilt series (a directory with tilt_series.json, or a file) to replicate: its
+    orientations, detector, pixel size, tilt centre, mean level and noise; the atoms are
+    --particle's structure file (in its frame about the tilt centre) or, by default, its truth
+    file. --tilts, --pixel-size-A, --noise-std and --field-of-view-A are then not used."""
+    support_A: float = 0.0
+    """With --like: an amorphous carbon support film this thick under the atoms, Å (0: none)."""
+    shift_px: float = 0.0
+    """With --like: each view shifted at random by this RMS along each detector axis, pixels."""
+    gain_scatter: float = 0.0
+    """With --like: each view's gain scattered by this relative RMS."""
 
     @property
     def particle_scale(self) -> float | None:
@@ -58,6 +69,8 @@ class Simulate:
         return None if self.particle == "sphere" else (1.0 if self.scale is None else self.scale)
 
     def main(self) -> None:
+        if self.like is not None:
+            return self.replicate()
         import numpy as np
 
         from dataparsers.tilt_series_format import update_manifest, write_tilt_series
@@ -138,6 +151,71 @@ class Simulate:
             f"({np.min(sim.angles_deg):g}..{np.max(sim.angles_deg):g} deg), "
             f"{h}x{w} px at {self.pixel_size_A} Å, {self.potential} potential, noise {self.noise_std:g}, peak-to-noise "
             f"{sim.peak_to_noise:.1f}"
+        )
+
+    def replicate(self) -> None:
+        """``--like DIR``: a replica of a real series (:mod:`gaussian_atoms_method.harness.replica`)."""
+        import numpy as np
+
+        from dataparsers.tilt_series_format import load_tilt_series, write_tilt_series
+        from gaussian_atoms_method.atoms.atom_set import read_atoms
+        from gaussian_atoms_method.harness.replica import replica_of
+
+        series = load_tilt_series(self.like)
+        if Path(self.particle).is_file():
+            atoms, origin = read_atoms(self.particle), np.zeros(3)
+        elif series.truth_path is not None:
+            atoms, origin = read_atoms(series.truth_path), series.origin_A
+        else:
+            raise ValueError(
+                f"--like {self.like}: its series has no truth file; give the atoms as --particle FILE (Å about "
+                f"the tilt centre, with species)"
+            )
+        if atoms.species is None or np.any(atoms.species == "X"):
+            raise ValueError("--particle: the replica needs each atom's element (an xyz or csv file with species)")
+        replica = replica_of(
+            series,
+            atoms.shifted(-origin),
+            self.atom_sigma_A,
+            self.support_A,
+            "aberrated" if self.probe == "aberrated" else "gaussian",
+            self.blur_sigma_A,
+            self.shift_px,
+            self.gain_scatter,
+            self.seed,
+        )
+        write_tilt_series(
+            self.output,
+            replica.projections,
+            series.orientations_deg,
+            series.pixel_size_A,
+            truth=atoms,
+            origin_A=origin,
+            tilt_axis=series.tilt_axis,
+            centre_px=series.centre_px,
+            tilt_axis_angle_deg=series.tilt_axis_angle_deg,
+            species=series.species,
+            euler_convention=series.euler_convention,
+            extra={
+                "simulation": {
+                    "like": str(self.like),
+                    "atoms": len(atoms),
+                    "atom_sigma_A": self.atom_sigma_A,
+                    "support_A": self.support_A,
+                    "probe": self.probe,
+                    "shift_px": self.shift_px,
+                    "gain_scatter": self.gain_scatter,
+                    "noise_read_var": replica.noise.read_var,
+                    "noise_gain": replica.noise.gain,
+                    "seed": self.seed,
+                }
+            },
+        )
+        n, h, w = replica.projections.shape
+        print(
+            f"wrote {self.output}: a replica of {self.like}: {len(atoms)} atoms, {n} views of {h}x{w} px at "
+            f"{series.pixel_size_A:g} Å, noise variance {replica.noise.read_var:.4g} + {replica.noise.gain:.4g} x "
+            f"signal as read from it"
         )
 
 

@@ -159,6 +159,10 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
     )
     truth = read_atoms(model.truth_path) if model.truth_path is not None else None
     scores = score_atoms(atoms.positions, truth.positions) if truth is not None else None
+    if scores is not None and atoms.proven is not None and len(atoms):
+        from gaussian_atoms_method.atoms.evidence import evidence_scores
+
+        scores |= evidence_scores(atoms, truth)
     if scores is not None:
         scores |= {
             "converged": converged_at is not None,
@@ -187,8 +191,27 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
         function(*args)
     if scores is None:
         return None
-    CONSOLE.print(f"[bold]gaussian-atoms[/bold]: against {model.truth_path}: {json.dumps(scores)}")
+    evidence = {k: scores[k] for k in EVIDENCE_SCORES if k in scores}
+    if evidence:
+        CONSOLE.print(f"gaussian-atoms: the evidence against {model.truth_path}: {json.dumps(evidence)}")
+    plain = {k: v for k, v in scores.items() if k not in evidence}
+    CONSOLE.print(f"[bold]gaussian-atoms[/bold]: against {model.truth_path}: {json.dumps(plain)}")
     return scores
+
+
+EVIDENCE_SCORES = (
+    "proven",
+    "open",
+    "depth_open",
+    "proven_found",
+    "open_share_of_false",
+    "open_share_of_misses",
+    "open_share_of_disagreement",
+    "coverage_95_xyz",
+    "depth_coverage_95",
+)
+"""The keys of :func:`gaussian_atoms_method.atoms.evidence.evidence_scores`: said on a line of
+their own before the scores (``evaluation.json`` holds both)."""
 
 
 def attach_evidence(model, atoms: AtomSet, noise: float, read, hard_core_A: float, converged: bool) -> None:

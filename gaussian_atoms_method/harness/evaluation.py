@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from gaussian_atoms_method.atoms.atom_set import AtomSet
+from gaussian_atoms_method.atoms.evidence import evidence_scores
 from gaussian_atoms_method.atoms.matching import score_atoms
 from gaussian_atoms_method.harness.metrics import volume_ssim, voxelise_gaussians
 
@@ -43,6 +44,8 @@ def evaluate_atoms(
         pred.species if species_known else None,
         truth.species if species_known else None,
     )
+    if pred.proven is not None and len(pred):
+        scores.update(evidence_scores(pred, truth, radius_A, mean_shift))
     if reference_volume is not None:
         if pred_volume is None:
             if pred.sigmas is None or pred.amplitudes is None:
@@ -70,6 +73,16 @@ def summary_line(scores: dict, label: str = "") -> str:
         parts.append(f"SSIM {scores['ssim']:.3f} (range {scores['ssim_data_range']:.3g})")
     if "species_accuracy" in scores:
         parts.append(f"species {scores['species_accuracy']:.3f}")
+    if "proven" in scores:
+        parts.append(f"{scores['proven']} proven, {scores['open']} open, {scores['depth_open']} open in depth")
+    if "coverage_95_xyz" in scores:
+        parts.append(
+            "95% intervals hold x/y/z "
+            + "/".join(f"{c:.2f}" for c in scores["coverage_95_xyz"])
+            + f", depth {scores['depth_coverage_95']:.2f}"
+        )
+    if scores.get("open_share_of_disagreement") is not None:
+        parts.append(f"open atoms hold {scores['open_share_of_disagreement']:.0%} of the disagreement")
     return (f"{label}: " if label else "") + ", ".join(parts)
 
 
