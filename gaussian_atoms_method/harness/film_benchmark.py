@@ -222,6 +222,19 @@ def score_in_region(pred_A: np.ndarray, model_A: np.ndarray, box: np.ndarray, in
     }
 
 
+def evidence_in_region(atoms: AtomSet, model_A: np.ndarray, box: np.ndarray, inside: np.ndarray) -> dict:
+    """:func:`gaussian_atoms_method.atoms.evidence.evidence_scores` of the reported ``atoms`` in the
+    region ``box`` against the model's atoms ``inside`` it, after the global shift (empty
+    without the atoms' evidence)."""
+    from gaussian_atoms_method.atoms.evidence import evidence_scores
+
+    if atoms.proven is None or not len(atoms):
+        return {}
+    pred, shift, _, _ = matched_to_model(atoms.positions, model_A, inside)
+    in_box = np.all((pred >= box[0]) & (pred <= box[1]), axis=1)
+    return evidence_scores(atoms.shifted(shift).subset(in_box), AtomSet(model_A[inside]), MATCH_RADIUS_A)
+
+
 @dataclass
 class FilmBenchmark:
     """Reconstruct each sub-area with ``ns-train gaussian-atoms`` (the defaults) and score it."""
@@ -241,9 +254,13 @@ class FilmBenchmark:
         def score(area, data, atoms):
             meta = json.loads((data / "tilt_series.json").read_text())
             shape = np.load(data / meta["projections"], mmap_mode="r").shape[1:]
-            return score_area(
-                atoms.positions, model_in_area_A(self.data_dir, area), shape, tuple(meta["centre_px"])
-            ) | {"n_atoms_reported": len(atoms)}
+            model = model_in_area_A(self.data_dir, area)
+            box, inside = scored_region(model, shape, tuple(meta["centre_px"]))
+            return (
+                score_in_region(atoms.positions, model, box, inside)
+                | evidence_in_region(atoms, model, box, inside)
+                | {"n_atoms_reported": len(atoms)}
+            )
 
         rows = []
         for area in self.areas:
