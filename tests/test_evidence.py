@@ -148,3 +148,68 @@ def test_the_residual_spectrum_weighs_coloured_noise_at_the_atoms_scale():
     smooth *= 3.0 / smooth.std()
     position, amplitude = residual_spectrum_factors(smooth, 3.0, 2.0)
     assert amplitude > 2.0 and amplitude > position
+
+
+def test_the_sandwich_is_the_information_under_white_noise_and_wider_under_misregistration():
+    """Ten atoms far apart, 40 views over +-60 degrees.  Where the residual is white noise of
+    standard deviation s, the views' pulls spread as ``s^2 F`` and the sandwich's precision is the
+    information's (within the scatter of 40 clusters: about 11% on a standard deviation, a
+    median over ten atoms far less).  Where each view is also shifted by 0.3 px, a residual no
+    white noise of its level explains, the sandwich widens the precision along the shifts."""
+    from gaussian_atoms_method.atoms.evidence import view_scores
+    from gaussian_atoms_method.physics.geometry import pixel_centres
+    from gaussian_atoms_method.physics.projector import project_gaussians
+
+    rng = np.random.default_rng(5)
+    axes = detector_axes_from_tilts(np.linspace(-60, 60, 40))
+    px, n = 0.25, 10
+    positions = np.c_[np.linspace(-9, 9, n), rng.uniform(-2, 2, n), rng.uniform(-2, 2, n)]
+    sigmas, amps = np.full(n, 0.5), np.full(n, 1.0)
+    coords = torch.tensor(pixel_centres(96, px))
+    clean = project_gaussians(
+        torch.tensor(positions), torch.tensor(sigmas), torch.tensor(amps), torch.tensor(axes), coords, coords
+    ).numpy()
+    centre = ((96 - 1) / 2, (96 - 1) / 2)
+    s = 0.02
+    residual = rng.normal(0, s, clean.shape)
+    information = atom_evidence(positions, sigmas, amps, axes, px, s).position_std_A
+    pulls = view_scores(positions, sigmas, amps, axes, residual, px, centre)
+    sandwich = atom_evidence(positions, sigmas, amps, axes, px, s, scores=pulls).position_std_A
+    assert np.median(sandwich / information, axis=0) == pytest.approx([1, 1, 1], abs=0.1)
+    from scipy import ndimage
+
+    shifted = np.stack([ndimage.shift(v, (0.3 * rng.standard_normal(), 0), order=3) for v in clean])
+    pulls = view_scores(positions, sigmas, amps, axes, shifted - clean + residual, px, centre)
+    misregistered = atom_evidence(positions, sigmas, amps, axes, px, s, scores=pulls).position_std_A
+    assert np.median(misregistered[:, 0] / information[:, 0]) > 2.0  # x: across the tilt axis
+
+
+def test_the_views_pulls_are_the_gradient_a_known_move_leaves():
+    """An atom's image moved by a known step, or its width and mass changed a little: the views'
+    pulls on the unmoved atom, through its information, give that step back (one Gauss-Newton
+    step: exact to first order; at a twentieth of the width the second order stays within 2% of
+    the step.  A move's second order looks like a wider atom: after a move, the position is judged)."""
+    from gaussian_atoms_method.atoms.evidence import view_scores
+    from gaussian_atoms_method.physics.geometry import pixel_centres
+    from gaussian_atoms_method.physics.projector import project_gaussians
+
+    axes = detector_axes_from_tilts(np.linspace(-60, 60, 25))
+    px, coords = 0.25, torch.tensor(pixel_centres(80, 0.25))
+
+    def image(p):
+        return project_gaussians(
+            torch.tensor(p[None, :3]), torch.tensor(p[3:4]), torch.tensor(p[4:5]), torch.tensor(axes), coords, coords
+        ).numpy()
+
+    atom = np.array([0.3, -0.2, 0.4, 0.5, 1.0])
+    information = pair_information(
+        atom[None, :3], atom[None, :3], atom[3:4], atom[3:4], atom[4:5], atom[4:5], axes, px
+    )[0]
+    for step, judged in (
+        (np.array([0.02, -0.01, 0.025, 0.0, 0.0]), slice(0, 3)),
+        (np.array([0, 0, 0, 0.002, 0.004]), slice(0, 5)),
+    ):
+        residual = image(atom + step) - image(atom)
+        pulls = view_scores(atom[None, :3], atom[3:4], atom[4:5], axes, residual, px, (39.5, 39.5))
+        found = np.linalg.solve(information, pulls[0].sum(0))
+        np.testing.assert_allclose(found[judged], step[judged], atol=0.02 * np.abs(step).max())

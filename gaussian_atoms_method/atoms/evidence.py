@@ -19,7 +19,9 @@ neighbours (the atoms whose information about each other is not negligible,
   ``q^2 / [M^-1]_qq`` with ``M`` the information of the atom's amplitude and every parameter of
   its neighbours (the Schur complement: the neighbours take up what they can of its image).  Its
   square root is a significance in units of the noise: the views' misfit without the atom, in
-  standard deviations (the amplitude over its standard deviation, its neighbours re-fitted).  An atom is **proven** where it exceeds the level a pure-noise site would
+  standard deviations of the residual at the atom's scale (its level times its spectrum's weight
+  for an atom's template, :func:`residual_spectrum_factors`: what a blob of residual structure
+  the size of an atom reaches by chance).  An atom is **proven** where it exceeds the level a pure-noise site would
   reach by chance among as many sites as atoms reported (:func:`proof_level`), else **open**;
 * **depth**: the covariance of the atom's position with every neighbour re-fitted is the
   quadratic profile of the cost; its widest axis is the direction the views fix least (the beam,
@@ -32,9 +34,8 @@ The noise is the residual that is there, not the noise the views were measured t
 each view's pull on each atom (:func:`view_scores`, the residual correlated with the atom's
 derivatives), the covariance is the sandwich ``F^-1 (sum_v g_v g_v^T) F^-1`` with the views as
 independent clusters, which holds whatever the residual's structure within a view
-(misregistration, a support's texture, a misfit the model cannot explain), and the significance
-is the amplitude over its standard deviation so found.  Without the pulls, white noise of the
-residual's level weighted by its spectrum at the atoms' scale (:func:`residual_spectrum_factors`).
+(misregistration, a support's texture, a misfit the model cannot explain).  Without the pulls,
+white noise of the residual's level weighted by its spectrum at the atoms' scale.
 On a replica of a Ta film sub-area (misregistration, a carbon support, an aberrated probe) the
 white-noise intervals held 0.64-0.70 of the actual errors, the sandwich's 0.90-0.93.  What no
 view-by-view spread can see, a bias the same in every view, stays outside both.  All in the
@@ -284,7 +285,8 @@ def atom_evidence(
         neighbours, views as independent clusters: what the residual that is there, whatever its
         structure within a view (misregistration, a support's texture, a misfit), does to a
         least-squares fit, instead of what white noise of its level would (``position_factor``
-        and the L1 factor are then not used).
+        and the L1 factor are then not used; the significance stays the cost of taking the atom
+        out against the residual at its scale).
 
     Returns
     -------
@@ -353,12 +355,8 @@ def atom_evidence(
         covariances[a] = covariance[:3, :3]
         # taken out: the atom's amplitude against every parameter of its neighbours
         keep = np.r_[4, np.arange(5, 5 * k)]
-        sub_inverse = np.linalg.inv(info[np.ix_(keep, keep)])
-        if scores is None:  # the Schur complement: q^2 / [M^-1]_qq is the cost of taking it out
-            q_variance = sub_inverse[0, 0] * (noise_std * amplitude_factor) ** 2
-        else:
-            row = sub_inverse[0] @ pulls[:, keep].T  # (V,): each view's pull on the amplitude
-            q_variance = float(row @ row) * (len(row) / max(len(row) - 1, 1))
+        # the Schur complement: q^2 / [M^-1]_qq is the cost of taking it out, in noise variances
+        q_variance = np.linalg.inv(info[np.ix_(keep, keep)])[0, 0] * (noise_std * amplitude_factor) ** 2
         significance[a] = abs(amps[a]) / math.sqrt(max(q_variance, 1e-300))
     if scores is None:  # in units of the information's noise variance
         covariances = covariances * variance * position_factor**2
