@@ -1,0 +1,72 @@
+"""A replica of a user's own series (harness/replica.py, ``simulate --like``): its geometry, level
+and noise are the real series', its truth the atoms given."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dataparsers.tilt_series_format import TiltSeries, load_tilt_series, write_tilt_series
+from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms
+from gaussian_atoms_method.harness.replica import replica_of
+from gaussian_atoms_method.physics.noise import noise_from_projections
+
+
+def _real_like(tmp_path: Path) -> Path:
+    """A 'real' series of Euler views (RESIRE's convention), off-centre tilt centre, Poisson-like
+    noise (variance 4 + 0.5 x level), with a truth file."""
+    rng = np.random.default_rng(0)
+    atoms = AtomSet(np.c_[rng.uniform(-4, 4, 12), rng.uniform(-3, 3, 12), rng.uniform(-2, 2, 12)], species=["Ta"] * 12)
+    euler = np.c_[np.full(15, 0.2), np.linspace(-60, 55, 15), np.full(15, -0.3)]
+    geometry = TiltSeries(np.ones((15, 48, 40)), euler, 0.3, centre_px=(24.0, 19.0), euler_convention="zyx")
+    clean = replica_of(geometry, atoms, probe="none").projections.astype(np.float64)
+    clean = 200.0 * clean / clean.mean() + 50.0
+    noisy = clean + rng.standard_normal(clean.shape) * np.sqrt(4.0 + 0.5 * clean)
+    return write_tilt_series(
+        tmp_path / "real", noisy, euler, 0.3, truth=atoms, centre_px=(24.0, 19.0), euler_convention="zyx"
+    )
+
+
+def test_a_replica_takes_the_series_geometry_level_and_noise(tmp_path):
+    """``simulate --like``: the same views (orientations and their convention, detector, pixel,
+    tilt centre), the truth the real series' atoms, the mean level the real one's, and the noise
+    read from the replica what was read from the real views (the reading's own scatter at these
+    sizes is a few percent of the gain)."""
+    real_dir = _real_like(tmp_path)
+    result = subprocess.run(
+        [str(Path(sys.executable).parent / "gaussian-atoms"), "simulate", "--like", str(real_dir)]
+        + ["--output", str(tmp_path / "replica"), "--probe", "aberrated", "--shift-px", "0.3", "--support-A", "10"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    real, replica = load_tilt_series(real_dir), load_tilt_series(tmp_path / "replica")
+    assert replica.projections.shape == real.projections.shape
+    assert replica.euler_convention == "zyx" and replica.pixel_size_A == real.pixel_size_A
+    np.testing.assert_allclose(replica.euler_deg, real.euler_deg, atol=1e-6)
+    np.testing.assert_allclose(replica.centre_px, real.centre_px)
+    np.testing.assert_allclose(
+        read_atoms(replica.truth_path).positions, read_atoms(real.truth_path).positions, atol=1e-6
+    )
+    assert replica.projections.mean() == pytest.approx(real.projections.mean(), rel=0.02)
+    ours, theirs = noise_from_projections(replica.projections), noise_from_projections(real.projections)
+    assert ours.gain == pytest.approx(theirs.gain, rel=0.15)
+
+
+def test_the_replica_names_what_it_cannot_use(tmp_path):
+    """A series without a truth file and no atoms given: one line naming the option."""
+    series = TiltSeries(np.random.default_rng(1).uniform(1, 2, (5, 20, 20)), np.linspace(-40, 40, 5), 0.3)
+    data = write_tilt_series(tmp_path / "s", series.projections, series.angles_deg, 0.3)
+    result = subprocess.run(
+        [str(Path(sys.executable).parent / "gaussian-atoms"), "simulate", "--like", str(data)]
+        + ["--output", str(tmp_path / "r")],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert result.returncode != 0 and "Traceback" not in result.stderr
+    assert "give the atoms as --particle FILE" in result.stderr
+    assert not (tmp_path / "r").exists()
