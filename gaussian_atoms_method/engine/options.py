@@ -63,8 +63,9 @@ class UserFirstOptions:
     (:func:`gaussian_atoms_method.physics.field_of_view.film_evidence`, 3 standard errors)."""
     refine_alignment: bool = False
     """Learn a per-projection in-plane shift with the atoms (residual misalignment of the tilt
-    series).  Shifts are taken relative to their mean over the views (an overall shift of
-    every view is the same as moving the particle)."""
+    series).  The shifts a translation of the object makes (each view's detector axes times one
+    3D vector) are taken out (:func:`~gaussian_atoms_method.engine.rendering.gauge_free_shifts`):
+    they move the atoms, not the views, and left in they let the particle drift along the beam."""
     refine_tilts: bool = False
     """Learn a per-projection tilt-angle offset (about the tilt axis) with the atoms: errors of
     the goniometer readings.  Offsets are taken relative to their mean (a common offset is the

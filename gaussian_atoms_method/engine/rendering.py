@@ -227,8 +227,8 @@ def one_view(
         )
     axes = torch.stack([rows_dir, cols_dir])[None]
     if view is not None and "view_shifts" in model.view_params:  # the content sits shifted by s: evaluate at x - s
-        shifts = model.view_params["view_shifts"]
-        s = (shifts[view] - shifts.mean(dim=0)).to(dt)
+        shifts = model.view_params["view_shifts"].to(dt)
+        s = gauge_free_shifts(shifts, detector_axes(model.view_c2w.to(dev, dt)))[view]
         rows, cols = rows - s[0], cols - s[1]
     if model.config.isotropic:
         return blur(
@@ -238,6 +238,23 @@ def one_view(
     return blur(model, project_anisotropic_gaussians(model.means - t, cov, model.amplitudes, axes, rows, cols), pitch)[
         0
     ]
+
+
+def gauge_free_shifts(shifts: torch.Tensor, axes: torch.Tensor) -> torch.Tensor:
+    """(V, 2) per-view detector shifts less the part a translation of the object makes: a
+    translation ``t`` shifts view ``v`` by ``P_v t`` (its detector axes ``axes`` (V, 2, 3)), so
+    shifts of that form move the atoms, not the views; the least-squares ``t`` is taken out.  What
+    a shift the same in every view along the rows holds beyond that (the tilt axis off the
+    assumed centre) stays.
+
+    >>> axes = torch.tensor([[[1.0, 0, 0], [0, 1, 0]], [[0.6, 0, -0.8], [0, 1, 0]], [[0.6, 0, 0.8], [0, 1, 0]]])
+    >>> bool(gauge_free_shifts(axes @ torch.tensor([0.3, -0.2, 0.5]), axes).abs().max() < 1e-6)
+    True
+    """
+    a = axes.reshape(-1, 3)  # (2V, 3)
+    flat = shifts.reshape(-1, 1)
+    t = torch.linalg.lstsq(a, flat).solution
+    return (flat - a @ t).reshape(shifts.shape)
 
 
 def view_floors(model, views, powers: tuple[torch.Tensor, torch.Tensor], dtype) -> torch.Tensor:
