@@ -174,3 +174,18 @@ def test_move_costs_find_the_place_the_unseen_views_say(tmp_path):
     back = move_costs(off, np.array([1]), truth.positions[1:2], even, odd)[0]
     # float32 views: the perfect fit's residual is rounding, 1e-6 of the cost
     np.testing.assert_allclose(back, -costs, rtol=1e-4)
+
+
+def test_a_held_out_views_own_shift_is_found():
+    """``best_shift``: a view moved by a known sub-pixel shift (and raised by a constant) is taken
+    back onto its prediction to a hundredth of a pixel (cubic interpolation of a 2 px wide peak)."""
+    from scipy import ndimage
+
+    from gaussian_atoms_method.harness.held_out import best_shift
+
+    rows, cols = np.meshgrid(np.arange(40.0), np.arange(36.0), indexing="ij")
+    predicted = np.exp(-((rows - 18.2) ** 2 + (cols - 17.6) ** 2) / 8.0) + 0.5 * np.exp(
+        -((rows - 25.0) ** 2 + (cols - 10.0) ** 2) / 8.0
+    )
+    measured = ndimage.shift(predicted, (0.3, -0.7), order=3, mode="nearest") + 0.2
+    np.testing.assert_allclose(best_shift(measured, predicted), [0.3, -0.7], atol=0.01)

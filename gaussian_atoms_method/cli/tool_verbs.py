@@ -27,10 +27,22 @@ class HeldOutViews:
     """Rows and columns left out at each detector edge when scoring."""
     train_args: str = ""
     """Further ns-train options, given with "=", e.g. --train-args="--pipeline.model.background plane"."""
+    alignment: bool = False
+    """Instead of kernels: per-view shifts (--pipeline.model.refine-alignment) off and on, each
+    held-out view scored after its own best shift; the run to keep is the one the views prefer."""
 
     def main(self) -> None:
-        from gaussian_atoms_method.harness.kernel_choice import compare_kernels
+        from gaussian_atoms_method.harness.kernel_choice import (
+            ALIGNMENT_CANDIDATES,
+            compare_kernels,
+            compare_settings,
+        )
 
+        if self.alignment:
+            extra = tuple(shlex.split(self.train_args))
+            candidates = {name: (args + extra, kernel) for name, (args, kernel) in ALIGNMENT_CANDIDATES.items()}
+            compare_settings(self.data, self.output, candidates, self.device, self.iterations, self.interior_px, True)
+            return
         compare_kernels(self.data, self.output, self.kernels, self.device, self.iterations, self.interior_px,
                         tuple(shlex.split(self.train_args)))  # fmt: skip
 

@@ -82,12 +82,41 @@ def predicted_views(atoms: AtomSet, series, kernel_weights=None, chunk: int = 4)
     return torch.cat(out).numpy()
 
 
-def held_out_rms(atoms: AtomSet, series, kernel_weights=None, interior_px: tuple[int, int] = (0, 0)) -> float:
+def held_out_rms(
+    atoms: AtomSet, series, kernel_weights=None, interior_px: tuple[int, int] = (0, 0), fit_shifts: bool = False
+) -> float:
     """Root-mean-square of measured minus :func:`predicted_views` over the views of ``series``,
-    after one constant per view (least squares on that view), over the detector's interior
-    (``interior_px`` rows and columns in from each edge), data units."""
-    (residual,) = _residuals(atoms, (series,), kernel_weights, interior_px)
+    after one constant per view (least squares on that view) and, with ``fit_shifts``, each
+    view's own best in-plane shift (:func:`best_shift`: a held-out view's misregistration belongs
+    to no fit), over the detector's interior (``interior_px`` rows and columns in from each
+    edge), data units."""
+    if not fit_shifts:
+        (residual,) = _residuals(atoms, (series,), kernel_weights, interior_px)
+        return float(np.sqrt(np.mean(residual**2)))
+    from scipy import ndimage
+
+    measured = np.asarray(series.projections, dtype=np.float64)
+    predicted = predicted_views(atoms, series, kernel_weights)
+    moved = np.stack([ndimage.shift(p, best_shift(m, p), order=3, mode="nearest") for m, p in zip(measured, predicted)])
+    residual = _interior(measured - moved, interior_px)
     return float(np.sqrt(np.mean(residual**2)))
+
+
+def best_shift(measured: np.ndarray, predicted: np.ndarray, steps: int = 10) -> np.ndarray:
+    """The (2,) in-plane shift (pixels) that takes ``predicted`` (H, W) onto ``measured`` in least
+    squares, a constant free (Gauss-Newton on the image's gradients)."""
+    from scipy import ndimage
+
+    shift = np.zeros(2)
+    for _ in range(steps):
+        moved = ndimage.shift(predicted, shift, order=3, mode="nearest")
+        gradient = np.stack(np.gradient(moved))  # d moved / d position = - d moved / d shift
+        design = np.c_[-gradient[0].ravel(), -gradient[1].ravel(), np.ones(moved.size)]
+        step = np.linalg.lstsq(design, (measured - moved).ravel(), rcond=None)[0][:2]
+        shift += step
+        if np.abs(step).max() < 1e-4:
+            break
+    return shift
 
 
 def run_gaussians(run_dir: str | Path) -> AtomSet:

@@ -52,33 +52,58 @@ def compare_kernels(
     """For each candidate kernel: fit the even views, predict the odd ones, and the other way
     round; rows with the held-out RMS residual each way and their mean.  Writes held_out.csv
     and held_out.md in ``output``."""
+    for kernel in kernels:
+        if kernel != "learned" and not re.fullmatch(r"[\d.]+,[\d.]+,[\d.]+", kernel):
+            raise KernelChoiceError(f"--kernels takes 'learned' or three fractions 'a,b,c', got {kernel!r}")
+    candidates = {kernel: (kernel_args(kernel) + tuple(train_args), kernel) for kernel in kernels}
+    return compare_settings(data, output, candidates, device, iterations, interior_px)
+
+
+ALIGNMENT_CANDIDATES = {
+    "alignment off": ((), "learned"),
+    "alignment on": (("--pipeline.model.refine-alignment", "True"), "learned"),
+}
+"""``held-out-views --alignment``: per-view shifts learned or not, judged by the views held out,
+each held-out view scored after its own best shift (its misregistration is no fit's)."""
+
+
+def compare_settings(
+    data: Path,
+    output: Path,
+    candidates: dict,
+    device: str = "cpu",
+    iterations: int = 3000,
+    interior_px: tuple[int, int] = (0, 0),
+    fit_shifts: bool = False,
+) -> list[dict]:
+    """For each candidate (name -> (ns-train options, its kernel: ``learned`` or ``a,b,c``)):
+    fit the even views, predict the odd ones, and the other way round (with ``fit_shifts``, each
+    held-out view after its own best in-plane shift); rows with the held-out RMS residual each way
+    and their mean.  Writes held_out.csv and held_out.md in ``output``."""
     from dataparsers.tilt_series_format import load_tilt_series
     from gaussian_atoms_method.harness.benchmark import train_ours
     from gaussian_atoms_method.harness.held_out import held_out_rms, run_gaussians, split_views
 
-    for kernel in kernels:
-        if kernel != "learned" and not re.fullmatch(r"[\d.]+,[\d.]+,[\d.]+", kernel):
-            raise KernelChoiceError(f"--kernels takes 'learned' or three fractions 'a,b,c', got {kernel!r}")
     try:
         series = load_tilt_series(data)
     except (OSError, ValueError) as err:
         raise KernelChoiceError(str(err)) from None
     folds = dict(zip(("even", "odd"), split_views(series, output / "views")))
     rows = []
-    for kernel in kernels:
-        row = {"kernel": kernel}
+    for name, (args, kernel) in candidates.items():
+        row = {"kernel": name}
         for fit, held in (("even", "odd"), ("odd", "even")):
-            run_dir = output / "runs" / kernel.replace(",", "_") / fit
-            train_ours(folds[fit], run_dir, iterations, device, kernel_args(kernel) + tuple(train_args))
+            run_dir = output / "runs" / re.sub(r"[^\w.-]+", "_", name) / fit
+            train_ours(folds[fit], run_dir, iterations, device, tuple(args))
             gaussians = run_gaussians(run_dir / "ours" / "gaussian-atoms" / "run")
             row[f"{fit}->{held}"] = held_out_rms(
-                gaussians, load_tilt_series(folds[held]), kernel_of_run(run_dir, kernel), tuple(interior_px)
+                gaussians, load_tilt_series(folds[held]), kernel_of_run(run_dir, kernel), tuple(interior_px), fit_shifts
             )
             row[f"kernel {fit}"] = kernel_of_run(run_dir, kernel)
         row["mean"] = 0.5 * (row["even->odd"] + row["odd->even"])
         rows.append(row)
         print(
-            f"kernel {kernel}: held-out rms {row['even->odd']:.4g} (even -> odd), {row['odd->even']:.4g} (odd -> even)",
+            f"{name}: held-out rms {row['even->odd']:.4g} (even -> odd), {row['odd->even']:.4g} (odd -> even)",
             flush=True,
         )
     write_kernel_table(rows, output)
@@ -94,7 +119,7 @@ def write_kernel_table(rows: list[dict], output: Path) -> None:
         writer.writeheader()
         writer.writerows(rows)
     lines = [
-        "| kernel (fractions at 1, 2, 4 Å) | held-out rms, even -> odd | odd -> even | mean |",
+        "| candidate | held-out rms, even -> odd | odd -> even | mean |",
         "| --- | --- | --- | --- |",
     ]
     lines += [f"| {r['kernel']} | {r['even->odd']:.5g} | {r['odd->even']:.5g} | {r['mean']:.5g} |" for r in rows]
