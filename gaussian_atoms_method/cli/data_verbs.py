@@ -157,9 +157,9 @@ class Simulate:
         """``--like DIR``: a replica of a real series (:mod:`gaussian_atoms_method.harness.replica`)."""
         import numpy as np
 
-        from dataparsers.tilt_series_format import load_tilt_series, write_tilt_series
+        from dataparsers.tilt_series_format import load_tilt_series
         from gaussian_atoms_method.atoms.atom_set import read_atoms
-        from gaussian_atoms_method.harness.replica import replica_of
+        from gaussian_atoms_method.harness.replica import write_replica
 
         series = load_tilt_series(self.like)
         if Path(self.particle).is_file():
@@ -173,29 +173,11 @@ class Simulate:
             )
         if atoms.species is None or np.any(atoms.species == "X"):
             raise ValueError("--particle: the replica needs each atom's element (an xyz or csv file with species)")
-        replica = replica_of(
+        _, replica = write_replica(
             series,
-            atoms.shifted(-origin),
-            self.atom_sigma_A,
-            self.support_A,
-            "aberrated" if self.probe == "aberrated" else "gaussian",
-            self.blur_sigma_A,
-            self.shift_px,
-            self.gain_scatter,
-            self.seed,
-        )
-        write_tilt_series(
+            atoms,
             self.output,
-            replica.projections,
-            series.orientations_deg,
-            series.pixel_size_A,
-            truth=atoms,
-            origin_A=origin,
-            tilt_axis=series.tilt_axis,
-            centre_px=series.centre_px,
-            tilt_axis_angle_deg=series.tilt_axis_angle_deg,
-            species=series.species,
-            euler_convention=series.euler_convention,
+            origin,
             extra={
                 "simulation": {
                     "like": str(self.like),
@@ -205,11 +187,16 @@ class Simulate:
                     "probe": self.probe,
                     "shift_px": self.shift_px,
                     "gain_scatter": self.gain_scatter,
-                    "noise_read_var": replica.noise.read_var,
-                    "noise_gain": replica.noise.gain,
                     "seed": self.seed,
                 }
             },
+            atom_sigma_A=self.atom_sigma_A,
+            support_A=self.support_A,
+            probe="aberrated" if self.probe == "aberrated" else "gaussian",
+            blur_sigma_A=self.blur_sigma_A,
+            shift_px=self.shift_px,
+            gain_scatter=self.gain_scatter,
+            seed=self.seed,
         )
         n, h, w = replica.projections.shape
         print(

@@ -260,28 +260,19 @@ def evidence_words(scores: dict) -> str:
 
 def write_replica(area_dir: Path, out_dir: Path, seed: int = 0) -> Path:
     """A replica of the sub-area ``area_dir`` (its model as the atoms, :data:`REPLICA`'s
-    experiment; :func:`gaussian_atoms_method.harness.replica.replica_of`) as a tilt-series
+    experiment; :func:`gaussian_atoms_method.harness.replica.write_replica`) as a tilt-series
     directory ``out_dir`` with the model as its truth."""
-    from dataparsers.tilt_series_format import load_tilt_series, write_tilt_series
+    from dataparsers.tilt_series_format import load_tilt_series
     from gaussian_atoms_method.atoms.atom_set import read_atoms
-    from gaussian_atoms_method.harness.replica import replica_of
+    from gaussian_atoms_method.harness import replica
 
     if (out_dir / "tilt_series.json").is_file():
         return out_dir
     series = load_tilt_series(area_dir)
-    truth = read_atoms(series.truth_path)
-    made = replica_of(series, truth, seed=seed, **REPLICA)
-    return write_tilt_series(
-        out_dir,
-        made.projections,
-        series.orientations_deg,
-        series.pixel_size_A,
-        truth=truth,
-        centre_px=series.centre_px,
-        species=series.species,
-        euler_convention=series.euler_convention,
-        extra={"description": f"a replica of {area_dir} ({REPLICA}, seed {seed}); the model, {CITATION}"},
-    )
+    description = {"description": f"a replica of {area_dir} ({REPLICA}, seed {seed}); the model, {CITATION}"}
+    return replica.write_replica(
+        series, read_atoms(series.truth_path), out_dir, extra=description, seed=seed, **REPLICA
+    )[0]
 
 
 @dataclass

@@ -161,3 +161,29 @@ def replica_of(
     variance = np.clip(noise.variance(clean), 0.0, None)
     noisy = clean + rng.standard_normal(clean.shape) * np.sqrt(variance)
     return Replica(noisy.astype(np.float32), atoms, shifts, gains, scale, noise)
+
+
+def write_replica(series, atoms: AtomSet, out_dir, origin_A=(0.0, 0.0, 0.0), extra: dict | None = None, **settings):
+    """:func:`replica_of` ``series`` for ``atoms`` (in the series' truth frame, its tilt centre at
+    ``origin_A``; ``settings`` as :func:`replica_of` takes them) written as a tilt-series
+    directory ``out_dir`` in the series' geometry, with the atoms as its truth; returns the
+    directory and the :class:`Replica`."""
+    from dataparsers.tilt_series_format import write_tilt_series
+
+    origin = np.asarray(origin_A, dtype=np.float64)
+    made = replica_of(series, atoms.shifted(-origin), **settings)
+    written = write_tilt_series(
+        out_dir,
+        made.projections,
+        series.orientations_deg,
+        series.pixel_size_A,
+        truth=atoms,
+        origin_A=origin,
+        tilt_axis=series.tilt_axis,
+        centre_px=series.centre_px,
+        tilt_axis_angle_deg=series.tilt_axis_angle_deg,
+        species=series.species,
+        euler_convention=series.euler_convention,
+        extra=extra,
+    )
+    return written, made
