@@ -210,12 +210,22 @@ def view_scores(
     res = np.asarray(residuals, dtype=np.float64)
     positions = np.asarray(positions_A, np.float64).reshape(-1, 3)
     sigmas, amps = np.asarray(sigmas_A, np.float64).ravel(), np.asarray(amplitudes, np.float64).ravel()
+    out = np.zeros((len(positions), res.shape[0], 5))
+    reach = np.ceil(reach_sigmas * sigmas / pixel_size_A).astype(np.int64) + 1
+    # atoms of like reach together: one wide Gaussian does not widen every atom's window
+    for size in np.unique(2 ** np.ceil(np.log2(np.maximum(reach, 1))).astype(np.int64)):
+        group = np.flatnonzero(2 ** np.ceil(np.log2(np.maximum(reach, 1))).astype(np.int64) == size)
+        out[group] = _view_scores(
+            positions[group], sigmas[group], amps[group], axes, res, pixel_size_A, centre_px, size
+        )
+    return out
+
+
+def _view_scores(positions, sigmas, amps, axes, res, pixel_size_A, centre_px, reach: int) -> np.ndarray:
+    """:func:`view_scores` of atoms whose windows reach ``reach`` pixels from their centres."""
     v_count, h, w = res.shape
-    reach = int(np.ceil(reach_sigmas * float(np.max(sigmas, initial=0.0)) / pixel_size_A)) + 1
     offsets = np.arange(-reach, reach + 1)
     out = np.zeros((len(positions), v_count, 5))
-    if not len(positions):
-        return out
     peak = amps * sigmas * math.sqrt(2 * math.pi)
     for v in range(v_count):
         mu = positions @ axes[v].T  # (N, 2) Å on the detector
@@ -257,6 +267,7 @@ def atom_evidence(
     position_factor: float = 1.0,
     amplitude_factor: float = 1.0,
     scores: np.ndarray | None = None,
+    targets: np.ndarray | None = None,
     chunk_pairs: int = 4096,
 ) -> AtomEvidence:
     """Existence, depth and precision of every atom from the views' information (module docstring).
@@ -287,6 +298,9 @@ def atom_evidence(
         least-squares fit, instead of what white noise of its level would (``position_factor``
         and the L1 factor are then not used; the significance stays the cost of taking the atom
         out against the residual at its scale).
+    targets : (N,) bool array, optional
+        The atoms whose evidence is wanted (default all; every atom is a neighbour either way);
+        the others' significance and precision are NaN.
 
     Returns
     -------
@@ -300,7 +314,7 @@ def atom_evidence(
     if not (pixel_size_A > 0 and noise_std > 0):
         raise ValueError(f"need pixel_size_A > 0 and noise_std > 0, got {pixel_size_A} and {noise_std}")
     axes = np.asarray(detector_axes, dtype=np.float64)[:, :2, :]
-    level = proof_level(n)
+    level = proof_level(n if targets is None else int(np.sum(targets)))
     if n == 0:
         empty = np.zeros(0)
         return AtomEvidence(
@@ -326,9 +340,9 @@ def atom_evidence(
         neighbours[j].append(i)
         block_of[(i, j)] = block
     variance = noise_std**2 * (L1_EFFICIENCY_FACTOR if loss == "l1" else 1.0)
-    significance = np.zeros(n)
-    covariances = np.zeros((n, 3, 3))
-    for a in range(n):
+    significance = np.full(n, np.nan)
+    covariances = np.full((n, 3, 3), np.nan)
+    for a in np.flatnonzero(np.ones(n, bool) if targets is None else targets):
         local = [a, *neighbours[a]]
         k = len(local)
         info = np.zeros((5 * k, 5 * k))
@@ -361,15 +375,17 @@ def atom_evidence(
     if scores is None:  # in units of the information's noise variance
         covariances = covariances * variance * position_factor**2
     position_std = np.sqrt(np.clip(np.einsum("nii->ni", covariances), 0, None))
-    values, vectors = np.linalg.eigh(covariances)
-    depth_half = Z95 * np.sqrt(np.clip(values[:, -1], 0, None))
+    values, vectors = np.linalg.eigh(np.nan_to_num(covariances))
+    depth_half = np.where(np.isnan(covariances[:, 0, 0]), np.nan, Z95 * np.sqrt(np.clip(values[:, -1], 0, None)))
     depth_axis = vectors[:, :, -1] * np.sign(vectors[:, 2:3, -1] + 1e-300)  # pointing up the beam
-    proven = significance >= level
-    depth_open = (
-        2 * depth_half > 0.5 * hard_core_A
-        if hard_core_A is not None and np.isfinite(hard_core_A)
-        else np.zeros(n, bool)
-    )
+    with np.errstate(invalid="ignore"):
+        proven = significance >= level
+    with np.errstate(invalid="ignore"):
+        depth_open = (
+            2 * depth_half > 0.5 * hard_core_A
+            if hard_core_A is not None and np.isfinite(hard_core_A)
+            else np.zeros(n, bool)
+        )
     return AtomEvidence(significance, proven, position_std, depth_half, depth_axis, depth_open, level, hard_core_A)
 
 

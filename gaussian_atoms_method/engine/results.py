@@ -246,6 +246,7 @@ def attach_evidence(model, atoms: AtomSet, noise: float, read, hard_core_A: floa
         position_factor,
         amplitude_factor,
         pulls,
+        model.density.in_field(model.means.detach()).cpu().numpy(),  # those a report may hold
     )
     crb = atoms.position_std_A
     atoms.position_std_A = evidence.position_std_A
@@ -262,10 +263,10 @@ def attach_evidence(model, atoms: AtomSet, noise: float, read, hard_core_A: floa
             f"atom explains; at the atoms' scale it weighs {position_factor:.2f} (positions) and "
             f"{amplitude_factor:.2f} (amplitudes) times white noise of its level"
         )
-    ratio = np.median(evidence.position_std_A / np.maximum(crb, 1e-12), axis=0)
+    ratio = np.nanmedian(evidence.position_std_A / np.maximum(crb, 1e-12), axis=0)
     CONSOLE.print(
         "gaussian-atoms: median position precision, neighbours re-fitted, from the views' own residuals: "
-        + ", ".join(f"{a} {v * 100:.1f} pm" for a, v in zip("xyz", np.median(evidence.position_std_A, axis=0)))
+        + ", ".join(f"{a} {v * 100:.1f} pm" for a, v in zip("xyz", np.nanmedian(evidence.position_std_A, axis=0)))
         + " ("
         + "/".join(f"{r:.2f}" for r in ratio)
         + " times the isolated atom's Cramér-Rao bound"
