@@ -49,6 +49,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
 #: Two-sided 95% quantile of the normal distribution.
 Z95 = 1.959963984540054
@@ -389,7 +390,7 @@ def atom_evidence(
     return AtomEvidence(significance, proven, position_std, depth_half, depth_axis, depth_open, level, hard_core_A)
 
 
-def residual_spectrum_factors(residuals: np.ndarray, noise_std: float, sigma_px: float) -> tuple[float, float]:
+def residual_spectrum_factors(residuals, noise_std: float, sigma_px: float) -> tuple[float, float]:
     """How much more the residual weighs at the atoms' scale than white noise of ``noise_std``:
     for a matched template ``t`` (an atom's image, or its derivative along a detector axis) the
     variance of its fit under noise of power spectrum ``P(k)`` is ``sum |T(k)|^2 P(k)`` against
@@ -400,20 +401,21 @@ def residual_spectrum_factors(residuals: np.ndarray, noise_std: float, sigma_px:
 
     Parameters
     ----------
-    residuals : (V, H, W) array
-        Measured minus predicted views, projection units.
+    residuals : (V, H, W) array or tensor
+        Measured minus predicted views, projection units (a tensor is read where it lies).
     noise_std : float
         The level the evidence assumes (white), projection units.
     sigma_px : float
         The atoms' typical width, pixels.
     """
-    res = np.asarray(residuals, dtype=np.float64)
-    res = res - res.mean(axis=(1, 2), keepdims=True)
+    res = torch.as_tensor(residuals).double()
+    res = res - res.mean(dim=(1, 2), keepdim=True)
     h, w = res.shape[1:]
-    power = (np.abs(np.fft.fft2(res)) ** 2).mean(axis=0) / (h * w)  # white noise of s: s^2 at every k
-    ky, kx = np.meshgrid(2 * np.pi * np.fft.fftfreq(h), 2 * np.pi * np.fft.fftfreq(w), indexing="ij")
-    k2 = kx**2 + ky**2
-    amplitude_template = np.exp(-k2 * sigma_px**2)
+    power = (torch.fft.fft2(res).abs() ** 2).mean(dim=0) / (h * w)  # white noise of s: s^2 at every k
+    ky = 2 * math.pi * torch.fft.fftfreq(h, device=res.device, dtype=res.dtype)
+    kx = 2 * math.pi * torch.fft.fftfreq(w, device=res.device, dtype=res.dtype)
+    k2 = ky[:, None] ** 2 + kx[None, :] ** 2
+    amplitude_template = torch.exp(-k2 * sigma_px**2)
     position_template = k2 * amplitude_template
     s2 = noise_std**2
     amplitude = float((amplitude_template * power).sum() / (s2 * amplitude_template.sum()))
