@@ -132,7 +132,8 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
                 f"gaussian-atoms: residual noise is {nm.kind}: variance {nm.read_var:.4g} + {nm.gain:.4g} x signal "
                 f"(input units; slope {nm.gain_se:.2g} standard error)"
             )
-        attach_evidence(model, atoms, noise, read, hard_core_A, converged_at is not None)
+        if model.config.evidence:
+            attach_evidence(model, atoms, noise, read, hard_core_A, converged_at is not None)
     atoms, non_atoms, population = split_atoms(
         atoms, model.density.in_field(model.means.detach()).cpu().numpy(), model.means.device, hard_core_A
     )
