@@ -46,7 +46,7 @@ a pixel) and with the whole detector in each view.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -171,7 +171,10 @@ class AtomEvidence:
     in noise standard deviations; ``proven`` (N,) bool, significance at or above ``proof_level``;
     ``position_std_A`` (N, 3), its precision along x, y, z with its neighbours re-fitted;
     ``depth_halfwidth_A`` (N,), the 95% half-width along ``depth_axis`` (N, 3), the direction
-    the views fix least; ``depth_open`` (N,) bool, that interval wider than half the hard core."""
+    the views fix least; ``depth_open`` (N,) bool, that interval wider than half the hard core, or
+    another place along the axis as good; ``depth_profile`` (N, M), the cost's rise in noise
+    variances with the atom moved by each of ``depth_offsets_A`` (M,) along the depth axis, the
+    rest re-fitted (empty without the moved pulls)."""
 
     significance: np.ndarray
     proven: np.ndarray
@@ -181,6 +184,8 @@ class AtomEvidence:
     depth_open: np.ndarray
     proof_level: float
     hard_core_A: float | None
+    depth_offsets_A: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    depth_profile: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
 
 
 def view_scores(
@@ -271,6 +276,7 @@ def atom_evidence(
     scores: np.ndarray | None = None,
     targets: np.ndarray | None = None,
     chunk_pairs: int = 4096,
+    moved_pulls: dict | None = None,
 ) -> AtomEvidence:
     """Existence, depth and precision of every atom from the views' information (module docstring).
 
@@ -303,6 +309,13 @@ def atom_evidence(
     targets : (N,) bool array, optional
         The atoms whose evidence is wanted (default all; every atom is a neighbour either way);
         the others' significance and precision are NaN.
+    moved_pulls : dict, optional
+        The profile of the cost along the depth axis beyond second order
+        (:func:`depth_profile_pulls`: offset in Å -> (N, 5) the residual's pull on each atom
+        moved by it).  With them (and ``scores``) an atom is also open in depth where the cost,
+        its neighbours and its other parameters re-fitted, rises by less than ``Z95^2`` noise
+        variances (at the atom's scale) at some offset of half the hard core or more: a second
+        place the views cannot tell from the first.
 
     Returns
     -------
@@ -344,6 +357,8 @@ def atom_evidence(
     variance = noise_std**2 * (L1_EFFICIENCY_FACTOR if loss == "l1" else 1.0)
     significance = np.full(n, np.nan)
     covariances = np.full((n, 3, 3), np.nan)
+    offsets = sorted(moved_pulls) if moved_pulls else []
+    rises = np.full((n, len(offsets)), np.inf)
     for a in np.flatnonzero(np.ones(n, bool) if targets is None else targets):
         local = [a, *neighbours[a]]
         k = len(local)
@@ -369,6 +384,8 @@ def atom_evidence(
             spread = pulls.T @ pulls * (len(pulls) / max(len(pulls) - 1, 1))
             covariance = covariance[:3] @ spread @ covariance[:, :3]
         covariances[a] = covariance[:3, :3]
+        if moved_pulls is not None and scores is not None:
+            rises[a] = _depth_rises(a, local, info, scores, moved_pulls, positions, sigmas, amps, axes, pixel_size_A)
         # taken out: the atom's amplitude against every parameter of its neighbours
         keep = np.r_[4, np.arange(5, 5 * k)]
         # the Schur complement: q^2 / [M^-1]_qq is the cost of taking it out, in noise variances
@@ -388,7 +405,108 @@ def atom_evidence(
             if hard_core_A is not None and np.isfinite(hard_core_A)
             else np.zeros(n, bool)
         )
-    return AtomEvidence(significance, proven, position_std, depth_half, depth_axis, depth_open, level, hard_core_A)
+    profile = rises / (noise_std * amplitude_factor) ** 2
+    if offsets:  # a second place along the depth axis the views cannot tell from the first
+        within = profile < Z95**2
+        reach = np.max(np.where(within, np.abs(np.asarray(offsets))[None, :], 0.0), axis=1)
+        depth_half = np.where(np.isnan(depth_half), np.nan, np.maximum(depth_half, reach))
+        depth_open = depth_open | within.any(axis=1)
+    return AtomEvidence(
+        significance,
+        proven,
+        position_std,
+        depth_half,
+        depth_axis,
+        depth_open,
+        level,
+        hard_core_A,
+        np.asarray(offsets, dtype=np.float64),
+        profile,
+    )
+
+
+def depth_axis_of(detector_axes: np.ndarray) -> np.ndarray:
+    """(3,) the direction the views fix least: the smallest eigenvector of ``sum_v P_v^T P_v``
+    (the beam of the zero tilt for a symmetric single-axis series), pointing up."""
+    axes = np.asarray(detector_axes, dtype=np.float64)[:, :2, :]
+    values, vectors = np.linalg.eigh(np.einsum("vki,vkj->ij", axes, axes))
+    axis = vectors[:, 0]
+    return axis * (1.0 if axis[2] >= 0 else -1.0)
+
+
+def depth_profile_pulls(
+    positions_A, sigmas_A, amplitudes, detector_axes, residuals, pixel_size_A, centre_px, hard_core_A, targets=None
+) -> dict:
+    """For the cost's profile along the depth axis beyond second order (:func:`atom_evidence`'s
+    ``moved_pulls``): offset (Å) -> (N, 5) the residual's pull on each atom moved by it along
+    :func:`depth_axis_of` (zeros for atoms not in ``targets``).  The offsets are 1, 2 and 3 halves
+    of the hard core either way: where an atom could sit instead of where it is (the Ta model's
+    displaced atoms are 0.75-1.5 Å from ours, mostly along the beam)."""
+    positions = np.asarray(positions_A, dtype=np.float64).reshape(-1, 3)
+    wanted = np.ones(len(positions), bool) if targets is None else np.asarray(targets, bool)
+    axis = depth_axis_of(detector_axes)
+    out = {}
+    for k in (-3, -2, -1, 1, 2, 3):
+        offset = 0.5 * k * hard_core_A
+        pulls = np.zeros((len(positions), 5))
+        pulls[wanted] = view_scores(
+            positions[wanted] + offset * axis,
+            np.asarray(sigmas_A)[wanted],
+            np.asarray(amplitudes)[wanted],
+            detector_axes,
+            residuals,
+            pixel_size_A,
+            centre_px,
+        ).sum(axis=1)
+        out[offset] = pulls
+    return out
+
+
+def _depth_rises(a, local, info, scores, moved_pulls, positions, sigmas, amps, axes, pixel_size_A) -> np.ndarray:
+    """For each offset of ``moved_pulls``: how much the least-squares cost rises (pixel sums, in
+    projection units squared) when atom ``a`` is moved by it along the depth axis and its other
+    parameters and every neighbour in ``local`` are re-fitted (linearised about the moved place;
+    ``info``: the local information, pixel sums, the atom first)."""
+    k = len(local)
+    axis = depth_axis_of(axes)
+    basis = np.linalg.qr(np.c_[axis, np.eye(3)])[0][:, [1, 2, 0]].T  # rows: two across, then the axis
+    turn = np.eye(5 * k)
+    turn[:3, :3] = basis
+    keep = np.r_[0, 1, np.arange(3, 5 * k)]  # the atom's place along the axis held
+    pull_now = scores[local].sum(axis=1).reshape(-1)  # J^T r at the fit
+    before = turn @ info @ turn.T
+    sub = before[np.ix_(keep, keep)]
+    b0 = (turn @ pull_now)[keep]
+    baseline = b0 @ np.linalg.solve(sub, b0)
+    offsets = sorted(moved_pulls)
+    moved = positions[a] + np.asarray(offsets)[:, None] * axis  # (M, 3)
+    q = amps[a]
+    others = np.asarray(local[1:], dtype=np.int64)
+    m = len(offsets)
+    # the moved atom against the old one and against each neighbour, every offset in one call
+    first = np.repeat(moved, k, axis=0)
+    second = np.tile(np.vstack([positions[a], positions[others]]), (m, 1))
+    sig_second = np.tile(np.r_[sigmas[a], sigmas[others]], m)
+    amp_second = np.tile(np.r_[q, amps[others]], m)
+    cross = pair_information(
+        first, second, np.full(m * k, sigmas[a]), sig_second, np.full(m * k, q), amp_second, axes, pixel_size_A
+    ).reshape(m, k, 5, 5)  # rows: the moved atom's parameters
+    rises = np.empty(m)
+    for i, offset in enumerate(offsets):
+        with_move = info.copy()
+        for slot in range(1, k):
+            with_move[:5, 5 * slot : 5 * slot + 5] = cross[i, slot]
+            with_move[5 * slot : 5 * slot + 5, :5] = cross[i, slot].T
+        # d = g_moved - g_old: its overlaps with every local derivative (the moved atom's own at its new place)
+        own = q * (info[:5, 4] - cross[i, 0][:, 4])
+        neighbours = q * (cross[i, 1:, 4, :] - info[5:, 4].reshape(k - 1, 5)) if k > 1 else np.zeros((0, 5))
+        pull = np.r_[moved_pulls[offset][a], pull_now[5:]] - np.r_[own, neighbours.reshape(-1)]
+        d2 = 2 * q * q * (info[4, 4] - cross[i, 0][4, 4])
+        rd = q * (moved_pulls[offset][a][4] - pull_now[4])
+        turned = turn @ with_move @ turn.T
+        b = (turn @ pull)[keep]
+        rises[i] = -2 * rd + d2 - b @ np.linalg.solve(turned[np.ix_(keep, keep)], b) + baseline
+    return rises
 
 
 def residual_spectrum_factors(residuals, noise_std: float, sigma_px: float) -> tuple[float, float]:

@@ -222,11 +222,17 @@ def attach_evidence(model, atoms: AtomSet, noise: float, read, hard_core_A: floa
     residual's level and spectrum ``read`` (:func:`residual_noise`), ``noise`` in input units);
     prints what the residual holds beyond the views' own noise and the precision against the
     isolated atom's Cramér-Rao bound (the ``position_std_A`` it replaces)."""
-    from gaussian_atoms_method.atoms.evidence import atom_evidence, residual_spectrum_factors, view_scores
+    from gaussian_atoms_method.atoms.evidence import (
+        atom_evidence,
+        depth_profile_pulls,
+        residual_spectrum_factors,
+        view_scores,
+    )
 
     series = model.view_set.series
     scale = model.normalisation.data_scale
-    residuals, predicted = (read[1] / scale).cpu().numpy(), (read[2] / scale).cpu().numpy()
+    # measured minus predicted (residual_noise holds predicted minus measured), input units
+    residuals, predicted = (-read[1] / scale).cpu().numpy(), (read[2] / scale).cpu().numpy()
     sigma_px = float(np.median(atoms.sigmas)) / series.pixel_size_A
     position_factor, amplitude_factor = residual_spectrum_factors(residuals, noise, sigma_px)
     axes = detector_axes(model.view_c2w.cpu().double()).numpy()
@@ -235,6 +241,23 @@ def attach_evidence(model, atoms: AtomSet, noise: float, read, hard_core_A: floa
     pulls = view_scores(
         about_centre, atoms.sigmas, atoms.amplitudes, axes, residuals, series.pixel_size_A, series.centre_px
     )
+    in_field = model.density.in_field(model.means.detach()).cpu().numpy()  # those a report may hold
+    hard_core = hard_core_A if np.isfinite(hard_core_A) else None
+    moved = (
+        depth_profile_pulls(
+            about_centre,
+            atoms.sigmas,
+            atoms.amplitudes,
+            axes,
+            residuals,
+            series.pixel_size_A,
+            series.centre_px,
+            hard_core,
+            in_field,
+        )
+        if hard_core is not None
+        else None
+    )
     evidence = atom_evidence(
         atoms.positions,
         atoms.sigmas,
@@ -242,12 +265,13 @@ def attach_evidence(model, atoms: AtomSet, noise: float, read, hard_core_A: floa
         axes,
         series.pixel_size_A,
         noise,
-        hard_core_A if np.isfinite(hard_core_A) else None,
+        hard_core,
         loss,
         position_factor,
         amplitude_factor,
         pulls,
-        model.density.in_field(model.means.detach()).cpu().numpy(),  # those a report may hold
+        in_field,
+        moved_pulls=moved,
     )
     crb = atoms.position_std_A
     atoms.position_std_A = evidence.position_std_A
@@ -285,7 +309,8 @@ def say_evidence(atoms: AtomSet) -> None:
     CONSOLE.print(
         f"gaussian-atoms: evidence: {proven} atoms proven, {len(atoms) - proven} open (the views lose less than "
         f"{atoms.info['proof_level']:.1f} noise standard deviations without them, their neighbours re-fitted); "
-        f"{depth_open} open in depth (95% interval along the beam wider than half the hard core); median "
+        f"{depth_open} open in depth (95% interval along the beam wider than half the hard core, or another place "
+        f"there as good); median "
         f"significance {np.median(atoms.significance):.1f}"
     )
 
