@@ -1,5 +1,5 @@
-"""Each atom's evidence (atoms/evidence.py) against direct computations in float64: the closed-form
-information against pixel sums of autograd's derivatives, an atom taken out against the cost of
+"""Each atom's evidence (atoms/evidence.py, atoms/information.py) against direct computations in
+float64: the closed-form information against pixel sums of autograd's derivatives, an atom taken out against the cost of
 its neighbours actually re-fitted without it, the depth interval against the profile of the cost
 on a missing-wedge series, and the residual spectrum's weight against noise of known colour."""
 
@@ -7,13 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from gaussian_atoms_method.atoms.evidence import (
-    Z95,
-    atom_evidence,
-    pair_information,
-    proof_level,
-    residual_spectrum_factors,
-)
+from gaussian_atoms_method.atoms.evidence import Z95, atom_evidence, proof_level
+from gaussian_atoms_method.atoms.information import pair_information, residual_spectrum_factors
 from gaussian_atoms_method.physics.geometry import detector_axes_from_tilts
 
 PIXEL_A = 0.2
@@ -156,7 +151,7 @@ def test_the_sandwich_is_the_information_under_white_noise_and_wider_under_misre
     information's (within the scatter of 40 clusters: about 11% on a standard deviation, a
     median over ten atoms far less).  Where each view is also shifted by 0.3 px, a residual no
     white noise of its level explains, the sandwich widens the precision along the shifts."""
-    from gaussian_atoms_method.atoms.evidence import view_scores
+    from gaussian_atoms_method.atoms.information import view_scores
     from gaussian_atoms_method.physics.geometry import pixel_centres
     from gaussian_atoms_method.physics.projector import project_gaussians
 
@@ -189,7 +184,7 @@ def test_the_views_pulls_are_the_gradient_a_known_move_leaves():
     pulls on the unmoved atom, through its information, give that step back (one Gauss-Newton
     step: exact to first order; at a twentieth of the width the second order stays within 2% of
     the step.  A move's second order looks like a wider atom: after a move, the position is judged)."""
-    from gaussian_atoms_method.atoms.evidence import view_scores
+    from gaussian_atoms_method.atoms.information import view_scores
     from gaussian_atoms_method.physics.geometry import pixel_centres
     from gaussian_atoms_method.physics.projector import project_gaussians
 
@@ -221,7 +216,8 @@ def test_the_depth_profile_is_the_cost_of_the_atom_moved_with_the_rest_refitted(
     across the beam, width, mass; its neighbour) re-fitted by Gauss-Newton to convergence: the
     stated rises (linearised about the moved place) are that cost within 5%.  Under noise
     120 times larger every rise falls under 1.96^2 and the atom is open in depth."""
-    from gaussian_atoms_method.atoms.evidence import depth_profile_pulls, view_scores
+    from gaussian_atoms_method.atoms.evidence import depth_profile_pulls
+    from gaussian_atoms_method.atoms.information import view_scores
 
     axes = detector_axes_from_tilts(np.linspace(-50, 50, 11))
     atoms = torch.tensor([[0.1, -0.2, 0.15, 0.5, 0.3], [2.6, 0.1, -0.4, 0.5, 0.3]], dtype=torch.float64)

@@ -11,7 +11,7 @@ Fisher information, couples every pair of parameters through the overlap of thei
 
 and for two Gaussians the integral is closed: their product is a Gaussian (centre ``m``,
 variance ``tau^2`` per axis), and each derivative is a polynomial in ``u - m`` whose moments
-under it are known (:func:`pair_information`).  From ``F`` restricted to an atom and its
+under it are known (:func:`.information.pair_information`).  From ``F`` restricted to an atom and its
 neighbours (the atoms whose information about each other is not negligible,
 :data:`COUPLING_FLOOR`):
 
@@ -20,7 +20,7 @@ neighbours (the atoms whose information about each other is not negligible,
   its neighbours (the Schur complement: the neighbours take up what they can of its image).  Its
   square root is a significance in units of the noise: the views' misfit without the atom, in
   standard deviations of the residual at the atom's scale (its level times its spectrum's weight
-  for an atom's template, :func:`residual_spectrum_factors`: what a blob of residual structure
+  for an atom's template, :func:`.information.residual_spectrum_factors`: what a blob of residual structure
   the size of an atom reaches by chance).  An atom is **proven** where it exceeds the level a pure-noise site would
   reach by chance among as many sites as atoms reported (:func:`proof_level`), else **open**;
 * **depth**: the covariance of the atom's position with every neighbour re-fitted is the
@@ -49,7 +49,8 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-import torch
+
+from gaussian_atoms_method.atoms.information import pair_information, view_scores
 
 #: Two-sided 95% quantile of the normal distribution.
 Z95 = 1.959963984540054
@@ -85,86 +86,6 @@ def proof_level(n_atoms: int, family_false_alarm: float = FAMILY_FALSE_ALARM) ->
     return float(-ndtri(family_false_alarm / max(int(n_atoms), 1)))
 
 
-def _gaussian_products(mu_i, mu_j, s_i, s_j):
-    """Product of two 2D Gaussians of centres ``mu`` (..., 2) and widths ``s`` (...): the
-    weight ``exp(-|mu_i - mu_j|^2 / (2 S)) 2 pi tau^2`` and the offsets ``a = m - mu`` of each centre
-    from the product's centre ``m``, and ``tau^2``."""
-    s2i, s2j = s_i**2, s_j**2
-    total = s2i + s2j
-    tau2 = s2i * s2j / total
-    d = mu_i - mu_j
-    weight = np.exp(-np.einsum("...k,...k->...", d, d) / (2 * total)) * 2 * np.pi * tau2
-    m = (mu_i * s2j[..., None] + mu_j * s2i[..., None]) / total[..., None]
-    return weight, m - mu_i, m - mu_j, tau2
-
-
-def pair_information(r_i, r_j, sigma_i, sigma_j, q_i, q_j, axes, pixel_size_A: float) -> np.ndarray:
-    """``sum_v integral (dg_i/da)(dg_j/db) du / p^2`` for P pairs of atoms: (P, 5, 5) blocks, rows
-    the derivatives of atom i by (x, y, z, sigma, q), columns those of atom j.  Divide by the
-    pixel noise's variance for the Fisher information.
-
-    Parameters
-    ----------
-    r_i, r_j : (P, 3) arrays, Å
-    sigma_i, sigma_j, q_i, q_j : (P,) arrays
-        Widths (Å) and 3D peaks (projection units per Å).
-    axes : (V, 2, 3) array
-        Each view's detector rows and columns in the world.
-    pixel_size_A : float
-
-    Examples
-    --------
-    One atom alone: its amplitude's information is ``sum_v pi sigma^2 (A/q)^2 / p^2``.
-
-    >>> axes = np.array([[[1.0, 0, 0], [0, 1, 0]]])
-    >>> block = pair_information(np.zeros((1, 3)), np.zeros((1, 3)), np.ones(1), np.ones(1),
-    ...                          np.ones(1), np.ones(1), axes, 1.0)
-    >>> bool(np.isclose(block[0, 4, 4], np.pi * 2 * np.pi))
-    True
-    """
-    axes = np.asarray(axes, dtype=np.float64)[:, :2, :]
-    r_i, r_j = np.asarray(r_i, np.float64), np.asarray(r_j, np.float64)
-    sigma_i, sigma_j = np.asarray(sigma_i, np.float64), np.asarray(sigma_j, np.float64)
-    q_i, q_j = np.asarray(q_i, np.float64), np.asarray(q_j, np.float64)
-    mu_i = np.einsum("vkc,pc->pvk", axes, r_i)  # (P, V, 2)
-    mu_j = np.einsum("vkc,pc->pvk", axes, r_j)
-    si, sj = np.broadcast_to(sigma_i[:, None], mu_i.shape[:2]), np.broadcast_to(sigma_j[:, None], mu_i.shape[:2])
-    weight, a_i, a_j, tau2 = _gaussian_products(mu_i, mu_j, si, sj)
-    peak_i, peak_j = q_i * sigma_i * math.sqrt(2 * math.pi), q_j * sigma_j * math.sqrt(2 * math.pi)
-    c = weight * (peak_i * peak_j)[:, None] / pixel_size_A**2  # (P, V)
-    s2i, s2j = si**2, sj**2
-    eye = np.eye(2)
-    # E[(w + a_i)(w + a_j)^T] = tau^2 I + a_i a_j^T, over sigma_i^2 sigma_j^2
-    mm = (tau2[..., None, None] * eye + a_i[..., :, None] * a_j[..., None, :]) / (s2i * s2j)[..., None, None]
-    ai2, aj2, aiaj = (a_i**2).sum(-1), (a_j**2).sum(-1), (a_i * a_j).sum(-1)
-    ex, ey = 2 * tau2 + ai2, 2 * tau2 + aj2  # E|w + a_i|^2, E|w + a_j|^2
-    exy = 8 * tau2**2 + 2 * tau2 * (ai2 + aj2) + 4 * tau2 * aiaj + ai2 * aj2
-    # E[(w + a_i) |w + a_j|^2] = 2 tau^2 a_j + a_i (2 tau^2 + |a_j|^2), and with i, j exchanged
-    wi_yj = 2 * tau2[..., None] * a_j + a_i * ey[..., None]
-    wj_xi = 2 * tau2[..., None] * a_i + a_j * ex[..., None]
-    mu_sigma = (a_i / sj[..., None] + wi_yj / (sj**3)[..., None]) / s2i[..., None]  # d mu_i, d sigma_j
-    sigma_mu = (a_j / si[..., None] + wj_xi / (si**3)[..., None]) / s2j[..., None]  # d sigma_i, d mu_j
-    ss = 1 / (si * sj) + ey / (si * sj**3) + ex / (si**3 * sj) + exy / (si**3 * sj**3)
-    qi, qj = q_i[:, None], q_j[:, None]
-    mu_q = a_i / (s2i * qj)[..., None]  # d mu_i, d q_j
-    q_mu = a_j / (s2j * qi)[..., None]  # d q_i, d mu_j
-    sigma_q = (1 / si + ex / si**3) / qj
-    q_sigma = (1 / sj + ey / sj**3) / qi
-    qq = 1 / (qi * qj) * np.ones_like(si)
-    out = np.zeros((len(r_i), 5, 5))
-    # positions: P_v^T (.) P_v, summed over the views with the weights c
-    out[:, :3, :3] = np.einsum("pv,vkc,pvkl,vld->pcd", c, axes, mm, axes, optimize=True)
-    out[:, :3, 3] = np.einsum("pv,vkc,pvk->pc", c, axes, mu_sigma, optimize=True)
-    out[:, 3, :3] = np.einsum("pv,vkc,pvk->pc", c, axes, sigma_mu, optimize=True)
-    out[:, :3, 4] = np.einsum("pv,vkc,pvk->pc", c, axes, mu_q, optimize=True)
-    out[:, 4, :3] = np.einsum("pv,vkc,pvk->pc", c, axes, q_mu, optimize=True)
-    out[:, 3, 3] = (c * ss).sum(1)
-    out[:, 3, 4] = (c * sigma_q).sum(1)
-    out[:, 4, 3] = (c * q_sigma).sum(1)
-    out[:, 4, 4] = (c * qq).sum(1)
-    return out
-
-
 @dataclass
 class AtomEvidence:
     """Per atom: ``significance`` (N,), the views' misfit without it, neighbours re-fitted,
@@ -186,72 +107,6 @@ class AtomEvidence:
     hard_core_A: float | None
     depth_offsets_A: np.ndarray = field(default_factory=lambda: np.zeros(0))
     depth_profile: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
-
-
-def view_scores(
-    positions_A: np.ndarray,
-    sigmas_A: np.ndarray,
-    amplitudes: np.ndarray,
-    detector_axes: np.ndarray,
-    residuals: np.ndarray,
-    pixel_size_A: float,
-    centre_px,
-    reach_sigmas: float = 4.0,
-) -> np.ndarray:
-    """Each view's pull on each atom: ``sum_pixels r_v(u) dg/d(x, y, z, sigma, q)`` over the view's
-    residual ``r_v``, (N, V, 5).  Their spread over the views is what the residual that is there
-    does to the fit (:func:`atom_evidence`'s sandwich); pixels beyond ``reach_sigmas`` widths of an
-    atom's centre are left out (its derivatives hold under 1e-3 of their weight there).
-
-    Parameters
-    ----------
-    positions_A : (N, 3) array, Å about the tilt centre
-    sigmas_A, amplitudes : (N,) arrays
-    detector_axes : (V, 2, 3) or (V, 3, 3) array
-    residuals : (V, H, W) array
-        Measured minus predicted views, projection units.
-    pixel_size_A : float
-    centre_px : (2,) the detector pixel of the tilt centre
-    """
-    axes = np.asarray(detector_axes, dtype=np.float64)[:, :2, :]
-    res = np.asarray(residuals, dtype=np.float64)
-    positions = np.asarray(positions_A, np.float64).reshape(-1, 3)
-    sigmas, amps = np.asarray(sigmas_A, np.float64).ravel(), np.asarray(amplitudes, np.float64).ravel()
-    out = np.zeros((len(positions), res.shape[0], 5))
-    reach = np.ceil(reach_sigmas * sigmas / pixel_size_A).astype(np.int64) + 1
-    # atoms of like reach together: one wide Gaussian does not widen every atom's window
-    for size in np.unique(2 ** np.ceil(np.log2(np.maximum(reach, 1))).astype(np.int64)):
-        group = np.flatnonzero(2 ** np.ceil(np.log2(np.maximum(reach, 1))).astype(np.int64) == size)
-        out[group] = _view_scores(
-            positions[group], sigmas[group], amps[group], axes, res, pixel_size_A, centre_px, size
-        )
-    return out
-
-
-def _view_scores(positions, sigmas, amps, axes, res, pixel_size_A, centre_px, reach: int) -> np.ndarray:
-    """:func:`view_scores` of atoms whose windows reach ``reach`` pixels from their centres."""
-    v_count, h, w = res.shape
-    offsets = np.arange(-reach, reach + 1)
-    out = np.zeros((len(positions), v_count, 5))
-    peak = amps * sigmas * math.sqrt(2 * math.pi)
-    for v in range(v_count):
-        mu = positions @ axes[v].T  # (N, 2) Å on the detector
-        centre_pixel = np.rint(mu / pixel_size_A + np.asarray(centre_px, np.float64)).astype(np.int64)
-        rows = centre_pixel[:, 0, None] + offsets[None]  # (N, R)
-        cols = centre_pixel[:, 1, None] + offsets[None]
-        inside = (rows[:, :, None] >= 0) & (rows[:, :, None] < h) & (cols[:, None, :] >= 0) & (cols[:, None, :] < w)
-        values = np.where(inside, res[v][np.clip(rows, 0, h - 1)[:, :, None], np.clip(cols, 0, w - 1)[:, None, :]], 0)
-        du = (rows - np.asarray(centre_px)[0]) * pixel_size_A - mu[:, :1]  # (N, R) u - mu along rows
-        dw = (cols - np.asarray(centre_px)[1]) * pixel_size_A - mu[:, 1:]
-        d2 = du[:, :, None] ** 2 + dw[:, None, :] ** 2
-        s2 = sigmas[:, None, None] ** 2
-        g = peak[:, None, None] * np.exp(-d2 / (2 * s2)) * values  # r g
-        pull_row = (g * du[:, :, None]).sum((1, 2)) / sigmas**2
-        pull_col = (g * dw[:, None, :]).sum((1, 2)) / sigmas**2
-        out[:, v, :3] = pull_row[:, None] * axes[v, 0] + pull_col[:, None] * axes[v, 1]
-        out[:, v, 3] = (g * (1 / sigmas[:, None, None] + d2 / sigmas[:, None, None] ** 3)).sum((1, 2))
-        out[:, v, 4] = g.sum((1, 2)) / amps
-    return out
 
 
 def _pairs(positions: np.ndarray, radius_A: float) -> np.ndarray:
@@ -296,7 +151,7 @@ def atom_evidence(
         the least-squares one under Gaussian noise (:data:`.uncertainty.L1_EFFICIENCY_FACTOR`).
     position_factor, amplitude_factor : float
         The residual spectrum's weight at the atoms' scale against white noise of ``noise_std``,
-        for a position's and an amplitude's template (:func:`residual_spectrum_factors`): the
+        for a position's and an amplitude's template (:func:`.information.residual_spectrum_factors`): the
         standard deviations are multiplied, the significances divided, by them.
     scores : (N, V, 5) array, optional
         Each view's pull on each atom (:func:`view_scores` of the fit's residuals).  With them the
@@ -385,7 +240,9 @@ def atom_evidence(
             covariance = covariance[:3] @ spread @ covariance[:, :3]
         covariances[a] = covariance[:3, :3]
         if moved_pulls is not None and scores is not None:
-            rises[a] = _depth_rises(a, local, info, scores, moved_pulls, positions, sigmas, amps, axes, pixel_size_A)
+            rises[a] = _depth_rises(
+                a, local, info, scores, moved_pulls, positions, sigmas, amps, axes, pixel_size_A, hard_core_A
+            )
         # taken out: the atom's amplitude against every parameter of its neighbours
         keep = np.r_[4, np.arange(5, 5 * k)]
         # the Schur complement: q^2 / [M^-1]_qq is the cost of taking it out, in noise variances
@@ -406,8 +263,14 @@ def atom_evidence(
             else np.zeros(n, bool)
         )
     profile = rises / (noise_std * amplitude_factor) ** 2
+    # From a fit's optimum no move lowers the cost by more than chance: a fall below -1.96^2 is the
+    # linearised re-fit failing (two Gaussians nearly one, the re-fit's steps far beyond their
+    # widths), and the profile is not known there (NaN: no place is called as good on it).
+    with np.errstate(invalid="ignore"):
+        profile[profile < -(Z95**2)] = np.nan
     if offsets:  # a second place along the depth axis the views cannot tell from the first
-        within = profile < Z95**2
+        with np.errstate(invalid="ignore"):
+            within = profile < Z95**2
         reach = np.max(np.where(within, np.abs(np.asarray(offsets))[None, :], 0.0), axis=1)
         depth_half = np.where(np.isnan(depth_half), np.nan, np.maximum(depth_half, reach))
         depth_open = depth_open | within.any(axis=1)
@@ -462,11 +325,15 @@ def depth_profile_pulls(
     return out
 
 
-def _depth_rises(a, local, info, scores, moved_pulls, positions, sigmas, amps, axes, pixel_size_A) -> np.ndarray:
+def _depth_rises(
+    a, local, info, scores, moved_pulls, positions, sigmas, amps, axes, pixel_size_A, hard_core_A
+) -> np.ndarray:
     """For each offset of ``moved_pulls``: how much the least-squares cost rises (pixel sums, in
     projection units squared) when atom ``a`` is moved by it along the depth axis and its other
     parameters and every neighbour in ``local`` are re-fitted (linearised about the moved place;
-    ``info``: the local information, pixel sums, the atom first)."""
+    ``info``: the local information, pixel sums, the atom first).  A place within the hard core of
+    a neighbour is no atom's (infinite): there two Gaussians coincide and the linearised re-fit
+    has no meaning."""
     k = len(local)
     axis = depth_axis_of(axes)
     basis = np.linalg.qr(np.c_[axis, np.eye(3)])[0][:, [1, 2, 0]].T  # rows: two across, then the axis
@@ -491,8 +358,15 @@ def _depth_rises(a, local, info, scores, moved_pulls, positions, sigmas, amps, a
     cross = pair_information(
         first, second, np.full(m * k, sigmas[a]), sig_second, np.full(m * k, q), amp_second, axes, pixel_size_A
     ).reshape(m, k, 5, 5)  # rows: the moved atom's parameters
-    rises = np.empty(m)
+    rises = np.full(m, np.inf)
+    crowded = (
+        np.linalg.norm(moved[:, None, :] - positions[others][None], axis=2).min(axis=1, initial=np.inf) < hard_core_A
+        if hard_core_A is not None
+        else np.zeros(m, bool)
+    )
     for i, offset in enumerate(offsets):
+        if crowded[i]:
+            continue
         with_move = info.copy()
         for slot in range(1, k):
             with_move[:5, 5 * slot : 5 * slot + 5] = cross[i, slot]
@@ -507,39 +381,6 @@ def _depth_rises(a, local, info, scores, moved_pulls, positions, sigmas, amps, a
         b = (turn @ pull)[keep]
         rises[i] = -2 * rd + d2 - b @ np.linalg.solve(turned[np.ix_(keep, keep)], b) + baseline
     return rises
-
-
-def residual_spectrum_factors(residuals, noise_std: float, sigma_px: float) -> tuple[float, float]:
-    """How much more the residual weighs at the atoms' scale than white noise of ``noise_std``:
-    for a matched template ``t`` (an atom's image, or its derivative along a detector axis) the
-    variance of its fit under noise of power spectrum ``P(k)`` is ``sum |T(k)|^2 P(k)`` against
-    ``s^2 sum |T(k)|^2`` for white noise.  Returns the square roots for the position's template
-    (``|T|^2 ~ k^2 exp(-k^2 sigma^2)``) and the amplitude's (``exp(-k^2 sigma^2)``): 1 for white
-    noise of ``noise_std``, above 1 where the residual holds more at the atoms' scale (a smooth
-    misfit weighs on the amplitude, a grainy one on the position).
-
-    Parameters
-    ----------
-    residuals : (V, H, W) array or tensor
-        Measured minus predicted views, projection units (a tensor is read where it lies).
-    noise_std : float
-        The level the evidence assumes (white), projection units.
-    sigma_px : float
-        The atoms' typical width, pixels.
-    """
-    res = torch.as_tensor(residuals).double()
-    res = res - res.mean(dim=(1, 2), keepdim=True)
-    h, w = res.shape[1:]
-    power = (torch.fft.fft2(res).abs() ** 2).mean(dim=0) / (h * w)  # white noise of s: s^2 at every k
-    ky = 2 * math.pi * torch.fft.fftfreq(h, device=res.device, dtype=res.dtype)
-    kx = 2 * math.pi * torch.fft.fftfreq(w, device=res.device, dtype=res.dtype)
-    k2 = ky[:, None] ** 2 + kx[None, :] ** 2
-    amplitude_template = torch.exp(-k2 * sigma_px**2)
-    position_template = k2 * amplitude_template
-    s2 = noise_std**2
-    amplitude = float((amplitude_template * power).sum() / (s2 * amplitude_template.sum()))
-    position = float((position_template * power).sum() / (s2 * position_template.sum()))
-    return math.sqrt(max(position, 0.0)), math.sqrt(max(amplitude, 0.0))
 
 
 def evidence_scores(pred, truth, radius_A: float = 0.75, mean_shift: bool = False) -> dict:

@@ -222,12 +222,8 @@ def attach_evidence(model, atoms: AtomSet, noise: float, read, hard_core_A: floa
     residual's level and spectrum ``read`` (:func:`residual_noise`), ``noise`` in input units);
     prints what the residual holds beyond the views' own noise and the precision against the
     isolated atom's Cramér-Rao bound (the ``position_std_A`` it replaces)."""
-    from gaussian_atoms_method.atoms.evidence import (
-        atom_evidence,
-        depth_profile_pulls,
-        residual_spectrum_factors,
-        view_scores,
-    )
+    from gaussian_atoms_method.atoms.evidence import atom_evidence, depth_profile_pulls
+    from gaussian_atoms_method.atoms.information import residual_spectrum_factors, view_scores
 
     series = model.view_set.series
     scale = model.normalisation.data_scale

@@ -1,0 +1,196 @@
+"""The views' information about Gaussian atoms and the pull of a residual on them, in closed form.
+
+An atom (position ``r``, width ``sigma``, 3D peak ``q``) is, in a view with detector axes ``P_v``
+(2 x 3), the 2D Gaussian ``g(u) = q sigma sqrt(2 pi) exp(-|u - P_v r|^2 / (2 sigma^2))``.  The
+pixel sum of the product of two atoms' derivatives (:func:`pair_information`) is the Fisher
+information between their parameters (over the pixel noise's variance); the pixel sum of a
+residual against an atom's derivatives (:func:`view_scores`) is the pull it leaves on them; the
+residual's spectrum says how much more than white noise it weighs at an atom's scale
+(:func:`residual_spectrum_factors`).  :mod:`.evidence` builds each atom's evidence from them.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+
+def _gaussian_products(mu_i, mu_j, s_i, s_j):
+    """Product of two 2D Gaussians of centres ``mu`` (..., 2) and widths ``s`` (...): the
+    weight ``exp(-|mu_i - mu_j|^2 / (2 S)) 2 pi tau^2`` and the offsets ``a = m - mu`` of each centre
+    from the product's centre ``m``, and ``tau^2``."""
+    s2i, s2j = s_i**2, s_j**2
+    total = s2i + s2j
+    tau2 = s2i * s2j / total
+    d = mu_i - mu_j
+    weight = np.exp(-np.einsum("...k,...k->...", d, d) / (2 * total)) * 2 * np.pi * tau2
+    m = (mu_i * s2j[..., None] + mu_j * s2i[..., None]) / total[..., None]
+    return weight, m - mu_i, m - mu_j, tau2
+
+
+def pair_information(r_i, r_j, sigma_i, sigma_j, q_i, q_j, axes, pixel_size_A: float) -> np.ndarray:
+    """``sum_v integral (dg_i/da)(dg_j/db) du / p^2`` for P pairs of atoms: (P, 5, 5) blocks, rows
+    the derivatives of atom i by (x, y, z, sigma, q), columns those of atom j.  Divide by the
+    pixel noise's variance for the Fisher information.
+
+    Parameters
+    ----------
+    r_i, r_j : (P, 3) arrays, Å
+    sigma_i, sigma_j, q_i, q_j : (P,) arrays
+        Widths (Å) and 3D peaks (projection units per Å).
+    axes : (V, 2, 3) array
+        Each view's detector rows and columns in the world.
+    pixel_size_A : float
+
+    Examples
+    --------
+    One atom alone: its amplitude's information is ``sum_v pi sigma^2 (A/q)^2 / p^2``.
+
+    >>> axes = np.array([[[1.0, 0, 0], [0, 1, 0]]])
+    >>> block = pair_information(np.zeros((1, 3)), np.zeros((1, 3)), np.ones(1), np.ones(1),
+    ...                          np.ones(1), np.ones(1), axes, 1.0)
+    >>> bool(np.isclose(block[0, 4, 4], np.pi * 2 * np.pi))
+    True
+    """
+    axes = np.asarray(axes, dtype=np.float64)[:, :2, :]
+    r_i, r_j = np.asarray(r_i, np.float64), np.asarray(r_j, np.float64)
+    sigma_i, sigma_j = np.asarray(sigma_i, np.float64), np.asarray(sigma_j, np.float64)
+    q_i, q_j = np.asarray(q_i, np.float64), np.asarray(q_j, np.float64)
+    mu_i = np.einsum("vkc,pc->pvk", axes, r_i)  # (P, V, 2)
+    mu_j = np.einsum("vkc,pc->pvk", axes, r_j)
+    si, sj = np.broadcast_to(sigma_i[:, None], mu_i.shape[:2]), np.broadcast_to(sigma_j[:, None], mu_i.shape[:2])
+    weight, a_i, a_j, tau2 = _gaussian_products(mu_i, mu_j, si, sj)
+    peak_i, peak_j = q_i * sigma_i * math.sqrt(2 * math.pi), q_j * sigma_j * math.sqrt(2 * math.pi)
+    c = weight * (peak_i * peak_j)[:, None] / pixel_size_A**2  # (P, V)
+    s2i, s2j = si**2, sj**2
+    eye = np.eye(2)
+    # E[(w + a_i)(w + a_j)^T] = tau^2 I + a_i a_j^T, over sigma_i^2 sigma_j^2
+    mm = (tau2[..., None, None] * eye + a_i[..., :, None] * a_j[..., None, :]) / (s2i * s2j)[..., None, None]
+    ai2, aj2, aiaj = (a_i**2).sum(-1), (a_j**2).sum(-1), (a_i * a_j).sum(-1)
+    ex, ey = 2 * tau2 + ai2, 2 * tau2 + aj2  # E|w + a_i|^2, E|w + a_j|^2
+    exy = 8 * tau2**2 + 2 * tau2 * (ai2 + aj2) + 4 * tau2 * aiaj + ai2 * aj2
+    # E[(w + a_i) |w + a_j|^2] = 2 tau^2 a_j + a_i (2 tau^2 + |a_j|^2), and with i, j exchanged
+    wi_yj = 2 * tau2[..., None] * a_j + a_i * ey[..., None]
+    wj_xi = 2 * tau2[..., None] * a_i + a_j * ex[..., None]
+    mu_sigma = (a_i / sj[..., None] + wi_yj / (sj**3)[..., None]) / s2i[..., None]  # d mu_i, d sigma_j
+    sigma_mu = (a_j / si[..., None] + wj_xi / (si**3)[..., None]) / s2j[..., None]  # d sigma_i, d mu_j
+    ss = 1 / (si * sj) + ey / (si * sj**3) + ex / (si**3 * sj) + exy / (si**3 * sj**3)
+    qi, qj = q_i[:, None], q_j[:, None]
+    mu_q = a_i / (s2i * qj)[..., None]  # d mu_i, d q_j
+    q_mu = a_j / (s2j * qi)[..., None]  # d q_i, d mu_j
+    sigma_q = (1 / si + ex / si**3) / qj
+    q_sigma = (1 / sj + ey / sj**3) / qi
+    qq = 1 / (qi * qj) * np.ones_like(si)
+    out = np.zeros((len(r_i), 5, 5))
+    # positions: P_v^T (.) P_v, summed over the views with the weights c
+    out[:, :3, :3] = np.einsum("pv,vkc,pvkl,vld->pcd", c, axes, mm, axes, optimize=True)
+    out[:, :3, 3] = np.einsum("pv,vkc,pvk->pc", c, axes, mu_sigma, optimize=True)
+    out[:, 3, :3] = np.einsum("pv,vkc,pvk->pc", c, axes, sigma_mu, optimize=True)
+    out[:, :3, 4] = np.einsum("pv,vkc,pvk->pc", c, axes, mu_q, optimize=True)
+    out[:, 4, :3] = np.einsum("pv,vkc,pvk->pc", c, axes, q_mu, optimize=True)
+    out[:, 3, 3] = (c * ss).sum(1)
+    out[:, 3, 4] = (c * sigma_q).sum(1)
+    out[:, 4, 3] = (c * q_sigma).sum(1)
+    out[:, 4, 4] = (c * qq).sum(1)
+    return out
+
+
+def view_scores(
+    positions_A: np.ndarray,
+    sigmas_A: np.ndarray,
+    amplitudes: np.ndarray,
+    detector_axes: np.ndarray,
+    residuals: np.ndarray,
+    pixel_size_A: float,
+    centre_px,
+    reach_sigmas: float = 4.0,
+) -> np.ndarray:
+    """Each view's pull on each atom: ``sum_pixels r_v(u) dg/d(x, y, z, sigma, q)`` over the view's
+    residual ``r_v``, (N, V, 5).  Their spread over the views is what the residual that is there
+    does to the fit (:func:`atom_evidence`'s sandwich); pixels beyond ``reach_sigmas`` widths of an
+    atom's centre are left out (its derivatives hold under 1e-3 of their weight there).
+
+    Parameters
+    ----------
+    positions_A : (N, 3) array, Å about the tilt centre
+    sigmas_A, amplitudes : (N,) arrays
+    detector_axes : (V, 2, 3) or (V, 3, 3) array
+    residuals : (V, H, W) array
+        Measured minus predicted views, projection units.
+    pixel_size_A : float
+    centre_px : (2,) the detector pixel of the tilt centre
+    """
+    axes = np.asarray(detector_axes, dtype=np.float64)[:, :2, :]
+    res = np.asarray(residuals, dtype=np.float64)
+    positions = np.asarray(positions_A, np.float64).reshape(-1, 3)
+    sigmas, amps = np.asarray(sigmas_A, np.float64).ravel(), np.asarray(amplitudes, np.float64).ravel()
+    out = np.zeros((len(positions), res.shape[0], 5))
+    reach = np.ceil(reach_sigmas * sigmas / pixel_size_A).astype(np.int64) + 1
+    # atoms of like reach together: one wide Gaussian does not widen every atom's window
+    for size in np.unique(2 ** np.ceil(np.log2(np.maximum(reach, 1))).astype(np.int64)):
+        group = np.flatnonzero(2 ** np.ceil(np.log2(np.maximum(reach, 1))).astype(np.int64) == size)
+        out[group] = _view_scores(
+            positions[group], sigmas[group], amps[group], axes, res, pixel_size_A, centre_px, size
+        )
+    return out
+
+
+def _view_scores(positions, sigmas, amps, axes, res, pixel_size_A, centre_px, reach: int) -> np.ndarray:
+    """:func:`view_scores` of atoms whose windows reach ``reach`` pixels from their centres."""
+    v_count, h, w = res.shape
+    offsets = np.arange(-reach, reach + 1)
+    out = np.zeros((len(positions), v_count, 5))
+    peak = amps * sigmas * math.sqrt(2 * math.pi)
+    for v in range(v_count):
+        mu = positions @ axes[v].T  # (N, 2) Å on the detector
+        centre_pixel = np.rint(mu / pixel_size_A + np.asarray(centre_px, np.float64)).astype(np.int64)
+        rows = centre_pixel[:, 0, None] + offsets[None]  # (N, R)
+        cols = centre_pixel[:, 1, None] + offsets[None]
+        inside = (rows[:, :, None] >= 0) & (rows[:, :, None] < h) & (cols[:, None, :] >= 0) & (cols[:, None, :] < w)
+        values = np.where(inside, res[v][np.clip(rows, 0, h - 1)[:, :, None], np.clip(cols, 0, w - 1)[:, None, :]], 0)
+        du = (rows - np.asarray(centre_px)[0]) * pixel_size_A - mu[:, :1]  # (N, R) u - mu along rows
+        dw = (cols - np.asarray(centre_px)[1]) * pixel_size_A - mu[:, 1:]
+        d2 = du[:, :, None] ** 2 + dw[:, None, :] ** 2
+        s2 = sigmas[:, None, None] ** 2
+        g = peak[:, None, None] * np.exp(-d2 / (2 * s2)) * values  # r g
+        pull_row = (g * du[:, :, None]).sum((1, 2)) / sigmas**2
+        pull_col = (g * dw[:, None, :]).sum((1, 2)) / sigmas**2
+        out[:, v, :3] = pull_row[:, None] * axes[v, 0] + pull_col[:, None] * axes[v, 1]
+        out[:, v, 3] = (g * (1 / sigmas[:, None, None] + d2 / sigmas[:, None, None] ** 3)).sum((1, 2))
+        out[:, v, 4] = g.sum((1, 2)) / amps
+    return out
+
+
+def residual_spectrum_factors(residuals, noise_std: float, sigma_px: float) -> tuple[float, float]:
+    """How much more the residual weighs at the atoms' scale than white noise of ``noise_std``:
+    for a matched template ``t`` (an atom's image, or its derivative along a detector axis) the
+    variance of its fit under noise of power spectrum ``P(k)`` is ``sum |T(k)|^2 P(k)`` against
+    ``s^2 sum |T(k)|^2`` for white noise.  Returns the square roots for the position's template
+    (``|T|^2 ~ k^2 exp(-k^2 sigma^2)``) and the amplitude's (``exp(-k^2 sigma^2)``): 1 for white
+    noise of ``noise_std``, above 1 where the residual holds more at the atoms' scale (a smooth
+    misfit weighs on the amplitude, a grainy one on the position).
+
+    Parameters
+    ----------
+    residuals : (V, H, W) array or tensor
+        Measured minus predicted views, projection units (a tensor is read where it lies).
+    noise_std : float
+        The level the evidence assumes (white), projection units.
+    sigma_px : float
+        The atoms' typical width, pixels.
+    """
+    res = torch.as_tensor(residuals).double()
+    res = res - res.mean(dim=(1, 2), keepdim=True)
+    h, w = res.shape[1:]
+    power = (torch.fft.fft2(res).abs() ** 2).mean(dim=0) / (h * w)  # white noise of s: s^2 at every k
+    ky = 2 * math.pi * torch.fft.fftfreq(h, device=res.device, dtype=res.dtype)
+    kx = 2 * math.pi * torch.fft.fftfreq(w, device=res.device, dtype=res.dtype)
+    k2 = ky[:, None] ** 2 + kx[None, :] ** 2
+    amplitude_template = torch.exp(-k2 * sigma_px**2)
+    position_template = k2 * amplitude_template
+    s2 = noise_std**2
+    amplitude = float((amplitude_template * power).sum() / (s2 * amplitude_template.sum()))
+    position = float((position_template * power).sum() / (s2 * position_template.sum()))
+    return math.sqrt(max(position, 0.0)), math.sqrt(max(amplitude, 0.0))
