@@ -124,13 +124,23 @@ def test_reconstruct_takes_a_hyperspy_signal(particle, tmp_path):
 def test_a_kept_run_loads_back_as_the_viewer_loads_it(particle, tmp_path):
     """With ``output_dir`` the run's config.yml names data that are kept beside it, so the run
     loads back as ``ns-viewer`` and ``gaussian-atoms view`` load it, with the Gaussians whose
-    atoms were written (to the 1e-8 Å the file keeps)."""
+    atoms were written (to the 1e-8 Å the file keeps).  Under umask 022 everything written, the
+    kept tilt series' directory too, is readable by a colleague on the same machine."""
+    import os
+    import stat
+
     from gaussian_atoms_method.nerfstudio_layer.launch import load_model
 
     truth, angles, projections = particle
-    atoms = ga.reconstruct(
-        projections, angles, 0.25, device="cpu", max_num_iterations=300, progress=False, output_dir=tmp_path
-    )
+    mask = os.umask(0o022)
+    try:
+        atoms = ga.reconstruct(
+            projections, angles, 0.25, device="cpu", max_num_iterations=300, progress=False, output_dir=tmp_path
+        )
+    finally:
+        os.umask(mask)
+    unreadable = [p for p in tmp_path.rglob("*") if stat.S_IMODE(p.stat().st_mode) & 0o044 != 0o044]
+    assert not unreadable
     model = load_model(atoms.info["run_dir"] / "config.yml")
     gaussians = model.atoms().positions
     nearest = np.min(np.linalg.norm(atoms.positions[:, None] - gaussians[None], axis=-1), axis=1)
