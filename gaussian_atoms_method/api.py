@@ -13,7 +13,6 @@ line the CLI prints for the same input.
 from __future__ import annotations
 
 import dataclasses
-import os
 import shutil
 import tempfile
 from pathlib import Path
@@ -141,10 +140,10 @@ def _kept_series_dir(output_dir: Path) -> Path:
 
     parent = output_dir / "reconstruct" / "tilt_series"
     parent.mkdir(parents=True, exist_ok=True)
+    from gaussian_atoms_method.atoms.atom_set import current_umask
+
     made = Path(tempfile.mkdtemp(prefix=time.strftime("%Y-%m-%d_%H%M%S_"), dir=parent))
-    mask = os.umask(0o022)  # read by setting it and setting it back
-    os.umask(mask)
-    made.chmod(0o777 & ~mask)  # mkdtemp makes it 0700; the directory follows the umask as mkdir would
+    made.chmod(0o777 & ~current_umask())  # mkdtemp makes it 0700; the directory follows the umask as mkdir would
     return made
 
 

@@ -174,7 +174,7 @@ class AtomSet:
         )
 
 
-def _umask() -> int:
+def current_umask() -> int:
     """The process's umask (read by setting it and setting it back)."""
     mask = os.umask(0o022)
     os.umask(mask)
@@ -189,7 +189,7 @@ def _atomic_write(path: Path, write) -> None:
     os.close(fd)
     try:
         write(Path(tmp))
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes it 0600; the file follows the umask as open() would
+        os.chmod(tmp, 0o666 & ~current_umask())  # mkstemp makes it 0600; the file follows the umask as open() would
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

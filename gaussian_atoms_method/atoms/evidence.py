@@ -214,6 +214,7 @@ def atom_evidence(
     covariances = np.full((n, 3, 3), np.nan)
     offsets = sorted(moved_pulls) if moved_pulls else []
     rises = np.full((n, len(offsets)), np.inf)
+    depth_axis_all = depth_axis_of(axes) if offsets else None
     for a in np.flatnonzero(np.ones(n, bool) if targets is None else targets):
         local = [a, *neighbours[a]]
         k = len(local)
@@ -241,7 +242,18 @@ def atom_evidence(
         covariances[a] = covariance[:3, :3]
         if moved_pulls is not None and scores is not None:
             rises[a] = _depth_rises(
-                a, local, info, scores, moved_pulls, positions, sigmas, amps, axes, pixel_size_A, hard_core_A
+                a,
+                local,
+                info,
+                scores,
+                moved_pulls,
+                positions,
+                sigmas,
+                amps,
+                axes,
+                pixel_size_A,
+                hard_core_A,
+                depth_axis_all,
             )
         # taken out: the atom's amplitude against every parameter of its neighbours
         keep = np.r_[4, np.arange(5, 5 * k)]
@@ -254,9 +266,8 @@ def atom_evidence(
     values, vectors = np.linalg.eigh(np.nan_to_num(covariances))
     depth_half = np.where(np.isnan(covariances[:, 0, 0]), np.nan, Z95 * np.sqrt(np.clip(values[:, -1], 0, None)))
     depth_axis = vectors[:, :, -1] * np.sign(vectors[:, 2:3, -1] + 1e-300)  # pointing up the beam
-    with np.errstate(invalid="ignore"):
+    with np.errstate(invalid="ignore"):  # NaN: the atoms not asked for
         proven = significance >= level
-    with np.errstate(invalid="ignore"):
         depth_open = (
             2 * depth_half > 0.5 * hard_core_A
             if hard_core_A is not None and np.isfinite(hard_core_A)
@@ -326,16 +337,16 @@ def depth_profile_pulls(
 
 
 def _depth_rises(
-    a, local, info, scores, moved_pulls, positions, sigmas, amps, axes, pixel_size_A, hard_core_A
+    a, local, info, scores, moved_pulls, positions, sigmas, amps, axes, pixel_size_A, hard_core_A, axis
 ) -> np.ndarray:
     """For each offset of ``moved_pulls``: how much the least-squares cost rises (pixel sums, in
     projection units squared) when atom ``a`` is moved by it along the depth axis and its other
     parameters and every neighbour in ``local`` are re-fitted (linearised about the moved place;
-    ``info``: the local information, pixel sums, the atom first).  A place within the hard core of
+    ``info``: the local information, pixel sums, the atom first; ``axis``: :func:`depth_axis_of`
+    the views, the direction moved along).  A place within the hard core of
     a neighbour is no atom's (infinite): there two Gaussians coincide and the linearised re-fit
     has no meaning."""
     k = len(local)
-    axis = depth_axis_of(axes)
     basis = np.linalg.qr(np.c_[axis, np.eye(3)])[0][:, [1, 2, 0]].T  # rows: two across, then the axis
     turn = np.eye(5 * k)
     turn[:3, :3] = basis

@@ -222,15 +222,18 @@ def score_in_region(pred_A: np.ndarray, model_A: np.ndarray, box: np.ndarray, in
     }
 
 
-def evidence_in_region(atoms: AtomSet, model_A: np.ndarray, box: np.ndarray, inside: np.ndarray) -> dict:
+def evidence_in_region(
+    atoms: AtomSet, model_A: np.ndarray, box: np.ndarray, inside: np.ndarray, shift_A: np.ndarray
+) -> dict:
     """:func:`gaussian_atoms_method.atoms.evidence.evidence_scores` of the reported ``atoms`` in the
-    region ``box`` against the model's atoms ``inside`` it, after the global shift (empty
-    without the atoms' evidence)."""
+    region ``box`` against the model's atoms ``inside`` it, after the global shift ``shift_A``
+    (:func:`score_in_region`'s; empty without the atoms' evidence)."""
     from gaussian_atoms_method.atoms.evidence import evidence_scores
 
     if atoms.proven is None or not len(atoms):
         return {}
-    pred, shift, _, _ = matched_to_model(atoms.positions, model_A, inside)
+    shift = np.asarray(shift_A, dtype=np.float64)
+    pred = atoms.positions + shift
     in_box = np.all((pred >= box[0]) & (pred <= box[1]), axis=1)
     return evidence_scores(atoms.shifted(shift).subset(in_box), AtomSet(model_A[inside]), MATCH_RADIUS_A)
 
@@ -299,9 +302,10 @@ class FilmBenchmark:
             shape = np.load(data / meta["projections"], mmap_mode="r").shape[1:]
             model = model_in_area_A(self.data_dir, area)
             box, inside = scored_region(model, shape, tuple(meta["centre_px"]))
+            scores = score_in_region(atoms.positions, model, box, inside)
             return (
-                score_in_region(atoms.positions, model, box, inside)
-                | evidence_in_region(atoms, model, box, inside)
+                scores
+                | evidence_in_region(atoms, model, box, inside, scores["shift_A"])
                 | {"n_atoms_reported": len(atoms)}
             )
 
