@@ -54,7 +54,7 @@ def noise_reading(projections, loss: str, background: str, noise: NoiseModel | N
     if term == "poisson" and noise.gain <= 0:
         # Forced on additive noise: the Poisson term needs a gain; one count per noise variance
         # makes its weights uniform (it then behaves as L2).
-        noise = NoiseModel(0.0, max(noise.read_var, 1e-12), noise.offset)
+        noise = NoiseModel(0.0, max(noise.read_var, 1e-12), noise.offset, least_mean=noise.least_mean)
     floor, floor_se, frame_var = detector_floor(data)
     off_zero = abs(floor) > FLOOR_Z * floor_se
     found, surfaces, clipped = False, None, False

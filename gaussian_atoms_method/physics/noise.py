@@ -39,7 +39,8 @@ MAD_TO_STD = 1.4826
 
 @dataclass(frozen=True)
 class NoiseModel:
-    """``Var = read_var + gain * max(mean - offset, 0)`` in projection units (squared)."""
+    """``Var = read_var + gain * x + misfit * x^2``, ``x = max(mean, least_mean, offset) - offset``,
+    in projection units (squared)."""
 
     read_var: float
     gain: float
@@ -48,6 +49,13 @@ class NoiseModel:
     gain_se: float = 0.0
     misfit: float = 0.0
     """Variance per squared signal: the fit's relative error, not noise."""
+    least_mean: float = -np.inf
+    """The lowest level the reading saw (its lowest bin's mean less half the step to the next):
+    below it the variance is held
+    at that level's.  The line is read over the levels the data hold; a series with no dark
+    pixel (a support film under every view) fits its intercept by extrapolation, and a
+    Ta film's replica under 30 Å of carbon read 0 for a true 40.5, which put the
+    variance of a pixel the Gaussians leave dark at zero."""
 
     def scaled(self, factor: float) -> "NoiseModel":
         """The same noise for the data multiplied by ``factor`` (the misfit, a relative
@@ -60,6 +68,7 @@ class NoiseModel:
             self.read_var_se * f * f,
             self.gain_se * f,
             self.misfit,
+            self.least_mean * f if f > 0 else -np.inf,
         )
 
     @property
@@ -72,10 +81,11 @@ class NoiseModel:
     def variance(self, mean):
         """Expected variance of a pixel whose noise-free value is ``mean`` (an array, or a tensor:
         then float64 on its device)."""
+        least = max(self.least_mean, self.offset)
         if not isinstance(mean, np.ndarray) and hasattr(mean, "clamp_min"):  # a tensor
-            x = (mean.double() - self.offset).clamp_min(0.0)
+            x = mean.double().clamp_min(least) - self.offset
         else:
-            x = np.maximum(np.asarray(mean, dtype=np.float64) - self.offset, 0.0)
+            x = np.maximum(np.asarray(mean, dtype=np.float64), least) - self.offset
         return self.read_var + self.gain * x + self.misfit * x**2
 
 
@@ -161,7 +171,13 @@ def inflated(noise: NoiseModel, factor: float) -> NoiseModel:
     """``noise`` with every variance term times ``factor`` (standard errors alike)."""
     f = float(factor)
     return NoiseModel(
-        noise.read_var * f, noise.gain * f, noise.offset, noise.read_var_se * f, noise.gain_se * f, noise.misfit * f
+        noise.read_var * f,
+        noise.gain * f,
+        noise.offset,
+        noise.read_var_se * f,
+        noise.gain_se * f,
+        noise.misfit * f,
+        noise.least_mean,
     )
 
 
@@ -313,7 +329,7 @@ def fit_noise_model(
     centres, variances, counts = binned_variance(residuals, predicted, bins, robust=robust, device=device)
     if len(centres) < 2:
         var = float(variances[0]) if len(variances) else float(np.var(as_array(residuals)))
-        return NoiseModel(max(var, 0.0), 0.0, offset)
+        return NoiseModel(max(var, 0.0), 0.0, offset, least_mean=float(centres[0]) if len(centres) else -np.inf)
     x = np.maximum(centres - offset, 0.0)
     # Noiseless data (tests, simulations without noise) give zero variances: weights stay finite.
     variances = np.maximum(variances, 1e-12 * max(float(variances.max()), float(np.abs(centres).max()) ** 2, 1e-300))
@@ -331,7 +347,8 @@ def fit_noise_model(
     read_se, gain_se = float(np.sqrt(cov[0, 0])), float(np.sqrt(cov[1, 1]))
     if gain < z_min * gain_se:
         gain = 0.0
-    return NoiseModel(max(read_var, 0.0), max(gain, 0.0), offset, read_se, gain_se, max(misfit, 0.0))
+    lowest = float(centres[0] - 0.5 * (centres[1] - centres[0]))  # the lowest bin's lower edge
+    return NoiseModel(max(read_var, 0.0), max(gain, 0.0), offset, read_se, gain_se, max(misfit, 0.0), lowest)
 
 
 IMMERKAER_KERNEL = np.outer([1.0, -2.0, 1.0], [1.0, -2.0, 1.0])
