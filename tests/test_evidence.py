@@ -240,3 +240,64 @@ def test_the_depth_profile_is_the_cost_of_the_atom_moved_with_the_rest_refitted(
     assert not ev.depth_open[0]
     loud = atom_evidence(p[:, :3], p[:, 3], p[:, 4], axes, PIXEL_A, 120 * noise, 1.0, scores=pulls, moved_pulls=moved)
     assert np.all(loud.depth_profile[0] < Z95**2) and loud.depth_open[0] and loud.depth_halfwidth_A[0] >= 1.5
+
+
+def _cluster(n: int, seed: int = 0):
+    """An amorphous Pd cluster of ``n`` atoms seen over a 29-view limited series, each atom with
+    its own width and mass, views' pulls and moved pulls drawn at random (the algebra does not
+    care that they are not a fit's)."""
+    from gaussian_atoms_method.harness.particles import amorphous_packing
+
+    rng = np.random.default_rng(seed)
+    positions = amorphous_packing(n, ("Pd",), 2.5, rng).positions
+    axes = detector_axes_from_tilts(np.linspace(-70, 70, 29))
+    sigmas, amps = rng.uniform(0.3, 0.45, n), rng.uniform(50, 80, n)
+    scores = rng.normal(0, 5.0, (n, 29, 5))
+    moved = {o: rng.normal(0, 20.0, (n, 5)) for o in (-1.5, -0.75, 0.75, 1.5)}
+    return positions, sigmas, amps, axes, scores, moved
+
+
+def test_atoms_solved_together_are_each_alone(monkeypatch):
+    """The local solves run in batches of atoms with as many neighbours (and batches cut to a
+    budget); every atom's evidence is the same, to rounding, as when it is asked for alone."""
+    import gaussian_atoms_method.atoms.evidence as evidence
+
+    positions, sigmas, amps, axes, scores, moved = _cluster(120)
+    kw = dict(hard_core_A=1.5, scores=scores, moved_pulls=moved)
+    monkeypatch.setattr(evidence, "BATCH_ELEMENTS", 2e5)  # batches of a few atoms
+    together = atom_evidence(positions, sigmas, amps, axes, 0.4, 10.0, **kw)
+    assert np.isfinite(together.significance).all()
+    for a in (0, 17, 60, 119):
+        alone = atom_evidence(positions, sigmas, amps, axes, 0.4, 10.0, targets=np.arange(120) == a, **kw)
+        for name in ("significance", "position_std_A", "depth_halfwidth_A", "depth_profile"):
+            np.testing.assert_allclose(getattr(alone, name)[a], getattr(together, name)[a], rtol=1e-9)
+
+
+def test_the_amplitude_coupling_is_the_informations():
+    """The coupling that picks an atom's neighbours, read without the rest of the blocks, is
+    ``|F_qiqj| / sqrt(F_qiqi F_qjqj)`` of the full information, and 1 for an atom with itself."""
+    from gaussian_atoms_method.atoms.information import amplitude_coupling
+
+    positions, sigmas, amps, axes, _, _ = _cluster(60, seed=1)
+    i, j = np.triu_indices(60, 1)
+    blocks = pair_information(positions[i], positions[j], sigmas[i], sigmas[j], amps[i], amps[j], axes, 0.4)
+    own = pair_information(positions, positions, sigmas, sigmas, amps, amps, axes, 0.4)
+    rho = np.abs(blocks[:, 4, 4]) / np.sqrt(own[i, 4, 4] * own[j, 4, 4])
+    np.testing.assert_allclose(amplitude_coupling(positions[i], positions[j], sigmas[i], sigmas[j], axes), rho)
+    np.testing.assert_allclose(amplitude_coupling(positions, positions, sigmas, sigmas, axes), 1.0)
+
+
+def test_the_views_pulls_in_torch_are_numpys():
+    """:func:`view_scores` batched in torch (a GPU's way) equals the host's numpy, view by view,
+    atoms near and beyond the detector's edges included."""
+    from gaussian_atoms_method.atoms.information import view_scores
+    from gaussian_atoms_method.physics.devices import HOST
+
+    rng = np.random.default_rng(2)
+    positions = rng.uniform(-22, 22, (300, 3))
+    sigmas, amps = rng.uniform(0.3, 0.9, 300), rng.uniform(10, 80, 300)
+    axes = detector_axes_from_tilts(np.linspace(-70, 70, 9))
+    residual = rng.normal(0, 3, (9, 120, 90))
+    host = view_scores(positions, sigmas, amps, axes, residual, 0.4, (60, 45), device=HOST)
+    batched = view_scores(positions, sigmas, amps, axes, torch.as_tensor(residual), 0.4, (60, 45), device="cpu")
+    np.testing.assert_allclose(batched, host, rtol=1e-10, atol=1e-10 * np.abs(host).max())

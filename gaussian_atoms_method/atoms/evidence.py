@@ -45,12 +45,13 @@ a pixel) and with the whole detector in each view.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
+import torch
 
-from gaussian_atoms_method.atoms.information import pair_information, view_scores
+from gaussian_atoms_method.atoms.information import amplitude_coupling, pair_information, view_scores
+from gaussian_atoms_method.physics.devices import work_device
 
 #: Two-sided 95% quantile of the normal distribution.
 Z95 = 1.959963984540054
@@ -66,6 +67,10 @@ atoms' images meet only in the views in which one lies nearly behind the other a
 each such coupling weak; they are many (on a Ta sub-area's 1,880 Gaussians, 2,307 pairs within
 3 Å reach :data:`COUPLING_FLOOR`, 10,555 within 6 Å) and left out: the replicas' coverage of the
 stated intervals (docs/evidence.md) is the check that they may be."""
+
+BATCH_ELEMENTS = 2e7
+"""The most numbers (float64: 160 MB) a batch of atoms' local information holds with its moved
+copies; atoms of as many neighbours are solved together."""
 
 FAMILY_FALSE_ALARM = 0.05
 """The chance that any one of the reported atoms would be called proven were its site pure
@@ -132,6 +137,7 @@ def atom_evidence(
     targets: np.ndarray | None = None,
     chunk_pairs: int = 4096,
     moved_pulls: dict | None = None,
+    device=None,
 ) -> AtomEvidence:
     """Existence, depth and precision of every atom from the views' information (module docstring).
 
@@ -171,6 +177,10 @@ def atom_evidence(
         its neighbours and its other parameters re-fitted, rises by less than ``Z95^2`` noise
         variances (at the atom's scale) at some offset of half the hard core or more: a second
         place the views cannot tell from the first.
+    device : torch device, optional
+        Where the information and the local solves run
+        (:func:`~gaussian_atoms_method.physics.devices.work_device`: a GPU where there is one, else
+        the CPU); the neighbour search and the bookkeeping stay on the host.
 
     Returns
     -------
@@ -193,73 +203,73 @@ def atom_evidence(
     # the information within each atom and between the pairs that may couple
     diagonal = pair_information(positions, positions, sigmas, sigmas, amps, amps, axes, pixel_size_A)
     pairs = _pairs(positions, NEIGHBOUR_SEARCH_A)
+    coupled = np.zeros(len(pairs), bool)
+    for start in range(0, len(pairs), chunk_pairs):
+        i, j = pairs[start : start + chunk_pairs].T
+        coupled[start : start + chunk_pairs] = (
+            amplitude_coupling(positions[i], positions[j], sigmas[i], sigmas[j], axes) >= COUPLING_FLOOR
+        )
+    pairs = pairs[coupled]
     blocks = np.zeros((len(pairs), 5, 5))
     for start in range(0, len(pairs), chunk_pairs):
         i, j = pairs[start : start + chunk_pairs].T
         blocks[start : start + chunk_pairs] = pair_information(
             positions[i], positions[j], sigmas[i], sigmas[j], amps[i], amps[j], axes, pixel_size_A
         )
-    if len(pairs):
-        rho = np.abs(blocks[:, 4, 4]) / np.sqrt(diagonal[pairs[:, 0], 4, 4] * diagonal[pairs[:, 1], 4, 4])
-        keep = rho >= COUPLING_FLOOR
-        pairs, blocks = pairs[keep], blocks[keep]
-    neighbours: list[list[int]] = [[] for _ in range(n)]
-    block_of: dict[tuple[int, int], np.ndarray] = {}
-    for (i, j), block in zip(pairs.tolist(), blocks):
-        neighbours[i].append(j)
-        neighbours[j].append(i)
-        block_of[(i, j)] = block
     variance = noise_std**2 * (L1_EFFICIENCY_FACTOR if loss == "l1" else 1.0)
     significance = np.full(n, np.nan)
     covariances = np.full((n, 3, 3), np.nan)
     offsets = sorted(moved_pulls) if moved_pulls else []
     rises = np.full((n, len(offsets)), np.inf)
     depth_axis_all = depth_axis_of(axes) if offsets else None
-    for a in np.flatnonzero(np.ones(n, bool) if targets is None else targets):
-        local = [a, *neighbours[a]]
-        k = len(local)
-        info = np.zeros((5 * k, 5 * k))
-        where = {atom: slot for slot, atom in enumerate(local)}
-        for slot, atom in enumerate(local):
-            info[5 * slot : 5 * slot + 5, 5 * slot : 5 * slot + 5] = diagonal[atom]
-        for s1 in range(k):
-            for atom in neighbours[local[s1]]:
-                s2 = where.get(atom)
-                if s2 is None or s2 <= s1:
-                    continue
-                i, j = local[s1], atom
-                block = block_of[(i, j)] if (i, j) in block_of else block_of[(j, i)].T
-                info[5 * s1 : 5 * s1 + 5, 5 * s2 : 5 * s2 + 5] = block
-                info[5 * s2 : 5 * s2 + 5, 5 * s1 : 5 * s1 + 5] = block.T
+    wanted = np.flatnonzero(np.ones(n, bool) if targets is None else targets)
+    where = work_device(None, device) or torch.device("cpu")
+    scores_on = None if scores is None else torch.as_tensor(np.asarray(scores, np.float64), device=where)
+    moved_on = (
+        None
+        if moved_pulls is None or scores is None
+        else torch.as_tensor(np.stack([moved_pulls[o] for o in offsets]), dtype=torch.float64, device=where)
+    )
+    for atoms, local, info in _local_information(wanted, pairs, blocks, diagonal, len(offsets)):
+        k, info, local_on = local.shape[1], torch.as_tensor(info, device=where), torch.as_tensor(local, device=where)
         # a parameter the views do not fix (an amplitude of zero, a width at its bound) would make
         # the information singular: a ridge of 1e-9 of the diagonal leaves the rest unchanged
-        info[np.diag_indices_from(info)] += 1e-9 * np.maximum(np.diag(info), 1e-300)
-        covariance = np.linalg.inv(info)
-        if scores is not None:
-            pulls = scores[local].transpose(1, 0, 2).reshape(scores.shape[1], 5 * k)  # (V, 5k)
-            spread = pulls.T @ pulls * (len(pulls) / max(len(pulls) - 1, 1))
-            covariance = covariance[:3] @ spread @ covariance[:, :3]
-        covariances[a] = covariance[:3, :3]
-        if moved_pulls is not None and scores is not None:
-            rises[a] = _depth_rises(
-                a,
-                local,
-                info,
-                scores,
-                moved_pulls,
-                positions,
-                sigmas,
-                amps,
-                axes,
-                pixel_size_A,
-                hard_core_A,
-                depth_axis_all,
+        info = info + torch.diag_embed(1e-9 * torch.diagonal(info, dim1=1, dim2=2).clamp_min(1e-300))
+        covariance = torch.linalg.inv(info)
+        if scores_on is not None:  # the sandwich, from the position's rows: (C P^T)(P C^T)
+            pulls = scores_on[local_on].permute(0, 2, 1, 3).reshape(len(atoms), scores.shape[1], 5 * k)  # (B, V, 5k)
+            rows = covariance[:, :3] @ pulls.transpose(1, 2)  # (B, 3, V)
+            spread = rows @ rows.transpose(1, 2) * (pulls.shape[1] / max(pulls.shape[1] - 1, 1))
+            covariances[atoms] = spread.cpu().numpy()
+        else:
+            covariances[atoms] = covariance[:, :3, :3].cpu().numpy()
+        if moved_on is not None:
+            rises[atoms] = (
+                _depth_rises(
+                    local,
+                    info,
+                    scores_on,
+                    moved_on,
+                    offsets,
+                    positions,
+                    sigmas,
+                    amps,
+                    axes,
+                    pixel_size_A,
+                    hard_core_A,
+                    depth_axis_all,
+                )
+                .cpu()
+                .numpy()
             )
-        # taken out: the atom's amplitude against every parameter of its neighbours
-        keep = np.r_[4, np.arange(5, 5 * k)]
-        # the Schur complement: q^2 / [M^-1]_qq is the cost of taking it out, in noise variances
-        q_variance = np.linalg.inv(info[np.ix_(keep, keep)])[0, 0] * (noise_std * amplitude_factor) ** 2
-        significance[a] = abs(amps[a]) / math.sqrt(max(q_variance, 1e-300))
+        # taken out: the atom's amplitude against every parameter of its neighbours; the Schur
+        # complement q^2 / [M^-1]_qq is the cost of taking it out, in noise variances
+        keep = torch.as_tensor(np.r_[4, np.arange(5, 5 * k)], device=where)
+        unit = torch.zeros((len(atoms), len(keep), 1), dtype=torch.float64, device=where)
+        unit[:, 0] = 1.0
+        q_inverse = torch.linalg.solve(info[:, keep][:, :, keep], unit)[:, 0, 0].cpu().numpy()
+        q_variance = q_inverse * (noise_std * amplitude_factor) ** 2
+        significance[atoms] = np.abs(amps[atoms]) / np.sqrt(np.maximum(q_variance, 1e-300))
     if scores is None:  # in units of the information's noise variance
         covariances = covariances * variance * position_factor**2
     position_std = np.sqrt(np.clip(np.einsum("nii->ni", covariances), 0, None))
@@ -336,62 +346,99 @@ def depth_profile_pulls(
     return out
 
 
+def _local_information(wanted, pairs, blocks, diagonal, n_offsets: int, budget: float = BATCH_ELEMENTS):
+    """The information of each wanted atom with its neighbours, in batches of atoms with as many
+    neighbours: yields ``(atoms (B,), local (B, k), info (B, 5k, 5k))``, ``local[:, 0]`` the atom,
+    the rest its neighbours (the atoms ``pairs`` join it to), ``info`` their (5, 5) blocks:
+    ``diagonal`` (N, 5, 5) on the diagonal, ``blocks`` (P, 5, 5) (rows: the pair's first atom)
+    between pairs, zero between neighbours not paired.  A batch holds at most ``budget`` numbers
+    with its ``n_offsets`` moved copies (:func:`_depth_rises`)."""
+    n = len(diagonal)
+    rows, cols = np.r_[pairs[:, 0], pairs[:, 1]], np.r_[pairs[:, 1], pairs[:, 0]]
+    both = np.concatenate([blocks, blocks.transpose(0, 2, 1)])  # the (row, col) block of each ordered pair
+    order = np.lexsort((cols, rows))
+    rows, cols, both = rows[order], cols[order], both[order]
+    keys = rows * n + cols
+    degree = np.bincount(rows, minlength=n)
+    first = np.r_[0, np.cumsum(degree)]
+    for others in np.unique(degree[wanted]):
+        group, k = wanted[degree[wanted] == others], int(others) + 1
+        size = max(1, int(budget // (25 * k * k * (1 + n_offsets))))
+        for c in range(0, len(group), size):
+            atoms = group[c : c + size]
+            local = np.c_[atoms, cols[first[atoms][:, None] + np.arange(others)]].astype(np.int64)
+            info = np.zeros((len(atoms), k, k, 5, 5))
+            slots = np.arange(k)
+            info[:, slots, slots] = diagonal[local]
+            if others:
+                key = local[:, :, None] * n + local[:, None, :]
+                at = np.minimum(np.searchsorted(keys, key), len(keys) - 1)
+                hit = keys[at] == key
+                hit[:, slots, slots] = False
+                info[hit] = both[at[hit]]
+            yield atoms, local, info.transpose(0, 1, 3, 2, 4).reshape(len(atoms), 5 * k, 5 * k)
+
+
 def _depth_rises(
-    a, local, info, scores, moved_pulls, positions, sigmas, amps, axes, pixel_size_A, hard_core_A, axis
-) -> np.ndarray:
-    """For each offset of ``moved_pulls``: how much the least-squares cost rises (pixel sums, in
-    projection units squared) when atom ``a`` is moved by it along the depth axis and its other
-    parameters and every neighbour in ``local`` are re-fitted (linearised about the moved place;
-    ``info``: the local information, pixel sums, the atom first; ``axis``: :func:`depth_axis_of`
-    the views, the direction moved along).  A place within the hard core of
-    a neighbour is no atom's (infinite): there two Gaussians coincide and the linearised re-fit
-    has no meaning."""
-    k = len(local)
+    local, info, scores, moved, offsets, positions, sigmas, amps, axes, pixel_size_A, hard_core_A, axis
+) -> torch.Tensor:
+    """(B, M) for each atom ``local[:, 0]`` and each of the M ``offsets``: how much the
+    least-squares cost rises (pixel sums, in projection units squared) when the atom is moved by
+    it along the depth axis and its other parameters and every neighbour in ``local`` (B, k) are
+    re-fitted (linearised about the moved place; ``info`` (B, 5k, 5k): the local information,
+    pixel sums, the atom first; ``scores`` (N, V, 5) the views' pulls, ``moved`` (M, N, 5) the
+    pulls on the atoms moved by each offset, tensors on ``info``'s device; ``axis``:
+    :func:`depth_axis_of` the views, the direction moved along).  A place within the hard core
+    of a neighbour is no atom's (infinite): there two Gaussians coincide and the linearised
+    re-fit has no meaning."""
+    b, k = local.shape
+    on = dict(dtype=torch.float64, device=info.device)
+    atoms = local[:, 0]
     basis = np.linalg.qr(np.c_[axis, np.eye(3)])[0][:, [1, 2, 0]].T  # rows: two across, then the axis
-    turn = np.eye(5 * k)
-    turn[:3, :3] = basis
-    keep = np.r_[0, 1, np.arange(3, 5 * k)]  # the atom's place along the axis held
-    pull_now = scores[local].sum(axis=1).reshape(-1)  # J^T r at the fit
-    before = turn @ info @ turn.T
-    sub = before[np.ix_(keep, keep)]
-    b0 = (turn @ pull_now)[keep]
-    baseline = b0 @ np.linalg.solve(sub, b0)
-    offsets = sorted(moved_pulls)
-    moved = positions[a] + np.asarray(offsets)[:, None] * axis  # (M, 3)
-    q = amps[a]
-    others = np.asarray(local[1:], dtype=np.int64)
+    turn = torch.eye(5 * k, **on)
+    turn[:3, :3] = torch.as_tensor(basis, **on)
+    keep = torch.as_tensor(np.r_[0, 1, np.arange(3, 5 * k)], device=info.device)  # the place along the axis held
+    pull_now = scores[torch.as_tensor(local, device=info.device)].sum(dim=2).reshape(b, 5 * k)  # J^T r at the fit
+    sub = (turn @ info @ turn.T)[:, keep][:, :, keep]
+    b0 = (pull_now @ turn.T)[:, keep]
+    baseline = (b0 * torch.linalg.solve(sub, b0[..., None])[..., 0]).sum(-1)
     m = len(offsets)
+    moved_at = positions[atoms][:, None, :] + np.asarray(offsets)[None, :, None] * axis  # (B, M, 3)
+    q = amps[atoms]
     # the moved atom against the old one and against each neighbour, every offset in one call
-    first = np.repeat(moved, k, axis=0)
-    second = np.tile(np.vstack([positions[a], positions[others]]), (m, 1))
-    sig_second = np.tile(np.r_[sigmas[a], sigmas[others]], m)
-    amp_second = np.tile(np.r_[q, amps[others]], m)
     cross = pair_information(
-        first, second, np.full(m * k, sigmas[a]), sig_second, np.full(m * k, q), amp_second, axes, pixel_size_A
-    ).reshape(m, k, 5, 5)  # rows: the moved atom's parameters
-    rises = np.full(m, np.inf)
-    crowded = (
-        np.linalg.norm(moved[:, None, :] - positions[others][None], axis=2).min(axis=1, initial=np.inf) < hard_core_A
-        if hard_core_A is not None
-        else np.zeros(m, bool)
+        np.broadcast_to(moved_at[:, :, None, :], (b, m, k, 3)).reshape(-1, 3),
+        np.broadcast_to(positions[local][:, None], (b, m, k, 3)).reshape(-1, 3),
+        np.broadcast_to(sigmas[atoms][:, None, None], (b, m, k)).ravel(),
+        np.broadcast_to(sigmas[local][:, None], (b, m, k)).ravel(),
+        np.broadcast_to(q[:, None, None], (b, m, k)).ravel(),
+        np.broadcast_to(amps[local][:, None], (b, m, k)).ravel(),
+        axes,
+        pixel_size_A,
+        device=info.device,
     )
-    for i, offset in enumerate(offsets):
-        if crowded[i]:
-            continue
-        with_move = info.copy()
-        for slot in range(1, k):
-            with_move[:5, 5 * slot : 5 * slot + 5] = cross[i, slot]
-            with_move[5 * slot : 5 * slot + 5, :5] = cross[i, slot].T
-        # d = g_moved - g_old: its overlaps with every local derivative (the moved atom's own at its new place)
-        own = q * (info[:5, 4] - cross[i, 0][:, 4])
-        neighbours = q * (cross[i, 1:, 4, :] - info[5:, 4].reshape(k - 1, 5)) if k > 1 else np.zeros((0, 5))
-        pull = np.r_[moved_pulls[offset][a], pull_now[5:]] - np.r_[own, neighbours.reshape(-1)]
-        d2 = 2 * q * q * (info[4, 4] - cross[i, 0][4, 4])
-        rd = q * (moved_pulls[offset][a][4] - pull_now[4])
-        turned = turn @ with_move @ turn.T
-        b = (turn @ pull)[keep]
-        rises[i] = -2 * rd + d2 - b @ np.linalg.solve(turned[np.ix_(keep, keep)], b) + baseline
-    return rises
+    cross = torch.as_tensor(cross, **on).reshape(b, m, k, 5, 5)  # rows: the moved atom's parameters
+    gaps = np.linalg.norm(moved_at[:, :, None, :] - positions[local[:, 1:]][:, None], axis=3)  # (B, M, k - 1)
+    crowded = gaps.min(axis=2, initial=np.inf) < hard_core_A if hard_core_A is not None else np.zeros((b, m), bool)
+    with_move = info[:, None].repeat(1, m, 1, 1)  # (B, M, 5k, 5k)
+    if k > 1:
+        across = cross[:, :, 1:].permute(0, 1, 3, 2, 4).reshape(b, m, 5, 5 * (k - 1))
+        with_move[:, :, :5, 5:] = across
+        with_move[:, :, 5:, :5] = across.transpose(2, 3)
+    # d = g_moved - g_old: its overlaps with every local derivative (the moved atom's own at its new place)
+    qt = torch.as_tensor(q, **on)
+    own = qt[:, None, None] * (info[:, None, :5, 4] - cross[:, :, 0, :, 4])  # (B, M, 5)
+    neighbours = qt[:, None, None, None] * (cross[:, :, 1:, 4, :] - info[:, 5:, 4].reshape(b, 1, k - 1, 5))
+    moved_pull = moved[:, torch.as_tensor(atoms, device=info.device)].transpose(0, 1)  # (B, M, 5)
+    rest = pull_now[:, None, 5:].expand(b, m, 5 * (k - 1))
+    pull = torch.cat([moved_pull - own, rest - neighbours.reshape(b, m, -1)], dim=2)
+    d2 = 2 * qt[:, None] ** 2 * (info[:, None, 4, 4] - cross[:, :, 0, 4, 4])
+    rd = qt[:, None] * (moved_pull[:, :, 4] - pull_now[:, None, 4])
+    turned = (turn @ with_move @ turn.T)[:, :, keep][:, :, :, keep]
+    rhs = (pull @ turn.T)[:, :, keep]
+    refit = (rhs * torch.linalg.solve(turned, rhs[..., None])[..., 0]).sum(-1)
+    rises = -2 * rd + d2 - refit + baseline[:, None]
+    return torch.where(torch.as_tensor(crowded, device=info.device), torch.inf, rises)
 
 
 def evidence_scores(pred, truth, radius_A: float = 0.75, mean_shift: bool = False) -> dict:

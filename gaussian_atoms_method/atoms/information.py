@@ -25,15 +25,17 @@ def _gaussian_products(mu_i, mu_j, s_i, s_j):
     total = s2i + s2j
     tau2 = s2i * s2j / total
     d = mu_i - mu_j
-    weight = np.exp(-np.einsum("...k,...k->...", d, d) / (2 * total)) * 2 * np.pi * tau2
+    weight = torch.exp(-torch.einsum("...k,...k->...", d, d) / (2 * total)) * 2 * math.pi * tau2
     m = (mu_i * s2j[..., None] + mu_j * s2i[..., None]) / total[..., None]
     return weight, m - mu_i, m - mu_j, tau2
 
 
-def pair_information(r_i, r_j, sigma_i, sigma_j, q_i, q_j, axes, pixel_size_A: float) -> np.ndarray:
+def pair_information(r_i, r_j, sigma_i, sigma_j, q_i, q_j, axes, pixel_size_A: float, device=None) -> np.ndarray:
     """``sum_v integral (dg_i/da)(dg_j/db) du / p^2`` for P pairs of atoms: (P, 5, 5) blocks, rows
     the derivatives of atom i by (x, y, z, sigma, q), columns those of atom j.  Divide by the
-    pixel noise's variance for the Fisher information.
+    pixel noise's variance for the Fisher information.  Read in torch (float64) on ``device``
+    (:func:`~gaussian_atoms_method.physics.devices.work_device`; without a GPU on the CPU, where
+    it runs twice as fast as numpy's einsums did).
 
     Parameters
     ----------
@@ -51,21 +53,24 @@ def pair_information(r_i, r_j, sigma_i, sigma_j, q_i, q_j, axes, pixel_size_A: f
     >>> axes = np.array([[[1.0, 0, 0], [0, 1, 0]]])
     >>> block = pair_information(np.zeros((1, 3)), np.zeros((1, 3)), np.ones(1), np.ones(1),
     ...                          np.ones(1), np.ones(1), axes, 1.0)
-    >>> bool(np.isclose(block[0, 4, 4], np.pi * 2 * np.pi))
+    >>> bool(np.isclose(block[0, 4, 4], math.pi * 2 * math.pi))
     True
     """
-    axes = np.asarray(axes, dtype=np.float64)[:, :2, :]
-    r_i, r_j = np.asarray(r_i, np.float64), np.asarray(r_j, np.float64)
-    sigma_i, sigma_j = np.asarray(sigma_i, np.float64), np.asarray(sigma_j, np.float64)
-    q_i, q_j = np.asarray(q_i, np.float64), np.asarray(q_j, np.float64)
-    mu_i = np.einsum("vkc,pc->pvk", axes, r_i)  # (P, V, 2)
-    mu_j = np.einsum("vkc,pc->pvk", axes, r_j)
-    si, sj = np.broadcast_to(sigma_i[:, None], mu_i.shape[:2]), np.broadcast_to(sigma_j[:, None], mu_i.shape[:2])
+    from gaussian_atoms_method.physics.devices import work_device
+
+    where = work_device(r_i, device) or torch.device("cpu")
+    axes = torch.as_tensor(np.asarray(axes, dtype=np.float64)[:, :2, :], device=where)
+    r_i, r_j, sigma_i, sigma_j, q_i, q_j = (
+        torch.as_tensor(np.asarray(a, np.float64), device=where) for a in (r_i, r_j, sigma_i, sigma_j, q_i, q_j)
+    )
+    mu_i = torch.einsum("vkc,pc->pvk", axes, r_i)  # (P, V, 2)
+    mu_j = torch.einsum("vkc,pc->pvk", axes, r_j)
+    si, sj = sigma_i[:, None].expand(mu_i.shape[:2]), sigma_j[:, None].expand(mu_i.shape[:2])
     weight, a_i, a_j, tau2 = _gaussian_products(mu_i, mu_j, si, sj)
     peak_i, peak_j = q_i * sigma_i * math.sqrt(2 * math.pi), q_j * sigma_j * math.sqrt(2 * math.pi)
     c = weight * (peak_i * peak_j)[:, None] / pixel_size_A**2  # (P, V)
     s2i, s2j = si**2, sj**2
-    eye = np.eye(2)
+    eye = torch.eye(2, dtype=torch.float64, device=where)
     # E[(w + a_i)(w + a_j)^T] = tau^2 I + a_i a_j^T, over sigma_i^2 sigma_j^2
     mm = (tau2[..., None, None] * eye + a_i[..., :, None] * a_j[..., None, :]) / (s2i * s2j)[..., None, None]
     ai2, aj2, aiaj = (a_i**2).sum(-1), (a_j**2).sum(-1), (a_i * a_j).sum(-1)
@@ -82,19 +87,33 @@ def pair_information(r_i, r_j, sigma_i, sigma_j, q_i, q_j, axes, pixel_size_A: f
     q_mu = a_j / (s2j * qi)[..., None]  # d q_i, d mu_j
     sigma_q = (1 / si + ex / si**3) / qj
     q_sigma = (1 / sj + ey / sj**3) / qi
-    qq = 1 / (qi * qj) * np.ones_like(si)
-    out = np.zeros((len(r_i), 5, 5))
+    qq = 1 / (qi * qj) * torch.ones_like(si)
+    out = torch.zeros((len(r_i), 5, 5), dtype=torch.float64, device=where)
     # positions: P_v^T (.) P_v, summed over the views with the weights c
-    out[:, :3, :3] = np.einsum("pv,vkc,pvkl,vld->pcd", c, axes, mm, axes, optimize=True)
-    out[:, :3, 3] = np.einsum("pv,vkc,pvk->pc", c, axes, mu_sigma, optimize=True)
-    out[:, 3, :3] = np.einsum("pv,vkc,pvk->pc", c, axes, sigma_mu, optimize=True)
-    out[:, :3, 4] = np.einsum("pv,vkc,pvk->pc", c, axes, mu_q, optimize=True)
-    out[:, 4, :3] = np.einsum("pv,vkc,pvk->pc", c, axes, q_mu, optimize=True)
+    out[:, :3, :3] = torch.einsum("pv,vkc,pvkl,vld->pcd", c, axes, mm, axes)
+    out[:, :3, 3] = torch.einsum("pv,vkc,pvk->pc", c, axes, mu_sigma)
+    out[:, 3, :3] = torch.einsum("pv,vkc,pvk->pc", c, axes, sigma_mu)
+    out[:, :3, 4] = torch.einsum("pv,vkc,pvk->pc", c, axes, mu_q)
+    out[:, 4, :3] = torch.einsum("pv,vkc,pvk->pc", c, axes, q_mu)
     out[:, 3, 3] = (c * ss).sum(1)
     out[:, 3, 4] = (c * sigma_q).sum(1)
     out[:, 4, 3] = (c * q_sigma).sum(1)
     out[:, 4, 4] = (c * qq).sum(1)
-    return out
+    return out.cpu().numpy()
+
+
+def amplitude_coupling(r_i, r_j, sigma_i, sigma_j, axes) -> np.ndarray:
+    """(P,) how much the views confuse two atoms' amplitudes: ``|F_qiqj| / sqrt(F_qiqi F_qjqj)``
+    of :func:`pair_information`'s blocks, without the rest of them (a tenth of their work:
+    the pairs an atom's evidence may leave out are found with it).  For two Gaussians the views'
+    overlap is ``sum_v exp(-|P_v (r_i - r_j)|^2 / (2 T)) 2 sigma_i sigma_j / (T V)``,
+    ``T = sigma_i^2 + sigma_j^2``: 1 for an atom with itself."""
+    axes = np.asarray(axes, dtype=np.float64)[:, :2, :]
+    sigma_i, sigma_j = np.asarray(sigma_i, np.float64), np.asarray(sigma_j, np.float64)
+    d = np.einsum("vkc,pc->pvk", axes, np.asarray(r_i, np.float64) - np.asarray(r_j, np.float64))
+    total = sigma_i**2 + sigma_j**2
+    overlap = np.exp(-np.einsum("pvk,pvk->pv", d, d) / (2 * total[:, None])).sum(axis=1)
+    return overlap * 2 * sigma_i * sigma_j / (total * len(axes))
 
 
 def view_scores(
@@ -102,43 +121,100 @@ def view_scores(
     sigmas_A: np.ndarray,
     amplitudes: np.ndarray,
     detector_axes: np.ndarray,
-    residuals: np.ndarray,
+    residuals,
     pixel_size_A: float,
     centre_px,
     reach_sigmas: float = 4.0,
+    device=None,
 ) -> np.ndarray:
     """Each view's pull on each atom: ``sum_pixels r_v(u) dg/d(x, y, z, sigma, q)`` over the view's
     residual ``r_v``, (N, V, 5).  Their spread over the views is what the residual that is there
     does to the fit (:func:`atom_evidence`'s sandwich); pixels beyond ``reach_sigmas`` widths of an
-    atom's centre are left out (its derivatives hold under 1e-3 of their weight there).
+    atom's centre are left out (its derivatives hold under 1e-3 of their weight there).  Read on
+    ``device`` (:func:`~gaussian_atoms_method.physics.devices.work_device`: a tensor's own, else a
+    GPU where there is one) in torch, every view at once for a batch of atoms; without one with
+    numpy on the host.
 
     Parameters
     ----------
     positions_A : (N, 3) array, Å about the tilt centre
     sigmas_A, amplitudes : (N,) arrays
     detector_axes : (V, 2, 3) or (V, 3, 3) array
-    residuals : (V, H, W) array
+    residuals : (V, H, W) array or tensor
         Measured minus predicted views, projection units.
     pixel_size_A : float
     centre_px : (2,) the detector pixel of the tilt centre
     """
+    from gaussian_atoms_method.physics.devices import work_device
+
+    where = work_device(residuals, device)
+    res = torch.as_tensor(residuals).to(where, torch.float64) if where is not None else _host(residuals)
     axes = np.asarray(detector_axes, dtype=np.float64)[:, :2, :]
-    res = np.asarray(residuals, dtype=np.float64)
     positions = np.asarray(positions_A, np.float64).reshape(-1, 3)
     sigmas, amps = np.asarray(sigmas_A, np.float64).ravel(), np.asarray(amplitudes, np.float64).ravel()
     out = np.zeros((len(positions), res.shape[0], 5))
     reach = np.ceil(reach_sigmas * sigmas / pixel_size_A).astype(np.int64) + 1
+    size_of = 2 ** np.ceil(np.log2(np.maximum(reach, 1))).astype(np.int64)
     # atoms of like reach together: one wide Gaussian does not widen every atom's window
-    for size in np.unique(2 ** np.ceil(np.log2(np.maximum(reach, 1))).astype(np.int64)):
-        group = np.flatnonzero(2 ** np.ceil(np.log2(np.maximum(reach, 1))).astype(np.int64) == size)
-        out[group] = _view_scores(
-            positions[group], sigmas[group], amps[group], axes, res, pixel_size_A, centre_px, size
-        )
+    for size in np.unique(size_of):
+        group = np.flatnonzero(size_of == size)
+        if where is None:
+            out[group] = _view_scores_host(
+                positions[group], sigmas[group], amps[group], axes, res, pixel_size_A, centre_px, size
+            )
+            continue
+        batch = max(1, int(SCORE_ELEMENTS // (res.shape[0] * (2 * size + 1) ** 2)))
+        for start in range(0, len(group), batch):
+            chosen = group[start : start + batch]
+            picked = (positions[chosen], sigmas[chosen], amps[chosen], axes)
+            tensors = (torch.as_tensor(a, device=where) for a in picked)
+            out[chosen] = _view_scores(*tensors, res, pixel_size_A, centre_px, int(size)).cpu().numpy()
     return out
 
 
-def _view_scores(positions, sigmas, amps, axes, res, pixel_size_A, centre_px, reach: int) -> np.ndarray:
-    """:func:`view_scores` of atoms whose windows reach ``reach`` pixels from their centres."""
+def _host(values) -> np.ndarray:
+    if isinstance(values, torch.Tensor):
+        return values.detach().cpu().double().numpy()
+    return np.asarray(values, np.float64)
+
+
+SCORE_ELEMENTS = 2e7
+"""The most window pixels (atoms x views x window) :func:`view_scores` reads at once (float64:
+160 MB a temporary)."""
+
+
+def _view_scores(positions, sigmas, amps, axes, res, pixel_size_A: float, centre_px, reach: int):
+    """:func:`view_scores` of (N,) atoms whose windows reach ``reach`` pixels from their centres:
+    (N, V, 5) tensors on ``res``'s device, every view at once."""
+    v_count, h, w = res.shape
+    offsets = torch.arange(-reach, reach + 1, device=res.device)
+    centre = torch.as_tensor(np.asarray(centre_px, np.float64), device=res.device)
+    peak = amps * sigmas * math.sqrt(2 * math.pi)
+    mu = torch.einsum("vkc,nc->nvk", axes, positions)  # (N, V, 2) Å on the detector
+    centre_pixel = torch.round(mu / pixel_size_A + centre).long()
+    rows = centre_pixel[..., 0, None] + offsets  # (N, V, R)
+    cols = centre_pixel[..., 1, None] + offsets
+    inside = ((rows >= 0) & (rows < h))[..., :, None] & ((cols >= 0) & (cols < w))[..., None, :]
+    flat = (torch.arange(v_count, device=res.device)[None, :, None, None] * h + rows.clamp(0, h - 1)[..., None]) * w
+    values = torch.where(inside, res.reshape(-1)[flat + cols.clamp(0, w - 1)[..., None, :]], 0.0)  # (N, V, R, R)
+    du = (rows - centre[0]) * pixel_size_A - mu[..., :1]  # (N, V, R) u - mu along rows
+    dw = (cols - centre[1]) * pixel_size_A - mu[..., 1:]
+    d2 = du[..., :, None] ** 2 + dw[..., None, :] ** 2
+    s = sigmas[:, None, None, None]
+    g = peak[:, None, None, None] * torch.exp(-d2 / (2 * s**2)) * values  # r g
+    pull_row = (g * du[..., :, None]).sum((2, 3)) / sigmas[:, None] ** 2  # (N, V)
+    pull_col = (g * dw[..., None, :]).sum((2, 3)) / sigmas[:, None] ** 2
+    out = torch.empty(positions.shape[0], v_count, 5, dtype=torch.float64, device=res.device)
+    out[..., :3] = pull_row[..., None] * axes[:, 0] + pull_col[..., None] * axes[:, 1]
+    out[..., 3] = (g * (1 / s + d2 / s**3)).sum((2, 3))
+    out[..., 4] = g.sum((2, 3)) / amps[:, None]
+    return out
+
+
+def _view_scores_host(positions, sigmas, amps, axes, res, pixel_size_A, centre_px, reach: int) -> np.ndarray:
+    """:func:`view_scores` of atoms whose windows reach ``reach`` pixels from their centres, with
+    numpy on the host, a view at a time (its temporaries stay in the cache: 4x faster than the
+    batched torch reading on the 2-core CPU)."""
     v_count, h, w = res.shape
     offsets = np.arange(-reach, reach + 1)
     out = np.zeros((len(positions), v_count, 5))
