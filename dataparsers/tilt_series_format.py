@@ -33,8 +33,6 @@ import numpy as np
 from gaussian_atoms_method.physics.geometry import (
     EULER_CONVENTIONS,
     TILT_AXES,
-    detector_axes_from_euler,
-    detector_axes_from_tilts,
     detector_axes_of,
     imod_axis_angle,
 )
@@ -42,6 +40,7 @@ from gaussian_atoms_method.physics.noise import MIN_SIDE_PX
 
 from .errors import TiltSeriesError
 from .readers import read_angles, read_stack
+from .views import MAX_START_OFFSET_A, start_offset_A, unusable_views, views_to_drop
 
 __all__ = ["MANIFEST", "TiltSeries", "TiltSeriesError", "load_tilt_series", "write_tilt_series", "update_manifest"]
 
@@ -55,28 +54,6 @@ MIN_SPAN_DEG = 5.0
 """Tilt angles spanning less than this tell no depth (two atoms 2 Å apart along the beam move by
 2 Å x sin(5 deg) = 0.17 Å between the extreme views, under any pixel): where the same numbers read
 as radians span more, they were given in radians."""
-
-
-MAX_START_OFFSET_A = 1.0
-"""How far (Å) a view with Euler angles may move a point of the fitted volume from where the
-single-axis tilt ``theta`` puts it.  The start back-projects about ``theta`` alone; a candidate
-that lands less than an atom's projected half width (about 1 Å: an atom's sigma of 0.3-0.8 Å
-with the probe's) from its atom is within the fit's reach, and the fit projects with the full
-orientation."""
-
-
-def start_offset_A(
-    euler_deg: np.ndarray, image_shape, centre_px, pixel_size_A: float, euler_convention: str = "zyz"
-) -> float:
-    """The largest detector displacement (Å) between the Euler orientation and the tilt
-    ``theta`` alone, over the corners of the volume the fit spans (the detector's field, as
-    deep as its longer side)."""
-    h, w = (np.asarray(image_shape, dtype=np.float64) - 1) / 2
-    half = np.array([h + abs(np.asarray(centre_px)[0] - h), w + abs(np.asarray(centre_px)[1] - w), max(h, w)])
-    corners = np.array(np.meshgrid(*[(-x, x) for x in half], indexing="ij")).reshape(3, -1) * pixel_size_A
-    exact = detector_axes_from_euler(euler_deg, euler_convention)[:, :2] @ corners
-    single = detector_axes_from_tilts(np.asarray(euler_deg)[:, 1], "y")[:, :2] @ corners
-    return float(np.abs(exact - single).max())
 
 
 @dataclass
@@ -113,6 +90,11 @@ class TiltSeries:
         the views may leave the single axis by no more than :data:`MAX_START_OFFSET_A`.
     euler_convention : {"zyz", "zyx"}
         The axes of ``euler_deg``: Z-Y-Z as GENFIRE writes them (the default), Z-Y-X as RESIRE.
+    pixel_size_source : str
+        Where ``pixel_size_A`` came from (an option, a manifest, a file's header), as a run says it.
+    view_indices : (N,) int array
+        Each view's index in the file it was read from (``drop_views`` leaves some out), of
+        ``views_given`` (default N).
     """
 
     projections: np.ndarray
@@ -127,6 +109,9 @@ class TiltSeries:
     species: tuple = ()
     euler_deg: np.ndarray | None = None
     euler_convention: str = "zyz"
+    pixel_size_source: str = ""
+    view_indices: np.ndarray | None = None
+    views_given: int | None = None
 
     def __post_init__(self) -> None:
         where = str(self.source) if self.source is not None else "tilt series"
@@ -142,12 +127,6 @@ class TiltSeries:
                 f"{where}: projections of {proj.shape[1]} x {proj.shape[2]} pixels; at least {MIN_SIDE_PX} x "
                 f"{MIN_SIDE_PX} are needed (is the stack's axis order right? see tilt_index_axis)"
             )
-        n_bad = int(np.size(proj) - np.count_nonzero(np.isfinite(proj)))
-        if n_bad:
-            raise TiltSeriesError(f"{where}: projections hold {n_bad} NaN/Inf value(s)")
-        if not np.any(proj):
-            raise TiltSeriesError(f"{where}: projections are all zero: there is nothing to reconstruct")
-        self.projections = proj.astype(np.float32, copy=False)
         angles = np.asarray(self.angles_deg, dtype=np.float64)
         if angles.ndim == 2 and angles.shape[1] == 3:  # Euler angles (phi, theta, psi)
             self.euler_deg, angles = angles, angles[:, 1]
@@ -156,6 +135,10 @@ class TiltSeries:
             raise TiltSeriesError(f"{where}: {len(angles)} tilt angles for {proj.shape[0]} projections")
         if not np.all(np.isfinite(angles)):
             raise TiltSeriesError(f"{where}: tilt angles hold NaN/Inf")
+        indices = np.arange(len(angles)) if self.view_indices is None else np.asarray(self.view_indices, np.int64)
+        unusable_views(proj, angles, indices, where)
+        self.projections, self.view_indices = proj.astype(np.float32, copy=False), indices
+        self.views_given = int(self.views_given if self.views_given is not None else len(angles))
         directions = np.unique(np.round(np.mod(angles, 180.0), 6) % 180.0)
         if len(directions) < 2:
             seen = f"{len(angles)} projection" + ("" if len(angles) == 1 else f"s all at {angles[0]:g} deg (mod 180)")
@@ -274,6 +257,7 @@ def load_tilt_series(
     tilt_axis_angle_deg: float | None = None,
     species: str | None = None,
     euler_convention: str | None = None,
+    drop_views=None,
 ) -> TiltSeries:
     """Read a tilt series from a directory with ``tilt_series.json`` and/or explicit options.
 
@@ -287,7 +271,8 @@ def load_tilt_series(
     a pixel size, an MRC header's is used; without an angle file, an EMD file's angle dimension;
     without a tilt-axis angle, the one IMOD writes into an MRC header's labels (with
     ``tilt_axis`` "x", IMOD's reference direction, unless given).  ``species`` ("Ta", "Fe,Pt")
-    names the specimen's elements (manifest key ``species``: a string or a list).
+    names the specimen's elements (manifest key ``species``: a string or a list); ``drop_views``
+    the views left out (:func:`dataparsers.views.views_to_drop`: "3,7", "-40deg").
     """
 
     data = Path(data)
@@ -325,6 +310,7 @@ def load_tilt_series(
             "tilt_axis_angle_deg",
             "species",
             "euler_convention",
+            "drop_views",
         }
         unknown = set(manifest) - known
         if unknown:
@@ -348,8 +334,9 @@ def load_tilt_series(
     proj_path = root / proj_name
     stack = read_stack(proj_path, pick(dataset, "dataset"), pick(tilt_index_axis, "tilt_index_axis"))
     proj = stack.projections
+    px_source = "the pixel_size_A option" if pixel_size_A is not None else str(manifest_path)
     if px is None:
-        px = stack.pixel_size_A
+        px, px_source = stack.pixel_size_A, f"{proj_path.name}'s header"
     if px is None:
         raise TiltSeriesError(
             f"{where}: 'pixel_size_A' is missing (give it in {MANIFEST} or as an option; {proj_path.name} has none in "
@@ -393,6 +380,11 @@ def load_tilt_series(
         raise TiltSeriesError(
             f"{angles_path}: {len(angles)} tilt angles for {proj.shape[0]} projections in {proj_path.name}{hint}"
         )
+    spec = pick(drop_views, "drop_views")
+    given = len(angles)
+    kept = np.setdiff1d(np.arange(given), views_to_drop(spec, angles[:, 1] if angles.ndim == 2 else angles))
+    if len(kept) < given:
+        proj, angles = proj[kept], angles[kept]
     truth_name = pick(truth, "truth")
     truth_path = root / truth_name if truth_name is not None else None
     if truth_path is not None and not truth_path.is_file():
@@ -414,6 +406,9 @@ def load_tilt_series(
             centre_px=centre_px if centre_px is not None else manifest.get("centre_px"),
             species=pick(species, "species") or (),
             euler_convention=pick(euler_convention, "euler_convention") or "zyz",
+            pixel_size_source=px_source,
+            view_indices=kept,
+            views_given=given,
         )
     except TiltSeriesError as exc:
         # Name the file the problem most likely lives in.

@@ -50,6 +50,10 @@ class TiltSeriesOptions:
     """Axes of N x 3 Euler angles (phi, theta, psi): zyz as GENFIRE writes them (default), zyx
     as RESIRE does.  Overrides the manifest."""
 
+    drop_views: Optional[str] = None
+    """Views to leave out: their indices in the file (3,7) or their tilts (-40deg), e.g. a view
+    that holds NaN or a blank frame.  Overrides the manifest."""
+
     def load(self, data: Optional[Path] = None) -> TiltSeries:
         """The tilt series these options name (``data`` overrides the directory); raises
         :class:`~dataparsers.errors.TiltSeriesError` naming the file and the problem."""
@@ -67,4 +71,5 @@ class TiltSeriesOptions:
             self.tilt_axis_angle_deg,
             self.species,
             self.euler_convention,
+            self.drop_views,
         )

@@ -76,12 +76,21 @@ def _from_hyperspy(signal, angles_deg, pixel_size_A):
 
 
 def _as_series(
-    projections, angles_deg, pixel_size_A, tilt_axis: str, species=None, euler_convention: str | None = None
+    projections, angles_deg, pixel_size_A, tilt_axis: str, species=None, euler_convention=None, drop_views=None
 ) -> TiltSeries:
+    from dataparsers.views import views_to_drop
+
     if isinstance(projections, TiltSeries):
-        changes = {"species": species, "euler_convention": euler_convention}
-        return dataclasses.replace(projections, **{k: v for k, v in changes.items() if v is not None})
+        series, changes = projections, {"species": species, "euler_convention": euler_convention}
+        kept = np.setdiff1d(np.arange(series.n_views), views_to_drop(drop_views, series.angles_deg))
+        if len(kept) < series.n_views:
+            euler = None if series.euler_deg is None else series.euler_deg[kept]
+            changes |= {"projections": series.projections[kept], "angles_deg": series.angles_deg[kept]}
+            changes |= {"euler_deg": euler, "view_indices": series.view_indices[kept]}
+        return dataclasses.replace(series, **{k: v for k, v in changes.items() if v is not None})
+    source = "the pixel_size_A argument"
     if hasattr(projections, "axes_manager") and hasattr(projections, "metadata"):  # a HyperSpy signal
+        source = source if pixel_size_A is not None else "the HyperSpy signal's axes"
         projections, angles_deg, pixel_size_A = _from_hyperspy(projections, angles_deg, pixel_size_A)
     if angles_deg is None:
         raise TiltSeriesError("angles_deg: the tilt angles are missing (one per projection, in degrees)")
@@ -91,14 +100,22 @@ def _as_series(
         pixel = float(pixel_size_A)
     except (TypeError, ValueError):
         raise TiltSeriesError(f"pixel_size_A must be a number of Å, got {pixel_size_A!r}") from None
+    projections, angles = np.asarray(projections), np.asarray(angles_deg, dtype=np.float64)
+    kept, given = np.arange(len(angles)), len(angles)
+    if drop_views is not None:
+        kept = np.setdiff1d(kept, views_to_drop(drop_views, angles[:, 1] if angles.ndim == 2 else angles))
+        projections, angles = projections[kept], angles[kept]
     return TiltSeries(
-        np.asarray(projections),
-        np.asarray(angles_deg, dtype=np.float64),
+        projections,
+        angles,
         pixel,
         tilt_axis,
         source=Path("projections"),
         species=species or (),
         euler_convention=euler_convention or "zyz",
+        pixel_size_source=source,
+        view_indices=kept,
+        views_given=given,
     )
 
 
@@ -175,6 +192,7 @@ def reconstruct(
     tilt_axis: str = "y",
     species: str | None = None,
     euler_convention: str | None = None,
+    drop_views=None,
     output_dir: str | Path | None = None,
     max_num_iterations: int | None = None,
     progress: bool = True,
@@ -203,6 +221,9 @@ def reconstruct(
     euler_convention : {"zyz", "zyx"}, optional
         The axes of N x 3 Euler angles: Z-Y-Z as GENFIRE writes them (the default, or a
         :class:`TiltSeries`'s own), Z-Y-X as RESIRE does.
+    drop_views : str or sequence, optional
+        Views to leave out: their indices (``"3,7"``, ``[3, 7]``) or tilts (``"-40deg"``); a view
+        that holds NaN or a blank frame is refused by its index and tilt until it is left out.
     output_dir : path, optional
         Keep the run here (``reconstruct/gaussian-atoms/<timestamp>``: ``config.yml`` for
         ``ns-viewer`` and ``gaussian-atoms view``, ``atoms.xyz``, ``classes.png``, ...) with the
@@ -237,7 +258,7 @@ def reconstruct(
     work = None if keep else Path(tempfile.mkdtemp(prefix="gaussian-atoms-"))
     try:
         try:
-            series = _as_series(projections, angles_deg, pixel_size_A, tilt_axis, species, euler_convention)
+            series = _as_series(projections, angles_deg, pixel_size_A, tilt_axis, species, euler_convention, drop_views)
             truth = read_atoms(series.truth_path) if series.truth_path is not None else None
             steps = MAX_ITERATIONS if max_num_iterations is None else _whole(max_num_iterations, "max_num_iterations")
             settings = RunSettings(

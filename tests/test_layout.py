@@ -33,6 +33,7 @@ def layer_of(module: str) -> str:
             "stack_data",
             "tilt_series_format",
             "tilt_series_options",
+            "views",
         ):
             return "formats"
         if parts[1] == "tilt_series_dataparser":

@@ -37,7 +37,9 @@ def test_options_override_manifest(tmp_path):
 
 
 def test_options_without_manifest(tmp_path):
-    np.save(tmp_path / "p.npy", np.ones((3, 5, 5)))  # the smallest image the noise reading takes
+    np.save(
+        tmp_path / "p.npy", np.random.default_rng(0).uniform(1, 2, (3, 5, 5))
+    )  # the smallest image the noise reading takes
     np.savetxt(tmp_path / "a.txt", [-10.0, 0.0, 10.0])
     series = load_tilt_series(tmp_path, projections="p.npy", angles_deg="a.txt", pixel_size_A=0.3)
     assert series.n_views == 3
@@ -89,3 +91,50 @@ def test_manifest_written_last(tmp_path):
     with pytest.raises(TiltSeriesError):
         write_tilt_series(tmp_path, np.ones((2, 3, 3)), [0.0, 0.0], 0.25)
     assert not (tmp_path / "tilt_series.json").exists()
+
+
+def _series_with_bad_view(tmp_path, bad):
+    """A valid 7-view series (-60..60 deg) whose view 2 (-20 deg) is ``bad``: NaN or a blank."""
+    from gaussian_atoms_method.harness.input_cases import valid_series
+
+    data = valid_series(tmp_path / "series")
+    p = np.load(data / "projections.npy")
+    p[2] = bad
+    np.save(data / "projections.npy", p)
+    return data
+
+
+@pytest.mark.parametrize("bad, words", [(np.nan, "NaN/Inf value(s), in view(s) 2 (-20°)"), (0.0, "view(s) 2 (-20°)")])
+def test_a_view_that_cannot_be_fitted_is_named_and_can_be_left_out(tmp_path, bad, words):
+    """A view holding NaN, or one value everywhere (a blank frame), is refused by its index in
+    the file and its tilt, with the option that leaves it out; left out by index or by tilt,
+    the series loads without it and keeps each view's index in the file."""
+    data = _series_with_bad_view(tmp_path, bad)
+    with pytest.raises(TiltSeriesError) as info:
+        load_tilt_series(data)
+    assert words in str(info.value) and "--drop-views 2" in str(info.value), str(info.value)
+    for spec in ("2", "-20deg", [2]):
+        series = load_tilt_series(data, drop_views=spec)
+        assert series.n_views == 6 and series.view_indices.tolist() == [0, 1, 3, 4, 5, 6]
+        np.testing.assert_allclose(series.angles_deg, [-60, -40, 0, 20, 40, 60])
+    _edit_manifest(data, drop_views="2")
+    assert load_tilt_series(data).n_views == 6
+
+
+@pytest.mark.parametrize(
+    "spec, words",
+    [("9", "view 9 is not among the 7 views"), ("-25deg", "no view at -25°"), ("x", "expected view indices")],
+)
+def test_views_to_leave_out_that_name_no_view_are_refused(tmp_path, spec, words):
+    from gaussian_atoms_method.harness.input_cases import valid_series
+
+    with pytest.raises(TiltSeriesError, match=words):
+        load_tilt_series(valid_series(tmp_path / "series"), drop_views=spec)
+
+
+def test_the_series_says_where_its_pixel_size_came_from(tmp_path):
+    from gaussian_atoms_method.harness.input_cases import valid_series
+
+    data = valid_series(tmp_path / "series")
+    assert load_tilt_series(data).pixel_size_source.endswith("tilt_series.json")
+    assert load_tilt_series(data, pixel_size_A=0.25).pixel_size_source == "the pixel_size_A option"

@@ -45,6 +45,7 @@ from gaussian_atoms_method.engine.noise_reading import (
     judge_after_fit,
     say_hard_core,
     say_noise_reading,
+    say_series,
     say_start,
 )
 from gaussian_atoms_method.engine.options import FitOptions
@@ -125,6 +126,7 @@ class AtomFit(torch.nn.Module):
         else:
             start = ahead
             reading = reading or NoiseReadingBeside(projections, cfg.loss, cfg.background, ahead.noise)
+        say_series(series)
         say_start(start, ls, cfg.extended_object, ahead is not None)
         self.measured_noise = start.noise  # the views' own noise before any fit (normalised units)
         measured, means, weights, half_extent, self.field_half_extent = (

@@ -163,6 +163,24 @@ def say_start(start: Start, length_scale: float, option: str, ahead: bool = Fals
         )
 
 
+def say_series(series) -> None:
+    """Say on one line what the run fits: the views (and those left out), their tilts and axis,
+    the detector, the pixel size and where it came from, the species."""
+    if series is None:
+        return
+    n, h, w = series.projections.shape
+    left_out = np.setdiff1d(np.arange(series.views_given), series.view_indices)
+    euler = f", Euler angles {series.euler_convention}" if series.euler_deg is not None else ""
+    CONSOLE.print(
+        f"gaussian-atoms: {n} views"
+        + (f" ({len(left_out)} left out: {', '.join(map(str, left_out[:8]))})" if len(left_out) else "")
+        + f", tilts {series.angles_deg.min():g} to {series.angles_deg.max():g}° about {series.tilt_axis}{euler}; "
+        f"{h} x {w} pixels of {series.pixel_size_A:g} Å"
+        + (f" (from {series.pixel_size_source})" if series.pixel_size_source else "")
+        + f"; species {','.join(series.species) if series.species else 'not given'}"
+    )
+
+
 def say_hard_core(species: tuple[str, ...]) -> float | None:
     """Say the material's hard core (:mod:`gaussian_atoms_method.atoms.hard_core`) on one line:
     from ``species`` when given (returned, Å), else that it is read from the atoms (None)."""

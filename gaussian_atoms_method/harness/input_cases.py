@@ -57,6 +57,12 @@ def valid_then(out: Path, change: Callable[[Path], object]) -> Path:
     return out
 
 
+def _empty_view(p):
+    p = p.copy()
+    p[4] = 0
+    return p
+
+
 def _nan(p):
     p = p.copy()
     p[2, 3, 4] = np.nan
@@ -110,7 +116,8 @@ BROKEN: dict[str, tuple[Callable[[Path], Path], str]] = {
         lambda out: valid_then(out, lambda d: (d / "angles.txt").write_text("a\nb\n")),
         "could not read tilt angles",
     ),
-    "NaN pixels": (lambda out: resave(valid_series(out), _nan), "NaN/Inf"),
+    "NaN pixels": (lambda out: resave(valid_series(out), _nan), "NaN/Inf value(s), in view(s) 2 (-20°)"),
+    "an empty view": (lambda out: resave(valid_series(out), _empty_view), "view(s) 4 (20°) hold the same value"),
     "2D projections": (lambda out: resave(valid_series(out), lambda p: p[0]), "3D stack"),
     "complex projections": (lambda out: resave(valid_series(out), lambda p: p.astype(np.complex64)), "real numbers"),
     "unknown tilt axis": (lambda out: edit_manifest(valid_series(out), tilt_axis="z"), "tilt_axis must be one of"),

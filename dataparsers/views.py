@@ -1,0 +1,117 @@
+"""Views that cannot be fitted, named by index and angle, and the views a user leaves out.
+
+Euler angles that move the volume too far from their single-axis tilt for the start
+(:func:`start_offset_A`) are refused where the series is read.
+
+A view holding NaN or Inf, or one whose every pixel is the same value (a frame the detector
+never read out, a blank left in a stack), carries no projection of the specimen: the first
+stops any fit, the second would be fitted as a view in which the specimen is absent.  Both are
+named by their index in the file and their tilt angle, with the option that leaves them out
+(``drop_views``: ``--drop-views`` on the command line, the manifest key, ``ga.reconstruct``'s
+and ``ga.read_tilt_series``' keyword).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from gaussian_atoms_method.physics.geometry import detector_axes_from_euler, detector_axes_from_tilts
+
+from .errors import TiltSeriesError
+
+MAX_START_OFFSET_A = 1.0
+"""How far (Å) a view with Euler angles may move a point of the fitted volume from where the
+single-axis tilt ``theta`` puts it.  The start back-projects about ``theta`` alone; a candidate
+that lands less than an atom's projected half width (about 1 Å: an atom's sigma of 0.3-0.8 Å
+with the probe's) from its atom is within the fit's reach, and the fit projects with the full
+orientation."""
+
+
+def start_offset_A(
+    euler_deg: np.ndarray, image_shape, centre_px, pixel_size_A: float, euler_convention: str = "zyz"
+) -> float:
+    """The largest detector displacement (Å) between the Euler orientation and the tilt
+    ``theta`` alone, over the corners of the volume the fit spans (the detector's field, as
+    deep as its longer side)."""
+    h, w = (np.asarray(image_shape, dtype=np.float64) - 1) / 2
+    half = np.array([h + abs(np.asarray(centre_px)[0] - h), w + abs(np.asarray(centre_px)[1] - w), max(h, w)])
+    corners = np.array(np.meshgrid(*[(-x, x) for x in half], indexing="ij")).reshape(3, -1) * pixel_size_A
+    exact = detector_axes_from_euler(euler_deg, euler_convention)[:, :2] @ corners
+    single = detector_axes_from_tilts(np.asarray(euler_deg)[:, 1], "y")[:, :2] @ corners
+    return float(np.abs(exact - single).max())
+
+
+ANGLE_SUFFIX = "deg"
+"""A view to leave out given by its tilt angle ends in this (``-40deg``); a bare integer is the
+view's index in the file."""
+
+ANGLE_MATCH_DEG = 0.05
+"""A tilt given to leave a view out names the view whose angle lies this close: angle files
+give tilts to 0.01-0.1°, and no series steps by less than a degree."""
+
+
+def named_views(indices, angles_deg, limit: int = 6) -> str:
+    """``"3 (12°), 7 (40°)"``: views by their index in the file and their tilt angle, the first
+    ``limit`` of them and how many more."""
+    shown = [f"{int(i)} ({float(a):g}°)" for i, a in zip(list(indices)[:limit], list(angles_deg)[:limit])]
+    more = len(indices) - limit
+    return ", ".join(shown) + (f" and {more} more" if more > 0 else "")
+
+
+def unusable_views(projections: np.ndarray, angles_deg: np.ndarray, indices: np.ndarray, where: str) -> None:
+    """Raise :class:`TiltSeriesError` naming the views of the (N, H, W) ``projections`` that hold
+    NaN/Inf or are constant, by ``indices`` (their places in the file) and ``angles_deg``."""
+    proj = np.asarray(projections)
+    finite = np.isfinite(proj).reshape(len(proj), -1)
+    bad = np.flatnonzero(~finite.all(axis=1))
+    hint = "leave them out with --drop-views {} (drop_views: indices in the file, or tilts as -40deg)"
+    if len(bad):
+        n_bad = int(np.size(proj) - np.count_nonzero(finite))
+        raise TiltSeriesError(
+            f"{where}: projections hold {n_bad} NaN/Inf value(s), in view(s) "
+            f"{named_views(indices[bad], angles_deg[bad])}; "
+            + hint.format(",".join(str(int(i)) for i in indices[bad][:6]))
+        )
+    flat = proj.reshape(len(proj), -1)
+    constant = np.flatnonzero(flat.max(axis=1) == flat.min(axis=1))
+    if len(constant) == len(proj):
+        said = "all zero" if not np.any(flat[:, 0]) else "constant in every view"
+        raise TiltSeriesError(f"{where}: projections are {said}: there is nothing to reconstruct")
+    if len(constant):
+        values = ", ".join(f"{flat[c, 0]:g}" for c in constant[:6])
+        raise TiltSeriesError(
+            f"{where}: view(s) {named_views(indices[constant], angles_deg[constant])} hold the same value "
+            f"everywhere ({values}): no projection of a specimen; "
+            + hint.format(",".join(str(int(i)) for i in indices[constant][:6]))
+        )
+
+
+def views_to_drop(spec, angles_deg: np.ndarray, where: str = "drop_views") -> np.ndarray:
+    """(K,) the indices of the views ``spec`` names: a string of comma-separated indices in the
+    file (``"3,7"``) and tilts ending in ``deg`` (``"-40deg"``, the view within
+    :data:`ANGLE_MATCH_DEG` of it), or a sequence of such items.  Raises :class:`TiltSeriesError`
+    for an item that names no view."""
+    if spec is None:
+        return np.zeros(0, dtype=np.int64)
+    items = [s.strip() for s in spec.split(",")] if isinstance(spec, str) else [str(s).strip() for s in spec]
+    angles = np.asarray(angles_deg, dtype=np.float64)
+    out = []
+    for item in filter(None, items):
+        try:
+            value = float(item[: -len(ANGLE_SUFFIX)]) if item.endswith(ANGLE_SUFFIX) else int(item)
+        except ValueError:
+            raise TiltSeriesError(
+                f"{where}: expected view indices (3,7) or tilts ending in {ANGLE_SUFFIX} (-40deg), got {item!r}"
+            ) from None
+        if isinstance(value, float):
+            nearest = int(np.argmin(np.abs(angles - value)))
+            if abs(angles[nearest] - value) > ANGLE_MATCH_DEG:
+                raise TiltSeriesError(
+                    f"{where}: no view at {value:g}° (the nearest is {nearest} at {angles[nearest]:g}°)"
+                )
+            out.append(nearest)
+        elif 0 <= value < len(angles):
+            out.append(value)
+        else:
+            raise TiltSeriesError(f"{where}: view {value} is not among the {len(angles)} views (0-{len(angles) - 1})")
+    return np.unique(np.asarray(out, dtype=np.int64))
