@@ -40,7 +40,7 @@ from gaussian_atoms_method.physics.noise import MIN_SIDE_PX
 
 from .errors import TiltSeriesError
 from .readers import read_angles, read_stack
-from .views import MAX_START_OFFSET_A, start_offset_A, unusable_views, views_to_drop
+from .views import MAX_START_OFFSET_A, dark_atoms, start_offset_A, unusable_views, views_to_drop
 
 __all__ = ["MANIFEST", "TiltSeries", "TiltSeriesError", "load_tilt_series", "write_tilt_series", "update_manifest"]
 
@@ -137,6 +137,7 @@ class TiltSeries:
             raise TiltSeriesError(f"{where}: tilt angles hold NaN/Inf")
         indices = np.arange(len(angles)) if self.view_indices is None else np.asarray(self.view_indices, np.int64)
         unusable_views(proj, angles, indices, where)
+        dark_atoms(proj, where)
         self.projections, self.view_indices = proj.astype(np.float32, copy=False), indices
         self.views_given = int(self.views_given if self.views_given is not None else len(angles))
         directions = np.unique(np.round(np.mod(angles, 180.0), 6) % 180.0)

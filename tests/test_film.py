@@ -249,7 +249,9 @@ def test_a_tile_without_an_interior_is_one_line_and_writes_nothing(tmp_path, cap
     from dataparsers.tilt_series_format import write_tilt_series
     from gaussian_atoms_method.cli import entrypoint
 
-    series = write_tilt_series(tmp_path / "series", np.ones((3, 40, 40), np.float32), [-30.0, 0.0, 30.0], 0.25)
+    series = write_tilt_series(
+        tmp_path / "series", np.random.default_rng(0).uniform(1, 2, (3, 40, 40)), [-30.0, 0.0, 30.0], 0.25
+    )
     out = tmp_path / "film"
     with pytest.raises(SystemExit) as exit_info:
         entrypoint(

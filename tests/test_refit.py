@@ -55,7 +55,9 @@ def _two_atoms_one_off(tmp_path):
     """A model of two atoms 3 Å apart fitted to their noisy projections (noise 20% of the peak)
     in four views, one atom 0.5 Å off; returns it, the true positions and the length scale."""
     angles = np.array([-50.0, -10.0, 25.0, 60.0])
-    blank = np.ones((4, 40, 40), dtype=np.float32)  # replaced below by the two atoms' projections
+    blank = (
+        np.random.default_rng(0).uniform(1, 2, (4, 40, 40)).astype(np.float32)
+    )  # replaced below by the two atoms' projections
     write_tilt_series(tmp_path, blank, angles, 0.3, truth=AtomSet(np.zeros((1, 3)), species=["Au"]))
     outputs = TiltSeriesDataParserConfig(data=tmp_path).setup().get_dataparser_outputs("train")
     model = GaussianAtomsModelConfig(num_random=2, init="random", coarse_steps=0, background="none").setup(

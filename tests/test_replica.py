@@ -20,7 +20,13 @@ def _real_like(tmp_path: Path) -> Path:
     rng = np.random.default_rng(0)
     atoms = AtomSet(np.c_[rng.uniform(-4, 4, 12), rng.uniform(-3, 3, 12), rng.uniform(-2, 2, 12)], species=["Ta"] * 12)
     euler = np.c_[np.full(15, 0.2), np.linspace(-60, 55, 15), np.full(15, -0.3)]
-    geometry = TiltSeries(np.ones((15, 48, 40)), euler, 0.3, centre_px=(24.0, 19.0), euler_convention="zyx")
+    geometry = TiltSeries(
+        np.broadcast_to(np.linspace(1.0, 2.0, 40), (15, 48, 40)),  # a ramp: views that hold no noise
+        euler,
+        0.3,
+        centre_px=(24.0, 19.0),
+        euler_convention="zyx",
+    )
     clean = replica_of(geometry, atoms, probe="none").projections.astype(np.float64)
     clean = 200.0 * clean / clean.mean() + 50.0
     noisy = clean + rng.standard_normal(clean.shape) * np.sqrt(4.0 + 0.5 * clean)

@@ -138,3 +138,25 @@ def test_the_series_says_where_its_pixel_size_came_from(tmp_path):
     data = valid_series(tmp_path / "series")
     assert load_tilt_series(data).pixel_size_source.endswith("tilt_series.json")
     assert load_tilt_series(data, pixel_size_A=0.25).pixel_size_source == "the pixel_size_A option"
+
+
+def _particle_views():
+    """A small Au particle's views (Gaussian potential, noise 20): atoms bright."""
+    from gaussian_atoms_method.harness.simulate import simulate_gaussian_tilt_series, spherical_particle
+
+    angles = np.linspace(-60, 60, 9)
+    sim = simulate_gaussian_tilt_series(spherical_particle("Au", 7.0), angles, noise_std=20.0, seed=1)
+    return sim.projections, angles
+
+
+def test_dark_atoms_are_named_before_a_fit():
+    from dataparsers.tilt_series_format import TiltSeries
+
+    """Views whose atoms are dark on a bright background (bright-field, or a stack saved
+    inverted) are refused in one line that says so; the same views with atoms bright load."""
+    views, angles = _particle_views()
+    assert TiltSeries(views, angles, 0.25).n_views == 9
+    for dark in (-views, views.max() - views):
+        with pytest.raises(TiltSeriesError, match="atoms look dark on a brighter background") as info:
+            TiltSeries(dark, angles, 0.25)
+        assert "\n" not in str(info.value)
