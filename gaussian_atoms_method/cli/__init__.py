@@ -9,6 +9,7 @@ nerfstudio's trainer is not needed (:mod:`.train_command`).
 
 from __future__ import annotations
 
+import os
 import sys
 import typing
 from typing import Annotated, Union
@@ -80,8 +81,16 @@ def parse(argv: list[str]) -> object:
     return command
 
 
+IDLE_THREADS = ("OMP_WAIT_POLICY", "PASSIVE")
+"""The command's OpenMP workers sleep when idle rather than spin (set before torch loads; a
+value the user's environment gives wins).  Spinning, two fits of the demo at once on the 2-core
+CPU took 7 times one alone, each spinning worker taking the cores the other fit's needed;
+passive, 1.6 times, at 25% more time alone (``scripts/studies/two_fits.py``)."""
+
+
 def entrypoint(argv: list[str] | None = None) -> None:
     """Run one verb; errors in the user's input are reported in one line, exit status 2."""
+    os.environ.setdefault(*IDLE_THREADS)  # this command's own process: before torch is imported
     from dataparsers.tilt_series_format import TiltSeriesError
     from gaussian_atoms_method.atoms.atom_set import AtomFileError
 
