@@ -270,6 +270,7 @@ def reconstruct(
                 progress,
                 tensorboard=keep,  # a run not kept keeps no logs or checkpoints
                 checkpoints=keep,
+                kept=keep,
             )
             check_settings(settings)
             options = fit_options(model_options)

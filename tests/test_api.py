@@ -25,9 +25,13 @@ def particle():
     return truth, angles, sim.projections
 
 
-def test_reconstruct_arrays_gives_the_atoms(particle):
+def test_reconstruct_arrays_gives_the_atoms(particle, capfd):
     truth, angles, projections = particle
     atoms = ga.reconstruct(projections, angles, 0.25, device="cpu", max_num_iterations=400, progress=False)
+    said = capfd.readouterr().out
+    # a run that keeps no files names none (its working directory is gone when the call returns)
+    assert "atoms returned (no files kept" in said and "atoms.xyz" not in said, said
+    assert "pixels of 0.25 Å (from the pixel_size_A argument)" in said
     scores = score_atoms(atoms.positions, truth.positions)
     # As the end-to-end CLI test: the model's physics, well-separated atoms, high SNR: all found,
     # none invented, positions far below the 0.25 Å pixel (noise-limited precision is ~1 pm).

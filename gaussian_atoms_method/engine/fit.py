@@ -71,6 +71,8 @@ class AtomFit(torch.nn.Module):
     config: FitOptions
     snapshots_s: float = 0.0
     """Seconds the run's snapshots have cost it so far (:meth:`snapshot_after_step`)."""
+    kept: bool = True
+    """Whether the run's directory outlives the call (not for ``ga.reconstruct`` without ``output_dir``)."""
 
     def __init__(self, config: FitOptions | None = None, views: ViewSet | None = None) -> None:
         super().__init__()

@@ -157,6 +157,9 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
     CONSOLE.print(
         f"[bold]gaussian-atoms[/bold]: wrote {len(atoms)} atoms to {run_dir / 'atoms.xyz'} and {len(non_atoms)} "
         f"non-atoms to non_atoms.xyz"
+        if model.kept
+        else f"[bold]gaussian-atoms[/bold]: {len(atoms)} atoms and {len(non_atoms)} non-atoms returned (no files "
+        f"kept: give output_dir to keep the run)"
     )
     truth = read_atoms(model.truth_path) if model.truth_path is not None else None
     scores = score_atoms(atoms.positions, truth.positions) if truth is not None else None

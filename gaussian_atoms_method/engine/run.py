@@ -57,6 +57,8 @@ class RunSettings:
     """Steps between the loss's TensorBoard scalars (``--logging.steps-per-log``)."""
     checkpoints: bool = True
     """Write checkpoints (``nerfstudio_models/``; the viewer and ``export`` read them)."""
+    kept: bool = True
+    """Whether the run's directory outlives the call; a run that is not kept names no file."""
 
 
 def check_settings(settings: RunSettings) -> None:
@@ -123,6 +125,7 @@ def fit_tilt_series(
     seed_everything(settings.seed)
     view_set, views = view_set_of(series)
     fit = AtomFit(options, view_set).to(settings.device)
+    fit.kept = settings.kept
     loop = FitLoop(fit, views, view_set.projections, settings.schedule_steps)
     write_transforms(run_dir)
     bar = ProgressBar(settings.max_num_iterations) if settings.progress else None
