@@ -27,6 +27,13 @@ TRAINER_CONFIG = "gaussian_atoms_method.nerfstudio_layer.config.trainer_config_o
 METHOD_NAME = "gaussian-atoms"
 
 
+def experiment_name_of(data) -> str:
+    """A run's experiment name from its data, as nerfstudio's ``set_experiment_name`` makes it:
+    the directory's name (a file's directory)."""
+    data = Path(data)
+    return str((data.parent if data.is_file() else data).stem)
+
+
 @dataclass
 class RunPlace:
     """Where a run's directory lies: ``output_dir / experiment_name / gaussian-atoms / timestamp``
@@ -40,10 +47,7 @@ class RunPlace:
     def resolved(self, data: Path) -> RunPlace:
         """The place with its experiment named and its time set, as nerfstudio's trainer sets
         them (``set_experiment_name``, ``set_timestamp``)."""
-        name = self.experiment_name
-        if name is None:
-            data = Path(data)
-            name = str((data.parent if data.is_file() else data).stem)
+        name = self.experiment_name if self.experiment_name is not None else experiment_name_of(data)
         stamp = time.strftime("%Y-%m-%d_%H%M%S") if self.timestamp == "{timestamp}" else self.timestamp
         return RunPlace(Path(self.output_dir), name, stamp)
 

@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Type
 
 import torch
-from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
+from nerfstudio.configs.base_config import LocalWriterConfig, LoggingConfig, MachineConfig, ViewerConfig
 from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanager, FullImageDatamanagerConfig
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
@@ -83,11 +83,21 @@ class GaussianAtomsTrainerConfig(TrainerConfig):
         if self.data is not None:
             self.pipeline.datamanager.data, self.data = self.data, None
 
+    def set_experiment_name(self) -> None:
+        """nerfstudio's rule, reading the data where this method names them (``tilt-series --data``,
+        the dataparser's): ``ns-train`` and ``gaussian-atoms train`` put a run of the same data in
+        the same place (:func:`~gaussian_atoms_method.engine.run_files.experiment_name_of`)."""
+        from gaussian_atoms_method.engine.run_files import experiment_name_of
+
+        data = self.pipeline.datamanager.data or getattr(self.pipeline.datamanager.dataparser, "data", None)
+        if self.experiment_name is None and data is not None:
+            self.experiment_name = experiment_name_of(data)
+        super().set_experiment_name()
+
     def print_to_terminal(self) -> None:
-        # ns-train calls this first, before saving config.yml: check the input here, then print
-        # nerfstudio's dump of the configuration, as ns-train does for every method.
+        # ns-train calls this first, before saving config.yml: check the input here; the
+        # configuration is the file nerfstudio says it saves, not a dump on the console.
         self.check_or_exit()
-        super().print_to_terminal()
 
     def check_or_exit(self) -> None:
         """:func:`check_input`, a failure ending the process in one line (exit 2)."""
@@ -120,6 +130,13 @@ class GaussianAtomsTrainer(Trainer):
             super().train()
 
     def train(self) -> None:
+        config = getattr(self, "config", None)
+        own = getattr(self, "progress", None) is None and config is not None and not config.logging.local_writer.enable
+        if own:  # ns-train: our progress line, not nerfstudio's table of steps (--logging.local-writer.enable)
+            from gaussian_atoms_method.engine.progress import ProgressBar
+
+            self.progress = ProgressBar(self.config.max_num_iterations)
+            follow(self.progress, self)
         try:
             self.train_passes()
         except FloatingPointError as exc:  # the model names the step and the cause
@@ -128,6 +145,9 @@ class GaussianAtomsTrainer(Trainer):
             # Ctrl+C, also how a viewer left open after training is closed.  Results are written
             # at the last step only, so an interrupted run leaves none half-written.
             fail("gaussian-atoms: interrupted", 130)
+        finally:
+            if own:
+                self.progress.close()
 
 
 def follow(bar, trainer) -> None:
@@ -262,6 +282,8 @@ def gaussian_atoms_trainer_config(max_iterations: int = MAX_ITERATIONS) -> Gauss
             model=GaussianAtomsModelConfig(),
         ),
         optimizers=nerfstudio_optimizers(max_iterations),
+        # a progress line of our own (GaussianAtomsTrainer.train), no table of steps or of timings
+        logging=LoggingConfig(local_writer=LocalWriterConfig(enable=False), profiler="none"),
         # this machine only, unless --viewer.websocket-host says more
         viewer=ViewerConfig(num_rays_per_chunk=1 << 15, websocket_host="127.0.0.1"),
         vis="viewer",

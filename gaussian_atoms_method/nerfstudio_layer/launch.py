@@ -60,12 +60,10 @@ def run(config) -> None:
         config = yaml.load(config.load_config.read_text(), Loader=yaml.Loader)
     config.set_timestamp()
     config.check_or_exit()  # no dump of the configuration: it is in config.yml
-    bar = ProgressBar(config.max_num_iterations) if config.logging.local_writer.enable else None
+    bar = None if config.logging.local_writer.enable else ProgressBar(config.max_num_iterations)
 
-    def console_of_our_own(config) -> None:  # after config.yml is saved: it stays ns-train's
-        if bar is not None:  # our progress bar instead of nerfstudio's table of steps
-            config.logging.local_writer.enable = False
-        if config.logging.profiler == "basic":  # nerfstudio's timing table would follow the results; ns-train keeps it
+    def console_of_our_own(config) -> None:  # after config.yml is saved
+        if config.logging.profiler == "basic":  # nerfstudio's timing table would follow the results
             config.logging.profiler = "none"
 
     from gaussian_atoms_method.nerfstudio_layer.config import follow
