@@ -172,3 +172,14 @@ def test_ns_train_says_a_malformed_command_line_in_one_line(tmp_path):
     lines = own_lines(run.stdout + run.stderr)  # less the warnings torch raises on nerfstudio's import
     assert run.returncode == 2 and len(lines) == 1, run.stderr
     assert lines[0].startswith("ns-train gaussian-atoms: error: ") and "--max-num-iterations" in lines[0]
+
+
+def test_gaussian_atoms_train_starts_no_viewer_unless_asked():
+    """``gaussian-atoms train`` without ``--vis`` runs the engine (TensorBoard's event file, no
+    viewer left serving); ``--vis viewer`` goes to nerfstudio's trainer, which serves one."""
+    from gaussian_atoms_method.cli.train_command import engine_runs
+    from gaussian_atoms_method.nerfstudio_layer.launch import build_config
+
+    assert engine_runs(["tilt-series", "--data", "data/demo"])
+    assert not engine_runs(["--vis", "viewer", "tilt-series", "--data", "data/demo"])
+    assert build_config(["tilt-series", "--data", "data/demo"]).vis == "tensorboard"

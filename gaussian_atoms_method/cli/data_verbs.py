@@ -241,23 +241,28 @@ class Evaluate:
             raise ValueError("--interior-A needs --data (the detector's footprint)")
         pred = read_atoms(self.pred)
         volume = voxel = None
+        no_ssim = ""
         origin = (0.0, 0.0, 0.0)
         if self.data is not None:
             series, truth, volume, voxel = load_reference(self.data)
             origin = series.origin_A
             if self.interior_A is not None:
                 pred, truth = (a.subset(inside_footprint(a.positions, series, self.interior_A)) for a in (pred, truth))
-                volume = None  # the volume spans the whole cube
+                volume, no_ssim = None, "--interior-A scores part of the volume"  # the volume spans the whole cube
         else:
             truth = read_atoms(self.truth)
         if volume is not None and (pred.sigmas is None or pred.amplitudes is None):
-            volume = None  # atoms without widths (a traced baseline): no volume to compare
+            volume, no_ssim = None, f"{self.pred.name} holds positions without widths and masses (traced atoms)"
+        elif self.data is not None and volume is None and not no_ssim:
+            no_ssim = f"{self.data} holds no potential volume (simulate --save-volume writes one)"
         scores = evaluate_atoms(pred, truth, self.radius_A, self.mean_shift, volume, voxel, origin)
         text = json.dumps(scores, indent=2)
         if self.output is not None:
             self.output.write_text(text + "\n")
         print(text)
         print(summary_line(scores, str(self.pred)), file=sys.stderr)
+        if no_ssim:
+            print(f"no volume SSIM: {no_ssim}", file=sys.stderr)
 
 
 @dataclass

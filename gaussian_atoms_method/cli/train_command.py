@@ -110,13 +110,13 @@ def given_flags(argv: list[str]) -> list[tuple[str, str | None]]:
 
 def engine_runs(argv: list[str]) -> bool:
     """True where the engine runs ``gaussian-atoms train ARGV`` as nerfstudio's trainer would:
-    ``--vis tensorboard`` and every option one :class:`TrainOptions` or the tilt-series options
+    ``--vis tensorboard`` (this command's default) and every option one :class:`TrainOptions` or the tilt-series options
     know (else nerfstudio's trainer runs it)."""
     trainer, tilt = split_at_subcommand(argv)
     if any(word in ("-h", "--help") for word in argv):
         return False
     given = given_flags(trainer)
-    if dict(given).get("vis") != "tensorboard":
+    if dict(given).get("vis", "tensorboard") != "tensorboard":  # a viewer only when asked (--vis viewer)
         return False
     return {n for n, _ in given} <= flags(TrainOptions) and {n for n, _ in given_flags(tilt)} <= flags(
         TiltSeriesOptions

@@ -34,6 +34,7 @@ def build_config(argv: list[str]):
 
     tyro.extras.set_accent_color("bright_yellow")
     default = gaussian_atoms_trainer_config()
+    default.vis = "tensorboard"  # no viewer left serving unless asked (--vis viewer); ns-train keeps nerfstudio's
     # As ns-train: booleans take a value (``--pipeline.model.cluster-merge False``), since
     # nerfstudio wraps its method configs in FlagConversionOff; sweeps pass flags that way.
     return tyro.cli(
