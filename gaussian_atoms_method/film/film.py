@@ -137,40 +137,53 @@ def write_film(
     output_dir = Path(output_dir)
     elements = parse_species(species)
     atoms = AtomSet(
-        positions=film.positions[film.confirmed],
-        species=np.full(int(film.confirmed.sum()), elements[0]) if len(elements) == 1 else None,
+        positions=film.positions[film.reported],
+        species=np.full(int(film.reported.sum()), elements[0]) if len(elements) == 1 else None,
     )
-    rest = AtomSet(positions=film.positions[~film.confirmed])
+    rest = AtomSet(positions=film.positions[~film.reported])
     write_atoms(atoms, output_dir / "atoms.xyz")
     write_atoms(rest, output_dir / "non_atoms.xyz")
-    table = np.column_stack([film.positions, film.found_in, film.covered_by, film.confirmed.astype(int)])
+    table = np.column_stack(
+        [film.positions, film.found_in, film.covered_by, film.confirmed.astype(int), film.reported.astype(int)]
+    )
     np.savetxt(
         output_dir / "atoms.csv",
         table,
         delimiter=",",
-        header="x_A,y_A,z_A,found_in,covered_by,confirmed",
+        header="x_A,y_A,z_A,found_in,covered_by,confirmed,reported",
         comments="",
-        fmt=["%.4f", "%.4f", "%.4f", "%d", "%d", "%d"],
+        fmt=["%.4f", "%.4f", "%.4f", "%d", "%d", "%d", "%d"],
     )
     share = film.found_in / np.maximum(film.covered_by, 1)
-    median = f"{np.median(film.found_in[film.confirmed])}/{np.median(film.covered_by[film.confirmed])}"
+    median = f"{np.median(film.found_in[film.reported])}/{np.median(film.covered_by[film.reported])}"
     summary = {
         "sub_areas": names,
-        "atoms": int(film.confirmed.sum()),
-        "non_atoms": int((~film.confirmed).sum()),
+        "atoms": int(film.reported.sum()),
+        "confirmed_by_overlap": int(film.confirmed.sum()),
+        "overlap_separates": bool(film.separated),
+        "non_atoms": int((~film.reported).sum()),
         "hard_core_A": hard_core_A,
         "recurrence_real": film.rate_real,
         "recurrence_artefact": film.rate_artefact,
-        "median_found_in_of_covered_by": median if film.confirmed.any() else None,
+        "median_found_in_of_covered_by": median if film.reported.any() else None,
         "tasks": tasks or {},
     }
     (output_dir / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     _draw(film.positions, share, output_dir / "film.png")
-    CONSOLE.print(
-        f"gaussian-atoms film: {summary['atoms']} atoms confirmed by the overlapping fits of {len(names)} sub-areas "
-        f"(median found in {median}; a real atom recurs in {film.rate_real:.0%} of the fits that cover it, an "
-        f"artefact in {film.rate_artefact:.0%}); {summary['non_atoms']} non-atoms; {output_dir / 'atoms.xyz'}"
-    )
+    if film.separated:
+        said = (
+            f"{summary['atoms']} atoms confirmed by the overlapping fits of {len(names)} sub-areas (median found in "
+            f"{median}; a real atom recurs in {film.rate_real:.0%} of the fits that cover it, an artefact in "
+            f"{film.rate_artefact:.0%}); {summary['non_atoms']} non-atoms"
+        )
+    else:
+        said = (
+            f"{summary['atoms']} atoms from the fits of {len(names)} sub-areas, none confirmed by their overlap: the "
+            f"share of covering fits that find an atom does not separate real atoms from artefacts "
+            f"({film.rate_real:.0%} and {film.rate_artefact:.0%}; median found in {median}: too few fits cover each "
+            f"atom, or no artefacts)"
+        )
+    CONSOLE.print(f"gaussian-atoms film: {said}; {output_dir / 'atoms.xyz'}")
 
 
 def _draw(positions: np.ndarray, share: np.ndarray, path: Path) -> None:

@@ -14,9 +14,10 @@ sub-area's offset, the reports of one atom from the sub-areas that see it lie cl
 * **Confirmed.** A run's artefact recurs in another run at some low rate, a real atom at a
   high one.  The two rates are read from the film itself: ``found_in`` out of ``covered_by``
   as a mixture of two binomials, fitted by expectation-maximisation; an atom is confirmed
-  where the real component is the more probable.  Where the film shows no artefacts to fit
-  (the two rates within :data:`SAME_RATE` of each other), an atom is confirmed when found by
-  most of the fits that cover it.  The rest are reported as non-atoms.
+  where the real component is the more probable; the rest are reported as non-atoms.  Where
+  the two rates do not separate (within :data:`SAME_RATE` of each other: too few fits cover
+  each atom, or the film shows no artefacts to tell real atoms by) the overlap confirms
+  nothing: every joined atom is reported, none confirmed by it.
 """
 
 from __future__ import annotations
@@ -49,8 +50,9 @@ class Reports:
 @dataclass
 class FilmAtoms:
     """The joined atoms: ``positions`` (M, 3) Å in the film's frame, ``found_in`` and
-    ``covered_by`` (M,) counts, ``confirmed`` (M,) bool, and the two recurrence rates read
-    (``rate_real``, ``rate_artefact``)."""
+    ``covered_by`` (M,) counts, ``confirmed`` (M,) bool, the two recurrence rates read
+    (``rate_real``, ``rate_artefact``) and whether they separate (else no atom is confirmed by
+    the overlap, and every one is reported)."""
 
     positions: np.ndarray
     found_in: np.ndarray
@@ -58,6 +60,12 @@ class FilmAtoms:
     confirmed: np.ndarray
     rate_real: float
     rate_artefact: float
+    separated: bool = True
+
+    @property
+    def reported(self) -> np.ndarray:
+        """(M,) the atoms reported: the confirmed ones, or all where the overlap cannot tell."""
+        return self.confirmed if self.separated else np.ones(len(self.confirmed), dtype=bool)
 
 
 def join_reports(reports: list[Reports], hard_core_A: float) -> FilmAtoms:
@@ -100,7 +108,8 @@ def join_reports(reports: list[Reports], hard_core_A: float) -> FilmAtoms:
     covered_by = np.sum([r.inside(positions) for r in reports], axis=0).astype(np.int64) if reports else found_in
     covered_by = np.maximum(covered_by, found_in)  # a mean may sit just outside an edge it was found inside
     confirmed, rate_real, rate_artefact = confirm(found_in, covered_by)
-    return FilmAtoms(positions, found_in, covered_by, confirmed, rate_real, rate_artefact)
+    separated = rate_real - rate_artefact >= SAME_RATE
+    return FilmAtoms(positions, found_in, covered_by, confirmed, rate_real, rate_artefact, separated)
 
 
 def _overlap(a: Reports, b: Reports, margin_A: float) -> bool:
@@ -127,8 +136,8 @@ def confirm(found_in: np.ndarray, covered_by: np.ndarray, iterations: int = 200)
         p_art = float(np.clip(((1 - w) * k).sum() / max(((1 - w) * n).sum(), 1e-12), 1e-6, 1 - 1e-6))
         if p_art > p_real:
             p_real, p_art, share = p_art, p_real, 1.0 - share
-    if p_real - p_art < SAME_RATE:  # one population: nothing to tell artefacts by
-        return 2 * k > n, p_real, p_art
+    if p_real - p_art < SAME_RATE:  # one population: the overlap tells nothing
+        return np.zeros(len(k), dtype=bool), p_real, p_art
     log_real = np.log(share) + k * np.log(p_real) + (n - k) * np.log1p(-p_real)
     log_art = np.log1p(-share) + k * np.log(p_art) + (n - k) * np.log1p(-p_art)
     return log_real > log_art, p_real, p_art

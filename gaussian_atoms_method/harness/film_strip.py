@@ -37,7 +37,7 @@ def score_strip(film_dir: Path, data_dir: Path) -> dict:
 
     subareas = read_plan(Path(film_dir) / "film.json")
     table = np.loadtxt(Path(film_dir) / "atoms.csv", delimiter=",", skiprows=1, ndmin=2)
-    positions, found_in, covered_by, confirmed = table[:, :3], table[:, 3], table[:, 4], table[:, 5] > 0
+    positions, found_in, covered_by, confirmed = table[:, :3], table[:, 3], table[:, 4], table[:, 6] > 0  # reported
     pred = positions[confirmed]
     model = _mat(Path(data_dir) / "Final_atomic_model_Ta_film.mat", "model").T
     corners = np.array([s.interior_A for s in subareas])  # (S, 2, 2)
@@ -107,7 +107,7 @@ def simulated_film(
         series, (round(40 / px), series.projections.shape[2]), (round(15 / px), 10**6), output / "data"
     )
     film = reconstruct_film(subareas, output, device, "Pd", address=address)
-    reported = film.positions[film.confirmed]
+    reported = film.positions[film.reported]
     true = sim.truth.positions
     union = np.zeros(len(true), dtype=bool)
     for s in subareas:
