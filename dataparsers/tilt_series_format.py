@@ -38,9 +38,9 @@ from gaussian_atoms_method.physics.geometry import (
 )
 from gaussian_atoms_method.physics.noise import MIN_SIDE_PX
 
+from . import views
 from .errors import TiltSeriesError
 from .readers import read_angles, read_stack
-from .views import MAX_START_OFFSET_A, dark_atoms, start_offset_A, unusable_views, views_to_drop
 
 __all__ = ["MANIFEST", "TiltSeries", "TiltSeriesError", "load_tilt_series", "write_tilt_series", "update_manifest"]
 
@@ -87,7 +87,7 @@ class TiltSeries:
         as ``angles_deg`` of shape (N, 3)); ``angles_deg`` then holds ``theta``.  None when every
         ``phi`` and ``psi`` is zero: a single-axis series.  The fit projects with the full
         orientation (:meth:`detector_axes`); the start back-projects about ``theta`` alone, so
-        the views may leave the single axis by no more than :data:`MAX_START_OFFSET_A`.
+        the views may leave the single axis by no more than :data:`dataparsers.views.MAX_START_OFFSET_A`.
     euler_convention : {"zyz", "zyx"}
         The axes of ``euler_deg``: Z-Y-Z as GENFIRE writes them (the default), Z-Y-X as RESIRE.
     pixel_size_source : str
@@ -136,8 +136,8 @@ class TiltSeries:
         if not np.all(np.isfinite(angles)):
             raise TiltSeriesError(f"{where}: tilt angles hold NaN/Inf")
         indices = np.arange(len(angles)) if self.view_indices is None else np.asarray(self.view_indices, np.int64)
-        unusable_views(proj, angles, indices, where)
-        dark_atoms(proj, where)
+        views.unusable_views(proj, angles, indices, where)
+        views.dark_atoms(proj, where)
         self.projections, self.view_indices = proj.astype(np.float32, copy=False), indices
         self.views_given = int(self.views_given if self.views_given is not None else len(angles))
         directions = np.unique(np.round(np.mod(angles, 180.0), 6) % 180.0)
@@ -159,6 +159,7 @@ class TiltSeries:
         if not (np.isfinite(self.pixel_size_A) and self.pixel_size_A > 0):
             raise TiltSeriesError(f"{where}: pixel_size_A must be a positive number of Å, got {self.pixel_size_A}")
         self.pixel_size_A = float(self.pixel_size_A)
+        views.implausible_pixel_size(proj, self.pixel_size_A, where, self.pixel_size_source)
         if self.tilt_axis not in TILT_AXES:
             raise TiltSeriesError(f"{where}: tilt_axis must be one of {list(TILT_AXES)}, got {self.tilt_axis!r}")
         origin = np.asarray(self.origin_A, dtype=np.float64).reshape(-1)
@@ -212,15 +213,15 @@ class TiltSeries:
                 f"RESIRE); tilt_axis must be 'y' and tilt_axis_angle_deg 0, got {self.tilt_axis!r} and "
                 f"{self.tilt_axis_angle_deg:g}"
             )
-        offset = start_offset_A(
+        offset = views.start_offset_A(
             euler, self.projections.shape[1:], self.centre_px, self.pixel_size_A, self.euler_convention
         )
-        if offset > MAX_START_OFFSET_A:
+        if offset > views.MAX_START_OFFSET_A:
             off_axis = np.abs(euler[:, [0, 2]]).max()
             raise TiltSeriesError(
                 f"{where}: Euler angles with phi or psi up to {off_axis:g} deg move the field's corners {offset:.2f} Å "
                 f"from where theta alone puts them (the start back-projects about theta; at most "
-                f"{MAX_START_OFFSET_A:g} Å): series tilted in more than one direction are not supported"
+                f"{views.MAX_START_OFFSET_A:g} Å): series tilted in more than one direction are not supported"
             )
         return euler
 
@@ -383,7 +384,7 @@ def load_tilt_series(
         )
     spec = pick(drop_views, "drop_views")
     given = len(angles)
-    kept = np.setdiff1d(np.arange(given), views_to_drop(spec, angles[:, 1] if angles.ndim == 2 else angles))
+    kept = np.setdiff1d(np.arange(given), views.views_to_drop(spec, angles[:, 1] if angles.ndim == 2 else angles))
     if len(kept) < given:
         proj, angles = proj[kept], angles[kept]
     truth_name = pick(truth, "truth")

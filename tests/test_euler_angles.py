@@ -12,12 +12,12 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from dataparsers.tilt_series_format import (
-    MAX_START_OFFSET_A,
     TiltSeries,
     TiltSeriesError,
     load_tilt_series,
     write_tilt_series,
 )
+from dataparsers.views import MAX_START_OFFSET_A
 from gaussian_atoms_method.engine.views import views_from_tilt_series
 from gaussian_atoms_method.physics.geometry import detector_axes_from_euler, detector_axes_from_tilts, pixel_centres
 from gaussian_atoms_method.physics.projector import project_gaussians

@@ -160,3 +160,28 @@ def test_dark_atoms_are_named_before_a_fit():
         with pytest.raises(TiltSeriesError, match="atoms look dark on a brighter background") as info:
             TiltSeries(dark, angles, 0.25)
         assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("factor, words", [(4.0, "times too large"), (0.25, "times too small")])
+def test_a_pixel_size_that_puts_atoms_at_impossible_widths_is_refused(factor, words):
+    """A Au particle at 0.25 Å pixels (its images read 0.37 Å wide): said to be four times as
+    large the images would be 1.5 Å wide (no probe that separates atoms is that broad), a quarter
+    0.09 Å (under the potential's own core); each is refused in one line with the factor it is
+    off by (against the 0.35 Å the measure reads on every series: 4.3 here), the true size loads."""
+    from dataparsers.tilt_series_format import TiltSeries
+    from dataparsers.views import atom_image_sigma_px
+
+    views, angles = _particle_views()
+    assert TiltSeries(views, angles, 0.25).n_views == 9
+    assert 0.3 < atom_image_sigma_px(views) * 0.25 < 0.4
+    with pytest.raises(TiltSeriesError, match=words) as info:
+        TiltSeries(views, angles, 0.25 * factor)
+    off = float(str(info.value).split("about ")[-1].split(" times")[0])
+    assert "\n" not in str(info.value) and 3.5 < off < 4.5
+
+
+def test_noise_alone_tells_no_atom_width():
+    """Views of white noise hold no structure to read a width from: nothing is refused."""
+    from dataparsers.views import atom_image_sigma_px
+
+    assert np.isnan(atom_image_sigma_px(np.random.default_rng(0).normal(0, 1, (9, 80, 80))))

@@ -57,16 +57,20 @@ def valid_then(out: Path, change: Callable[[Path], object]) -> Path:
     return out
 
 
-def _dark_atoms(p):
-    """Each view a bright field with dark atoms: 100 less 2D Gaussians of 1.2 px, depth 40, and
-    noise of 1."""
+def _atoms(p, sign: float = 1.0, n: int = 6):
+    """Each view ``n`` atoms (2D Gaussians of 1.2 px, height 40) on a floor of 100 with noise of
+    1: bright, or dark (``sign`` -1) as a bright field shows them."""
     rng = np.random.default_rng(1)
     r, c = np.meshgrid(np.arange(p.shape[1]), np.arange(p.shape[2]), indexing="ij")
     out = 100.0 + rng.normal(0.0, 1.0, p.shape)
     for view in out:
-        for y, x in rng.uniform(3, min(p.shape[1:]) - 3, (6, 2)):
-            view -= 40.0 * np.exp(-((r - y) ** 2 + (c - x) ** 2) / (2 * 1.2**2))
+        for y, x in rng.uniform(3, min(p.shape[1:]) - 3, (n, 2)):
+            view += sign * 40.0 * np.exp(-((r - y) ** 2 + (c - x) ** 2) / (2 * 1.2**2))
     return out.astype(p.dtype)
+
+
+def _dark_atoms(p):
+    return _atoms(p, -1.0)
 
 
 def _empty_view(p):
@@ -131,6 +135,12 @@ BROKEN: dict[str, tuple[Callable[[Path], Path], str]] = {
     "NaN pixels": (lambda out: resave(valid_series(out), _nan), "NaN/Inf value(s), in view(s) 2 (-20°)"),
     "an empty view": (lambda out: resave(valid_series(out), _empty_view), "view(s) 4 (20°) hold the same value"),
     "dark atoms": (lambda out: resave(valid_series(out), _dark_atoms), "atoms look dark on a brighter background"),
+    "pixel size 4 times too large": (
+        lambda out: edit_manifest(
+            resave(valid_series(out, shape=(64, 64)), lambda p: _atoms(p, n=40)), pixel_size_A=1.2
+        ),
+        "the pixel size looks about",
+    ),
     "2D projections": (lambda out: resave(valid_series(out), lambda p: p[0]), "3D stack"),
     "complex projections": (lambda out: resave(valid_series(out), lambda p: p.astype(np.complex64)), "real numbers"),
     "unknown tilt axis": (lambda out: edit_manifest(valid_series(out), tilt_axis="z"), "tilt_axis must be one of"),
