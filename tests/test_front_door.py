@@ -183,3 +183,25 @@ def test_gaussian_atoms_train_starts_no_viewer_unless_asked():
     assert engine_runs(["tilt-series", "--data", "data/demo"])
     assert not engine_runs(["--vis", "viewer", "tilt-series", "--data", "data/demo"])
     assert build_config(["tilt-series", "--data", "data/demo"]).vis == "tensorboard"
+
+
+def test_a_viewer_left_serving_says_where_and_how_to_stop_it(capfd):
+    """Once the results are written, a run whose viewer keeps serving says its address and
+    Ctrl-C; one whose viewer quits with training, or before its last step, says nothing."""
+    from types import SimpleNamespace
+
+    from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModel
+
+    model = SimpleNamespace(kernel_reading=SimpleNamespace(first_pass=False))
+    viewer = SimpleNamespace(viewer_info=["Viewer running locally at: http://127.0.0.1:7007"])
+
+    def trainer(quit_after: bool, stopped: bool):
+        config = SimpleNamespace(viewer=SimpleNamespace(quit_on_train_completion=quit_after))
+        return SimpleNamespace(viewer_state=viewer, config=config, stop_training=stopped)
+
+    GaussianAtomsModel._say_viewer(model, trainer(False, False), 2999, 1500)
+    GaussianAtomsModel._say_viewer(model, trainer(True, True), 2999, 1500)
+    assert "viewer" not in capfd.readouterr().out
+    GaussianAtomsModel._say_viewer(model, trainer(False, True), 2999, 1500)
+    said = capfd.readouterr().out
+    assert "http://127.0.0.1:7007" in said and "Ctrl-C" in said

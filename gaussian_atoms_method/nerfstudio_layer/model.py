@@ -17,6 +17,7 @@ from typing import Dict, List, Tuple, Type
 import torch
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 
+from gaussian_atoms_method.engine.console import CONSOLE
 from gaussian_atoms_method.engine.fit import AtomFit
 from gaussian_atoms_method.engine.view_set import ViewSet
 from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions
@@ -77,6 +78,7 @@ class GaussianAtomsModel(AtomFit, SplatfactoCompat):
             last = trainer._start_step + trainer.config.max_num_iterations - 1
             cbs.append(TrainingCallback(after, self.write_results_at, args=[last, trainer.base_dir]))
             cbs.append(TrainingCallback(after, self._stop_trainer, args=[trainer, last]))
+            cbs.append(TrainingCallback(after, self._say_viewer, args=[trainer, last]))
             if self.config.snapshot_every > 0:
                 cbs.append(
                     TrainingCallback(after, self.snapshot_after_step, args=[Path(trainer.base_dir) / "snapshots"])
@@ -87,3 +89,13 @@ class GaussianAtomsModel(AtomFit, SplatfactoCompat):
         progress = getattr(trainer, "progress", None)
         if self.should_stop(step, last_step, Path(trainer.base_dir), progress):
             trainer.stop_training = True  # nerfstudio's loop ends before the next step
+
+    def _say_viewer(self, trainer, last_step: int, step: int) -> None:
+        """Once the results are written (the last step, or the trainer stopped early): where a
+        viewer keeps serving after training, say where and how to stop it."""
+        viewer, config = getattr(trainer, "viewer_state", None), trainer.config.viewer
+        over = (step >= last_step or trainer.stop_training) and not self.kernel_reading.first_pass
+        if viewer is None or config.quit_on_train_completion or not over:
+            return
+        where = "; ".join(getattr(viewer, "viewer_info", None) or [str(getattr(viewer, "viewer_url", "its address"))])
+        CONSOLE.print(f"gaussian-atoms: training is over and the viewer keeps serving ({where}): stop it with Ctrl-C")
