@@ -205,3 +205,24 @@ def test_a_viewer_left_serving_says_where_and_how_to_stop_it(capfd):
     GaussianAtomsModel._say_viewer(model, trainer(False, True), 2999, 1500)
     said = capfd.readouterr().out
     assert "http://127.0.0.1:7007" in said and "Ctrl-C" in said
+
+
+def test_train_help_is_this_methods_options_in_plain_text(capsys):
+    """``gaussian-atoms train --help``: at most 250 lines, every fit and tilt-series option with
+    its default, no Sphinx markup, no other package's dataparsers."""
+    import dataclasses
+
+    from dataparsers.tilt_series_options import TiltSeriesOptions
+    from gaussian_atoms_method.cli import entrypoint
+    from gaussian_atoms_method.engine.options import FitOptions
+
+    entrypoint(["train", "--help"])
+    text = capsys.readouterr().out
+    assert len(text.splitlines()) <= 250
+    assert not any(role in text for role in (":func:", ":class:", ":data:", ":meth:", ":mod:", "``", "::\n"))
+    assert "blender-data" not in text and "colmap" not in text
+    for f in dataclasses.fields(FitOptions):
+        if f.init and not f.name.startswith("_"):
+            assert f"--pipeline.model.{f.name.replace('_', '-')} " in text, f.name
+    for f in dataclasses.fields(TiltSeriesOptions):
+        assert f"--{f.name.replace('_', '-')} " in text, f.name

@@ -95,6 +95,11 @@ def entrypoint(argv: list[str] | None = None) -> None:
     from gaussian_atoms_method.atoms.atom_set import AtomFileError
 
     argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["train"] and any(word in ("-h", "--help") for word in argv[1:]):
+        from gaussian_atoms_method.cli.train_help import train_help
+
+        print(train_help())  # this method's options; ns-train gaussian-atoms --help lists nerfstudio's too
+        return
     if argv[:1] == ["train"]:
         from gaussian_atoms_method.physics import cuda_context
         from gaussian_atoms_method.start_ahead import begin_for, end_now, runs_on_cuda, settle_imports
