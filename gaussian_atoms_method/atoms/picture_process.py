@@ -33,10 +33,9 @@ two children and two left to the final stage, whose torch work runs on two threa
 
 def spare_cores() -> bool:
     """Whether this process may use at least :data:`SPARE_CORES` cores."""
-    try:
-        return len(os.sched_getaffinity(0)) >= SPARE_CORES
-    except AttributeError:  # no affinity on this platform
-        return (os.cpu_count() or 1) >= SPARE_CORES
+    from gaussian_atoms_method.physics.devices import cores_given
+
+    return cores_given() >= SPARE_CORES
 
 
 class PictureProcess:

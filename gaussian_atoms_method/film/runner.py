@@ -11,7 +11,6 @@ takes one; otherwise a task takes :func:`cores_per_task` cores and torch uses th
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 from gaussian_atoms_method.film.subareas import SubArea
@@ -142,7 +141,9 @@ def cores_per_task(n_tasks: int) -> int:
     """Cores for one CPU task: this machine's shared among at most ``n_tasks`` tasks, at least 2
     each (torch's matrix products and the projector's tiles use two threads well; one task a
     core would leave each at half speed)."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    from gaussian_atoms_method.physics.devices import cores_given
+
+    cores = cores_given()
     if cores < 2:
         return 1
     return max(2, cores // max(1, min(n_tasks, cores // 2)))

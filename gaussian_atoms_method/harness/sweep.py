@@ -19,7 +19,6 @@ import csv
 import hashlib
 import itertools
 import json
-import os
 import re
 import shlex
 from concurrent.futures import ThreadPoolExecutor, as_completed
@@ -143,7 +142,9 @@ class Sweep:
             f"gaussian-atoms sweep: {len(self.settings)} settings, {len(self.settings) - len(todo)} already finished, "
             f"{len(todo)} to run"
         )
-        threads = max(1, (os.cpu_count() or 1) // min(self.jobs, max(len(todo), 1)))
+        from gaussian_atoms_method.physics.devices import cores_given
+
+        threads = max(1, cores_given() // min(self.jobs, max(len(todo), 1)))  # the cores given, shared
         calls = [
             (str(self.data), str(run_dir), self._args(settings), self.iterations, self.device, threads)
             for _, settings, run_dir in todo

@@ -66,3 +66,14 @@ def work_device(values, device=None):
     if isinstance(values, torch.Tensor) and values.device.type != "cpu":
         return values.device
     return gpu()
+
+
+def cores_given() -> int:
+    """The cores this process may use: its affinity where the platform has one (a cluster's
+    scheduler, ``taskset``), else the machine's."""
+    import os
+
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # no affinity on this platform
+        return os.cpu_count() or 1
