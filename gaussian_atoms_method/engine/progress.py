@@ -24,8 +24,9 @@ class ProgressBar:
         )
 
     def reset(self) -> None:
-        """Start over at 0 (a second pass)."""
-        self.bar.reset()
+        """Start over at 0 (a second pass; a bar still at 0 is not drawn again)."""
+        if self.bar.n:
+            self.bar.reset()
 
     def count(self, step: int) -> None:
         """Count through ``step`` (after each step)."""
