@@ -382,10 +382,8 @@ def load_tilt_series(
         raise TiltSeriesError(
             f"{angles_path}: {len(angles)} tilt angles for {proj.shape[0]} projections in {proj_path.name}{hint}"
         )
-    spec = pick(drop_views, "drop_views")
-    given = len(angles)
-    kept = np.setdiff1d(np.arange(given), views.views_to_drop(spec, angles[:, 1] if angles.ndim == 2 else angles))
-    if len(kept) < given:
+    given, kept = len(angles), views.kept_views(pick(drop_views, "drop_views"), angles)
+    if kept is not None:
         proj, angles = proj[kept], angles[kept]
     truth_name = pick(truth, "truth")
     truth_path = root / truth_name if truth_name is not None else None

@@ -218,3 +218,13 @@ def views_to_drop(spec, angles_deg: np.ndarray, where: str = "drop_views") -> np
         else:
             raise TiltSeriesError(f"{where}: view {value} is not among the {len(angles)} views (0-{len(angles) - 1})")
     return np.unique(np.asarray(out, dtype=np.int64))
+
+
+def kept_views(spec, angles_deg: np.ndarray) -> np.ndarray | None:
+    """(K,) the indices of the views ``spec`` leaves in (:func:`views_to_drop`), of the (N,) tilts
+    or (N, 3) Euler angles ``angles_deg`` (their tilt the middle column); None without ``spec``
+    (every view)."""
+    if spec is None:
+        return None
+    angles = np.asarray(angles_deg, dtype=np.float64)
+    return np.setdiff1d(np.arange(len(angles)), views_to_drop(spec, angles[:, 1] if angles.ndim == 2 else angles))

@@ -78,12 +78,12 @@ def _from_hyperspy(signal, angles_deg, pixel_size_A):
 def _as_series(
     projections, angles_deg, pixel_size_A, tilt_axis: str, species=None, euler_convention=None, drop_views=None
 ) -> TiltSeries:
-    from dataparsers.views import views_to_drop
+    from dataparsers.views import kept_views
 
     if isinstance(projections, TiltSeries):
         series, changes = projections, {"species": species, "euler_convention": euler_convention}
-        kept = np.setdiff1d(np.arange(series.n_views), views_to_drop(drop_views, series.angles_deg))
-        if len(kept) < series.n_views:
+        kept = kept_views(drop_views, series.angles_deg)
+        if kept is not None:
             euler = None if series.euler_deg is None else series.euler_deg[kept]
             changes |= {"projections": series.projections[kept], "angles_deg": series.angles_deg[kept]}
             changes |= {"euler_deg": euler, "view_indices": series.view_indices[kept]}
@@ -101,9 +101,9 @@ def _as_series(
     except (TypeError, ValueError):
         raise TiltSeriesError(f"pixel_size_A must be a number of Å, got {pixel_size_A!r}") from None
     projections, angles = np.asarray(projections), np.asarray(angles_deg, dtype=np.float64)
-    kept, given = np.arange(len(angles)), len(angles)
-    if drop_views is not None:
-        kept = np.setdiff1d(kept, views_to_drop(drop_views, angles[:, 1] if angles.ndim == 2 else angles))
+    kept, given = kept_views(drop_views, angles), None
+    if kept is not None:  # the views' indices are of the arrays given
+        given = len(angles)
         projections, angles = projections[kept], angles[kept]
     return TiltSeries(
         projections,
