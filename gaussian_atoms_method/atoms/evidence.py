@@ -200,8 +200,9 @@ def atom_evidence(
         return AtomEvidence(
             empty, empty.astype(bool), np.zeros((0, 3)), empty, np.zeros((0, 3)), empty.astype(bool), level, hard_core_A
         )
+    where = work_device(None, device) or torch.device("cpu")
     # the information within each atom and between the pairs that may couple
-    diagonal = pair_information(positions, positions, sigmas, sigmas, amps, amps, axes, pixel_size_A)
+    diagonal = pair_information(positions, positions, sigmas, sigmas, amps, amps, axes, pixel_size_A, where)
     pairs = _pairs(positions, NEIGHBOUR_SEARCH_A)
     coupled = np.zeros(len(pairs), bool)
     for start in range(0, len(pairs), chunk_pairs):
@@ -214,7 +215,7 @@ def atom_evidence(
     for start in range(0, len(pairs), chunk_pairs):
         i, j = pairs[start : start + chunk_pairs].T
         blocks[start : start + chunk_pairs] = pair_information(
-            positions[i], positions[j], sigmas[i], sigmas[j], amps[i], amps[j], axes, pixel_size_A
+            positions[i], positions[j], sigmas[i], sigmas[j], amps[i], amps[j], axes, pixel_size_A, where
         )
     variance = noise_std**2 * (L1_EFFICIENCY_FACTOR if loss == "l1" else 1.0)
     significance = np.full(n, np.nan)
@@ -223,7 +224,6 @@ def atom_evidence(
     rises = np.full((n, len(offsets)), np.inf)
     depth_axis_all = depth_axis_of(axes) if offsets else None
     wanted = np.flatnonzero(np.ones(n, bool) if targets is None else targets)
-    where = work_device(None, device) or torch.device("cpu")
     scores_on = None if scores is None else torch.as_tensor(np.asarray(scores, np.float64), device=where)
     moved_on = (
         None

@@ -146,9 +146,10 @@ def view_scores(
     centre_px : (2,) the detector pixel of the tilt centre
     """
     from gaussian_atoms_method.physics.devices import work_device
+    from gaussian_atoms_method.physics.noise import as_array
 
     where = work_device(residuals, device)
-    res = torch.as_tensor(residuals).to(where, torch.float64) if where is not None else _host(residuals)
+    res = torch.as_tensor(residuals).to(where, torch.float64) if where is not None else as_array(residuals)
     axes = np.asarray(detector_axes, dtype=np.float64)[:, :2, :]
     positions = np.asarray(positions_A, np.float64).reshape(-1, 3)
     sigmas, amps = np.asarray(sigmas_A, np.float64).ravel(), np.asarray(amplitudes, np.float64).ravel()
@@ -170,12 +171,6 @@ def view_scores(
             tensors = (torch.as_tensor(a, device=where) for a in picked)
             out[chosen] = _view_scores(*tensors, res, pixel_size_A, centre_px, int(size)).cpu().numpy()
     return out
-
-
-def _host(values) -> np.ndarray:
-    if isinstance(values, torch.Tensor):
-        return values.detach().cpu().double().numpy()
-    return np.asarray(values, np.float64)
 
 
 SCORE_ELEMENTS = 2e7

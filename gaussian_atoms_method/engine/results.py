@@ -230,8 +230,9 @@ def attach_evidence(model, atoms: AtomSet, noise: float, read, hard_core_A: floa
 
     series = model.view_set.series
     scale = model.normalisation.data_scale
-    # measured minus predicted (residual_noise holds predicted minus measured), input units
-    residuals, predicted = (-read[1] / scale).cpu().numpy(), (read[2] / scale).cpu().numpy()
+    # measured minus predicted (residual_noise holds predicted minus measured), input units; left
+    # where the fit ran: the views' pulls and the spectrum read it there
+    residuals, predicted = (-read[1] / scale).double(), (read[2] / scale).cpu().numpy()
     sigma_px = float(np.median(atoms.sigmas)) / series.pixel_size_A
     position_factor, amplitude_factor = residual_spectrum_factors(residuals, noise, sigma_px)
     axes = detector_axes(model.view_c2w.cpu().double()).numpy()
