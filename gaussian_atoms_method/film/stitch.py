@@ -60,7 +60,11 @@ class FilmAtoms:
     confirmed: np.ndarray
     rate_real: float
     rate_artefact: float
-    separated: bool = True
+
+    @property
+    def separated(self) -> bool:
+        """Whether the two recurrence rates tell real atoms from artefacts (:func:`rates_separate`)."""
+        return rates_separate(self.rate_real, self.rate_artefact)
 
     @property
     def reported(self) -> np.ndarray:
@@ -108,8 +112,7 @@ def join_reports(reports: list[Reports], hard_core_A: float) -> FilmAtoms:
     covered_by = np.sum([r.inside(positions) for r in reports], axis=0).astype(np.int64) if reports else found_in
     covered_by = np.maximum(covered_by, found_in)  # a mean may sit just outside an edge it was found inside
     confirmed, rate_real, rate_artefact = confirm(found_in, covered_by)
-    separated = rate_real - rate_artefact >= SAME_RATE
-    return FilmAtoms(positions, found_in, covered_by, confirmed, rate_real, rate_artefact, separated)
+    return FilmAtoms(positions, found_in, covered_by, confirmed, rate_real, rate_artefact)
 
 
 def _overlap(a: Reports, b: Reports, margin_A: float) -> bool:
@@ -118,6 +121,11 @@ def _overlap(a: Reports, b: Reports, margin_A: float) -> bool:
     return bool(
         np.all(a.interior_A[0] - margin_A <= b.interior_A[1]) and np.all(b.interior_A[0] - margin_A <= a.interior_A[1])
     )
+
+
+def rates_separate(rate_real: float, rate_artefact: float) -> bool:
+    """Whether the real atoms' recurrence rate lies :data:`SAME_RATE` or more above the artefacts'."""
+    return rate_real - rate_artefact >= SAME_RATE
 
 
 def confirm(found_in: np.ndarray, covered_by: np.ndarray, iterations: int = 200) -> tuple[np.ndarray, float, float]:
@@ -136,7 +144,7 @@ def confirm(found_in: np.ndarray, covered_by: np.ndarray, iterations: int = 200)
         p_art = float(np.clip(((1 - w) * k).sum() / max(((1 - w) * n).sum(), 1e-12), 1e-6, 1 - 1e-6))
         if p_art > p_real:
             p_real, p_art, share = p_art, p_real, 1.0 - share
-    if p_real - p_art < SAME_RATE:  # one population: the overlap tells nothing
+    if not rates_separate(p_real, p_art):  # one population: the overlap tells nothing
         return np.zeros(len(k), dtype=bool), p_real, p_art
     log_real = np.log(share) + k * np.log(p_real) + (n - k) * np.log1p(-p_real)
     log_art = np.log1p(-share) + k * np.log(p_art) + (n - k) * np.log1p(-p_art)

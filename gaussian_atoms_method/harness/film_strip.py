@@ -37,8 +37,8 @@ def score_strip(film_dir: Path, data_dir: Path) -> dict:
 
     subareas = read_plan(Path(film_dir) / "film.json")
     table = np.loadtxt(Path(film_dir) / "atoms.csv", delimiter=",", skiprows=1, ndmin=2)
-    positions, found_in, covered_by, confirmed = table[:, :3], table[:, 3], table[:, 4], table[:, 6] > 0  # reported
-    pred = positions[confirmed]
+    positions, found_in, covered_by, reported = table[:, :3], table[:, 3], table[:, 4], table[:, 6] > 0
+    pred = positions[reported]
     model = _mat(Path(data_dir) / "Final_atomic_model_Ta_film.mat", "model").T
     corners = np.array([s.interior_A for s in subareas])  # (S, 2, 2)
     lo_xy, hi_xy = corners[:, 0].min(axis=0), corners[:, 1].max(axis=0)
@@ -48,10 +48,10 @@ def score_strip(film_dir: Path, data_dir: Path) -> dict:
     lo, hi = np.r_[lo_xy, z.min() - DEPTH_MARGIN_A], np.r_[hi_xy, z.max() + DEPTH_MARGIN_A]
     inside = np.all((model >= lo) & (model <= hi), axis=1)
     scores = score_in_region(pred, model, np.stack([lo, hi]), inside)
-    share = found_in[confirmed] / np.maximum(covered_by[confirmed], 1)
+    share = found_in[reported] / np.maximum(covered_by[reported], 1)
     return scores | {
-        "median_found_in": float(np.median(found_in[confirmed])),
-        "median_covered_by": float(np.median(covered_by[confirmed])),
+        "median_found_in": float(np.median(found_in[reported])),
+        "median_covered_by": float(np.median(covered_by[reported])),
         "median_share_found": float(np.median(share)),
         "citation": CITATION,
     }
