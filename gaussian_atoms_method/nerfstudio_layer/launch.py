@@ -22,7 +22,6 @@ from typing import Sequence
 import torch
 
 from gaussian_atoms_method.engine.errors import OptionError
-from gaussian_atoms_method.engine.progress import ProgressBar
 
 
 def build_config(argv: list[str]):
@@ -61,24 +60,16 @@ def run(config) -> None:
         config = yaml.load(config.load_config.read_text(), Loader=yaml.Loader)
     config.set_timestamp()
     config.check_or_exit()  # no dump of the configuration: it is in config.yml
-    bar = None if config.logging.local_writer.enable else ProgressBar(config.max_num_iterations)
 
     def console_of_our_own(config) -> None:  # after config.yml is saved
         if config.logging.profiler == "basic":  # nerfstudio's timing table would follow the results
             config.logging.profiler = "none"
 
-    from gaussian_atoms_method.nerfstudio_layer.config import follow
-
     trainer = make_trainer(config, console_of_our_own)
     try:
         with quiet_trainer_console():
-            if bar is not None:
-                follow(bar, trainer)
-                trainer.progress = bar
-            trainer.train()  # GaussianAtomsTrainer: failures and Ctrl+C end in one line
+            trainer.train()  # GaussianAtomsTrainer: its progress line; failures and Ctrl+C in one line
     finally:
-        if bar is not None:
-            bar.close()
         from nerfstudio.utils import profiler
 
         profiler.flush_profiler(config.logging)
