@@ -51,11 +51,10 @@ class NoiseModel:
     """Variance per squared signal: the fit's relative error, not noise."""
     least_mean: float = -np.inf
     """The lowest level the reading saw (its lowest bin's mean less half the step to the next):
-    below it the variance is held
-    at that level's.  The line is read over the levels the data hold; a series with no dark
-    pixel (a support film under every view) fits its intercept by extrapolation, and a
-    Ta film's replica under 30 Å of carbon read 0 for a true 40.5, which put the
-    variance of a pixel the Gaussians leave dark at zero."""
+    below it the variance is held at that level's.  The line is read over the levels the data
+    hold; a series with no dark pixel (a support film under every view) fits its intercept by
+    extrapolation, and a Ta film's replica under 30 Å of carbon read 0 for a true 40.5, which
+    put the variance of a pixel the Gaussians leave dark at zero."""
 
     def scaled(self, factor: float) -> "NoiseModel":
         """The same noise for the data multiplied by ``factor`` (the misfit, a relative
