@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms
-from gaussian_atoms_method.engine.convergence import ConvergenceCheck
+from gaussian_atoms_method.engine.convergence import ConvergenceCheck, mutual_nearest, places_changed
 from gaussian_atoms_method.engine.results import read_snapshot_times, write_snapshot
 
 
@@ -50,6 +50,32 @@ def test_convergence_matches_atoms_not_indices_and_tolerates_its_share_of_change
     assert not moved.update(1, positions, 0.01, precision) and not moved.update(2, positions, 0.01, precision)
     # farther than the match distance: all new
     assert not moved.update(3, positions + torch.tensor([0.008, 0.0, 0.0]), 0.01, precision)
+
+
+def test_a_merge_or_split_within_the_hard_core_keeps_its_place_and_a_birth_counts_whole():
+    """Ta's hard core (1.87 Å): two Gaussians of 0.75 and 0.7 atoms 2.0 Å apart merged into one
+    of 1.45 at their mass-weighted mean lose no atom's worth (each parent lies within the hard
+    core of the product); the split back does the same; a Gaussian pruned or born elsewhere
+    counts whole, and a place whose mass changed counts the change."""
+    core = 1.87
+    atoms = np.array([[0.0, 0, 0], [2.6, 0, 0], [5.2, 0, 0]])
+    worth = np.array([1.0, 0.75, 0.7])
+    pair = np.array([[0.0, 0, 0], [2.6, 0, 0], [2.6, 0, 2.0]])  # the second along the beam
+    merged = np.array([[0.0, 0, 0], [2.6, 0, 2.0 * 0.7 / 1.45]])
+    m = mutual_nearest(pair, merged, 0.7)
+    assert places_changed(pair, worth, merged, np.array([1.0, 1.45]), m, core) == pytest.approx(0.0)
+    back = mutual_nearest(merged, pair, 0.7)
+    assert places_changed(merged, np.array([1.0, 1.45]), pair, worth, back, core) == pytest.approx(0.0)
+    # nothing links them within a match distance of 0.7 Å: counted by Gaussian, 2.9 atoms
+    assert places_changed(pair, worth, merged, np.array([1.0, 1.45]), m, 0.7) == pytest.approx(2.9)
+    gone = mutual_nearest(atoms, atoms[:2], 0.7)  # the third pruned
+    assert places_changed(atoms, worth, atoms[:2], worth[:2], gone, core) == pytest.approx(0.7)
+    born = np.vstack([atoms, [[9.0, 0, 0]]])
+    assert places_changed(atoms, worth, born, np.append(worth, 1.2), mutual_nearest(atoms, born, 0.7), core) == (
+        pytest.approx(1.2)
+    )
+    same = mutual_nearest(atoms, atoms, 0.7)  # every Gaussian matched: nothing changed
+    assert places_changed(atoms, worth, atoms, worth * 1.1, same, core) == 0.0
 
 
 def test_convergence_without_a_tilt_series_never_stops():

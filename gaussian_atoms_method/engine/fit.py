@@ -420,13 +420,15 @@ class AtomFit(torch.nn.Module):
 
     def converged(self, step: int) -> bool:
         """True once the atoms are settled (:mod:`gaussian_atoms_method.engine.convergence`)."""
-        worth = self.density.atoms_worth(self.gauss_params) if self.convergence.checks(step) else None
+        if not self.convergence.checks(step):
+            return False
         return self.convergence.update(
             step,
             self.means,
             self.normalisation.length_scale,
             lambda noise: self.position_std_A(self.atoms(), noise),
-            worth,
+            self.density.atoms_worth(self.gauss_params),
+            self.density.hard_core(self.gauss_params),
         )
 
     def write_results(self, run_dir: Path) -> dict | None:
