@@ -179,6 +179,8 @@ class ConvergenceCheck:
     def summary(self) -> str:
         """The last check's figures in words: the positions' step and drift against their
         precision, and the set's change against the tolerated."""
+        if not math.isfinite(self.step_A):
+            return "no two checks of the atoms to compare yet"
         drift = f", drifting {self.drift_A:.3f} Å" if math.isfinite(self.drift_A) else ""
         return (
             f"the positions moved {self.step_A:.3f} Å RMS over the last interval{drift}, against a median precision of "

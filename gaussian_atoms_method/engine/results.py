@@ -86,8 +86,8 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
     if converged_at is None and model.config.stop_when_converged:
         CONSOLE.print(
             f"gaussian-atoms: [bold]stopped at the step limit ({model.step + 1} steps) before the atoms "
-            f"converged[/bold]: they may still move by more than their stated precision; give more steps "
-            f"(--max-num-iterations)"
+            f"converged[/bold] ({model.convergence.summary()}): they may still move by more than their stated "
+            f"precision; give more steps (--max-num-iterations)"
         )
     model.finalize()
     for line in model.density.report():
