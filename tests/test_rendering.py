@@ -127,7 +127,7 @@ def test_a_floor_varying_within_the_views_learns_a_quadratic_correction_from_its
     from types import SimpleNamespace
 
     surfaces = np.zeros((5, 8, 8))
-    cfg = SimpleNamespace(background="auto", psf="none", refine_alignment=False, refine_tilts=False)
+    cfg = SimpleNamespace(background="auto", psf="none", refine_alignment=False, refine_gain=False, refine_tilts=False)
     params, buffers = R.view_parameters(cfg, 5, 1.5, surfaces, None, 1.0)
     assert params["background"].shape == (5, 6) and buffers["background_surfaces"].shape == (5, 8, 8)
     assert (params["background"][:, 0] == 1.5).all() and (params["background"][:, 1:] == 0).all()

@@ -46,6 +46,9 @@ RATES: Dict[str, Rate] = {
     # it (about 64 of 3,000 on a 47-view series); 2e-3 a step (0.14 Å on a 70 Å detector)
     # closes a 1 Å error in the first third of the run
     "view_shifts": Rate(2e-3, 1e-4),
+    # refine-gain (log gain): like a shift, a view's gain moves on the steps that render it;
+    # 2e-3 a step reaches a 7% gain in about 35 of them
+    "view_gains": Rate(2e-3, 1e-4),
     # refine-tilts (radians; 5e-4 ~ 0.03 deg a step)
     "view_tilts": Rate(5e-4, 2e-5),
 }

@@ -66,6 +66,11 @@ class UserFirstOptions:
     series).  The shifts a translation of the object makes (each view's detector axes times one
     3D vector) are taken out (:func:`~gaussian_atoms_method.engine.rendering.gauge_free_shifts`):
     they move the atoms, not the views, and left in they let the particle drift along the beam."""
+    refine_gain: bool = False
+    """Learn a per-projection gain with the atoms: each view's atoms' projection times
+    ``exp(g_v - mean(g))`` (the beam current or the detector drifting between views; 6.8% RMS
+    between the Ta film's views).  The mean is taken out: a gain common to every view is the
+    atoms' amplitudes' scale (:func:`~gaussian_atoms_method.engine.rendering.view_gain`)."""
     refine_tilts: bool = False
     """Learn a per-projection tilt-angle offset (about the tilt axis) with the atoms: errors of
     the goniometer readings.  Offsets are taken relative to their mean (a common offset is the
@@ -254,6 +259,7 @@ class FitOptions(UserFirstOptions):
             name
             for name, on in (
                 ("refine-alignment", self.refine_alignment),
+                ("refine-gain", self.refine_gain),
                 ("refine-tilts", self.refine_tilts),
                 ("isotropic False", not self.isotropic),
             )

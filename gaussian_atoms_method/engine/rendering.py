@@ -184,6 +184,8 @@ def view_parameters(cfg, n_views: int, floor: float | None, surfaces, series, le
         buffers["psf_widths"] = torch.tensor(KERNEL_WIDTHS_A) * length_scale
     if cfg.refine_alignment:
         params["view_shifts"] = Parameter(torch.zeros(n_views, 2))
+    if cfg.refine_gain:
+        params["view_gains"] = Parameter(torch.zeros(n_views, 1))
     if cfg.refine_tilts:
         if series is None:
             raise OptionError(
@@ -230,14 +232,27 @@ def one_view(
         shifts = model.view_params["view_shifts"].to(dt)
         s = gauge_free_shifts(shifts, detector_axes(model.view_c2w.to(dev, dt)))[view]
         rows, cols = rows - s[0], cols - s[1]
+    gain = 1.0
+    if view is not None and "view_gains" in model.view_params:
+        gain = view_gain(model.view_params["view_gains"].to(dt), view)
     if model.config.isotropic:
-        return blur(
-            model, projector_for(model.config.projector, dev)(means - t, sigmas, amplitudes, axes, rows, cols), pitch
-        )[0]
+        project = projector_for(model.config.projector, dev)
+        return blur(model, project(means - t, sigmas, amplitudes * gain, axes, rows, cols), pitch)[0]
     cov = covariances_from_scales_quats(model._log_scales(), model.gauss_params["quats"])
-    return blur(model, project_anisotropic_gaussians(model.means - t, cov, model.amplitudes, axes, rows, cols), pitch)[
-        0
-    ]
+    return blur(
+        model, project_anisotropic_gaussians(model.means - t, cov, model.amplitudes * gain, axes, rows, cols), pitch
+    )[0]
+
+
+def view_gain(log_gains: torch.Tensor, view: int) -> torch.Tensor:
+    """View ``view``'s gain from the (V, 1) learned log gains, their mean taken out: a gain the
+    same in every view scales the atoms' amplitudes, not the views.
+
+    >>> g = torch.tensor([[0.1], [0.3], [-0.1]])
+    >>> round(float(view_gain(g, 1)), 4), round(float(view_gain(g + 5.0, 1)), 4)
+    (1.2214, 1.2214)
+    """
+    return torch.exp(log_gains[view, 0] - log_gains[:, 0].mean())
 
 
 def gauge_free_shifts(shifts: torch.Tensor, axes: torch.Tensor) -> torch.Tensor:
