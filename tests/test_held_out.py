@@ -176,16 +176,20 @@ def test_move_costs_find_the_place_the_unseen_views_say(tmp_path):
     np.testing.assert_allclose(back, -costs, rtol=1e-4)
 
 
-def test_a_held_out_views_own_shift_is_found():
-    """``best_shift``: a view moved by a known sub-pixel shift (and raised by a constant) is taken
-    back onto its prediction to a hundredth of a pixel (cubic interpolation of a 2 px wide peak)."""
+def test_a_held_out_views_own_shift_and_gain_are_found():
+    """``best_registration``: a view moved by a known sub-pixel shift, scaled by a gain of 1.07
+    (the Ta film's scatter between views) and raised by a constant is taken back onto its
+    prediction to a hundredth of a pixel and 1e-3 in gain (cubic interpolation of a 2 px wide
+    peak)."""
     from scipy import ndimage
 
-    from gaussian_atoms_method.harness.held_out import best_shift
+    from gaussian_atoms_method.harness.held_out import best_registration
 
     rows, cols = np.meshgrid(np.arange(40.0), np.arange(36.0), indexing="ij")
     predicted = np.exp(-((rows - 18.2) ** 2 + (cols - 17.6) ** 2) / 8.0) + 0.5 * np.exp(
         -((rows - 25.0) ** 2 + (cols - 10.0) ** 2) / 8.0
     )
-    measured = ndimage.shift(predicted, (0.3, -0.7), order=3, mode="nearest") + 0.2
-    np.testing.assert_allclose(best_shift(measured, predicted), [0.3, -0.7], atol=0.01)
+    measured = 1.07 * ndimage.shift(predicted, (0.3, -0.7), order=3, mode="nearest") + 0.2
+    shift, gain = best_registration(measured, predicted)
+    np.testing.assert_allclose(shift, [0.3, -0.7], atol=0.01)
+    assert gain == pytest.approx(1.07, abs=1e-3)

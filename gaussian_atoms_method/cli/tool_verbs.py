@@ -28,8 +28,9 @@ class HeldOutViews:
     train_args: str = ""
     """Further ns-train options, given with "=", e.g. --train-args="--pipeline.model.background plane"."""
     alignment: bool = False
-    """Instead of kernels: per-view shifts (--pipeline.model.refine-alignment) off and on, each
-    held-out view scored after its own best shift; the run to keep is the one the views prefer."""
+    """Instead of kernels: per-view shifts (--pipeline.model.refine-alignment) and gains
+    (--pipeline.model.refine-gain) off and on, each held-out view scored after its own best shift
+    and gain; the run to keep is the one the views prefer."""
 
     def main(self) -> None:
         from gaussian_atoms_method.harness.kernel_choice import (

@@ -87,9 +87,9 @@ def held_out_rms(
 ) -> float:
     """Root-mean-square of measured minus :func:`predicted_views` over the views of ``series``,
     after one constant per view (least squares on that view) and, with ``fit_shifts``, each
-    view's own best in-plane shift (:func:`best_shift`: a held-out view's misregistration belongs
-    to no fit), over the detector's interior (``interior_px`` rows and columns in from each
-    edge), data units."""
+    view's own best in-plane shift and gain (:func:`best_registration`: a held-out view's
+    misregistration and dose belong to no fit), over the detector's interior (``interior_px``
+    rows and columns in from each edge), data units."""
     if not fit_shifts:
         (residual,) = _residuals(atoms, (series,), kernel_weights, interior_px)
         return float(np.sqrt(np.mean(residual**2)))
@@ -97,26 +97,29 @@ def held_out_rms(
 
     measured = np.asarray(series.projections, dtype=np.float64)
     predicted = predicted_views(atoms, series, kernel_weights)
-    moved = np.stack([ndimage.shift(p, best_shift(m, p), order=3, mode="nearest") for m, p in zip(measured, predicted)])
-    residual = _interior(measured - moved, interior_px)
+    moved = []
+    for m, p in zip(measured, predicted):
+        shift, gain = best_registration(m, p)
+        moved.append(gain * ndimage.shift(p, shift, order=3, mode="nearest"))
+    residual = _interior(measured - np.stack(moved), interior_px)
     return float(np.sqrt(np.mean(residual**2)))
 
 
-def best_shift(measured: np.ndarray, predicted: np.ndarray, steps: int = 10) -> np.ndarray:
-    """The (2,) in-plane shift (pixels) that takes ``predicted`` (H, W) onto ``measured`` in least
-    squares, a constant free (Gauss-Newton on the image's gradients)."""
+def best_registration(measured: np.ndarray, predicted: np.ndarray, steps: int = 10) -> tuple[np.ndarray, float]:
+    """The (2,) in-plane shift (pixels) and the gain that take ``predicted`` (H, W) onto
+    ``measured`` in least squares, a constant free (Gauss-Newton on the image's gradients)."""
     from scipy import ndimage
 
-    shift = np.zeros(2)
+    shift, gain = np.zeros(2), 1.0
     for _ in range(steps):
         moved = ndimage.shift(predicted, shift, order=3, mode="nearest")
         gradient = np.stack(np.gradient(moved))  # d moved / d position = - d moved / d shift
-        design = np.c_[-gradient[0].ravel(), -gradient[1].ravel(), np.ones(moved.size)]
-        step = np.linalg.lstsq(design, (measured - moved).ravel(), rcond=None)[0][:2]
-        shift += step
-        if np.abs(step).max() < 1e-4:
+        design = np.c_[-gain * gradient[0].ravel(), -gain * gradient[1].ravel(), moved.ravel(), np.ones(moved.size)]
+        solution = np.linalg.lstsq(design, (measured - gain * moved).ravel(), rcond=None)[0]
+        shift, gain = shift + solution[:2], gain + solution[2]
+        if np.abs(solution[:2]).max() < 1e-4 and abs(solution[2]) < 1e-6 * max(abs(gain), 1e-12):
             break
-    return shift
+    return shift, float(gain)
 
 
 def run_gaussians(run_dir: str | Path) -> AtomSet:

@@ -60,11 +60,17 @@ def compare_kernels(
 
 
 ALIGNMENT_CANDIDATES = {
-    "alignment off": ((), "learned"),
-    "alignment on": (("--pipeline.model.refine-alignment", "True"), "learned"),
+    "registration off": ((), "learned"),
+    "shifts": (("--pipeline.model.refine-alignment", "True"), "learned"),
+    "gains": (("--pipeline.model.refine-gain", "True"), "learned"),
+    "shifts and gains": (
+        ("--pipeline.model.refine-alignment", "True", "--pipeline.model.refine-gain", "True"),
+        "learned",
+    ),
 }
-"""``held-out-views --alignment``: per-view shifts learned or not, judged by the views held out,
-each held-out view scored after its own best shift (its misregistration is no fit's)."""
+"""``held-out-views --alignment``: per-view shifts and gains learned or not, judged by the views
+held out, each held-out view scored after its own best shift and gain (its misregistration and
+dose are no fit's)."""
 
 
 def compare_settings(
