@@ -228,3 +228,19 @@ def kept_views(spec, angles_deg: np.ndarray) -> np.ndarray | None:
         return None
     angles = np.asarray(angles_deg, dtype=np.float64)
     return np.setdiff1d(np.arange(len(angles)), views_to_drop(spec, angles[:, 1] if angles.ndim == 2 else angles))
+
+
+def views_of(series, indices):
+    """The :class:`~dataparsers.tilt_series_format.TiltSeries` of ``series``' views at (K,)
+    ``indices`` (of its views), their angles and indices in the file with them."""
+    import dataclasses
+
+    kept = np.asarray(indices, dtype=np.int64)
+    euler = None if series.euler_deg is None else series.euler_deg[kept]
+    return dataclasses.replace(
+        series,
+        projections=series.projections[kept],
+        angles_deg=series.angles_deg[kept],
+        euler_deg=euler,
+        view_indices=series.view_indices[kept],
+    )

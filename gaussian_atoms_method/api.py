@@ -78,15 +78,13 @@ def _from_hyperspy(signal, angles_deg, pixel_size_A):
 def _as_series(
     projections, angles_deg, pixel_size_A, tilt_axis: str, species=None, euler_convention=None, drop_views=None
 ) -> TiltSeries:
-    from dataparsers.views import kept_views
+    from dataparsers.views import kept_views, views_of
 
     if isinstance(projections, TiltSeries):
         series, changes = projections, {"species": species, "euler_convention": euler_convention}
         kept = kept_views(drop_views, series.angles_deg)
         if kept is not None:
-            euler = None if series.euler_deg is None else series.euler_deg[kept]
-            changes |= {"projections": series.projections[kept], "angles_deg": series.angles_deg[kept]}
-            changes |= {"euler_deg": euler, "view_indices": series.view_indices[kept]}
+            series = views_of(series, kept)
         return dataclasses.replace(series, **{k: v for k, v in changes.items() if v is not None})
     source = "the pixel_size_A argument"
     if hasattr(projections, "axes_manager") and hasattr(projections, "metadata"):  # a HyperSpy signal

@@ -31,7 +31,7 @@ def test_held_out_views_are_predicted_as_the_run_renders_them(tmp_path):
     back to input units, to 1e-4 of its peak (the model renders in float32), with and without a
     kernel (the kernel's weights set in the model alike)."""
     from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
-    from gaussian_atoms_method.harness.held_out import predicted_views
+    from gaussian_atoms_method.atoms.view_prediction import predicted_views
     from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
 
     series = _series(tmp_path)
@@ -69,7 +69,8 @@ def test_held_out_rms_reads_the_noise_when_the_atoms_and_kernel_are_right(tmp_pa
     about 8,600 pixels, the standard error of an rms is 0.8%); without the kernel, larger; split
     views keep their angles, geometry and truth."""
     from dataparsers.tilt_series_format import load_tilt_series
-    from gaussian_atoms_method.harness.held_out import held_out_rms, predicted_views, split_views
+    from gaussian_atoms_method.atoms.view_prediction import held_out_rms, predicted_views
+    from gaussian_atoms_method.harness.held_out import split_views
 
     series = _series(tmp_path)
     atoms = AtomSet(
@@ -124,7 +125,8 @@ def test_a_fixed_kernel_is_held_and_bad_weights_are_named(tmp_path):
 def _three_atoms_in_halves(tmp_path):
     """Three atoms (two 2.6 Å apart) and their noise-free views, split into even and odd views."""
     from dataparsers.tilt_series_format import load_tilt_series
-    from gaussian_atoms_method.harness.held_out import predicted_views, split_views
+    from gaussian_atoms_method.atoms.view_prediction import predicted_views
+    from gaussian_atoms_method.harness.held_out import split_views
 
     series = _series(tmp_path, n_views=8)
     truth = AtomSet(
@@ -183,7 +185,7 @@ def test_a_held_out_views_own_shift_and_gain_are_found():
     peak)."""
     from scipy import ndimage
 
-    from gaussian_atoms_method.harness.held_out import best_registration
+    from gaussian_atoms_method.atoms.view_prediction import best_registration
 
     rows, cols = np.meshgrid(np.arange(40.0), np.arange(36.0), indexing="ij")
     predicted = np.exp(-((rows - 18.2) ** 2 + (cols - 17.6) ** 2) / 8.0) + 0.5 * np.exp(

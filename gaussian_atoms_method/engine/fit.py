@@ -420,16 +420,12 @@ class AtomFit(torch.nn.Module):
 
     def converged(self, step: int) -> bool:
         """True once the atoms are settled (:mod:`gaussian_atoms_method.engine.convergence`)."""
-        if not self.convergence.checks(step):
-            return False
-        return self.convergence.update(
-            step,
-            self.means,
-            self.normalisation.length_scale,
-            lambda noise: self.position_std_A(self.atoms(), noise),
-            self.density.atoms_worth(self.gauss_params),
-            self.density.hard_core(self.gauss_params),
-        )
+        params, check = self.gauss_params, self.convergence
+        precision = lambda noise: self.position_std_A(self.atoms(), noise)  # noqa: E731
+        return check.checks(step) and check.update(
+            step, self.means, self.normalisation.length_scale, precision, self.density.atoms_worth(params),
+            self.density.hard_core(params),
+        )  # fmt: skip
 
     def write_results(self, run_dir: Path) -> dict | None:
         """atoms.xyz, atoms.csv, slices.png and evaluation.json

@@ -71,6 +71,12 @@ class UserFirstOptions:
     ``exp(g_v - mean(g))`` (the beam current or the detector drifting between views; 6.8% RMS
     between the Ta film's views).  The mean is taken out: a gain common to every view is the
     atoms' amplitudes' scale (:func:`~gaussian_atoms_method.engine.rendering.view_gain`)."""
+    decide_registration: bool = False
+    """Let the views a fit did not see decide ``refine_alignment`` and ``refine_gain``: the even
+    views are fitted with per-view shifts and gains and without, each fit predicts the odd views
+    (each after its own best shift and gain: a held-out view's registration is no fit's), and the
+    run learns them where they predict better (:func:`~gaussian_atoms_method.engine.run.choose_registration`).
+    Three fits' time."""
     refine_tilts: bool = False
     """Learn a per-projection tilt-angle offset (about the tilt axis) with the atoms: errors of
     the goniometer readings.  Offsets are taken relative to their mean (a common offset is the

@@ -9,7 +9,9 @@ the fit (:class:`~.fit.AtomFit`) and its loop (:mod:`.training`), writes the run
 
 from __future__ import annotations
 
+import dataclasses
 import random
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -107,6 +109,10 @@ def fit_tilt_series(
     records with ``dataparser_options``).  Raises ``FloatingPointError`` naming the step and
     the cause where the loss stops being finite."""
     lean_torch()  # torch's compiler front end and symbolic shapes stay unimported
+    if options.decide_registration:
+        options = dataclasses.replace(
+            options, decide_registration=False, **choose_registration(series, options, settings)
+        )
     place = settings.place.resolved(data)
     run_dir = place.run_dir
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -141,3 +147,53 @@ def fit_tilt_series(
         if scalars is not None:
             scalars.close()
     return run_dir
+
+
+REGISTRATION = ("refine_alignment", "refine_gain")
+"""The per-view registration :func:`choose_registration` decides: shifts and gains together."""
+
+
+def choose_registration(series, options: FitOptions, settings: RunSettings) -> dict:
+    """Whether to learn per-view shifts and gains, as the views a fit did not see say: the even
+    views fitted with them and without (``options`` otherwise, ``settings``' device, steps and
+    seed), each fit's Gaussians (atoms and non-atoms, through its kernel) predicting the odd
+    views, each held-out view after its own best shift and gain
+    (:func:`~gaussian_atoms_method.atoms.view_prediction.held_out_rms`); on where they predict
+    better.  Prints the two residuals and the choice; returns the options' values
+    (``{"refine_alignment": bool, "refine_gain": bool}``)."""
+    from dataparsers.views import views_of
+    from gaussian_atoms_method.atoms.view_prediction import held_out_rms, run_gaussians, run_kernel
+    from gaussian_atoms_method.engine.console import CONSOLE
+
+    if series.n_views < 4:
+        raise OptionError(
+            f"--pipeline.model.decide-registration needs at least 4 views (two to fit, two to judge), got "
+            f"{series.n_views}"
+        )
+    fitted, held = views_of(series, range(0, series.n_views, 2)), views_of(series, range(1, series.n_views, 2))
+    fitted = dataclasses.replace(fitted, truth_path=None)  # scored by the views, not a truth
+    rms = {}
+    for on in (False, True):
+        choice = dict.fromkeys(REGISTRATION, on)
+        trial = dataclasses.replace(options, decide_registration=False, **choice)
+        with tempfile.TemporaryDirectory(prefix="gaussian-atoms-registration-") as work, CONSOLE.capture():
+            quiet = RunSettings(
+                RunPlace(Path(work), "registration"),
+                settings.device,
+                settings.max_num_iterations,
+                settings.schedule_steps,
+                settings.seed,
+                progress=False,
+                tensorboard=False,
+                checkpoints=False,
+                kept=False,
+            )
+            run_dir = fit_tilt_series(fitted, trial, quiet, Path("in-memory"))
+            rms[on] = held_out_rms(run_gaussians(run_dir), held, run_kernel(run_dir), fit_registration=True)
+    on = rms[True] < rms[False]
+    CONSOLE.print(
+        f"gaussian-atoms: per-view shifts and gains {'on' if on else 'off'}: a fit of the even views predicts the "
+        f"odd ones to {rms[True]:.4g} RMS with them, {rms[False]:.4g} without (input units; each held-out view after "
+        f"its own best shift and gain)"
+    )
+    return dict.fromkeys(REGISTRATION, on)

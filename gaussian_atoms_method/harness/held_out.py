@@ -3,9 +3,11 @@
 A measured series has no truth to score against, and a fit's own residual always prefers more
 parameters: extra Gaussians beside the atoms explain a probe's tails as well as a kernel does.
 Views held out of the fit tell them apart.  :func:`split_views` writes the even and the odd
-views as two tilt series; a fit of one predicts the other (:func:`predicted_views`: the fit's
-Gaussians, atoms and non-atoms, projected and convolved with its kernel), and
-:func:`held_out_rms` scores it with one constant per view fitted on the held-out view itself
+views as two tilt series; a fit of one predicts the other
+(:func:`~gaussian_atoms_method.atoms.view_prediction.predicted_views`: the fit's Gaussians, atoms
+and non-atoms, projected and convolved with its kernel), and
+:func:`~gaussian_atoms_method.atoms.view_prediction.held_out_rms` scores it with one constant per
+view fitted on the held-out view itself
 (the fit's learned backgrounds belong to the views it saw).
 
 On the Ta film (area 23) the published model with 33% of the intensity in a 3 Å halo predicts
@@ -22,9 +24,7 @@ import torch
 
 from gaussian_atoms_method.atoms.atom_set import AtomSet
 from gaussian_atoms_method.atoms.merge import merged_values
-from gaussian_atoms_method.physics.geometry import pixel_centres
-from gaussian_atoms_method.physics.projector import project_gaussians
-from gaussian_atoms_method.physics.psf import KERNEL_WIDTHS_A, apply_kernel
+from gaussian_atoms_method.atoms.view_prediction import interior, predicted_views, run_gaussians  # noqa: F401
 
 
 def split_views(series, out_dir: str | Path) -> tuple[Path, Path]:
@@ -53,103 +53,10 @@ def split_views(series, out_dir: str | Path) -> tuple[Path, Path]:
     return out[0], out[1]
 
 
-def predicted_views(atoms: AtomSet, series, kernel_weights=None, chunk: int = 4) -> np.ndarray:
-    """(V, H, W) projections of ``atoms`` (with ``sigmas`` and ``amplitudes``, Å in the series'
-    output frame) in the views of ``series``, through the kernel of ``kernel_weights`` (fractions
-    at :data:`..physics.psf.KERNEL_WIDTHS_A`; None: none), in the series' data units."""
-    if atoms.sigmas is None or atoms.amplitudes is None:
-        raise ValueError("atoms need sigmas and amplitudes (a run's atoms.xyz) to be projected")
-    _, h, w = series.projections.shape
-    centre = series.centre_px if series.centre_px is not None else ((h - 1) / 2.0, (w - 1) / 2.0)
-    rows = torch.as_tensor(pixel_centres(h, series.pixel_size_A, centre[0]))
-    cols = torch.as_tensor(pixel_centres(w, series.pixel_size_A, centre[1]))
-    axes = torch.as_tensor(series.detector_axes())
-    means = torch.as_tensor(
-        np.asarray(atoms.positions, dtype=np.float64) - np.asarray(series.origin_A, dtype=np.float64)
-    )
-    sigmas, amps = (
-        torch.as_tensor(atoms.sigmas, dtype=torch.float64),
-        torch.as_tensor(atoms.amplitudes, dtype=torch.float64),
-    )
-    weights = torch.as_tensor(
-        np.zeros(len(KERNEL_WIDTHS_A)) if kernel_weights is None else np.asarray(kernel_weights, dtype=np.float64)
-    )
-    widths = torch.as_tensor(KERNEL_WIDTHS_A, dtype=torch.float64)
-    out = []
-    for start in range(0, len(axes), chunk):  # bounded memory: (chunk, H, N) at a time
-        images = project_gaussians(means, sigmas, amps, axes[start : start + chunk], rows, cols)
-        out.append(apply_kernel(images, series.pixel_size_A, widths, weights))
-    return torch.cat(out).numpy()
-
-
-def held_out_rms(
-    atoms: AtomSet, series, kernel_weights=None, interior_px: tuple[int, int] = (0, 0), fit_shifts: bool = False
-) -> float:
-    """Root-mean-square of measured minus :func:`predicted_views` over the views of ``series``,
-    after one constant per view (least squares on that view) and, with ``fit_shifts``, each
-    view's own best in-plane shift and gain (:func:`best_registration`: a held-out view's
-    misregistration and dose belong to no fit), over the detector's interior (``interior_px``
-    rows and columns in from each edge), data units."""
-    if not fit_shifts:
-        (residual,) = _residuals(atoms, (series,), kernel_weights, interior_px)
-        return float(np.sqrt(np.mean(residual**2)))
-    from scipy import ndimage
-
-    measured = np.asarray(series.projections, dtype=np.float64)
-    predicted = predicted_views(atoms, series, kernel_weights)
-    moved = []
-    for m, p in zip(measured, predicted):
-        shift, gain = best_registration(m, p)
-        moved.append(gain * ndimage.shift(p, shift, order=3, mode="nearest"))
-    residual = _interior(measured - np.stack(moved), interior_px)
-    return float(np.sqrt(np.mean(residual**2)))
-
-
-def best_registration(measured: np.ndarray, predicted: np.ndarray, steps: int = 10) -> tuple[np.ndarray, float]:
-    """The (2,) in-plane shift (pixels) and the gain that take ``predicted`` (H, W) onto
-    ``measured`` in least squares, a constant free (Gauss-Newton on the image's gradients)."""
-    from scipy import ndimage
-
-    shift, gain = np.zeros(2), 1.0
-    for _ in range(steps):
-        moved = ndimage.shift(predicted, shift, order=3, mode="nearest")
-        gradient = np.stack(np.gradient(moved))  # d moved / d position = - d moved / d shift
-        design = np.c_[-gain * gradient[0].ravel(), -gain * gradient[1].ravel(), moved.ravel(), np.ones(moved.size)]
-        solution = np.linalg.lstsq(design, (measured - gain * moved).ravel(), rcond=None)[0]
-        shift, gain = shift + solution[:2], gain + solution[2]
-        if np.abs(solution[:2]).max() < 1e-4 and abs(solution[2]) < 1e-6 * max(abs(gain), 1e-12):
-            break
-    return shift, float(gain)
-
-
-def run_gaussians(run_dir: str | Path) -> AtomSet:
-    """Every Gaussian a finished run fitted: its ``atoms.xyz`` and, where written, ``non_atoms.xyz``
-    (the film beyond the field, the non-atoms: they explain the views as much as the atoms do)."""
-    from gaussian_atoms_method.atoms.atom_set import read_atoms
-
-    parts = [read_atoms(Path(run_dir) / "atoms.xyz")]
-    if (Path(run_dir) / "non_atoms.xyz").is_file():
-        parts.append(read_atoms(Path(run_dir) / "non_atoms.xyz"))
-    parts = [p for p in parts if len(p)]
-    return AtomSet(
-        positions=np.concatenate([p.positions for p in parts]).reshape(-1, 3),
-        sigmas=np.concatenate([p.sigmas for p in parts]),
-        amplitudes=np.concatenate([p.amplitudes for p in parts]),
-    )
-
-
-def _interior(images: np.ndarray, interior_px: tuple[int, int]) -> np.ndarray:
-    """(V, H, W) images cut to the detector's interior (``interior_px`` rows and columns in from
-    each edge), less their mean: one constant per view."""
-    r0, c0 = interior_px
-    images = images[:, r0 : images.shape[1] - r0, c0 : images.shape[2] - c0]
-    return images - images.mean(axis=(1, 2), keepdims=True)
-
-
 def _residuals(atoms: AtomSet, series_list, kernel_weights, interior_px) -> list[np.ndarray]:
     """Measured minus :func:`predicted_views` of ``atoms`` in each series, over the interior."""
     return [
-        _interior(
+        interior(
             np.asarray(series.projections, dtype=np.float64) - predicted_views(atoms, series, kernel_weights),
             interior_px,
         )
@@ -195,8 +102,8 @@ def pair_merge_costs(
         scale = None
         for col, (series, residual) in enumerate(zip((fitted, held), residuals)):
             # the residual with the pair taken out
-            without = residual + _interior(predicted_views(pair, series, kernel_weights), interior_px)
-            one = _interior(predicted_views(merged, series, kernel_weights), interior_px)
+            without = residual + interior(predicted_views(pair, series, kernel_weights), interior_px)
+            one = interior(predicted_views(merged, series, kernel_weights), interior_px)
             if scale is None:
                 scale = float((without * one).sum() / max((one * one).sum(), 1e-300))
             costs[k, col] = float(((without - scale * one) ** 2).sum()) - squares[col]
@@ -240,7 +147,7 @@ def move_costs(
         before = AtomSet(positions=atoms.positions[i : i + 1], sigmas=width, amplitudes=height)
         after = AtomSet(positions=target[None], sigmas=width, amplitudes=height)
         for col, (series, residual) in enumerate(zip((fitted, held), residuals)):
-            change = _interior(
+            change = interior(
                 predicted_views(after, series, kernel_weights) - predicted_views(before, series, kernel_weights),
                 interior_px,
             )

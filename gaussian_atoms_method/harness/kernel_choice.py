@@ -80,15 +80,16 @@ def compare_settings(
     device: str = "cpu",
     iterations: int = 3000,
     interior_px: tuple[int, int] = (0, 0),
-    fit_shifts: bool = False,
+    fit_registration: bool = False,
 ) -> list[dict]:
     """For each candidate (name -> (ns-train options, its kernel: ``learned`` or ``a,b,c``)):
-    fit the even views, predict the odd ones, and the other way round (with ``fit_shifts``, each
+    fit the even views, predict the odd ones, and the other way round (with ``fit_registration``, each
     held-out view after its own best in-plane shift); rows with the held-out RMS residual each way
     and their mean.  Writes held_out.csv and held_out.md in ``output``."""
     from dataparsers.tilt_series_format import load_tilt_series
+    from gaussian_atoms_method.atoms.view_prediction import held_out_rms
     from gaussian_atoms_method.harness.benchmark import train_ours
-    from gaussian_atoms_method.harness.held_out import held_out_rms, run_gaussians, split_views
+    from gaussian_atoms_method.harness.held_out import run_gaussians, split_views
 
     try:
         series = load_tilt_series(data)
@@ -102,8 +103,9 @@ def compare_settings(
             run_dir = output / "runs" / re.sub(r"[^\w.-]+", "_", name) / fit
             train_ours(folds[fit], run_dir, iterations, device, tuple(args))
             gaussians = run_gaussians(run_dir / "ours" / "gaussian-atoms" / "run")
+            held_views, kernel_weights = load_tilt_series(folds[held]), kernel_of_run(run_dir, kernel)
             row[f"{fit}->{held}"] = held_out_rms(
-                gaussians, load_tilt_series(folds[held]), kernel_of_run(run_dir, kernel), tuple(interior_px), fit_shifts
+                gaussians, held_views, kernel_weights, tuple(interior_px), fit_registration
             )
             row[f"kernel {fit}"] = kernel_of_run(run_dir, kernel)
         row["mean"] = 0.5 * (row["even->odd"] + row["odd->even"])

@@ -98,6 +98,23 @@ class GaussianAtomsTrainerConfig(TrainerConfig):
         # ns-train calls this first, before saving config.yml: check the input here; the
         # configuration is the file nerfstudio says it saves, not a dump on the console.
         self.check_or_exit()
+        self.decide_registration()
+
+    def decide_registration(self) -> None:
+        """With ``decide_registration``, set the model's ``refine_alignment`` and ``refine_gain``
+        as the views a fit did not see say (:func:`~gaussian_atoms_method.engine.run.choose_registration`),
+        before nerfstudio saves config.yml: the run's configuration records the choice."""
+        from gaussian_atoms_method.engine.run import RunSettings, choose_registration
+
+        model, datamanager = self.pipeline.model, self.pipeline.datamanager
+        if not getattr(model, "decide_registration", False):
+            return
+        series = datamanager.dataparser.load(datamanager.data or datamanager.dataparser.data)
+        steps, device = self.max_num_iterations, self.machine.device_type
+        settings = RunSettings(device=device, max_num_iterations=steps, schedule_steps=steps, seed=self.machine.seed)
+        for name, value in choose_registration(series, model, settings).items():
+            setattr(model, name, value)
+        model.decide_registration = False
 
     def check_or_exit(self) -> None:
         """:func:`check_input`, a failure ending the process in one line (exit 2)."""
