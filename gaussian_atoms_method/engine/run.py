@@ -177,17 +177,10 @@ def choose_registration(series, options: FitOptions, settings: RunSettings) -> d
         choice = dict.fromkeys(REGISTRATION, on)
         trial = dataclasses.replace(options, decide_registration=False, **choice)
         with tempfile.TemporaryDirectory(prefix="gaussian-atoms-registration-") as work, CONSOLE.capture():
-            quiet = RunSettings(
-                RunPlace(Path(work), "registration"),
-                settings.device,
-                settings.max_num_iterations,
-                settings.schedule_steps,
-                settings.seed,
-                progress=False,
-                tensorboard=False,
-                checkpoints=False,
-                kept=False,
-            )
+            quiet = dataclasses.replace(
+                settings, place=RunPlace(Path(work), "registration"), progress=False, tensorboard=False,
+                checkpoints=False, kept=False,
+            )  # fmt: skip
             run_dir = fit_tilt_series(fitted, trial, quiet, Path("in-memory"))
             rms[on] = held_out_rms(run_gaussians(run_dir), held, run_kernel(run_dir), fit_registration=True)
     on = rms[True] < rms[False]
