@@ -383,6 +383,26 @@ def test_viewer_finds_the_atoms_and_renders_a_perspective_camera(tmp_path):
     assert list(persp_out)[0] == "rgb"  # the viewer shows the first output
 
 
+def test_the_stop_judges_steps_in_the_residual_that_is_there(tmp_path):
+    """The precision the stop judges by reads the residual's level and its weight at the atoms'
+    scale (a grainy misfit moves a position more than white noise of its level): the white
+    bound's noise times the position template's factor, and the bound with it (it is linear in
+    the noise)."""
+    from gaussian_atoms_method.atoms.information import residual_spectrum_factors
+    from gaussian_atoms_method.engine.results import residual_noise
+
+    _series(tmp_path)
+    model, _ = _model(tmp_path, num_random=30, init="random")
+    atoms = model.atoms()
+    white, level = model.position_std_A(atoms)
+    grain, noise = model.position_std_A(atoms, spectrum=True)
+    _, residuals, _ = residual_noise(model)
+    sigma_px = float(np.median(atoms.sigmas)) / model.view_set.pixel_size_A
+    factor = residual_spectrum_factors(residuals / model.normalisation.data_scale, level, sigma_px)[0]
+    assert factor > 0 and noise == pytest.approx(level * factor, rel=1e-9)
+    np.testing.assert_allclose(grain, white * factor, rtol=1e-6)
+
+
 def test_convergence_stop_needs_settled_atoms(tmp_path):
     """The early stop fires only after two refine intervals in a row in which the Gaussian
     count held and the positions moved (RMS) less than the atoms' noise-limited precision;
@@ -393,7 +413,7 @@ def test_convergence_stop_needs_settled_atoms(tmp_path):
     assert not model.converged(100)  # first check: nothing to compare with
     assert not model.converged(200)  # settled once
     assert model.converged(300)  # settled twice
-    std_A, _ = model.position_std_A(model.atoms())
+    std_A, _ = model.position_std_A(model.atoms(), spectrum=True)  # what the check judges by
     precision_A = float(np.median(np.sqrt((std_A**2).sum(axis=1))))
     with torch.no_grad():  # every atom moves by three times the precision
         model.gauss_params["means"][:, 0] += 3 * precision_A * model.normalisation.length_scale

@@ -413,15 +413,15 @@ class AtomFit(torch.nn.Module):
             amplitudes=norm.amplitudes_to_physical(host(amplitudes(p))),
         )
 
-    def position_std_A(self, atoms: AtomSet, noise: float | None = None):
+    def position_std_A(self, atoms: AtomSet, noise: float | None = None, spectrum: bool = False):
         """Each atom's position precision (N, 3) in Å and the pixel noise assumed
-        (:mod:`gaussian_atoms_method.engine.results`)."""
-        return model_position_std_A(self, atoms, noise)
+        (:func:`gaussian_atoms_method.engine.results.model_position_std_A`)."""
+        return model_position_std_A(self, atoms, noise, spectrum)
 
     def converged(self, step: int) -> bool:
         """True once the atoms are settled (:mod:`gaussian_atoms_method.engine.convergence`)."""
         params, check = self.gauss_params, self.convergence
-        precision = lambda noise: self.position_std_A(self.atoms(), noise)  # noqa: E731
+        precision = lambda noise: self.position_std_A(self.atoms(), noise, spectrum=True)  # noqa: E731
         return check.checks(step) and check.update(
             step, self.means, self.normalisation.length_scale, precision, self.density.atoms_worth(params),
             self.density.hard_core(params),
