@@ -79,6 +79,14 @@ class HardCoreRules:
 
         return shell.onset, prior
 
+    def known_hard_core(self) -> float:
+        """The hard core as :meth:`hard_core` last had it, normalised, without reading it again
+        (infinite before a reading): what an observer of the fit may ask without changing it."""
+        if self.hard_core_A is not None:
+            return self.hard_core_A * self.length_scale
+        read_at, distance = self.state.hard_core_read
+        return distance if read_at else math.inf
+
     def hard_core(self, params: Mapping[str, torch.Tensor]) -> float:
         """The material's hard core, normalised: from its species (``hard_core_A``), else read from
         the confident atoms (atom-like, in the field, significant at :meth:`significance_threshold`;

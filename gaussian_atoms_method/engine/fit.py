@@ -424,7 +424,7 @@ class AtomFit(torch.nn.Module):
         precision = lambda noise: self.position_std_A(self.atoms(), noise, spectrum=True)  # noqa: E731
         return check.checks(step) and check.update(
             step, self.means, self.normalisation.length_scale, precision, self.density.atoms_worth(params),
-            self.density.hard_core(params),
+            self.density.known_hard_core(),
         )  # fmt: skip
 
     def write_results(self, run_dir: Path) -> dict | None:
