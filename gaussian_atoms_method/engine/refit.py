@@ -47,7 +47,7 @@ def refit(model, max_passes: int = 10) -> int:
                 steps += _refit_pass(model, cameras, measured_all, names, model.views_per_step, average)
                 now = average.mean(model.gauss_params)["means"] if average is not None else model.means.detach().clone()
                 moved_A = (now - passes[-1]).norm(dim=1).cpu().numpy() / model.normalisation.length_scale
-                result = model.position_std_A(model.atoms(), noise, spectrum=True)
+                result = model.position_std_A(model.atoms(), noise)
                 if result is None:
                     break
                 std, noise = result
