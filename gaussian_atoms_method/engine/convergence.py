@@ -105,8 +105,9 @@ class ConvergenceCheck:
             step 2,700 instead of training to 3,000.
         core : float
             The material's hard core, normalised (infinite when unknown): a merge or split
-            within it keeps the place's mass, so Gaussians within half of it of one another,
-            now and at the last check, are one place (:func:`places_changed`).
+            within it keeps the place's mass, so Gaussians within it of one another, now and at
+            the last check, are one place (:func:`places_changed`; the match distance where it
+            is unknown).
         """
         if not self.checks(step):
             return False

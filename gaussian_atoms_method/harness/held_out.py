@@ -24,7 +24,7 @@ import torch
 
 from gaussian_atoms_method.atoms.atom_set import AtomSet
 from gaussian_atoms_method.atoms.merge import merged_values
-from gaussian_atoms_method.atoms.view_prediction import interior, predicted_views, run_gaussians  # noqa: F401
+from gaussian_atoms_method.atoms.view_prediction import interior, predicted_views
 
 
 def split_views(series, out_dir: str | Path) -> tuple[Path, Path]:
@@ -78,7 +78,9 @@ def pair_merge_costs(
     Parameters
     ----------
     atoms : AtomSet
-        Every Gaussian of a fit of ``fitted`` (:func:`run_gaussians`), Å, with sigmas and amplitudes.
+        Every Gaussian of a fit of ``fitted``
+        (:func:`~gaussian_atoms_method.atoms.view_prediction.run_gaussians`), Å, with sigmas and
+        amplitudes.
     pairs : (K, 2) int array
         Indices into ``atoms``.
     fitted, held : tilt series

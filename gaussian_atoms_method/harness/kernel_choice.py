@@ -83,13 +83,13 @@ def compare_settings(
     fit_registration: bool = False,
 ) -> list[dict]:
     """For each candidate (name -> (ns-train options, its kernel: ``learned`` or ``a,b,c``)):
-    fit the even views, predict the odd ones, and the other way round (with ``fit_registration``, each
-    held-out view after its own best in-plane shift); rows with the held-out RMS residual each way
-    and their mean.  Writes held_out.csv and held_out.md in ``output``."""
+    fit the even views, predict the odd ones, and the other way round (with ``fit_registration``,
+    each held-out view after its own best in-plane shift and gain); rows with the held-out RMS
+    residual each way and their mean.  Writes held_out.csv and held_out.md in ``output``."""
     from dataparsers.tilt_series_format import load_tilt_series
-    from gaussian_atoms_method.atoms.view_prediction import held_out_rms
+    from gaussian_atoms_method.atoms.view_prediction import held_out_rms, run_gaussians
     from gaussian_atoms_method.harness.benchmark import train_ours
-    from gaussian_atoms_method.harness.held_out import run_gaussians, split_views
+    from gaussian_atoms_method.harness.held_out import split_views
 
     try:
         series = load_tilt_series(data)

@@ -47,8 +47,9 @@ def report(args) -> None:
     """Print the study's tables for the parsed command line."""
     from dataparsers.tilt_series_format import load_tilt_series
     from gaussian_atoms_method.atoms.atom_set import read_atoms
+    from gaussian_atoms_method.atoms.view_prediction import run_gaussians
     from gaussian_atoms_method.harness import film_benchmark as fb
-    from gaussian_atoms_method.harness.held_out import move_costs, run_gaussians
+    from gaussian_atoms_method.harness.held_out import move_costs
 
     model = fb.model_in_area_A(args.film, args.area)
     kernel = [float(v) for v in args.kernel.split(",")]

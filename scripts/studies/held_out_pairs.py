@@ -39,7 +39,8 @@ def main() -> None:
     from scipy.spatial import cKDTree
 
     from dataparsers.tilt_series_format import load_tilt_series
-    from gaussian_atoms_method.harness.held_out import pair_merge_costs, run_gaussians
+    from gaussian_atoms_method.atoms.view_prediction import run_gaussians
+    from gaussian_atoms_method.harness.held_out import pair_merge_costs
 
     try:
         fitted, held = load_tilt_series(args.fitted), load_tilt_series(args.held)

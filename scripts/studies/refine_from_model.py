@@ -48,8 +48,8 @@ def report(args) -> None:
 
     from dataparsers.tilt_series_format import load_tilt_series
     from gaussian_atoms_method.atoms.atom_set import read_atoms
+    from gaussian_atoms_method.atoms.view_prediction import run_gaussians
     from gaussian_atoms_method.harness import film_benchmark as fb
-    from gaussian_atoms_method.harness.held_out import run_gaussians
     from gaussian_atoms_method.physics.geometry import pixel_centres
     from gaussian_atoms_method.physics.projector import project_gaussians
 
