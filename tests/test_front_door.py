@@ -226,3 +226,23 @@ def test_train_help_is_this_methods_options_in_plain_text(capsys):
             assert f"--pipeline.model.{f.name.replace('_', '-')} " in text, f.name
     for f in dataclasses.fields(TiltSeriesOptions):
         assert f"--{f.name.replace('_', '-')} " in text, f.name
+
+
+def test_the_nerfstudio_launchers_decide_registration_before_config_is_saved(tmp_path, capfd):
+    """``--pipeline.model.decide-registration`` under ``ns-train`` (and ``gaussian-atoms train``'s
+    nerfstudio path): the input check runs the two trial fits on the series it read and leaves
+    the model's ``refine_alignment`` and ``refine_gain`` set to the choice, so the config.yml
+    nerfstudio then saves records it; the trial fits' own config.yml take the fit's options alone
+    (splatfacto's camera optimiser is not one yaml can write)."""
+    from gaussian_atoms_method.harness.input_cases import valid_series
+
+    config = gaussian_atoms_trainer_config(max_iterations=100)
+    config.machine.device_type = "cpu"
+    config.pipeline.datamanager.data = valid_series(tmp_path / "series")
+    config.pipeline.model.decide_registration = True
+    config.check_or_exit()
+    said = capfd.readouterr().out
+    on = "per-view shifts and gains on:" in said
+    assert on or "per-view shifts and gains off:" in said, said
+    model = config.pipeline.model
+    assert not model.decide_registration and model.refine_alignment == model.refine_gain == on

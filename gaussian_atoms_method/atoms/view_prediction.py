@@ -25,6 +25,8 @@ def predicted_views(atoms: AtomSet, series, kernel_weights=None, chunk: int = 4)
     if atoms.sigmas is None or atoms.amplitudes is None:
         raise ValueError("atoms need sigmas and amplitudes (a run's atoms.xyz) to be projected")
     _, h, w = series.projections.shape
+    if len(atoms) == 0:  # nothing to project
+        return np.zeros(series.projections.shape)
     centre = series.centre_px if series.centre_px is not None else ((h - 1) / 2.0, (w - 1) / 2.0)
     rows = torch.as_tensor(pixel_centres(h, series.pixel_size_A, centre[0]))
     cols = torch.as_tensor(pixel_centres(w, series.pixel_size_A, centre[1]))
@@ -101,6 +103,8 @@ def run_gaussians(run_dir: str | Path) -> AtomSet:
     if (Path(run_dir) / "non_atoms.xyz").is_file():
         parts.append(read_atoms(Path(run_dir) / "non_atoms.xyz"))
     parts = [p for p in parts if len(p)]
+    if not parts:  # a fit that kept no Gaussian predicts empty views
+        return AtomSet(positions=np.zeros((0, 3)), sigmas=np.zeros(0), amplitudes=np.zeros(0))
     return AtomSet(
         positions=np.concatenate([p.positions for p in parts]).reshape(-1, 3),
         sigmas=np.concatenate([p.sigmas for p in parts]),

@@ -52,10 +52,10 @@ INPUT_ERRORS = (TiltSeriesError, AtomFileError, OptionError)
 """Errors in what the user gave: reported in one line, exit status 2."""
 
 
-def check_input(config: TrainerConfig) -> None:
+def check_input(config: TrainerConfig):
     """Raise one of :data:`INPUT_ERRORS`, naming the file or option, for input that cannot
     train: the model options, the tilt series (read and validated as the dataparser will) and
-    its truth file."""
+    its truth file.  Returns the series read (None for another dataparser)."""
     from gaussian_atoms_method.engine.run import RunSettings, check_settings
 
     check_settings(RunSettings(device=config.machine.device_type, max_num_iterations=config.max_num_iterations))
@@ -69,6 +69,8 @@ def check_input(config: TrainerConfig) -> None:
         series = dataparser.load(data)
         if series.truth_path is not None:
             read_atoms(series.truth_path)
+        return series
+    return None
 
 
 @dataclass
@@ -98,28 +100,32 @@ class GaussianAtomsTrainerConfig(TrainerConfig):
         # ns-train calls this first, before saving config.yml: check the input here; the
         # configuration is the file nerfstudio says it saves, not a dump on the console.
         self.check_or_exit()
-        self.decide_registration()
 
-    def decide_registration(self) -> None:
+    def decide_registration(self, series) -> None:
         """With ``decide_registration``, set the model's ``refine_alignment`` and ``refine_gain``
-        as the views a fit did not see say (:func:`~gaussian_atoms_method.engine.run.choose_registration`),
-        before nerfstudio saves config.yml: the run's configuration records the choice."""
+        as the views of ``series`` a fit did not see say
+        (:func:`~gaussian_atoms_method.engine.run.choose_registration`), before nerfstudio saves
+        config.yml: the run's configuration records the choice."""
+        from gaussian_atoms_method.engine.options import FitOptions
         from gaussian_atoms_method.engine.run import RunSettings, choose_registration
 
-        model, datamanager = self.pipeline.model, self.pipeline.datamanager
-        if not getattr(model, "decide_registration", False):
+        model = self.pipeline.model
+        if series is None or not getattr(model, "decide_registration", False):
             return
-        series = datamanager.dataparser.load(datamanager.data or datamanager.dataparser.data)
         steps, device = self.max_num_iterations, self.machine.device_type
         settings = RunSettings(device=device, max_num_iterations=steps, schedule_steps=steps, seed=self.machine.seed)
-        for name, value in choose_registration(series, model, settings).items():
+        # the fit's own options (the trial fits' config.yml records them, not splatfacto's)
+        options = FitOptions(**{f.name: getattr(model, f.name) for f in dataclasses.fields(FitOptions)})
+        for name, value in choose_registration(series, options, settings).items():
             setattr(model, name, value)
         model.decide_registration = False
 
     def check_or_exit(self) -> None:
-        """:func:`check_input`, a failure ending the process in one line (exit 2)."""
+        """:func:`check_input`, then :meth:`decide_registration` on the series it read (both
+        launchers call this before config.yml is saved); a failure ends the process in one line
+        (exit 2)."""
         try:
-            check_input(self)
+            self.decide_registration(check_input(self))
         except INPUT_ERRORS as exc:
             fail(f"gaussian-atoms: error: {exc}", 2)
 
