@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from gaussian_atoms_method.density.parameters import amplitudes, widths
+from gaussian_atoms_method.density.parameters import amplitudes, split_worth, widths
 from gaussian_atoms_method.density.strategy import DensityControl
 from gaussian_atoms_method.physics.projector import gaussian_mass
 
@@ -422,6 +422,28 @@ def test_a_gaussian_holding_two_atoms_is_split_along_the_missing_wedge():
     )
     assert opts["means"].state[params["means"]]["exp_avg"].shape == (344, 3)
     assert control.split_heavy_gaussians(params, opts) == 0  # once a run
+
+
+def test_a_gaussian_with_part_of_a_neighbour_is_split_where_the_single_atoms_scatter_little():
+    """The same lattice with the single atoms' masses scattered by 10% (as a fit leaves them): a
+    Gaussian holding an atom and a third of its neighbour (1.33 typical masses, below the 1.5
+    ceiling) lies beyond a single atom's 95% range (1 + 1.96 x 0.1) and is split; the single atoms,
+    the heaviest of them included, are not.  With the masses spread as wide as two species' the
+    ceiling holds: 1.33 is left whole."""
+    rng = np.random.default_rng(3)
+    lattice = np.stack(np.meshgrid(*[np.arange(-3, 4)] * 3, indexing="ij"), -1).reshape(-1, 3) * 2.5
+    lattice = lattice + 0.05 * rng.normal(size=lattice.shape)
+    for scatter, split in ((0.1, 1), (0.5, 0)):
+        params, opts, control = _setup(lattice * 0.01, sigma_A=0.006, min_sigma_A=0.01)
+        control.length_scale = 0.01
+        _with_noise(control, read_var=1e-9, pixel_size=0.003, n_views=47, view_dirs=_tilt_series_dirs())
+        worth = np.clip(1.0 + scatter * rng.standard_normal(len(lattice)), 0.2, 1.0 + min(1.5 * scatter, 0.45))
+        worth[171] = 1.33
+        with torch.no_grad():
+            params["log_amplitudes"][:, 0] += torch.log(torch.as_tensor(worth, dtype=params["log_amplitudes"].dtype))
+        assert split_worth(control.atoms_worth(params)) == pytest.approx(min(1.5, 1.0 + 1.96 * scatter), abs=0.05)
+        assert control.split_heavy_gaussians(params, opts) == split
+        assert params["means"].shape[0] == 343 + split
 
 
 def test_settling_mid_run_applies_the_final_prune_but_spares_fresh_additions():

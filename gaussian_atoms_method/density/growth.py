@@ -9,10 +9,10 @@ import math
 import torch
 
 from gaussian_atoms_method.density.parameters import (
-    SPLIT_MASS,
     Optimizers,
     Params,
     amplitudes,
+    split_worth,
     widths,
 )
 from gaussian_atoms_method.density.remap import duplicate_remap
@@ -95,9 +95,9 @@ class Growth:
 
     @torch.no_grad()
     def split_heavy_gaussians(self, params: Params, optimizers: Optimizers, param_lists=None) -> int:
-        """Split every settled atom-like Gaussian inside the volume that holds more than
-        :data:`SPLIT_MASS` typical atoms' mass (:meth:`typical_atom_mass`) into two of half its
-        mass, the material's shortest distance apart (:meth:`shortest_distance`) along the
+        """Split every settled atom-like Gaussian inside the volume heavier than a single atom can
+        be (:func:`.parameters.split_worth`, in typical atoms' mass: :meth:`typical_atom_mass`)
+        into two of half its mass, the material's shortest distance apart (:meth:`shortest_distance`) along the
         direction the views resolve worst (the beam directions' mean square: the missing wedge's
         axis), each of the typical atom's width; training then settles them, and the final stage
         merges back any pair the data prefer as one (:meth:`merge_by_likelihood`).  Once a run.
@@ -118,7 +118,8 @@ class Growth:
         mass = gaussian_mass(sig, amplitudes(params).detach())
         atom_like = self.atom_width(sig) & self.inside(params["means"])
         typical = self.typical_atom_mass(params)
-        heavy = atom_like & (mass > SPLIT_MASS * typical) & ~self.fresh(len(mass)).to(mass.device)
+        worth = mass / max(typical, 1e-300)
+        heavy = atom_like & (worth > split_worth(worth[atom_like])) & ~self.fresh(len(mass)).to(mass.device)
         single = atom_like & ~heavy
         if typical <= 0 or not bool(heavy.any()) or not bool(single.any()):
             return 0

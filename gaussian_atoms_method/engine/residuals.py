@@ -117,7 +117,7 @@ def add_missing_atoms(model) -> int:
     if split:
         model.density.state.residual_clean = False  # train on and search again
         CONSOLE.print(
-            f"gaussian-atoms: step {model.step}: {split} Gaussians holding two atoms' mass split in two along the "
+            f"gaussian-atoms: step {model.step}: {split} Gaussians heavier than a single atom split in two along the "
             f"least-resolved direction"
         )
     return added + split
