@@ -98,6 +98,14 @@ def test_held_out_rms_reads_the_noise_when_the_atoms_and_kernel_are_right(tmp_pa
             and np.allclose(part.origin_A, series.origin_A)
             and part.truth_path is not None
         )
+    # a series with Euler angles (RESIRE's Z-Y-X) keeps them, and their convention, in each half
+    euler = np.stack(
+        [np.full_like(series.angles_deg, 0.3), series.angles_deg, -0.2 * np.ones_like(series.angles_deg)], 1
+    )
+    series.euler_deg, series.euler_convention = euler, "zyx"
+    for path, start in zip(split_views(series, tmp_path / "euler"), (0, 1)):
+        part = load_tilt_series(path)
+        assert part.euler_convention == "zyx" and np.allclose(part.euler_deg, euler[start::2])
 
 
 def test_a_fixed_kernel_is_held_and_bad_weights_are_named(tmp_path):

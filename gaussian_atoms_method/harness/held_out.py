@@ -30,7 +30,8 @@ from gaussian_atoms_method.atoms.view_prediction import interior, predicted_view
 def split_views(series, out_dir: str | Path) -> tuple[Path, Path]:
     """Write the even-indexed and the odd-indexed views of ``series`` (a
     :class:`dataparsers.tilt_series_format.TiltSeries`) as two tilt-series directories under
-    ``out_dir`` (``even``, ``odd``), with its geometry and truth; returns their paths."""
+    ``out_dir`` (``even``, ``odd``), with its geometry (Euler angles and their convention
+    included), species and truth; returns their paths."""
     from dataparsers.tilt_series_format import write_tilt_series
     from gaussian_atoms_method.atoms.atom_set import read_atoms
 
@@ -41,13 +42,15 @@ def split_views(series, out_dir: str | Path) -> tuple[Path, Path]:
             write_tilt_series(
                 Path(out_dir) / name,
                 series.projections[start::2],
-                series.angles_deg[start::2],
+                (series.angles_deg if series.euler_deg is None else series.euler_deg)[start::2],
                 series.pixel_size_A,
                 truth=truth,
                 origin_A=series.origin_A,
                 tilt_axis=series.tilt_axis,
                 centre_px=series.centre_px,
                 tilt_axis_angle_deg=series.tilt_axis_angle_deg,
+                species=series.species,
+                euler_convention=series.euler_convention,
             )
         )
     return out[0], out[1]
