@@ -89,6 +89,22 @@ def test_a_given_start_keeps_what_the_data_hold_and_drops_the_rest(particle, tmp
     assert scores["tpr"] == 1.0 and scores["fp_per_true_atom"] == 0.0 and scores["rmsd_pm"] < 5.0
 
 
+def test_a_replica_floor_widens_each_stated_precision(particle, capfd):
+    """``precision_floor_A`` (read on a replica by ``evaluate``) is added in quadrature: without it
+    this particle's atoms are stated to 1-50 pm (the test above), with a floor of 10/20/30 pm each
+    statement lies between the floor and the quadrature sum with 5 pm, and the run says so."""
+    truth, angles, projections = particle
+    floor = (0.1, 0.2, 0.3)
+    atoms = ga.reconstruct(
+        projections, angles, 0.25, device="cpu", max_num_iterations=400, progress=False, precision_floor_A=floor
+    )
+    said = capfd.readouterr().out
+    assert "with the floor given, 10.0/20.0/30.0 pm in quadrature" in said, said
+    std = atoms.position_std_A
+    assert np.all(std >= np.array(floor)) and np.all(std <= np.sqrt(np.array(floor) ** 2 + 0.05**2))
+    assert np.all(atoms.depth_halfwidth_A >= 1.96 * 0.3)
+
+
 def test_reconstruct_reads_the_kernel_then_holds_it(particle):
     """``psf="held-out"`` through the API: the reading pass, then the atoms with the kernel held
     (the trainer's two passes); the model's own physics has no tails to read, so the atoms come

@@ -50,11 +50,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from gaussian_atoms_method.atoms.calibration import Z95, precision_floor_A
 from gaussian_atoms_method.atoms.information import amplitude_coupling, pair_information, view_scores
 from gaussian_atoms_method.physics.devices import work_device
-
-#: Two-sided 95% quantile of the normal distribution.
-Z95 = 1.959963984540054
 
 COUPLING_FLOOR = 0.02
 """Neighbours are the atoms whose amplitudes' information correlation with the atom,
@@ -452,7 +450,9 @@ def evidence_scores(pred, truth, radius_A: float = 0.75, mean_shift: bool = Fals
     * ``open_share_of_false``: the share of false atoms (on no true one) called open (not proven,
       or open in depth); ``open_share_of_misses``: the share of missed true atoms with an open
       atom within twice ``radius_A`` (the atom the data placed elsewhere, or could not prove);
-      ``open_share_of_disagreement``: both together.
+      ``open_share_of_disagreement``: both together;
+    * ``precision_floor_A``: the error along x, y, z the stated precision does not hold
+      (:func:`.calibration.precision_floor_A`): on a replica, what to give the real run.
     """
     from scipy.spatial import cKDTree
 
@@ -487,6 +487,7 @@ def evidence_scores(pred, truth, radius_A: float = 0.75, mean_shift: bool = Fals
     }
     if len(pi) and pred.position_std_A is not None:
         scores["coverage_95_xyz"] = np.mean(np.abs(error) <= Z95 * pred.position_std_A[pi], axis=0).tolist()
+        scores["precision_floor_A"] = precision_floor_A(error, pred.position_std_A[pi]).tolist()
     if len(pi) and pred.depth_halfwidth_A is not None:
         scores["depth_coverage_95"] = float(np.mean(np.abs(error[:, 2]) <= pred.depth_halfwidth_A[pi]))
     return scores

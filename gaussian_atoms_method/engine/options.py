@@ -10,6 +10,7 @@ reasons are given here, where ``--help`` shows them.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, Optional, Tuple, Union
@@ -199,6 +200,12 @@ class FitOptions(UserFirstOptions):
     depth interval and its precision with its neighbours re-fitted, from the views' own residuals
     (:mod:`gaussian_atoms_method.atoms.evidence`; on a 2-core CPU about 6 s of a Ta sub-area's
     48 s run, its 1,880 Gaussians).  Off: the isolated atom's Cramér-Rao bound alone."""
+    precision_floor_A: Tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """An error along x, y, z (Å) that the views' own scatter cannot show, added in quadrature to
+    each atom's stated precision and depth interval: a bias alike in every view (a probe's tails
+    over a neighbour, an atom's shape).  Read it from a replica of the experiment: ``evaluate`` of
+    a fit of ``gaussian-atoms simulate --like`` reports ``precision_floor_A``
+    (:mod:`gaussian_atoms_method.atoms.calibration`).  Zero: the views' own statement."""
     isotropic: bool = DensityControl.isotropic
     """One width per Gaussian (the isotropy prior).  False: three widths and a rotation each."""
     average_iterates: bool = DensityControl.average_iterates
@@ -322,6 +329,11 @@ class FitOptions(UserFirstOptions):
                 raise OptionError(f"--pipeline.model.start-atoms: {error}") from None
         from gaussian_atoms_method.physics.psf import KERNEL_WIDTHS_A
 
+        if len(self.precision_floor_A) != 3 or not all(math.isfinite(f) and f >= 0 for f in self.precision_floor_A):
+            raise OptionError(
+                "--pipeline.model.precision-floor-A must be three non-negative lengths in Å (x y z), got "
+                f"{' '.join(f'{f:g}' for f in self.precision_floor_A)}"
+            )
         if len(self.psf_weights) != len(KERNEL_WIDTHS_A) or min(self.psf_weights) < 0 or sum(self.psf_weights) >= 1:
             raise OptionError(
                 f"--pipeline.model.psf-weights takes {len(KERNEL_WIDTHS_A)} non-negative fractions (at "

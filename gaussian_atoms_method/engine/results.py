@@ -236,6 +236,7 @@ def attach_evidence(model, atoms: AtomSet, noise: float, read, hard_core_A: floa
     residual's level and spectrum ``read`` (:func:`residual_noise`), ``noise`` in input units);
     prints what the residual holds beyond the views' own noise and the precision against the
     isolated atom's Cramér-Rao bound (the ``position_std_A`` it replaces)."""
+    from gaussian_atoms_method.atoms.calibration import with_floor
     from gaussian_atoms_method.atoms.evidence import atom_evidence, depth_profile_pulls
     from gaussian_atoms_method.atoms.information import residual_spectrum_factors, view_scores
 
@@ -285,9 +286,13 @@ def attach_evidence(model, atoms: AtomSet, noise: float, read, hard_core_A: floa
         moved_pulls=moved,
     )
     crb = atoms.position_std_A
-    atoms.position_std_A = evidence.position_std_A
+    floor = model.config.precision_floor_A
+    std, half, depth_open = evidence.position_std_A, evidence.depth_halfwidth_A, evidence.depth_open
+    if any(floor):  # a replica's floor: what no view's scatter shows (atoms/calibration.py)
+        std, half, depth_open = with_floor(std, half, depth_open, floor, hard_core)
+    atoms.position_std_A = std
     atoms.significance, atoms.proven = evidence.significance, evidence.proven
-    atoms.depth_halfwidth_A, atoms.depth_open = evidence.depth_halfwidth_A, evidence.depth_open
+    atoms.depth_halfwidth_A, atoms.depth_open = half, depth_open
     atoms.info["proof_level"] = evidence.proof_level
     measured = getattr(model, "measured_noise", None)
     if measured is not None:
@@ -308,6 +313,14 @@ def attach_evidence(model, atoms: AtomSet, noise: float, read, hard_core_A: floa
         + " times the isolated atom's Cramér-Rao bound"
         + ("" if converged else "; the run did not converge, its errors may be far larger")
         + ")"
+        + (
+            "; with the floor given, "
+            + "/".join(f"{f * 100:.1f}" for f in floor)
+            + " pm in quadrature: "
+            + ", ".join(f"{a} {v * 100:.1f} pm" for a, v in zip("xyz", np.nanmedian(std, axis=0)))
+            if any(floor)
+            else ""
+        )
     )
 
 

@@ -80,6 +80,14 @@ def summary_line(scores: dict, label: str = "") -> str:
             "95% intervals hold x/y/z "
             + "/".join(f"{c:.2f}" for c in scores["coverage_95_xyz"])
             + f", depth {scores['depth_coverage_95']:.2f}"
+            + (
+                "; the error they do not hold (for --pipeline.model.precision-floor-A on a real run of this "
+                "experiment) "
+                + " ".join(f"{f:.3f}" for f in scores["precision_floor_A"])
+                + " Å"
+                if "precision_floor_A" in scores
+                else ""
+            )
         )
     if scores.get("open_share_of_disagreement") is not None:
         parts.append(f"open atoms hold {scores['open_share_of_disagreement']:.0%} of the disagreement")

@@ -254,7 +254,13 @@ def evidence_words(scores: dict) -> str:
         f"{scores['depth_open']} open in depth"
         + (f", the open ones hold {share:.0%} of the disagreement" if share is not None else "")
         + (
-            "; 95% intervals hold x/y/z " + "/".join(f"{c:.2f}" for c in scores["coverage_95_xyz"])
+            "; 95% intervals hold x/y/z "
+            + "/".join(f"{c:.2f}" for c in scores["coverage_95_xyz"])
+            + (
+                ", missing an error of " + "/".join(f"{f * 100:.1f}" for f in scores["precision_floor_A"]) + " pm"
+                if "precision_floor_A" in scores
+                else ""
+            )
             if "coverage_95_xyz" in scores
             else ""
         )
@@ -364,6 +370,7 @@ class FilmBenchmark:
             "open_share_of_disagreement",
             "coverage_95_xyz",
             "depth_coverage_95",
+            "precision_floor_A",
         ]
         with open(self.output / "results.csv", "w", newline="") as f:
             writer = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
