@@ -82,9 +82,7 @@ def summary_line(scores: dict, label: str = "") -> str:
             + f", depth {scores['depth_coverage_95']:.2f}"
             + (
                 "; the error they do not hold (for --pipeline.model.precision-floor-A on a real run of this "
-                "experiment) "
-                + " ".join(f"{f:.3f}" for f in scores["precision_floor_A"])
-                + " Å"
+                "experiment) " + " ".join(f"{f:.3f}" for f in scores["precision_floor_A"]) + " Å"
                 if "precision_floor_A" in scores
                 else ""
             )
