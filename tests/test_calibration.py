@@ -19,14 +19,16 @@ def _errors(n=40_000, floor=(0.03, 0.0, 0.08), seed=0):
 
 
 def test_the_floor_a_replica_reads_is_the_bias_its_statement_misses():
-    """With 40,000 atoms the mean square's relative standard error is sqrt(2/n) of the errors'
-    variance: 0.7%, so the floor's variance comes back to 3% of the errors' variance, and a
-    statement that holds everything (floor 0) reads at most that."""
+    """With 40,000 atoms the coverage at the true floor scatters by sqrt(0.95 x 0.05 / n) = 0.1%;
+    a floor 10% off moves it by 0.5-1.5% here, so the floor comes back to 10%; a statement that
+    holds everything (no floor along y) reads a floor far under its 1-6 pm.  An open atom's
+    wide interval does not hide the others' miss (a mean square would)."""
     error, stated = _errors()
     floor = precision_floor_A(error, stated)
-    total = np.mean(error**2, axis=0)
-    assert floor**2 == pytest.approx(np.array([0.03, 0.0, 0.08]) ** 2, abs=0.03 * total.max())
-    assert floor[1] ** 2 <= 0.03 * total[1]
+    assert floor[[0, 2]] == pytest.approx([0.03, 0.08], rel=0.1) and floor[1] < 0.005
+    wide = stated.copy()
+    wide[:100] = 10.0  # one atom in 400 left open, stated to 10 Å
+    assert precision_floor_A(error, wide)[[0, 2]] == pytest.approx([0.03, 0.08], rel=0.1)
     assert precision_floor_A(np.zeros((0, 3)), np.zeros((0, 3))).tolist() == [0.0, 0.0, 0.0]
 
 

@@ -7,7 +7,7 @@ What is the same in every view stays outside it: a bias that the forward model m
 each projection (a probe's tails over a neighbour, an atom's shape, a support's texture at the
 atom). No fit can see that bias in its own residual; a replica of the experiment can
 (``gaussian-atoms simulate --like``): its errors against its truth, beside the precision its run
-stated, give the error variance the statement does not hold (:func:`precision_floor_A`). A run
+stated, give the error the statement does not hold (:func:`precision_floor_A`). A run
 of the real series given that floor (``precision_floor_A``) adds it in quadrature to each
 atom's statement (:func:`with_floor`).
 """
@@ -21,25 +21,28 @@ Z95 = 1.959963984540054
 deviations."""
 
 
-def precision_floor_A(error_A: np.ndarray, stated_std_A: np.ndarray) -> np.ndarray:
-    """(3,) the error along x, y, z (Å) that the stated precision does not hold: the square root
-    of the actual errors' mean square less the stated variances' mean, zero where the statement
-    holds the errors already.
+def precision_floor_A(error_A: np.ndarray, stated_std_A: np.ndarray, coverage: float = 0.95) -> np.ndarray:
+    """(3,) the error along x, y, z (Å) that the stated precision does not hold: the least floor
+    ``f`` whose quadrature sum with each statement, ``sqrt(std^2 + f^2)``, brings ``coverage`` of
+    the errors inside their ``Z95``-wide intervals (zero where the statement holds them already).
 
     ``error_A`` (N, 3) the found atoms' errors against a truth, after the global shift;
-    ``stated_std_A`` (N, 3) the precision their run stated.  If the errors are the stated
-    scatter plus a bias of variance ``f^2`` the same for every atom, this reads ``f``.
+    ``stated_std_A`` (N, 3) the precision their run stated.  Each atom needs
+    ``f_i = sqrt(max(0, (e_i / Z95)^2 - std_i^2))``; the floor is their ``coverage`` quantile.  If
+    the errors are the stated scatter plus a bias of variance ``f^2`` the same for every atom,
+    this reads ``f``.  A quantile, not a mean square: the atoms a run leaves open state wide
+    intervals, and their variances would hide what the others miss.
 
-    >>> error = np.array([[0.03, 0.0, 0.05], [-0.03, 0.0, -0.05]])
-    >>> precision_floor_A(error, np.full((2, 3), 0.02)).round(4).tolist()
-    [0.0224, 0.0, 0.0458]
+    >>> error = np.array([[0.03, 0.0, 0.05], [-0.02, 0.0, -0.05]])
+    >>> precision_floor_A(error, np.full((2, 3), 0.01), coverage=0.5).round(4).tolist()
+    [0.0068, 0.0, 0.0235]
     """
     error_A, stated_std_A = np.asarray(error_A, dtype=np.float64), np.asarray(stated_std_A, dtype=np.float64)
-    if error_A.size == 0:
-        return np.zeros(3)
     ok = np.all(np.isfinite(stated_std_A), axis=1)
-    excess = np.mean(error_A[ok] ** 2, axis=0) - np.mean(stated_std_A[ok] ** 2, axis=0)
-    return np.sqrt(np.clip(excess, 0.0, None))
+    if not ok.any():
+        return np.zeros(3)
+    needed = np.sqrt(np.clip((error_A[ok] / Z95) ** 2 - stated_std_A[ok] ** 2, 0.0, None))
+    return np.quantile(needed, coverage, axis=0)
 
 
 def with_floor(
