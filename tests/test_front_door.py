@@ -230,7 +230,7 @@ def test_train_help_is_this_methods_options_in_plain_text(capsys):
 
 def test_the_nerfstudio_launchers_decide_registration_before_config_is_saved(tmp_path, capfd):
     """``--pipeline.model.decide-registration`` under ``ns-train`` (and ``gaussian-atoms train``'s
-    nerfstudio path): the input check runs the two trial fits on the series it read and leaves
+    nerfstudio path): the input check runs the four trial fits on the series it read and leaves
     the model's ``refine_alignment`` and ``refine_gain`` set to the choice, so the config.yml
     nerfstudio then saves records it; the trial fits' own config.yml take the fit's options alone
     (splatfacto's camera optimiser is not one yaml can write)."""
@@ -242,7 +242,8 @@ def test_the_nerfstudio_launchers_decide_registration_before_config_is_saved(tmp
     config.pipeline.model.decide_registration = True
     config.check_or_exit()
     said = capfd.readouterr().out
-    on = "per-view shifts and gains on:" in said
-    assert on or "per-view shifts and gains off:" in said, said
+    from gaussian_atoms_method.engine.run import REGISTRATION
+
+    chosen = said.split("per-view registration: ")[1].split(" (")[0]
     model = config.pipeline.model
-    assert not model.decide_registration and model.refine_alignment == model.refine_gain == on
+    assert not model.decide_registration and (model.refine_alignment, model.refine_gain) == REGISTRATION[chosen]

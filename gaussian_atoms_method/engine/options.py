@@ -74,10 +74,11 @@ class UserFirstOptions:
     atoms' amplitudes' scale (:func:`~gaussian_atoms_method.engine.rendering.view_gain`)."""
     decide_registration: bool = False
     """Let the views a fit did not see decide ``refine_alignment`` and ``refine_gain``: the even
-    views are fitted with per-view shifts and gains and without, each fit predicts the odd views
-    (each after its own best shift and gain: a held-out view's registration is no fit's), and the
-    run learns them where they predict better (:func:`~gaussian_atoms_method.engine.run.choose_registration`).
-    Three fits' time."""
+    views are fitted without per-view registration, with shifts, with gains and with both, each
+    fit predicts the odd views (each after its own best shift and gain: a held-out view's
+    registration is no fit's), and the run learns what predicts them best
+    (:func:`~gaussian_atoms_method.engine.run.choose_registration`).  Five fits' time (four on half the
+    views)."""
     refine_tilts: bool = False
     """Learn a per-projection tilt-angle offset (about the tilt axis) with the atoms: errors of
     the goniometer readings.  Offsets are taken relative to their mean (a common offset is the
