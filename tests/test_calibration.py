@@ -53,3 +53,18 @@ def test_a_floor_that_cannot_be_a_length_is_named():
     with pytest.raises(OptionError, match="precision-floor-A"):
         FitOptions(precision_floor_A=(0.01, -0.02, 0.0)).check()
     FitOptions(precision_floor_A=(0.01, 0.02, 0.05)).check()
+
+
+def test_a_floor_given_as_numpy_numbers_is_written_as_numbers():
+    """A floor read by ``precision_floor_A`` is a numpy array; handed on as ``tuple(floor)`` its
+    items are ``np.float64``, and the run's config.yml (safe YAML) takes them as plain floats."""
+    import dataclasses
+
+    import yaml
+
+    from gaussian_atoms_method.engine.run_files import options_dict, plain
+
+    floor = tuple(precision_floor_A(*_errors(n=2_000)))
+    written = options_dict(dataclasses.replace(FitOptions(), precision_floor_A=floor))["precision_floor_A"]
+    assert all(type(f) is float for f in written) and written == [float(f) for f in floor]
+    assert yaml.safe_load(yaml.safe_dump(plain({"floor": floor}))) == {"floor": written}

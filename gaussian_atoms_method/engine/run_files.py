@@ -20,6 +20,7 @@ import time
 from dataclasses import asdict, dataclass, field, fields, is_dataclass
 from pathlib import Path
 
+import numpy as np
 import torch
 
 TRAINER_CONFIG = "gaussian_atoms_method.nerfstudio_layer.config.trainer_config_of_run"
@@ -74,7 +75,10 @@ class RunRecord:
 
 
 def plain(value):
-    """``value`` in YAML's plain types (paths as strings, tuples as lists)."""
+    """``value`` in YAML's plain types (paths as strings, tuples as lists, numpy's scalars as
+    Python's: an option given as ``np.float64`` from an array is a number all the same)."""
+    if isinstance(value, np.generic):
+        return value.item()
     if isinstance(value, Path):
         return str(value)
     if isinstance(value, (tuple, list)):
