@@ -11,7 +11,7 @@ reasons are given here, where ``--help`` shows them.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Optional, Tuple, Union
 
@@ -201,12 +201,14 @@ class FitOptions(UserFirstOptions):
     depth interval and its precision with its neighbours re-fitted, from the views' own residuals
     (:mod:`gaussian_atoms_method.atoms.evidence`; on a 2-core CPU about 6 s of a Ta sub-area's
     48 s run, its 1,880 Gaussians).  Off: the isolated atom's Cramér-Rao bound alone."""
-    precision_floor_A: Tuple[float, float, float] = (0.0, 0.0, 0.0)
+    precision_floor_A: Tuple[float, float, float] = field(default_factory=lambda: tuple([0.0] * 3))
     """An error along x, y, z (Å) that the views' own scatter cannot show, added in quadrature to
     each atom's stated precision and depth interval: a bias alike in every view (a probe's tails
     over a neighbour, an atom's shape).  Read it from a replica of the experiment: ``evaluate`` of
     a fit of ``gaussian-atoms simulate --like`` reports ``precision_floor_A``
-    (:mod:`gaussian_atoms_method.atoms.calibration`).  Zero: the views' own statement."""
+    (:mod:`gaussian_atoms_method.atoms.calibration`).  Zero: the views' own statement.  (A new tuple
+    each time: the compiler makes every ``(0.0, 0.0, 0.0)`` literal of a module one object,
+    ``psf_weights``' too, and config.yml would write the two as one YAML anchor.)"""
     isotropic: bool = DensityControl.isotropic
     """One width per Gaussian (the isotropy prior).  False: three widths and a rotation each."""
     average_iterates: bool = DensityControl.average_iterates
