@@ -45,6 +45,17 @@ def precision_floor_A(error_A: np.ndarray, stated_std_A: np.ndarray, coverage: f
     return np.quantile(needed, coverage, axis=0)
 
 
+def wider_than_half_core(depth_halfwidth_A: np.ndarray, hard_core_A: float | None) -> np.ndarray:
+    """(N,) bool: the 95% depth interval (half-widths (N,), Å) is wider than half the hard core,
+    so two atoms could trade places along it: the ``depth_open`` flag of :mod:`.evidence`.  All
+    False where the hard core is unknown (None or infinite); NaN half-widths are not open."""
+    half = np.asarray(depth_halfwidth_A, dtype=np.float64)
+    if hard_core_A is None or not np.isfinite(hard_core_A):
+        return np.zeros(half.shape, bool)
+    with np.errstate(invalid="ignore"):
+        return 2 * half > 0.5 * hard_core_A
+
+
 def with_floor(
     position_std_A: np.ndarray,
     depth_halfwidth_A: np.ndarray,
@@ -54,8 +65,8 @@ def with_floor(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The statement widened by ``floor_A`` (3,) Å along x, y, z, in quadrature: each atom's
     (N, 3) precision, its 95% depth half-width (N,) (along the beam: the floor along z), and its
-    depth flag (N,) raised where the widened interval exceeds half the hard core, as
-    :mod:`.evidence` raises it.
+    depth flag (N,) raised where the widened interval exceeds half the hard core
+    (:func:`wider_than_half_core`).
 
     >>> std, half, flag = with_floor(np.full((1, 3), 0.03), np.array([0.1]), np.array([False]), (0.04, 0.0, 0.4), 1.6)
     >>> std.round(3).tolist(), half.round(3).tolist(), flag.tolist()
@@ -64,8 +75,4 @@ def with_floor(
     floor = np.asarray(floor_A, dtype=np.float64).reshape(3)
     std = np.sqrt(np.asarray(position_std_A, dtype=np.float64) ** 2 + floor**2)
     half = np.sqrt(np.asarray(depth_halfwidth_A, dtype=np.float64) ** 2 + (Z95 * floor[2]) ** 2)
-    flag = np.asarray(depth_open, dtype=bool).copy()
-    if hard_core_A is not None and np.isfinite(hard_core_A):
-        with np.errstate(invalid="ignore"):
-            flag |= 2 * half > 0.5 * hard_core_A
-    return std, half, flag
+    return std, half, np.asarray(depth_open, dtype=bool) | wider_than_half_core(half, hard_core_A)

@@ -50,7 +50,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from gaussian_atoms_method.atoms.calibration import Z95, precision_floor_A
+from gaussian_atoms_method.atoms.calibration import Z95, precision_floor_A, wider_than_half_core
 from gaussian_atoms_method.atoms.information import amplitude_coupling, pair_information, view_scores
 from gaussian_atoms_method.physics.devices import work_device
 
@@ -276,11 +276,7 @@ def atom_evidence(
     depth_axis = vectors[:, :, -1] * np.sign(vectors[:, 2:3, -1] + 1e-300)  # pointing up the beam
     with np.errstate(invalid="ignore"):  # NaN: the atoms not asked for
         proven = significance >= level
-        depth_open = (
-            2 * depth_half > 0.5 * hard_core_A
-            if hard_core_A is not None and np.isfinite(hard_core_A)
-            else np.zeros(n, bool)
-        )
+    depth_open = wider_than_half_core(depth_half, hard_core_A)
     profile = rises / (noise_std * amplitude_factor) ** 2
     # From a fit's optimum no move lowers the cost by more than chance: a fall below -1.96^2 is the
     # linearised re-fit failing (two Gaussians nearly one, the re-fit's steps far beyond their
