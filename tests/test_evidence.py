@@ -260,17 +260,63 @@ def _cluster(n: int, seed: int = 0):
 def test_atoms_solved_together_are_each_alone(monkeypatch):
     """The local solves run in batches of atoms with as many neighbours (and batches cut to a
     budget); every atom's evidence is the same, to rounding, as when it is asked for alone."""
-    import gaussian_atoms_method.atoms.evidence as evidence
+    import gaussian_atoms_method.atoms.information as information
 
     positions, sigmas, amps, axes, scores, moved = _cluster(120)
     kw = dict(hard_core_A=1.5, scores=scores, moved_pulls=moved)
-    monkeypatch.setattr(evidence, "BATCH_ELEMENTS", 2e5)  # batches of a few atoms
+    monkeypatch.setattr(information, "BATCH_ELEMENTS", 2e5)  # batches of a few atoms
     together = atom_evidence(positions, sigmas, amps, axes, 0.4, 10.0, **kw)
     assert np.isfinite(together.significance).all()
     for a in (0, 17, 60, 119):
         alone = atom_evidence(positions, sigmas, amps, axes, 0.4, 10.0, targets=np.arange(120) == a, **kw)
         for name in ("significance", "position_std_A", "depth_halfwidth_A", "depth_profile"):
             np.testing.assert_allclose(getattr(alone, name)[a], getattr(together, name)[a], rtol=1e-9)
+
+
+def test_a_dense_sets_information_is_positive_and_its_neighbours_only_lower_the_evidence():
+    """In a dense light-element cluster (carbon's bonds, 1.4 Å, atoms 0.64 Å wide: an atom couples
+    to some 60 others) each atom's set is a principal submatrix of the whole information, so
+    positive definite; and re-fitting neighbours can only lower the cost of taking an atom out:
+    each significance lies at or below the atom's alone (before the blocks between neighbours were
+    kept, 30% of a carbon particle's atoms read 1e151)."""
+    from gaussian_atoms_method.atoms.evidence import COUPLING_FLOOR
+    from gaussian_atoms_method.atoms.information import amplitude_coupling, local_information, pairs_among_neighbours
+    from gaussian_atoms_method.harness.particles import amorphous_packing
+
+    rng = np.random.default_rng(3)
+    positions = amorphous_packing(300, ("C",), 1.4, rng).positions
+    axes = detector_axes_from_tilts(np.arange(-72, 73, 4.0))
+    sigmas, amps = np.full(300, 0.64), rng.uniform(25, 35, 300)
+    ev = atom_evidence(positions, sigmas, amps, axes, 0.34, 5.0)
+    alone = np.array(
+        [
+            atom_evidence(positions[a : a + 1], sigmas[a : a + 1], amps[a : a + 1], axes, 0.34, 5.0).significance[0]
+            for a in range(0, 300, 30)
+        ]
+    )
+    assert np.all(ev.significance[::30] <= alone * (1 + 1e-9))
+    assert np.all(ev.significance > 0) and np.all(np.isfinite(ev.position_std_A))
+    i, j = np.triu_indices(300, 1)
+    near = amplitude_coupling(positions[i], positions[j], sigmas[i], sigmas[j], axes) >= COUPLING_FLOOR
+    neighbours = np.stack([i[near], j[near]], axis=1)
+    pairs = np.concatenate([neighbours, pairs_among_neighbours(neighbours, 300)])
+    blocks = pair_information(
+        positions[pairs[:, 0]],
+        positions[pairs[:, 1]],
+        sigmas[pairs[:, 0]],
+        sigmas[pairs[:, 1]],
+        amps[pairs[:, 0]],
+        amps[pairs[:, 1]],
+        axes,
+        0.34,
+    )
+    diagonal = pair_information(positions, positions, sigmas, sigmas, amps, amps, axes, 0.34)
+    sizes = []
+    for _, local, info in local_information(np.arange(0, 300, 7), neighbours, pairs, blocks, diagonal, 0):
+        scale = np.sqrt(np.einsum("bii->bi", info))
+        sizes.append(local.shape[1])
+        assert np.linalg.eigvalsh(info / scale[:, :, None] / scale[:, None, :]).min() > 0
+    assert max(sizes) > 20  # sets as dense as carbon's
 
 
 def test_the_amplitude_coupling_is_the_informations():

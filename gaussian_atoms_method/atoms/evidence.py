@@ -51,7 +51,13 @@ import numpy as np
 import torch
 
 from gaussian_atoms_method.atoms.calibration import Z95, precision_floor_A, wider_than_half_core
-from gaussian_atoms_method.atoms.information import amplitude_coupling, pair_information, view_scores
+from gaussian_atoms_method.atoms.information import (
+    amplitude_coupling,
+    local_information,
+    pair_information,
+    pairs_among_neighbours,
+    view_scores,
+)
 from gaussian_atoms_method.physics.devices import work_device
 
 COUPLING_FLOOR = 0.02
@@ -65,10 +71,6 @@ atoms' images meet only in the views in which one lies nearly behind the other a
 each such coupling weak; they are many (on a Ta sub-area's 1,880 Gaussians, 2,307 pairs within
 3 Å reach :data:`COUPLING_FLOOR`, 10,555 within 6 Å) and left out: the replicas' coverage of the
 stated intervals (docs/evidence.md) is the check that they may be."""
-
-BATCH_ELEMENTS = 2e7
-"""The most numbers (float64: 160 MB) a batch of atoms' local information holds with its moved
-copies; atoms of as many neighbours are solved together."""
 
 FAMILY_FALSE_ALARM = 0.05
 """The chance that any one of the reported atoms would be called proven were its site pure
@@ -208,7 +210,11 @@ def atom_evidence(
         coupled[start : start + chunk_pairs] = (
             amplitude_coupling(positions[i], positions[j], sigmas[i], sigmas[j], axes) >= COUPLING_FLOOR
         )
-    pairs = pairs[coupled]
+    neighbours = pairs[coupled]
+    wanted = np.flatnonzero(np.ones(n, bool) if targets is None else targets)
+    # every block within each wanted atom's set, its neighbours' with each other too: the set's
+    # information is then a principal submatrix of the whole one, positive definite as it is
+    pairs = np.concatenate([neighbours, pairs_among_neighbours(neighbours, n, wanted)])
     blocks = np.zeros((len(pairs), 5, 5))
     for start in range(0, len(pairs), chunk_pairs):
         i, j = pairs[start : start + chunk_pairs].T
@@ -221,14 +227,13 @@ def atom_evidence(
     offsets = sorted(moved_pulls) if moved_pulls else []
     rises = np.full((n, len(offsets)), np.inf)
     depth_axis_all = depth_axis_of(axes) if offsets else None
-    wanted = np.flatnonzero(np.ones(n, bool) if targets is None else targets)
     scores_on = None if scores is None else torch.as_tensor(np.asarray(scores, np.float64), device=where)
     moved_on = (
         None
         if moved_pulls is None or scores is None
         else torch.as_tensor(np.stack([moved_pulls[o] for o in offsets]), dtype=torch.float64, device=where)
     )
-    for atoms, local, info in _local_information(wanted, pairs, blocks, diagonal, len(offsets)):
+    for atoms, local, info in local_information(wanted, neighbours, pairs, blocks, diagonal, len(offsets)):
         k, info, local_on = local.shape[1], torch.as_tensor(info, device=where), torch.as_tensor(local, device=where)
         # a parameter the views do not fix (an amplitude of zero, a width at its bound) would make
         # the information singular: a ridge of 1e-9 of the diagonal leaves the rest unchanged
@@ -338,39 +343,6 @@ def depth_profile_pulls(
         ).sum(axis=1)
         out[offset] = pulls
     return out
-
-
-def _local_information(wanted, pairs, blocks, diagonal, n_offsets: int, budget: float = BATCH_ELEMENTS):
-    """The information of each wanted atom with its neighbours, in batches of atoms with as many
-    neighbours: yields ``(atoms (B,), local (B, k), info (B, 5k, 5k))``, ``local[:, 0]`` the atom,
-    the rest its neighbours (the atoms ``pairs`` join it to), ``info`` their (5, 5) blocks:
-    ``diagonal`` (N, 5, 5) on the diagonal, ``blocks`` (P, 5, 5) (rows: the pair's first atom)
-    between pairs, zero between neighbours not paired.  A batch holds at most ``budget`` numbers
-    with its ``n_offsets`` moved copies (:func:`_depth_rises`)."""
-    n = len(diagonal)
-    rows, cols = np.r_[pairs[:, 0], pairs[:, 1]], np.r_[pairs[:, 1], pairs[:, 0]]
-    both = np.concatenate([blocks, blocks.transpose(0, 2, 1)])  # the (row, col) block of each ordered pair
-    order = np.lexsort((cols, rows))
-    rows, cols, both = rows[order], cols[order], both[order]
-    keys = rows * n + cols
-    degree = np.bincount(rows, minlength=n)
-    first = np.r_[0, np.cumsum(degree)]
-    for others in np.unique(degree[wanted]):
-        group, k = wanted[degree[wanted] == others], int(others) + 1
-        size = max(1, int(budget // (25 * k * k * (1 + n_offsets))))
-        for c in range(0, len(group), size):
-            atoms = group[c : c + size]
-            local = np.c_[atoms, cols[first[atoms][:, None] + np.arange(others)]].astype(np.int64)
-            info = np.zeros((len(atoms), k, k, 5, 5))
-            slots = np.arange(k)
-            info[:, slots, slots] = diagonal[local]
-            if others:
-                key = local[:, :, None] * n + local[:, None, :]
-                at = np.minimum(np.searchsorted(keys, key), len(keys) - 1)
-                hit = keys[at] == key
-                hit[:, slots, slots] = False
-                info[hit] = both[at[hit]]
-            yield atoms, local, info.transpose(0, 1, 3, 2, 4).reshape(len(atoms), 5 * k, 5 * k)
 
 
 def _depth_rises(

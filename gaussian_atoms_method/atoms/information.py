@@ -265,3 +265,76 @@ def residual_spectrum_factors(residuals, noise_std: float, sigma_px: float) -> t
     amplitude = float((amplitude_template * power).sum() / (s2 * amplitude_template.sum()))
     position = float((position_template * power).sum() / (s2 * position_template.sum()))
     return math.sqrt(max(position, 0.0)), math.sqrt(max(amplitude, 0.0))
+
+
+BATCH_ELEMENTS = 2e7
+"""The most numbers (float64: 160 MB) a batch of atoms' local information holds with its moved
+copies; atoms of as many neighbours are solved together."""
+
+
+def _adjacency(neighbours: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each of ``n`` atoms' neighbours (``neighbours`` (P, 2), either way round): ``cols`` (2P,)
+    the neighbours grouped by atom, ascending within each, ``degree`` (n,) how many each atom
+    has, ``first`` (n + 1,) where its group starts in ``cols``."""
+    rows, cols = np.r_[neighbours[:, 0], neighbours[:, 1]], np.r_[neighbours[:, 1], neighbours[:, 0]]
+    order = np.lexsort((cols, rows))
+    degree = np.bincount(rows, minlength=n)
+    return cols[order], degree, np.r_[0, np.cumsum(degree)]
+
+
+def pairs_among_neighbours(neighbours: np.ndarray, n: int, wanted: np.ndarray | None = None) -> np.ndarray:
+    """(Q, 2) the pairs of atoms, first < second, that are both neighbours of one ``wanted`` atom
+    (indices; default all; ``neighbours`` (P, 2) of ``n`` atoms) and not neighbours of each
+    other: the blocks an atom's set holds beyond its own.  Without them the set's information is
+    no principal submatrix of the whole one and need not be positive definite: on a 1,512-atom
+    carbon particle every set's was not (its smallest eigenvalue -0.5 of the diagonal's scale),
+    and an atom's amplitude variance came out negative for 30% of them."""
+    if len(neighbours) == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    cols, degree, first = _adjacency(neighbours, n)
+    wanted = np.arange(n) if wanted is None else np.asarray(wanted)
+    found = [np.zeros(0, dtype=np.int64)]
+    for k in np.unique(degree[wanted]):
+        if k < 2:
+            continue
+        atoms = wanted[degree[wanted] == k]
+        sets = cols[first[atoms][:, None] + np.arange(k)]  # (B, k), each row ascending
+        a, b = np.triu_indices(int(k), 1)
+        found.append(np.unique(sets[:, a] * n + sets[:, b]))
+    keys = np.unique(np.concatenate(found))
+    own = np.minimum(neighbours[:, 0], neighbours[:, 1]) * n + np.maximum(neighbours[:, 0], neighbours[:, 1])
+    keys = keys[~np.isin(keys, own)]
+    return np.stack([keys // n, keys % n], axis=1).astype(np.int64)
+
+
+def local_information(wanted, neighbours, pairs, blocks, diagonal, n_offsets: int, budget: float | None = None):
+    """The information of each wanted atom with its neighbours, in batches of atoms with as many
+    neighbours: yields ``(atoms (B,), local (B, k), info (B, 5k, 5k))``, ``local[:, 0]`` the atom,
+    the rest its neighbours (the atoms ``neighbours`` (P, 2) join it to), ``info`` their (5, 5)
+    blocks: ``diagonal`` (N, 5, 5) on the diagonal, ``blocks`` (Q, 5, 5) (rows: the pair's first
+    atom) between the ``pairs`` (Q, 2) (:func:`pairs_among_neighbours` with them: every pair
+    within a set), zero between any others.  A batch holds at most ``budget`` numbers with its
+    ``n_offsets`` moved copies (:func:`.evidence._depth_rises`; default :data:`BATCH_ELEMENTS`)."""
+    budget = BATCH_ELEMENTS if budget is None else budget
+    n = len(diagonal)
+    keys = np.r_[pairs[:, 0] * n + pairs[:, 1], pairs[:, 1] * n + pairs[:, 0]]
+    both = np.concatenate([blocks, blocks.transpose(0, 2, 1)])  # the (row, col) block of each ordered pair
+    order = np.argsort(keys)
+    keys, both = keys[order], both[order]
+    near_cols, degree, first = _adjacency(neighbours, n)
+    for others in np.unique(degree[wanted]):
+        group, k = wanted[degree[wanted] == others], int(others) + 1
+        size = max(1, int(budget // (25 * k * k * (1 + n_offsets))))
+        for c in range(0, len(group), size):
+            atoms = group[c : c + size]
+            local = np.c_[atoms, near_cols[first[atoms][:, None] + np.arange(others)]].astype(np.int64)
+            info = np.zeros((len(atoms), k, k, 5, 5))
+            slots = np.arange(k)
+            info[:, slots, slots] = diagonal[local]
+            if others:
+                key = local[:, :, None] * n + local[:, None, :]
+                at = np.minimum(np.searchsorted(keys, key), len(keys) - 1)
+                hit = keys[at] == key
+                hit[:, slots, slots] = False
+                info[hit] = both[at[hit]]
+            yield atoms, local, info.transpose(0, 1, 3, 2, 4).reshape(len(atoms), 5 * k, 5 * k)
