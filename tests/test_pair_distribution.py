@@ -94,6 +94,45 @@ def test_a_too_close_pair_needs_the_prior_odds_to_stay_two(monkeypatch):
     assert np.min(np.linalg.norm(left - (lattice[-1] + [0, 0, 2.4]), axis=1)) < 1e-9  # the far one stayed two
 
 
+def test_one_atoms_mass_closer_than_the_shortest_distance_is_one_atom_whatever_the_likelihood(monkeypatch):
+    """Two pairs 1.0 Å apart in a lattice of 2.5 Å, both of which the likelihood wants as two (a
+    merge would cost 1e9 chi-square: a shape the forward model misses): the pair holding 1.2
+    typical atoms' mass (two halves of 0.6, as a carbon atom split along the beam) becomes one at
+    its centre of mass; the pair holding two atoms' mass stays two."""
+    from gaussian_atoms_method.density.strategy import DensityControl
+    from gaussian_atoms_method.physics.noise import NoiseModel
+
+    rng = np.random.default_rng(2)
+    lattice = np.stack(np.meshgrid(*[np.arange(-3, 4)] * 3, indexing="ij"), -1).reshape(-1, 3) * 2.5
+    lattice = lattice + 0.05 * rng.normal(size=lattice.shape)
+    light_at, heavy_at = lattice[0], lattice[-1]
+    halves = [light_at + [0, 0, 0.5], light_at - [0, 0, 0.5], heavy_at + [0, 0, 1.0]]
+    positions = np.concatenate([lattice[1:], halves]) * 0.01
+    n = len(positions)
+    log_amplitudes = torch.zeros(n, 1, dtype=torch.float64)
+    log_amplitudes[n - 3 : n - 1] = math.log(0.6)
+    params = torch.nn.ParameterDict(
+        {
+            "means": torch.nn.Parameter(torch.tensor(positions)),
+            "log_sigmas": torch.nn.Parameter(torch.full((n, 1), math.log(0.006), dtype=torch.float64)),
+            "log_amplitudes": torch.nn.Parameter(log_amplitudes),
+        }
+    )
+    optimizers = {k: torch.optim.Adam([p], lr=0.0) for k, p in params.items()}
+    control = DensityControl(length_scale=0.01, max_log_amplitude=50.0, generator=torch.Generator().manual_seed(0))
+    control.reset(n)
+    control.noise, control.pixel_size, control.n_views = NoiseModel(1e-9, 0.0), 0.003, 40
+    control.view_dirs = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)
+    assert control.shortest_distance(params)[0] / 0.01 > 1.0
+    monkeypatch.setattr(DensityControl, "likelihood_change", lambda self, p, pairs, c: np.full(len(pairs), 1e9))
+    removed = control.merge_by_likelihood(params, optimizers, correlations=lambda m, s: None)
+    assert removed == 1
+    left = params["means"].detach().numpy() / 0.01
+    assert np.min(np.linalg.norm(left - light_at, axis=1)) < 1e-9  # the halves' centre of mass
+    assert np.min(np.linalg.norm(left - (heavy_at + [0, 0, 1.0]), axis=1)) < 1e-9  # two atoms' mass: two
+    assert np.min(np.linalg.norm(left - heavy_at, axis=1)) < 1e-9
+
+
 def test_a_pair_half_a_bond_apart_is_rarer_than_one_just_under_the_onset():
     """A fit that split 3% of an a-Pd particle's atoms into halves 1.0 Å apart reads the split
     halves' share at the onset; following the first shell's low side, a pair 1.0 Å apart is as
