@@ -95,10 +95,10 @@ def test_a_too_close_pair_needs_the_prior_odds_to_stay_two(monkeypatch):
 
 
 def test_one_atoms_mass_closer_than_the_shortest_distance_is_one_atom_whatever_the_likelihood(monkeypatch):
-    """Two pairs 1.0 Å apart in a lattice of 2.5 Å, both of which the likelihood wants as two (a
-    merge would cost 1e9 chi-square: a shape the forward model misses): the pair holding 1.2
-    typical atoms' mass (two halves of 0.6, as a carbon atom split along the beam) becomes one at
-    its centre of mass; the pair holding two atoms' mass stays two."""
+    """Two pairs 1.0 Å apart, Gaussians 0.6 Å wide (one peak), in a lattice of 2.5 Å, both of which
+    the likelihood wants as two (a merge would cost 1e9 chi-square: a shape the forward model
+    misses): the pair holding 1.2 typical atoms' mass (two halves of 0.6, as a carbon atom split
+    along the beam) becomes one at its centre of mass; the pair holding two atoms' mass stays two."""
     from gaussian_atoms_method.density.strategy import DensityControl
     from gaussian_atoms_method.physics.noise import NoiseModel
 

@@ -156,12 +156,17 @@ class Merging:
 
         A pair closer than the material's shortest distance (:meth:`shortest_distance`) stays two
         only where the likelihood demands it: its level is raised by the prior odds against a
-        pair at its distance, the closer the more; and never where the pair holds no more than
-        :data:`..parameters.SPLIT_MASS` typical atoms' mass (halfway between one and two): two
-        atoms there would hold two atoms' mass, and the likelihood's preference is one atom's
-        shape the forward model misses.  On a carbon particle through an aberrated probe every
-        false atom (51 of 1,563) was such a pair, 0.83-1.07 Å apart along the beam around one true
-        atom, holding 1.02-1.39 atoms' mass."""
+        pair at its distance, the closer the more.
+
+        A pair that is one peak (closer than the sum of its widths: two Gaussians that close sum
+        to a single maximum) and holds no more than :data:`..parameters.SPLIT_MASS` typical
+        atoms' mass (halfway between one and two) is one atom whatever the likelihood says: two
+        atoms would hold two atoms' mass, and the likelihood's preference is one atom's shape
+        that the forward model misses.  On a carbon particle through an aberrated probe every
+        false atom (51 of 1,563) was such a pair, 0.83-1.07 Å apart along the beam around one
+        true atom, 0.65 Å wide, holding 1.02-1.39 atoms' mass.  The material's shortest distance
+        in its place merged true atoms of the 76,000-atom a-Pd particle (found 0.9956 -> 0.9853):
+        pairs the split had made of two atoms just under its onset."""
         from scipy.special import chdtri  # chi2.isf(p, df) is chdtri(df, p); scipy.stats' import is 0.3 s
 
         level = chdtri(5, self.false_alarm_rate / self.cells())
@@ -172,17 +177,16 @@ class Merging:
             if len(idx) < 2:
                 return np.zeros((0, 2), dtype=np.int64)
             pos = params["means"].detach().double().cpu().numpy()
-            pairs = idx[
-                candidate_pairs(pos[idx], widths(params, self.min_log_sigma).detach().double().cpu().numpy()[idx])
-            ]
+            sigmas = widths(params, self.min_log_sigma).detach().double().cpu().numpy()
+            pairs = idx[candidate_pairs(pos[idx], sigmas[idx])]
             change = self.likelihood_change(params, pairs, correlations) if len(pairs) else None
             if change is None:
                 return np.zeros((0, 2), dtype=np.int64)
             distance = np.linalg.norm(pos[pairs[:, 0]] - pos[pairs[:, 1]], axis=1)
             margin = change - (level + np.where(distance < closest, prior(distance), 0.0))
-            # one atom's mass closer than two atoms stand: one atom, whatever its shape's misfit
+            # one atom's mass in one peak: one atom, whatever its shape's misfit
             worth = self.atoms_worth(params).detach().double().cpu().numpy()[pairs].sum(axis=1)
-            margin[(distance < closest) & (worth <= SPLIT_MASS)] = -np.inf
+            margin[(distance < sigmas[pairs].sum(axis=1)) & (worth <= SPLIT_MASS)] = -np.inf
             order = np.lexsort((distance, margin))
             return pairs[order[margin[order] < 0]]
 
