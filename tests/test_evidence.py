@@ -333,6 +333,21 @@ def test_the_amplitude_coupling_is_the_informations():
     np.testing.assert_allclose(amplitude_coupling(positions, positions, sigmas, sigmas, axes), 1.0)
 
 
+def test_read_only_atoms_give_the_same_information_without_a_warning():
+    """An AtomSet's or a memory map's arrays are read-only: the information is the same, and torch
+    is not handed them to share (it warns that writing would be undefined)."""
+    import warnings
+
+    positions, sigmas, amps, axes, _, _ = _cluster(20, seed=4)
+    want = pair_information(positions, positions, sigmas, sigmas, amps, amps, axes, 0.4)
+    for a in (positions, sigmas, amps, axes):
+        a.flags.writeable = False
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        got = pair_information(positions, positions, sigmas, sigmas, amps, amps, axes, 0.4)
+    np.testing.assert_array_equal(got, want)
+
+
 def test_the_views_pulls_in_torch_are_numpys():
     """:func:`view_scores` batched in torch (a GPU's way) equals the host's numpy, view by view,
     atoms near and beyond the detector's edges included."""

@@ -59,9 +59,10 @@ def pair_information(r_i, r_j, sigma_i, sigma_j, q_i, q_j, axes, pixel_size_A: f
     from gaussian_atoms_method.physics.devices import work_device
 
     where = work_device(r_i, device) or torch.device("cpu")
-    axes = torch.as_tensor(np.asarray(axes, dtype=np.float64)[:, :2, :], device=where)
+    # a read-only array (an AtomSet's, a memory map) is copied: torch warns on sharing one
+    axes = torch.as_tensor(np.require(np.asarray(axes, np.float64)[:, :2, :], requirements="W"), device=where)
     r_i, r_j, sigma_i, sigma_j, q_i, q_j = (
-        torch.as_tensor(np.asarray(a, np.float64), device=where) for a in (r_i, r_j, sigma_i, sigma_j, q_i, q_j)
+        torch.as_tensor(np.require(a, np.float64, "W"), device=where) for a in (r_i, r_j, sigma_i, sigma_j, q_i, q_j)
     )
     mu_i = torch.einsum("vkc,pc->pvk", axes, r_i)  # (P, V, 2)
     mu_j = torch.einsum("vkc,pc->pvk", axes, r_j)
