@@ -362,3 +362,26 @@ def test_the_views_pulls_in_torch_are_numpys():
     host = view_scores(positions, sigmas, amps, axes, residual, 0.4, (60, 45), device=HOST)
     batched = view_scores(positions, sigmas, amps, axes, torch.as_tensor(residual), 0.4, (60, 45), device="cpu")
     np.testing.assert_allclose(batched, host, rtol=1e-10, atol=1e-10 * np.abs(host).max())
+
+
+def test_the_evidence_scores_split_the_atoms_into_open_and_the_rest_alike():
+    """Four atoms on true ones (one proven but open in depth, one not proven), two false (one
+    open, one proven and closed), one true atom missed with an open atom 1.2 Å away: the atoms
+    not called open are two on a true one and one false (2 / 3 found); of the two false atoms one
+    is open; of the one miss, one has an open atom within twice the radius; an atom proven but
+    open in depth counts as open on both sides."""
+    from gaussian_atoms_method.atoms.atom_set import AtomSet
+    from gaussian_atoms_method.atoms.evidence import evidence_scores
+
+    truth = np.array([[0, 0, 0], [5, 0, 0], [10, 0, 0], [15, 0, 0], [20, 0, 0]], dtype=np.float64)
+    pred = np.array([[0, 0, 0.1], [5, 0, 0.1], [10, 0, 0.1], [15, 0, 0.1], [30, 0, 0], [40, 0, 0], [21.2, 0, 0]])
+    proven = np.array([1, 1, 1, 0, 1, 0, 1])
+    depth_open = np.array([0, 0, 1, 0, 0, 0, 1])
+    atoms = AtomSet(positions=pred, proven=proven, depth_open=depth_open)
+    s = evidence_scores(atoms, AtomSet(positions=truth), radius_A=0.75)
+    assert (s["proven"], s["open"], s["depth_open"]) == (5, 2, 2)
+    assert s["proven_found"] == pytest.approx(2 / 3)
+    # false: the atoms at 30 (proven, closed), 40 (open) and 21.2 (open in depth, 1.2 Å from its truth)
+    assert s["open_share_of_false"] == pytest.approx(2 / 3)
+    assert s["open_share_of_misses"] == pytest.approx(1.0)
+    assert s["open_share_of_disagreement"] == pytest.approx(3 / 4)

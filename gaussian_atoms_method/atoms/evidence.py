@@ -414,11 +414,13 @@ def evidence_scores(pred, truth, radius_A: float = 0.75, mean_shift: bool = Fals
     * ``coverage_95_xyz``: the share of found atoms whose error along x, y, z lies within their
       stated 95% interval (``1.96 position_std_A``; 0.95 if the statement were exact);
       ``depth_coverage_95``: within the depth interval (``depth_halfwidth_A``, along the beam);
-    * ``proven_found``: the share of proven atoms that lie on a true one;
+    * ``proven_found``: the share of the atoms not called open (proven and closed in depth) that
+      lie on a true one;
     * ``open_share_of_false``: the share of false atoms (on no true one) called open (not proven,
       or open in depth); ``open_share_of_misses``: the share of missed true atoms with an open
       atom within twice ``radius_A`` (the atom the data placed elsewhere, or could not prove);
-      ``open_share_of_disagreement``: both together;
+      ``open_share_of_disagreement``: both together.  The two sides split the atoms alike: an
+      atom proven but open in depth counts as open in both;
     * ``precision_floor_A``: the error along x, y, z the stated precision does not hold
       (:func:`.calibration.precision_floor_A`): on a replica, what to give the real run.
     """
@@ -444,7 +446,7 @@ def evidence_scores(pred, truth, radius_A: float = 0.75, mean_shift: bool = Fals
         "proven": int(pred.proven.sum()),
         "open": int((pred.proven == 0).sum()),
         "depth_open": int(pred.depth_open.sum()),
-        "proven_found": float(matched[pred.proven == 1].mean()) if pred.proven.any() else None,
+        "proven_found": float(matched[~is_open].mean()) if (~is_open).any() else None,
         "open_share_of_false": float(is_open[false].mean()) if false.any() else None,
         "open_share_of_misses": float(near_open.mean()) if missed.any() else None,
         "open_share_of_disagreement": (

@@ -248,10 +248,10 @@ def evidence_words(scores: dict) -> str:
     """The evidence part of a sub-area's line ("" without it)."""
     if "proven" not in scores:
         return ""
-    share = scores.get("open_share_of_disagreement")
+    share, found = scores.get("open_share_of_disagreement"), scores.get("proven_found")
     return (
-        f"; {scores['proven']} proven ({scores['proven_found']:.3f} on a model atom), {scores['open']} open, "
-        f"{scores['depth_open']} open in depth"
+        f"; {scores['proven']} proven, {scores['open']} open, {scores['depth_open']} open in depth"
+        + (f" (the rest {found:.3f} on a model atom)" if found is not None else "")
         + (f", the open ones hold {share:.0%} of the disagreement" if share is not None else "")
         + (
             "; 95% intervals hold x/y/z "
