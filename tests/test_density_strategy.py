@@ -136,6 +136,10 @@ def test_safeguards_are_counted_and_reported():
     lines = control.report()
     assert lines[0] == "clamped (Gaussian-steps): 1 widths held at the 0.15 Å floor"
     assert lines[1].startswith("1 Gaussians left the reconstruction volume") and "1 of them atom-like" in lines[1]
+    # the volume is the field: the object may be a film the run did not read as one
+    assert "extended_object on" in lines[1]
+    control.field_half_extent = (0.5, 0.5, 0.5)  # a film's volume, wider than its field: nothing to suggest
+    assert "extended_object" not in control.report()[1]
 
 
 def _with_noise(control, read_var=1.0, gain=0.0, pixel_size=0.025, n_views=50, view_dirs=None):
