@@ -181,11 +181,12 @@ class FitOptions(UserFirstOptions):
     unsettled atoms' misfit (29 on the demo, which has no atom missing) and kept the
     convergence check from stopping."""
     split_heavy: bool = DensityControl.split_heavy
-    """At the first residual search, split each Gaussian holding more than 1.5 typical atoms'
-    mass into two, the material's shortest distance apart along the least-resolved direction
+    """At the first residual search, split each Gaussian heavier than the single atoms' mass
+    range (:func:`gaussian_atoms_method.density.parameters.split_worth`, at most 1.5 typical
+    atoms) into two, the material's shortest distance apart along the least-resolved direction
     (:meth:`gaussian_atoms_method.density.strategy.DensityControl.split_heavy_gaussians`: in a
     thick particle one Gaussian can hold two atoms along the beam); the final likelihood merge
-    rejoins any the data prefer as one."""
+    rejoins any the data prefer as one, and any pair that is one peak with one atom's mass."""
     judge_after_fit: bool = True
     """The final merges and prune judge significance in what the fit leaves unexplained, as an
     atom sees it (the residuals' variance times their correlation over an atom), never less
