@@ -287,8 +287,9 @@ class DensityControl(Growth, Significance, Merging, HardCoreRules):
             line = f"{self.state.pruned_outside} Gaussians left the reconstruction volume and were pruned"
             if self.state.pruned_outside_atom_like:
                 # the volume is the cube above the detector unless the run read a film: a film the
-                # reading missed (a Ta replica whose gains scatter 6.8%: 192 atom-like) is said so
-                film = "" if self.field_half_extent is not None else "; a film wider than the field: extended_object on"
+                # reading missed (a Ta replica whose gains scatter 6.8%: 192 atom-like) is named; not
+                # decided here, particles lose atom-like Gaussians too (aSi-208 at 8e3: 244)
+                film = "" if self.field_half_extent is not None else "; if the specimen is a film: extended_object on"
                 line += (
                     f", {self.state.pruned_outside_atom_like} of them atom-like (check centre_px and "
                     f"pixel_size_A{film}: atoms may lie outside the volume)"
