@@ -85,3 +85,17 @@ def test_mixture_in_torch_follows_the_numpy_reference():
         for a, b in zip(fast[:3], slow[:3]):
             np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
         assert abs(fast[3] - slow[3]) <= 1e-12 * abs(slow[3])
+
+
+def test_a_mixture_of_one_gaussian_is_finite_and_silent():
+    """One Gaussian alone has no spread: its covariance is the ridge, finite, and torch is not
+    asked for an unbiased covariance of one sample (0/0, a warning in the user's run)."""
+    import warnings
+
+    from gaussian_atoms_method.atoms.classification import gaussian_mixture
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        weights, means, covs, likelihood = gaussian_mixture(np.array([[1.0, 2.0]]), 1)
+    assert weights.tolist() == [1.0] and means.tolist() == [[1.0, 2.0]]
+    assert np.all(np.isfinite(covs)) and np.isfinite(likelihood)

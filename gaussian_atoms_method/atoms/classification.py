@@ -97,7 +97,8 @@ def gaussian_mixture(
     Xt = X.T.contiguous()  # (D, N): N the long, contiguous axis of every product (4-10x faster on a CPU)
     means = torch.as_tensor(_seeds(np.asarray(x, dtype=np.float64), k, seed), device=device)
     ridge = 1e-6 * torch.diag(torch.atleast_1d(X.var(dim=0, unbiased=False) + 1e-12))
-    covs = (torch.cov(Xt).reshape(d, d) + ridge).expand(k, d, d).clone()
+    # one Gaussian alone has no spread: its covariance is the ridge (unbiased, it would be 0/0)
+    covs = (torch.cov(Xt, correction=1 if n > 1 else 0).reshape(d, d) + ridge).expand(k, d, d).clone()
     weights = torch.full((k,), 1.0 / k, dtype=torch.float64, device=device)
     previous = -math.inf
     for _ in range(iterations):
