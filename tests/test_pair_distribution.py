@@ -47,31 +47,26 @@ def test_split_atoms_do_not_move_the_distance():
     assert shortest_distance(halves[: MIN_ATOMS - 1]) == (math.inf, 1.0)
 
 
-def test_a_too_close_pair_needs_the_prior_odds_to_stay_two(monkeypatch):
-    """Two pairs whose merge costs the same chi-square, just above the usual level: the one
-    closer than the material's shortest distance merges (its level is raised by twice the log
-    prior odds against so close a pair), the one farther apart stays two."""
-    from scipy.stats import chi2
+def _lattice(seed: int) -> np.ndarray:
+    """(343, 3) atoms 2.5 Å apart, jittered by 0.05 Å, Å."""
+    lattice = np.stack(np.meshgrid(*[np.arange(-3, 4)] * 3, indexing="ij"), -1).reshape(-1, 3) * 2.5
+    return lattice + 0.05 * np.random.default_rng(seed).normal(size=lattice.shape)
 
+
+def _control_over(positions_A: np.ndarray, amplitudes: np.ndarray | None = None):
+    """The Gaussians at ``positions_A`` (N, 3), 0.6 Å wide, of ``amplitudes`` (N,) (default 1),
+    at 0.01 normalised units per Å, with frozen optimisers and a density control that knows a
+    tiny white noise and one view direction: ``(params, optimizers, control)``."""
     from gaussian_atoms_method.density.strategy import DensityControl
     from gaussian_atoms_method.physics.noise import NoiseModel
 
-    rng = np.random.default_rng(1)
-    # 343 atoms 2.5 Å apart
-    lattice = np.stack(np.meshgrid(*[np.arange(-3, 4)] * 3, indexing="ij"), -1).reshape(-1, 3) * 2.5
-    lattice = lattice + 0.05 * rng.normal(size=lattice.shape)
-    # a pair 1.2 Å apart, one 2.4 Å (but for the lattice)
-    close, far = (
-        lattice[0] + [0, 0, 1.2],
-        lattice[-1] + [0, 0, 2.4],
-    )
-    positions = np.concatenate([lattice, [close, far]]) * 0.01  # 0.01 normalised units per Å
-    n = len(positions)
+    n = len(positions_A)
+    amplitudes = np.ones(n) if amplitudes is None else np.asarray(amplitudes, dtype=np.float64)
     params = torch.nn.ParameterDict(
         {
-            "means": torch.nn.Parameter(torch.tensor(positions)),
+            "means": torch.nn.Parameter(torch.tensor(positions_A * 0.01)),
             "log_sigmas": torch.nn.Parameter(torch.full((n, 1), math.log(0.006), dtype=torch.float64)),
-            "log_amplitudes": torch.nn.Parameter(torch.zeros(n, 1, dtype=torch.float64)),
+            "log_amplitudes": torch.nn.Parameter(torch.tensor(np.log(amplitudes))[:, None]),
         }
     )
     optimizers = {k: torch.optim.Adam([p], lr=0.0) for k, p in params.items()}
@@ -79,6 +74,25 @@ def test_a_too_close_pair_needs_the_prior_odds_to_stay_two(monkeypatch):
     control.reset(n)
     control.noise, control.pixel_size, control.n_views = NoiseModel(1e-9, 0.0), 0.003, 40
     control.view_dirs = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)
+    return params, optimizers, control
+
+
+def test_a_too_close_pair_needs_the_prior_odds_to_stay_two(monkeypatch):
+    """Two pairs whose merge costs the same chi-square, just above the usual level: the one
+    closer than the material's shortest distance merges (its level is raised by twice the log
+    prior odds against so close a pair), the one farther apart stays two."""
+    from scipy.stats import chi2
+
+    from gaussian_atoms_method.density.strategy import DensityControl
+
+    lattice = _lattice(1)
+    # a pair 1.2 Å apart, one 2.4 Å (but for the lattice)
+    close, far = (
+        lattice[0] + [0, 0, 1.2],
+        lattice[-1] + [0, 0, 2.4],
+    )
+    params, optimizers, control = _control_over(np.concatenate([lattice, [close, far]]))
+    n = params["means"].shape[0]
     distance, prior = control.shortest_distance(params)
     assert 2.2 <= distance / 0.01 <= 2.5 and prior(np.array([0.012]))[0] > 5.0  # one pair in 345 atoms is that close
     level = chi2.isf(control.false_alarm_rate / control.cells(), df=5)
@@ -94,35 +108,18 @@ def test_a_too_close_pair_needs_the_prior_odds_to_stay_two(monkeypatch):
     assert np.min(np.linalg.norm(left - (lattice[-1] + [0, 0, 2.4]), axis=1)) < 1e-9  # the far one stayed two
 
 
-def test_one_atoms_mass_closer_than_the_shortest_distance_is_one_atom_whatever_the_likelihood(monkeypatch):
+def test_one_atoms_mass_in_one_peak_is_one_atom_whatever_the_likelihood(monkeypatch):
     """Two pairs 1.0 Å apart, Gaussians 0.6 Å wide (one peak), in a lattice of 2.5 Å, both of which
     the likelihood wants as two (a merge would cost 1e9 chi-square: a shape the forward model
     misses): the pair holding 1.2 typical atoms' mass (two halves of 0.6, as a carbon atom split
     along the beam) becomes one at its centre of mass; the pair holding two atoms' mass stays two."""
     from gaussian_atoms_method.density.strategy import DensityControl
-    from gaussian_atoms_method.physics.noise import NoiseModel
 
-    rng = np.random.default_rng(2)
-    lattice = np.stack(np.meshgrid(*[np.arange(-3, 4)] * 3, indexing="ij"), -1).reshape(-1, 3) * 2.5
-    lattice = lattice + 0.05 * rng.normal(size=lattice.shape)
+    lattice = _lattice(2)
     light_at, heavy_at = lattice[0], lattice[-1]
     halves = [light_at + [0, 0, 0.5], light_at - [0, 0, 0.5], heavy_at + [0, 0, 1.0]]
-    positions = np.concatenate([lattice[1:], halves]) * 0.01
-    n = len(positions)
-    log_amplitudes = torch.zeros(n, 1, dtype=torch.float64)
-    log_amplitudes[n - 3 : n - 1] = math.log(0.6)
-    params = torch.nn.ParameterDict(
-        {
-            "means": torch.nn.Parameter(torch.tensor(positions)),
-            "log_sigmas": torch.nn.Parameter(torch.full((n, 1), math.log(0.006), dtype=torch.float64)),
-            "log_amplitudes": torch.nn.Parameter(log_amplitudes),
-        }
-    )
-    optimizers = {k: torch.optim.Adam([p], lr=0.0) for k, p in params.items()}
-    control = DensityControl(length_scale=0.01, max_log_amplitude=50.0, generator=torch.Generator().manual_seed(0))
-    control.reset(n)
-    control.noise, control.pixel_size, control.n_views = NoiseModel(1e-9, 0.0), 0.003, 40
-    control.view_dirs = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)
+    amplitudes = np.r_[np.ones(len(lattice) - 1), 0.6, 0.6, 1.0]
+    params, optimizers, control = _control_over(np.concatenate([lattice[1:], halves]), amplitudes)
     assert control.shortest_distance(params)[0] / 0.01 > 1.0
     monkeypatch.setattr(DensityControl, "likelihood_change", lambda self, p, pairs, c: np.full(len(pairs), 1e9))
     removed = control.merge_by_likelihood(params, optimizers, correlations=lambda m, s: None)
