@@ -162,3 +162,25 @@ def test_each_check_reports_positions_set_and_scatter_apart():
         np.sqrt(3 * (0.2**2 + 2 * 0.1**2)), rel=0.1
     )
     assert "drifting 0.3" in travel.summary() and "precision of 0.173 Å" in travel.summary()
+
+
+def test_gaussians_beyond_the_reported_field_neither_churn_nor_widen_the_tolerance():
+    """Four atoms in the field and four Gaussians beyond it (worth zero: a film's material seen
+    only in tilted views).  Those beyond it coming and going leave the set settled; one atom in
+    the field gone is one of four (changed_fraction 0.2 tolerates 0.8 of an atom's worth, not
+    the 1.6 eight Gaussians would), so the set has not settled."""
+
+    def precision(noise):
+        return np.full((8, 3), 0.1), 7.0
+
+    inner = torch.arange(4.0)[:, None] * torch.tensor([0.03, 0.0, 0.0])
+    outer = inner + torch.tensor([0.0, 0.5, 0.0])
+    both = torch.cat([inner, outer])
+    worth = torch.tensor([1.0] * 4 + [0.0] * 4)
+    check = ConvergenceCheck(warmup_length=0, refine_every=1, changed_fraction=0.2, match_distance=0.007)
+    assert not check.update(1, both, 0.01, precision, worth)
+    assert not check.update(2, inner, 0.01, precision, worth[:4])  # those beyond the field all went
+    assert check.changed == 0.0
+    assert check.update(3, both, 0.01, precision, worth)  # and came back: settled twice
+    assert not check.update(4, torch.cat([inner[:3], outer]), 0.01, precision, worth[1:])
+    assert check.changed == pytest.approx(1.0) and check.tolerated == pytest.approx(0.8)

@@ -100,9 +100,10 @@ class ConvergenceCheck:
         atoms : (N,) tensor, optional
             Each Gaussian's mass in typical atoms: a Gaussian added or removed counts as that
             many atoms changed (default one each), so a fragment the prune takes counts as the
-            fraction of an atom it holds.  On the 54,000-atom a-Pd (H100) the last checks saw
-            68-74 Gaussians change (56 tolerated) holding 23-26 atoms' worth: the run stopped at
-            step 2,700 instead of training to 3,000.
+            fraction of an atom it holds (on the 54,000-atom a-Pd, H100, the last checks saw
+            68-74 Gaussians change, 56 tolerated, holding 23-26 atoms' worth: the run stopped
+            at step 2,700 instead of training to 3,000).  Zero for a Gaussian the run will not
+            report (beyond the field): it neither counts nor is counted in the share tolerated.
         core : float
             The material's hard core, normalised (infinite when unknown): a merge or split
             within it keeps the place's mass, so Gaussians within it of one another, now and at
@@ -134,7 +135,9 @@ class ConvergenceCheck:
             (before, now),
             max(self.match_distance, core) if math.isfinite(core) else self.match_distance,
         )
-        self.tolerated = self.changed_fraction * max(len(previous), len(positions))
+        # the share is of the Gaussians that count (a worth of zero: beyond the reported field)
+        counted = max(int((previous_weights > 0).sum()), int((weights > 0).sum()))
+        self.tolerated = self.changed_fraction * counted
         step_A = float((positions[now] - previous[before]).square().sum(dim=1).mean().sqrt()) / length_scale
 
         # each atom's precision under ``noise`` (None: read it now), and whether the positions moved less

@@ -423,7 +423,7 @@ class AtomFit(torch.nn.Module):
         params, check = self.gauss_params, self.convergence
         precision = lambda noise: self.position_std_A(self.atoms(), noise, spectrum=True)  # noqa: E731
         return check.checks(step) and check.update(
-            step, self.means, self.normalisation.length_scale, precision, self.density.atoms_worth(params),
+            step, self.means, self.normalisation.length_scale, precision, self.density.reported_worth(params),
             self.density.known_hard_core(),
         )  # fmt: skip
 

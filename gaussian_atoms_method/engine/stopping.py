@@ -60,7 +60,7 @@ def settle_set(model) -> int:
     likelihood waits for the end: its test holds where the residual is noise, at a converged fit."""
     removed = model.density.settle(model.gauss_params, model.optimizers, model._param_lists())
     model.density.state.settled_since_search = True
-    model.convergence.restart(model.means, model.density.atoms_worth(model.gauss_params))
+    model.convergence.restart(model.means, model.density.reported_worth(model.gauss_params))
     if removed:
         model.atoms_changed()
     return removed
