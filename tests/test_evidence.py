@@ -385,3 +385,23 @@ def test_the_evidence_scores_split_the_atoms_into_open_and_the_rest_alike():
     assert s["open_share_of_false"] == pytest.approx(2 / 3)
     assert s["open_share_of_misses"] == pytest.approx(1.0)
     assert s["open_share_of_disagreement"] == pytest.approx(3 / 4)
+
+
+def test_a_region_cut_from_a_whole_scores_only_its_own_atoms_each_matched_to_the_whole():
+    """A region x <= 10 Å of a row of true atoms 5 Å apart.  The atom at 9.98 Å lies just inside
+    on its true atom at 10.1 (outside): matched, so not false; the true atom at 9.95 (inside, a
+    row beside) is found by one at 10.03 (outside): not missed.  Cut to the region first, both would be
+    disagreement; with the counted masks the closed atoms in the region all lie on a true atom
+    and nothing is false or missed."""
+    from gaussian_atoms_method.atoms.atom_set import AtomSet
+    from gaussian_atoms_method.atoms.evidence import evidence_scores
+
+    truth = np.array([[0.0, 0, 0], [5, 0, 0], [10.1, 0, 0], [9.95, 5, 0], [15, 0, 0]])
+    pred = np.array([[0.0, 0, 0.1], [5, 0, 0.1], [9.98, 0, 0], [10.03, 5, 0], [15, 0, 0.1]])
+    atoms = AtomSet(positions=pred, proven=np.ones(5, int), depth_open=np.zeros(5, int))
+    region = lambda p: p[:, 0] <= 10.0  # noqa: E731
+    cut = evidence_scores(atoms.subset(region(pred)), AtomSet(positions=truth[region(truth)]))
+    assert cut["proven_found"] == pytest.approx(2 / 3) and cut["open_share_of_misses"] == 0.0
+    whole = evidence_scores(atoms, AtomSet(positions=truth), 0.75, False, region(pred), region(truth))
+    assert whole["proven_found"] == 1.0 and whole["proven"] == 3
+    assert whole["open_share_of_false"] is None and whole["open_share_of_misses"] is None

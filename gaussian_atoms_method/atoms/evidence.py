@@ -407,7 +407,14 @@ def _depth_rises(
     return torch.where(torch.as_tensor(crowded, device=info.device), torch.inf, rises)
 
 
-def evidence_scores(pred, truth, radius_A: float = 0.75, mean_shift: bool = False) -> dict:
+def evidence_scores(
+    pred,
+    truth,
+    radius_A: float = 0.75,
+    mean_shift: bool = False,
+    pred_counted: np.ndarray | None = None,
+    truth_counted: np.ndarray | None = None,
+) -> dict:
     """Whether each atom's stated evidence holds against the truth (``pred``, ``truth``:
     :class:`~.atom_set.AtomSet`, the first with its evidence).
 
@@ -423,6 +430,10 @@ def evidence_scores(pred, truth, radius_A: float = 0.75, mean_shift: bool = Fals
       atom proven but open in depth counts as open in both;
     * ``precision_floor_A``: the error along x, y, z the stated precision does not hold
       (:func:`.calibration.precision_floor_A`): on a replica, what to give the real run.
+
+    ``pred_counted`` (N,) and ``truth_counted`` (M,) bool, for a region cut from a larger whole:
+    every atom is matched, only the counted ones are scored (an atom inside the region whose
+    partner lies just outside it is neither false nor missed).
     """
     from scipy.spatial import cKDTree
 
@@ -432,21 +443,27 @@ def evidence_scores(pred, truth, radius_A: float = 0.75, mean_shift: bool = Fals
     positions = pred.positions + shift
     pi, ti = match_atoms(positions, truth.positions, radius_A)
     error = positions[pi] - truth.positions[ti]
+    counted = np.ones(len(pred), bool) if pred_counted is None else np.asarray(pred_counted, bool)
+    truth_in = np.ones(len(truth), bool) if truth_counted is None else np.asarray(truth_counted, bool)
     is_open = (pred.proven == 0) | (pred.depth_open == 1)
     matched = np.zeros(len(pred), dtype=bool)
     matched[pi] = True
     missed = np.ones(len(truth), dtype=bool)
     missed[ti] = False
+    missed &= truth_in
     near_open = np.zeros(int(missed.sum()), dtype=bool)
     if is_open.any() and missed.any():
         distance, _ = cKDTree(positions[is_open]).query(truth.positions[missed], distance_upper_bound=2 * radius_A)
         near_open = np.isfinite(distance)
-    false = ~matched
+    false = ~matched & counted
+    closed = ~is_open & counted
+    scored = truth_in[ti]  # the matched pairs scored: their true atom counted, as the found are
+    pi, ti, error = pi[scored], ti[scored], error[scored]
     scores = {
-        "proven": int(pred.proven.sum()),
-        "open": int((pred.proven == 0).sum()),
-        "depth_open": int(pred.depth_open.sum()),
-        "proven_found": float(matched[~is_open].mean()) if (~is_open).any() else None,
+        "proven": int(pred.proven[counted].sum()),
+        "open": int((pred.proven[counted] == 0).sum()),
+        "depth_open": int(pred.depth_open[counted].sum()),
+        "proven_found": float(matched[closed].mean()) if closed.any() else None,
         "open_share_of_false": float(is_open[false].mean()) if false.any() else None,
         "open_share_of_misses": float(near_open.mean()) if missed.any() else None,
         "open_share_of_disagreement": (

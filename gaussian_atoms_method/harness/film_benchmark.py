@@ -227,7 +227,9 @@ def evidence_in_region(
 ) -> dict:
     """:func:`gaussian_atoms_method.atoms.evidence.evidence_scores` of the reported ``atoms`` in the
     region ``box`` against the model's atoms ``inside`` it, after the global shift ``shift_A``
-    (:func:`score_in_region`'s; empty without the atoms' evidence)."""
+    (:func:`score_in_region`'s; empty without the atoms' evidence).  As there, every atom is
+    matched to the whole model: an atom in the region whose model atom lies just outside it is
+    not false (on a replica of sub-area 8, two of five such were)."""
     from gaussian_atoms_method.atoms.evidence import evidence_scores
 
     if atoms.proven is None or not len(atoms):
@@ -235,7 +237,8 @@ def evidence_in_region(
     shift = np.asarray(shift_A, dtype=np.float64)
     pred = atoms.positions + shift
     in_box = np.all((pred >= box[0]) & (pred <= box[1]), axis=1)
-    return evidence_scores(atoms.shifted(shift).subset(in_box), AtomSet(model_A[inside]), MATCH_RADIUS_A)
+    # every atom matched as score_in_region matches them, those in the region scored
+    return evidence_scores(atoms.shifted(shift), AtomSet(model_A), MATCH_RADIUS_A, False, in_box, inside)
 
 
 REPLICA = {"support_A": 30.0, "probe": "aberrated", "shift_px": 0.5, "gain_scatter": 0.068}
