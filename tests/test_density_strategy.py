@@ -471,3 +471,14 @@ def test_settling_mid_run_applies_the_final_prune_but_spares_fresh_additions():
     assert control.descendants(700) == 1
     assert control.settle(params, opts) == 1 and params["means"].shape[0] == 2
     assert control.descendants(700) == 1 and control.descendants(0) == 0
+
+
+def test_the_worth_a_run_must_settle_is_that_of_the_gaussians_in_the_reported_field():
+    """Three equal Gaussians, the third beyond a film's reported field (inside the volume): it
+    holds an atom's worth but none the convergence test counts; the others keep theirs."""
+    params, _, control = _setup([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.4, 0.0, 0.0]], sigma_A=0.06)
+    control.length_scale, control.field_half_extent = 0.1, (0.2, 0.2, 0.2)
+    worth = control.atoms_worth(params)
+    assert bool(control.inside(params["means"].detach()).all())
+    torch.testing.assert_close(control.reported_worth(params), worth * torch.tensor([1.0, 1.0, 0.0], dtype=worth.dtype))
+    assert float(worth[2]) > 0
