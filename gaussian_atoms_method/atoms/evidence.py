@@ -51,12 +51,12 @@ import numpy as np
 import torch
 
 from gaussian_atoms_method.atoms.calibration import Z95, precision_floor_A, wider_than_half_core
+from gaussian_atoms_method.atoms.depth_profile import depth_axis_of, depth_rises
 from gaussian_atoms_method.atoms.information import (
     amplitude_coupling,
     local_information,
     pair_information,
     pairs_among_neighbours,
-    view_scores,
 )
 from gaussian_atoms_method.physics.devices import work_device
 
@@ -172,7 +172,7 @@ def atom_evidence(
         the others' significance and precision are NaN.
     moved_pulls : dict, optional
         The profile of the cost along the depth axis beyond second order
-        (:func:`depth_profile_pulls`: offset in Å -> (N, 5) the residual's pull on each atom
+        (:func:`.depth_profile.depth_profile_pulls`: offset in Å -> (N, 5) the residual's pull on each atom
         moved by it).  With them (and ``scores``) an atom is also open in depth where the cost,
         its neighbours and its other parameters re-fitted, rises by less than ``Z95^2`` noise
         variances (at the atom's scale) at some offset of half the hard core or more: a second
@@ -248,7 +248,7 @@ def atom_evidence(
             covariances[atoms] = covariance[:, :3, :3].cpu().numpy()
         if moved_on is not None:
             rises[atoms] = (
-                _depth_rises(
+                depth_rises(
                     local,
                     info,
                     scores_on,
@@ -306,105 +306,6 @@ def atom_evidence(
         np.asarray(offsets, dtype=np.float64),
         profile,
     )
-
-
-def depth_axis_of(detector_axes: np.ndarray) -> np.ndarray:
-    """(3,) the direction the views fix least: the smallest eigenvector of ``sum_v P_v^T P_v``
-    (the beam of the zero tilt for a symmetric single-axis series), pointing up."""
-    axes = np.asarray(detector_axes, dtype=np.float64)[:, :2, :]
-    values, vectors = np.linalg.eigh(np.einsum("vki,vkj->ij", axes, axes))
-    axis = vectors[:, 0]
-    return axis * (1.0 if axis[2] >= 0 else -1.0)
-
-
-def depth_profile_pulls(
-    positions_A, sigmas_A, amplitudes, detector_axes, residuals, pixel_size_A, centre_px, hard_core_A, targets=None
-) -> dict:
-    """For the cost's profile along the depth axis beyond second order (:func:`atom_evidence`'s
-    ``moved_pulls``): offset (Å) -> (N, 5) the residual's pull on each atom moved by it along
-    :func:`depth_axis_of` (zeros for atoms not in ``targets``).  The offsets are 1, 2 and 3 halves
-    of the hard core either way: where an atom could sit instead of where it is (the Ta model's
-    displaced atoms are 0.75-1.5 Å from ours, mostly along the beam)."""
-    positions = np.asarray(positions_A, dtype=np.float64).reshape(-1, 3)
-    wanted = np.ones(len(positions), bool) if targets is None else np.asarray(targets, bool)
-    axis = depth_axis_of(detector_axes)
-    out = {}
-    for k in (-3, -2, -1, 1, 2, 3):
-        offset = 0.5 * k * hard_core_A
-        pulls = np.zeros((len(positions), 5))
-        pulls[wanted] = view_scores(
-            positions[wanted] + offset * axis,
-            np.asarray(sigmas_A)[wanted],
-            np.asarray(amplitudes)[wanted],
-            detector_axes,
-            residuals,
-            pixel_size_A,
-            centre_px,
-        ).sum(axis=1)
-        out[offset] = pulls
-    return out
-
-
-def _depth_rises(
-    local, info, scores, moved, offsets, positions, sigmas, amps, axes, pixel_size_A, hard_core_A, axis
-) -> torch.Tensor:
-    """(B, M) for each atom ``local[:, 0]`` and each of the M ``offsets``: how much the
-    least-squares cost rises (pixel sums, in projection units squared) when the atom is moved by
-    it along the depth axis and its other parameters and every neighbour in ``local`` (B, k) are
-    re-fitted (linearised about the moved place; ``info`` (B, 5k, 5k): the local information,
-    pixel sums, the atom first; ``scores`` (N, V, 5) the views' pulls, ``moved`` (M, N, 5) the
-    pulls on the atoms moved by each offset, tensors on ``info``'s device; ``axis``:
-    :func:`depth_axis_of` the views, the direction moved along).  A place within the hard core
-    of a neighbour is no atom's (infinite): there two Gaussians coincide and the linearised
-    re-fit has no meaning."""
-    b, k = local.shape
-    on = dict(dtype=torch.float64, device=info.device)
-    atoms = local[:, 0]
-    basis = np.linalg.qr(np.c_[axis, np.eye(3)])[0][:, [1, 2, 0]].T  # rows: two across, then the axis
-    turn = torch.eye(5 * k, **on)
-    turn[:3, :3] = torch.as_tensor(basis, **on)
-    keep = torch.as_tensor(np.r_[0, 1, np.arange(3, 5 * k)], device=info.device)  # the place along the axis held
-    pull_now = scores[torch.as_tensor(local, device=info.device)].sum(dim=2).reshape(b, 5 * k)  # J^T r at the fit
-    sub = (turn @ info @ turn.T)[:, keep][:, :, keep]
-    b0 = (pull_now @ turn.T)[:, keep]
-    baseline = (b0 * torch.linalg.solve(sub, b0[..., None])[..., 0]).sum(-1)
-    m = len(offsets)
-    moved_at = positions[atoms][:, None, :] + np.asarray(offsets)[None, :, None] * axis  # (B, M, 3)
-    q = amps[atoms]
-    # the moved atom against the old one and against each neighbour, every offset in one call
-    cross = pair_information(
-        np.broadcast_to(moved_at[:, :, None, :], (b, m, k, 3)).reshape(-1, 3),
-        np.broadcast_to(positions[local][:, None], (b, m, k, 3)).reshape(-1, 3),
-        np.broadcast_to(sigmas[atoms][:, None, None], (b, m, k)).ravel(),
-        np.broadcast_to(sigmas[local][:, None], (b, m, k)).ravel(),
-        np.broadcast_to(q[:, None, None], (b, m, k)).ravel(),
-        np.broadcast_to(amps[local][:, None], (b, m, k)).ravel(),
-        axes,
-        pixel_size_A,
-        device=info.device,
-    )
-    cross = torch.as_tensor(cross, **on).reshape(b, m, k, 5, 5)  # rows: the moved atom's parameters
-    gaps = np.linalg.norm(moved_at[:, :, None, :] - positions[local[:, 1:]][:, None], axis=3)  # (B, M, k - 1)
-    crowded = gaps.min(axis=2, initial=np.inf) < hard_core_A if hard_core_A is not None else np.zeros((b, m), bool)
-    with_move = info[:, None].repeat(1, m, 1, 1)  # (B, M, 5k, 5k)
-    if k > 1:
-        across = cross[:, :, 1:].permute(0, 1, 3, 2, 4).reshape(b, m, 5, 5 * (k - 1))
-        with_move[:, :, :5, 5:] = across
-        with_move[:, :, 5:, :5] = across.transpose(2, 3)
-    # d = g_moved - g_old: its overlaps with every local derivative (the moved atom's own at its new place)
-    qt = torch.as_tensor(q, **on)
-    own = qt[:, None, None] * (info[:, None, :5, 4] - cross[:, :, 0, :, 4])  # (B, M, 5)
-    neighbours = qt[:, None, None, None] * (cross[:, :, 1:, 4, :] - info[:, 5:, 4].reshape(b, 1, k - 1, 5))
-    moved_pull = moved[:, torch.as_tensor(atoms, device=info.device)].transpose(0, 1)  # (B, M, 5)
-    rest = pull_now[:, None, 5:].expand(b, m, 5 * (k - 1))
-    pull = torch.cat([moved_pull - own, rest - neighbours.reshape(b, m, -1)], dim=2)
-    d2 = 2 * qt[:, None] ** 2 * (info[:, None, 4, 4] - cross[:, :, 0, 4, 4])
-    rd = qt[:, None] * (moved_pull[:, :, 4] - pull_now[:, None, 4])
-    turned = (turn @ with_move @ turn.T)[:, :, keep][:, :, :, keep]
-    rhs = (pull @ turn.T)[:, :, keep]
-    refit = (rhs * torch.linalg.solve(turned, rhs[..., None])[..., 0]).sum(-1)
-    rises = -2 * rd + d2 - refit + baseline[:, None]
-    return torch.where(torch.as_tensor(crowded, device=info.device), torch.inf, rises)
 
 
 def evidence_scores(

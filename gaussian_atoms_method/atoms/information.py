@@ -315,7 +315,7 @@ def local_information(wanted, neighbours, pairs, blocks, diagonal, n_offsets: in
     blocks: ``diagonal`` (N, 5, 5) on the diagonal, ``blocks`` (Q, 5, 5) (rows: the pair's first
     atom) between the ``pairs`` (Q, 2) (:func:`pairs_among_neighbours` with them: every pair
     within a set), zero between any others.  A batch holds at most ``budget`` numbers with its
-    ``n_offsets`` moved copies (:func:`.evidence._depth_rises`; default :data:`BATCH_ELEMENTS`)."""
+    ``n_offsets`` moved copies (:func:`.depth_profile.depth_rises`; default :data:`BATCH_ELEMENTS`)."""
     budget = BATCH_ELEMENTS if budget is None else budget
     n = len(diagonal)
     keys = np.r_[pairs[:, 0] * n + pairs[:, 1], pairs[:, 1] * n + pairs[:, 0]]

@@ -237,7 +237,8 @@ def attach_evidence(model, atoms: AtomSet, noise: float, read, hard_core_A: floa
     prints what the residual holds beyond the views' own noise and the precision against the
     isolated atom's Cramér-Rao bound (the ``position_std_A`` it replaces)."""
     from gaussian_atoms_method.atoms.calibration import with_floor
-    from gaussian_atoms_method.atoms.evidence import atom_evidence, depth_profile_pulls
+    from gaussian_atoms_method.atoms.depth_profile import depth_profile_pulls
+    from gaussian_atoms_method.atoms.evidence import atom_evidence
     from gaussian_atoms_method.atoms.information import residual_spectrum_factors, view_scores
 
     series = model.view_set.series
@@ -265,8 +266,7 @@ def attach_evidence(model, atoms: AtomSet, noise: float, read, hard_core_A: floa
             series.pixel_size_A,
             series.centre_px,
             hard_core,
-            in_field,
-        )
+        )  # every Gaussian's: a neighbour beyond the field may move with an atom in it
         if hard_core is not None
         else None
     )
