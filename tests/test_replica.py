@@ -76,3 +76,20 @@ def test_the_replica_names_what_it_cannot_use(tmp_path):
     assert result.returncode != 0 and "Traceback" not in result.stderr
     assert "give the atoms as --particle FILE" in result.stderr
     assert not (tmp_path / "r").exists()
+
+
+def test_a_replica_takes_each_views_shift_when_given(tmp_path):
+    """``replica_of(..., shifts_px=)``: the misregistration a registration run read on the real
+    views, instead of random shifts.  Against the replica of the same seed without them each
+XX
+    their noise's draws but not its place)."""
+    from gaussian_atoms_method.atoms.view_prediction import best_registration
+
+    series = load_tilt_series(_real_like(tmp_path))
+    atoms = read_atoms(series.truth_path)
+    shifts = np.c_[np.linspace(-1.0, 1.0, 15), np.linspace(0.5, -0.5, 15)]
+    shifted = replica_of(series, atoms, probe="gaussian", seed=3, shifts_px=shifts)
+    plain = replica_of(series, atoms, probe="gaussian", seed=3)
+    np.testing.assert_array_equal(shifted.shifts_px, shifts)
+    found = np.array([best_registration(a, b)[0] for a, b in zip(shifted.projections, plain.projections)])
+    np.testing.assert_allclose(found, shifts, atol=0.05)

@@ -31,7 +31,7 @@ from gaussian_atoms_method.atoms.structure_evidence import structure_evidence
 from gaussian_atoms_method.atoms.uncertainty import position_std_A, robust_noise_std
 from gaussian_atoms_method.engine.console import CONSOLE
 from gaussian_atoms_method.engine.rendering import detector_axes
-from gaussian_atoms_method.engine.residuals import measured_views, render_training_views
+from gaussian_atoms_method.engine.residuals import measured_views, render_training_views, say_view_shifts
 from gaussian_atoms_method.physics.noise import fit_noise_model
 
 
@@ -304,6 +304,7 @@ def attach_evidence(model, atoms: AtomSet, noise: float, read, hard_core_A: floa
             f"atom explains; at the atoms' scale it weighs {position_factor:.2f} (positions) and "
             f"{amplitude_factor:.2f} (amplitudes) times white noise of its level"
         )
+    atoms.info.update(say_view_shifts(residuals, predicted, axes, model.config.refine_alignment))
     ratio = np.nanmedian(evidence.position_std_A / np.maximum(crb, 1e-12), axis=0)
     CONSOLE.print(
         "gaussian-atoms: median position precision, neighbours re-fitted, from the views' own residuals: "

@@ -103,6 +103,7 @@ def replica_of(
     shift_px: float = 0.0,
     gain_scatter: float = 0.0,
     seed: int = 0,
+    shifts_px: np.ndarray | None = None,
 ) -> Replica:
     """A tilt series of ``atoms`` (positions about the tilt centre, Å, with species) in the
     geometry and noise of the real ``series`` (module docstring).
@@ -124,6 +125,9 @@ def replica_of(
     gain_scatter : float
         Relative RMS of each view's random gain.
     seed : int
+    shifts_px : (V, 2) array, optional
+        Each view's shift (rows, columns; pixels) instead of random ones: a misregistration
+        measured on the real views (what a fit with ``refine_alignment`` says of them).
     """
     from ase.data import atomic_numbers
 
@@ -152,9 +156,11 @@ def replica_of(
     scale = float(real.mean() / clean.mean())
     clean *= scale
     shifts = rng.normal(0.0, shift_px, size=(len(clean), 2)) if shift_px > 0 else np.zeros((len(clean), 2))
+    if shifts_px is not None:
+        shifts = np.asarray(shifts_px, dtype=np.float64).reshape(len(clean), 2)
     gains = 1.0 + rng.normal(0.0, gain_scatter, size=len(clean)) if gain_scatter > 0 else np.ones(len(clean))
     for v in range(len(clean)):
-        if shift_px > 0:
+        if np.any(shifts[v]):
             clean[v] = ndimage.shift(clean[v], shifts[v], order=3, mode="nearest")
         clean[v] *= gains[v]
     noise = noise_from_projections(real)
