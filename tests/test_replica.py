@@ -80,9 +80,9 @@ def test_the_replica_names_what_it_cannot_use(tmp_path):
 
 def test_a_replica_takes_each_views_shift_when_given(tmp_path):
     """``replica_of(..., shifts_px=)``: the misregistration a registration run read on the real
-        views, instead of random shifts.  Against the replica of the same seed without them each
-    XX
-        their noise's draws but not its place)."""
+    views, instead of random shifts.  Against the replica of the same seed without them each
+    view's content sits at its shift (``best_registration``, to 0.05 px; 0.014 read: the two
+    replicas share their noise's draws but not its place)."""
     from gaussian_atoms_method.atoms.view_prediction import best_registration
 
     series = load_tilt_series(_real_like(tmp_path))
