@@ -1,0 +1,89 @@
+"""What the real views' misregistration does to a fit: a replica of a Ta-film sub-area given the
+shifts the real views hold, fitted with per-view shifts off and on.
+
+Fits the real sub-area with ``refine_alignment`` on, reads each view's shift against that fit's
+Gaussians (``best_registration`` over the detector's interior), writes a replica of the
+sub-area (the authors' model as its truth, ``benchmark-film``'s experiment, seed 100 + the
+sub-area) with those shifts instead of random ones, fits it both ways and prints each fit's
+scores against the truth in ``benchmark-film``'s region (docs/evidence.md).
+
+    python scripts/studies/real_shifts_replica.py --area 23 --device cuda
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--area", type=int, required=True, help="a sub-area of the film (8, 21, 23, 25, ...)")
+    parser.add_argument("--film", type=Path, default=Path("../shared/data/ta_film"), help="the film's folder")
+    parser.add_argument("--device", default="auto")
+    args = parser.parse_args()
+    try:
+        report(args)
+    except (OSError, ValueError) as err:  # a missing film folder or file
+        raise SystemExit(f"real_shifts_replica.py: {err}") from None
+
+
+def report(args) -> None:
+    import json
+
+    import gaussian_atoms_method as ga
+    from dataparsers.tilt_series_format import load_tilt_series
+    from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms
+    from gaussian_atoms_method.atoms.view_prediction import best_registration, interior, predicted_views
+    from gaussian_atoms_method.harness import film_benchmark as fb
+    from gaussian_atoms_method.harness import replica
+
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        area_dir = fb.prepare_area(args.film, work, args.area, "Ta")
+        meta = json.loads((area_dir / "tilt_series.json").read_text())
+        shape = np.load(area_dir / meta["projections"], mmap_mode="r").shape[1:]
+        model = fb.model_in_area_A(args.film, args.area)
+        box, inside = fb.scored_region(model, shape, tuple(meta["centre_px"]))
+
+        def fit(directory: Path, tag: str, **options):
+            atoms = ga.reconstruct(
+                ga.read_tilt_series(directory), species="Ta", device=args.device, progress=False, **options
+            )
+            s = fb.score_in_region(atoms.positions, model, box, inside)
+            print(f"{tag}: found {s['found']:.3f}, extra {s['extra_per_model_atom']:.3f}, {s['rmsd_pm']:.1f} pm")
+            return atoms
+
+        registered = fit(area_dir, "real views, registration on, against the model", refine_alignment=True)
+        gaussians = registered
+        others = registered.info.get("non_atoms")
+        if others is not None and len(others):  # the film beyond the field is in the views too
+            gaussians = AtomSet(
+                np.r_[registered.positions, others.positions],
+                sigmas=np.r_[registered.sigmas, others.sigmas],
+                amplitudes=np.r_[registered.amplitudes, others.amplitudes],
+            )
+        series = load_tilt_series(area_dir)
+        measured, predicted = np.asarray(series.projections, np.float64), predicted_views(gaussians, series)
+        shifts = np.array(
+            [
+                best_registration(interior(m[None], fb.INTERIOR_PX)[0], interior(p[None], fb.INTERIOR_PX)[0])[0]
+                for m, p in zip(measured, predicted)
+            ]
+        )
+        rms = np.sqrt(np.mean(shifts**2, axis=0))
+        most = np.abs(shifts).max()
+        print(f"the real views' shifts: {rms[0]:.2f} / {rms[1]:.2f} px RMS (rows / columns), up to {most:.2f}")
+        settings = {**fb.REPLICA, "shifts_px": shifts}
+        out = replica.write_replica(
+            series, read_atoms(series.truth_path), work / "replica", seed=100 + args.area, **settings
+        )[0]
+        fit(out, "replica with those shifts, registration off")
+        fit(out, "replica with those shifts, registration on", refine_alignment=True)
+
+
+if __name__ == "__main__":
+    main()
