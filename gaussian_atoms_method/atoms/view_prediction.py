@@ -128,15 +128,18 @@ def residual_shifts(residuals, predicted, detector_axes=None) -> tuple[np.ndarra
     (0.3, True)
     """
     r = torch.as_tensor(residuals, dtype=torch.float64)
-    p = torch.as_tensor(predicted, dtype=torch.float64, device=r.device)
-    rows, cols = torch.gradient(p, dim=(1, 2))
-    design = torch.stack([-rows, -cols, p, torch.ones_like(p)], dim=-1)  # (V, H, W, 4)
-
-    def fitted(part: slice) -> torch.Tensor:
-        d, y = design[:, part].reshape(len(p), -1, 4), r[:, part].reshape(len(p), -1, 1)
-        normal = d.transpose(1, 2) @ d
-        normal = normal + torch.diag_embed(1e-12 * torch.diagonal(normal, dim1=1, dim2=2).clamp_min(1e-300))
-        return torch.linalg.solve(normal, d.transpose(1, 2) @ y)[:, :2, 0]
+    half = r.shape[1] // 2
+    parts = {"all": slice(None), "upper": slice(0, half), "lower": slice(half, None)}
+    found = {name: [] for name in parts}
+    for v in range(len(r)):  # a view at a time: the design is four images of it
+        p = torch.as_tensor(predicted[v], dtype=torch.float64, device=r.device)
+        rows, cols = torch.gradient(p)
+        design = torch.stack([-rows, -cols, p, torch.ones_like(p)], dim=-1)  # (H, W, 4)
+        for name, part in parts.items():
+            d, y = design[part].reshape(-1, 4), r[v, part].reshape(-1)
+            normal = d.T @ d
+            normal = normal + torch.diag(1e-12 * torch.diagonal(normal).clamp_min(1e-300))
+            found[name].append(torch.linalg.solve(normal, d.T @ y)[:2])
 
     def gauge_free(shifts: torch.Tensor) -> torch.Tensor:
         if detector_axes is None:
@@ -145,10 +148,9 @@ def residual_shifts(residuals, predicted, detector_axes=None) -> tuple[np.ndarra
         flat = shifts.reshape(-1, 1)
         return (flat - a @ torch.linalg.lstsq(a, flat).solution).reshape(shifts.shape)
 
-    half = p.shape[1] // 2
-    upper, lower = gauge_free(fitted(slice(0, half))), gauge_free(fitted(slice(half, None)))
+    upper, lower = (gauge_free(torch.stack(found[name])) for name in ("upper", "lower"))
     agreement = float((upper * lower).sum() / torch.sqrt((upper**2).sum() * (lower**2).sum()).clamp_min(1e-300))
-    return gauge_free(fitted(slice(None))).cpu().numpy(), agreement * float(np.sqrt(upper.numel()))
+    return gauge_free(torch.stack(found["all"])).cpu().numpy(), agreement * float(np.sqrt(upper.numel()))
 
 
 def interior(images: np.ndarray, interior_px: tuple[int, int]) -> np.ndarray:
