@@ -220,7 +220,7 @@ def test_the_views_held_out_turn_shifts_and_gains_on_for_a_misregistered_series(
     import torch
     from scipy import ndimage
 
-    from gaussian_atoms_method.engine.rendering import gauge_free_shifts
+    from gaussian_atoms_method.atoms.view_prediction import gauge_free_shifts
     from gaussian_atoms_method.physics.geometry import detector_axes_from_tilts
 
     truth, angles, projections = particle

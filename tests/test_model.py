@@ -223,7 +223,7 @@ def test_a_translation_of_the_object_leaves_the_shifts_at_zero():
     left as it is.  A shift the same in every view along the rows is not a translation: over
     +-70 degrees a move along x (cos theta, 0.34-1) takes most of it, and the rest, the tilt axis
     off centre (a fifth to a quarter of it here), stays."""
-    from gaussian_atoms_method.engine.rendering import gauge_free_shifts
+    from gaussian_atoms_method.atoms.view_prediction import gauge_free_shifts
     from gaussian_atoms_method.physics.geometry import detector_axes_from_euler, detector_axes_from_tilts
 
     rng = np.random.default_rng(3)
@@ -256,7 +256,7 @@ def test_view_shifts_and_background_are_recovered(tmp_path):
     rng = np.random.default_rng(5)
     # shifts a translation of the particle makes are no view's (gauge_free_shifts): the drawn ones are
     # kept free of them, and the learned ones read through the same function
-    from gaussian_atoms_method.engine.rendering import gauge_free_shifts
+    from gaussian_atoms_method.atoms.view_prediction import gauge_free_shifts
     from gaussian_atoms_method.physics.geometry import detector_axes_from_tilts
 
     axes = torch.as_tensor(detector_axes_from_tilts(angles)[:, :2])

@@ -89,6 +89,23 @@ def best_registration(measured: np.ndarray, predicted: np.ndarray, steps: int = 
     return shift, float(gain)
 
 
+def gauge_free_shifts(shifts: torch.Tensor, axes: torch.Tensor) -> torch.Tensor:
+    """(V, 2) per-view detector shifts less the part a translation of the object makes: a
+    translation ``t`` shifts view ``v`` by ``P_v t`` (its detector axes ``axes`` (V, 2, 3)), so
+    shifts of that form move the atoms, not the views; the least-squares ``t`` is taken out.  What
+    a shift the same in every view along the rows holds beyond that (the tilt axis off the
+    assumed centre) stays.
+
+    >>> axes = torch.tensor([[[1.0, 0, 0], [0, 1, 0]], [[0.6, 0, -0.8], [0, 1, 0]], [[0.6, 0, 0.8], [0, 1, 0]]])
+    >>> bool(gauge_free_shifts(axes @ torch.tensor([0.3, -0.2, 0.5]), axes).abs().max() < 1e-6)
+    True
+    """
+    a = axes.reshape(-1, 3)  # (2V, 3)
+    flat = shifts.reshape(-1, 1)
+    t = torch.linalg.lstsq(a, flat).solution
+    return (flat - a @ t).reshape(shifts.shape)
+
+
 def residual_shifts(residuals, predicted, detector_axes=None) -> tuple[np.ndarray, float]:
     """Each view's shift (pixels, rows and columns) that its residual holds against the predicted
     view, and whether it is the view's: how strongly the two halves of each view (its upper and
@@ -104,7 +121,7 @@ def residual_shifts(residuals, predicted, detector_axes=None) -> tuple[np.ndarra
     times ``sqrt(2 V)`` is returned (3 or more: the views are off).  With the views' detector
     axes the shifts a translation of the object makes (``P_v t``, the same in the object for every
     view: a misfit every view shares, which the atoms themselves take up) are taken out first, as
-    :func:`gaussian_atoms_method.engine.rendering.gauge_free_shifts` does.
+    :func:`gauge_free_shifts` does.
 
     Parameters
     ----------
@@ -129,24 +146,28 @@ def residual_shifts(residuals, predicted, detector_axes=None) -> tuple[np.ndarra
     """
     r = torch.as_tensor(residuals, dtype=torch.float64)
     half = r.shape[1] // 2
-    parts = {"all": slice(None), "upper": slice(0, half), "lower": slice(half, None)}
-    found = {name: [] for name in parts}
+    found = {"all": [], "upper": [], "lower": []}
     for v in range(len(r)):  # a view at a time: the design is four images of it
         p = torch.as_tensor(predicted[v], dtype=torch.float64, device=r.device)
         rows, cols = torch.gradient(p)
         design = torch.stack([-rows, -cols, p, torch.ones_like(p)], dim=-1)  # (H, W, 4)
-        for name, part in parts.items():
+        sums = []  # each half's normal equations; the whole view's are their sum
+        for part in (slice(0, half), slice(half, None)):
             d, y = design[part].reshape(-1, 4), r[v, part].reshape(-1)
-            normal = d.T @ d
+            sums.append((d.T @ d, d.T @ y))
+        sums.append((sums[0][0] + sums[1][0], sums[0][1] + sums[1][1]))
+        for name, (normal, rhs) in zip(("upper", "lower", "all"), sums):
             normal = normal + torch.diag(1e-12 * torch.diagonal(normal).clamp_min(1e-300))
-            found[name].append(torch.linalg.solve(normal, d.T @ y)[:2])
+            found[name].append(torch.linalg.solve(normal, rhs)[:2])
+
+    axes = (
+        None
+        if detector_axes is None
+        else torch.as_tensor(np.asarray(detector_axes, np.float64)[:, :2], device=r.device)
+    )
 
     def gauge_free(shifts: torch.Tensor) -> torch.Tensor:
-        if detector_axes is None:
-            return shifts
-        a = torch.as_tensor(np.asarray(detector_axes, np.float64)[:, :2], device=r.device).reshape(-1, 3)
-        flat = shifts.reshape(-1, 1)
-        return (flat - a @ torch.linalg.lstsq(a, flat).solution).reshape(shifts.shape)
+        return shifts if axes is None else gauge_free_shifts(shifts, axes)
 
     upper, lower = (gauge_free(torch.stack(found[name])) for name in ("upper", "lower"))
     agreement = float((upper * lower).sum() / torch.sqrt((upper**2).sum() * (lower**2).sum()).clamp_min(1e-300))

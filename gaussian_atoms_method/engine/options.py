@@ -65,7 +65,7 @@ class UserFirstOptions:
     refine_alignment: bool = False
     """Learn a per-projection in-plane shift with the atoms (residual misalignment of the tilt
     series).  The shifts a translation of the object makes (each view's detector axes times one
-    3D vector) are taken out (:func:`~gaussian_atoms_method.engine.rendering.gauge_free_shifts`):
+    3D vector) are taken out (:func:`~gaussian_atoms_method.atoms.view_prediction.gauge_free_shifts`):
     they move the atoms, not the views, and left in they let the particle drift along the beam."""
     refine_gain: bool = False
     """Learn a per-projection gain with the atoms: each view's atoms' projection times

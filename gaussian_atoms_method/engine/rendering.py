@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from torch.nn import Parameter
 
+from gaussian_atoms_method.atoms.view_prediction import gauge_free_shifts
 from gaussian_atoms_method.engine.errors import OptionError
 from gaussian_atoms_method.physics.projector import (
     covariances_from_scales_quats,
@@ -253,23 +254,6 @@ def view_gain(log_gains: torch.Tensor, view: int) -> torch.Tensor:
     (1.2214, 1.2214)
     """
     return torch.exp(log_gains[view, 0] - log_gains[:, 0].mean())
-
-
-def gauge_free_shifts(shifts: torch.Tensor, axes: torch.Tensor) -> torch.Tensor:
-    """(V, 2) per-view detector shifts less the part a translation of the object makes: a
-    translation ``t`` shifts view ``v`` by ``P_v t`` (its detector axes ``axes`` (V, 2, 3)), so
-    shifts of that form move the atoms, not the views; the least-squares ``t`` is taken out.  What
-    a shift the same in every view along the rows holds beyond that (the tilt axis off the
-    assumed centre) stays.
-
-    >>> axes = torch.tensor([[[1.0, 0, 0], [0, 1, 0]], [[0.6, 0, -0.8], [0, 1, 0]], [[0.6, 0, 0.8], [0, 1, 0]]])
-    >>> bool(gauge_free_shifts(axes @ torch.tensor([0.3, -0.2, 0.5]), axes).abs().max() < 1e-6)
-    True
-    """
-    a = axes.reshape(-1, 3)  # (2V, 3)
-    flat = shifts.reshape(-1, 1)
-    t = torch.linalg.lstsq(a, flat).solution
-    return (flat - a @ t).reshape(shifts.shape)
 
 
 def view_floors(model, views, powers: tuple[torch.Tensor, torch.Tensor], dtype) -> torch.Tensor:
