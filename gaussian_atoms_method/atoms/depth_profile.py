@@ -22,30 +22,28 @@ def depth_axis_of(detector_axes: np.ndarray) -> np.ndarray:
 
 
 def depth_profile_pulls(
-    positions_A, sigmas_A, amplitudes, detector_axes, residuals, pixel_size_A, centre_px, hard_core_A, targets=None
+    positions_A, sigmas_A, amplitudes, detector_axes, residuals, pixel_size_A, centre_px, hard_core_A
 ) -> dict:
     """For the cost's profile along the depth axis beyond second order (:func:`.evidence.atom_evidence`'s
     ``moved_pulls``): offset (Å) -> (N, 5) the residual's pull on each atom moved by it along
-    :func:`depth_axis_of` (zeros for atoms not in ``targets``).  The offsets are 1, 2 and 3 halves
+    :func:`depth_axis_of`, every atom's (a neighbour beyond those asked for may move with one in
+    a column, :func:`depth_rises`).  The offsets are 1, 2 and 3 halves
     of the hard core either way: where an atom could sit instead of where it is (the Ta model's
     displaced atoms are 0.75-1.5 Å from ours, mostly along the beam)."""
     positions = np.asarray(positions_A, dtype=np.float64).reshape(-1, 3)
-    wanted = np.ones(len(positions), bool) if targets is None else np.asarray(targets, bool)
     axis = depth_axis_of(detector_axes)
     out = {}
     for k in (-3, -2, -1, 1, 2, 3):
         offset = 0.5 * k * hard_core_A
-        pulls = np.zeros((len(positions), 5))
-        pulls[wanted] = view_scores(
-            positions[wanted] + offset * axis,
-            np.asarray(sigmas_A)[wanted],
-            np.asarray(amplitudes)[wanted],
+        out[offset] = view_scores(
+            positions + offset * axis,
+            np.asarray(sigmas_A),
+            np.asarray(amplitudes),
             detector_axes,
             residuals,
             pixel_size_A,
             centre_px,
         ).sum(axis=1)
-        out[offset] = pulls
     return out
 
 

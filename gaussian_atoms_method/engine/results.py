@@ -266,7 +266,7 @@ def attach_evidence(model, atoms: AtomSet, noise: float, read, hard_core_A: floa
             series.pixel_size_A,
             series.centre_px,
             hard_core,
-        )  # every Gaussian's: a neighbour beyond the field may move with an atom in it
+        )
         if hard_core is not None
         else None
     )
