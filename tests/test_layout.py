@@ -29,6 +29,7 @@ def layer_of(module: str) -> str:
         if len(parts) == 1 or parts[1] in (
             "errors",
             "readers",
+            "registration_file",
             "rosetta",
             "stack_data",
             "tilt_series_format",

@@ -93,3 +93,37 @@ def test_a_replica_takes_each_views_shift_when_given(tmp_path):
     np.testing.assert_array_equal(shifted.shifts_px, shifts)
     found = np.array([best_registration(a, b)[0] for a, b in zip(shifted.projections, plain.projections)])
     np.testing.assert_allclose(found, shifts, atol=0.05)
+
+
+def test_simulate_takes_the_shifts_a_registration_file_holds(tmp_path):
+    """``simulate --like DIR --shifts-from registration.csv`` (the file a fit that learns shifts
+    writes): the replica is the one :func:`replica_of` makes with those shifts (the same draws:
+    equal to float32 rounding).  A file of another series' views, or beside ``--shift-px``, is
+    named in one line before anything is written."""
+    from dataparsers.registration_file import read_registration, write_registration
+
+    real_dir = _real_like(tmp_path)
+    series = load_tilt_series(real_dir)
+    shifts = np.c_[np.linspace(-1.0, 1.0, 15), np.linspace(0.5, -0.5, 15)]
+    write_registration(tmp_path / "registration.csv", shifts, np.ones(15))
+    write_registration(tmp_path / "other.csv", shifts[:14], np.ones(14))
+    command = [str(Path(sys.executable).parent / "gaussian-atoms"), "simulate", "--like", str(real_dir)]
+
+    def simulate(*options: str) -> subprocess.CompletedProcess:
+        return subprocess.run(command + list(options), capture_output=True, text=True, timeout=600)
+
+    result = simulate("--output", str(tmp_path / "r"), "--shifts-from", str(tmp_path / "registration.csv"))
+    assert result.returncode == 0, result.stderr[-2000:]
+    written = read_registration(tmp_path / "registration.csv")[0]  # six digits: 0.0714286 px
+    np.testing.assert_allclose(written, shifts, atol=1e-6)
+    expected = replica_of(series, read_atoms(series.truth_path).shifted(-np.asarray(series.origin_A)),
+                          atom_sigma_A=0.35, probe="gaussian", seed=0, shifts_px=written)  # fmt: skip
+    np.testing.assert_allclose(load_tilt_series(tmp_path / "r").projections, expected.projections, rtol=1e-6)
+    for options, fragment in (
+        (["--shifts-from", str(tmp_path / "other.csv")], "14 views' shifts"),
+        (["--shifts-from", str(tmp_path / "registration.csv"), "--shift-px", "0.5"], "give one"),
+        (["--shifts-from", str(tmp_path / "missing.csv")], "missing.csv: cannot read it"),
+    ):
+        result = simulate("--output", str(tmp_path / "bad"), *options)
+        assert result.returncode != 0 and "Traceback" not in result.stderr and fragment in result.stderr
+        assert len(result.stderr.strip().splitlines()) == 1 and not (tmp_path / "bad").exists()

@@ -60,6 +60,10 @@ class Simulate:
     """With --like: an amorphous carbon support film this thick under the atoms, Å (0: none)."""
     shift_px: float = 0.0
     """With --like: each view shifted at random by this RMS along each detector axis, pixels."""
+    shifts_from: Optional[Path] = None
+    """With --like: each view shifted as this registration.csv says (what a fit of the real
+    views learned, --pipeline.model.refine-alignment) instead of at random: the experiment's own
+    misregistration."""
     gain_scatter: float = 0.0
     """With --like: each view's gain scattered by this relative RMS."""
 
@@ -157,6 +161,7 @@ class Simulate:
         """``--like DIR``: a replica of a real series (:mod:`gaussian_atoms_method.harness.replica`)."""
         import numpy as np
 
+        from dataparsers.registration_file import read_registration
         from dataparsers.tilt_series_format import load_tilt_series
         from gaussian_atoms_method.atoms.atom_set import read_atoms
         from gaussian_atoms_method.harness.replica import write_replica
@@ -173,6 +178,16 @@ class Simulate:
             )
         if atoms.species is None or np.any(atoms.species == "X"):
             raise ValueError("--particle: the replica needs each atom's element (an xyz or csv file with species)")
+        shifts = None
+        if self.shifts_from is not None:
+            if self.shift_px:
+                raise ValueError("--shifts-from and --shift-px both shift the views: give one")
+            shifts = read_registration(self.shifts_from)[0]
+            if len(shifts) != series.n_views:
+                raise ValueError(
+                    f"--shifts-from {self.shifts_from}: {len(shifts)} views' shifts, the series --like {self.like} "
+                    f"has {series.n_views} views"
+                )
         _, replica = write_replica(
             series,
             atoms,
@@ -186,6 +201,7 @@ class Simulate:
                     "support_A": self.support_A,
                     "probe": self.probe,
                     "shift_px": self.shift_px,
+                    "shifts_from": None if self.shifts_from is None else str(self.shifts_from),
                     "gain_scatter": self.gain_scatter,
                     "seed": self.seed,
                 }
@@ -197,6 +213,7 @@ class Simulate:
             shift_px=self.shift_px,
             gain_scatter=self.gain_scatter,
             seed=self.seed,
+            shifts_px=shifts,
         )
         n, h, w = replica.projections.shape
         print(

@@ -203,3 +203,46 @@ def say_view_shifts(residuals, predicted, detector_axes, registered: bool) -> di
         )
     CONSOLE.print(f"gaussian-atoms: {words}")
     return {"view_shifts_rms_px": [float(x) for x in rms], "view_shifts_z": float(z)}
+
+
+def learned_registration(model) -> tuple[np.ndarray, np.ndarray] | None:
+    """Each view's learned shift ((V, 2) rows, columns; pixels, the shifts a translation of the
+    object makes taken out, the content's own displacement as ``scipy.ndimage.shift`` moves it)
+    and gain ((V,), against the views' mean); None where the run learned neither
+    (``refine_alignment``, ``refine_gain``) or knows no pixel size."""
+    from gaussian_atoms_method.atoms.view_prediction import gauge_free_shifts
+    from gaussian_atoms_method.engine.rendering import detector_axes, view_gain
+
+    params, pixel_A = model.view_params, model.view_set.pixel_size_A
+    if pixel_A is None or not ({"view_shifts", "view_gains"} & set(params.keys())):
+        return None
+    n_views = model.view_c2w.shape[0]
+    shifts, gains = np.zeros((n_views, 2)), np.ones(n_views)
+    with torch.no_grad():
+        if "view_shifts" in params:
+            axes = detector_axes(model.view_c2w.detach().cpu().double())
+            free = gauge_free_shifts(params["view_shifts"].detach().cpu().double(), axes)
+            shifts = free.numpy() / model.normalisation.length_scale / pixel_A
+        if "view_gains" in params:
+            log_gains = params["view_gains"].detach().cpu().double()
+            gains = np.array([float(view_gain(log_gains, v)) for v in range(n_views)])
+    return shifts, gains
+
+
+def write_learned_registration(model, run_dir) -> None:
+    """Write :func:`learned_registration` to ``run_dir/registration.csv`` and say it in a line
+    (nothing where the run learned no registration): the misregistration a replica of the
+    experiment can be given (``gaussian-atoms simulate --like DIR --shifts-from FILE``)."""
+    from dataparsers.registration_file import write_registration
+
+    learned = learned_registration(model)
+    if learned is None:
+        return
+    shifts, gains = learned
+    run_dir.mkdir(parents=True, exist_ok=True)
+    write_registration(run_dir / "registration.csv", shifts, gains)
+    rms = np.sqrt(np.mean(shifts**2, axis=0))
+    said = [f"shifts {rms[0]:.2f} / {rms[1]:.2f} px RMS along rows / columns (up to {np.abs(shifts).max():.2f} px)"]
+    said = said if "view_shifts" in model.view_params else []
+    said += [f"gains scattered {np.std(gains):.1%}"] if "view_gains" in model.view_params else []
+    CONSOLE.print(f"gaussian-atoms: the views' learned registration: {', '.join(said)} (registration.csv)")

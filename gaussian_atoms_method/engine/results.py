@@ -31,7 +31,12 @@ from gaussian_atoms_method.atoms.structure_evidence import structure_evidence
 from gaussian_atoms_method.atoms.uncertainty import position_std_A, robust_noise_std
 from gaussian_atoms_method.engine.console import CONSOLE
 from gaussian_atoms_method.engine.rendering import detector_axes
-from gaussian_atoms_method.engine.residuals import measured_views, render_training_views, say_view_shifts
+from gaussian_atoms_method.engine.residuals import (
+    measured_views,
+    render_training_views,
+    say_view_shifts,
+    write_learned_registration,
+)
 from gaussian_atoms_method.physics.noise import fit_noise_model
 
 
@@ -124,6 +129,7 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
             )
             + "\n"
         )
+    write_learned_registration(model, run_dir)
     atoms = model.atoms()
     read = residual_noise(model) if len(atoms) else None
     if read is not None:
