@@ -239,3 +239,16 @@ def test_the_shifts_a_residual_holds_are_read_and_the_halves_of_the_views_agree_
     translation = axes @ np.array([0.2, -0.1, 0.3])  # (V, 2) px, a pixel of 1 Å
     found, _ = residual_shifts(moved(translation) + noise() - predicted, predicted, axes)
     assert np.abs(found).max() < 0.03
+
+
+def test_the_kernel_a_run_ended_with_is_read_from_its_psf_json(tmp_path):
+    """``held-out-views``' candidates: a learned kernel is the one the run wrote (``psf.json``),
+    a held one its given weights; a run that wrote none held no kernel."""
+    import json
+
+    from gaussian_atoms_method.harness.kernel_choice import kernel_of_run
+
+    assert kernel_of_run(tmp_path, "learned") == [0.0, 0.0, 0.0]
+    (tmp_path / "psf.json").write_text(json.dumps({"psf": "learned", "intensity_fractions": [0.01, 0.2, 0.3]}))
+    assert kernel_of_run(tmp_path, "learned") == [0.01, 0.2, 0.3]
+    assert kernel_of_run(tmp_path, "0,0.1,0.1") == [0.0, 0.1, 0.1]

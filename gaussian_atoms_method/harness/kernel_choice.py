@@ -26,14 +26,13 @@ def kernel_args(kernel: str) -> tuple[str, ...]:
 
 
 def kernel_of_run(run_dir: Path, kernel: str) -> list[float]:
-    """The kernel a run ended with: the fractions it printed (learned), or the ones it held."""
+    """The kernel a run ended with: the fractions it wrote (learned; ``psf.json``,
+    :func:`~gaussian_atoms_method.atoms.view_prediction.run_kernel`), or the ones it held."""
+    from gaussian_atoms_method.atoms.view_prediction import run_kernel
+
     if kernel != "learned":
         return [float(v) for v in kernel.split(",")]
-    found = re.search(
-        r"point-spread function \(\w+\): intensity fractions ([\d.]+) at 1 Å, ([\d.]+) at 2 Å, ([\d.]+) at 4 Å",
-        (run_dir / "train.log").read_text(),
-    )
-    return [float(v) for v in found.groups()] if found else [0.0, 0.0, 0.0]
+    return run_kernel(run_dir) or [0.0, 0.0, 0.0]
 
 
 class KernelChoiceError(ValueError):
@@ -102,12 +101,12 @@ def compare_settings(
         for fit, held in (("even", "odd"), ("odd", "even")):
             run_dir = output / "runs" / re.sub(r"[^\w.-]+", "_", name) / fit
             train_ours(folds[fit], run_dir, iterations, device, tuple(args))
-            gaussians = run_gaussians(run_dir / "ours" / "gaussian-atoms" / "run")
-            held_views, kernel_weights = load_tilt_series(folds[held]), kernel_of_run(run_dir, kernel)
+            fitted = run_dir / "ours" / "gaussian-atoms" / "run"
+            held_views, kernel_weights = load_tilt_series(folds[held]), kernel_of_run(fitted, kernel)
             row[f"{fit}->{held}"] = held_out_rms(
-                gaussians, held_views, kernel_weights, tuple(interior_px), fit_registration
+                run_gaussians(fitted), held_views, kernel_weights, tuple(interior_px), fit_registration
             )
-            row[f"kernel {fit}"] = kernel_of_run(run_dir, kernel)
+            row[f"kernel {fit}"] = kernel_weights
         row["mean"] = 0.5 * (row["even->odd"] + row["odd->even"])
         rows.append(row)
         print(
