@@ -245,4 +245,7 @@ def write_learned_registration(model, run_dir) -> None:
     said = [f"shifts {rms[0]:.2f} / {rms[1]:.2f} px RMS along rows / columns (up to {np.abs(shifts).max():.2f} px)"]
     said = said if "view_shifts" in model.view_params else []
     said += [f"gains scattered {np.std(gains):.1%}"] if "view_gains" in model.view_params else []
-    CONSOLE.print(f"gaussian-atoms: the views' learned registration: {', '.join(said)} (registration.csv)")
+    CONSOLE.print(
+        f"gaussian-atoms: the views' learned registration: {', '.join(said)} (registration.csv; a replica of the "
+        f"experiment takes its shifts: gaussian-atoms simulate --like DATA --shifts-from registration.csv)"
+    )
