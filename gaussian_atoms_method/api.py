@@ -239,8 +239,9 @@ def reconstruct(
         The atoms, in Å about the tilt centre (in a :class:`TiltSeries`'s truth frame when one is
         given, as the CLI writes them): ``positions`` (M, 3), ``sigmas``, ``amplitudes``,
         ``position_std_A`` (M, 3) and ``atom_class`` (1..k by mass); ``info["non_atoms"]``
-        holds the Gaussians not reported as atoms and, with ``output_dir``, ``info["run_dir"]``
-        the run directory.
+        holds the Gaussians not reported as atoms, where the run learned a per-view registration
+        ``info["view_shifts_px"]`` (V, 2) and ``info["view_gains"]`` (V,) as ``registration.csv``
+        holds them, and with ``output_dir`` ``info["run_dir"]`` the run directory.
 
     Raises
     ------
@@ -280,6 +281,10 @@ def reconstruct(
         run_dir = fit_tilt_series(series, options, settings, data)
         atoms = read_atoms(run_dir / "atoms.xyz")
         atoms.info["non_atoms"] = read_atoms(run_dir / "non_atoms.xyz")
+        if (run_dir / "registration.csv").is_file():
+            from dataparsers.registration_file import read_registration
+
+            atoms.info["view_shifts_px"], atoms.info["view_gains"] = read_registration(run_dir / "registration.csv")
         if keep:
             atoms.info["run_dir"] = run_dir
         return atoms
