@@ -241,10 +241,13 @@ def write_learned_registration(model, run_dir) -> None:
     shifts, gains = learned
     run_dir.mkdir(parents=True, exist_ok=True)
     write_registration(run_dir / "registration.csv", shifts, gains)
-    rms = np.sqrt(np.mean(shifts**2, axis=0))
-    said = [f"shifts {rms[0]:.2f} / {rms[1]:.2f} px RMS along rows / columns (up to {np.abs(shifts).max():.2f} px)"]
-    said = said if "view_shifts" in model.view_params else []
-    said += [f"gains scattered {np.std(gains):.1%}"] if "view_gains" in model.view_params else []
+    rms, said = np.sqrt(np.mean(shifts**2, axis=0)), []
+    if "view_shifts" in model.view_params:
+        said.append(
+            f"shifts {rms[0]:.2f} / {rms[1]:.2f} px RMS along rows / columns (up to {np.abs(shifts).max():.2f} px)"
+        )
+    if "view_gains" in model.view_params:
+        said.append(f"gains scattered {np.std(gains):.1%}")
     CONSOLE.print(
         f"gaussian-atoms: the views' learned registration: {', '.join(said)} (registration.csv; a replica of the "
         f"experiment takes its shifts: gaussian-atoms simulate --like DATA --shifts-from registration.csv)"

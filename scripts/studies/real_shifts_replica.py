@@ -38,9 +38,14 @@ def report(args) -> None:
     import gaussian_atoms_method as ga
     from dataparsers.registration_file import read_registration
     from dataparsers.tilt_series_format import load_tilt_series
-    from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms
+    from gaussian_atoms_method.atoms.atom_set import read_atoms
     from gaussian_atoms_method.atoms.calibration import with_floor
-    from gaussian_atoms_method.atoms.view_prediction import best_registration, interior, predicted_views
+    from gaussian_atoms_method.atoms.view_prediction import (
+        best_registration,
+        interior,
+        predicted_views,
+        run_gaussians,
+    )
     from gaussian_atoms_method.harness import film_benchmark as fb
     from gaussian_atoms_method.harness import replica
 
@@ -70,16 +75,13 @@ def report(args) -> None:
         registered = fit(
             area_dir, "real views, registration on, against the model", refine_alignment=True, output_dir=work / "run"
         )[0]
-        gaussians = registered
-        others = registered.info.get("non_atoms")
-        if others is not None and len(others):  # the film beyond the field is in the views too
-            gaussians = AtomSet(
-                np.r_[registered.positions, others.positions],
-                sigmas=np.r_[registered.sigmas, others.sigmas],
-                amplitudes=np.r_[registered.amplitudes, others.amplitudes],
-            )
+        run_dir = registered.info["run_dir"]
         series = load_tilt_series(area_dir)
-        measured, predicted = np.asarray(series.projections, np.float64), predicted_views(gaussians, series)
+        # every Gaussian of the fit: the film beyond the field is in the views too
+        measured, predicted = (
+            np.asarray(series.projections, np.float64),
+            predicted_views(run_gaussians(run_dir), series),
+        )
         shifts = np.array(
             [
                 best_registration(interior(m[None], fb.INTERIOR_PX)[0], interior(p[None], fb.INTERIOR_PX)[0])[0]
@@ -89,7 +91,7 @@ def report(args) -> None:
         rms = np.sqrt(np.mean(shifts**2, axis=0))
         most = np.abs(shifts).max()
         print(f"the real views' shifts: {rms[0]:.2f} / {rms[1]:.2f} px RMS (rows / columns), up to {most:.2f}")
-        learned = read_registration(registered.info["run_dir"] / "registration.csv")[0]
+        learned = read_registration(run_dir / "registration.csv")[0]
         off = np.sqrt(np.mean((learned - shifts) ** 2, axis=0))
         print(f"the fit's registration.csv differs from them by {off[0]:.2f} / {off[1]:.2f} px RMS")
         settings = {**fb.REPLICA, "shifts_px": shifts}
