@@ -247,3 +247,21 @@ def test_the_nerfstudio_launchers_decide_registration_before_config_is_saved(tmp
     chosen = said.split("per-view registration: ")[1].split(" (")[0]
     model = config.pipeline.model
     assert not model.decide_registration and (model.refine_alignment, model.refine_gain) == REGISTRATION[chosen]
+
+
+def test_the_film_benchmark_says_its_specimen_is_a_film_unless_told_otherwise():
+    """``benchmark-film`` runs each sub-area with the extended object on (the specimen is a film,
+    which the views' gains can hide from the views' mass): the options parse as the train
+    command's, and an extended-object option the user gives replaces it."""
+    from gaussian_atoms_method.cli.train_command import parse
+    from gaussian_atoms_method.harness.film_benchmark import FilmBenchmark
+
+    def extended_object(flags):
+        bench = FilmBenchmark(Path("data"), Path("out"), flags=flags)
+        options, _ = parse([*bench.film_flags(), "tilt-series", "--data", "data/demo"])
+        return options.pipeline.model.extended_object
+
+    assert extended_object(()) == "on"
+    assert extended_object(("--pipeline.model.cluster-merge", "False")) == "on"
+    assert extended_object(("--pipeline.model.extended-object", "auto")) == "auto"
+    assert extended_object(("--pipeline.model.extended-object=off",)) == "off"
