@@ -102,3 +102,24 @@ def test_an_extra_atom_beside_one_miss_names_it():
     count, partner = missed_nearby(pred, model, np.array([], dtype=np.int64), np.array([0]), 1.5)
     np.testing.assert_array_equal(count, [0])
     np.testing.assert_array_equal(partner, [-1])
+
+
+def test_the_models_pairs_closer_than_the_hard_core_cap_what_a_physical_report_finds():
+    """Two atoms closer than tantalum's hard core (1.87 Å) cannot both be reported: a pair keeps
+    one, a chain of three its two ends, a triangle one.  The authors' model holds three such pairs
+    (1.53-1.86 Å) in sub-area 23's scored region: a physical report finds 780 of its 783 at most."""
+    from gaussian_atoms_method.atoms.hard_core import hard_core_from_species
+    from gaussian_atoms_method.harness.film_benchmark import most_reportable
+
+    core = hard_core_from_species("Ta")
+    pair, chain = np.array([[0.0, 0, 0], [1.5, 0, 0]]), np.array([[0.0, 0, 0], [1.5, 0, 0], [3.0, 0, 0]])
+    triangle = np.array([[0.0, 0, 0], [1.5, 0, 0], [0.75, 1.2, 0]])
+    far = np.array([[20.0, 0, 0], [30.0, 0, 0]])
+    for atoms, kept in ((pair, 1), (chain, 2), (triangle, 1)):
+        model = np.r_[atoms, far]
+        assert most_reportable(model, np.ones(len(model), bool), core) == kept + 2
+    assert most_reportable(np.r_[pair, far], np.array([True, False, True, True]), core) == 3  # one outside
+    _, half = area_geometry(DATA, 23)
+    model = model_in_area_A(DATA, 23)
+    _, inside = scored_region(model, (151, 77), tuple(half[:2]))
+    assert (int(inside.sum()), most_reportable(model, inside, core)) == (783, 780)
