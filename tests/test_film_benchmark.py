@@ -104,10 +104,10 @@ def test_an_extra_atom_beside_one_miss_names_it():
     np.testing.assert_array_equal(partner, [-1])
 
 
-def test_the_models_pairs_closer_than_the_hard_core_cap_what_a_physical_report_finds():
-    """Two atoms closer than tantalum's hard core (1.87 Å) cannot both be reported: a pair keeps
-    one, a chain of three its two ends, a triangle one.  The authors' model holds three such pairs
-    (1.53-1.86 Å) in sub-area 23's scored region: a physical report finds 780 of its 783 at most."""
+def test_the_models_pairs_closer_than_the_hard_core_cannot_all_be_reported_where_they_lie():
+    """Two atoms closer than tantalum's hard core (1.87 Å) cannot both be reported where they lie:
+    a pair keeps one, a chain of three its two ends, a triangle one.  The authors' model holds three
+    such pairs (1.53-1.86 Å) in sub-area 23's scored region: 780 of its 783 atoms at most."""
     from gaussian_atoms_method.atoms.hard_core import hard_core_from_species
     from gaussian_atoms_method.harness.film_benchmark import most_reportable
 
