@@ -307,8 +307,8 @@ def cap_words(scores: dict, species: str) -> str:
     if not n:
         return ""
     return (
-        f"; {n} of the model's atoms lie closer than {species}'s hard core to another: a physical report "
-        f"misses them or holds their pairs apart"
+        f"; the model's pairs closer than {species}'s hard core leave {n} of its atoms no place in a physical "
+        f"report: it misses them or holds their pairs apart"
     )
 
 
