@@ -307,8 +307,8 @@ def cap_words(scores: dict, species: str) -> str:
     if not n:
         return ""
     return (
-        f"; the model's pairs closer than {species}'s hard core leave {n} of its atoms no place in a physical "
-        f"report: it misses them or holds their pairs apart"
+        f"; {n} of the model's atoms lie within {species}'s hard core of another: a physical report misses "
+        f"them or holds those pairs apart"
     )
 
 
