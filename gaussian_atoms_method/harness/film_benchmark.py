@@ -27,7 +27,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from gaussian_atoms_method.atoms.atom_set import AtomSet
 from gaussian_atoms_method.atoms.matching import global_shift, match_atoms
@@ -213,17 +212,20 @@ def most_reportable(model_A: np.ndarray, inside: np.ndarray, hard_core_A: float)
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
+    from gaussian_atoms_method.atoms.hard_core import close_pairs
+
     points = np.asarray(model_A, dtype=np.float64)[np.asarray(inside, bool)]
-    pairs = cKDTree(points).query_pairs(hard_core_A, output_type="ndarray")
+    pairs = close_pairs(points, hard_core_A)
     if not len(pairs):
         return len(points)
     graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(points),) * 2)
     _, group = connected_components(graph, directed=False)
+    slot = np.zeros(len(points), dtype=np.int64)  # each atom's index within its group
     keep = len(points)
     for g in np.unique(group[pairs[:, 0]]):
         members = np.flatnonzero(group == g)
-        index = {m: i for i, m in enumerate(members)}
-        edges = [(index[a], index[b]) for a, b in pairs if group[a] == g]
+        slot[members] = np.arange(len(members))
+        edges = [(int(a), int(b)) for a, b in slot[pairs[group[pairs[:, 0]] == g]]]
         keep -= len(members) - _largest_apart(len(members), edges)
     return keep
 
@@ -300,7 +302,7 @@ its rings and tails, the views' misregistration (0.5 px RMS across the tilt axis
 any atom set) and their gains' scatter (6.8%, measured), as issue 67 read them off the film."""
 
 
-def cap_words(scores: dict, species: str) -> str:
+def within_core_words(scores: dict, species: str) -> str:
     """The model's own atoms a physical report cannot hold where the model puts them
     (:func:`most_reportable`), where there are any."""
     n = scores.get("model_atoms_within_core", 0)
@@ -411,17 +413,16 @@ class FilmBenchmark:
                 f"{s['extra_per_model_atom']:.3f} per model atom, RMSD {s['rmsd_pm']:.1f} pm, {s['share_close']:.1%} "
                 f"of atoms closer than {CLOSE_PAIR_A} Å to another, {s['seconds']:.0f} s"
                 + evidence_words(s)
-                + cap_words(s, self.species),
+                + within_core_words(s, self.species),
                 flush=True,
             )
         self.write(rows)
         return rows
 
     def film_flags(self) -> tuple[str, ...]:
-        """The run's options: :data:`FILM_FLAGS` unless the user's ``flags`` set the extended
-        object themselves, then ``flags``."""
-        said = any(f.split("=", 1)[0] == FILM_FLAGS[0] for f in self.flags)
-        return self.flags if said else FILM_FLAGS + self.flags
+        """The run's options: :data:`FILM_FLAGS`, then the user's ``flags`` (an option given twice
+        takes its last value, so the user's extended-object option replaces the film's)."""
+        return FILM_FLAGS + self.flags
 
     def prepare(self, area: int) -> Path:
         """The sub-area's tilt-series directory (and the model as its start, if asked)."""
