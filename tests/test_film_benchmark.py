@@ -105,21 +105,36 @@ def test_an_extra_atom_beside_one_miss_names_it():
 
 
 def test_the_models_pairs_closer_than_the_hard_core_cannot_all_be_reported_where_they_lie():
-    """Two atoms closer than tantalum's hard core (1.87 Å) cannot both be reported where they lie:
-    a pair keeps one, a chain of three its two ends, a triangle one.  The authors' model holds three
-    such pairs (1.53-1.86 Å) in sub-area 23's scored region: 780 of its 783 atoms at most."""
+    """Two atoms closer than tantalum's hard core (1.87 Å) cannot both be reported where they lie
+    (``most_apart``'s cases: tests/test_hard_core.py); only the scored region's atoms count.  The
+    authors' model holds three such pairs (1.53-1.86 Å) in sub-area 23's scored region: 780 of its
+    783 atoms at most."""
     from gaussian_atoms_method.atoms.hard_core import hard_core_from_species
     from gaussian_atoms_method.harness.film_benchmark import most_reportable
 
     core = hard_core_from_species("Ta")
-    pair, chain = np.array([[0.0, 0, 0], [1.5, 0, 0]]), np.array([[0.0, 0, 0], [1.5, 0, 0], [3.0, 0, 0]])
-    triangle = np.array([[0.0, 0, 0], [1.5, 0, 0], [0.75, 1.2, 0]])
-    far = np.array([[20.0, 0, 0], [30.0, 0, 0]])
-    for atoms, kept in ((pair, 1), (chain, 2), (triangle, 1)):
-        model = np.r_[atoms, far]
-        assert most_reportable(model, np.ones(len(model), bool), core) == kept + 2
-    assert most_reportable(np.r_[pair, far], np.array([True, False, True, True]), core) == 3  # one outside
+    pair_and_far = np.array([[0.0, 0, 0], [1.5, 0, 0], [20.0, 0, 0], [30.0, 0, 0]])
+    assert most_reportable(pair_and_far, np.ones(4, bool), core) == 3
+    assert most_reportable(pair_and_far, np.array([True, False, True, True]), core) == 3  # one outside
     _, half = area_geometry(DATA, 23)
     model = model_in_area_A(DATA, 23)
     _, inside = scored_region(model, (151, 77), tuple(half[:2]))
     assert (int(inside.sum()), most_reportable(model, inside, core)) == (783, 780)
+
+
+def test_a_replicas_truth_is_the_model_less_the_pairs_no_specimen_holds(tmp_path):
+    """``benchmark-film --replica`` scores against the replica's own truth: the authors' model with
+    one atom of each pair closer than tantalum's hard core set aside (the whole film's model holds
+    50 such atoms), the rest where the model puts them; the real views are scored against the model."""
+    from scipy.spatial import cKDTree
+
+    from gaussian_atoms_method.atoms.hard_core import close_pairs, hard_core_from_species
+    from gaussian_atoms_method.harness.film_benchmark import FilmBenchmark
+
+    core = hard_core_from_species("Ta")
+    model = model_in_area_A(DATA, 8)
+    bench = FilmBenchmark(DATA, tmp_path, areas=(8,), replica=True)
+    truth = bench.truth_A(8, bench.prepare(8))
+    assert len(close_pairs(truth, core)) == 0 and len(truth) == len(model) - 50
+    assert cKDTree(model).query(truth)[0].max() < 1e-4  # each truth atom a model atom, where it lies
+    np.testing.assert_array_equal(FilmBenchmark(DATA, tmp_path).truth_A(8, tmp_path), model)

@@ -14,6 +14,7 @@ from gaussian_atoms_method.atoms.hard_core import (
     hard_core_from_positions,
     hard_core_from_species,
     lighter_of_close_pairs,
+    most_apart,
     parse_species,
 )
 from gaussian_atoms_method.harness.particles import make_particle
@@ -80,6 +81,25 @@ def test_the_lighter_partner_of_a_close_pair_is_set_aside_once():
     assert lighter_of_close_pairs(positions, masses, 1.5).tolist() == [False, True, False, False]
     assert close_pairs(positions, 1.5).tolist() == [[0, 1], [1, 2]]
     assert close_pairs(positions, math.inf).shape == (0, 2)
+
+
+def test_the_most_atoms_apart_keep_no_pair_within_the_core_and_drop_none_they_could_keep():
+    """``most_apart``: no kept pair closer than the distance, and every point set aside lies
+    within it of a kept one (none could be added back). Small groups are solved exactly (a pair
+    keeps one, a chain of three its ends, a triangle one, a square two); a cluster of 40 points
+    in one group (the greedy branch) too."""
+    d = 1.87
+    pair, chain = np.array([[0.0, 0, 0], [1.5, 0, 0]]), np.array([[0.0, 0, 0], [1.5, 0, 0], [3.0, 0, 0]])
+    triangle = np.array([[0.0, 0, 0], [1.5, 0, 0], [0.75, 1.3, 0]])
+    square = np.array([[0.0, 0, 0], [1.5, 0, 0], [1.5, 1.5, 0], [0.0, 1.5, 0]])
+    for points, kept in ((pair, 1), (chain, 2), (triangle, 1), (square, 2)):
+        assert most_apart(points + 10.0, d).sum() == kept
+    np.testing.assert_array_equal(most_apart(chain, d), [True, False, True])
+    cluster = np.random.default_rng(3).uniform(0, 5, (40, 3))
+    keep = most_apart(cluster, d)
+    assert len(close_pairs(cluster[keep], d)) == 0 and keep.sum() < 40
+    gaps = np.linalg.norm(cluster[~keep][:, None] - cluster[keep][None], axis=-1).min(axis=1)
+    assert np.all(gaps < d)
 
 
 def test_a_vacuum_population_is_labelled_non_atoms():

@@ -14,11 +14,13 @@ from gaussian_atoms_method.harness.replica import replica_of
 from gaussian_atoms_method.physics.noise import noise_from_projections
 
 
-def _real_like(tmp_path: Path) -> Path:
+def _real_like(tmp_path: Path, atoms: AtomSet | None = None) -> Path:
     """A 'real' series of Euler views (RESIRE's convention), off-centre tilt centre, Poisson-like
-    noise (variance 4 + 0.5 x level), with a truth file."""
+    noise (variance 4 + 0.5 x level), with a truth file: 12 Ta atoms on a 2.7 Å grid moved by up
+    to 0.2 Å (a specimen that can exist: no two within tantalum's 1.87 Å hard core), or ``atoms``."""
     rng = np.random.default_rng(0)
-    atoms = AtomSet(np.c_[rng.uniform(-4, 4, 12), rng.uniform(-3, 3, 12), rng.uniform(-2, 2, 12)], species=["Ta"] * 12)
+    grid = np.stack(np.meshgrid([-2.7, 0.0, 2.7], [-1.35, 1.35], [-1.35, 1.35], indexing="ij"), -1).reshape(-1, 3)
+    atoms = atoms or AtomSet(grid + rng.uniform(-0.2, 0.2, grid.shape), species=["Ta"] * 12)
     euler = np.c_[np.full(15, 0.2), np.linspace(-60, 55, 15), np.full(15, -0.3)]
     geometry = TiltSeries(
         np.broadcast_to(np.linspace(1.0, 2.0, 40), (15, 48, 40)),  # a ramp: views that hold no noise
@@ -127,3 +129,27 @@ def test_simulate_takes_the_shifts_a_registration_file_holds(tmp_path):
         result = simulate("--output", str(tmp_path / "bad"), *options)
         assert result.returncode != 0 and "Traceback" not in result.stderr and fragment in result.stderr
         assert len(result.stderr.strip().splitlines()) == 1 and not (tmp_path / "bad").exists()
+
+
+def test_a_replicas_truth_holds_no_pair_physics_forbids(tmp_path):
+    """A measured model may hold pairs closer than the hard core (the Ta film's: down to 1.53 Å
+    against tantalum's 1.87 Å); no specimen holds them, so ``simulate --like`` sets one of each
+    aside (the most atoms with no such pair: of a chain of three, its ends) and says so in a line;
+    ``--keep-close-pairs`` keeps the atoms as given."""
+    from gaussian_atoms_method.atoms.hard_core import close_pairs
+
+    grid = np.stack(np.meshgrid([-2.7, 0.0, 2.7], [-1.35, 1.35], [-1.35, 1.35], indexing="ij"), -1).reshape(-1, 3)
+    chain = np.array([[-1.0, 0.0, 0.0], [0.5, 0.0, 0.0], [2.0, 0.0, 0.0]])  # 1.5 Å apart, 3.0 Å end to end
+    atoms = AtomSet(np.r_[grid[[0, 1, 10, 11]], chain], species=["Ta"] * 7)  # at x = -2.7 and 2.7 Å
+    real_dir = _real_like(tmp_path, atoms)
+    command = [str(Path(sys.executable).parent / "gaussian-atoms"), "simulate", "--like", str(real_dir)]
+    for options, kept in (([], 6), (["--keep-close-pairs"], 7)):
+        out = tmp_path / f"r{len(options)}"
+        result = subprocess.run(command + ["--output", str(out), *options], capture_output=True, text=True, timeout=600)
+        assert result.returncode == 0, result.stderr[-2000:]
+        truth = read_atoms(load_tilt_series(out).truth_path).positions
+        assert len(truth) == kept
+        assert ("1 of the 7 atoms lie within another's hard core (1.87 Å" in result.stdout) == (kept == 6)
+    assert len(close_pairs(truth, 1.87)) == 2  # kept as given
+    truth = read_atoms(load_tilt_series(tmp_path / "r0").truth_path).positions
+    assert len(close_pairs(truth, 1.87)) == 0 and not np.any(np.all(np.isclose(truth, chain[1]), axis=1))

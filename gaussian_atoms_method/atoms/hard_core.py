@@ -141,3 +141,53 @@ def lighter_of_close_pairs(positions: np.ndarray, masses: np.ndarray, distance: 
         if not out[heavier[i]]:
             out[lighter[i]] = True
     return out
+
+
+def most_apart(positions: np.ndarray, distance: float) -> np.ndarray:
+    """(N,) bool: the most of (N, 3) ``positions`` with no two closer than ``distance``: of each
+    group of points joined by closer pairs, its largest subset with no such pair (every subset
+    where the group has at most 16 points, as a measured model's close pairs come in twos and
+    threes; else the least-joined point first, greedily).  What a report that obeys the hard core
+    can hold of an atom set where the set puts its atoms; the rest lie within another's core.
+
+    >>> chain = np.array([[0.0, 0, 0], [1.5, 0, 0], [3.0, 0, 0], [10.0, 0, 0]])
+    >>> most_apart(chain, 1.87)  # a chain of three keeps its two ends
+    array([ True, False,  True,  True])
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    keep = np.ones(len(positions), dtype=bool)
+    pairs = close_pairs(positions, distance)
+    if not len(pairs):
+        return keep
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(positions),) * 2)
+    _, group = connected_components(graph, directed=False)
+    slot = np.zeros(len(positions), dtype=np.int64)  # each point's index within its group
+    for g in np.unique(group[pairs[:, 0]]):
+        members = np.flatnonzero(group == g)
+        slot[members] = np.arange(len(members))
+        edges = slot[pairs[group[pairs[:, 0]] == g]]
+        keep[members] = _largest_apart(len(members), edges)
+    return keep
+
+
+def _largest_apart(n: int, edges: np.ndarray) -> np.ndarray:
+    """(n,) bool: the most of ``n`` points with no two joined by one of the (K, 2) ``edges``."""
+    a, b = np.asarray(edges, dtype=np.int64).T
+    if n <= 16:
+        masks = np.arange(1 << n)
+        allowed = ~np.any((masks[:, None] >> a & 1) & (masks[:, None] >> b & 1), axis=1)
+        sizes = np.array([bin(m).count("1") for m in masks])
+        best = masks[np.flatnonzero(allowed & (sizes == sizes[allowed].max()))[0]]
+        return (best >> np.arange(n) & 1).astype(bool)
+    left, kept = np.ones(n, dtype=bool), np.zeros(n, dtype=bool)
+    while left.any():
+        live = left[a] & left[b]
+        degree = np.bincount(a[live], minlength=n) + np.bincount(b[live], minlength=n)
+        point = int(np.flatnonzero(left)[np.argmin(degree[left])])
+        kept[point] = True
+        left[point] = False
+        left[np.r_[b[a == point], a[b == point]]] = False
+    return kept

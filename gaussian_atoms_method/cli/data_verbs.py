@@ -66,6 +66,10 @@ class Simulate:
     misregistration."""
     gain_scatter: float = 0.0
     """With --like: each view's gain scattered by this relative RMS."""
+    keep_close_pairs: bool = False
+    """With --like: keep atoms closer than their elements' hard core in the truth. By default one of
+    each such pair (a measured model's error; no specimen holds it) is set aside and the run
+    says how many."""
 
     @property
     def particle_scale(self) -> float | None:
@@ -164,7 +168,7 @@ class Simulate:
         from dataparsers.registration_file import read_registration
         from dataparsers.tilt_series_format import load_tilt_series
         from gaussian_atoms_method.atoms.atom_set import read_atoms
-        from gaussian_atoms_method.harness.replica import write_replica
+        from gaussian_atoms_method.harness.replica import physical_truth, write_replica
 
         series = load_tilt_series(self.like)
         if Path(self.particle).is_file():
@@ -178,6 +182,15 @@ class Simulate:
             )
         if atoms.species is None or np.any(atoms.species == "X"):
             raise ValueError("--particle: the replica needs each atom's element (an xyz or csv file with species)")
+        if not self.keep_close_pairs:
+            kept, core_A, closest_A = physical_truth(atoms)
+            if len(kept) < len(atoms):
+                print(
+                    f"simulate: {len(atoms) - len(kept)} of the {len(atoms)} atoms lie within another's hard core "
+                    f"({core_A:.2f} Å from their elements; the closest pair {closest_A:.2f} Å apart): set aside, the "
+                    f"truth is the {len(kept)} a specimen can hold (--keep-close-pairs keeps them)"
+                )
+            atoms = kept
         shifts = None
         if self.shifts_from is not None:
             if self.shift_px:

@@ -202,49 +202,17 @@ def most_reportable(model_A: np.ndarray, inside: np.ndarray, hard_core_A: float)
     could hold where the model puts them: the most of them with no two closer than
     ``hard_core_A`` (the largest independent set of each group of atoms joined by such pairs).
     The authors' model is a measurement and holds pairs no material has (down to 1.53 Å against
-    tantalum's 1.87): used as a replica's truth, a physical report drops one of each such pair,
-    or finds both only by holding them apart (each within the match radius of its place).
+    tantalum's 1.87): scored against it, a physical report drops one of each such pair, or finds
+    both only by holding them apart (each within the match radius of its place).  A replica's
+    truth keeps only such a set (:func:`write_replica`).
 
     >>> model = np.array([[0.0, 0, 0], [1.5, 0, 0], [3.0, 0, 0], [10.0, 0, 0]])
     >>> most_reportable(model, np.ones(4, bool), 1.87)  # a chain of three keeps its two ends
     3
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
+    from gaussian_atoms_method.atoms.hard_core import most_apart
 
-    from gaussian_atoms_method.atoms.hard_core import close_pairs
-
-    points = np.asarray(model_A, dtype=np.float64)[np.asarray(inside, bool)]
-    pairs = close_pairs(points, hard_core_A)
-    if not len(pairs):
-        return len(points)
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(points),) * 2)
-    _, group = connected_components(graph, directed=False)
-    slot = np.zeros(len(points), dtype=np.int64)  # each atom's index within its group
-    keep = len(points)
-    for g in np.unique(group[pairs[:, 0]]):
-        members = np.flatnonzero(group == g)
-        slot[members] = np.arange(len(members))
-        edges = [(int(a), int(b)) for a, b in slot[pairs[group[pairs[:, 0]] == g]]]
-        keep -= len(members) - _largest_apart(len(members), edges)
-    return keep
-
-
-def _largest_apart(n: int, edges: list[tuple[int, int]]) -> int:
-    """The most of ``n`` atoms with no two joined by one of ``edges``: every subset where the
-    group is small (a model's close pairs come in twos and threes), else the greedy choice of
-    the least-joined atom first (a lower bound)."""
-    if n <= 16:
-        return max(
-            bin(mask).count("1") for mask in range(1 << n) if not any(mask >> a & 1 and mask >> b & 1 for a, b in edges)
-        )
-    left, kept = set(range(n)), 0
-    while left:
-        degree = {i: sum((a == i and b in left) or (b == i and a in left) for a, b in edges) for i in left}
-        atom = min(left, key=degree.get)
-        left -= {atom} | {b if a == atom else a for a, b in edges if atom in (a, b)}
-        kept += 1
-    return kept
+    return int(most_apart(np.asarray(model_A, dtype=np.float64)[np.asarray(inside, bool)], hard_core_A).sum())
 
 
 def score_in_region(pred_A: np.ndarray, model_A: np.ndarray, box: np.ndarray, inside: np.ndarray) -> dict:
@@ -338,9 +306,11 @@ def evidence_words(scores: dict) -> str:
 
 
 def write_replica(area_dir: Path, out_dir: Path, seed: int = 0) -> Path:
-    """A replica of the sub-area ``area_dir`` (its model as the atoms, :data:`REPLICA`'s
-    experiment; :func:`gaussian_atoms_method.harness.replica.write_replica`) as a tilt-series
-    directory ``out_dir`` with the model as its truth."""
+    """A replica of the sub-area ``area_dir`` (:data:`REPLICA`'s experiment;
+    :func:`gaussian_atoms_method.harness.replica.write_replica`) as a tilt-series directory
+    ``out_dir``; its atoms and truth are the model's atoms a specimen can hold
+    (:func:`~gaussian_atoms_method.harness.replica.physical_truth`: one of each pair closer than
+    tantalum's hard core set aside)."""
     from dataparsers.tilt_series_format import load_tilt_series
     from gaussian_atoms_method.atoms.atom_set import read_atoms
     from gaussian_atoms_method.harness import replica
@@ -349,9 +319,8 @@ def write_replica(area_dir: Path, out_dir: Path, seed: int = 0) -> Path:
         return out_dir
     series = load_tilt_series(area_dir)
     description = {"description": f"a replica of {area_dir} ({REPLICA}, seed {seed}); the model, {CITATION}"}
-    return replica.write_replica(
-        series, read_atoms(series.truth_path), out_dir, extra=description, seed=seed, **REPLICA
-    )[0]
+    truth, _, _ = replica.physical_truth(read_atoms(series.truth_path))
+    return replica.write_replica(series, truth, out_dir, extra=description, seed=seed, **REPLICA)[0]
 
 
 @dataclass
@@ -378,7 +347,7 @@ class FilmBenchmark:
         def score(area, data, atoms):
             meta = json.loads((data / "tilt_series.json").read_text())
             shape = np.load(data / meta["projections"], mmap_mode="r").shape[1:]
-            model = model_in_area_A(self.data_dir, area)
+            model = self.truth_A(area, data)
             box, inside = scored_region(model, shape, tuple(meta["centre_px"]))
             scores = score_in_region(atoms.positions, model, box, inside)
             if self.species:
@@ -418,6 +387,17 @@ class FilmBenchmark:
             )
         self.write(rows)
         return rows
+
+    def truth_A(self, area: int, data: Path) -> np.ndarray:
+        """What the sub-area's atoms are scored against: the authors' model on the real views, the
+        replica's own truth on a replica (the model less its pairs closer than the hard core)."""
+        if not self.replica:
+            return model_in_area_A(self.data_dir, area)
+        from dataparsers.tilt_series_format import load_tilt_series
+        from gaussian_atoms_method.atoms.atom_set import read_atoms
+
+        series = load_tilt_series(data)
+        return read_atoms(series.truth_path).positions - np.asarray(series.origin_A)
 
     def film_flags(self) -> tuple[str, ...]:
         """The run's options: :data:`FILM_FLAGS`, then the user's ``flags`` (an option given twice
