@@ -22,7 +22,6 @@ in the sub-area's centred frame as its truth file; scoring follows the data's RE
 from __future__ import annotations
 
 import csv
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -337,18 +336,18 @@ class FilmBenchmark:
     species: str = "Ta"
     start_from_model: bool = False
     replica: bool = False
-    """Fit each sub-area's replica instead (:func:`write_replica`): the model as a known truth in
-    the sub-area's own geometry, level and noise."""
+    """Fit each sub-area's replica instead (:func:`write_replica`): the model, less its pairs closer
+    than the hard core, as a known truth in the sub-area's own geometry, level and noise."""
 
     def run(self) -> list[dict]:
+        from dataparsers.tilt_series_format import load_tilt_series
         from gaussian_atoms_method.atoms.hard_core import hard_core_from_species
         from gaussian_atoms_method.harness.benchmark import scored_run
 
         def score(area, data, atoms):
-            meta = json.loads((data / "tilt_series.json").read_text())
-            shape = np.load(data / meta["projections"], mmap_mode="r").shape[1:]
-            model = self.truth_A(area, data)
-            box, inside = scored_region(model, shape, tuple(meta["centre_px"]))
+            series = load_tilt_series(data)
+            model = self.truth_A(area, series)
+            box, inside = scored_region(model, series.projections.shape[1:], tuple(series.centre_px))
             scores = score_in_region(atoms.positions, model, box, inside)
             if self.species:
                 core = hard_core_from_species(self.species)
@@ -388,15 +387,14 @@ class FilmBenchmark:
         self.write(rows)
         return rows
 
-    def truth_A(self, area: int, data: Path) -> np.ndarray:
+    def truth_A(self, area: int, series) -> np.ndarray:
         """What the sub-area's atoms are scored against: the authors' model on the real views, the
-        replica's own truth on a replica (the model less its pairs closer than the hard core)."""
+        replica's own truth on a replica ``series`` (the model less its pairs closer than the hard
+        core)."""
         if not self.replica:
             return model_in_area_A(self.data_dir, area)
-        from dataparsers.tilt_series_format import load_tilt_series
         from gaussian_atoms_method.atoms.atom_set import read_atoms
 
-        series = load_tilt_series(data)
         return read_atoms(series.truth_path).positions - np.asarray(series.origin_A)
 
     def film_flags(self) -> tuple[str, ...]:
