@@ -13,14 +13,17 @@ from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms
 from gaussian_atoms_method.harness.replica import replica_of
 from gaussian_atoms_method.physics.noise import noise_from_projections
 
+GRID_A = np.stack(np.meshgrid([-2.7, 0.0, 2.7], [-1.35, 1.35], [-1.35, 1.35], indexing="ij"), -1).reshape(-1, 3)
+"""12 places 2.7 Å apart: Ta atoms near them keep clear of tantalum's 1.87 Å hard core."""
+
 
 def _real_like(tmp_path: Path, atoms: AtomSet | None = None) -> Path:
     """A 'real' series of Euler views (RESIRE's convention), off-centre tilt centre, Poisson-like
     noise (variance 4 + 0.5 x level), with a truth file: 12 Ta atoms on a 2.7 Å grid moved by up
     to 0.2 Å (a specimen that can exist: no two within tantalum's 1.87 Å hard core), or ``atoms``."""
     rng = np.random.default_rng(0)
-    grid = np.stack(np.meshgrid([-2.7, 0.0, 2.7], [-1.35, 1.35], [-1.35, 1.35], indexing="ij"), -1).reshape(-1, 3)
-    atoms = atoms or AtomSet(grid + rng.uniform(-0.2, 0.2, grid.shape), species=["Ta"] * 12)
+    if atoms is None:
+        atoms = AtomSet(GRID_A + rng.uniform(-0.2, 0.2, GRID_A.shape), species=["Ta"] * 12)
     euler = np.c_[np.full(15, 0.2), np.linspace(-60, 55, 15), np.full(15, -0.3)]
     geometry = TiltSeries(
         np.broadcast_to(np.linspace(1.0, 2.0, 40), (15, 48, 40)),  # a ramp: views that hold no noise
@@ -138,9 +141,8 @@ def test_a_replicas_truth_holds_no_pair_physics_forbids(tmp_path):
     ``--keep-close-pairs`` keeps the atoms as given."""
     from gaussian_atoms_method.atoms.hard_core import close_pairs
 
-    grid = np.stack(np.meshgrid([-2.7, 0.0, 2.7], [-1.35, 1.35], [-1.35, 1.35], indexing="ij"), -1).reshape(-1, 3)
     chain = np.array([[-1.0, 0.0, 0.0], [0.5, 0.0, 0.0], [2.0, 0.0, 0.0]])  # 1.5 Å apart, 3.0 Å end to end
-    atoms = AtomSet(np.r_[grid[[0, 1, 10, 11]], chain], species=["Ta"] * 7)  # at x = -2.7 and 2.7 Å
+    atoms = AtomSet(np.r_[GRID_A[[0, 1, 10, 11]], chain], species=["Ta"] * 7)  # at x = -2.7 and 2.7 Å
     real_dir = _real_like(tmp_path, atoms)
     command = [str(Path(sys.executable).parent / "gaussian-atoms"), "simulate", "--like", str(real_dir)]
     for options, kept in (([], 6), (["--keep-close-pairs"], 7)):
