@@ -124,18 +124,19 @@ def test_the_models_pairs_closer_than_the_hard_core_cannot_all_be_reported_where
 
 def test_a_replicas_truth_is_the_model_less_the_pairs_no_specimen_holds(tmp_path):
     """``benchmark-film --replica`` scores against the replica's own truth: the authors' model with
-    one atom of each pair closer than tantalum's hard core set aside (the whole film's model holds
-    50 such atoms), the rest where the model puts them; the real views are scored against the model."""
+    one atom of each pair closer than the shortest bond tantalum can form (2.11 Å) set aside (412 of
+    the whole film's 8,284 atoms), the rest where the model puts them; the real views are scored
+    against the model."""
     from scipy.spatial import cKDTree
 
     from dataparsers.tilt_series_format import load_tilt_series
-    from gaussian_atoms_method.atoms.hard_core import close_pairs, hard_core_from_species
+    from gaussian_atoms_method.atoms.hard_core import close_pairs, shortest_bond_from_species
     from gaussian_atoms_method.harness.film_benchmark import FilmBenchmark
 
-    core = hard_core_from_species("Ta")
+    bond = shortest_bond_from_species("Ta")
     model = model_in_area_A(DATA, 8)
     bench = FilmBenchmark(DATA, tmp_path, areas=(8,), replica=True)
     truth = bench.truth_A(8, load_tilt_series(bench.prepare(8)))
-    assert len(close_pairs(truth, core)) == 0 and len(truth) == len(model) - 50
+    assert len(close_pairs(truth, bond)) == 0 and len(truth) == len(model) - 412
     assert cKDTree(model).query(truth)[0].max() < 1e-4  # each truth atom a model atom, where it lies
     np.testing.assert_array_equal(FilmBenchmark(DATA, tmp_path).truth_A(8, None), model)

@@ -33,6 +33,21 @@ def test_the_hard_core_from_species_lies_below_every_bond_of_the_material_and_ab
         assert 0.5 * bond_A < hard_core_from_species(name) < 0.7 * bond_A
 
 
+def test_the_shortest_bond_lies_above_the_hard_core_by_the_position_allowance_and_below_real_bonds():
+    """A specimen's true atoms come no closer than the shortest bond chemistry knows, 0.62 of the
+    covalent radii (the Cr-Cr quintuple bond); the hard core sits below it by the room a measured
+    pair needs.  Ta: 2.11 Å, under its 2.5-3.0 Å bonds; carbon's 0.94 Å under its triple bond."""
+    from gaussian_atoms_method.atoms.hard_core import POSITION_ALLOWANCE, shortest_bond_from_species
+
+    for name, bond_A in [("Ta", 2.5), ("Au", 2.88), ("Si", 2.35), ("C", 1.20), ("Fe,Pt", 2.48)]:
+        shortest = shortest_bond_from_species(name)
+        assert hard_core_from_species(name) < shortest < bond_A
+        assert shortest - hard_core_from_species(name) == pytest.approx(POSITION_ALLOWANCE / 0.62 * shortest)
+    assert shortest_bond_from_species("Ta") == pytest.approx(0.62 * 3.40, abs=1e-9)
+    with pytest.raises(SpeciesError):
+        shortest_bond_from_species("")
+
+
 def test_species_are_parsed_and_unknown_ones_named():
     assert parse_species("Fe,Pt") == ("Fe", "Pt")
     assert parse_species(" ta ") == ("Ta",)

@@ -135,14 +135,16 @@ def test_simulate_takes_the_shifts_a_registration_file_holds(tmp_path):
 
 
 def test_a_replicas_truth_holds_no_pair_physics_forbids(tmp_path):
-    """A measured model may hold pairs closer than the hard core (the Ta film's: down to 1.53 Å
-    against tantalum's 1.87 Å); no specimen holds them, so ``simulate --like`` sets one of each
-    aside (the most atoms with no such pair: of a chain of three, its ends) and says so in a line;
-    ``--keep-close-pairs`` keeps the atoms as given."""
-    from gaussian_atoms_method.atoms.hard_core import close_pairs
+    """A measured model may hold pairs closer than any bond of its elements (the Ta film's: down
+    to 1.53 Å, where tantalum's shortest possible bond is 2.11 Å); no specimen holds them, so
+    ``simulate --like`` sets one of each aside (the most atoms with no such pair: of a chain of
+    three, its ends) and says so in a line; ``--keep-close-pairs`` keeps the atoms as given."""
+    from gaussian_atoms_method.atoms.hard_core import close_pairs, shortest_bond_from_species
 
-    chain = np.array([[-1.0, 0.0, 0.0], [0.5, 0.0, 0.0], [2.0, 0.0, 0.0]])  # 1.5 Å apart, 3.0 Å end to end
-    atoms = AtomSet(np.r_[GRID_A[[0, 1, 10, 11]], chain], species=["Ta"] * 7)  # at x = -2.7 and 2.7 Å
+    bond = shortest_bond_from_species("Ta")
+    chain = np.array([[-1.3, 0.0, 0.0], [0.1, 0.0, 0.0], [1.5, 0.0, 0.0]])  # 1.4 Å apart, 2.8 Å end to end
+    atoms = AtomSet(np.r_[GRID_A[[0, 1, 10, 11]], chain], species=["Ta"] * 7)  # 2.26 Å and more from the chain
+    assert len(close_pairs(atoms.positions, bond)) == 2
     real_dir = _real_like(tmp_path, atoms)
     command = [str(Path(sys.executable).parent / "gaussian-atoms"), "simulate", "--like", str(real_dir)]
     for options, kept in (([], 6), (["--keep-close-pairs"], 7)):
@@ -151,7 +153,8 @@ def test_a_replicas_truth_holds_no_pair_physics_forbids(tmp_path):
         assert result.returncode == 0, result.stderr[-2000:]
         truth = read_atoms(load_tilt_series(out).truth_path).positions
         assert len(truth) == kept
-        assert ("1 of the 7 atoms lie within another's hard core (1.87 Å" in result.stdout) == (kept == 6)
-    assert len(close_pairs(truth, 1.87)) == 2  # kept as given
+        said = "1 of the 7 atoms lie closer to another than the shortest bond their elements can form (2.11 Å"
+        assert (said in result.stdout) == (kept == 6)
+    assert len(close_pairs(truth, bond)) == 2  # kept as given
     truth = read_atoms(load_tilt_series(tmp_path / "r0").truth_path).positions
-    assert len(close_pairs(truth, 1.87)) == 0 and not np.any(np.all(np.isclose(truth, chain[1]), axis=1))
+    assert len(close_pairs(truth, bond)) == 0 and not np.any(np.all(np.isclose(truth, chain[1]), axis=1))

@@ -76,12 +76,29 @@ def _radii() -> dict[str, float]:
 def hard_core_from_species(species: str | Sequence[str]) -> float:
     """The hard core of a material of these elements, Å: :data:`COVALENT_FRACTION` of the least
     sum of two covalent radii among its pairs of elements (an element with itself included)."""
+    return COVALENT_FRACTION * _least_radii_sum(species)
+
+
+def shortest_bond_from_species(species: str | Sequence[str]) -> float:
+    """The shortest distance two atoms of a material of these elements can be apart, Å:
+    :data:`SHORTEST_BOND_OF_RADII` of the least sum of two covalent radii among its pairs of
+    elements (2.11 Å for tantalum, whose bonds are 2.5-3.0 Å).  The hard core is this less
+    :data:`POSITION_ALLOWANCE`, the room a measured pair's distance needs; a specimen's true
+    atoms need none (:func:`~gaussian_atoms_method.harness.replica.physical_truth`).
+
+    >>> round(shortest_bond_from_species("Ta"), 2), round(hard_core_from_species("Ta"), 2)
+    (2.11, 1.87)
+    """
+    return SHORTEST_BOND_OF_RADII * _least_radii_sum(species)
+
+
+def _least_radii_sum(species: str | Sequence[str]) -> float:
+    """The least sum of two covalent radii among the pairs of ``species``' elements, Å."""
     elements = parse_species(species)
     if not elements:
         raise SpeciesError("species: name at least one element, e.g. Ta or Fe,Pt")
     radii = _radii()
-    smallest = min(radii[e] for e in elements)
-    return COVALENT_FRACTION * 2.0 * smallest
+    return 2.0 * min(radii[e] for e in elements)
 
 
 def hard_core_from_positions(positions: np.ndarray, masses: np.ndarray, typical_mass: float) -> tuple[float, float]:

@@ -133,7 +133,8 @@ class BenchmarkFilm:
     """Start each fit at the authors' model instead of the back-projection's candidates: how much
     of the model the data hold (the fit moves off the rest)."""
     replica: bool = False
-    """Fit each sub-area's replica instead: the authors' model as a known truth in the sub-area's
+    """Fit each sub-area's replica instead: the authors' model (less one of each pair closer than
+    tantalum's shortest bond, 2.11 Å) as a known truth in the sub-area's
     own views' geometry, level and noise, under a 3 nm carbon support, a 300 kV probe's rings and
     tails, 0.5 px of per-view misregistration and 6.8% gain scatter (docs/evidence.md)."""
     strips: tuple[int, ...] = ()

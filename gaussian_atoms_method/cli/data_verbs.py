@@ -67,9 +67,9 @@ class Simulate:
     gain_scatter: float = 0.0
     """With --like: each view's gain scattered by this relative RMS."""
     keep_close_pairs: bool = False
-    """With --like: keep atoms closer than their elements' hard core in the truth. By default one of
-    each such pair (a measured model's error; no specimen holds it) is set aside and the run
-    says how many."""
+    """With --like: keep atoms closer than the shortest bond their elements can form in the truth.
+    By default one of each such pair (a measured model's error; no specimen holds it) is set aside
+    and the run says how many."""
 
     @property
     def particle_scale(self) -> float | None:
@@ -183,12 +183,13 @@ class Simulate:
         if atoms.species is None or np.any(atoms.species == "X"):
             raise ValueError("--particle: the replica needs each atom's element (an xyz or csv file with species)")
         if not self.keep_close_pairs:
-            kept, core_A, closest_A = physical_truth(atoms)
+            kept, bond_A, closest_A = physical_truth(atoms)
             if len(kept) < len(atoms):
                 print(
-                    f"simulate: {len(atoms) - len(kept)} of the {len(atoms)} atoms lie within another's hard core "
-                    f"({core_A:.2f} Å from their elements; the closest pair {closest_A:.2f} Å apart): set aside, the "
-                    f"truth is the {len(kept)} a specimen can hold (--keep-close-pairs keeps them)"
+                    f"simulate: {len(atoms) - len(kept)} of the {len(atoms)} atoms lie closer to another than the "
+                    f"shortest bond their elements can form ({bond_A:.2f} Å; the closest pair {closest_A:.2f} Å "
+                    f"apart): set aside, the truth is the {len(kept)} a specimen can hold (--keep-close-pairs "
+                    f"keeps them)"
                 )
             atoms = kept
         shifts = None

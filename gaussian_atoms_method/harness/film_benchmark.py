@@ -203,7 +203,7 @@ def most_reportable(model_A: np.ndarray, inside: np.ndarray, hard_core_A: float)
     The authors' model is a measurement and holds pairs no material has (down to 1.53 Å against
     tantalum's 1.87): scored against it, a physical report drops one of each such pair, or finds
     both only by holding them apart (each within the match radius of its place).  A replica's
-    truth keeps only such a set (:func:`write_replica`).
+    truth keeps fewer still: none closer than the shortest bond (:func:`write_replica`).
 
     >>> model = np.array([[0.0, 0, 0], [1.5, 0, 0], [3.0, 0, 0], [10.0, 0, 0]])
     >>> most_reportable(model, np.ones(4, bool), 1.87)  # a chain of three keeps its two ends
@@ -309,7 +309,7 @@ def write_replica(area_dir: Path, out_dir: Path, seed: int = 0) -> Path:
     :func:`gaussian_atoms_method.harness.replica.write_replica`) as a tilt-series directory
     ``out_dir``; its atoms and truth are the model's atoms a specimen can hold
     (:func:`~gaussian_atoms_method.harness.replica.physical_truth`: one of each pair closer than
-    tantalum's hard core set aside)."""
+    the shortest bond tantalum can form set aside)."""
     from dataparsers.tilt_series_format import load_tilt_series
     from gaussian_atoms_method.atoms.atom_set import read_atoms
     from gaussian_atoms_method.harness import replica
@@ -389,8 +389,8 @@ class FilmBenchmark:
 
     def truth_A(self, area: int, series) -> np.ndarray:
         """What the sub-area's atoms are scored against: the authors' model on the real views, the
-        replica's own truth on a replica ``series`` (the model less its pairs closer than the hard
-        core)."""
+        replica's own truth on a replica ``series`` (the model less its pairs closer than the shortest
+        bond tantalum can form)."""
         if not self.replica:
             return model_in_area_A(self.data_dir, area)
         from gaussian_atoms_method.atoms.atom_set import read_atoms

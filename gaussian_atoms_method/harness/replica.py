@@ -21,8 +21,8 @@ harness builds) through everything a measured view holds:
 * noise of the variance the real views were read to hold at each level.
 
 The truth is the atoms given (the support's carbon is not an atom to find); a measured model's
-pairs closer than their elements' hard core, which no specimen holds, are set aside first
-(:func:`physical_truth`).
+pairs closer than the shortest bond their elements can form, which no specimen holds, are set
+aside first (:func:`physical_truth`).
 """
 
 from __future__ import annotations
@@ -96,24 +96,27 @@ def _project(positions, sigmas, masses, axes, series) -> np.ndarray:
 
 
 def physical_truth(atoms: AtomSet) -> tuple[AtomSet, float, float]:
-    """The most of ``atoms`` with no two closer than their elements' hard core
-    (:func:`~gaussian_atoms_method.atoms.hard_core.most_apart`), that core (of all their elements
-    together, :func:`~gaussian_atoms_method.atoms.hard_core.hard_core_from_species`) and the
+    """The most of ``atoms`` with no two closer than the shortest bond their elements can form
+    (:func:`~gaussian_atoms_method.atoms.hard_core.most_apart`), that bond (of all their elements
+    together, :func:`~gaussian_atoms_method.atoms.hard_core.shortest_bond_from_species`) and the
     closest distance among the atoms given, Å (inf with fewer than two).
 
     A replica's truth must be a specimen that can exist.  A measured model may hold pairs no
-    material has (the Ta film's model: three in a sub-area, down to 1.53 Å against tantalum's
-    1.87); a report that obeys physics cannot hold both where they lie, so scored against them
-    it would measure the model's error, not what the experiment recovers.
+    material has (the Ta film's model: pairs down to 1.53 Å, where tantalum's bonds are 2.5-3.0 Å
+    and none can be under 2.11; 412 of its 8,284 atoms are set aside).  The report's hard core
+    lies below that bond by the room a measured pair needs (1.87 Å for Ta): a true pair within
+    that room is reported as one atom whenever its measured distance falls under the core (on the
+    Ta replicas, pairs 1.88-1.94 Å apart were all their misses), so scored against it a replica
+    would measure the model's error, not what the experiment recovers.
     """
-    from gaussian_atoms_method.atoms.hard_core import hard_core_from_species, most_apart
+    from gaussian_atoms_method.atoms.hard_core import most_apart, shortest_bond_from_species
     from gaussian_atoms_method.atoms.pair_distribution import nearest_neighbour_distances
 
     if atoms.species is None or len(atoms) < 2:
         return atoms, 0.0, float("inf")
-    core_A = hard_core_from_species(sorted(set(atoms.species)))
+    bond_A = shortest_bond_from_species(sorted(set(atoms.species)))
     closest_A = float(nearest_neighbour_distances(atoms.positions).min())
-    return atoms.subset(most_apart(atoms.positions, core_A)), core_A, closest_A
+    return atoms.subset(most_apart(atoms.positions, bond_A)), bond_A, closest_A
 
 
 def replica_of(
