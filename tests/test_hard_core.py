@@ -13,7 +13,6 @@ from gaussian_atoms_method.atoms.hard_core import (
     close_pairs,
     hard_core_from_positions,
     hard_core_from_species,
-    lighter_of_close_pairs,
     most_apart,
     parse_species,
 )
@@ -88,14 +87,24 @@ def test_the_hard_core_read_from_data_ignores_a_made_up_pair_peak_below_the_firs
     assert hard_core_from_positions(positions[:5], masses[:5], 1.0) == (math.inf, math.inf)
 
 
-def test_the_lighter_partner_of_a_close_pair_is_set_aside_once():
-    """A chain of three 1.0 Å apart: the heaviest keeps its place; its neighbour goes; the third,
-    2.0 Å from the heaviest and close only to the one set aside, stays."""
+def test_the_heaviest_apart_keep_the_most_mass_the_hard_core_allows():
+    """Given masses, ``most_apart`` keeps the set apart of the greatest mass.  A chain of three
+    1.0 Å apart: the heaviest keeps its place, its neighbour goes, the third (2.0 Å from it) stays.
+    A wide Gaussian of one atom's mass between two lighter atoms 2.8 Å apart: the two (1.7 atoms'
+    mass); between two fragments of 0.3: the one atom."""
     positions = np.array([[0.0, 0, 0], [1.0, 0, 0], [2.0, 0, 0], [10.0, 0, 0]])
     masses = np.array([5.0, 1.0, 2.0, 1.0])
-    assert lighter_of_close_pairs(positions, masses, 1.5).tolist() == [False, True, False, False]
+    assert most_apart(positions, 1.5, masses).tolist() == [True, False, True, True]
     assert close_pairs(positions, 1.5).tolist() == [[0, 1], [1, 2]]
     assert close_pairs(positions, math.inf).shape == (0, 2)
+    between = np.array([[0.0, 0, 0], [1.4, 0, 0], [-1.4, 0, 0]])
+    assert most_apart(between, 1.87, np.array([1.0, 0.8, 0.9])).tolist() == [False, True, True]
+    assert most_apart(between, 1.87, np.array([1.0, 0.3, 0.3])).tolist() == [True, False, False]
+    assert most_apart(between[:2], 1.87, np.array([0.4, 0.6])).tolist() == [False, True]  # of a pair, the heavier
+    cluster = np.random.default_rng(3).uniform(0, 5, (40, 3))  # one group: the greedy branch, heaviest first
+    weights = np.random.default_rng(4).uniform(0.5, 1.5, 40)
+    keep = most_apart(cluster, 1.87, weights)
+    assert len(close_pairs(cluster[keep], 1.87)) == 0 and keep[np.argmax(weights)]
 
 
 def test_the_most_atoms_apart_keep_no_pair_within_the_core_and_drop_none_they_could_keep():

@@ -23,7 +23,7 @@ import torch
 from gaussian_atoms_method.atoms import picture_process
 from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms, write_atoms
 from gaussian_atoms_method.atoms.classification import classify_gaussians, in_support
-from gaussian_atoms_method.atoms.hard_core import lighter_of_close_pairs
+from gaussian_atoms_method.atoms.hard_core import most_apart
 from gaussian_atoms_method.atoms.matching import score_atoms
 from gaussian_atoms_method.atoms.pictures import draw_slices, write_population_png, write_rdf_png
 from gaussian_atoms_method.atoms.slices import slice_planes
@@ -390,9 +390,10 @@ def say_structure(evidence: dict) -> None:
 def split_atoms(gaussians: AtomSet, in_field: np.ndarray, device="cpu", hard_core_A: float = math.inf):
     """The Gaussians as atoms and non-atoms: beyond the field of view, or in the field but
     outside the support or in a class apart from the atoms
-    (:func:`gaussian_atoms_method.atoms.classification.classify_gaussians`), or the lighter of a
-    pair closer than ``hard_core_A`` (:func:`gaussian_atoms_method.atoms.hard_core.lighter_of_close_pairs`:
-    two atoms never come that close, so the report holds the heavier);
+    (:func:`gaussian_atoms_method.atoms.classification.classify_gaussians`), or within
+    ``hard_core_A`` of one the report holds: two atoms never come that close, so of Gaussians
+    joined by such pairs it holds those apart that carry the most mass
+    (:func:`gaussian_atoms_method.atoms.hard_core.most_apart`; of a pair, the heavier);
     prints the counts (atoms per class).  Returns the atoms, the non-atoms and the population's
     picture's arguments but its path (:func:`gaussian_atoms_method.atoms.pictures.write_population_png`;
     None with no Gaussian in the field).  The classes' mixture is fitted on
@@ -401,7 +402,7 @@ def split_atoms(gaussians: AtomSet, in_field: np.ndarray, device="cpu", hard_cor
     classes = classify_gaussians(field.masses, field.sigmas, field.positions, device=device)
     reported = reported_as_atoms(gaussians.positions, in_field, classes.atoms)
     close = np.zeros(len(gaussians), dtype=bool)
-    close[reported] = lighter_of_close_pairs(gaussians.positions[reported], gaussians.masses[reported], hard_core_A)
+    close[reported] = ~most_apart(gaussians.positions[reported], hard_core_A, gaussians.masses[reported])
     reported &= ~close
     labels = np.zeros(len(gaussians), dtype=np.int64)  # 0: a non-atom
     labels[np.flatnonzero(in_field)] = np.where(reported[in_field], classes.classes, 0)
@@ -417,7 +418,8 @@ def split_atoms(gaussians: AtomSet, in_field: np.ndarray, device="cpu", hard_cor
         f"gaussian-atoms: {int(reported.sum())} atoms{f' ({per_class}, by mass and width)' if per_class else ''}; "
         f"{outside + beyond + n_close} non-atoms: {outside} outside the atoms' support (no neighbour within the "
         f"material's distances, or a class apart from them), "
-        f"{n_close} within the hard core of a heavier atom, {beyond} beyond the field of view"
+        f"{n_close} within the hard core of the atoms reported (the most mass it holds apart), {beyond} beyond the "
+        f"field of view"
     )
     others = gaussians.subset(~in_field)
 
