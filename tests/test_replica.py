@@ -14,13 +14,14 @@ from gaussian_atoms_method.harness.replica import replica_of
 from gaussian_atoms_method.physics.noise import noise_from_projections
 
 GRID_A = np.stack(np.meshgrid([-2.7, 0.0, 2.7], [-1.35, 1.35], [-1.35, 1.35], indexing="ij"), -1).reshape(-1, 3)
-"""12 places 2.7 Å apart: Ta atoms near them keep clear of tantalum's 1.87 Å hard core."""
+"""12 places 2.7 Å apart: Ta atoms near them keep clear of tantalum's shortest bond (2.11 Å)."""
 
 
 def _real_like(tmp_path: Path, atoms: AtomSet | None = None) -> Path:
     """A 'real' series of Euler views (RESIRE's convention), off-centre tilt centre, Poisson-like
     noise (variance 4 + 0.5 x level), with a truth file: 12 Ta atoms on a 2.7 Å grid moved by up
-    to 0.2 Å (a specimen that can exist: no two within tantalum's 1.87 Å hard core), or ``atoms``."""
+    to 0.2 Å (a specimen that can exist: no two closer than tantalum's shortest bond, 2.11 Å), or
+    ``atoms``."""
     rng = np.random.default_rng(0)
     if atoms is None:
         atoms = AtomSet(GRID_A + rng.uniform(-0.2, 0.2, GRID_A.shape), species=["Ta"] * 12)

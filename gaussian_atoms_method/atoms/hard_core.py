@@ -189,8 +189,7 @@ def _largest_apart(n: int, edges: np.ndarray, weights: np.ndarray | None = None)
         allowed = ~np.any((masks[:, None] >> a & 1) & (masks[:, None] >> b & 1), axis=1)
         chosen = (masks[:, None] >> np.arange(n) & 1).astype(bool)
         sizes = chosen.sum(axis=1) if weights is None else chosen @ weights
-        best = masks[np.flatnonzero(allowed & (sizes == sizes[allowed].max()))[0]]
-        return (best >> np.arange(n) & 1).astype(bool)
+        return chosen[np.flatnonzero(allowed & (sizes == sizes[allowed].max()))[0]]
     left, kept = np.ones(n, dtype=bool), np.zeros(n, dtype=bool)
     while left.any():
         live = left[a] & left[b]

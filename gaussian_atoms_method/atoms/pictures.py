@@ -65,7 +65,7 @@ def write_population_png(
 ) -> Path:
     """The population of the Gaussians: width against mass (log axes), each atom (``atoms``,
     (N,) bool) coloured by its class (``classes``, 1..``n_classes``), the non-atoms in the field
-    (outside the support, in a class apart from the atoms, inside a heavier atom's hard core) as crosses and those
+    (outside the support, in a class apart from the atoms, inside a reported atom's hard core) as crosses and those
     beyond the field of view (``beyond_field``: their masses and
     widths) as grey dots (:func:`~gaussian_atoms_method.atoms.classification.classify_gaussians`
     gives the classes)."""

@@ -337,7 +337,8 @@ class FilmBenchmark:
     start_from_model: bool = False
     replica: bool = False
     """Fit each sub-area's replica instead (:func:`write_replica`): the model, less its pairs closer
-    than the hard core, as a known truth in the sub-area's own geometry, level and noise."""
+    than the shortest bond tantalum can form, as a known truth in the sub-area's own geometry,
+    level and noise."""
 
     def run(self) -> list[dict]:
         from dataparsers.tilt_series_format import load_tilt_series
