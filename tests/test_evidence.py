@@ -277,6 +277,34 @@ def test_a_place_within_a_neighbours_hard_core_is_the_column_moved_as_one():
         assert stated == pytest.approx(actual, rel=0.05)
 
 
+def test_an_atom_the_fit_left_off_its_depth_is_open_in_depth():
+    """Two atoms 2.6 Å apart over +-50 degrees; the views hold the first 1 Å higher than the
+    fit put it (a fit ended off its optimum along the beam; hard core 1.4 Å, so the profile
+    looks 0.7, 1.4 and 2.1 Å either way).  Moved up by 0.7 or 1.4 Å it comes within 0.4 Å of
+    where it is: the cost falls by thousands of noise variances even with nothing else
+    re-fitted, an exact bound, so the views prefer that place and the atom is open in depth,
+    its interval reaching it.  The atom fitted where the views hold it is closed
+    (the test above)."""
+    from gaussian_atoms_method.atoms.depth_profile import depth_profile_pulls
+    from gaussian_atoms_method.atoms.information import view_scores
+
+    axes = detector_axes_from_tilts(np.linspace(-50, 50, 11))
+    truth = torch.tensor([[0.1, -0.2, 1.15, 0.5, 0.3], [2.6, 0.1, -0.4, 0.5, 0.3]], dtype=torch.float64)
+    fitted = truth.clone()
+    fitted[0, 2] -= 1.0
+    noise = 0.02
+    clean = _render(truth, axes)
+    measured = clean + torch.as_tensor(np.random.default_rng(2).normal(0, noise, clean.shape))
+    p, residual, centre = fitted.numpy(), (measured - _render(fitted, axes)).numpy(), (40.0, 40.0)
+    pulls = view_scores(p[:, :3], p[:, 3], p[:, 4], axes, residual, PIXEL_A, centre)
+    moved = depth_profile_pulls(p[:, :3], p[:, 3], p[:, 4], axes, residual, PIXEL_A, centre, 1.4)
+    ev = atom_evidence(p[:, :3], p[:, 3], p[:, 4], axes, PIXEL_A, noise, 1.4, scores=pulls, moved_pulls=moved)
+    up = ev.depth_offsets_A > 0
+    np.testing.assert_allclose(ev.depth_offsets_A[up], [0.7, 1.4, 2.1])
+    assert np.all(ev.depth_profile[0, up][:2] < -1000) and ev.depth_profile[0, up][2] > Z95**2
+    assert ev.depth_open[0] and ev.depth_halfwidth_A[0] >= 1.4
+
+
 def _cluster(n: int, seed: int = 0):
     """An amorphous Pd cluster of ``n`` atoms seen over a 29-view limited series, each atom with
     its own width and mass, views' pulls and moved pulls drawn at random (the algebra does not

@@ -72,8 +72,8 @@ def _columns(local: np.ndarray, positions: np.ndarray, offsets, axis: np.ndarray
 
 def depth_rises(
     local, info, scores, moved, offsets, positions, sigmas, amps, axes, pixel_size_A, hard_core_A, axis
-) -> torch.Tensor:
-    """(B, M) for each atom ``local[:, 0]`` and each of the M ``offsets``: how much the
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Two (B, M): for each atom ``local[:, 0]`` and each of the M ``offsets``, how much the
     least-squares cost rises (pixel sums, in projection units squared) when the atom is moved by
     it along the depth axis, with it the atoms whose places it would take (:func:`_columns`: a
     column shifted as one), and every other parameter of the set ``local`` (B, k) is re-fitted
@@ -86,7 +86,8 @@ def depth_rises(
     the cost before the re-fit changes by ``-2 <r, sum_G (g_i' - g_i)> + |sum_G (g_i' - g_i)|^2``;
     every overlap is a pair's information block (a pair moved together keeps its own), and the
     re-fit is one Gauss-Newton step from the moved places with each moved atom's place along the
-    axis held."""
+    axis held.  The second is that change before the re-fit, exact (no linearisation): where it
+    falls the views prefer the moved place even with nothing else re-fitted."""
     b, k = local.shape
     m = len(offsets)
     on = dict(dtype=torch.float64, device=info.device)
@@ -154,4 +155,5 @@ def depth_rises(
         return (rhs * torch.linalg.solve(turned, rhs[..., None])[..., 0]).sum(-1)
 
     baseline = refit(info[:, None].expand(b, m, 5 * k, 5 * k), pull_now.reshape(b, 1, 5 * k).expand(b, m, 5 * k))
-    return -2 * rd + dd - refit(with_move, pull) + baseline
+    frozen = -2 * rd + dd
+    return frozen - refit(with_move, pull) + baseline, frozen
