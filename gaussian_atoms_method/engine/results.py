@@ -341,7 +341,7 @@ def say_evidence(atoms: AtomSet) -> None:
         f"gaussian-atoms: evidence: {proven} atoms proven, {len(atoms) - proven} open (the views lose less than "
         f"{atoms.info['proof_level']:.1f} noise standard deviations without them, their neighbours re-fitted); "
         f"{depth_open} open in depth (95% interval along the beam wider than half the hard core, or another place "
-        f"there as good); median "
+        f"there as good or better); median "
         f"significance {np.median(atoms.significance):.1f}"
     )
 
