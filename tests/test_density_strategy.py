@@ -174,7 +174,7 @@ def _pair_along_the_wedge(separation_A, sigma_A, each_significance):
 
 
 def test_an_atom_shared_along_the_missing_wedge_is_merged_and_judged_whole():
-    """At Au noise 500 (CHANGELOG.md) a whole atom's mass stands about 7.3 of its standard
+    """At Au noise 500 (docs/results.md) a whole atom's mass stands about 7.3 of its standard
     deviations high, above the final prune's 5.33 for a 100 Å box; the fit can share it between
     two Gaussians 1.2 Å apart along the wedge, 3.65 each, which the prune alone would both drop.
     Merging the pair changes the projections by a chi-square of about 6 against the level of

@@ -17,7 +17,7 @@ back-projection already shows where the mass is.  The search runs as named steps
 6. remainders: sites the candidates' fitted responses leave unexplained (an atom that is a
    neighbour's shoulder at every scale).
 
-The measurements behind each step are in ``CHANGELOG.md`` ("The start's six steps").
+The measurements behind each step are in the history of ``CHANGELOG.md`` ("The start's six steps").
 """
 
 from __future__ import annotations

@@ -13,7 +13,7 @@ of the 7,000-atom carbon's atoms at noise 5, never recovered by the fit).  So:
    and a missing atom never does, counts the error's maxima at each height (*decoys*, as in a
    target-decoy estimate of the false discovery rate, :func:`decoy_level`).
 
-The measurements behind the step count and the decoy level: ``CHANGELOG.md`` ("Docstrings'
+The measurements behind the step count and the decoy level: the history of ``CHANGELOG.md`` ("Docstrings'
 measurements").
 """
 

@@ -13,7 +13,7 @@ The warm-up touches only its own tensors and a private random generator, so a ru
 not depend on it; a CUDA graph's capture waits for it (:func:`wait`: a launch from another
 thread during a capture would break the capture).  On one H100, Au noise 200, three alternated
 pairs: ``gaussian-atoms train`` reached its target 4.4-5.2 s from launch against 4.9-5.5 s
-without it (the other runs behind its choices: CHANGELOG.md).
+without it (the other runs behind its choices: the history of CHANGELOG.md).
 """
 
 from __future__ import annotations
