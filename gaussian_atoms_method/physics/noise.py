@@ -21,8 +21,8 @@ errors; 3: a one-in-700 false alarm for Gaussian errors).
 This module is the measurement only: what the fit does with it (the data term, thresholds in
 units of the noise) is density control's and the model's.  Arrays are read with numpy on a
 machine without a GPU; with one (or given tensors on one) the filters, sorts and medians run in
-torch there (:func:`~gaussian_atoms_method.physics.devices.work_device`), since a series of
-millions of pixels took about a second a reading on the H100 machine's CPU.
+torch there (:func:`~gaussian_atoms_method.physics.devices.work_device`), since a host's sorts
+over millions of pixels are slow beside a GPU's.
 """
 
 from __future__ import annotations
@@ -187,9 +187,8 @@ def binned_variance(
     plain sample variance (``robust=False``: for counts of a few electrons, whose residuals
     take a handful of discrete values and whose MAD is quantised: on Poisson counts of mean
     1-2 the MAD read the variance 1.3-2x too high).  The sort and the bins are read in torch on
-    ``device`` (default :func:`~gaussian_atoms_method.physics.devices.work_device`: at 20,000
-    atoms the host's sort, gathers and copies took 0.6 s a reading on the H100 machine), else
-    with numpy.
+    ``device`` (default :func:`~gaussian_atoms_method.physics.devices.work_device`: at many atoms the
+    host's sort, gathers and copies are most of a reading), else with numpy.
 
     Returns
     -------
@@ -218,8 +217,8 @@ def equal_count_bins(values: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndar
     """(n,) the bin of each of the (n,) ``values`` and the (bins,) bin sizes: ``np.array_split``'s
     bins of the values in stable sorted order, without the sort.  Each bin's first rank is
     selected (``np.partition``); a value below an edge lies before it, above it after, and values
-    equal to an edge take their ranks in index order, as a stable sort gives them.  The noise
-    reading's 3.4 million Au pixels: 0.3 s against 0.86 s for the stable sort (2-core CPU)."""
+    equal to an edge take their ranks in index order, as a stable sort gives them: linear time
+    where the sort is n log n."""
     values = np.asarray(values)
     n = len(values)
     sizes = np.array([n // bins + 1] * (n % bins) + [n // bins] * (bins - n % bins), dtype=np.int64)
@@ -260,8 +259,7 @@ def _binned_variance_torch(residuals, predicted, bins: int, min_count: int, robu
 
 def median_on_device(values):
     """numpy's median of a 1D tensor (the mean of the two middle values for an even count), on
-    the tensor's device: a sort, where numpy partitions on one CPU core (the residuals' robust
-    spread, 7.5 million pixels at 20,000 atoms, took 1 s a reading on the H100 machine's CPU)."""
+    the tensor's device: a sort, where numpy partitions on one CPU core."""
     ordered = values.sort().values
     n = len(ordered)
     return ordered[n // 2] if n % 2 else 0.5 * (ordered[n // 2 - 1] + ordered[n // 2])
@@ -271,8 +269,7 @@ def mad_std(values, device=None) -> float:
     """``1.4826 * MAD`` of the finite ``values`` (an array or a tensor).  The medians are taken
     in torch on ``device`` (default: a tensor's own device off the CPU, else a GPU where there is
     one; :func:`median_on_device`), else by numpy's median (linear time on the CPU) in one float64
-    copy of ``values``, partitioned in place (three copies fewer: 0.19 -> 0.13 s for the residual
-    search's 200^3 volume on the 2-core CPU)."""
+    copy of ``values``, partitioned in place (three copies fewer than ``np.median``)."""
     import torch
 
     if device is None:

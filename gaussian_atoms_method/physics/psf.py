@@ -36,10 +36,9 @@ harness's 20 mrad probe at 40 Å defocus holds 9% of its intensity beyond 2 Å a
 
 MATRIX_BLUR_MAX_SIDE_PX = 320
 """The largest image side (px) a GPU blurs by matrices (:func:`apply_kernel_by_matrices`), not
-by FFT.  The products' work grows as the side cubed, the FFT's barely: on an H100, 8 views,
-forward and backward, 1.46 ms against the FFT's 1.02 at 600 px, 2.97 against 0.95 at 800.  At
-320 px (about 0.2 ms a step, scaled from 600) a 3,000-step run's extra time equals what the
-matrices spare it: cuFFT's first use in the process, 0.3-0.9 s (``scripts/studies/psf_blur_cost.py``)."""
+by FFT.  The products' work grows as the side cubed, the FFT's barely; at this side a
+3,000-step run's extra time in products equals what the matrices spare it, cuFFT's first use in
+the process (``scripts/studies/psf_blur_cost.py`` measures both)."""
 
 
 @torch.no_grad()
@@ -60,8 +59,7 @@ def kernel_transfer(freq2: torch.Tensor, widths: torch.Tensor, weights: torch.Te
 
 def fast_fft_length(n: int) -> int:
     """The smallest ``2^a 3^b`` at least ``n``: an FFT length both pocketfft (torch's CPU) and
-    cuFFT transform fast.  The Au series' padded 367-pixel image (a prime) took 1.69 ms for
-    ``rfft2`` and ``irfft2`` on the 2-core CPU, 384 pixels 0.39 ms."""
+    cuFFT transform fast (a prime length is several times slower than the next such length)."""
     best, power2 = 1 << max(int(n) - 1, 0).bit_length(), 1
     while power2 < best:
         m = power2
@@ -83,8 +81,7 @@ def _gaussian_factors(
     ph: int, pw: int, spacing: float, widths: tuple[float, ...], device: torch.device, dtype: torch.dtype
 ) -> torch.Tensor:
     """(ph, pw // 2 + 1, K) ``exp(-2 pi^2 s_k^2 f^2) - 1`` on the ``rfft2`` grid: fixed for a run's
-    image grid, so computed once (recomputed, they were 1.1 ms of the 22 ms of a CPU training
-    step on the Au series; the transfer is then one product with the weights)."""
+    image grid, so computed once (the transfer is then one product with the weights)."""
     freq2 = _squared_frequencies(ph, pw, spacing, device, dtype)
     return torch.expm1(-2.0 * math.pi**2 * torch.tensor(widths, device=device, dtype=dtype) ** 2 * freq2[..., None])
 

@@ -73,7 +73,7 @@ def shift_matrix(length: int, shift_px: float) -> np.ndarray:
     ``mode="constant"``) as a matrix, row ``i`` giving output sample ``i``.  The shift is linear,
     so a stack of sinograms shifted along one axis is one product with it: to rounding the same
     as ``scipy.ndimage.shift`` of the whole stack, whose 3D spline interpolates along the two
-    unshifted axes too (the 64-pixel noise sample of the start: 36 ms against 3 ms here)."""
+    unshifted axes too."""
     columns = [scipy.ndimage.shift(e, shift_px, order=3, mode="constant") for e in np.eye(length)]
     return np.stack(columns, axis=1)
 
@@ -88,9 +88,8 @@ def backprojection_matrix(
     ``i0`` and ``i0 + 1`` with weights ``1 - w`` and ``w``: two entries per pixel and angle.
     Columns index ``k * (length + 1) + detector``; the extra last detector sample of each angle
     is a zero that pixels whose ray misses the detector read (``np.interp(left=0, right=0)``).
-    Built in torch on ``device`` (the Au series' 6.9 million entries: 0.4 s in numpy on the
-    2-core CPU, then a copy to a GPU); the angles' cosines and sines are numpy's, so the
-    entries are the same on every device.
+    Built in torch on ``device`` (not in numpy and copied); the angles' cosines and sines are
+    numpy's, so the entries are the same on every device.
 
     Parameters
     ----------
@@ -189,9 +188,8 @@ def filtered_backprojection(
     Every slice samples its filtered projections at the same detector positions, so the
     back-projection is one sparse matrix (:func:`backprojection_matrix`, two entries per
     output pixel and angle) applied to all slices' filtered projections at once: one sparse x
-    dense product instead of scikit-image's per-slice loop of interpolations (the 271-slice Au
-    volume: 3 s against 13 s on the 2-core machine; the matrix is built in blocks of output
-    rows to bound its memory).  On the CPU it runs in numpy and scipy (the same values as
+    dense product instead of scikit-image's per-slice loop of interpolations (the matrix is
+    built in blocks of output rows to bound its memory).  On the CPU it runs in numpy and scipy (the same values as
     torch's to the bit, without importing torch: a start begun while the launcher imports it).
 
     Parameters
@@ -207,8 +205,7 @@ def filtered_backprojection(
         each).
     dtype : torch or numpy dtype, optional
         Of the product and the result (default float64, ``iradon``'s to rounding).  float32
-        halves the time of the 271^3 Au volume's product and copies (0.45 -> 0.16 s for the
-        product on the 2-core CPU), for a start that only looks for its maxima.
+        for a start that only looks for its maxima: its product and copies take less than half the time.
     as_tensor : bool
         Return the tensor on ``device`` rather than a host array.
 
@@ -221,7 +218,7 @@ def filtered_backprojection(
     if n_angles != len(angles_deg):
         raise ValueError(f"{n_angles} sinogram angles but {len(angles_deg)} angles_deg")
     size = length if output_size is None else int(output_size)
-    # half the spectrum, along a contiguous axis (the Au series' filtering 0.65 -> 0.05 s on the 2-core CPU)
+    # half the spectrum, along a contiguous axis
     padded, even = even_filter(length, filter_name)
     block = max(1, max_matrix_entries // (2 * n_angles))  # output pixels per block
     if _on_host(device):
@@ -359,8 +356,7 @@ def backprojection_for_peaks(
 ) -> Volume:
     """The Hann FBP a search for atom-like peaks reads (the start's step 1,
     :func:`gaussian_atoms_method.atoms.candidates.backprojection_candidates`), in float32
-    (float64 took twice as long on the CPU: the Au series' FBP 1.5 s, its Laplacian of Gaussian
-    2.0 s against 0.95 s): a tensor on ``device`` (the filters and the maxima run there), or
+    (float64 takes twice as long on a CPU): a tensor on ``device`` (the filters and the maxima run there), or
     with ``device`` :data:`~gaussian_atoms_method.physics.devices.HOST` an array made without
     importing torch (the CPU's own FBP: the same values)."""
     on_host = device == HOST
