@@ -247,8 +247,7 @@ def _extxyz_columns(atoms: AtomSet) -> list[tuple[str, np.ndarray, str]]:
 def _write_extxyz(atoms: AtomSet, path: Path) -> None:
     """Extended XYZ, the bytes ASE's writer gives :meth:`AtomSet.to_ase` (tests/test_atoms_io.py):
     its formats (``%-2s``, ``%16.8f``, ``%8d``) applied a row at a time in one pass, where ASE
-    formats column by column through its own machinery (2.0 against 0.3 s for 54,000 atoms on the
-    2-core CPU)."""
+    formats column by column through its own machinery, several times slower at many atoms."""
     if len(atoms) == 0:  # ASE's own header for no atoms (its column types read from empty arrays)
         import ase.io
 
@@ -317,8 +316,7 @@ def read_atoms(path: str | Path) -> AtomSet:
 def _read_unchanged(path: Path, inode: int, mtime_ns: int, size: int) -> AtomSet:
     """:func:`read_atoms` of a file as it stands (its inode, modification time and size: an
     atomic write makes a new inode): a run reads
-    its truth file when it checks the input and again when it scores (0.5 s each through ASE for
-    54,000 atoms on the 2-core CPU)."""
+    its truth file when it checks the input and again when it scores."""
     suffix = path.suffix.lower()
     try:
         if suffix == ".csv":
@@ -350,8 +348,8 @@ def _read_plain_extxyz(path: Path) -> AtomSet | None:
     """A one-frame extended XYZ file of the plain form this package and simulations write (a
     comment line of only ``Properties=species:S:1:pos:R:3[...]`` of :data:`EXTXYZ_COLUMNS` and
     ``pbc="F F F"``, known species), read without ASE: what ``ase.io.read`` gives for it
-    (tests/test_atoms_io.py), where ASE's import and reader took 0.36 s of the launch's input
-    check for the 6,679-atom Au truth on the H100 machine.  None for anything else (ASE reads it)."""
+    (tests/test_atoms_io.py), without ASE's import on the launch's input check.  None for
+    anything else (ASE reads it)."""
     with open(path) as f:
         text = f.read()
     head, _, rest = text.partition("\n")

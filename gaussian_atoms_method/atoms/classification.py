@@ -90,8 +90,8 @@ def gaussian_mixture(
     stops when an iteration raises the log-likelihood by less than 1e-8 of it.  Returns the
     weights (k,), means (k, D), covariances (k, D, D) and the log-likelihood.  The same
     iterations as :func:`gaussian_mixture_reference` (numpy); torch because numpy's ``exp`` and
-    reductions over four components took 10 s for k = 1..4 on 54,000 Gaussians on the 2-core
-    machine, the final stage's largest cost after the pair distribution."""
+    reductions over four components were the final stage's largest cost at many atoms after the
+    pair distribution."""
     n, d = x.shape
     X = torch.as_tensor(np.asarray(x, dtype=np.float64), device=device)
     Xt = X.T.contiguous()  # (D, N): N the long, contiguous axis of every product (4-10x faster on a CPU)
@@ -128,9 +128,8 @@ def _log_normals(Xt: torch.Tensor, means: torch.Tensor, covs: torch.Tensor) -> t
 
 def _inverse_and_logdet(covs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The inverses and log-determinants of k (D, D) covariances on their device.  For D of 1
-    or 2 (a mass and a width) in closed form there; otherwise on the host: a GPU's solver took
-    3.5 ms a call (1.25 s of the 54,000-atom a-Pd's results on the H100), and the host's copies
-    back each waited for the GPU (three waits an iteration, 0.6 s at 20,000 atoms)."""
+    or 2 (a mass and a width) in closed form there; otherwise on the host: a GPU's solver is slow
+    for such small matrices, and the host's copies back would each wait for the GPU."""
     d = covs.shape[-1]
     if d == 1:
         return 1.0 / covs, torch.log(covs[:, 0, 0])

@@ -170,8 +170,8 @@ def fit_amplitudes(
     field's values at the positions).  Returns the (M,) amplitudes and the fitted model, a
     volume like ``field``.
 
-    The convolutions are circular, on the volume padded to a length the FFT is fast for (the
-    Au series' 271 voxels is a prime: 0.35 s a transform, against 0.1 s at 275); the normal
+    The convolutions are circular, on the volume padded to a length the FFT is fast for (a
+    prime length is several times slower); the normal
     operator is one convolution with the response's autocorrelation, so each step costs one
     pair of transforms."""
     shape = tuple(scipy.fft.next_fast_len(n, real=True) for n in field.shape)
@@ -205,8 +205,8 @@ def fit_amplitudes_on_device(field, positions_vox: np.ndarray, response: np.ndar
     """:func:`fit_amplitudes` of a 3D float32 tensor ``field``, on its device (torch's FFTs, the
     splats and samples as index-adds and gathers): the same steps in the same precisions, so
     the same amplitudes to float rounding (tests compare them on the CPU).  Returns the (M,)
-    amplitudes (an array) and the fitted model (a tensor like ``field``).  On the H100 machine
-    the host's version took 4.9 s of the 54,000-atom a-Pd's start."""
+    amplitudes (an array) and the fitted model (a tensor like ``field``): at tens of thousands
+    of atoms the host's version was a large part of a GPU run's start."""
     import torch
 
     dev = field.device

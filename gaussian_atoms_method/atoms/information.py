@@ -209,8 +209,8 @@ def _view_scores(positions, sigmas, amps, axes, res, pixel_size_A: float, centre
 
 def _view_scores_host(positions, sigmas, amps, axes, res, pixel_size_A, centre_px, reach: int) -> np.ndarray:
     """:func:`view_scores` of atoms whose windows reach ``reach`` pixels from their centres, with
-    numpy on the host, a view at a time (its temporaries stay in the cache: 4x faster than the
-    batched torch reading on the 2-core CPU)."""
+    numpy on the host, a view at a time (its temporaries stay in the cache, where the batched
+    torch reading's do not)."""
     v_count, h, w = res.shape
     offsets = np.arange(-reach, reach + 1)
     out = np.zeros((len(positions), v_count, 5))

@@ -74,8 +74,8 @@ def match_atoms(pred_A: np.ndarray, true_A: np.ndarray, radius_A: float = 0.75) 
 
 def _coincident_pairs(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Every pair of a point of ``a`` and one of ``b`` at exactly the same place: the points of
-    ``a`` whose nearest in ``b`` is at distance zero, then all of theirs (a list per point of
-    ``a`` for every point took 0.2 s at 54,000 atoms)."""
+    ``a`` whose nearest in ``b`` is at distance zero, then all of theirs (lists only for the
+    points that have one)."""
     tree = cKDTree(b)
     distance, _ = tree.query(a, workers=-1)
     hit = np.flatnonzero(distance == 0.0)

@@ -23,8 +23,8 @@ def local_maxima_host(volume: np.ndarray, level: float = 0.0) -> np.ndarray:
     """(M, 3) integer indices of the voxels that are maxima of their 3x3x3 neighbourhood and
     above ``level`` (and 0), excluding the border voxels (no neighbours for the sub-voxel fit),
     in C order.  Where few voxels clear the level, only those are compared with their 26
-    neighbours: on the Au series' 271^3 volume at the start's levels that is a few thousandths
-    of the voxels, and the search takes 0.02 s instead of a full maximum filter's 0.5 s."""
+    neighbours: at the start's levels that is a few thousandths of the voxels, and the search
+    skips a full maximum filter's pass over the volume."""
     above = volume > max(level, 0.0)
     above[[0, -1], :, :] = above[:, [0, -1], :] = above[:, :, [0, -1]] = False
     if np.count_nonzero(above) > volume.size // 100:  # many: one pass of the maximum filter is cheaper
@@ -113,8 +113,8 @@ def suppress_within_device(
     device: the indices kept, in the visit's order.  The pairs within ``min_distance_A``
     (inclusive) come from :func:`.voxel_pairs.pairs_within`; the visit is solved in rounds, each
     point kept once every stronger neighbour is decided and none was kept, suppressed once one
-    was kept: the greedy visit's result, in as many rounds as its longest chain of decisions.
-    On the H100 machine the host's suppression took 1.5 s of the 54,000-atom a-Pd's start."""
+    was kept: the greedy visit's result, in as many rounds as its longest chain of decisions,
+    on the device rather than the host."""
     dev, n = points.device, len(points)
     rank = torch.empty(n, dtype=torch.long, device=dev)
     rank[torch.as_tensor(np.argsort(-np.asarray(values), kind="stable"), device=dev)] = torch.arange(n, device=dev)

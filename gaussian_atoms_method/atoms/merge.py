@@ -59,8 +59,8 @@ def cluster_labels_on_device(
     :func:`..atoms.voxel_pairs.pairs_within`) and the same labels (every point takes the
     lowest index of its cluster, by propagation along the pairs with pointer jumping, and the
     clusters are numbered in the order of their lowest index, as scipy's
-    ``connected_components`` numbers them).  On the H100 machine the host's k-d tree took 54 ms
-    a merge at 54,000 Gaussians (1.5 s of a run); only the labels come back."""
+    ``connected_components`` numbers them), without the host's k-d tree; only the labels come
+    back."""
     from gaussian_atoms_method.atoms.voxel_pairs import pairs_within
 
     n, dev = len(positions), positions.device

@@ -1,7 +1,7 @@
 """Pictures drawn in child processes, started before they are needed.
 
 A run's last seconds go to its pictures (:mod:`.pictures`): matplotlib's import and its first
-text (0.6-0.9 s on the H100 machine, more where its font cache is built) and two figures drawn
+text (longer where its font cache is built) and two figures drawn
 one after the other.  A
 :class:`PictureProcess` is a child Python process that imports matplotlib and draws a first
 text as soon as it starts (while the run's final stage works), then waits for one picture's
@@ -26,9 +26,7 @@ import threading
 SPARE_CORES = 4
 """The fewest cores the process may use for children to draw its pictures: one for each of the
 two children and two left to the final stage, whose torch work runs on two threads on a CPU
-(on the 2-core CI machine the children's imports would take the final stage's cores; on the
-16-core H100 machine the 20,000-atom run ended 2-3.5 s sooner with them and the quick exit of
-``process_exit.exit_process``, 1.0-1.2 s of which is the exit's)."""
+(on a 2-core machine the children's imports would take the final stage's cores)."""
 
 
 def spare_cores() -> bool:

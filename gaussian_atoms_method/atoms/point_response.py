@@ -176,8 +176,8 @@ def response_pairs_on_device(
     peaks: np.ndarray, response: np.ndarray, centre: np.ndarray, device, max_candidates: int = 1 << 26
 ):
     """:func:`_response_pairs` found on ``device`` in torch (:func:`.voxel_pairs.pairs_within`),
-    sorted by (later, earlier): the same pairs and weights.  On the H100 machine the host's k-d
-    tree search took 3.9 s of the 54,000-atom a-Pd's start (96,995 peaks, 15 million pairs)."""
+    sorted by (later, earlier): the same pairs and weights, without the host's k-d tree search
+    (millions of pairs at tens of thousands of atoms)."""
     shape = np.array(response.shape)
     reach = int(np.max(np.maximum(centre, shape - 1 - centre)))
     dev = torch.device(device)

@@ -47,8 +47,7 @@ def candidate_pairs(positions: np.ndarray, sigmas: np.ndarray) -> np.ndarray:
     5% is searched on its own radius (when they are more than 1.25 times wider).  On the
     20,000-atom a-Si's atom-like Gaussians at steps 700 and 1,000 (the merges' input), Gaussians
     growing in the vacuum reach the 1.5 Å bound against the 95th percentile's 0.7 Å, and one
-    search at the widest width returned 13-14 times the pairs it kept (0.07-0.08 s a search on
-    this CPU, now 0.03 s; the same pairs).
+    search at the widest width returned 13-14 times the pairs it kept.
     """
     if len(positions) < 2:
         return np.zeros((0, 2), dtype=np.int64)
