@@ -2,8 +2,8 @@
 ``Event`` records, each a protocol buffer in a TFRecord frame, encoded here in a few lines.
 
 A run logs a few scalars a step.  ``torch.utils.tensorboard`` costs a run's start its import
-(0.19 s on the 2-core CPU, before the first step) and each scalar about 76 µs of the host's
-time, more than a GPU's whole step takes to launch; here a scalar is queued as a tuple and
+and each scalar more of the host's time than a GPU's whole step takes to launch; here a scalar
+is queued as a tuple and
 encoded when the queue is written.  The file is what TensorBoard's ``SummaryWriter`` writes: a
 ``file_version`` event, then one event per scalar with its ``simple_value``
 (``tests/test_event_file.py`` reads it back with TensorBoard's own reader).

@@ -89,8 +89,7 @@ class FloorSolver:
     (their sum), so one view's noise moves it by a share of the views', not all of it.  Every
     ``refine_every`` steps :meth:`decide` tests whether the views' fits agree.  The equations
     are the weights' and the weighted residual's moments in the detector coordinates
-    (:func:`floor_moments`): 1-2 ms a step on this CPU at 271 x 271 pixels, on the
-    run's device without waiting for it."""
+    (:func:`floor_moments`), on the run's device without waiting for it."""
 
     def __init__(self) -> None:
         self.gram: torch.Tensor | None = None  # (V, K, K): each view's latest normal matrix

@@ -99,9 +99,8 @@ def say_noise_reading(reading: tuple) -> tuple[NoiseModel | None, str, float | N
 
 class NoiseReadingBeside:
     """:func:`noise_reading` in a thread, begun once the noise is measured, while the start's
-    candidates are found (the GPU's work and numpy's release the interpreter's lock): on an
-    H100's host the reading took 0.1 s of a warm ``ga.reconstruct`` (Au noise 200), in line
-    between the start and the first step.  :meth:`result` hands it over, or reads again in
+    candidates are found (the GPU's work and numpy's release the interpreter's lock), not in
+    line between the start and the first step.  :meth:`result` hands it over, or reads again in
     line for another noise (a start begun ahead and not taken)."""
 
     def __init__(self, projections, loss: str, background: str, measured: NoiseModel | None) -> None:

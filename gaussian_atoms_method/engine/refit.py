@@ -80,8 +80,8 @@ def _refit_pass(
 ) -> int:
     """One pass over the views, ``views_per_step`` per step (the mean of their losses, as
     training's one loss over a step's views), fitted to ``measured_all`` (V, H, W) on the model's
-    device (once a refit: a copy of a step's views at each step waited for the queued step, 8.8 ms
-    a step for about 4 ms of the GPU's own work at 54,000 atoms on the H100), each iterate added
+    device (once a refit: a copy of a step's views at each step would wait for the queued step),
+    each iterate added
     to ``average``; returns the steps taken."""
     # Views in random order, as training draws them: in tilt order neighbouring views pull
     # alike and Adam's momentum carries the atoms along (the aPd noise-200 RMSD rose 1.2 pm).

@@ -71,10 +71,9 @@ def measured_views(model) -> torch.Tensor | None:
 
 def in_chunks(model, cameras):
     """(rows, cols, pitch, chunks) to render the model's training ``cameras`` a chunk of views at
-    a time, one projector call each (:func:`.rendering.render_views`, :func:`.rendering.view_chunks`:
-    47 calls of a few dozen operations each took 0.22 s a rendering of the 54,000-atom a-Pd on the
-    H100), or None where each view needs its own pose (learned shifts or tilts, anisotropic
-    Gaussians, cameras off their beam axes)."""
+    a time, one projector call each (:func:`.rendering.render_views`, :func:`.rendering.view_chunks`,
+    not a call of a few dozen operations per view), or None where each view needs its own pose
+    (learned shifts or tilts, anisotropic Gaussians, cameras off their beam axes)."""
     if not model.indexed_views or len(cameras) != model.view_c2w.shape[0]:
         return None
     dev, dt = model.means.device, model.means.dtype
