@@ -104,7 +104,7 @@ def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float | N
                 if device is not None:
                     from gaussian_atoms_method.physics.kernel_warmup import begin as warm_kernels
 
-                    warm_kernels("cuda")  # beside the launcher's imports and this start
+                    warm_kernels("cuda", handover=True)  # beside the launcher's imports and this start
                     known = start_parts(ahead, scaled, str(device))
                 ahead.noise = (known or {}).get("noise")
                 ahead.noise_known.set()

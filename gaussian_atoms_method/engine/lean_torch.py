@@ -9,8 +9,9 @@
   each time one is built or indexed; :func:`defer_symbolic_shapes` broadcasts plain integer
   shapes without them (0.8 s of the start on the 2-core CPU).
 
-Both are put in place by :func:`lean_torch` before a run (the engine's and nerfstudio's), and
-change nothing once something else has imported the module they defer.
+Both are put in place by :func:`lean_torch` in a launcher's own process (``gaussian-atoms
+train`` before its fit, the plugin ``ns-train`` imports), never by ``ga.reconstruct`` in a
+user's, and change nothing once something else has imported the module they defer.
 """
 
 from __future__ import annotations

@@ -20,7 +20,6 @@ import torch
 
 from gaussian_atoms_method.engine.errors import OptionError
 from gaussian_atoms_method.engine.fit import AtomFit
-from gaussian_atoms_method.engine.lean_torch import lean_torch
 from gaussian_atoms_method.engine.options import FitOptions
 from gaussian_atoms_method.engine.progress import ProgressBar
 from gaussian_atoms_method.engine.run_files import (
@@ -108,7 +107,6 @@ def fit_tilt_series(
     experiment named after ``data``, the series' directory or file, which ``config.yml``
     records with ``dataparser_options``).  Raises ``FloatingPointError`` naming the step and
     the cause where the loss stops being finite."""
-    lean_torch()  # torch's compiler front end and symbolic shapes stay unimported
     if options.decide_registration:
         options = dataclasses.replace(
             options, decide_registration=False, **choose_registration(series, options, settings)

@@ -19,24 +19,30 @@ without it (the other runs behind its choices: the history of CHANGELOG.md).
 from __future__ import annotations
 
 import threading
+from contextlib import nullcontext
 
 from gaussian_atoms_method.physics.handover import quick_handover
 
 _threads: dict[str, threading.Thread] = {}  # device -> its warm-up, one per process
 
 
-def begin(device: str, libraries_first: bool = False) -> None:
+def begin(device: str, libraries_first: bool = False, handover: bool = False) -> None:
     """Start loading the fit's kernels on ``device`` in a thread, once per process and CUDA
     device; nothing elsewhere (a CPU's kernels need no loading).  ``libraries_first``: the
     libraries' first calls too (:func:`libraries`), where the GPU stays idle while the warm-up
     begins (beside ``ga.reconstruct``'s imports; beside the train start, which uses the GPU at
-    once, they slowed it)."""
+    once, they slowed it).  ``handover``: the thread runs under
+    :func:`~gaussian_atoms_method.physics.handover.quick_handover`, which changes the
+    interpreter's switch interval while it runs: for a launcher's own process only, never a
+    user's."""
     device = str(device)
     if not device.startswith("cuda") or device in _threads:
         return
     parts = (libraries, warm) if libraries_first else (warm,)
     # Not a daemon: a process that exits while a daemon thread is inside a torch operation aborts.
-    _threads[device] = threading.Thread(target=_quietly, args=(device, parts), name="gaussian-atoms kernels")
+    _threads[device] = threading.Thread(
+        target=_quietly, args=(device, parts, handover), name="gaussian-atoms kernels"
+    )
     _threads[device].start()
 
 
@@ -46,8 +52,9 @@ def wait() -> None:
         thread.join()
 
 
-def _quietly(device: str, parts) -> None:
-    with quick_handover():  # beside the imports: each operation gets the lock back quickly
+def _quietly(device: str, parts, handover: bool) -> None:
+    # a launcher's own process: beside the imports each operation gets the lock back quickly
+    with quick_handover() if handover else nullcontext():
         for part in parts:
             try:
                 part(device)
