@@ -40,9 +40,7 @@ def begin(device: str, libraries_first: bool = False, handover: bool = False) ->
         return
     parts = (libraries, warm) if libraries_first else (warm,)
     # Not a daemon: a process that exits while a daemon thread is inside a torch operation aborts.
-    _threads[device] = threading.Thread(
-        target=_quietly, args=(device, parts, handover), name="gaussian-atoms kernels"
-    )
+    _threads[device] = threading.Thread(target=_quietly, args=(device, parts, handover), name="gaussian-atoms kernels")
     _threads[device].start()
 
 
