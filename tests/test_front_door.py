@@ -228,6 +228,37 @@ def test_train_help_is_this_methods_options_in_plain_text(capsys):
         assert f"--{f.name.replace('_', '-')} " in text, f.name
 
 
+def test_the_fits_options_bring_their_own_help_over_splatfactos():
+    """An option splatfacto also has (``refine_every``, ``warmup_length``, ...) shows the fit's
+    docstring, read from FitOptions' source, and the fit's default; a field without a docstring
+    reads None."""
+    import dataclasses
+
+    from gaussian_atoms_method.engine.options import FitOptions
+    from gaussian_atoms_method.nerfstudio_layer.options import (
+        GaussianAtomsOptions,
+        SplatfactoModelConfig,
+        field_docstring,
+        fit_fields_over_splatfacto,
+    )
+
+    shared = fit_fields_over_splatfacto()
+    assert "refine_every" in shared and set(shared) <= {f.name for f in dataclasses.fields(SplatfactoModelConfig)}
+    for name, (hint, _field) in shared.items():
+        help_text = hint.__metadata__[0].help
+        assert help_text and help_text == field_docstring(FitOptions, name), name
+        assert getattr(GaussianAtomsOptions(), name) == getattr(FitOptions(), name), name
+    assert field_docstring(FitOptions, "refine_every") == "Steps between densify / prune / merge."
+
+    @dataclasses.dataclass
+    class Plain:
+        x: int = 1
+        y: int = 2
+        """Why y."""
+
+    assert field_docstring(Plain, "x") is None and field_docstring(Plain, "y") == "Why y."
+
+
 def test_the_nerfstudio_launchers_decide_registration_before_config_is_saved(tmp_path, capfd):
     """``--pipeline.model.decide-registration`` under ``ns-train`` (and ``gaussian-atoms train``'s
     nerfstudio path): the input check runs the four trial fits on the series it read and leaves
