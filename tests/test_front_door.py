@@ -190,19 +190,20 @@ def test_a_viewer_left_serving_says_where_and_how_to_stop_it(capfd):
     Ctrl-C; one whose viewer quits with training, or before its last step, says nothing."""
     from types import SimpleNamespace
 
-    from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModel
+    from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModel, TrainingSpan
 
     model = SimpleNamespace(kernel_reading=SimpleNamespace(first_pass=False))
+    span = TrainingSpan(3000)
     viewer = SimpleNamespace(viewer_info=["Viewer running locally at: http://127.0.0.1:7007"])
 
     def trainer(quit_after: bool, stopped: bool):
         config = SimpleNamespace(viewer=SimpleNamespace(quit_on_train_completion=quit_after))
         return SimpleNamespace(viewer_state=viewer, config=config, stop_training=stopped)
 
-    GaussianAtomsModel._say_viewer(model, trainer(False, False), 2999, 1500)
-    GaussianAtomsModel._say_viewer(model, trainer(True, True), 2999, 1500)
+    GaussianAtomsModel._say_viewer(model, trainer(False, False), span, 1500)
+    GaussianAtomsModel._say_viewer(model, trainer(True, True), span, 1500)
     assert "viewer" not in capfd.readouterr().out
-    GaussianAtomsModel._say_viewer(model, trainer(False, True), 2999, 1500)
+    GaussianAtomsModel._say_viewer(model, trainer(False, True), span, 1500)
     said = capfd.readouterr().out
     assert "http://127.0.0.1:7007" in said and "Ctrl-C" in said
 
@@ -257,6 +258,21 @@ def test_the_fits_options_bring_their_own_help_over_splatfactos():
         """Why y."""
 
     assert field_docstring(Plain, "x") is None and field_docstring(Plain, "y") == "Why y."
+
+
+def test_a_training_loops_last_step_is_read_from_its_first():
+    """nerfstudio's loop runs ``max_num_iterations`` steps from its start (past 0 when resumed
+    from a checkpoint): the last step the results are written at is the first step seen plus
+    the iterations less one, whatever the steps seen after it."""
+    from gaussian_atoms_method.nerfstudio_layer.model import TrainingSpan
+
+    fresh, resumed = TrainingSpan(300), TrainingSpan(300)
+    assert fresh.last == 299
+    for step in (0, 1, 2):
+        fresh.see(step=step)
+    for step in (1000, 1001):
+        resumed.see(step=step)
+    assert (fresh.first, fresh.last) == (0, 299) and (resumed.first, resumed.last) == (1000, 1299)
 
 
 def test_the_nerfstudio_launchers_decide_registration_before_config_is_saved(tmp_path, capfd):

@@ -26,6 +26,24 @@ from gaussian_atoms_method.nerfstudio_layer.viewer import AtomsInViewer
 from gaussian_atoms_method.physics.units import DATA_RANGE
 
 
+class TrainingSpan:
+    """The steps of one of nerfstudio's training loops: ``see`` (a before-step callback) takes
+    the first step it is called at, and ``last`` is that plus ``iterations`` - 1 (a loop
+    resumed from a checkpoint starts past 0).  Read from the steps themselves, not the
+    trainer's private start."""
+
+    def __init__(self, iterations: int) -> None:
+        self.iterations, self.first = int(iterations), None
+
+    def see(self, step: int) -> None:
+        if self.first is None:
+            self.first = int(step)
+
+    @property
+    def last(self) -> int:
+        return (0 if self.first is None else self.first) + self.iterations - 1
+
+
 @dataclass
 class GaussianAtomsModelConfig(GaussianAtomsOptions):
     """Gaussian atoms: isotropic 3D Gaussians fitted to a tilt series."""
@@ -75,26 +93,30 @@ class GaussianAtomsModel(AtomFit, SplatfactoCompat):
         ]
         trainer = attrs.trainer
         if trainer is not None:
-            last = trainer._start_step + trainer.config.max_num_iterations - 1
-            cbs.append(TrainingCallback(after, self.write_results_at, args=[last, trainer.base_dir]))
-            cbs.append(TrainingCallback(after, self._stop_trainer, args=[trainer, last]))
-            cbs.append(TrainingCallback(after, self._say_viewer, args=[trainer, last]))
+            span = TrainingSpan(trainer.config.max_num_iterations)
+            cbs.insert(0, TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], span.see))
+            cbs.append(TrainingCallback(after, self._results_at, args=[span, trainer.base_dir]))
+            cbs.append(TrainingCallback(after, self._stop_trainer, args=[trainer, span]))
+            cbs.append(TrainingCallback(after, self._say_viewer, args=[trainer, span]))
             if self.config.snapshot_every > 0:
                 cbs.append(
                     TrainingCallback(after, self.snapshot_after_step, args=[Path(trainer.base_dir) / "snapshots"])
                 )
         return cbs
 
-    def _stop_trainer(self, trainer, last_step: int, step: int) -> None:
+    def _results_at(self, span: TrainingSpan, run_dir, step: int) -> None:
+        self.write_results_at(span.last, run_dir, step)
+
+    def _stop_trainer(self, trainer, span: TrainingSpan, step: int) -> None:
         progress = getattr(trainer, "progress", None)
-        if self.should_stop(step, last_step, Path(trainer.base_dir), progress):
+        if self.should_stop(step, span.last, Path(trainer.base_dir), progress):
             trainer.stop_training = True  # nerfstudio's loop ends before the next step
 
-    def _say_viewer(self, trainer, last_step: int, step: int) -> None:
+    def _say_viewer(self, trainer, span: TrainingSpan, step: int) -> None:
         """Once the results are written (the last step, or the trainer stopped early): where a
         viewer keeps serving after training, say where and how to stop it."""
         viewer, config = getattr(trainer, "viewer_state", None), trainer.config.viewer
-        over = (step >= last_step or trainer.stop_training) and not self.kernel_reading.first_pass
+        over = (step >= span.last or trainer.stop_training) and not self.kernel_reading.first_pass
         if viewer is None or config.quit_on_train_completion or not over:
             return
         where = "; ".join(getattr(viewer, "viewer_info", None) or [str(getattr(viewer, "viewer_url", "its address"))])
