@@ -208,7 +208,9 @@ class TrainerSteps:
 def restart_with_kernel_held(trainer) -> bool:
     """After the reading pass of ``psf held-out``: the fit starts again with the kernel held
     (:meth:`~gaussian_atoms_method.engine.fit.AtomFit.restart_with_kernel_held`), with fresh
-    optimisers and callbacks; False when the trainer's model had no reading pass."""
+    optimisers and callbacks; False when the trainer's model had no reading pass.  nerfstudio's
+    loop runs again from the step it started at (0, or a checkpoint's: the trainer's start is
+    its own, not set here)."""
     model = trainer.pipeline.model
     if not hasattr(model, "restart_with_kernel_held") or not model.restart_with_kernel_held():
         return False
@@ -218,7 +220,6 @@ def restart_with_kernel_held(trainer) -> bool:
             optimizers=trainer.optimizers, grad_scaler=trainer.grad_scaler, pipeline=trainer.pipeline, trainer=trainer
         )
     )
-    trainer._start_step = 0
     return True
 
 
