@@ -231,25 +231,25 @@ def test_train_help_is_this_methods_options_in_plain_text(capsys):
 
 def test_the_fits_options_bring_their_own_help_over_splatfactos():
     """An option splatfacto also has (``refine_every``, ``warmup_length``, ...) shows the fit's
-    docstring, read from FitOptions' source, and the fit's default; a field without a docstring
-    reads None."""
+    docstring, read from FitOptions' source (``field_docs``) and cleaned, and the fit's default;
+    a field without a docstring has none."""
     import dataclasses
+    import inspect
 
-    from gaussian_atoms_method.engine.options import FitOptions
+    from gaussian_atoms_method.engine.options import FitOptions, field_docs
     from gaussian_atoms_method.nerfstudio_layer.options import (
         GaussianAtomsOptions,
         SplatfactoModelConfig,
-        field_docstring,
         fit_fields_over_splatfacto,
     )
 
-    shared = fit_fields_over_splatfacto()
+    shared, docs = fit_fields_over_splatfacto(), field_docs(FitOptions)
     assert "refine_every" in shared and set(shared) <= {f.name for f in dataclasses.fields(SplatfactoModelConfig)}
     for name, (hint, _field) in shared.items():
         help_text = hint.__metadata__[0].help
-        assert help_text and help_text == field_docstring(FitOptions, name), name
+        assert help_text and help_text == inspect.cleandoc(docs[name]), name
         assert getattr(GaussianAtomsOptions(), name) == getattr(FitOptions(), name), name
-    assert field_docstring(FitOptions, "refine_every") == "Steps between densify / prune / merge."
+    assert inspect.cleandoc(docs["refine_every"]) == "Steps between densify / prune / merge."
 
     @dataclasses.dataclass
     class Plain:
@@ -257,7 +257,7 @@ def test_the_fits_options_bring_their_own_help_over_splatfactos():
         y: int = 2
         """Why y."""
 
-    assert field_docstring(Plain, "x") is None and field_docstring(Plain, "y") == "Why y."
+    assert field_docs(Plain) == {"y": "Why y."}
 
 
 def test_a_training_loops_last_step_is_read_from_its_first():

@@ -2,43 +2,19 @@
 the first sentence of its docstring in plain text (nerfstudio's trainer options, which the
 command also takes, are listed by ``ns-train gaussian-atoms --help``).
 
-The docstrings are read from the options' own source with :mod:`ast` (a string right after a
-field is its documentation, as tyro and Sphinx take it)."""
+The docstrings are read from the options' own source
+(:func:`~gaussian_atoms_method.engine.options.field_docs`)."""
 
 from __future__ import annotations
 
-import ast
 import dataclasses
-import inspect
 import re
 import textwrap
 
+from gaussian_atoms_method.engine.options import field_docs
+
 WIDTH = 100
 """Columns of the help text."""
-
-
-def field_docs(cls) -> dict[str, str]:
-    """Each field of dataclass ``cls`` (and of its dataclass bases) with the string that follows
-    it in the class body."""
-    docs: dict[str, str] = {}
-    for klass in reversed(cls.__mro__):
-        if not dataclasses.is_dataclass(klass) or klass.__module__ == "builtins":
-            continue
-        try:
-            tree = ast.parse(textwrap.dedent(inspect.getsource(klass)))
-        except (OSError, TypeError, SyntaxError):
-            continue
-        body = tree.body[0].body if tree.body and isinstance(tree.body[0], ast.ClassDef) else []
-        for node, after in zip(body, body[1:]):
-            if (
-                isinstance(node, ast.AnnAssign)
-                and isinstance(node.target, ast.Name)
-                and isinstance(after, ast.Expr)
-                and isinstance(after.value, ast.Constant)
-                and isinstance(after.value.value, str)
-            ):
-                docs[node.target.id] = after.value.value
-    return docs
 
 
 def plain(text: str) -> str:

@@ -10,6 +10,7 @@ reasons are given here, where ``--help`` shows them.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -17,6 +18,35 @@ from typing import Literal, Optional, Tuple, Union
 
 from gaussian_atoms_method.density.strategy import DensityControl
 from gaussian_atoms_method.engine.errors import OptionError
+
+
+def field_docs(cls) -> dict[str, str]:
+    """Each field of dataclass ``cls`` (and of its dataclass bases) with the string that follows
+    it in the class body, read from the source with :mod:`ast` (a string right after a field is
+    its documentation, as tyro and Sphinx take it)."""
+    import ast
+    import inspect
+    import textwrap
+
+    docs: dict[str, str] = {}
+    for klass in reversed(cls.__mro__):
+        if not dataclasses.is_dataclass(klass) or klass.__module__ == "builtins":
+            continue
+        try:
+            tree = ast.parse(textwrap.dedent(inspect.getsource(klass)))
+        except (OSError, TypeError, SyntaxError):
+            continue
+        body = tree.body[0].body if tree.body and isinstance(tree.body[0], ast.ClassDef) else []
+        for node, after in zip(body, body[1:]):
+            if (
+                isinstance(node, ast.AnnAssign)
+                and isinstance(node.target, ast.Name)
+                and isinstance(after, ast.Expr)
+                and isinstance(after.value, ast.Constant)
+                and isinstance(after.value.value, str)
+            ):
+                docs[node.target.id] = after.value.value
+    return docs
 
 
 @dataclass

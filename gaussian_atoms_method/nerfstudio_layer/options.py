@@ -7,12 +7,13 @@ adds only the model class it builds.
 from __future__ import annotations
 
 import dataclasses
+import inspect
 from dataclasses import dataclass
 from typing import Annotated, get_type_hints
 
 import tyro
 
-from gaussian_atoms_method.engine.options import FitOptions
+from gaussian_atoms_method.engine.options import FitOptions, field_docs
 from gaussian_atoms_method.nerfstudio_layer.lazy_compile import import_splatfacto
 
 SplatfactoModelConfig = import_splatfacto().SplatfactoModelConfig
@@ -70,46 +71,16 @@ def fit_fields_over_splatfacto() -> dict:
     """For each option splatfacto's config also has (``refine_every``, ``warmup_length``, ...):
     the fit's type, help and field, so that the fit's value and text, not splatfacto's, are
     the default and the ``--help``."""
-    hints = get_type_hints(FitOptions, include_extras=True)
+    hints, docs = get_type_hints(FitOptions, include_extras=True), field_docs(FitOptions)
     splatfacto = {f.name for f in dataclasses.fields(SplatfactoModelConfig)}
     return {
         f.name: (
-            Annotated[hints[f.name], tyro.conf.arg(help=field_docstring(FitOptions, f.name))],
+            Annotated[hints[f.name], tyro.conf.arg(help=inspect.cleandoc(docs[f.name]) if f.name in docs else None)],
             _copy(f),
         )
         for f in dataclasses.fields(FitOptions)
         if f.name in splatfacto
     }
-
-
-def field_docstring(cls: type, name: str) -> str | None:
-    """The docstring written under field ``name`` of the dataclass ``cls`` or its first base
-    that declares it (the string literal after its annotated assignment), cleaned as
-    ``inspect.cleandoc`` does; None where there is none.  Read from the source, as tyro reads
-    the help it shows."""
-    import ast
-    import inspect
-
-    for klass in cls.__mro__:
-        if name not in getattr(klass, "__annotations__", {}):
-            continue
-        try:
-            source = inspect.getsource(klass)
-        except (OSError, TypeError):
-            return None
-        body = ast.parse(inspect.cleandoc(source)).body[0].body
-        for node, after in zip(body, body[1:]):
-            if (
-                isinstance(node, ast.AnnAssign)
-                and isinstance(node.target, ast.Name)
-                and node.target.id == name
-                and isinstance(after, ast.Expr)
-                and isinstance(after.value, ast.Constant)
-                and isinstance(after.value.value, str)
-            ):
-                return inspect.cleandoc(after.value.value)
-        return None
-    return None
 
 
 def _copy(f: dataclasses.Field):
