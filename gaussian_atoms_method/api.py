@@ -127,19 +127,6 @@ def _device(device: str) -> str:
         raise TiltSeriesError(str(exc)) from None
 
 
-def _warm_kernels(device) -> None:
-    """Begin loading the fit's CUDA kernels (:mod:`~gaussian_atoms_method.physics.kernel_warmup`)
-    where ``device`` is a GPU; a device that is not one of the choices is left to the call's
-    own check."""
-    try:
-        resolved = _device(device)
-    except (TiltSeriesError, TypeError):
-        return
-    from gaussian_atoms_method.physics.kernel_warmup import begin
-
-    begin(resolved, libraries_first=True)  # the GPU is idle while the call imports the engine
-
-
 def _whole(value, name: str) -> int:
     """``value`` as an int, or :class:`OptionError` naming the argument."""
     from gaussian_atoms_method.engine.errors import OptionError
@@ -248,7 +235,6 @@ def reconstruct(
     InputError
         For input that cannot train, with the one-line message the CLI prints.
     """
-    _warm_kernels(device)  # while the engine imports
     from gaussian_atoms_method.engine.errors import OptionError
     from gaussian_atoms_method.engine.run import MAX_ITERATIONS, RunSettings, check_settings, fit_tilt_series
     from gaussian_atoms_method.engine.run_files import RunPlace

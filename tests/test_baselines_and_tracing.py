@@ -181,7 +181,7 @@ def test_torchs_sparse_notes_are_hidden_for_our_matrices_only():
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         quiet_sparse_notes()  # as at import, in front of the test's own filter
-        for module in ("gaussian_atoms_method.physics.reconstruction", "gaussian_atoms_method.physics.kernel_warmup"):
+        for module in ("gaussian_atoms_method.physics.reconstruction", "gaussian_atoms_method.launch.kernel_warmup"):
             warnings.warn_explicit(words, UserWarning, "ours.py", 1, module=module)
         warnings.warn_explicit("Sparse CSR tensor support is in beta state", UserWarning, "ours.py", 2, module=module)
         warnings.warn_explicit(words, UserWarning, "mine.py", 1, module="my_analysis")

@@ -1,5 +1,5 @@
 """CUDA's context made through the driver while the launcher imports torch
-(gaussian_atoms_method.physics.cuda_context): begun only for a run on CUDA, harmless where no
+(gaussian_atoms_method.launch.cuda_context): begun only for a run on CUDA, harmless where no
 driver is, the one torch then uses where a GPU is."""
 
 import ctypes
@@ -9,8 +9,7 @@ import sys
 import pytest
 import torch
 
-from gaussian_atoms_method import start_ahead
-from gaussian_atoms_method.physics import cuda_context
+from gaussian_atoms_method.launch import cuda_context, start_ahead
 
 
 @pytest.mark.parametrize(
@@ -32,7 +31,7 @@ def test_begun_only_for_a_run_on_cuda(argv, begun):
 
 def test_the_module_imports_no_torch():
     """Begun before the launcher imports torch: importing it must not import torch."""
-    code = "import sys, gaussian_atoms_method.physics.cuda_context; assert 'torch' not in sys.modules"
+    code = "import sys, gaussian_atoms_method.launch.cuda_context; assert 'torch' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True)
 
 

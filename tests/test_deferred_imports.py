@@ -96,7 +96,7 @@ def test_broadcast_shapes_of_plain_ints_match_torchs_own_without_sympy():
         import itertools, sys
         import torch
         import gaussian_atoms_method.nerfstudio_layer
-        from gaussian_atoms_method.engine.lean_torch import _plain_broadcast
+        from gaussian_atoms_method.launch.lean_torch import _plain_broadcast
         from nerfstudio.cameras.cameras import Cameras, CameraType
         poses = torch.eye(4)[:3].expand(5, 3, 4)
         ortho = CameraType.ORTHOPHOTO

@@ -4,7 +4,7 @@ the last of them, however they overlap."""
 import sys
 import threading
 
-from gaussian_atoms_method.physics.handover import HANDOVER_S, quick_handover
+from gaussian_atoms_method.launch.handover import HANDOVER_S, quick_handover
 
 
 def test_nested_and_concurrent_users_put_the_interval_back_after_the_last():

@@ -1,9 +1,9 @@
-"""The kernel warm-up touches nothing a run reads (physics/kernel_warmup.py)."""
+"""The kernel warm-up touches nothing a run reads (launch/kernel_warmup.py)."""
 
 import pytest
 import torch
 
-from gaussian_atoms_method.physics import kernel_warmup
+from gaussian_atoms_method.launch import kernel_warmup
 
 
 def test_warm_runs_every_operation_and_leaves_the_random_state():

@@ -1,11 +1,12 @@
 """The package's layers, read from its imports (module-level and lazy ones inside functions).
 
 The layers, lowest first (docs/architecture.md): physics, atoms, density, the tilt-series
-formats (``dataparsers``' readers), the launch (the start begun before nerfstudio loads), the
-engine (the fit in plain torch), the nerfstudio layer (with ``dataparsers``' dataparser and
-dataset), the harness, the CLI.  A module imports only from its own layer or lower ones, so
-there is no import cycle, nerfstudio stays in the nerfstudio layer and above, and no library
-module imports the CLI.
+formats (``dataparsers``' readers), the engine (the fit in plain torch), the film, the launch
+(what shortens a launcher's start and exit), the nerfstudio layer (with ``dataparsers``'
+dataparser and dataset), the API, the harness, the CLI.  A module imports only from its own
+layer or lower ones, so there is no import cycle, nerfstudio stays in the nerfstudio layer and
+above, and no library module imports the CLI; only the two launchers (the CLI and the
+nerfstudio layer) import the launch.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("gaussian_atoms_method", "dataparsers")
-LAYERS = ["physics", "atoms", "density", "formats", "launch", "engine", "film", "nerfstudio", "api", "harness", "cli"]
+LAYERS = ["physics", "atoms", "density", "formats", "engine", "film", "launch", "nerfstudio", "api", "harness", "cli"]
 
 
 def layer_of(module: str) -> str:
@@ -52,9 +53,8 @@ def layer_of(module: str) -> str:
         "harness": "harness",
         "cli": "cli",
         "api": "api",
-        "start_ahead": "launch",
-        "process_exit": "launch",
-        "parse_errors": "launch",
+        "launch": "launch",
+        "parse_errors": "formats",
     }
     return sub[parts[1]]
 
@@ -158,6 +158,21 @@ def test_nerfstudio_is_imported_only_by_the_nerfstudio_layer_and_above(graph):
         name for name, (_, ns) in graph.items() if ns and LAYERS.index(layer_of(name)) < LAYERS.index("nerfstudio")
     ]
     assert not below, f"nerfstudio imported below the nerfstudio layer: {below}"
+
+
+def test_only_the_launchers_import_the_launch(graph):
+    """What shortens a process's start and exit (:mod:`gaussian_atoms_method.launch`) is the two
+    command-line launchers' own (``gaussian-atoms train`` and the plugin ``ns-train`` loads):
+    the engine takes what they prepared as an argument, and the API never changes a user's
+    process to start sooner."""
+    launchers = ("launch", "nerfstudio", "cli")
+    outside = sorted(
+        f"{name} imports {dep}"
+        for name, (deps, _) in graph.items()
+        for dep in deps
+        if layer_of(dep) == "launch" and layer_of(name) not in launchers
+    )
+    assert not outside, "\n".join(outside)
 
 
 def test_no_library_module_imports_the_cli(graph):

@@ -10,10 +10,10 @@ import pytest
 import torch
 
 from dataparsers.tilt_series_format import load_tilt_series, write_tilt_series
-from gaussian_atoms_method import start_ahead
 from gaussian_atoms_method.atoms.initialise import compute_start
 from gaussian_atoms_method.harness.input_cases import own_lines, valid_series
 from gaussian_atoms_method.harness.simulate import simulate_tilt_series, spherical_particle
+from gaussian_atoms_method.launch import start_ahead
 from gaussian_atoms_method.physics.units import normalised_projections
 
 BIN = Path(sys.executable).parent
@@ -189,7 +189,7 @@ def test_the_start_ahead_begins_before_torch_is_imported():
     module, and the noise reading the thread makes first, import no torch."""
     code = (
         "import sys, numpy as np\n"
-        "from gaussian_atoms_method import start_ahead\n"
+        "from gaussian_atoms_method.launch import start_ahead\n"
         "from gaussian_atoms_method.physics.noise import HOST, measure_noise\n"
         "from gaussian_atoms_method.physics.reconstruction import backprojection_for_peaks\n"
         "p = np.random.default_rng(0).normal(5.0, 1.0, (5, 33, 33))\n"
@@ -221,7 +221,7 @@ def test_the_thread_imports_scipys_packages_before_the_launcher_imports_them(ser
     imports of them, so the two threads never import them at once."""
     code = (
         "import sys\n"
-        "from gaussian_atoms_method import start_ahead\n"
+        "from gaussian_atoms_method.launch import start_ahead\n"
         "assert not any(m in sys.modules for m in start_ahead.SHARED_IMPORTS), 'imported before the thread'\n"
         f"start_ahead.begin({str(series_dir)!r})\n"
         "start_ahead.settle_imports()\n"

@@ -101,8 +101,8 @@ def entrypoint(argv: list[str] | None = None) -> None:
         print(train_help())  # this method's options; ns-train gaussian-atoms --help lists nerfstudio's too
         return
     if argv[:1] == ["train"]:
-        from gaussian_atoms_method.physics import cuda_context
-        from gaussian_atoms_method.start_ahead import begin_for, end_now, runs_on_cuda, settle_imports
+        from gaussian_atoms_method.launch import cuda_context
+        from gaussian_atoms_method.launch.start_ahead import begin_for, end_now, runs_on_cuda, settle_imports
 
         if runs_on_cuda(argv[1:]):
             cuda_context.begin()  # the GPU's context made while torch imports

@@ -171,10 +171,11 @@ def run(argv: list[str]) -> None:
     from dataparsers.errors import TiltSeriesError
     from gaussian_atoms_method.atoms.atom_set import AtomFileError
     from gaussian_atoms_method.engine.errors import OptionError
-    from gaussian_atoms_method.engine.lean_torch import lean_torch
     from gaussian_atoms_method.engine.run import RunSettings, fit_tilt_series
     from gaussian_atoms_method.engine.run_files import RunPlace, options_dict
-    from gaussian_atoms_method.process_exit import exit_process, fail
+    from gaussian_atoms_method.launch.lean_torch import lean_torch
+    from gaussian_atoms_method.launch.process_exit import exit_process, fail
+    from gaussian_atoms_method.launch.start_ahead import prepared
 
     options, tilt = parse(argv)
     settings = RunSettings(
@@ -195,7 +196,7 @@ def run(argv: list[str]) -> None:
     dataparser = {k: v for k, v in options_dict(tilt).items() if k != "data"}
     lean_torch()  # the launcher's own process: torch's compiler front end and symbolic shapes stay unimported
     try:
-        fit_tilt_series(series, options.pipeline.model, settings, data_of(options, tilt), dataparser)
+        fit_tilt_series(series, options.pipeline.model, settings, data_of(options, tilt), dataparser, prepared())
     except FloatingPointError as exc:  # the fit names the step and the cause
         fail(str(exc), 1)
     except KeyboardInterrupt:  # results are written at the end only: none half-written

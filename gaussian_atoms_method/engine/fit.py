@@ -49,6 +49,7 @@ from gaussian_atoms_method.engine.noise_reading import (
     say_start,
 )
 from gaussian_atoms_method.engine.options import FitOptions
+from gaussian_atoms_method.engine.prepared import NOTHING, Prepared
 from gaussian_atoms_method.engine.refit import refit
 from gaussian_atoms_method.engine.residuals import residual_correlations
 from gaussian_atoms_method.engine.results import model_position_std_A, write_results, write_snapshot
@@ -59,8 +60,6 @@ from gaussian_atoms_method.physics.data_terms import data_term
 from gaussian_atoms_method.physics.noise import measure_noise
 from gaussian_atoms_method.physics.psf import project_weights
 from gaussian_atoms_method.physics.units import DATA_RANGE, Normalisation
-from gaussian_atoms_method.start_ahead import measured_noise
-from gaussian_atoms_method.start_ahead import take as take_start
 
 
 class AtomFit(torch.nn.Module):
@@ -73,9 +72,14 @@ class AtomFit(torch.nn.Module):
     """Seconds the run's snapshots have cost it so far (:meth:`snapshot_after_step`)."""
     kept: bool = True
     """Whether the run's directory outlives the call (not for ``ga.reconstruct`` without ``output_dir``)."""
+    prepared: Prepared = NOTHING
+    """What a launcher prepared for this fit while it started (:mod:`.prepared`)."""
 
-    def __init__(self, config: FitOptions | None = None, views: ViewSet | None = None) -> None:
+    def __init__(
+        self, config: FitOptions | None = None, views: ViewSet | None = None, prepared: Prepared = NOTHING
+    ) -> None:
         super().__init__()
+        self.prepared = prepared
         if config is not None:
             self.config = config
             self.setup(views or ViewSet())
@@ -108,9 +112,9 @@ class AtomFit(torch.nn.Module):
         given = read_atoms(cfg.start_atoms).positions if cfg.start_atoms is not None else None
         # begun while the launcher loaded; the noise is read beside the candidates (either way)
         reading, from_ahead = None, cfg.init == "backprojection" and given is None
-        if from_ahead and (early := measured_noise(series)) is not None:
+        if from_ahead and (early := self.prepared.noise(series)) is not None:
             reading = NoiseReadingBeside(projections, cfg.loss, cfg.background, early)
-        ahead = take_start(series, projections, *start_options) if from_ahead else None
+        ahead = self.prepared.start(series, projections, *start_options) if from_ahead else None
         if ahead is None:
             noise = measure_noise(projections)
             reading = NoiseReadingBeside(projections, cfg.loss, cfg.background, noise)
@@ -477,9 +481,7 @@ class AtomFit(torch.nn.Module):
         caller makes fresh optimisers); False when there was no reading pass.
 
         Why start again: Gaussians formed on half the views without the kernel keep the
-        satellites that explained the probe's tails (Ta film area 23, the reading pass's own
-        atoms: 0.925 found, 0.542 extra per model atom; the kernel held from the start: 0.946,
-        0.407)."""
+        satellites that explained the probe's tails."""
         reading = getattr(self, "kernel_reading", None)
         if reading is None or not reading.first_pass:
             return False

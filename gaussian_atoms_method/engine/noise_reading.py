@@ -141,7 +141,7 @@ def _floor_shape(
 def say_start(start: Start, length_scale: float, option: str, ahead: bool = False) -> None:
     """Say on one line each when the object is wider than the field of view (``start.field``,
     ``option`` the extended-object option) and why, and where the Gaussians start (``ahead``:
-    found by :mod:`gaussian_atoms_method.start_ahead` while the launcher loaded)."""
+    found by :mod:`gaussian_atoms_method.launch.start_ahead` while the launcher loaded)."""
     field = start.field
     if field.slice_px is not None:
         why = (

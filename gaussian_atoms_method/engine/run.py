@@ -21,6 +21,7 @@ import torch
 from gaussian_atoms_method.engine.errors import OptionError
 from gaussian_atoms_method.engine.fit import AtomFit
 from gaussian_atoms_method.engine.options import FitOptions
+from gaussian_atoms_method.engine.prepared import NOTHING, Prepared
 from gaussian_atoms_method.engine.progress import ProgressBar
 from gaussian_atoms_method.engine.run_files import (
     RunPlace,
@@ -101,11 +102,17 @@ def view_set_of(series) -> tuple[ViewSet, object]:
 
 
 def fit_tilt_series(
-    series, options: FitOptions, settings: RunSettings, data: Path, dataparser_options: dict | None = None
+    series,
+    options: FitOptions,
+    settings: RunSettings,
+    data: Path,
+    dataparser_options: dict | None = None,
+    prepared: Prepared = NOTHING,
 ) -> Path:
     """Fit ``series`` with ``options`` and return the run directory (``settings.place``, its
     experiment named after ``data``, the series' directory or file, which ``config.yml``
-    records with ``dataparser_options``).  Raises ``FloatingPointError`` naming the step and
+    records with ``dataparser_options``; ``prepared``: what a launcher prepared for the fit,
+    :mod:`.prepared`).  Raises ``FloatingPointError`` naming the step and
     the cause where the loss stops being finite."""
     if options.decide_registration:
         options = dataclasses.replace(
@@ -128,7 +135,7 @@ def fit_tilt_series(
     write_config(run_dir, record)
     seed_everything(settings.seed)
     view_set, views = view_set_of(series)
-    fit = AtomFit(options, view_set).to(settings.device)
+    fit = AtomFit(options, view_set, prepared).to(settings.device)
     fit.kept = settings.kept
     loop = FitLoop(fit, views, view_set.projections, settings.schedule_steps)
     write_transforms(run_dir)

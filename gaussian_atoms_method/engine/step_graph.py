@@ -31,7 +31,6 @@ import torch
 from gaussian_atoms_method.engine.console import CONSOLE
 from gaussian_atoms_method.engine.rendering import projector_name
 from gaussian_atoms_method.engine.step_views import step_views
-from gaussian_atoms_method.physics import kernel_warmup
 
 
 class Steps(Protocol):
@@ -126,7 +125,7 @@ class StepGraph:
     def _capture(self, steps: Steps, model, camera, key) -> bool:
         """Capture the step's tensor work (:func:`step_losses` and the backward pass) on the
         inputs; False (and steps eager from now on, with one line saying why) if it cannot be."""
-        kernel_warmup.wait()  # no other thread may launch work during a capture
+        model.prepared.quiet()  # no other thread may launch work during a capture
         steps.zero_grads()  # the graph's backward writes the gradients afresh
         graph, index, image = torch.cuda.CUDAGraph(), *self._inputs
         self.index_in_use, model.finite_watch.captured = index, None

@@ -40,13 +40,13 @@ from gaussian_atoms_method.atoms.atom_set import AtomFileError, read_atoms
 from gaussian_atoms_method.engine.errors import OptionError
 from gaussian_atoms_method.engine.optimisers import RATES, adam
 from gaussian_atoms_method.engine.step_graph import detached
+from gaussian_atoms_method.launch import cuda_context
+from gaussian_atoms_method.launch.process_exit import fail
+from gaussian_atoms_method.launch.start_ahead import begin_for, runs_on_cuda, settle_imports
 from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
 from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions
 from gaussian_atoms_method.parse_errors import one_line_tyro_errors
-from gaussian_atoms_method.physics import cuda_context
 from gaussian_atoms_method.physics.devices import default_device
-from gaussian_atoms_method.process_exit import fail
-from gaussian_atoms_method.start_ahead import begin_for, runs_on_cuda, settle_imports
 
 INPUT_ERRORS = (TiltSeriesError, AtomFileError, OptionError)
 """Errors in what the user gave: reported in one line, exit status 2."""

@@ -11,7 +11,7 @@ something first reads them.
   package.
 
 torch's own late imports (its compiler front end, its symbolic shapes) are the engine's
-(:mod:`gaussian_atoms_method.engine.lean_torch`).
+(:mod:`gaussian_atoms_method.launch.lean_torch`).
 
 Importing ``gaussian-atoms train`` took 8.9 s on the 2-core CPU, 3.0 s of it torchvision
 (``python -X importtime``).  :func:`defer_imports` puts stand-ins for those modules in ``sys.modules``;

@@ -92,11 +92,11 @@ class quiet_trainer_console:
 
 
 def exit_process(status: int = 0) -> None:
-    """:func:`gaussian_atoms_method.process_exit.exit_process`, nerfstudio's TensorBoard writers
+    """:func:`gaussian_atoms_method.launch.process_exit.exit_process`, nerfstudio's TensorBoard writers
     closed first (nerfstudio leaves their files to the interpreter's shutdown)."""
     from nerfstudio.utils import writer
 
-    from gaussian_atoms_method.process_exit import exit_process as end
+    from gaussian_atoms_method.launch.process_exit import exit_process as end
 
     for event_writer in writer.EVENT_WRITERS:
         tensorboard = getattr(event_writer, "tb_writer", None)

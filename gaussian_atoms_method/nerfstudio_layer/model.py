@@ -20,6 +20,7 @@ from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttrib
 from gaussian_atoms_method.engine.console import CONSOLE
 from gaussian_atoms_method.engine.fit import AtomFit
 from gaussian_atoms_method.engine.view_set import ViewSet
+from gaussian_atoms_method.launch.start_ahead import prepared
 from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions
 from gaussian_atoms_method.nerfstudio_layer.splatfacto_compat import SplatfactoCompat
 from gaussian_atoms_method.nerfstudio_layer.viewer import AtomsInViewer
@@ -62,6 +63,7 @@ class GaussianAtomsModel(AtomFit, SplatfactoCompat):
     def populate_modules(self) -> None:
         # Deliberately not splatfacto's: that builds LPIPS (downloads weights), SH colours,
         # opacities and gsplat's alpha-compositing strategy, none of which apply here.
+        self.prepared = prepared()  # the start ns-train began while it loaded (config.py)
         self.setup(ViewSet.from_metadata(self.kwargs.get("metadata")))  # the views read once
         self.crop_box, self.background_color = None, torch.zeros(3)
         if not hasattr(self, "atoms_in_viewer"):  # the atoms as points in the viewer

@@ -255,7 +255,7 @@ def _backproject_on_host(
     sinograms: np.ndarray, angles_deg, even_filter: np.ndarray, padded: int, size: int, block: int, dtype
 ) -> np.ndarray:
     """:func:`filtered_backprojection`'s filter and product in numpy and scipy, without torch
-    (a start begun while the launcher imports it, :mod:`gaussian_atoms_method.start_ahead`):
+    (a start begun while the launcher imports it, :mod:`gaussian_atoms_method.launch.start_ahead`):
     scipy's sparse product gives torch's to the bit (the Au series in float32), on one core."""
     import scipy.fft
 

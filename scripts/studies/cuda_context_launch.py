@@ -1,7 +1,7 @@
 """What making CUDA's context in a thread while torch imports takes off a launch.
 
 Alternates fresh processes that import torch and make their first CUDA tensor, with
-:func:`gaussian_atoms_method.physics.cuda_context.begin` called first ("early") and without
+:func:`gaussian_atoms_method.launch.cuda_context.begin` called first ("early") and without
 ("plain"), and prints when torch's import returned, how long CUDA then took to be ready, and
 when it was ready from launch.  Needs an NVIDIA GPU.
 
@@ -18,7 +18,7 @@ CHILD = """
 import sys, time
 t0 = time.perf_counter()
 if sys.argv[1] == "early":
-    from gaussian_atoms_method.physics import cuda_context
+    from gaussian_atoms_method.launch import cuda_context
     cuda_context.begin()
 import torch
 t1 = time.perf_counter()

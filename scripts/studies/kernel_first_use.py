@@ -5,7 +5,7 @@ the device ready, each family below is called on a few elements: ``--queued-ms 0
 cold and warm calls on an idle GPU; ``--queued-ms N`` first queues about N ms of warm GPU work
 (in-place additions on 200 MB) and times the host's return from the cold call, which shows
 whether the first use waits for that queue.  Families loaded by an earlier row read about
-0.1 ms.  Behind :mod:`gaussian_atoms_method.physics.kernel_warmup`.
+0.1 ms.  Behind :mod:`gaussian_atoms_method.launch.kernel_warmup`.
 
     python scripts/studies/kernel_first_use.py --queued-ms 0
     python scripts/studies/kernel_first_use.py --queued-ms 50

@@ -30,8 +30,8 @@ from pathlib import Path
 import numpy as np
 
 from dataparsers.tilt_series_format import load_tilt_series
+from gaussian_atoms_method.launch.handover import quick_handover
 from gaussian_atoms_method.physics.devices import HOST, gpu
-from gaussian_atoms_method.physics.handover import quick_handover
 from gaussian_atoms_method.physics.units import Normalisation, normalised_projections
 
 
@@ -78,7 +78,7 @@ def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float | N
     for the launcher's import) for the rest.  With a GPU the two are made there first, as the
     run makes them, before the thread imports the candidates' modules: the device's work
     releases the interpreter's lock, so it runs while the launcher imports those modules itself
-    (:func:`start_parts`, with the lock handed back quickly: :mod:`.physics.handover`)."""
+    (:func:`start_parts`, with the lock handed back quickly: :mod:`.launch.handover`)."""
     global _ahead
     ahead = _Ahead(Path(data), extended_object, None if max_atom_sigma_A is None else float(max_atom_sigma_A))
 
@@ -102,7 +102,7 @@ def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float | N
             device = gpu()  # torch is imported: ask it
             with quick_handover() if device is not None else nullcontext():
                 if device is not None:
-                    from gaussian_atoms_method.physics.kernel_warmup import begin as warm_kernels
+                    from gaussian_atoms_method.launch.kernel_warmup import begin as warm_kernels
 
                     warm_kernels("cuda", handover=True)  # beside the launcher's imports and this start
                     known = start_parts(ahead, scaled, str(device))
@@ -241,6 +241,17 @@ def take(series, projections, normalisation: Normalisation, extended_object: str
     return ahead.start
 
 
+def prepared():
+    """What this process's launcher prepared, for the fit it builds
+    (:class:`~gaussian_atoms_method.engine.prepared.Prepared`): the start begun ahead
+    (:func:`measured_noise`, :func:`take`) and the kernels' warm-up to wait for before a CUDA
+    graph's capture (:func:`~gaussian_atoms_method.launch.kernel_warmup.wait`)."""
+    from gaussian_atoms_method.engine.prepared import Prepared
+    from gaussian_atoms_method.launch.kernel_warmup import wait
+
+    return Prepared(noise=measured_noise, start=take, quiet=wait)
+
+
 def end_now(status: int) -> None:
     """End the process with ``status`` at once where a start begun ahead is still being
     computed: a run stopped by its input (a bad option or file) before anything was written,
@@ -349,7 +360,7 @@ DEVICE_OPTION = "--machine.device-type"
 def runs_on_cuda(argv: list[str]) -> bool:
     """Whether a training command line (``gaussian-atoms train`` or ``ns-train gaussian-atoms``
     options) runs on CUDA, so that its launcher makes the GPU's context while torch imports
-    (:mod:`.physics.cuda_context`): its :data:`DEVICE_OPTION` is ``cuda`` or not given (the
+    (:mod:`.launch.cuda_context`): its :data:`DEVICE_OPTION` is ``cuda`` or not given (the
     default is CUDA where torch sees a GPU; where it sees none the driver finds none either);
     not for help."""
     for i, token in enumerate(argv):

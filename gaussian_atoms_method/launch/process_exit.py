@@ -10,12 +10,12 @@ import atexit
 import os
 import sys
 
-from gaussian_atoms_method.start_ahead import end_now
+from gaussian_atoms_method.launch.start_ahead import end_now
 
 
 def fail(message: str, status: int) -> None:
     """Print ``message`` as one line on stderr and exit with ``status`` (no traceback; at once
-    where a start begun ahead is still running, :func:`~gaussian_atoms_method.start_ahead.end_now`)."""
+    where a start begun ahead is still running, :func:`~gaussian_atoms_method.launch.start_ahead.end_now`)."""
     print(" ".join(str(message).split()), file=sys.stderr)
     end_now(status)
     raise SystemExit(status)

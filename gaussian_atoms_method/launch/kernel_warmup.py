@@ -21,7 +21,7 @@ from __future__ import annotations
 import threading
 from contextlib import nullcontext
 
-from gaussian_atoms_method.physics.handover import quick_handover
+from gaussian_atoms_method.launch.handover import quick_handover
 
 _threads: dict[str, threading.Thread] = {}  # device -> its warm-up, one per process
 
@@ -32,7 +32,7 @@ def begin(device: str, libraries_first: bool = False, handover: bool = False) ->
     libraries' first calls too (:func:`libraries`), where the GPU stays idle while the warm-up
     begins (beside ``ga.reconstruct``'s imports; beside the train start, which uses the GPU at
     once, they slowed it).  ``handover``: the thread runs under
-    :func:`~gaussian_atoms_method.physics.handover.quick_handover`, which changes the
+    :func:`~gaussian_atoms_method.launch.handover.quick_handover`, which changes the
     interpreter's switch interval while it runs: for a launcher's own process only, never a
     user's."""
     device = str(device)
