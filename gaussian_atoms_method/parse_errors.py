@@ -6,7 +6,7 @@ input is one line naming the option and what was expected, then exit status 2:
 :func:`one_line_errors` keeps tyro's first section (what was wrong) and drops the box, the help
 text and the pointer to ``--help``, which the line names instead.  ``gaussian-atoms`` parses
 inside it; ``ns-train gaussian-atoms``, whose parse is nerfstudio's, through
-:func:`one_line_tyro_errors`.
+:func:`gaussian_atoms_method.launch.ns_train.one_line_tyro_errors`.
 """
 
 from __future__ import annotations
@@ -63,24 +63,3 @@ def one_line_errors(prog: str):
         print(f"{prog}: error: {first_section(text)} ({prog} --help lists the options)", file=sys.stderr)
         raise SystemExit(2) from None
     sys.stderr.write(captured.getvalue())
-
-
-def one_line_tyro_errors(prog: str) -> None:
-    """Make every later ``tyro.cli`` call in this process parse inside :func:`one_line_errors`
-    for ``prog``: for ``ns-train gaussian-atoms``, whose ``tyro.cli`` call is nerfstudio's own
-    (the plugin is imported before it, and only in that process)."""
-    import functools
-
-    import tyro
-
-    parse = tyro.cli
-    if getattr(parse, "one_line_errors", False):
-        return
-
-    @functools.wraps(parse)
-    def cli(*args, **kwargs):
-        with one_line_errors(prog):
-            return parse(*args, **kwargs)
-
-    cli.one_line_errors = True
-    tyro.cli = cli

@@ -73,8 +73,8 @@ def test_reconstruct_imports_no_nerfstudio_and_keeps_a_run_the_viewer_reads(tmp_
 
 def test_reconstruct_leaves_torch_and_the_interpreter_as_it_found_them():
     """A notebook that calls the API keeps its own process: after ``ga.reconstruct`` torch's
-    functions and optimisers' methods are the objects they were (torch's own caches aside), the
-    interpreter's switch
+    functions and optimisers' methods, tyro's ``cli`` and nerfstudio's ``torch_compile`` are
+    the objects they were (torch's own caches aside), the interpreter's switch
     interval and recursion limit, torch's threads, default dtype and TF32 flags are unchanged,
     and every module it brought into ``sys.modules`` is a module that was imported (no stand-in
     put there).  Run in a fresh interpreter: the launchers, which may shorten their own start,
@@ -82,7 +82,15 @@ def test_reconstruct_leaves_torch_and_the_interpreter_as_it_found_them():
     code = textwrap.dedent(
         """
         import sys, types
-        import numpy as np, torch, torch._refs
+        import numpy as np, torch, torch._refs, tyro
+        import nerfstudio.utils.misc as misc
+
+        def ours(fn):  # whether a layer of a wrapped function is ours (torch wraps a step with its hooks)
+            layers = []
+            while fn is not None:
+                layers.append(str(getattr(fn, "__module__", "")).startswith("gaussian_atoms"))
+                fn = getattr(fn, "__wrapped__", None)
+            return any(layers)
 
         def state():
             # each method, and whether what it runs once torch's compiler is loaded is ours
@@ -92,7 +100,8 @@ def test_reconstruct_leaves_torch_and_the_interpreter_as_it_found_them():
                 cached = getattr(getattr(fn, "__wrapped__", None), "__dynamo_disable", None)
                 methods[name] = (id(fn), str(getattr(cached, "__module__", "")).startswith("gaussian_atoms"))
             return (
-                id(torch._refs._broadcast_shapes), id(torch.broadcast_shapes), methods, sys.getswitchinterval(),
+                id(torch._refs._broadcast_shapes), id(torch.broadcast_shapes), methods, ours(torch.optim.Adam.step),
+                id(tyro.cli), id(misc.torch_compile), sys.getswitchinterval(),
                 sys.getrecursionlimit(), torch.get_num_threads(), torch.get_default_dtype(),
                 torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32,
             )

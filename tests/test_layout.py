@@ -223,16 +223,91 @@ def test_no_library_module_is_over_500_lines():
     assert not {name: n for name, n in long.items() if n > 500}
 
 
-def test_nerfstudio_is_an_adapter_of_six_modules(graph):
+def test_nerfstudio_is_an_adapter_of_seven_modules(graph):
     """The fit is the library and nerfstudio its thin user: only the adapter's modules import
-    nerfstudio (the method's config and trainer, the launcher, splatfacto's lazy import, the
-    model, the viewer) and the dataparser."""
+    nerfstudio (the method's config and trainer, the launcher, the model, splatfacto's options
+    and properties, the viewer) and the dataparser."""
     importers = sorted(name for name, (_, ns) in graph.items() if ns)
     assert importers == [
         "dataparsers.tilt_series_dataparser",
         "gaussian_atoms_method.nerfstudio_layer.config",
         "gaussian_atoms_method.nerfstudio_layer.launch",
-        "gaussian_atoms_method.nerfstudio_layer.lazy_compile",
         "gaussian_atoms_method.nerfstudio_layer.model",
+        "gaussian_atoms_method.nerfstudio_layer.options",
+        "gaussian_atoms_method.nerfstudio_layer.splatfacto_compat",
         "gaussian_atoms_method.nerfstudio_layer.viewer",
     ]
+
+
+def _reaches_into_others(tree: ast.AST) -> list[str]:
+    """What a module's code does to packages it does not own: private names of other packages
+    (``pkg._x``, ``from pkg._x import``), assignments to their attributes, entries put into
+    ``sys.modules``, and changes to the interpreter's settings (``sys.set*``)."""
+    ours = {"gaussian_atoms_method", "dataparsers", "__future__"}
+    aliases: dict[str, str] = {}
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for a in node.names:
+                if a.name.split(".")[0] not in ours:
+                    aliases[a.asname or a.name.split(".")[0]] = a.name
+                    if any(p.startswith("_") and not p.startswith("__") for p in a.name.split(".")):
+                        found.append(f"line {node.lineno}: import {a.name}")
+        elif isinstance(node, ast.ImportFrom) and not node.level and (node.module or "").split(".")[0] not in ours:
+            parts = node.module.split(".") + [a.name for a in node.names]
+            if any(p.startswith("_") and not p.startswith("__") for p in parts):
+                found.append(f"line {node.lineno}: from {node.module} import {', '.join(a.name for a in node.names)}")
+
+    def root(node):
+        chain = []
+        while isinstance(node, ast.Attribute):
+            chain.append(node.attr)
+            node = node.value
+        return (node.id if isinstance(node, ast.Name) else None), chain[::-1]
+
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute):
+            name, chain = root(node)
+            if name in aliases and any(p.startswith("_") and not p.startswith("__") for p in chain):
+                found.append(f"line {node.lineno}: {name}.{'.'.join(chain)}")
+        targets = (
+            node.targets if isinstance(node, ast.Assign) else [node.target] if isinstance(node, ast.AugAssign) else []
+        )
+        for target in targets:
+            name, chain = root(target.value if isinstance(target, ast.Subscript) else target)
+            if name in aliases and (chain or isinstance(target, ast.Subscript)):
+                found.append(f"line {node.lineno}: assigns {name}.{'.'.join(chain)}")
+        if isinstance(node, ast.Call):
+            name, chain = root(node.func)
+            if name == "sys" and chain and chain[-1].startswith("set"):
+                found.append(f"line {node.lineno}: sys.{'.'.join(chain)}")
+            if isinstance(node.func, ast.Name) and node.func.id == "setattr" and node.args:
+                owner, _ = root(node.args[0])
+                if owner in aliases:
+                    found.append(f"line {node.lineno}: setattr on {owner}")
+    return sorted(set(found))
+
+
+def test_no_library_module_outside_the_launch_changes_or_reads_into_other_packages():
+    """The library leaves a user's process as it found it: outside :mod:`gaussian_atoms_method.launch`
+    (the launchers' own processes) no module reads another package's private names, assigns to
+    its attributes, puts modules into ``sys.modules`` or changes the interpreter's settings."""
+    offences = {
+        name: found
+        for name, path in package_modules().items()
+        if layer_of(name) != "launch" and (found := _reaches_into_others(ast.parse(path.read_text())))
+    }
+    assert not offences, offences
+
+
+def test_the_check_for_reaching_into_other_packages_finds_each_kind():
+    code = (
+        "import sys\nimport torch\nimport numpy as np\nfrom torch._refs import x\n"
+        "torch._refs._broadcast_shapes = 1\nnp.float64\nsys.modules['m'] = 1\nsys.setswitchinterval(1)\n"
+        "setattr(torch, 'a', 1)\n"
+    )
+    found = " ".join(_reaches_into_others(ast.parse(code)))
+    for kind in ("from torch._refs", "assigns torch._refs._broadcast_shapes", "assigns sys.modules",
+                 "sys.setswitchinterval", "setattr on torch"):  # fmt: skip
+        assert kind in found, (kind, found)
+    assert "np.float64" not in found

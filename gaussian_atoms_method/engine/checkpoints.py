@@ -18,7 +18,7 @@ import torch
 
 def numpy_checkpoint_globals() -> list:
     """The numpy globals a nerfstudio checkpoint holds: the scalar constructor and dtypes."""
-    scalar = np._core.multiarray.scalar if hasattr(np, "_core") else np.core.multiarray.scalar
+    scalar = np.float64(0.0).__reduce__()[0]  # what pickles a numpy scalar, by its public protocol
     return [scalar, np.dtype] + [type(np.dtype(t)) for t in ("float64", "float32", "int64")]
 
 

@@ -9,8 +9,6 @@ then every schedule).
 
 from __future__ import annotations
 
-import inspect
-import sys
 from dataclasses import dataclass
 from typing import Dict, List
 
@@ -55,39 +53,13 @@ RATES: Dict[str, Rate] = {
 """Each parameter group's rate and schedule."""
 
 
-class Adam(torch.optim.Adam):
-    """PyTorch's Adam, whose step does not import torch's compiler front end (dynamo) while
-    nothing else has: the stock step imports it at its first call to mark graph breaks for
-    compiled code (0.7 s on the H100 machine, 2.8 s on the 2-core CPU, on the way to the first
-    training step); in eager mode those marks do nothing, and the step is the update itself
-    with gradients off, as the stock one runs it (test_deferred_imports)."""
-
-    def step(self, closure=None):
-        if "torch._dynamo" in sys.modules and _WITH_GRAPH_BREAKS is not None:  # something compiles, or may
-            return _WITH_GRAPH_BREAKS(self, closure)
-        with torch.set_grad_enabled(self.defaults["differentiable"]):
-            return _UPDATE(self, closure)
-
-
-def _wrapper_layer(fn, name: str):
-    """The layer of the decorated ``fn`` whose code is named ``name`` (None if none is)."""
-    while fn is not None and getattr(getattr(fn, "__code__", None), "co_name", None) != name:
-        fn = getattr(fn, "__wrapped__", None)
-    return fn
-
-
-_UPDATE = inspect.unwrap(torch.optim.Adam.step)  # the update, without the stock step's wrappers
-# the stock step without its profiling hooks (this class's own step has them)
-_WITH_GRAPH_BREAKS = _wrapper_layer(torch.optim.Adam.step, "_use_grad")
-
-
-def adam(params, lr: float, eps: float, weight_decay: float = 0.0) -> Adam:
-    """:class:`Adam` on ``params``, fused into one kernel a step where they lie on a GPU
+def adam(params, lr: float, eps: float, weight_decay: float = 0.0) -> torch.optim.Adam:
+    """PyTorch's Adam on ``params``, fused into one kernel a step where they lie on a GPU
     (PyTorch's ``fused``; its default there launches about ten per group a step, and the five
     groups' steps took 1.8 ms of an 8 ms step at 20,000 atoms on the H100)."""
     params = list(params)
     fused = bool(params) and all(p.is_cuda for p in params)
-    return Adam(params, lr=lr, eps=eps, weight_decay=weight_decay, fused=fused or None)
+    return torch.optim.Adam(params, lr=lr, eps=eps, weight_decay=weight_decay, fused=fused or None)
 
 
 def exponential_decay(lr_init: float, lr_final: float, max_steps: int):

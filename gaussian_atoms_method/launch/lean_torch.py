@@ -2,26 +2,31 @@
 
 * torch's compiler front end (``torch._dynamo``): ``torch.optim.Optimizer`` imports it the first
   time one of its methods runs (``torch._disable_dynamo``, which keeps the compiler out of those
-  methods); :func:`defer_dynamo` leaves it unimported until something else imports it (0.7 s on
-  the H100 machine, 2.8 s on the 2-core CPU, at the optimisers' set-up).
+  methods), and Adam's step at its first call (to mark graph breaks for compiled code);
+  :func:`defer_dynamo` and :func:`defer_dynamo_in_adam` leave it unimported until something
+  else imports it (2.8 s on the 2-core CPU, at the optimisers' set-up and first step).
 * torch's symbolic shapes (``torch.fx.experimental.symbolic_shapes``, and sympy with it):
   ``torch.broadcast_shapes`` imports them on its first call, which nerfstudio's cameras make
   each time one is built or indexed; :func:`defer_symbolic_shapes` broadcasts plain integer
   shapes without them (0.8 s of the start on the 2-core CPU).
 
-Both are put in place by :func:`lean_torch` in a launcher's own process (``gaussian-atoms
-train`` before its fit, the plugin ``ns-train`` imports), never by ``ga.reconstruct`` in a
-user's, and change nothing once something else has imported the module they defer.
+All are put in place by :func:`lean_torch` in a launcher's own process (``gaussian-atoms
+train`` before its fit, ``ns-train gaussian-atoms`` as the plugin loads), never by
+``ga.reconstruct`` in a user's, and change nothing once something else has imported the module
+they defer.
 """
 
 from __future__ import annotations
 
+import inspect
 import sys
 
 
 def lean_torch() -> None:
-    """:func:`defer_dynamo` and :func:`defer_symbolic_shapes` (each once)."""
+    """:func:`defer_dynamo`, :func:`defer_dynamo_in_adam` and :func:`defer_symbolic_shapes`
+    (each once)."""
     defer_dynamo()
+    defer_dynamo_in_adam()
     defer_symbolic_shapes()
 
 
@@ -47,6 +52,40 @@ def defer_dynamo() -> int:
         fn.__dynamo_disable = _until_dynamo(fn, method)
         changed += 1
     return changed
+
+
+def defer_dynamo_in_adam() -> bool:
+    """Let ``torch.optim.Adam``'s step run without importing ``torch._dynamo`` while no one else
+    has imported it: in eager mode the stock step's graph-break marks do nothing, and the step is
+    the update itself with gradients off, as the stock one runs it (the same floats:
+    ``tests/test_lean_torch.py``); once dynamo is imported, the stock step.  Torch's profiling
+    hooks wrap it as they wrap the stock one.  Returns whether it was put in place."""
+    import torch
+
+    stock = torch.optim.Adam.step
+    if getattr(stock, "_until_dynamo", False) or getattr(inspect.unwrap(stock), "_until_dynamo", False):
+        return False
+    update = inspect.unwrap(stock)  # the update, without the stock step's wrappers
+    with_graph_breaks = _wrapper_layer(stock, "_use_grad")  # the stock step without its profiling hooks
+    if with_graph_breaks is None:
+        return False  # a torch whose step is wrapped otherwise: left as it is
+
+    def step(self, closure=None):
+        if "torch._dynamo" in sys.modules:  # something compiles, or may
+            return with_graph_breaks(self, closure)
+        with torch.set_grad_enabled(self.defaults["differentiable"]):
+            return update(self, closure)
+
+    step._until_dynamo = True
+    torch.optim.Adam.step = step
+    return True
+
+
+def _wrapper_layer(fn, name: str):
+    """The layer of the decorated ``fn`` whose code is named ``name`` (None if none is)."""
+    while fn is not None and getattr(getattr(fn, "__code__", None), "co_name", None) != name:
+        fn = getattr(fn, "__wrapped__", None)
+    return fn
 
 
 def defer_symbolic_shapes() -> bool:

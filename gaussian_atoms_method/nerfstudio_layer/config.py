@@ -40,12 +40,10 @@ from gaussian_atoms_method.atoms.atom_set import AtomFileError, read_atoms
 from gaussian_atoms_method.engine.errors import OptionError
 from gaussian_atoms_method.engine.optimisers import RATES, adam
 from gaussian_atoms_method.engine.step_graph import detached
-from gaussian_atoms_method.launch import cuda_context
+from gaussian_atoms_method.launch.ns_train import prepare
 from gaussian_atoms_method.launch.process_exit import fail
-from gaussian_atoms_method.launch.start_ahead import begin_for, runs_on_cuda, settle_imports
 from gaussian_atoms_method.nerfstudio_layer.model import GaussianAtomsModelConfig
 from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions
-from gaussian_atoms_method.parse_errors import one_line_tyro_errors
 from gaussian_atoms_method.physics.devices import default_device
 
 INPUT_ERRORS = (TiltSeriesError, AtomFileError, OptionError)
@@ -225,15 +223,7 @@ def restart_with_kernel_held(trainer) -> bool:
 
 MAX_ITERATIONS = 3000
 
-if Path(sys.argv[0]).name == "ns-train" and sys.argv[1:2] == ["gaussian-atoms"]:
-    # ns-train imports this module while it loads every method it knows, before it parses the
-    # command line: the start of the run it was asked for begins now, in a thread (start_ahead),
-    # and a malformed command line will be said in one line, as gaussian-atoms says it.
-    if runs_on_cuda(sys.argv[2:]):
-        cuda_context.begin()  # the GPU's context made while nerfstudio loads
-    begin_for(sys.argv[2:])
-    settle_imports()  # nerfstudio goes on importing: not scipy's packages beside the thread's
-    one_line_tyro_errors("ns-train gaussian-atoms")
+prepare(sys.argv)  # ns-train gaussian-atoms only: its start begun while nerfstudio loads (launch/ns_train.py)
 
 
 @dataclass

@@ -67,28 +67,11 @@ def run(config) -> None:
 
     trainer = make_trainer(config, console_of_our_own)
     try:
-        with quiet_trainer_console():
-            trainer.train()  # GaussianAtomsTrainer: its progress line; failures and Ctrl+C in one line
+        trainer.train()  # GaussianAtomsTrainer: its progress line; failures and Ctrl+C in one line
     finally:
         from nerfstudio.utils import profiler
 
         profiler.flush_profiler(config.logging)
-
-
-class quiet_trainer_console:
-    """Within it nerfstudio's trainer module prints nothing (its "Training Finished" box and its
-    checkpoint lines); our own lines, printed from our modules, still show."""
-
-    def __enter__(self):
-        import nerfstudio.engine.trainer as module
-        from rich.console import Console
-
-        self.module, self.console = module, module.CONSOLE
-        module.CONSOLE = Console(quiet=True)
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.module.CONSOLE = self.console
 
 
 def exit_process(status: int = 0) -> None:

@@ -12,12 +12,9 @@ from dataclasses import dataclass
 from typing import Annotated, get_type_hints
 
 import tyro
+from nerfstudio.models.splatfacto import SplatfactoModelConfig
 
 from gaussian_atoms_method.engine.options import FitOptions, field_docs
-from gaussian_atoms_method.nerfstudio_layer.lazy_compile import import_splatfacto
-
-SplatfactoModelConfig = import_splatfacto().SplatfactoModelConfig
-
 
 INERT_SPLATFACTO = (
     "background_color",

@@ -11,12 +11,10 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+from nerfstudio.models.splatfacto import SplatfactoModel
 
-from gaussian_atoms_method.nerfstudio_layer.lazy_compile import import_splatfacto
 from gaussian_atoms_method.nerfstudio_layer.viewer import mass_colours
 from gaussian_atoms_method.physics.projector import gaussian_mass
-
-SplatfactoModel = import_splatfacto().SplatfactoModel
 
 
 class SplatfactoCompat(SplatfactoModel):

@@ -186,7 +186,7 @@ def gsplat_tile_pairs(u_px, v_px, radius_r_px, radius_c_px, height: int, width: 
     intersection the sorted (tile, Gaussian) list.  gsplat's radius is 3 standard deviations of
     the covariance it is given, so it is given the covariance of ``radius_px / 3`` to cut the
     windows where ours are cut.  Same returns as :func:`tile_pairs`."""
-    from gsplat.cuda._wrapper import fully_fused_projection, isect_offset_encode, isect_tiles
+    from gsplat import fully_fused_projection, isect_offset_encode, isect_tiles
 
     n_views, n = u_px.shape
     dev = u_px.device
