@@ -264,15 +264,13 @@ def reconstruct(
         # A kept run's config.yml names its data: they are written beside it, where ns-viewer and
         # gaussian-atoms view find them; the fit itself reads the arrays in memory.
         data = _keep_series(series, truth, Path(output_dir)) if keep else Path("in-memory")
-        run_dir = fit_tilt_series(series, options, settings, data)
-        atoms = read_atoms(run_dir / "atoms.xyz")
-        atoms.info["non_atoms"] = read_atoms(run_dir / "non_atoms.xyz")
-        if (run_dir / "registration.csv").is_file():
-            from dataparsers.registration_file import read_registration
-
-            atoms.info["view_shifts_px"], atoms.info["view_gains"] = read_registration(run_dir / "registration.csv")
+        run = fit_tilt_series(series, options, settings, data)
+        atoms = run.report.atoms  # from memory: the atoms the run wrote to atoms.xyz
+        atoms.info["non_atoms"] = run.report.non_atoms
+        if run.report.registration is not None:
+            atoms.info["view_shifts_px"], atoms.info["view_gains"] = run.report.registration
         if keep:
-            atoms.info["run_dir"] = run_dir
+            atoms.info["run_dir"] = run.run_dir
         return atoms
     finally:
         if work is not None:

@@ -79,7 +79,14 @@ def test_the_density_control_closes_the_window_at_each_refine():
     for averaging in (True, False):
         g = torch.Generator().manual_seed(3)
         params = _params(20, g)
-        control = DensityControl(1.0, 10.0, g, refine_every=10, warmup_length=1000, average_iterates=averaging)
+        control = DensityControl(
+            length_scale=1.0,
+            max_log_amplitude=10.0,
+            generator=g,
+            refine_every=10,
+            warmup_length=1000,
+            average_iterates=averaging,
+        )
         trajectory = []
         for step in range(1, 11):
             params["means"].data += 0.001 * torch.randn(20, 3, generator=g)

@@ -56,36 +56,23 @@ from gaussian_atoms_method.density.parameters import (
     Params,
 )
 from gaussian_atoms_method.density.remap import apply_remap
+from gaussian_atoms_method.density.settings import DensitySettings
 from gaussian_atoms_method.density.significance import Significance
 from gaussian_atoms_method.density.state import DensityState
 
 
-@dataclass
-class DensityControl(Growth, Significance, Merging, HardCoreRules):
+@dataclass(kw_only=True)
+class DensityControl(DensitySettings, Growth, Significance, Merging, HardCoreRules):
     """Duplicate, prune and merge Gaussians; see the module docstring for the rules.
 
-    Attributes are the settings of :class:`~gaussian_atoms_method.nerfstudio_layer.options.GaussianAtomsOptions`
-    of the same names (their docstrings say where each value comes from), with lengths converted
-    by ``length_scale`` and ``max_log_amplitude`` (the amplitude ceiling of :meth:`clamp`) set by
-    the model from the measured mass.
+    Its settings are :class:`~.settings.DensitySettings` (the fit's options of the same names),
+    given by keyword; lengths are converted by ``length_scale``, and ``max_log_amplitude`` (the
+    amplitude ceiling of :meth:`clamp`) is set by the model from the measured mass.
     """
 
     length_scale: float
     max_log_amplitude: float
     generator: torch.Generator
-    min_sigma_A: float = 0.15
-    max_sigma_A: float = 5.0
-    max_atom_sigma_A: float = 1.5
-    warmup_length: int = 200
-    refine_every: int = 100
-    stop_split_at: int = 2500
-    densify_grad_thresh: float = 0.2
-    max_gaussians: int = 200000
-    prune_mass_fraction: float = 0.25
-    false_alarm_rate: float = 0.05
-    false_discovery_rate: float = 0.001
-    add_from_residuals: bool = True
-    split_heavy: bool = True
     noise: object | None = None
     """The pixel noise (:class:`~gaussian_atoms_method.physics.noise.NoiseModel`, normalised data
     units); None: unknown, the mass-fraction prune applies."""
@@ -98,14 +85,6 @@ class DensityControl(Growth, Significance, Merging, HardCoreRules):
     """(V, 3) the training views' beam directions, for the resolution test; None: not tested."""
     efficiency: float = 1.0
     """Variance of the fit's estimator over the least-squares one (pi/2 for L1)."""
-    cluster_merge: bool = True
-    merge_every: int = 100
-    merge_threshold_A: float = 0.7
-    merge_amplitude: str = "mass"
-    isotropic: bool = True
-    average_iterates: bool = True
-    """Write the mean of each refine interval's iterates into the parameters when it closes (before
-    the refine acts) and at the end (:mod:`.averaging`)."""
     half_extent: tuple[float, float, float] = (0.5, 0.5, 0.5)
     """Half-sides of the reconstruction volume (normalised units): the cube the detector's longer
     side spans, or wider across the tilt axis for an object wider than the field of view

@@ -32,6 +32,7 @@ from torch.nn import Parameter
 from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms
 from gaussian_atoms_method.atoms.initialise import compute_start, starting_amplitude
 from gaussian_atoms_method.density.parameters import amplitudes, widths
+from gaussian_atoms_method.density.settings import DensitySettings
 from gaussian_atoms_method.density.strategy import DensityControl
 from gaussian_atoms_method.engine import rendering as R
 from gaussian_atoms_method.engine import step_views as SV
@@ -167,12 +168,12 @@ class AtomFit(torch.nn.Module):
         # Every Gaussian's mass stays below 1000x the whole measured mass (DensityControl.clamp).
         max_log_amp = math.log(1000.0 * max(n, 1) * amp0 * (sigma0 / (cfg.min_sigma_A * ls)) ** 3)
         self.density = DensityControl(
-            ls,
-            max_log_amp,
-            self.generator,
+            length_scale=ls,
+            max_log_amplitude=max_log_amp,
+            generator=self.generator,
             half_extent=half_extent,
             field_half_extent=self.field_half_extent if half_extent != self.field_half_extent else None,
-            **{f.name: getattr(cfg, f.name) for f in fields(DensityControl) if hasattr(cfg, f.name)},
+            **{f.name: getattr(cfg, f.name) for f in fields(DensitySettings)},  # FitOptions is a DensitySettings
         )
         self.density.reset(n)
         self.density.hard_core_A = say_hard_core(series.species if series is not None else ())

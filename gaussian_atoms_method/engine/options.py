@@ -3,9 +3,8 @@
 
 :class:`FitOptions` holds them all, with no nerfstudio import; the nerfstudio method's config
 (:class:`gaussian_atoms_method.nerfstudio_layer.options.GaussianAtomsOptions`) is splatfacto's
-config with these in place of its own.  The density-control defaults are
-:class:`~gaussian_atoms_method.density.strategy.DensityControl`'s (one source of truth); their
-reasons are given here, where ``--help`` shows them.
+config with these in place of its own.  The density control's settings are declared once, in
+:class:`~gaussian_atoms_method.density.settings.DensitySettings`, which this class extends.
 """
 
 from __future__ import annotations
@@ -16,7 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Optional, Tuple, Union
 
-from gaussian_atoms_method.density.strategy import DensityControl
+from gaussian_atoms_method.density.settings import DensitySettings
 from gaussian_atoms_method.engine.errors import OptionError
 
 
@@ -52,7 +51,7 @@ def field_docs(cls) -> dict[str, str]:
 @dataclass
 class UserFirstOptions:
     """The options a user sets first: the data's background and probe, a film, the alignment,
-    the data term, the start, the false discoveries accepted, when to stop, the seed.  The first base of
+    the data term, the start, when to stop, the seed.  The first base of
     :class:`FitOptions`, so that ``--help`` lists them first."""
 
     background: Literal["auto", "none", "constant", "plane", "smooth"] = "auto"
@@ -128,14 +127,6 @@ class UserFirstOptions:
     """Start from these atoms instead (any atom file :func:`~gaussian_atoms_method.atoms.atom_set.read_atoms`
     reads; positions in Å in the series' frame, as ``atoms.xyz`` writes them): refine a model
     traced elsewhere, or ask whether the data hold it (the fit moves off what they do not)."""
-    false_discovery_rate: float = DensityControl.false_discovery_rate
-    """The final prune keeps the Gaussians whose mass significance clears the Benjamini-Hochberg
-    level at this rate (noise Gaussians expected among those kept: at most this fraction), never
-    stricter than the false_alarm_rate level
-    (:meth:`gaussian_atoms_method.density.strategy.DensityControl.discovery_threshold`).  0.001:
-    one in a thousand, ten times below the 0.01 false atoms per atom the benchmarks ask for, so
-    noise never dominates the false atoms (at Au noise 500 the rates 0.0005-0.005 gave the same
-    false atoms: fragments of atoms, not noise)."""
     stop_when_converged: bool = True
     """End training early once the atoms are settled: over a refine interval at most
     false_discovery_rate of the atoms' worth of Gaussians added or removed, and the RMS step of the others
@@ -152,11 +143,12 @@ class UserFirstOptions:
 
 
 @dataclass
-class FitOptions(UserFirstOptions):
+class FitOptions(DensitySettings, UserFirstOptions):
     """Gaussian atoms: isotropic 3D Gaussians fitted to a tilt series.
 
-    The options a user sets first come first (:class:`UserFirstOptions`); the fit's own settings
-    follow."""
+    The options a user sets first come first (:class:`UserFirstOptions`), then the density
+    control's (:class:`~gaussian_atoms_method.density.settings.DensitySettings`, declared there
+    once); the fit's own settings follow."""
 
     init_mass: Literal["backprojection", "equal"] = "backprojection"
     """How the measured mass is shared among the starting Gaussians: in proportion to the
@@ -171,52 +163,6 @@ class FitOptions(UserFirstOptions):
     init_extent: float = 0.8
     """Side of the cube (normalised units, the detector's longer side is 1) that the random
     Gaussians start in."""
-    min_sigma_A: float = DensityControl.min_sigma_A
-    """Floor on the width, Å: no atom (after probe blur) is narrower; keeps the fit finite."""
-    max_atom_sigma_A: float = DensityControl.max_atom_sigma_A
-    """Gaussians wider than this (Å) are not atoms (an atom blurred by a 0.5 Å probe is about
-    0.6 Å wide): they are pruned and left out of the typical atom mass."""
-    max_sigma_A: float = DensityControl.max_sigma_A
-    """Ceiling on the width, Å: far wider than any atom; keeps a runaway Gaussian finite."""
-    warmup_length: int = DensityControl.warmup_length
-    """Steps before the first densify / prune / merge."""
-    refine_every: int = DensityControl.refine_every
-    """Steps between densify / prune / merge."""
-    stop_split_at: int = DensityControl.stop_split_at
-    """No more duplication after this step (pruning and merging continue)."""
-    densify_grad_thresh: float = DensityControl.densify_grad_thresh
-    """Duplicate Gaussians whose mean positional gradient (norm of the average gradient vector
-    over a refine interval, normalised units) exceeds this.  Measured on the demo data, a
-    fitted atom's sits at 0.02-0.1 (L1 noise), so 0.2 only duplicates under a persistent pull.
-    The paper's 0.005 is on gsplat's screen-space scale and would duplicate everything here."""
-    max_gaussians: int = DensityControl.max_gaussians
-    """Never hold more Gaussians than this."""
-    prune_mass_fraction: float = DensityControl.prune_mass_fraction
-    """Only where the noise is unknown (a model built without a tilt series): prune Gaussians
-    whose integrated mass is below this fraction of a typical atom's (the mass-weighted median
-    mass).  With data, the prune is by significance (false_alarm_rate)."""
-    false_alarm_rate: float = DensityControl.false_alarm_rate
-    """Chance that a noise blob anywhere in the volume survives the prune: a Gaussian stays
-    while its mass over its Cramér-Rao standard deviation (in the measured noise) exceeds the
-    normal quantile at this rate shared over the volume's 1 Å^3 cells
-    (:meth:`gaussian_atoms_method.density.strategy.DensityControl.significance_threshold`;
-    4.5 sigma for a 25 Å box at 5%)."""
-    add_from_residuals: bool = DensityControl.add_from_residuals
-    """Once the atoms are settled (the convergence check), back-project the residuals of every
-    view and add a Gaussian wherever they hold significant unexplained mass
-    (:mod:`gaussian_atoms_method.atoms.residual_sites`: above the level a noise peak reaches in
-    the volume with chance false_alarm_rate), then train on; stop only when a search finds
-    nothing (or at stop_split_at).  Each search costs a rendering of every view and two
-    back-projections.  Searching earlier, every 500 steps, also added Gaussians at the
-    unsettled atoms' misfit (29 on the demo, which has no atom missing) and kept the
-    convergence check from stopping."""
-    split_heavy: bool = DensityControl.split_heavy
-    """At the first residual search, split each Gaussian heavier than the single atoms' mass
-    range (:func:`gaussian_atoms_method.density.parameters.split_worth`, at most 1.5 typical
-    atoms) into two, the material's shortest distance apart along the least-resolved direction
-    (:meth:`gaussian_atoms_method.density.strategy.DensityControl.split_heavy_gaussians`: in a
-    thick particle one Gaussian can hold two atoms along the beam); the final likelihood merge
-    rejoins any the data prefer as one, and any pair that is one peak with one atom's mass."""
     judge_after_fit: bool = True
     """The final merges and prune judge significance in what the fit leaves unexplained, as an
     atom sees it (the residuals' variance times their correlation over an atom), never less
@@ -240,21 +186,6 @@ class FitOptions(UserFirstOptions):
     (:mod:`gaussian_atoms_method.atoms.calibration`).  Zero: the views' own statement.  (A new tuple
     each time: the compiler makes every ``(0.0, 0.0, 0.0)`` literal of a module one object,
     ``psf_weights``' too, and config.yml would write the two as one YAML anchor.)"""
-    isotropic: bool = DensityControl.isotropic
-    """One width per Gaussian (the isotropy prior).  False: three widths and a rotation each."""
-    average_iterates: bool = DensityControl.average_iterates
-    """The Gaussians' estimate is the mean of the optimiser's iterates over each refine interval,
-    written into them when it closes and at the end (Polyak-Ruppert averaging,
-    :mod:`gaussian_atoms_method.density.averaging`): one-view steps jitter the atoms by more than
-    the data's precision, and the mean cancels that.  False: the last iterate."""
-    cluster_merge: bool = DensityControl.cluster_merge
-    """Merge Gaussians closer than merge_threshold_A (the minimum-distance prior)."""
-    merge_every: int = DensityControl.merge_every
-    """Steps between cluster merges (after the warm-up)."""
-    merge_threshold_A: float = DensityControl.merge_threshold_A
-    """Gaussians closer than this (Å) merge into one."""
-    merge_amplitude: Literal["mass", "mean"] = DensityControl.merge_amplitude
-    """Amplitude of a merged Gaussian: conserve the summed mass, or the mean amplitude (paper)."""
     projector: Literal["auto", "tiled", "dense", "gsplat"] = "auto"
     """Projection backend (all exact to float32; docs/performance.md): ``dense``, the full-image
     separable matmul (fastest on a GPU: 1.4-3 ms per 280x280 view for 1k-50k Gaussians on an

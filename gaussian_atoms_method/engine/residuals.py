@@ -228,15 +228,15 @@ def learned_registration(model) -> tuple[np.ndarray, np.ndarray] | None:
     return shifts, gains
 
 
-def write_learned_registration(model, run_dir) -> None:
-    """Write :func:`learned_registration` to ``run_dir/registration.csv`` and say it in a line
-    (nothing where the run learned no registration): the misregistration a replica of the
+def write_learned_registration(model, run_dir) -> tuple[np.ndarray, np.ndarray] | None:
+    """Write :func:`learned_registration` to ``run_dir/registration.csv``, say it in a line and
+    return it (nothing, and None, where the run learned no registration): the misregistration a replica of the
     experiment can be given (``gaussian-atoms simulate --like DIR --shifts-from FILE``)."""
     from dataparsers.registration_file import write_registration
 
     learned = learned_registration(model)
     if learned is None:
-        return
+        return None
     shifts, gains = learned
     run_dir.mkdir(parents=True, exist_ok=True)
     write_registration(run_dir / "registration.csv", shifts, gains)
@@ -251,3 +251,4 @@ def write_learned_registration(model, run_dir) -> None:
         f"gaussian-atoms: the views' learned registration: {', '.join(said)} (registration.csv; a replica of the "
         f"experiment takes its shifts: gaussian-atoms simulate --like DATA --shifts-from registration.csv)"
     )
+    return learned

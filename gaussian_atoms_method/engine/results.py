@@ -129,13 +129,11 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
             )
             + "\n"
         )
-    write_learned_registration(model, run_dir)
+    registration = write_learned_registration(model, run_dir)
     atoms = model.atoms()
     read = residual_noise(model) if len(atoms) else None
     if read is not None:
-        # The variance-mean relation of the final residuals (input units): additive or Poisson-like.
-        # Read here only: the convergence checks and the refit need the noise level alone (the
-        # fit's binned variances took 0.47 s of each reading on the Au series on this CPU).
+        # the final residuals' variance-mean relation (input units), read here only: the checks need the level alone
         scale = model.normalisation.data_scale
         model.noise_model = fit_noise_model(read[1] / scale, read[2] / scale)
     precision = model_position_std_A(model, atoms, read[0] if read is not None else None)
@@ -162,6 +160,7 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
     pictures = [] if population is None else [(write_population_png, *population, run_dir / "classes.png")]
     _hand_over(pictures, drawers)
     say_evidence(atoms)
+    model.report = Report(atoms, non_atoms, registration)
     write_atoms(atoms, run_dir / "atoms.xyz")
     write_atoms(atoms, run_dir / "atoms.csv")
     write_atoms(non_atoms, run_dir / "non_atoms.xyz")
@@ -218,6 +217,16 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
     plain = {k: v for k, v in scores.items() if k not in evidence}
     CONSOLE.print(f"[bold]gaussian-atoms[/bold]: against {model.truth_path}: {json.dumps(plain)}")
     return scores
+
+
+@dataclasses.dataclass(frozen=True)
+class Report:
+    """What a run reports as it writes it (:func:`write_results`): ``atoms`` (atoms.xyz), ``non_atoms``
+    (non_atoms.xyz), the views' learned ``registration`` ((V, 2) px shifts, (V,) gains) or None."""
+
+    atoms: AtomSet
+    non_atoms: AtomSet
+    registration: tuple[np.ndarray, np.ndarray] | None = None
 
 
 EVIDENCE_SCORES = (
@@ -462,15 +471,11 @@ def write_snapshot(
     ``step-NNNNNN.csv`` and a line ``step,unix_time,gaussians,peak_gpu_bytes,earlier_s,own_s``
     in ``times.csv``; returns ``own_s``.
 
-    ``stamp`` (default now) is when the step's atoms were ready, before this snapshot's work;
-    ``earlier_s`` is what the run's earlier snapshots cost it and ``own_s`` what this one did
-    (from ``stamp``).  Benchmarks subtract them (:func:`read_snapshot_times`): the probe's cost is
-    not the method's, and a run without snapshots reaches the same step that much sooner.
+    ``stamp`` (default now): when the step's atoms were ready; ``earlier_s`` and ``own_s``: what the
+    earlier snapshots and this one cost the run, which benchmarks subtract (:func:`read_snapshot_times`).
 
-    With ``in_field`` ((N,) bool, the density control's test of the field of view) the file
-    holds the Gaussians the run would report as atoms were it stopped here
-    (:func:`reported_as_atoms`; the final merges and prune come on top of that): on the Au
-    series at noise 200 the support takes 26 of the 117 false atoms left at step 250."""
+    With ``in_field`` ((N,) bool, the density control's test of the field of view) the file holds
+    the Gaussians the run would report as atoms were it stopped here (:func:`reported_as_atoms`)."""
     stamp = time.time() if stamp is None else stamp
     directory.mkdir(parents=True, exist_ok=True)
     if in_field is not None:

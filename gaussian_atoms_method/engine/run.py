@@ -108,11 +108,11 @@ def fit_tilt_series(
     data: Path,
     dataparser_options: dict | None = None,
     prepared: Prepared = NOTHING,
-) -> Path:
-    """Fit ``series`` with ``options`` and return the run directory (``settings.place``, its
-    experiment named after ``data``, the series' directory or file, which ``config.yml``
-    records with ``dataparser_options``; ``prepared``: what a launcher prepared for the fit,
-    :mod:`.prepared`).  Raises ``FloatingPointError`` naming the step and
+) -> FitRun:
+    """Fit ``series`` with ``options``: the run directory (``settings.place``, its experiment
+    named after ``data``, the series' directory or file, which ``config.yml`` records with
+    ``dataparser_options``) and what the run reported there, in memory (``prepared``: what a
+    launcher prepared for the fit, :mod:`.prepared`).  Raises ``FloatingPointError`` naming the step and
     the cause where the loss stops being finite."""
     if options.decide_registration:
         options = dataclasses.replace(
@@ -151,7 +151,17 @@ def fit_tilt_series(
             bar.close()
         if scalars is not None:
             scalars.close()
-    return run_dir
+    return FitRun(run_dir, getattr(fit, "report", None))
+
+
+@dataclass(frozen=True)
+class FitRun:
+    """A finished :func:`fit_tilt_series`: its ``run_dir`` and its
+    :class:`~gaussian_atoms_method.engine.results.Report` (the atoms, non-atoms and learned
+    registration it wrote; None where it wrote none)."""
+
+    run_dir: Path
+    report: object = None
 
 
 REGISTRATION = {
@@ -194,7 +204,7 @@ def choose_registration(series, options: FitOptions, settings: RunSettings) -> d
                 settings, place=RunPlace(Path(work), "registration"), progress=False, tensorboard=False,
                 checkpoints=False, kept=False,
             )  # fmt: skip
-            run_dir = fit_tilt_series(fitted, trial, quiet, Path("in-memory"))
+            run_dir = fit_tilt_series(fitted, trial, quiet, Path("in-memory")).run_dir
             rms[name] = held_out_rms(run_gaussians(run_dir), held, run_kernel(run_dir), fit_registration=True)
     best = min(rms, key=lambda name: (rms[name], list(REGISTRATION).index(name)))  # a tie: the fewer parameters
     CONSOLE.print(

@@ -54,7 +54,7 @@ def fit_subarea(
     started = time.perf_counter()
     series = load_tilt_series(sub.data, species=species or None)
     settings = RunSettings(place, device, max_steps, progress=False, tensorboard=False, checkpoints=False)
-    run_dir = fit_tilt_series(series, FitOptions(**options), settings, sub.data)
+    run_dir = fit_tilt_series(series, FitOptions(**options), settings, sub.data).run_dir
     structure = json.loads((run_dir / "structure.json").read_text())
     record = {
         "name": sub.name,
