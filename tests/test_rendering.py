@@ -137,30 +137,34 @@ def test_a_floor_varying_within_the_views_learns_a_quadratic_correction_from_its
     ].shape == (5, 3)
 
 
-def test_view_index_finds_the_training_pose():
+def test_a_camera_is_a_view_by_the_index_it_carries_not_by_its_pose():
+    """A camera marked with a view (``metadata[VIEW_KEY]``) is that view; one without the mark is
+    none, even at a view's very pose (the viewer's camera snapped to a view)."""
     poses = torch.stack([torch.eye(4)[:3] + 0.1 * i for i in range(4)])
-    assert R.view_index(poses, _camera(poses[2])) == 2
-    assert R.view_index(poses, _camera(poses[2] + 0.01)) is None  # another view (the viewer's)
-    assert R.view_index(torch.zeros(0, 3, 4), _camera(poses[0])) is None
+    marked, unmarked = _camera(poses[2]), _camera(poses[2])
+    marked.metadata = {R.VIEW_KEY: 2, "cam_idx": 0}  # nerfstudio's cam_idx is not read
+    assert R.view_of(marked) == 2 and R.view_of(unmarked) is None
 
 
-def test_view_geometry_reads_a_training_camera_once():
-    """A training camera (``cam_idx``) is read once and then served from the cache; the viewer's
-    cameras (no index) and evaluation (not training) are read each time."""
+def test_view_geometry_reads_a_views_camera_once():
+    """A view's camera is read once and then served from the cache; a camera that is no view
+    (the viewer's) is read each time."""
     poses = torch.stack([torch.eye(4)[:3] + 0.1 * i for i in range(4)])
     geometry, camera = R.ViewGeometry(), _camera(poses[2])
-    camera.metadata = {"cam_idx": 2}
-    first = geometry.read(camera, poses[2], False, poses, True, "cpu", torch.float64)
+    camera.metadata = {R.VIEW_KEY: 2}
+    first = geometry.read(camera, poses[2], False, "cpu", torch.float64)
     rows, cols = R.pixel_coordinates(camera, poses[2], False, "cpu", torch.float64)
     assert (
         torch.equal(first[0], rows) and torch.equal(first[1], cols) and first[2] == pytest.approx(0.1) and first[3] == 2
     )
-    assert geometry.read(camera, poses[2], False, poses, True, "cpu", torch.float64) is first
+    assert geometry.read(camera, poses[2], False, "cpu", torch.float64) is first
     # the coarse phase: its own entry
-    assert geometry.read(camera, poses[2], True, poses, True, "cpu", torch.float64)[0].shape == (3,)
-    viewer = _camera(poses[1] + 0.01)
-    assert geometry.read(viewer, poses[1] + 0.01, False, poses, True, "cpu", torch.float64)[3] is None
-    assert geometry.read(camera, poses[2], False, poses, False, "cpu", torch.float64) is not first
+    assert geometry.read(camera, poses[2], True, "cpu", torch.float64)[0].shape == (3,)
+    viewer = _camera(poses[2])
+    assert geometry.read(viewer, poses[2], False, "cpu", torch.float64)[3] is None
+    assert geometry.read(viewer, poses[2], False, "cpu", torch.float64) is not geometry.read(
+        viewer, poses[2], False, "cpu", torch.float64
+    )
     # the floors' coordinate powers: kept for the coordinates read kept, made each time for others
     powers = geometry.powers(first[0], first[1])
     assert geometry.powers(first[0], first[1]) is powers and all(

@@ -283,7 +283,8 @@ class AtomFit(torch.nn.Module):
     # ------------------------------------------------------------------ rendering
     def get_outputs(self, camera, background: bool = True) -> Dict[str, torch.Tensor]:
         """Project the Gaussians for one ``camera`` (an :class:`~.views.OrthographicViews` of one
-        view, or nerfstudio's ``Cameras``, which have the same fields): ``rgb`` (H, W, 3) in
+        view, or nerfstudio's ``Cameras``, which have the same fields; its view, if it is one, by
+        index: :func:`~.rendering.view_of`): ``rgb`` (H, W, 3) in
         [0, 1] for the viewer, ``projection``
         (H, W, 1) in normalised data units (``background=False``: the view's background apart, in
         ``background``), ``depth``; with views_per_step > 1 the step's other views (``extra_projection``,
@@ -293,7 +294,7 @@ class AtomFit(torch.nn.Module):
         dev, dt = self.means.device, self.means.dtype
         c2w = camera.camera_to_worlds[0].to(dt)
         rows, cols, pitch, view = self.view_geometry.read(
-            camera, c2w, self.training and self.step < self.config.coarse_steps, self.view_c2w, self.training, dev, dt
+            camera, c2w, self.training and self.step < self.config.coarse_steps, dev, dt
         )
         # psf held-out: it teaches the kernel, not the atoms
         self._held_out_step, self.rendered_floors = (

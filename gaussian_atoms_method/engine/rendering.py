@@ -281,28 +281,42 @@ def add_view_floors(
     return images + floors, floors
 
 
+VIEW_KEY = "view"
+"""The key of a camera's ``metadata`` that names its view, the index of its projection among the
+fit's views (an int, or a one-element tensor): set where the views' cameras are made
+(:func:`~.views.views_from_tilt_series`, the training loop, the nerfstudio adapter); a camera
+without it (the viewer's) is no view, rendered without a view's floor, shift or gain."""
+
+
+def view_of(camera) -> int | None:
+    """The index of the view ``camera`` is (:data:`VIEW_KEY`), or None."""
+    view = (camera.metadata or {}).get(VIEW_KEY)
+    if isinstance(view, torch.Tensor):
+        view = view.reshape(-1)[0]
+    return None if view is None else int(view)
+
+
 class ViewGeometry:
-    """What a training step reads from its camera that stays fixed for the run: the view's
-    index among the model's views, its pixel coordinates and their pitch.  Reading a GPU
-    camera's size or pose waits for the GPU (six waits a step, which kept the CPU from queueing
-    the next step's work), so each training camera is read once and then served from here,
-    keyed by the index nerfstudio's datamanager gives it (``metadata["cam_idx"]``).  Other
-    cameras (the viewer's, evaluation's) are read each time."""
+    """What a step reads from a view's camera that stays fixed for the run: its pixel
+    coordinates, their pitch and their powers for the floors.  Reading a GPU camera's size or
+    pose waits for the GPU (six waits a step, which kept the CPU from queueing the next step's
+    work), so each view's camera is read once and then served from here, by its view
+    (:func:`view_of`).  Other cameras (the viewer's) are read each time."""
 
     def __init__(self) -> None:
-        self._seen: dict = {}
-        self._powers: dict = {}  # id(rows), id(cols) -> (rows, cols, their coordinate_powers)
+        self._seen: dict = {}  # (view, coarse, device, dtype) -> (rows, cols, pitch, view)
+        self._powers: dict = {}  # the same keys -> the rows' and columns' coordinate_powers
         self._surfaces: dict = {}  # (h, w) -> the floors' surfaces binned to (V, h, w)
 
-    def read(self, camera, c2w: torch.Tensor, coarse: bool, view_c2w: torch.Tensor, training: bool, device, dtype):
+    def read(self, camera, c2w: torch.Tensor, coarse: bool, device, dtype):
         """(rows, cols, pitch, view): :func:`pixel_coordinates`, the pitch of the rows as a float
-        (None for a single row) and :func:`view_index` of ``camera``."""
-        index = (camera.metadata or {}).get("cam_idx") if training else None
-        key = None if index is None else (index, coarse, str(device), dtype)
+        (None for a single row) and :func:`view_of` ``camera``."""
+        view = view_of(camera)
+        key = None if view is None else (view, coarse, str(device), dtype)
         if key in self._seen:
             return self._seen[key]
         rows, cols = pixel_coordinates(camera, c2w, coarse, device, dtype)
-        found = (rows, cols, float(rows[1] - rows[0]) if len(rows) > 1 else None, view_index(view_c2w, camera))
+        found = (rows, cols, float(rows[1] - rows[0]) if len(rows) > 1 else None, view)
         if key is not None:
             self._seen[key] = found
         return found
@@ -310,12 +324,12 @@ class ViewGeometry:
     def powers(self, rows: torch.Tensor, cols: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """:func:`coordinate_powers` of ``rows`` and ``cols``, kept for the coordinates :meth:`read`
         keeps (others, a shifted view's or the viewer's, are computed each time)."""
-        hit = self._powers.get((id(rows), id(cols)))
-        if hit is not None and hit[0] is rows and hit[1] is cols:
-            return hit[2]
+        key = next((k for k, found in self._seen.items() if found[0] is rows and found[1] is cols), None)
+        if key is not None and key in self._powers:
+            return self._powers[key]
         powers = coordinate_powers(rows, cols)
-        if any(found[0] is rows and found[1] is cols for found in self._seen.values()):
-            self._powers[(id(rows), id(cols))] = (rows, cols, powers)
+        if key is not None:
+            self._powers[key] = powers
         return powers
 
     def surfaces(self, surfaces: torch.Tensor, h: int, w: int) -> torch.Tensor:
@@ -323,16 +337,6 @@ class ViewGeometry:
         if (h, w) not in self._surfaces:
             self._surfaces[(h, w)] = binned_views(surfaces, h, w)
         return self._surfaces[(h, w)]
-
-
-def view_index(view_c2w: torch.Tensor, camera) -> int | None:
-    """Index of the training view (poses ``view_c2w`` (V, 3, 4)) this camera is, or None."""
-    if view_c2w.shape[0] == 0:
-        return None
-    c2w = camera.camera_to_worlds[0].to(view_c2w)
-    dist = (view_c2w - c2w).abs().flatten(1).max(dim=1).values
-    best = int(torch.argmin(dist))
-    return best if float(dist[best]) < 1e-5 else None
 
 
 def render_views(

@@ -83,9 +83,7 @@ class StepGraph:
             return None
         camera, batch = steps.next_view(step)
         dev, dt = model.means.device, model.means.dtype
-        view = model.view_geometry.read(
-            camera, camera.camera_to_worlds[0].to(dt), key[-3], model.view_c2w, True, dev, dt
-        )[3]
+        view = model.view_geometry.read(camera, camera.camera_to_worlds[0].to(dt), key[-3], dev, dt)[3]
         views = torch.tensor(step_views(model, view), dtype=torch.long).pin_memory()
         if self._graph is None:
             self._inputs = (torch.empty(len(views), dtype=torch.long, device=dev), torch.empty_like(batch["image"]))

@@ -19,6 +19,7 @@ from pathlib import Path
 import torch
 
 from gaussian_atoms_method.engine.optimisers import Optimisers
+from gaussian_atoms_method.engine.rendering import VIEW_KEY
 from gaussian_atoms_method.engine.run_files import Scalars, write_checkpoint
 from gaussian_atoms_method.engine.step_graph import detached, step_losses
 from gaussian_atoms_method.engine.views import OrthographicViews
@@ -72,7 +73,7 @@ class FitLoop:
     def __init__(self, fit, views: OrthographicViews, images: torch.Tensor, schedule_steps: int) -> None:
         dev = fit.means.device
         self.fit, self.schedule_steps = fit, schedule_steps
-        self.cameras = [replace(views[i].to(dev), metadata={"cam_idx": i}) for i in range(len(views))]
+        self.cameras = [replace(views[i].to(dev), metadata={VIEW_KEY: i}) for i in range(len(views))]
         self.images = [images[i][..., None].to(dev, torch.float32) for i in range(len(views))]
         self.order = ViewOrder(len(views))
         self.optimisers = Optimisers(fit.get_param_groups(), schedule_steps)

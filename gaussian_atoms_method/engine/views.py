@@ -18,14 +18,16 @@ from dataclasses import dataclass, fields, replace
 
 import torch
 
-from gaussian_atoms_method.engine.rendering import ORTHOGRAPHIC_CAMERA
+from gaussian_atoms_method.engine.rendering import ORTHOGRAPHIC_CAMERA, VIEW_KEY
 from gaussian_atoms_method.physics.units import Normalisation
 
 
 @dataclass
 class OrthographicViews:
     """V orthographic views: ``camera_to_worlds`` (V, 3, 4); ``fx``, ``fy``, ``cx``, ``cy``
-    (V, 1) float; ``width``, ``height``, ``camera_type`` (V, 1) int; ``metadata`` as nerfstudio's."""
+    (V, 1) float; ``width``, ``height``, ``camera_type`` (V, 1) int; ``metadata`` as nerfstudio's
+    (its tensors, (V, ...), are sliced with the views, and stay on the host: the view index,
+    :data:`~.rendering.VIEW_KEY`, is read without waiting for a GPU)."""
 
     camera_to_worlds: torch.Tensor
     fx: torch.Tensor
@@ -48,7 +50,10 @@ class OrthographicViews:
         """The views ``index`` selects (a slice keeps the leading axis, as nerfstudio's do)."""
         index = index if isinstance(index, slice) else slice(index, index + 1)
         tensors = {f.name: getattr(self, f.name)[index] for f in fields(self) if f.name != "metadata"}
-        return OrthographicViews(**tensors, metadata=self.metadata)
+        metadata = None if self.metadata is None else {
+            k: v[index] if isinstance(v, torch.Tensor) else v for k, v in self.metadata.items()
+        }  # fmt: skip
+        return OrthographicViews(**tensors, metadata=metadata)
 
     def to(self, device) -> OrthographicViews:
         tensors = {f.name: getattr(self, f.name).to(device) for f in fields(self) if f.name != "metadata"}
@@ -79,4 +84,5 @@ def views_from_tilt_series(series, norm: Normalisation) -> OrthographicViews:
         width=column(w, torch.int64),
         height=column(h, torch.int64),
         camera_type=column(ORTHOGRAPHIC_CAMERA, torch.int64),
+        metadata={VIEW_KEY: torch.arange(n)[:, None]},  # each view's index
     )

@@ -39,6 +39,7 @@ from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig, TiltS
 from gaussian_atoms_method.atoms.atom_set import AtomFileError, read_atoms
 from gaussian_atoms_method.engine.errors import OptionError
 from gaussian_atoms_method.engine.optimisers import RATES, adam
+from gaussian_atoms_method.engine.rendering import VIEW_KEY
 from gaussian_atoms_method.engine.step_graph import detached
 from gaussian_atoms_method.launch.ns_train import prepare
 from gaussian_atoms_method.launch.process_exit import fail
@@ -251,14 +252,15 @@ def nerfstudio_optimizers(max_iterations: int) -> dict:
 
 class TiltSeriesDatamanager(FullImageDatamanager[TiltSeriesDataset]):
     """nerfstudio's full-image datamanager serving float projections from memory.  Each view's
-    camera is cut from the set once and kept: nerfstudio cuts and copies it at every step,
-    1.2 of the 10 ms a training step took at 20,000 atoms on the H100 (cProfile).  So is its
+    camera is cut from the set once and kept: nerfstudio cuts and copies it at every step, a
+    tenth of a large fit's step on a GPU.  So is its
     image on the device: a plain copy to the GPU at every step waited for the queued steps
     (``torch.cuda.set_sync_debug_mode``)."""
 
     def next_train(self, step: int):
-        """The next training view's camera (``metadata["cam_idx"]``: its index) and its data, in
-        nerfstudio's order (:meth:`FullImageDatamanager.next_train`)."""
+        """The next training view's camera (its view index in ``metadata``:
+        :func:`~gaussian_atoms_method.engine.rendering.view_of`) and its data, in nerfstudio's
+        order (:meth:`FullImageDatamanager.next_train`)."""
         image_idx = self.train_unseen_cameras.pop(0)
         if len(self.train_unseen_cameras) == 0:
             self.train_unseen_cameras = self.sample_train_cameras()
@@ -266,12 +268,18 @@ class TiltSeriesDatamanager(FullImageDatamanager[TiltSeriesDataset]):
         data = dict(self.cached_train[image_idx])
         cameras, images = self.__dict__.setdefault("_view_cameras", {}), self.__dict__.setdefault("_view_images", {})
         if image_idx not in cameras:
-            camera = self.train_cameras[image_idx : image_idx + 1].to(self.device)
-            camera.metadata = {**(camera.metadata or {}), "cam_idx": image_idx}
-            cameras[image_idx] = camera
+            cameras[image_idx] = as_view(self.train_cameras[image_idx : image_idx + 1].to(self.device), image_idx)
             images[image_idx] = data["image"].to(self.device)
         data["image"] = images[image_idx]
         return cameras[image_idx], data
+
+
+def as_view(camera, index: int):
+    """``camera`` (one of nerfstudio's) marked as view ``index`` of the fit
+    (:data:`~gaussian_atoms_method.engine.rendering.VIEW_KEY`), an int: read at every step
+    without waiting for the GPU, where the dataparser's mark is a tensor moved there."""
+    camera.metadata = {**(camera.metadata or {}), VIEW_KEY: int(index)}
+    return camera
 
 
 def gaussian_atoms_trainer_config(max_iterations: int = MAX_ITERATIONS) -> GaussianAtomsTrainerConfig:
