@@ -77,11 +77,10 @@ def matched_response(
     ``sqrt(w^2 - narrow^2)``.  The width is the one whose response's :func:`peak_sharpness`
     equals the data's ``sharpness`` (read the same way at the data's strongest maxima of the
     same filter): the shape of the peak within one voxel, which a neighbour a bond away barely
-    touches.  (A ratio of the filtered to the plain back-projection read 0.93-0.99 Å on the
-    carbon: its neighbours, drawn out along the missing wedge, add to the plain value.)  Why the
-    width is read and not assumed: with a response 0.11 Å too narrow (0.5 Å for the 0.61 Å
-    Gaussian atoms of the test sphere), each atom's remainder is a positive shell 0.7-1 Å from
-    it, and 136 such maxima cleared the level against 5 decoys.  Returns the response scaled to
+    touches (a ratio of the filtered to the plain back-projection is not: the neighbours, drawn
+    out along the missing wedge, add to the plain value).  Why the width is read and not
+    assumed: with a response too narrow each atom's remainder is a positive shell around it,
+    whose maxima clear the level.  Returns the response scaled to
     1 at its peak, the peak's voxel and the width in Å (within ``narrow_sigma_A``-``max_width_A``)."""
     widths = np.arange(narrow_sigma_A, max_width_A + 1e-9, 0.05)
 

@@ -175,8 +175,8 @@ def view_scores(
 
 
 SCORE_ELEMENTS = 2e7
-"""The most window pixels (atoms x views x window) :func:`view_scores` reads at once (float64:
-160 MB a temporary)."""
+"""The most window pixels (atoms x views x window) :func:`view_scores` reads at once (each a
+float64 of a temporary)."""
 
 
 def _view_scores(positions, sigmas, amps, axes, res, pixel_size_A: float, centre_px, reach: int):
@@ -269,8 +269,8 @@ def residual_spectrum_factors(residuals, noise_std: float, sigma_px: float) -> t
 
 
 BATCH_ELEMENTS = 2e7
-"""The most numbers (float64: 160 MB) a batch of atoms' local information holds with its moved
-copies; atoms of as many neighbours are solved together."""
+"""The most float64 numbers a batch of atoms' local information holds with its moved copies;
+atoms of as many neighbours are solved together."""
 
 
 def _adjacency(neighbours: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -44,10 +44,9 @@ def candidate_pairs(positions: np.ndarray, sigmas: np.ndarray) -> np.ndarray:
     sigmas : (N,) array, same length unit
 
     The search radius of a pair of the narrower 95% is set by their widest; each of the widest
-    5% is searched on its own radius (when they are more than 1.25 times wider).  On the
-    20,000-atom a-Si's atom-like Gaussians at steps 700 and 1,000 (the merges' input), Gaussians
-    growing in the vacuum reach the 1.5 Å bound against the 95th percentile's 0.7 Å, and one
-    search at the widest width returned 13-14 times the pairs it kept.
+    5% is searched on its own radius (when they are more than 1.25 times wider): Gaussians
+    growing in the vacuum can be twice as wide as the atoms, and one search at the widest width
+    returns many times the pairs it keeps.
     """
     if len(positions) < 2:
         return np.zeros((0, 2), dtype=np.int64)
@@ -107,8 +106,7 @@ def merge_energy(
     merged : ((K, 3), (K,)) arrays, optional
         The merged Gaussians' centres and widths, if not :func:`merged_moments`'.
 
-    The pairs go in chunks of ``chunk`` (their (K, V) kernels are held at once: 4,096 pairs and
-    47 views take 1.5 MB each).
+    The pairs go in chunks of ``chunk`` (their (K, V) kernels are held at once).
     """
     if len(pairs) > chunk:
         parts = [

@@ -83,9 +83,8 @@ def parse(argv: list[str]) -> object:
 
 IDLE_THREADS = ("OMP_WAIT_POLICY", "PASSIVE")
 """The command's OpenMP workers sleep when idle rather than spin (set before torch loads; a
-value the user's environment gives wins).  Spinning, two fits of the demo at once on the 2-core
-CPU took 7 times one alone, each spinning worker taking the cores the other fit's needed;
-passive, 1.6 times, at 25% more time alone (``scripts/studies/two_fits.py``)."""
+value the user's environment gives wins): spinning workers of two fits at once take the cores
+the other fit needs (``scripts/studies/two_fits.py``)."""
 
 
 def entrypoint(argv: list[str] | None = None) -> None:

@@ -49,8 +49,8 @@ class Film:
     of their reports."""
     max_num_iterations: int = 3000
     tasks_per_gpu: int = 1
-    """Sub-areas fitted at once on each GPU: a sub-area's fit holds about 1 GB of it and leaves
-    most of its time to kernel launches, so several can share one."""
+    """Sub-areas fitted at once on each GPU: a sub-area's fit holds a small part of its memory
+    and spends most of its time on kernel launches, so several can share one."""
 
     def subareas(self):
         """The sub-areas the options name (written as tilt series under ``output/data``)."""

@@ -4,11 +4,8 @@ not its last one.
 With one view (or a few) per step the gradient is a sample, and Adam's iterates jitter about
 the fit by more than the data's precision; only the learning-rate decay shrinks that jitter.
 The mean of the iterates over a window (Polyak-Ruppert averaging) keeps the fit and cancels
-the jitter.  Measured on Au noise 200 on the CPU, one view per step, the mean of each 100-step
-refine interval written into the positions against the last iterate: RMSD 10.6 against 15.6 pm
-at step 400, 8.9 against 12.2 pm at step 1,000; the convergence check
-(:mod:`gaussian_atoms_method.engine.convergence`) then stops at step 1,500 instead of
-2,500, with the same result (TPR 1, no false atom, 8.8 pm both).
+the jitter, so the convergence check (:mod:`gaussian_atoms_method.engine.convergence`) stops
+sooner with the same result.
 
 A window is a run of steps over which the set of Gaussians stays the same (the parameter
 tensors are the same objects: every duplicate, prune or merge replaces them,

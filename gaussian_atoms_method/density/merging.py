@@ -146,13 +146,9 @@ class Merging:
 
         Why the residual: the resolution test (:meth:`unresolved_pairs`) asks whether the data
         *could* tell the pair from one Gaussian; a pair the data resolve may still fit them worse
-        than one atom.  A least-squares fit at Au noise 500 shares 7% of the atoms between two
-        Gaussians of nearly equal mass (median ratio 0.96) 1.1-1.8 Å apart along the missing
-        wedge, both significant and resolved: 0.078 false atoms per atom.  Of 8,826 pairs there
-        (all within :data:`..atoms.resolution.SEARCH_WIDTHS`), those of two atoms changed the
-        chi-square by 62 or more in 99% (2 of 3,270 under the level of 39.8); merging every pair
-        under the level took the false atoms from 0.203 to 0.040 per atom and the TPR from 0.9934
-        to 0.9943, before the refit.
+        than one atom: at high noise a least-squares fit shares some atoms between two Gaussians
+        of nearly equal mass a bond's fraction apart along the missing wedge, both significant
+        and resolved, while a pair of two atoms changes the chi-square far more than the level.
 
         A pair closer than the material's shortest distance (:meth:`shortest_distance`) stays two
         only where the likelihood demands it: its level is raised by the prior odds against a
@@ -162,11 +158,9 @@ class Merging:
         to a single maximum) and holds no more than :data:`..parameters.SPLIT_MASS` typical
         atoms' mass (halfway between one and two) is one atom whatever the likelihood says: two
         atoms would hold two atoms' mass, and the likelihood's preference is one atom's shape
-        that the forward model misses.  On a carbon particle through an aberrated probe every
-        false atom (51 of 1,563) was such a pair, 0.83-1.07 Å apart along the beam around one
-        true atom, 0.65 Å wide, holding 1.02-1.39 atoms' mass.  The material's shortest distance
-        in its place merged true atoms of the 76,000-atom a-Pd particle (found 0.9956 -> 0.9853):
-        pairs the split had made of two atoms just under its onset."""
+        that the forward model misses (through an aberrated probe, a pair along the beam around
+        one true atom).  Not the material's shortest distance in its place: that merged pairs
+        the split had made of two true atoms just under its onset."""
         from scipy.special import chdtri  # chi2.isf(p, df) is chdtri(df, p); scipy.stats' import is 0.3 s
 
         level = chdtri(5, self.false_alarm_rate / self.cells())
@@ -197,15 +191,14 @@ class Merging:
         """Merge the pairs of atom-like Gaussians inside the volume that the data cannot resolve
         (:meth:`unresolved_pairs`), pairwise: in each round a greedy set of disjoint pairs, least
         resolved first (:func:`..atoms.merge.disjoint_pair_labels`), then the test again on the
-        merged Gaussians.  Never by connected components: at Au noise 500 chains of unresolved
-        links through the fragments between atoms merged whole neighbourhoods (TPR 0.61).
+        merged Gaussians.  Never by connected components: at high noise chains of unresolved
+        links through the fragments between atoms merge whole neighbourhoods.
         ``max_rounds`` 4 rejoins an atom shared by up to 16 Gaussians.
 
         Two atoms are never closer than the material's shortest bond, read from the data
         (:meth:`shortest_bond`): a pair farther apart is left to the prune, whatever the test
-        says.  At Au noise 500 a weak atom next to a neighbour 2.3-2.9 Å away can be as hard to
-        resolve as an atom shared along the wedge (1.0-2.2 Å); without the bond the merge took
-        2.5% of the atoms, with it TPR 0.9728 -> 0.9787 and false atoms 0.0250 -> 0.0222 per atom."""
+        says: at high noise a weak atom a bond from its neighbour can be as hard to resolve as an
+        atom shared along the wedge."""
 
         def unresolved(atom_like: torch.Tensor) -> np.ndarray:
             weak = (self.mass_significance(params) < self.significance_threshold()).cpu()

@@ -118,14 +118,10 @@ class Significance:
         it are at most that fraction of those kept), never stricter than
         :meth:`significance_threshold`.
 
-        A family-wise level holds the chance of even one false atom in the whole volume at 5%,
-        whatever the number of atoms; a 6,679-atom particle then pays in atoms: at Au noise 500,
-        where an atom's mass stands 4.5-9 sigma high, the family-wise 5.1 dropped 3% of the
-        atoms, the discovery level (4.2) kept them and added no false atom (0.9416 -> 0.9728
-        TPR, 0.0247 -> 0.0250 false per atom, before the refit; the rate from 0.0005 to 0.005
-        changed TPR by 0.002 and false atoms not at all: those left are fragments of atoms, not
-        noise).  For a few hundred atoms it stays near the family-wise level (208 atoms in a
-        25 Å box: 4.2 against 4.5)."""
+        A family-wise level holds the chance of even one false atom in the whole volume at
+        ``false_alarm_rate``, whatever the number of atoms, so a large particle at high noise pays
+        in weak atoms; the discovery level keeps them and adds no false atom.  For a few hundred
+        atoms it stays near the family-wise level."""
         from scipy.special import ndtr  # the normal survival function: ndtr(-z), as scipy.stats computes it
 
         z = np.sort(significance.detach().double().cpu().numpy())[::-1]
@@ -143,13 +139,11 @@ class Significance:
         reconstruction volume.
 
         During training (``final`` False) the masses are still being fitted (the start shares
-        the measured mass among all candidates): the volume-wide threshold applied at step 200
-        removed 206 of the 208 atoms of the aSi-208 counts at dose 8e3.  There a Gaussian goes
-        when its mass is within one standard deviation of zero (:data:`TRAINING_SIGNIFICANCE`)
-        or below ``prune_mass_fraction`` of a typical atom: the second is housekeeping that keeps
-        noise candidates from holding mass while the atoms settle (with the first alone, the demo's
-        RMSD went from 1.3 to 2.6 pm and the aSi-208 data at dose 1.6e5 kept 31 false atoms).  The
-        final prune applies :meth:`discovery_threshold` alone."""
+        the measured mass among all candidates), and the volume-wide threshold would remove true
+        atoms at low dose.  There a Gaussian goes when its mass is within one standard deviation
+        of zero (:data:`TRAINING_SIGNIFICANCE`) or below ``prune_mass_fraction`` of a typical
+        atom: the second is housekeeping that keeps noise candidates from holding mass while the
+        atoms settle.  The final prune applies :meth:`discovery_threshold` alone."""
         sigmas = widths(params, self.min_log_sigma)
         noise_known = self.noise_known()
         keep = torch.ones_like(sigmas, dtype=torch.bool)

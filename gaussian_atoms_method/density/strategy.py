@@ -286,7 +286,7 @@ class DensityControl(DensitySettings, Growth, Significance, Merging, HardCoreRul
         """(N,) each Gaussian's mass in typical atoms (:meth:`atoms_worth`), zero beyond the
         reported field (:meth:`in_field`): the set a run must settle before it stops is the set
         it reports.  Beyond the field a film's material is seen only in the tilted views, and its
-        Gaussians come and go with them (a real Ta sub-area, H200: 869 of 2,016)."""
+        Gaussians come and go with them."""
         return self.atoms_worth(params) * self.in_field(params["means"].detach())
 
     def inside(self, means: torch.Tensor) -> torch.Tensor:

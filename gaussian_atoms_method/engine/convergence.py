@@ -9,8 +9,7 @@ atoms' worth (by place: a merge or split within the hard core keeps its place's 
 atoms' median precision, at two checks in a row.  The precision is the isolated atom's
 Cramér-Rao bound (:mod:`gaussian_atoms_method.atoms.uncertainty`) under the residual that is
 there, its level and its weight at the atoms' scale, as the model's ``precision`` reads it: on
-the real Ta sub-area 23 the white bound at the residual's level was 4 times too strict, and the
-run never settled within 3,000 steps (now at 2,800, the same atoms).
+real views the white bound at the residual's level is too strict, and the run never settles.
 """
 
 from __future__ import annotations
@@ -100,9 +99,7 @@ class ConvergenceCheck:
         atoms : (N,) tensor, optional
             Each Gaussian's mass in typical atoms: a Gaussian added or removed counts as that
             many atoms changed (default one each), so a fragment the prune takes counts as the
-            fraction of an atom it holds (on the 54,000-atom a-Pd, H100, the last checks saw
-            68-74 Gaussians change, 56 tolerated, holding 23-26 atoms' worth: the run stopped
-            at step 2,700 instead of training to 3,000).  Zero for a Gaussian the run will not
+            fraction of an atom it holds.  Zero for a Gaussian the run will not
             report (beyond the field): it neither counts nor is counted in the share tolerated.
         core : float
             The material's hard core, normalised (infinite when unknown): a merge or split

@@ -176,8 +176,8 @@ class FitOptions(DensitySettings, UserFirstOptions):
     evidence: bool = True
     """Each atom with its evidence in atoms.xyz/atoms.csv: its significance, proven or open, its
     depth interval and its precision with its neighbours re-fitted, from the views' own residuals
-    (:mod:`gaussian_atoms_method.atoms.evidence`; on a 2-core CPU about 6 s of a Ta sub-area's
-    48 s run, its 1,880 Gaussians).  Off: the isolated atom's Cramér-Rao bound alone."""
+    (:mod:`gaussian_atoms_method.atoms.evidence`; its cost: docs/performance.md).  Off: the
+    isolated atom's Cramér-Rao bound alone."""
     precision_floor_A: Tuple[float, float, float] = field(default_factory=lambda: tuple([0.0] * 3))
     """An error along x, y, z (Å) that the views' own scatter cannot show, added in quadrature to
     each atom's stated precision and depth interval: a bias alike in every view (a probe's tails
@@ -187,26 +187,23 @@ class FitOptions(DensitySettings, UserFirstOptions):
     each time: the compiler makes every ``(0.0, 0.0, 0.0)`` literal of a module one object,
     ``psf_weights``' too, and config.yml would write the two as one YAML anchor.)"""
     projector: Literal["auto", "tiled", "dense", "gsplat"] = "auto"
-    """Projection backend (all exact to float32; docs/performance.md): ``dense``, the full-image
-    separable matmul (fastest on a GPU: 1.4-3 ms per 280x280 view for 1k-50k Gaussians on an
-    H100); ``tiled``, each Gaussian only on the tiles it reaches (about 6x faster than dense on
-    a CPU at 7k-17k Gaussians); ``gsplat``, tiled with stock gsplat's tile intersection (CUDA only; correct but
-    slower than dense at these sizes).  ``auto``: dense on CUDA, tiled on CPU."""
+    """Projection backend (all exact to float32; their speeds: docs/performance.md): ``dense``,
+    the full-image separable matmul (the fastest on a GPU); ``tiled``, each Gaussian only on the
+    tiles it reaches (the fastest on a CPU); ``gsplat``, tiled with stock gsplat's tile
+    intersection (CUDA only).  ``auto``: dense on CUDA, tiled on CPU."""
     coarse_steps: int = 300
     """Coarse to fine: the first this many steps fit the projections binned 2 x 2 (a quarter of
     the pixels to evaluate), then full resolution.  0: always full resolution.  300 covers the
-    warm-up and the first prune, where the atoms are found and the noise candidates go: on the
-    Au particle that reaches the accuracy targets 7-9 s sooner on a CPU with the same final
-    result (docs/performance.md, skips)."""
+    warm-up and the first prune, where the atoms are found and the noise candidates go, with the
+    same final result (docs/performance.md, skips)."""
     position_rate_px: Optional[float] = 0.2887
     """Adam's rate for the positions at the start, in detector pixels (the optimiser's
     configured rate for ``means`` is rescaled to it; its schedule's tenfold decay is kept).  A
     start on the back-projection's voxels (the detector's pixels) is off by up to half a voxel
     per axis: a uniform error of standard deviation 1/sqrt(12) = 0.2887 voxel, about what
-    Adam's first steps move.  In pixels, the rate in Å does not grow with the field of view: the
-    normalised rate (1e-3 of the detector) was 0.07 Å on the 271-pixel Au series and 0.12 Å on a
-    497-pixel one, where the positions then settled 800 steps later (54,000-atom a-Pd, H100).
-    None: the configured rate as it is."""
+    Adam's first steps move.  In pixels, the rate in Å does not grow with the field of view (a
+    rate normalised by the detector's side is twice as large in Å on a detector twice as wide,
+    where the positions then settle later).  None: the configured rate as it is."""
     converged_fraction: float = 1.0
     """See stop_when_converged."""
     views_per_step: Union[int, Literal["auto"]] = "auto"

@@ -26,9 +26,8 @@ def refit(model, max_passes: int = 10) -> int:
     second half of the passes, the first half being the transient).
 
     Why passes: a merged atom sits at its members' mass-weighted mean, where the data put it only
-    when the members were fragments of one atom; at Au noise 500 (H100) ten passes took TPR from
-    0.9823 to 0.9876.  Why training's views per step: with one view a step after training on
-    eight, the refit's own jitter took the 54,000-atom a-Pd particle's RMSD from 7.5 to 12.1 pm."""
+    when the members were fragments of one atom.  Why training's views per step: with one view a
+    step after training on eight, the refit's own jitter would undo the training's precision."""
     measured_all = measured_views(model)
     names = [n for n in model.gauss_params.keys() if n in model.optimizers]
     steps, settled, noise = 0, 0, None

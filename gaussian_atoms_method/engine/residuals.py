@@ -182,9 +182,8 @@ def say_view_shifts(residuals, predicted, detector_axes, registered: bool) -> di
     makes in views of ``detector_axes`` (V, 2, 3)) and, where the two halves of the views agree
     on their shifts by 3 standard errors or more and the run learned no shifts (``registered``),
     that the views the fit did not see can say whether learning them helps.  A significant shift
-    may still be harmless (a replica of a Ta sub-area without misregistration holds 0.02 px,
-    agreed by 3.9 standard errors); one of a fraction of a pixel can place atoms wrong along the
-    beam, confidently (the real views' misregistration in a replica: 0.964 found, 29 pm; with
+    may still be harmless; one of a fraction of a pixel can place atoms wrong along the beam,
+    confidently (the real views' misregistration in a replica: 0.964 found, 29 pm; with
     per-view shifts 0.996, 3.9 pm).  Returns ``view_shifts_rms_px`` (rows, columns) and
     ``view_shifts_z``."""
     from gaussian_atoms_method.atoms.view_prediction import residual_shifts

@@ -64,8 +64,7 @@ def model_position_std_A(
     built outside the dataparser).  With ``spectrum`` a noise read here is the white level the
     residual weighs at the atoms' scale for a position
     (:func:`~gaussian_atoms_method.atoms.information.residual_spectrum_factors`): the residual that
-    is there, its level and its grain, against which the fit's steps are judged (on the real Ta
-    sub-area 23 it weighs 4.1 times its level; on the demo 1.1)."""
+    is there, its level and its grain, against which the fit's steps are judged."""
     series, projections = model.view_set.series, model.view_set.projections
     if series is None or projections is None or len(atoms) == 0:
         return None

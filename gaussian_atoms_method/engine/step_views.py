@@ -101,16 +101,16 @@ def first_step_views(model) -> int:
 
 
 MAX_VIEWS_PER_STEP = 8
-"""``views_per_step auto`` never batches more views than this: on the H100, Au noise 200 and 50,
-8 and 16 views per step reached the same precision and the convergence stop at the same step
-(docs/performance.md, several views per step); 16 took 50% more GPU memory."""
+"""``views_per_step auto`` never batches more views than this: more views per step reached the
+same precision at the same step, in more GPU memory (docs/performance.md, several views per
+step)."""
 STEP_COST_RATIO = 2.0
 """``auto`` batches views only while the projector's forward and backward pass over them costs
 at most this many times one view's: where a view's work is small beside a step's fixed costs
 (kernel launches), extra views are nearly free.  On the H100, Au noise 200, 8 views per step
 reached the convergence stop in 800 steps instead of 2,100 (2.6 times fewer), so a step at
-most twice as dear never costs more time than the steps it saves; the 54,000-atom a-Pd
-particle's steps cost 3 times as much with 8 views (37 against 12 ms) and took 157 s instead of 100 s."""
+most twice as dear never costs more time than the steps it saves; where a view's own work
+dominates (a particle of tens of thousands of atoms), extra views cost more than they save."""
 MEMORY_SHARE = 0.5
 """``auto`` spends at most this share of the free GPU memory on a step's views; the rest stays
 for the start's leftovers, the residual search's back-projections and the final stage."""

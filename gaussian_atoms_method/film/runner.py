@@ -165,7 +165,7 @@ def run_subareas(
     Sub-areas already done with the same settings are read back, not run (:func:`finished`); a
     failed task is retried once.  Each fit uses ``species`` where given (:func:`fit_subarea`).  On
     GPUs, ``tasks_per_gpu`` tasks share each GPU (a sub-area's fit is bound by its kernel
-    launches, not the GPU's arithmetic, and holds about 1 GB of it: :func:`task_costs`)."""
+    launches, not the GPU's arithmetic, and holds a small part of its memory: :func:`task_costs`)."""
     try:
         import ray
     except ImportError as exc:

@@ -5,8 +5,8 @@ single-axis tilt series slice by slice with its 2D parallel-beam algorithms: FBP
 the CPU, FBP_CUDA and SIRT_CUDA on a GPU where its CUDA libraries load (the CUDA 12 runtime and
 cuFFT 11).  The slices are our sinograms (:func:`~gaussian_atoms_method.physics.reconstruction.slice_sinograms`:
 tilt centre at ``L // 2`` of an odd ``L``, ASTRA's detector centre too); with the angles as
-given and ASTRA's ``linear`` projector its FBP slice equals scikit-image's orientation
-(correlation 0.986 with our FBP on the Au series, the rest is the filter's windowing), so
+given and ASTRA's ``linear`` projector its FBP slice equals scikit-image's orientation (what
+differs from our FBP is the filter's windowing), so
 :func:`~gaussian_atoms_method.physics.reconstruction.slices_to_volume` places it and the same
 tracing scores it.
 """

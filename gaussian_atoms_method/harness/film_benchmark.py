@@ -47,8 +47,7 @@ CITATION = "Yuan et al., Nature Materials 21, 95-102 (2022)"
 FILM_FLAGS = ("--pipeline.model.extended-object", "on")
 """The specimen is a film, and the benchmark says so, as a user who knows it would: the reading
 from the views alone (``physics/field_of_view.film_evidence``) is weak where the views' gains
-scatter (a replica of sub-area 25 read 2.6-3.0 standard errors, under its 3, and lost the
-atoms at one edge: 0.952 found, 0.991 with the film said)."""
+scatter (a replica of a sub-area read it under its level and lost the atoms at one edge)."""
 
 
 def _mat(path: Path, name: str) -> np.ndarray:

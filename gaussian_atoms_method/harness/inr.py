@@ -7,15 +7,11 @@ batch of detector pixels of one view,
 each ray's line integral estimated by stratified samples along the beam, L1 loss against the
 measured values.  Afterwards the MLP is sampled on the voxel grid and traced like FBP/SART.
 
-The defaults are tuned (``scripts/studies/inr_tune.py`` on the lent H100; docs/results.md, INR
-baseline): on the 312-atom Au particle (full tilts, noise 50) the first version (1,500 steps of
-1,024 rays, 64 hidden units, Fourier std 20 per normalised unit, output not scaled) found 9% of
-the atoms with 3.8 false ones per atom: its 64-unit MLP could not hold hundreds of sharp
-peaks, 1,500 x 1,024 rays is less than one pass over the 2.4 million pixels, and a raw softplus
-output has to grow to thousands (an atom's peak density in normalised units) through small
-Adam steps.  Four times the hidden units, a density scale of 100, 10,000 steps of 8,192 rays
-and Fourier features of 0.35 cycles/Å find every atom with no false one at 10.2 pm (FBP: 10.6
-pm) in 196 s on the H100.
+The defaults are tuned (``scripts/studies/inr_tune.py``; docs/results.md, INR baseline): a small
+MLP cannot hold hundreds of sharp peaks, a short run does not pass over every pixel, and a raw
+softplus output has to grow to an atom's peak density through small Adam steps; so the
+defaults have four times the hidden units of a first try, a density scale, 10,000 steps of
+8,192 rays and Fourier features of 0.35 cycles/Å, which find every atom of the Au particle.
 """
 
 from __future__ import annotations
@@ -77,7 +73,7 @@ def fit_inr(
     0.27 cycles/Å; 10 per normalised unit on the 29 Å detector where it was tuned).
     ``density_scale`` multiplies the MLP's output (normalised units: an atom's peak density is
     thousands, so the MLP's own output stays near tens).  A GPU is needed for the defaults
-    (10,000 steps of 8,192 rays x 64 samples: about 200 s on an H100).
+    (10,000 steps of 8,192 rays of 64 samples each).
 
     Returns
     -------

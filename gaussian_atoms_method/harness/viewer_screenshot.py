@@ -5,7 +5,7 @@ headless Chromium (Selenium with Debian's chromium and chromium-driver; WebGL th
 SwiftShader, no GPU needed), waits for the scene, and saves a PNG.  Exit status 0 only if the
 screenshot shows the atoms: enough pixels in the viridis colours of the atom point cloud.
 
-    gaussian-atoms screenshot --load-config RUN/config.yml --output docs/figures/viewer.png
+    gaussian-atoms screenshot --load-config RUN/config.yml --output viewer.png
 
 Needs: ``apt-get install chromium chromium-driver`` and ``pip install selenium``.
 """

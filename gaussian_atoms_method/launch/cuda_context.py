@@ -3,8 +3,8 @@
 torch makes the GPU's primary context at its first CUDA call, after its own import.  The
 context is the driver's (``cuInit`` and ``cuDevicePrimaryCtxRetain`` in libcuda), torch's
 runtime takes it as it finds it, and the driver's calls release the interpreter's lock: made in
-a thread begun before ``import torch`` (Python on one core, 1.3-5 s on the lent H100s), it is
-ready when torch asks for it.  On one H100, six alternated launches: CUDA was ready 0.03-0.05 s
+a thread begun before ``import torch`` (Python on one core, seconds), it is ready when torch
+asks for it.  On one H100, six alternated launches: CUDA was ready 0.03-0.05 s
 after ``import torch`` returned, against 0.31-0.35 s without
 (``scripts/studies/cuda_context_launch.py``).  No torch import here.
 """

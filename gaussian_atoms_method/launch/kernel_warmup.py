@@ -1,19 +1,18 @@
 """The fit's CUDA kernels loaded in a thread while a process's first run imports and starts.
 
 CUDA loads a kernel's module at its first use (lazy loading), and that first use waits for the
-GPU's queued work: on an H100 10-100 ms an operation family cold, 0.1-0.5 ms warm
-(``scripts/studies/kernel_first_use.py``), paid one after another on the way to the first
-steps.  :func:`begin` runs each family the fit uses once on a few elements in a thread, in the
+GPU's queued work (``scripts/studies/kernel_first_use.py``), paid one family after another on
+the way to the first steps.  :func:`begin` runs each family the fit uses once on a few elements in a thread, in the
 order of their first use, while the other threads import the engine and make the start (torch's
-operations release the interpreter's lock).  Where the GPU stays idle meanwhile (beside
-``ga.reconstruct``'s imports) the libraries' first calls come first (:func:`libraries`); beside
-the train start, which uses the GPU at once, they slowed the run, so there the fit makes them.
+operations release the interpreter's lock).  Where the GPU stays idle meanwhile the libraries'
+first calls can come first (``libraries_first``, :func:`libraries`); beside the train start,
+which uses the GPU at once, they slowed the run, so there the fit makes them.
 
 The warm-up touches only its own tensors and a private random generator, so a run's numbers do
 not depend on it; a CUDA graph's capture waits for it (:func:`wait`: a launch from another
 thread during a capture would break the capture).  On one H100, Au noise 200, three alternated
 pairs: ``gaussian-atoms train`` reached its target 4.4-5.2 s from launch against 4.9-5.5 s
-without it (the other runs behind its choices: the history of CHANGELOG.md).
+without it.
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@
 * torch's symbolic shapes (``torch.fx.experimental.symbolic_shapes``, and sympy with it):
   ``torch.broadcast_shapes`` imports them on its first call, which nerfstudio's cameras make
   each time one is built or indexed; :func:`defer_symbolic_shapes` broadcasts plain integer
-  shapes without them (0.8 s of the start on the 2-core CPU).
+  shapes without them.
 
 All are put in place by :func:`lean_torch` in a launcher's own process (``gaussian-atoms
 train`` before its fit, ``ns-train gaussian-atoms`` as the plugin loads), never by

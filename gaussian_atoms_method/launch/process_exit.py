@@ -24,8 +24,8 @@ def fail(message: str, status: int) -> None:
 def exit_process(status: int = 0) -> None:
     """End the process with ``status`` once its outputs are complete: the exit handlers run
     (logging, wandb, comet, the viewer), the console flushed; then ``os._exit``, which skips the
-    interpreter's and CUDA's teardown of the loaded libraries and the device's memory: 1.0-1.2 s
-    of every run on the H100 machine (Au and the 20,000-atom a-Si, launch to exit).  Only the
+    interpreter's and CUDA's teardown of the loaded libraries and the device's memory (about a
+    second of every run on an H100).  Only the
     command line calls this, after a run that ended normally."""
     atexit._run_exitfuncs()  # what the interpreter's exit runs first
     for stream in (sys.stdout, sys.stderr):

@@ -68,7 +68,7 @@ def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float | N
     compute its back-projection start in a thread, for :func:`take`.  Errors are left to the
     run, which reads the series again and reports them in its own way.  Not a daemon: a process
     that exits while a daemon thread is inside a torch operation aborts ("terminate called
-    without an active exception", seen on the H100); a run stopped by its input ends at once
+    without an active exception", seen on a GPU); a run stopped by its input ends at once
     through :func:`end_now`.
 
     The thread starts before the launcher has imported torch (this module does not import it):

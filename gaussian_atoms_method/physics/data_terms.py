@@ -17,18 +17,15 @@ Four terms, each the negative log-likelihood (up to constants and scale) of one 
   variance ``read_var`` is carried as that many extra counts (the shifted-Poisson
   approximation of Poisson-Gaussian noise).  Its gradient is the residual over the variance
   ``read_var + gain m``: each pixel weighted by its own noise.  An L1 or L2 fit weights every
-  pixel alike, so at low dose the bright background pixels' noise drowns the atoms: the L1
-  fit of the aSi-208 counts at dose 1.6e4 lost 156 of 208 atoms without a background term.
+  pixel alike, so at low dose the bright background pixels' noise drowns the atoms.
 
 :func:`choose_data_term` picks one from the measured noise: Poisson where the variance grows
 with the signal significantly, Huber's where it is additive.  Why not least squares, the
 additive noise's likelihood: at high dose the residual is the model's misfit (a Gaussian atom
-against the Lobato potential), not noise, and least squares chases it: amorphous carbon at
-noise 5 fell from TPR 1.0 at 6.8 pm (L1) to 0.979 at 14.5 pm, FePt at noise 50 from 1.0 at 4.3 pm
-to 0.997 at 6.1 pm.  Why not L1, the paper's term: at low dose it wastes a third of the data's
-information (its variance is pi/2 least squares'); at Au noise 500 it left 1.1% of the atoms
-without a Gaussian before the final merge (TPR 0.9871 at the end, least squares 0.9984).
-Huber's keeps both: carbon noise 5 1.0 / 6.6 pm, Au noise 500 0.9976 / 23.1 pm (docs/results.md).
+against the Lobato potential), not noise, and least squares chases it, losing atoms and
+precision.  Why not L1, the paper's term: at low dose it wastes a third of the data's
+information (its variance is pi/2 least squares'), and weak atoms go without a Gaussian.
+Huber's keeps both (docs/results.md).
 No nerfstudio import.
 """
 

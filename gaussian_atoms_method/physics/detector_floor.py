@@ -73,9 +73,8 @@ def clipped_frame(
     the floor is the frame's lower envelope: per view, the least-squares quadratic surface
     through the frame (:func:`frame_surfaces`) is fitted again without the pixels more than
     :data:`CLIP_Z` ``noise_std`` above it, until no pixel changes side.  A frame of background
-    keeps all but 0.1% of its pixels; the harness's carbon particle 4 Å from the detector's edge
-    through a probe with tails (7,000 atoms) keeps 95%, and its kept pixels vary 1.2 times the
-    noise variance about their surfaces (4 times with every frame pixel kept).
+    keeps nearly all its pixels; where a probe's tails carry atoms into the frame, the kept
+    pixels vary about their surfaces as the noise does, and far more with every pixel kept.
 
     Returns
     -------

@@ -10,10 +10,9 @@ or against any smooth estimate of the mean), the variance-mean relation
 tells them apart: ``gain`` is about 0 for additive noise and the number of projection units
 per count for Poisson counts (1 for raw counts).  The quadratic term takes up what grows in
 proportion to the signal itself, a fit's relative error (an atom slightly off in position or
-width leaves residuals proportional to its peak): without it, on additive data trained to
-1 pm, the slope of the peaks' misfit read as a Poisson gain at 3.2 standard errors.  Each bin of ``m`` gives a robust
-variance
-(the normalised median absolute deviation squared, so atoms the fit misses do not inflate it);
+width leaves residuals proportional to its peak): without it, on additive data fitted closely,
+the slope of the peaks' misfit reads as a Poisson gain.  Each bin of ``m`` gives a robust
+variance (the normalised median absolute deviation squared, so atoms the fit misses do not inflate it);
 a weighted straight line through the bins gives ``read_var`` and ``gain`` with their standard
 errors, and the Poisson part counts only when its slope is significant (``z_min`` standard
 errors; 3: a one-in-700 false alarm for Gaussian errors).
@@ -185,8 +184,8 @@ def binned_variance(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Residual variance in bins of the predicted value: robust, ``(1.4826 MAD)^2``, or the
     plain sample variance (``robust=False``: for counts of a few electrons, whose residuals
-    take a handful of discrete values and whose MAD is quantised: on Poisson counts of mean
-    1-2 the MAD read the variance 1.3-2x too high).  The sort and the bins are read in torch on
+    take a handful of discrete values and whose MAD is quantised, reading the variance too
+    high).  The sort and the bins are read in torch on
     ``device`` (default :func:`~gaussian_atoms_method.physics.devices.work_device`: at many atoms the
     host's sort, gathers and copies are most of a reading), else with numpy.
 

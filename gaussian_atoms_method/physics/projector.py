@@ -166,9 +166,9 @@ def project_gaussians_tiled(
 
 TILE_GROUPS = 4
 """The tiles are evaluated in this many groups of similar occupancy (equal counts of tiles,
-fullest first), each padded to its own fullest tile rather than all to the fullest of all: on
-the Au series (6,679 atoms, 271 x 271 pixels, tiles of 32) the tiles hold 1-730 Gaussians, and
-one padding computed 2.3 times the needed exponentials and products, four groups 1.29 times."""
+fullest first), each padded to its own fullest tile rather than all to the fullest of all: a
+particle's tiles hold from one Gaussian to hundreds, and one padding for all computes about
+twice the needed exponentials and products."""
 
 
 def _separable_tiles(
