@@ -21,7 +21,7 @@ from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.plugins.registry_dataparser import DataParserSpecification
 
 from gaussian_atoms_method.engine.views import views_from_tilt_series
-from gaussian_atoms_method.physics.units import DATA_RANGE, Normalisation, normalised_projections
+from gaussian_atoms_method.physics.units import DATA_RANGE, Normalisation
 
 from .errors import TiltSeriesError
 from .tilt_series_format import TiltSeries
@@ -30,7 +30,8 @@ from .tilt_series_options import TiltSeriesOptions
 
 def cameras_from_tilt_series(series: TiltSeries, norm: Normalisation) -> Cameras:
     """Orthographic nerfstudio cameras, one per projection, in normalised units
-    (:func:`gaussian_atoms_method.engine.views.views_from_tilt_series`'s views)."""
+    (:func:`gaussian_atoms_method.engine.views.views_from_tilt_series`'s views), each marked
+    with its view's index (``metadata``, which nerfstudio's cameras slice with them)."""
     views = views_from_tilt_series(series, norm)
     return Cameras(
         camera_to_worlds=views.camera_to_worlds,
@@ -41,6 +42,7 @@ def cameras_from_tilt_series(series: TiltSeries, norm: Normalisation) -> Cameras
         width=views.width,
         height=views.height,
         camera_type=CameraType.ORTHOPHOTO,
+        metadata=dict(views.metadata),
     )
 
 
@@ -64,22 +66,21 @@ class TiltSeriesDataParser(DataParser):
             # As nerfstudio's own dataparsers do: say what is wrong and exit (ns-viewer, eval).
             print(f"gaussian-atoms: error: {exc}", file=sys.stderr)
             raise SystemExit(2) from None
-        norm, scaled = normalised_projections(series)
-        projections = torch.from_numpy(scaled)
-        cameras = cameras_from_tilt_series(series, norm)
+        from gaussian_atoms_method.engine.run import view_set_of  # the engine's one normalisation
+
+        view_set, _ = view_set_of(series)
         # Tomography has no held-out views: every split serves all projections.
         return DataparserOutputs(
             image_filenames=[Path(f"{series.source}#{i}") for i in range(series.n_views)],
-            cameras=cameras,
+            cameras=cameras_from_tilt_series(series, view_set.normalisation),
             scene_box=SceneBox(aabb=torch.tensor([[-0.5, -0.5, -0.5], [0.5, 0.5, 0.5]])),
             metadata={
-                "projections": projections,
-                "normalisation": norm,
-                "pixel_size_A": series.pixel_size_A,
-                "truth_path": series.truth_path,
+                "projections": view_set.projections,
+                "normalisation": view_set.normalisation,
+                "pixel_size_A": view_set.pixel_size_A,
+                "truth_path": view_set.truth_path,
                 "tilt_series": series,
-                # Lets the model recognise a training view (per-view background and alignment).
-                "view_c2w": cameras.camera_to_worlds.clone(),
+                "view_c2w": view_set.view_c2w,
             },
         )
 

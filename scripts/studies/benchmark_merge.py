@@ -2,7 +2,7 @@
 
 The scene imitates a fit mid-run: atoms on an fcc Au lattice (2.88 Å apart) in a sphere, and a
 fraction of them carrying a second Gaussian within 0.3 Å (a duplicate the merge must fold in).
-Prints a Markdown table and writes it to ``docs/merge_timing.md``.
+Prints a Markdown table and writes it to ``outputs/merge_timing.md``.
 
     python scripts/studies/benchmark_merge.py [--sizes 10000 100000 1000000] [--threshold-A 0.7]
 """
@@ -53,7 +53,7 @@ def main() -> None:
     parser.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000, 1_000_000])
     parser.add_argument("--threshold-A", type=float, default=0.7)
     parser.add_argument("--duplicate-fraction", type=float, default=0.05)
-    parser.add_argument("--output", type=Path, default=Path("docs/merge_timing.md"))
+    parser.add_argument("--output", type=Path, default=Path("outputs/merge_timing.md"))
     args = parser.parse_args()
     rng = np.random.default_rng(0)
     machine = f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} torch threads"

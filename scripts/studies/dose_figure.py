@@ -7,7 +7,7 @@ pixel), ours, FBP and SART, from the ``results.csv`` of
 ``gaussian-atoms benchmark-accuracy --particles au --noise-kind poisson``.
 
     python scripts/studies/dose_figure.py --peer outputs/benchmark-peer/results.csv \
-        --au outputs/dose-au/results.csv --output docs/figures/dose.png
+        --au outputs/dose-au/results.csv --output docs/assets/dose.png
 """
 
 from __future__ import annotations
@@ -47,7 +47,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--peer", type=Path, required=True, help="results.csv of gaussian-atoms benchmark-peer")
     parser.add_argument("--au", type=Path, required=True, help="results.csv of benchmark-accuracy --noise-kind poisson")
-    parser.add_argument("--output", type=Path, default=Path("docs/figures/dose.png"))
+    parser.add_argument("--output", type=Path, default=Path("docs/assets/dose.png"))
     args = parser.parse_args()
     import matplotlib
 

@@ -9,7 +9,8 @@ step, parameter clamping (densify / prune / merge run every 100 steps and are ti
 scripts/studies/benchmark_merge.py).  Reported: median seconds per iteration over 30 iterations after
 5 warm-up ones, and peak memory (GPU: max allocated; CPU: the process's peak RSS).
 
-    python scripts/studies/scaling.py --device cuda --atoms 1000 7000 17000 50000 100000 --output docs/scaling_cuda.md
+    python scripts/studies/scaling.py --device cuda --atoms 1000 7000 17000 50000 100000 \
+        --output outputs/scaling_cuda.md
 """
 
 from __future__ import annotations
