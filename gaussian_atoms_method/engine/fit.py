@@ -283,9 +283,8 @@ class AtomFit(torch.nn.Module):
     # ------------------------------------------------------------------ rendering
     def get_outputs(self, camera, background: bool = True) -> Dict[str, torch.Tensor]:
         """Project the Gaussians for one ``camera`` (an :class:`~.views.OrthographicViews` of one
-        view, or nerfstudio's ``Cameras``, which have the same fields; its view, if it is one, by
-        index: :func:`~.rendering.view_of`): ``rgb`` (H, W, 3) in
-        [0, 1] for the viewer, ``projection``
+        view, or nerfstudio's ``Cameras``, which have the same fields; its view by the index it
+        carries, :func:`~.rendering.view_of`): ``rgb`` (H, W, 3) in [0, 1] for the viewer, ``projection``
         (H, W, 1) in normalised data units (``background=False``: the view's background apart, in
         ``background``), ``depth``; with views_per_step > 1 the step's other views (``extra_projection``,
         ``extra_views``: on the model's device)."""

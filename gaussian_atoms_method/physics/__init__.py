@@ -15,14 +15,14 @@ import warnings
 
 def quiet_sparse_notes() -> None:
     """Hide torch's notes on its sparse tensors (CSR "in beta", invariant checks "implicitly
-    disabled") where this package's physics raised them: the back-projection's and the kernel
-    warm-up's matrices are valid by construction, and the note (once a process) is nothing a user
+    disabled") where this package's physics or launch raised them: the back-projection's and the
+    kernel warm-up's matrices are valid by construction, and the note (once a process) is nothing a user
     can act on.  The same words from a user's own code still show.  Installed at import."""
     warnings.filterwarnings(
         "ignore",
         message="Sparse (CSR tensor support is in beta|invariant checks are implicitly disabled)",
         category=UserWarning,
-        module=r"gaussian_atoms_method\.physics\.",
+        module=r"gaussian_atoms_method\.(physics|launch)\.",
     )
 
 
