@@ -13,7 +13,7 @@ import torch
 from gaussian_atoms_method.atoms.candidates import backprojection_candidates
 from gaussian_atoms_method.physics.devices import default_device
 from gaussian_atoms_method.physics.field_of_view import FieldOfView, field_of_view
-from gaussian_atoms_method.physics.noise import NoiseModel, measure_noise
+from gaussian_atoms_method.physics.noise import NoiseModel
 from gaussian_atoms_method.physics.reconstruction import Volume
 from gaussian_atoms_method.physics.units import Normalisation
 
@@ -126,7 +126,8 @@ def compute_start(
     count: int = 0,
     extent: float = 1.0,
     generator: torch.Generator | None = None,
-    noise: NoiseModel | None = None,
+    *,
+    noise: NoiseModel | None,
     backprojection: Volume | None = None,
     positions_A: np.ndarray | None = None,
 ) -> Start:
@@ -136,14 +137,13 @@ def compute_start(
     (:func:`~gaussian_atoms_method.physics.field_of_view.field_of_view`, ``extended_object`` its
     option) and the starting positions (:func:`~gaussian_atoms_method.atoms.initialise.starting_positions`:
     back-projection candidates, or ``count`` random ones in a cube of side ``extent`` drawn
-    with ``generator``).  ``noise``: the projections' noise if already read, as
-    :func:`~gaussian_atoms_method.physics.noise.measure_noise` reads it on this machine;
+    with ``generator``).  ``noise``: the projections' noise, read once by the caller
+    (:func:`~gaussian_atoms_method.physics.noise.measure_noise`; None where none can be read);
     ``backprojection``: the candidates' back-projection if already made
     (:func:`~gaussian_atoms_method.physics.reconstruction.backprojection_for_peaks`
     of the series, across the tilt axis over the field's ``slice_px``); ``positions_A``: start at
     these atoms (Å) instead of any candidates."""
     ls = normalisation.length_scale
-    noise = measure_noise(projections) if noise is None else noise
     fov = field_of_view(series, projections, ls, extended_object, EDGE_MARGIN_WIDTHS * max_atom_sigma_A)
     generator = generator if generator is not None else torch.Generator()
     in_series_units = noise.scaled(1.0 / normalisation.data_scale) if noise is not None else None

@@ -100,6 +100,8 @@ def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float | N
             import torch
 
             device = gpu()  # torch is imported: ask it
+            if device is None and known is None:  # a GPU's files but no GPU torch can use: the host's
+                known = start_parts(ahead, scaled, HOST)
             with quick_handover() if device is not None else nullcontext():
                 if device is not None:
                     from gaussian_atoms_method.launch.kernel_warmup import begin as warm_kernels
