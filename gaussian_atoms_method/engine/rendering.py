@@ -305,7 +305,7 @@ class ViewGeometry:
 
     def __init__(self) -> None:
         self._seen: dict = {}  # (view, coarse, device, dtype) -> (rows, cols, pitch, view)
-        self._powers: dict = {}  # the same keys -> the rows' and columns' coordinate_powers
+        self._powers: dict = {}  # id(rows), id(cols) -> (rows, cols, their coordinate_powers): found in one look
         self._surfaces: dict = {}  # (h, w) -> the floors' surfaces binned to (V, h, w)
 
     def read(self, camera, c2w: torch.Tensor, coarse: bool, device, dtype):
@@ -324,12 +324,12 @@ class ViewGeometry:
     def powers(self, rows: torch.Tensor, cols: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """:func:`coordinate_powers` of ``rows`` and ``cols``, kept for the coordinates :meth:`read`
         keeps (others, a shifted view's or the viewer's, are computed each time)."""
-        key = next((k for k, found in self._seen.items() if found[0] is rows and found[1] is cols), None)
-        if key is not None and key in self._powers:
-            return self._powers[key]
+        hit = self._powers.get((id(rows), id(cols)))
+        if hit is not None and hit[0] is rows and hit[1] is cols:
+            return hit[2]
         powers = coordinate_powers(rows, cols)
-        if key is not None:
-            self._powers[key] = powers
+        if any(found[0] is rows and found[1] is cols for found in self._seen.values()):
+            self._powers[(id(rows), id(cols))] = (rows, cols, powers)
         return powers
 
     def surfaces(self, surfaces: torch.Tensor, h: int, w: int) -> torch.Tensor:
