@@ -32,7 +32,11 @@ def cameras_from_tilt_series(series: TiltSeries, norm: Normalisation) -> Cameras
     """Orthographic nerfstudio cameras, one per projection, in normalised units
     (:func:`gaussian_atoms_method.engine.views.views_from_tilt_series`'s views), each marked
     with its view's index (``metadata``, which nerfstudio's cameras slice with them)."""
-    views = views_from_tilt_series(series, norm)
+    return cameras_of(views_from_tilt_series(series, norm))
+
+
+def cameras_of(views) -> Cameras:
+    """nerfstudio's cameras of the engine's :class:`~gaussian_atoms_method.engine.views.OrthographicViews`."""
     return Cameras(
         camera_to_worlds=views.camera_to_worlds,
         fx=views.fx,
@@ -68,11 +72,11 @@ class TiltSeriesDataParser(DataParser):
             raise SystemExit(2) from None
         from gaussian_atoms_method.engine.run import view_set_of  # the engine's one normalisation
 
-        view_set, _ = view_set_of(series)
+        view_set, views = view_set_of(series)
         # Tomography has no held-out views: every split serves all projections.
         return DataparserOutputs(
             image_filenames=[Path(f"{series.source}#{i}") for i in range(series.n_views)],
-            cameras=cameras_from_tilt_series(series, view_set.normalisation),
+            cameras=cameras_of(views),
             scene_box=SceneBox(aabb=torch.tensor([[-0.5, -0.5, -0.5], [0.5, 0.5, 0.5]])),
             metadata={
                 "projections": view_set.projections,
