@@ -33,7 +33,7 @@ def _real_like(tmp_path: Path, atoms: AtomSet | None = None) -> Path:
         centre_px=(24.0, 19.0),
         euler_convention="zyx",
     )
-    clean = replica_of(geometry, atoms, probe="none").projections.astype(np.float64)
+    clean = replica_of(geometry, atoms, probe="none", potential="gaussian").projections.astype(np.float64)
     clean = 200.0 * clean / clean.mean() + 50.0
     noisy = clean + rng.standard_normal(clean.shape) * np.sqrt(4.0 + 0.5 * clean)
     return write_tilt_series(
@@ -122,8 +122,9 @@ def test_simulate_takes_the_shifts_a_registration_file_holds(tmp_path):
     assert result.returncode == 0, result.stderr[-2000:]
     written = read_registration(tmp_path / "registration.csv")[0]  # six digits: 0.0714286 px
     np.testing.assert_allclose(written, shifts, atol=1e-6)
+    # simulate --like's defaults are replica_of's: Lobato ADF atoms through the default optics
     expected = replica_of(series, read_atoms(series.truth_path).shifted(-np.asarray(series.origin_A)),
-                          atom_sigma_A=0.35, probe="gaussian", seed=0, shifts_px=written)  # fmt: skip
+                          seed=0, shifts_px=written)  # fmt: skip
     np.testing.assert_allclose(load_tilt_series(tmp_path / "r").projections, expected.projections, rtol=1e-6)
     for options, fragment in (
         (["--shifts-from", str(tmp_path / "other.csv")], "14 views' shifts"),

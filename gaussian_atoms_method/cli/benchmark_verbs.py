@@ -135,8 +135,9 @@ class BenchmarkFilm:
     replica: bool = False
     """Fit each sub-area's replica instead: the authors' model (less one of each pair closer than
     tantalum's shortest bond, 2.11 Å) as a known truth in the sub-area's
-    own views' geometry, level and noise, under a 3 nm carbon support, a 300 kV probe's rings and
-    tails, 0.5 px of per-view misregistration and 6.8% gain scatter (docs/evidence.md)."""
+    own views' geometry, level and noise, through physics the fit does not share (abTEM's Lobato
+    potentials with ADF contrast, carbon atoms of a 3 nm support, a 300 kV probe's rings and tails,
+    a 0.7 Å source and a 6% halo), 0.5 px of per-view misregistration and 6.8% gain scatter."""
     strips: tuple[int, ...] = ()
     """Instead of single sub-areas: these published strips (1: areas 1-16, 2: areas 17-29), each
     fitted on Ray (`gaussian-atoms film`), joined and scored in the strip's interior."""

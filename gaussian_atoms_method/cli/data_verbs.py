@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
 from dataclasses import dataclass
@@ -26,17 +27,37 @@ class Simulate:
     radius_A: Optional[float] = None
     """Radius of the fcc sphere, Å (--particle sphere; default 10)."""
     potential: Literal["lobato", "gaussian"] = "lobato"
-    """abTEM Lobato projected potential (independent physics), or the quick Gaussian model."""
+    """abTEM Lobato projected potential (independent physics), or the quick Gaussian model (the
+    fit's own: for demos and unit tests, not evidence). With --like too: each atom's Lobato potential
+    with ADF contrast (Z^1.7), or a Gaussian of --atom-sigma-A."""
     tilts: str = "limited"
     """Tilt scheme: full (-90:1:90), limited (-70:3:68), sampled, wedge, 'start:step:stop' or a comma list (deg)."""
     pixel_size_A: float = 0.25
-    atom_sigma_A: float = 0.35
-    """Width of each atom of the Gaussian potential, Å (--potential gaussian)."""
+    atom_sigma_A: Optional[float] = None
+    """Width of each atom of the Gaussian potential, Å (--potential gaussian; default 0.35, 0.4 with --like)."""
     blur_sigma_A: float = 0.5
     """Gaussian probe blur, Å."""
-    probe: Literal["gaussian", "aberrated"] = "gaussian"
-    """The blur: a Gaussian of --blur-sigma-A, or an aberrated STEM probe's intensity (20 mrad,
-    300 kV, 40 Å defocus, 10 µm Cs: rings and tails)."""
+    probe: Optional[Literal["gaussian", "aberrated"]] = None
+    """The blur: a Gaussian of --blur-sigma-A, or a STEM probe's intensity from its optics
+    (--voltage-kV, --semiangle-mrad, --defocus-A, --cs-A, --source-fwhm-A, --halo-fraction: rings,
+    tails, the source's spread). Default: aberrated with --like, gaussian for the named particles."""
+    voltage_kV: float = 300.0
+    """The aberrated probe's accelerating voltage, kV."""
+    semiangle_mrad: float = 20.0
+    """The aberrated probe's convergence semi-angle, mrad."""
+    defocus_A: float = 40.0
+    """The aberrated probe's defocus, Å."""
+    cs_A: float = 1e5
+    """The aberrated probe's spherical aberration, Å (1e5: 10 µm)."""
+    source_fwhm_A: Optional[float] = None
+    """The aberrated probe's effective source, a Gaussian of this FWHM, Å. Default: 0.7 with --like
+    (an aberration-corrected field-emission STEM's 0.5-1 Å), 0 for the named particles."""
+    halo_fraction: float = 0.0
+    """The share of the aberrated probe's intensity in a Lorentzian halo (half width --halo-hwhm-A)."""
+    halo_hwhm_A: float = 2.0
+    """The halo's half width at half maximum, Å."""
+    scan_jitter_px: float = 0.0
+    """With --like: each scan line (row) of each view shifted along the fast axis by this RMS, pixels."""
     floor_fraction: float = 0.0
     """A floor under every view, as a fraction of a column's value (0: none)."""
     floor_variation: float = 0.0
@@ -70,6 +91,19 @@ class Simulate:
     """With --like: keep atoms closer than the shortest bond their elements can form in the truth.
     By default one of each such pair (a measured model's error; no specimen holds it) is set aside
     and the run says how many."""
+
+    def optics(self):
+        """The aberrated probe's :class:`~gaussian_atoms_method.harness.microscope.ProbeOptics`."""
+        from gaussian_atoms_method.harness.microscope import ProbeOptics
+
+        source = self.source_fwhm_A if self.source_fwhm_A is not None else (0.7 if self.like is not None else 0.0)
+        optics = (self.voltage_kV, self.semiangle_mrad, self.defocus_A, self.cs_A)
+        return ProbeOptics(*optics, source, self.halo_fraction, self.halo_hwhm_A)
+
+    @property
+    def particle_atom_sigma_A(self) -> float:
+        """The Gaussian atom's width: as given, else 0.35 Å for particles and 0.4 Å with --like."""
+        return self.atom_sigma_A if self.atom_sigma_A is not None else (0.4 if self.like is not None else 0.35)
 
     @property
     def particle_scale(self) -> float | None:
@@ -112,12 +146,13 @@ class Simulate:
             parse_tilts(self.tilts),
             potential=self.potential,
             pixel_size_A=self.pixel_size_A,
-            atom_sigma_A=self.atom_sigma_A,
+            atom_sigma_A=self.particle_atom_sigma_A,
             blur_sigma_A=self.blur_sigma_A,
             noise_std=self.noise_std,
             tilt_axis=self.tilt_axis,
             seed=self.seed,
-            probe=self.probe,
+            probe=self.probe or "gaussian",
+            optics=self.optics(),
             floor_fraction=self.floor_fraction,
             floor_variation=self.floor_variation,
             field_of_view_A=self.field_of_view_A,
@@ -139,7 +174,7 @@ class Simulate:
                     "noise_std": self.noise_std,
                     "peak_to_noise": sim.peak_to_noise,
                     "blur_sigma_A": self.blur_sigma_A,
-                    "probe": self.probe,
+                    "probe": self.probe or "gaussian",
                     "floor_fraction": self.floor_fraction,
                     "floor_variation": self.floor_variation,
                     "field_of_view_A": self.field_of_view_A,
@@ -150,7 +185,7 @@ class Simulate:
         n, h, w = sim.projections.shape
         if self.save_volume:
             volume = true_potential_volume(
-                sim.truth, self.potential, self.pixel_size_A, h, self.atom_sigma_A, self.blur_sigma_A
+                sim.truth, self.potential, self.pixel_size_A, h, self.particle_atom_sigma_A, self.blur_sigma_A
             )
             np.save(self.output / "potential_volume.npy", volume)
             update_manifest(self.output, volume="potential_volume.npy", volume_voxel_size_A=self.pixel_size_A)
@@ -211,18 +246,24 @@ class Simulate:
                 "simulation": {
                     "like": str(self.like),
                     "atoms": len(atoms),
-                    "atom_sigma_A": self.atom_sigma_A,
+                    "atom_sigma_A": self.particle_atom_sigma_A,
                     "support_A": self.support_A,
-                    "probe": self.probe,
+                    "potential": self.potential,
+                    "probe": self.probe or "aberrated",
+                    "optics": dataclasses.asdict(self.optics()),
+                    "scan_jitter_px": self.scan_jitter_px,
                     "shift_px": self.shift_px,
                     "shifts_from": None if self.shifts_from is None else str(self.shifts_from),
                     "gain_scatter": self.gain_scatter,
                     "seed": self.seed,
                 }
             },
-            atom_sigma_A=self.atom_sigma_A,
+            atom_sigma_A=self.particle_atom_sigma_A,
             support_A=self.support_A,
-            probe="aberrated" if self.probe == "aberrated" else "gaussian",
+            probe=self.probe or "aberrated",
+            potential=self.potential,
+            optics=self.optics(),
+            scan_jitter_px=self.scan_jitter_px,
             blur_sigma_A=self.blur_sigma_A,
             shift_px=self.shift_px,
             gain_scatter=self.gain_scatter,
@@ -231,7 +272,9 @@ class Simulate:
         )
         n, h, w = replica.projections.shape
         print(
-            f"wrote {self.output}: a replica of {self.like}: {len(atoms)} atoms, {n} views of {h}x{w} px at "
+            f"wrote {self.output}: a replica of {self.like}: {len(atoms)} atoms "
+            f"({'Lobato potentials, ADF contrast' if self.potential == 'lobato' else 'Gaussian atoms'}, "
+            f"{self.probe or 'aberrated'} probe), {n} views of {h}x{w} px at "
             f"{series.pixel_size_A:g} Å, noise variance {replica.noise.read_var:.4g} + {replica.noise.gain:.4g} x "
             f"signal as read from it"
         )

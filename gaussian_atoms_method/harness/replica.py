@@ -6,18 +6,21 @@ every view's orientation (tilts or Euler angles in their convention), the detect
 and tilt centre, and the noise read from the views themselves
 (:func:`~gaussian_atoms_method.physics.noise.noise_from_projections`: a read variance and a
 Poisson-like gain).  Onto that geometry it projects atoms the user gives (their model, or one the
-harness builds) through everything a measured view holds:
+harness builds) through physics the fit does not share (:mod:`.adf`), as everything a measured
+view holds:
 
-* each atom an isotropic Gaussian of integrated intensity ``Z^1.7`` (ADF-STEM's contrast grows
-  as the atomic number to a power of 1.6-1.9; its width ``atom_sigma_A``), projected exactly
-  with the views' whole orientation;
+* each atom abTEM's Lobato projected potential of its element (a sharp core and long tails) with
+  the integrated intensity ``Z^1.7`` of ADF-STEM's contrast, projected with the views' whole
+  orientation (``potential="lobato"``, the default; ``"gaussian"`` draws each atom as an isotropic
+  Gaussian of width ``atom_sigma_A`` instead, the fit's own model: a unit test, not evidence);
 * an optional amorphous carbon support film (``support_A`` thick, at carbon's 0.1 atoms per Å³)
-  under the atoms, through which every ray passes, wider than the field so high tilts see it too;
-* the intensity of an aberrated probe (:func:`.microscope.aberrated_probe_intensity`: a core
-  with rings and tails, not a Gaussian), or a Gaussian one;
+  of real carbon atoms under the atoms, through which every ray passes, wider than the field so
+  high tilts see it too;
+* the intensity of a probe from its optics (:class:`.microscope.ProbeOptics`: an aberrated core
+  with rings and tails, an effective source, a halo), or a Gaussian one;
 * the real views' mean level: one scale takes the replica's mean onto theirs;
-* per-view misregistration (``shift_px`` RMS, random shifts of each view) and per-view gain
-  (``gain_scatter``, relative);
+* per-view misregistration (``shift_px`` RMS, random shifts of each view), per-view gain
+  (``gain_scatter``, relative) and scan jitter (``scan_jitter_px``: each scan line its own shift);
 * noise of the variance the real views were read to hold at each level.
 
 The truth is the atoms given (the support's carbon is not an atom to find); a measured model's
@@ -28,16 +31,22 @@ aside first (:func:`physical_truth`).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 import torch
 from scipy import ndimage
 
 from gaussian_atoms_method.atoms.atom_set import AtomSet
+from gaussian_atoms_method.harness.microscope import ProbeOptics
 
 ADF_EXPONENT = 1.7
 """ADF-STEM's intensity per atom grows as ``Z^n`` with ``n`` 1.6-1.9 over the usual detector
 angles (Pennycook's incoherent imaging; Rutherford's ``Z^2`` screened): the middle of it."""
+
+DEFAULT_OPTICS = ProbeOptics(source_fwhm_A=0.7)
+"""A 300 kV probe of 20 mrad at 40 Å defocus and 10 µm Cs (rings and tails), spread by an
+effective source of 0.7 Å (the middle of an aberration-corrected field-emission STEM's 0.5-1 Å)."""
 
 CARBON_DENSITY_PER_A3 = 0.10
 """Amorphous carbon support films: 1.9-2.2 g/cm³, 0.095-0.11 carbon atoms per Å³."""
@@ -95,6 +104,12 @@ def _project(positions, sigmas, masses, axes, series) -> np.ndarray:
     return torch.cat(out).numpy()
 
 
+def _gaussian_transfer(sigma_A: float, shape: tuple[int, int], spacing_A: float) -> np.ndarray:
+    """A Gaussian probe's transfer on a periodic grid (numpy's FFT order)."""
+    k2 = np.fft.fftfreq(shape[0], d=spacing_A)[:, None] ** 2 + np.fft.fftfreq(shape[1], d=spacing_A)[None, :] ** 2
+    return np.exp(-2.0 * np.pi**2 * sigma_A**2 * k2)
+
+
 def physical_truth(atoms: AtomSet) -> tuple[AtomSet, float, float]:
     """The most of ``atoms`` with no two closer than the shortest bond their elements can form
     (:func:`~gaussian_atoms_method.atoms.hard_core.most_apart`), that bond (of all their elements
@@ -130,6 +145,9 @@ def replica_of(
     gain_scatter: float = 0.0,
     seed: int = 0,
     shifts_px: np.ndarray | None = None,
+    potential: str = "lobato",
+    optics: ProbeOptics = DEFAULT_OPTICS,
+    scan_jitter_px: float = 0.0,
 ) -> Replica:
     """A tilt series of ``atoms`` (positions about the tilt centre, Å, with species) in the
     geometry and noise of the real ``series`` (module docstring).
@@ -140,12 +158,13 @@ def replica_of(
         The real series whose geometry, mean level and noise the replica takes.
     atoms : AtomSet
     atom_sigma_A : float
-        Each atom's width before the probe, Å (thermal motion and the atom's own potential: about
-        0.3-0.5 Å for heavy atoms at room temperature).
+        Each atom's width before the probe, Å, with ``potential="gaussian"`` (thermal motion and
+        the atom's own potential: about 0.3-0.5 Å for heavy atoms at room temperature).
     support_A : float
         Thickness of an amorphous carbon support film under the atoms, Å (0: none).
     probe : {"aberrated", "gaussian", "none"}
-        The probe's intensity: aberrated (rings and tails), a Gaussian of ``blur_sigma_A``, or none.
+        The probe's intensity: from ``optics`` (rings, tails, source, halo), a Gaussian of
+        ``blur_sigma_A``, or none (Gaussian atoms only: an ADF atom is sharper than a pixel).
     shift_px : float
         RMS of each view's random shift along each detector axis, pixels.
     gain_scatter : float
@@ -154,30 +173,54 @@ def replica_of(
     shifts_px : (V, 2) array, optional
         Each view's shift (rows, columns; pixels) instead of random ones: a misregistration
         measured on the real views (what a fit with ``refine_alignment`` says of them).
+    potential : {"lobato", "gaussian"}
+        Each atom abTEM's Lobato projected potential (independent physics), or a Gaussian.
+    optics : ProbeOptics
+        The aberrated probe's optics (``probe="aberrated"``).
+    scan_jitter_px : float
+        RMS of each scan line's own shift along the fast axis, pixels (:func:`.adf.scan_jitter`).
     """
     from ase.data import atomic_numbers
 
-    from gaussian_atoms_method.harness.microscope import aberrated_probe_intensity, convolve_views
+    from gaussian_atoms_method.harness.adf import adf_projections, scan_jitter
+    from gaussian_atoms_method.harness.microscope import convolve_views
     from gaussian_atoms_method.physics.noise import noise_from_projections
 
     if atoms.species is None or not len(atoms):
         raise ValueError("the replica needs atoms with species")
     if probe not in ("aberrated", "gaussian", "none"):
         raise ValueError(f"probe must be 'aberrated', 'gaussian' or 'none', got {probe!r}")
+    if potential not in ("lobato", "gaussian"):
+        raise ValueError(f"potential must be 'lobato' or 'gaussian', got {potential!r}")
+    if potential == "lobato" and probe == "none":
+        raise ValueError(
+            "an ADF atom is sharper than a pixel: only a probe band-limits it (probe 'aberrated' or 'gaussian')"
+        )
     rng = np.random.default_rng(seed)
     axes = series.detector_axes()
-    z = np.array([atomic_numbers[s] for s in atoms.species], dtype=np.float64)
-    weight = z**ADF_EXPONENT
-    clean = _project(atoms.positions, np.full(len(atoms), atom_sigma_A), weight, axes, series)
+    positions, species = atoms.positions, np.asarray(atoms.species)
     if support_A > 0:
         carbon = _support_atoms(series, support_A, float(atoms.positions[:, 2].min()) - 1.0, rng)
-        clean += _project(
-            carbon, np.full(len(carbon), atom_sigma_A), np.full(len(carbon), 6.0**ADF_EXPONENT), axes, series
+        positions, species = np.r_[positions, carbon], np.r_[species, np.full(len(carbon), "C")]
+    weight = np.array([atomic_numbers[s] for s in species], dtype=np.float64) ** ADF_EXPONENT
+    if potential == "lobato":  # the probe drawn with the atoms: their images are sharper than a pixel
+        transfer = {"aberrated": optics.transfer, "gaussian": partial(_gaussian_transfer, blur_sigma_A)}
+        clean = adf_projections(
+            positions,
+            species,
+            weight,
+            axes,
+            series.image_shape,
+            series.pixel_size_A,
+            series.centre_px,
+            probe=transfer[probe],
         )
-    if probe == "aberrated":
-        clean = convolve_views(clean, aberrated_probe_intensity(series.pixel_size_A))
-    elif probe == "gaussian":
-        clean = ndimage.gaussian_filter(clean, (0, *(2 * [blur_sigma_A / series.pixel_size_A])), mode="constant")
+    else:
+        clean = _project(positions, np.full(len(positions), atom_sigma_A), weight, axes, series)
+        if probe == "aberrated":
+            clean = convolve_views(clean, optics.intensity(series.pixel_size_A))
+        elif probe == "gaussian":
+            clean = ndimage.gaussian_filter(clean, (0, *(2 * [blur_sigma_A / series.pixel_size_A])), mode="constant")
     real = np.asarray(series.projections, dtype=np.float64)
     scale = float(real.mean() / clean.mean())
     clean *= scale
@@ -189,6 +232,8 @@ def replica_of(
         if np.any(shifts[v]):
             clean[v] = ndimage.shift(clean[v], shifts[v], order=3, mode="nearest")
         clean[v] *= gains[v]
+    if scan_jitter_px > 0:
+        clean = scan_jitter(clean, scan_jitter_px, rng)[0]
     noise = noise_from_projections(real)
     variance = np.clip(noise.variance(clean), 0.0, None)
     noisy = clean + rng.standard_normal(clean.shape) * np.sqrt(variance)

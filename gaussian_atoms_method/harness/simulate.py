@@ -223,6 +223,7 @@ def simulate_tilt_series(
     floor_fraction: float = 0.0,
     floor_variation: float = 0.0,
     field_of_view_A: float | None = None,
+    optics=None,
 ) -> SimulatedTiltSeries:
     """Project atoms (positions in Å about the tilt centre), blur, add a floor, add noise.
 
@@ -246,7 +247,7 @@ def simulate_tilt_series(
     seed : int
     probe : {"gaussian", "aberrated"}
         The blur: a Gaussian of ``blur_sigma_A``, or an aberrated probe's intensity with rings
-        and tails (:func:`.microscope.aberrated_probe_intensity`; ``blur_sigma_A`` unused).
+        and tails (:class:`.microscope.ProbeOptics`; ``blur_sigma_A`` unused).
     floor_fraction, floor_variation : float
         A floor under every view at this fraction of a column's value, varying across the view
         by this fraction (:func:`.microscope.add_varying_floor`); 0: none.
@@ -254,6 +255,9 @@ def simulate_tilt_series(
         A detector narrower than the object (a film): the views are projected through all of it,
         blurred, then cropped to this side about the tilt centre; the truth holds the atoms
         above the detector (both in-plane coordinates within half the side).
+
+    optics : ProbeOptics, optional
+        The aberrated probe's optics (default: :class:`.microscope.ProbeOptics`' defaults).
 
     Returns
     -------
@@ -275,9 +279,9 @@ def simulate_tilt_series(
     else:
         raise ValueError(f"potential must be 'lobato' or 'gaussian', got {potential!r}")
     if probe == "aberrated":
-        from gaussian_atoms_method.harness.microscope import aberrated_probe_intensity, convolve_views
+        from gaussian_atoms_method.harness.microscope import ProbeOptics, convolve_views
 
-        blurred, widths = convolve_views(clean, aberrated_probe_intensity(pixel_size_A)), None
+        blurred, widths = convolve_views(clean, (optics or ProbeOptics()).intensity(pixel_size_A)), None
     elif probe == "gaussian":
         blurred = blur_and_noise(clean, pixel_size_A, blur_sigma_A, 0.0, seed)
     else:
