@@ -141,3 +141,20 @@ def test_the_replica_draws_adf_atoms_unless_asked_for_gaussians():
         for place in atoms.positions @ axes[:2].T:
             np.testing.assert_allclose(_centroid(adf.projections[v], place, 2.0, (30.0, 30.0)), place, atol=5e-3)
     assert np.abs(adf.projections - gauss.projections).max() > 0.1 * adf.projections.max()
+
+
+def test_simulate_draws_a_particle_as_adf_views_through_its_probe():
+    """``simulate_tilt_series(..., potential="adf")``: a two-element particle's noiseless views
+    hold each atom's ``Z^1.7`` (to 1%: the probe's tails beyond the detector's margin) and are
+    symmetric about the detector's centre for a particle symmetric about the tilt centre."""
+    from gaussian_atoms_method.atoms.atom_set import AtomSet
+    from gaussian_atoms_method.harness.simulate import simulate_tilt_series
+
+    atoms = AtomSet(np.array([[-2.0, 0.0, 0.0], [2.0, 0.0, 0.0], [0.0, 0.0, 2.5], [0.0, 0.0, -2.5]]),
+                    species=["Pt", "Pt", "Co", "Co"])  # fmt: skip
+    sim = simulate_tilt_series(atoms, np.array([-40.0, 0.0, 40.0]), potential="adf", probe="aberrated",
+                               noise_std=0.0, margin_A=8.0)  # fmt: skip
+    total = 2 * 78.0**1.7 + 2 * 27.0**1.7
+    np.testing.assert_allclose(sim.projections.sum(axis=(1, 2)) * sim.pixel_size_A**2, total, rtol=0.01)
+    views = sim.projections.astype(np.float64)
+    np.testing.assert_allclose(views, views[:, ::-1, ::-1], atol=1e-4 * views.max())

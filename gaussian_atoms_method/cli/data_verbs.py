@@ -26,10 +26,11 @@ class Simulate:
     """Element of the fcc sphere (--particle sphere; default Au)."""
     radius_A: Optional[float] = None
     """Radius of the fcc sphere, Å (--particle sphere; default 10)."""
-    potential: Literal["lobato", "gaussian"] = "lobato"
-    """abTEM Lobato projected potential (independent physics), or the quick Gaussian model (the
-    fit's own: for demos and unit tests, not evidence). With --like too: each atom's Lobato potential
-    with ADF contrast (Z^1.7), or a Gaussian of --atom-sigma-A."""
+    potential: Literal["lobato", "adf", "gaussian"] = "lobato"
+    """abTEM Lobato projected potential (independent physics); adf: each atom a power of its Lobato
+    projected potential with ADF-STEM's Z^1.7 contrast, the probe drawn with it (independent physics
+    too); or the quick Gaussian model (the fit's own: for demos and unit tests, not evidence). With
+    --like, lobato and adf both draw ADF atoms, gaussian a Gaussian of --atom-sigma-A."""
     tilts: str = "limited"
     """Tilt scheme: full (-90:1:90), limited (-70:3:68), sampled, wedge, 'start:step:stop' or a comma list (deg)."""
     pixel_size_A: float = 0.25
@@ -261,7 +262,7 @@ class Simulate:
             atom_sigma_A=self.particle_atom_sigma_A,
             support_A=self.support_A,
             probe=self.probe or "aberrated",
-            potential=self.potential,
+            potential="gaussian" if self.potential == "gaussian" else "lobato",
             optics=self.optics(),
             scan_jitter_px=self.scan_jitter_px,
             blur_sigma_A=self.blur_sigma_A,

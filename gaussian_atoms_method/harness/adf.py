@@ -9,7 +9,7 @@ blur), so the replica (:mod:`.replica`) draws them here instead:
   Kirkland: a sharp core and long tails), drawn at its exact place in each view's detector frame
   (any orientation: tilts or Euler angles);
 * the contrast is ADF-like: incoherent, linear in the atoms, each atom's integrated intensity
-  ``Z^n`` (:data:`.replica.ADF_EXPONENT`) (:func:`adf_projections`);
+  ``Z^n`` (:data:`.simulate.ADF_EXPONENT`) (:func:`adf_projections`);
 * the probe is formed by its optics: voltage, convergence semi-angle, defocus, Cs, a Gaussian
   effective source and an optional halo (:func:`.microscope.aberrated_probe_intensity`);
 * the scan moves each line of a view a little along the fast axis (:func:`scan_jitter`).
@@ -32,7 +32,7 @@ ADF_POTENTIAL_POWER = 1.7
 """The power of the projected potential that is an atom's ADF image (:func:`adf_kernel_transform`).
 High-angle scattering comes from near the nucleus, so an ADF image is far more local than the
 potential; a projected potential's core grows about as ``Z`` and ADF intensity as ``Z^1.6-1.9``
-(:data:`.replica.ADF_EXPONENT`), so the power that carries the one to the other is the middle of it."""
+(:data:`.simulate.ADF_EXPONENT`), so the power that carries the one to the other is the middle of it."""
 
 
 def _parametrization(name: str):

@@ -125,6 +125,12 @@ class ProbeOptics:
         )
 
 
+def gaussian_transfer(sigma_A: float, shape: tuple[int, int], spacing_A: float) -> np.ndarray:
+    """A Gaussian probe's transfer (width ``sigma_A``) on a periodic grid (numpy's FFT order)."""
+    k2 = np.fft.fftfreq(shape[0], d=spacing_A)[:, None] ** 2 + np.fft.fftfreq(shape[1], d=spacing_A)[None, :] ** 2
+    return np.exp(-2.0 * np.pi**2 * sigma_A**2 * k2)
+
+
 def convolve_views(projections: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     """Each (H, W) view of ``projections`` (N, H, W) convolved with ``kernel`` (centred), same size."""
     from scipy.signal import fftconvolve

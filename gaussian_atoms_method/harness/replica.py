@@ -38,11 +38,8 @@ import torch
 from scipy import ndimage
 
 from gaussian_atoms_method.atoms.atom_set import AtomSet
-from gaussian_atoms_method.harness.microscope import ProbeOptics
-
-ADF_EXPONENT = 1.7
-"""ADF-STEM's intensity per atom grows as ``Z^n`` with ``n`` 1.6-1.9 over the usual detector
-angles (Pennycook's incoherent imaging; Rutherford's ``Z^2`` screened): the middle of it."""
+from gaussian_atoms_method.harness.microscope import ProbeOptics, gaussian_transfer
+from gaussian_atoms_method.harness.simulate import ADF_EXPONENT
 
 DEFAULT_OPTICS = ProbeOptics(source_fwhm_A=0.7)
 """A 300 kV probe of 20 mrad at 40 Å defocus and 10 µm Cs (rings and tails), spread by an
@@ -102,12 +99,6 @@ def _project(positions, sigmas, masses, axes, series) -> np.ndarray:
     axes = torch.from_numpy(axes)
     out = [project_gaussians(means, s, a, axes[v : v + 4], rows, cols) for v in range(0, len(axes), 4)]
     return torch.cat(out).numpy()
-
-
-def _gaussian_transfer(sigma_A: float, shape: tuple[int, int], spacing_A: float) -> np.ndarray:
-    """A Gaussian probe's transfer on a periodic grid (numpy's FFT order)."""
-    k2 = np.fft.fftfreq(shape[0], d=spacing_A)[:, None] ** 2 + np.fft.fftfreq(shape[1], d=spacing_A)[None, :] ** 2
-    return np.exp(-2.0 * np.pi**2 * sigma_A**2 * k2)
 
 
 def physical_truth(atoms: AtomSet) -> tuple[AtomSet, float, float]:
@@ -204,7 +195,7 @@ def replica_of(
         positions, species = np.r_[positions, carbon], np.r_[species, np.full(len(carbon), "C")]
     weight = np.array([atomic_numbers[s] for s in species], dtype=np.float64) ** ADF_EXPONENT
     if potential == "lobato":  # the probe drawn with the atoms: their images are sharper than a pixel
-        transfer = {"aberrated": optics.transfer, "gaussian": partial(_gaussian_transfer, blur_sigma_A)}
+        transfer = {"aberrated": optics.transfer, "gaussian": partial(gaussian_transfer, blur_sigma_A)}
         clean = adf_projections(
             positions,
             species,
