@@ -144,6 +144,13 @@ def residual_shifts(residuals, predicted, detector_axes=None) -> tuple[np.ndarra
     >>> round(float(shifts[0, 0]), 1), abs(float(shifts[0, 1])) < 1e-9
     (0.3, True)
     """
+    shifts, _, agreement = residual_registration(residuals, predicted, detector_axes)
+    return shifts, agreement
+
+
+def residual_registration(residuals, predicted, detector_axes=None) -> tuple[np.ndarray, np.ndarray, float]:
+    """:func:`residual_shifts`' shifts (V, 2) and agreement, with each view's gain (V,) from the
+    same least-squares fit: ``1 + g``, the factor by which the view holds more than predicted."""
     r = torch.as_tensor(residuals, dtype=torch.float64)
     half = r.shape[1] // 2
     found = {"all": [], "upper": [], "lower": []}
@@ -158,7 +165,7 @@ def residual_shifts(residuals, predicted, detector_axes=None) -> tuple[np.ndarra
         sums.append((sums[0][0] + sums[1][0], sums[0][1] + sums[1][1]))
         for name, (normal, rhs) in zip(("upper", "lower", "all"), sums):
             normal = normal + torch.diag(1e-12 * torch.diagonal(normal).clamp_min(1e-300))
-            found[name].append(torch.linalg.solve(normal, rhs)[:2])
+            found[name].append(torch.linalg.solve(normal, rhs))
 
     axes = (
         None
@@ -169,9 +176,11 @@ def residual_shifts(residuals, predicted, detector_axes=None) -> tuple[np.ndarra
     def gauge_free(shifts: torch.Tensor) -> torch.Tensor:
         return shifts if axes is None else gauge_free_shifts(shifts, axes)
 
-    upper, lower = (gauge_free(torch.stack(found[name])) for name in ("upper", "lower"))
+    upper, lower = (gauge_free(torch.stack(found[name])[:, :2]) for name in ("upper", "lower"))
     agreement = float((upper * lower).sum() / torch.sqrt((upper**2).sum() * (lower**2).sum()).clamp_min(1e-300))
-    return gauge_free(torch.stack(found["all"])).cpu().numpy(), agreement * float(np.sqrt(upper.numel()))
+    whole = torch.stack(found["all"])
+    shifts = gauge_free(whole[:, :2]).cpu().numpy()
+    return shifts, 1.0 + whole[:, 2].cpu().numpy(), agreement * float(np.sqrt(upper.numel()))
 
 
 def interior(images: np.ndarray, interior_px: tuple[int, int]) -> np.ndarray:

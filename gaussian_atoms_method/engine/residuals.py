@@ -185,10 +185,12 @@ def say_view_shifts(residuals, predicted, detector_axes, registered: bool) -> di
     may still be harmless; one of a fraction of a pixel can place atoms wrong along the beam,
     confidently (the real views' misregistration in a replica: 0.964 found, 29 pm; with
     per-view shifts 0.996, 3.9 pm).  Returns ``view_shifts_rms_px`` (rows, columns) and
-    ``view_shifts_z``."""
-    from gaussian_atoms_method.atoms.view_prediction import residual_shifts
+    ``view_shifts_z``, and each view's shift and gain against the atoms (``view_offsets_px`` (V, 2),
+    ``view_gain_offsets`` (V,)): the misregistration an internal replica is given
+    (:mod:`gaussian_atoms_method.harness.internal_floor`)."""
+    from gaussian_atoms_method.atoms.view_prediction import residual_registration
 
-    shifts, z = residual_shifts(residuals, predicted, detector_axes)
+    shifts, gains, z = residual_registration(residuals, predicted, detector_axes)
     rms = np.sqrt(np.mean(shifts**2, axis=0))
     words = (
         f"the views sit {rms[0]:.2f} / {rms[1]:.2f} px RMS along rows / columns off the fitted atoms (up to "
@@ -200,7 +202,12 @@ def say_view_shifts(residuals, predicted, detector_axes, registered: bool) -> di
             "(--pipeline.model.decide-registration True)"
         )
     CONSOLE.print(f"gaussian-atoms: {words}")
-    return {"view_shifts_rms_px": [float(x) for x in rms], "view_shifts_z": float(z)}
+    return {
+        "view_shifts_rms_px": [float(x) for x in rms],
+        "view_shifts_z": float(z),
+        "view_offsets_px": shifts.tolist(),
+        "view_gain_offsets": gains.tolist(),
+    }
 
 
 def learned_registration(model) -> tuple[np.ndarray, np.ndarray] | None:

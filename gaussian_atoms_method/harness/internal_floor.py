@@ -1,0 +1,144 @@
+"""The error a run's stated precision cannot show, read on an internal replica of its own result.
+
+A run states each atom's precision from the scatter its views show.  A bias alike in every view
+(the atom's profile and the probe's rings against the fit's Gaussians, the views' misregistration
+spread over every atom) stays outside that statement, and no fit sees it in its own residual.
+So the run's own atoms are taken as a truth and drawn again through physics the fit does not
+share (:func:`~gaussian_atoms_method.harness.replica.replica_of`: ADF atoms, a probe from its
+optics), in the series' own geometry, level and noise, with a misregistration of the size the run
+read off its views or the shifts it learned (:func:`registration_of`); the replica is fitted as
+the run was, and its errors against those atoms beside the precision its fit stated give the
+floor (:func:`~gaussian_atoms_method.atoms.calibration.precision_floor_A`).  Given to the run
+(``--pipeline.model.precision-floor-A``), it is added in quadrature to each atom's statement.
+
+The replica's probe is an assumption (:data:`.replica.DEFAULT_OPTICS` unless given): the floor
+holds the bias of that physics, not of the microscope's own, which nothing here knows.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from gaussian_atoms_method.atoms.atom_set import AtomSet
+
+MATCH_RADIUS_A = 0.75
+"""The scoring radius of the method's paper: a replica atom farther than this from its truth is
+not found, and its error is not a precision's."""
+
+
+@dataclass
+class InternalFloor:
+    """``floor_A`` (3,) the error along x, y, z (Å) the stated intervals did not hold on the
+    internal replica; ``coverage_95`` (3,) the share of its errors inside the intervals its fit
+    stated; ``found`` the share of the run's atoms the replica's fit found; ``rmsd_pm`` over them;
+    ``shifts_rms_px`` (2,) the replica's misregistration (rows, columns); ``offsets_rms_px`` (2,)
+    what its fit's views were read to sit off its atoms."""
+
+    floor_A: np.ndarray
+    coverage_95: np.ndarray
+    found: float
+    rmsd_pm: float
+    shifts_rms_px: np.ndarray
+    offsets_rms_px: np.ndarray
+
+
+def registration_of(atoms: AtomSet, n_views: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The misregistration an internal replica of ``atoms`` is given: each view's shift (V, 2)
+    (pixels, rows and columns) and gain (V,).  The shifts and gains the run learned
+    (``info["view_shifts_px"]``, ``info["view_gains"]``: the replica's fit learns them again), else
+    what its views were read to sit off its atoms (``info["view_offsets_px"]``,
+    ``info["view_gain_offsets"]``), else random shifts of the RMS it read
+    (``info["view_shifts_rms_px"]``), else none.
+
+    >>> shifts, gains = registration_of(AtomSet(np.zeros((1, 3)), info={"view_shifts_rms_px": [0.5, 0.0]}), 400)
+    >>> round(float(shifts[:, 0].std()), 1), float(abs(shifts[:, 1]).max()), float(gains.min())
+    (0.5, 0.0, 1.0)
+    """
+    info = atoms.info
+    shifts = info.get("view_shifts_px", info.get("view_offsets_px"))
+    if shifts is None:
+        rms = np.asarray(info.get("view_shifts_rms_px", (0.0, 0.0)), dtype=np.float64)
+        shifts = np.random.default_rng(seed).normal(0.0, 1.0, size=(n_views, 2)) * rms
+    gains = info.get("view_gains", info.get("view_gain_offsets"))
+    gains = np.ones(n_views) if gains is None else np.asarray(gains, dtype=np.float64)
+    return np.asarray(shifts, dtype=np.float64).reshape(n_views, 2), gains.reshape(n_views)
+
+
+def internal_floor(
+    series,
+    atoms: AtomSet,
+    *,
+    species: str | None = None,
+    seed: int = 0,
+    optics=None,
+    support_A: float = 0.0,
+    device: str = "auto",
+    max_num_iterations: int | None = None,
+    **model_options,
+) -> InternalFloor:
+    """The floor of ``atoms`` (a run's result on ``series``, in its truth frame, as
+    :func:`gaussian_atoms_method.reconstruct` returns them) read on an internal replica (module text).
+
+    Parameters
+    ----------
+    series : TiltSeries
+        The series the run fitted.
+    atoms : AtomSet
+        Its atoms, their ``info`` holding the views' registration (:func:`registration_of`).
+        Elements from ``atoms.species`` or ``species`` (one element for all).
+    species : str, optional
+        The specimen's elements, as the run was given them.
+    seed : int
+        The replica's draws (misregistration, noise).
+    optics : ProbeOptics, optional
+        The replica's probe (default :data:`.replica.DEFAULT_OPTICS`).
+    support_A : float
+        An amorphous carbon support under the atoms this thick, Å (0: none), as the specimen has.
+    device, max_num_iterations, **model_options
+        As the run: :func:`gaussian_atoms_method.reconstruct`'s.
+    """
+    import dataclasses
+
+    from gaussian_atoms_method.api import reconstruct
+    from gaussian_atoms_method.atoms.calibration import Z95, precision_floor_A
+    from gaussian_atoms_method.atoms.matching import global_shift, match_atoms
+    from gaussian_atoms_method.harness.replica import DEFAULT_OPTICS, replica_of
+
+    elements = atoms.species
+    if elements is None or np.any(np.asarray(elements) == "X"):
+        if not species or "," in species:
+            raise ValueError("the internal floor needs each atom's element: give species (one element)")
+        elements = np.full(len(atoms), species)
+    origin = np.asarray(series.origin_A, dtype=np.float64)
+    truth = AtomSet(atoms.positions - origin, species=np.asarray(elements))
+    n_views = len(series.projections)
+    shifts, gains = registration_of(atoms, n_views, seed)
+    made = replica_of(series, truth, seed=seed, shifts_px=shifts, optics=optics or DEFAULT_OPTICS, support_A=support_A)
+    projections = (made.projections * gains[:, None, None]).astype(np.float32)
+    replica_series = dataclasses.replace(series, projections=projections, truth_path=None)
+    refit = reconstruct(
+        replica_series,
+        species=species,
+        device=device,
+        max_num_iterations=max_num_iterations,
+        progress=False,
+        seed=seed,
+        **model_options,
+    )
+    refit_offsets = np.asarray(refit.info.get("view_offsets_px", np.zeros((n_views, 2))), dtype=np.float64)
+    pred = refit.positions - origin
+    shift = global_shift(pred, truth.positions, MATCH_RADIUS_A)
+    pi, ti = match_atoms(pred + shift, truth.positions, MATCH_RADIUS_A)
+    error = pred[pi] + shift - truth.positions[ti]
+    stated = refit.position_std_A[pi]
+    inside = np.abs(error) <= Z95 * stated
+    return InternalFloor(
+        floor_A=precision_floor_A(error, stated),
+        coverage_95=inside.mean(axis=0) if len(pi) else np.full(3, np.nan),
+        found=len(pi) / max(len(truth), 1),
+        rmsd_pm=float(np.sqrt((error**2).sum(axis=1).mean()) * 100) if len(pi) else float("nan"),
+        shifts_rms_px=np.sqrt((shifts**2).mean(axis=0)),
+        offsets_rms_px=np.sqrt((refit_offsets**2).mean(axis=0)),
+    )
