@@ -71,3 +71,16 @@ def test_an_internal_replica_takes_the_registration_the_run_learned_or_read():
     np.testing.assert_allclose(gains, [1.0, 1.05, 0.95])
     shifts, gains = registration_of(AtomSet(np.zeros((1, 3))), 3)
     assert not shifts.any() and np.all(gains == 1.0)
+
+
+def test_internal_floor_names_a_series_it_cannot_read_in_one_line(tmp_path):
+    """``gaussian-atoms internal-floor`` on a path that holds no series: one line naming it, a
+    non-zero exit, no traceback."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    command = [str(Path(sys.executable).parent / "gaussian-atoms"), "internal-floor", "--data", str(tmp_path / "none")]
+    result = subprocess.run(command + ["--species", "Ta"], capture_output=True, text=True, timeout=300)
+    assert result.returncode != 0 and "Traceback" not in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1 and "none" in result.stderr

@@ -28,7 +28,7 @@ from gaussian_atoms_method.cli.benchmark_verbs import (
 )
 from gaussian_atoms_method.cli.data_verbs import Evaluate, Export, Simulate, Train, View
 from gaussian_atoms_method.cli.film_verb import Film
-from gaussian_atoms_method.cli.tool_verbs import CheckPrecision, HeldOutViews, InputMatrix, Screenshot
+from gaussian_atoms_method.cli.tool_verbs import CheckPrecision, HeldOutViews, InputMatrix, InternalFloor, Screenshot
 from gaussian_atoms_method.parse_errors import one_line_errors
 
 Commands = Union[
@@ -47,6 +47,7 @@ Commands = Union[
     Annotated[Sweep, tyro.conf.subcommand("sweep")],
     Annotated[HeldOutViews, tyro.conf.subcommand("held-out-views")],
     Annotated[CheckPrecision, tyro.conf.subcommand("check-precision")],
+    Annotated[InternalFloor, tyro.conf.subcommand("internal-floor")],
     Annotated[InputMatrix, tyro.conf.subcommand("input-matrix")],
     Annotated[Screenshot, tyro.conf.subcommand("screenshot")],
 ]

@@ -72,6 +72,51 @@ class CheckPrecision:
 
 
 @dataclass
+class InternalFloor:
+    """Fit a tilt series, then read the error its stated precision cannot show on an internal
+    replica of its own atoms (drawn again through ADF physics in the series' geometry, level and
+    noise, with the offsets and gains the fit read off its views, and fitted again): prints the
+    floor and the command that states each atom's precision with it."""
+
+    data: Path
+    """The tilt series (a tilt_series.json directory or a file the readers take)."""
+    species: str
+    """The specimen's element, e.g. Ta (the replica draws each atom as it)."""
+    support_A: float = 0.0
+    """The carbon support film under the specimen, Å thick (0: none): a bias alike in every view
+    that the stated precision does not hold, so the replica must carry it."""
+    extended_object: Literal["auto", "on", "off"] = "auto"
+    """As --pipeline.model.extended-object: "on" for a film wider than the detector."""
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    seed: int = 0
+    """The replica's draws."""
+
+    def main(self) -> None:
+        import numpy as np
+
+        import gaussian_atoms_method as ga
+        from dataparsers.tilt_series_format import load_tilt_series
+        from gaussian_atoms_method.harness.internal_floor import internal_floor
+
+        series = load_tilt_series(self.data)
+        options = {"extended_object": self.extended_object}
+        atoms = ga.reconstruct(series, species=self.species, device=self.device, progress=False, **options)
+        floor = internal_floor(
+            series, atoms, species=self.species, seed=self.seed, support_A=self.support_A, device=self.device, **options
+        )
+        values = " ".join(f"{f:.3f}" for f in np.round(floor.floor_A, 3))
+        held = "/".join(f"{c:.2f}" for c in floor.coverage_95)
+        shifts = " / ".join(f"{s:.2f}" for s in floor.shifts_rms_px)
+        print(
+            f"internal floor: on a replica of the fit's {len(atoms)} atoms ({floor.found:.3f} found, RMSD "
+            f"{floor.rmsd_pm:.1f} pm, misregistration {shifts} px RMS) the stated 95% intervals held x/y/z {held}; "
+            f"the error they missed: {values} Å. State it with\n"
+            f"  gaussian-atoms train --pipeline.model.extended-object {self.extended_object} "
+            f"--pipeline.model.precision-floor-A {values} tilt-series --data {self.data} --species {self.species}"
+        )
+
+
+@dataclass
 class InputMatrix:
     """Run every broken and odd tilt series of the catalogue through the front door and print a
     table: a broken one passes with one line of its own, a non-zero exit, no traceback and no
