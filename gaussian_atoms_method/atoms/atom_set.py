@@ -25,6 +25,7 @@ EVIDENCE_FIELDS = {
     "proven": np.int64,
     "depth_halfwidth_A": np.float64,
     "depth_open": np.int64,
+    "element_confidence": np.float64,
 }
 """The per-atom (N,) columns after the position's precision: the class and each atom's evidence
 (:mod:`gaussian_atoms_method.atoms.evidence`), by name and type."""
@@ -64,6 +65,10 @@ class AtomSet:
         Half-width of the 95% interval along the direction the views fix least (the beam).
     depth_open : (N,) int array, or None
         1 where that interval is wider than half the hard core.
+    element_confidence : (N,) float array, or None
+        The probability of the element written, by the atom's mass among the elements' mass
+        populations (:func:`~gaussian_atoms_method.atoms.species.classify_species`); NaN where the
+        masses could not tell the elements apart.
     """
 
     positions: np.ndarray
@@ -77,6 +82,7 @@ class AtomSet:
     proven: np.ndarray | None = None
     depth_halfwidth_A: np.ndarray | None = None
     depth_open: np.ndarray | None = None
+    element_confidence: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.positions = np.asarray(self.positions, dtype=np.float64).reshape(-1, 3)
@@ -229,6 +235,7 @@ EXTXYZ_COLUMNS = {
     "proven": ("proven", "I", 1),
     "depth_halfwidth_A": ("depth_halfwidth_A", "R", 1),
     "depth_open": ("depth_open", "I", 1),
+    "element_confidence": ("element_confidence", "R", 1),
 }
 """The per-atom columns of this package's extended XYZ after the species, in the order
 :meth:`AtomSet.to_ase` adds them: name -> (:class:`AtomSet` field, ASE's type letter, width)."""

@@ -88,7 +88,17 @@ def classify_species(masses: np.ndarray, elements: list[str]) -> tuple[np.ndarra
     report : dict with the count, mean log-mass of each element and the separations ``d'``
         between neighbouring elements (by atomic number); ``separated`` False, and every atom
         the heaviest element given, where the masses do not hold as many separate populations
-        as elements (:func:`mass_populations`)
+        as elements (:func:`mass_populations`); ``confidence`` (N,) each atom's probability of
+        the element it is given (:func:`element_posteriors`; 1 with one element, NaN where the
+        populations are not separate)
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(0)
+    >>> masses = np.exp(np.r_[rng.normal(0.0, 0.1, 50), rng.normal(1.0, 0.1, 50), 0.5])
+    >>> species, report = classify_species(masses, ["Pt", "Co"])
+    >>> species[-1], round(float(report["confidence"][-1]), 1), bool(np.median(report["confidence"]) > 0.99)
+    (np.str_('Co'), 0.5, True)
     """
     masses = np.asarray(masses, dtype=np.float64)
     if len(elements) == 0:
@@ -97,7 +107,8 @@ def classify_species(masses: np.ndarray, elements: list[str]) -> tuple[np.ndarra
         raise ValueError("atom masses must be positive and finite to classify species")
     ordered = sorted(elements, key=_atomic_number)
     if len(ordered) == 1 or len(masses) < len(ordered):
-        return np.array([ordered[-1]] * len(masses)), {"counts": {ordered[-1]: len(masses)}}
+        confidence = np.full(len(masses), 1.0 if len(ordered) == 1 else np.nan)
+        return np.array([ordered[-1]] * len(masses)), {"counts": {ordered[-1]: len(masses)}, "confidence": confidence}
     logm = np.log(masses)
     populations, test = mass_populations(logm, len(ordered))
     if populations < len(ordered):
@@ -106,6 +117,7 @@ def classify_species(masses: np.ndarray, elements: list[str]) -> tuple[np.ndarra
             "separated": False,
             "populations": populations,
             "test": test,
+            "confidence": np.full(len(masses), np.nan),
         }
     labels = kmeans_1d(logm, len(ordered))
     species = np.array(ordered)[labels]
@@ -116,6 +128,7 @@ def classify_species(masses: np.ndarray, elements: list[str]) -> tuple[np.ndarra
         "separated": True,
         "populations": populations,
         "test": test,
+        "confidence": element_posteriors(logm, labels)[np.arange(len(labels)), labels],
     }
     for j, el in enumerate(ordered):
         report["counts"][el] = int(np.sum(labels == j))
@@ -127,6 +140,29 @@ def classify_species(masses: np.ndarray, elements: list[str]) -> tuple[np.ndarra
             float((b.mean() - a.mean()) / pooled) if pooled > 0 else float("inf")
         )
     return species, report
+
+
+def element_posteriors(log_masses: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """(N, k) each atom's probability of each of the k populations ``labels`` (0..k-1) splits the
+    (N,) log masses into: a mixture of normals, each population's share, median and spread its
+    atoms' (Bayes' rule on the atom's log mass).  The spread is the median absolute deviation
+    (times 1.4826, a normal's standard deviation), so the atoms between two populations do not
+    widen the one they were put in; a population too small to show one takes the others'."""
+    x = np.asarray(log_masses, dtype=np.float64)
+    k = int(labels.max()) + 1
+    groups = [x[labels == j] for j in range(k)]
+    spread = [1.4826 * np.median(np.abs(g - np.median(g))) if len(g) > 2 else 0.0 for g in groups]
+    fallback = np.median([s for s in spread if s > 0] or [np.std(x) or 1.0])
+    log_p = np.stack(
+        [
+            np.log(len(g) / len(x)) - np.log(s) - 0.5 * ((x - np.median(g)) / s) ** 2
+            for g, s in zip(groups, (s if s > 0 else fallback for s in spread))
+        ],
+        axis=1,
+    )
+    log_p -= log_p.max(axis=1, keepdims=True)
+    p = np.exp(log_p)
+    return p / p.sum(axis=1, keepdims=True)
 
 
 def one_population_note(report: dict, element: str) -> str:

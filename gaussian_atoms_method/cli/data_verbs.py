@@ -367,6 +367,7 @@ class Export:
             atoms.species, report = classify_species(
                 atoms.masses, [e.strip() for e in self.species.split(",") if e.strip()]
             )
+            atoms.element_confidence = report.pop("confidence")
             print(json.dumps({"species": report}))
             if not report.get("separated", True):
                 print(one_population_note(report, atoms.species[0]), file=sys.stderr)

@@ -153,7 +153,7 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
     )
     series = model.view_set.series
     if series is not None and series.species and len(atoms):
-        atoms.species = name_species(atoms.masses, series.species)
+        atoms.species, atoms.element_confidence = name_species(atoms.masses, series.species)
     # Each picture goes to a child as soon as its arrays are known (drawn there while this process
     # writes the atoms); without children, the atoms are written first and the pictures after them.
     pictures = [] if population is None else [(write_population_png, *population, run_dir / "classes.png")]
@@ -354,12 +354,12 @@ def say_evidence(atoms: AtomSet) -> None:
     )
 
 
-def name_species(masses: np.ndarray, elements: tuple[str, ...]) -> np.ndarray:
+def name_species(masses: np.ndarray, elements: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
     """The (N,) element of each reported atom of integrated masses ``masses``, from the series'
-    ``elements``: every atom the one element given, or by mass, heavier element for the heavier
-    population (:func:`gaussian_atoms_method.atoms.species.classify_species`); prints the counts,
-    and says so where the masses hold fewer populations than elements (then every atom is the
-    heaviest element given)."""
+    ``elements``, and its probability: every atom the one element given, or by mass, heavier
+    element for the heavier population (:func:`gaussian_atoms_method.atoms.species.classify_species`);
+    prints the counts, and says so where the masses hold fewer populations than elements (then
+    every atom is the heaviest element given, its probability NaN)."""
     from gaussian_atoms_method.atoms.species import classify_species, one_population_note
 
     species, report = classify_species(masses, list(elements))
@@ -369,7 +369,7 @@ def name_species(masses: np.ndarray, elements: tuple[str, ...]) -> np.ndarray:
         CONSOLE.print(f"gaussian-atoms: species {counts}{how}")
     else:
         CONSOLE.print(one_population_note(report, species[0]))
-    return species
+    return species, report["confidence"]
 
 
 def _hand_over(pictures: list, drawers) -> None:
