@@ -35,6 +35,10 @@ def kmeans_1d(values: np.ndarray, k: int, iterations: int = 100) -> np.ndarray:
     return np.argsort(order)[labels]
 
 
+ELEMENT_OPEN_BELOW = 0.95
+"""An atom's element is open where its probability (``element_confidence``) is under this: the
+level of the run's other statements (95% intervals)."""
+
 ASHMAN_D = 2.0
 """Two normal populations are separate when their means lie more than this many pooled standard
 deviations apart (Ashman's D, K. M. Ashman, C. M. Bird and S. E. Zepf, Astron. J. 108, 2348
@@ -163,6 +167,17 @@ def element_posteriors(log_masses: np.ndarray, labels: np.ndarray) -> np.ndarray
     log_p -= log_p.max(axis=1, keepdims=True)
     p = np.exp(log_p)
     return p / p.sum(axis=1, keepdims=True)
+
+
+def open_elements_words(confidence: np.ndarray) -> str:
+    """The part of the species line that counts the atoms whose element is open
+    (:data:`ELEMENT_OPEN_BELOW`); "" where there are none.
+
+    >>> open_elements_words(np.array([1.0, 0.6, 0.99]))
+    '; 1 atom open in element (probability under 0.95)'
+    """
+    n = int(np.sum(np.asarray(confidence) < ELEMENT_OPEN_BELOW))
+    return f"; {n} atom{'s' if n != 1 else ''} open in element (probability under {ELEMENT_OPEN_BELOW:g})" if n else ""
 
 
 def one_population_note(report: dict, element: str) -> str:

@@ -360,13 +360,13 @@ def name_species(masses: np.ndarray, elements: tuple[str, ...]) -> tuple[np.ndar
     element for the heavier population (:func:`gaussian_atoms_method.atoms.species.classify_species`);
     prints the counts, and says so where the masses hold fewer populations than elements (then
     every atom is the heaviest element given, its probability NaN)."""
-    from gaussian_atoms_method.atoms.species import classify_species, one_population_note
+    from gaussian_atoms_method.atoms.species import classify_species, one_population_note, open_elements_words
 
     species, report = classify_species(masses, list(elements))
     counts = ", ".join(f"{n} {element}" for element, n in report["counts"].items())
     if report.get("separated", True):
         how = f", by mass ({report['test']})" if "test" in report else ""
-        CONSOLE.print(f"gaussian-atoms: species {counts}{how}")
+        CONSOLE.print(f"gaussian-atoms: species {counts}{how}{open_elements_words(report['confidence'])}")
     else:
         CONSOLE.print(one_population_note(report, species[0]))
     return species, report["confidence"]
