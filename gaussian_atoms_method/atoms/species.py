@@ -20,6 +20,23 @@ def _atomic_number(symbol: str) -> int:
     return atomic_numbers[symbol]
 
 
+ADF_STEEPEST_EXPONENT = 2.0
+"""The steepest a projected atom's integrated intensity grows with atomic number: ``Z^2``,
+unscreened Rutherford scattering (ADF-STEM's ``Z^1.6-1.9``, a projected potential's slower)."""
+
+
+def lightest_mass_ratio(elements) -> float:
+    """The least integrated mass an atom of the lightest of ``elements`` can have against one of
+    the heaviest, whatever the contrast: ``(Z_min / Z_max)^2`` (:data:`ADF_STEEPEST_EXPONENT`);
+    1 for one element or none.
+
+    >>> round(lightest_mass_ratio(["Ni", "Pd", "Pt"]), 3), lightest_mass_ratio(["Ta"])
+    (0.129, 1.0)
+    """
+    numbers = [_atomic_number(e) for e in elements]
+    return (min(numbers) / max(numbers)) ** ADF_STEEPEST_EXPONENT if numbers else 1.0
+
+
 def kmeans_1d(values: np.ndarray, k: int, iterations: int = 100) -> np.ndarray:
     """Labels 0..k-1 of a 1D k-means of ``values``, ordered by increasing cluster mean."""
     values = np.asarray(values, dtype=np.float64)

@@ -142,15 +142,15 @@ class Significance:
         the measured mass among all candidates), and the volume-wide threshold would remove true
         atoms at low dose.  There a Gaussian goes when its mass is within one standard deviation
         of zero (:data:`TRAINING_SIGNIFICANCE`) or below ``prune_mass_fraction`` of a typical
-        atom: the second is housekeeping that keeps noise candidates from holding mass while the
-        atoms settle.  The final prune applies :meth:`discovery_threshold` alone."""
+        atom (times ``lightest_mass_ratio`` where lighter elements are given): the second is
+        housekeeping that keeps noise candidates from holding mass while the atoms settle.  The
+        final prune applies :meth:`discovery_threshold` alone."""
         sigmas = widths(params, self.min_log_sigma)
         noise_known = self.noise_known()
         keep = torch.ones_like(sigmas, dtype=torch.bool)
         if not (final and noise_known):  # the relative rule: without a noise model, or during training
-            keep &= gaussian_mass(sigmas, amplitudes(params)) >= self.prune_mass_fraction * self.typical_atom_mass(
-                params
-            )
+            fraction = self.prune_mass_fraction * getattr(self, "lightest_mass_ratio", 1.0)
+            keep &= gaussian_mass(sigmas, amplitudes(params)) >= fraction * self.typical_atom_mass(params)
         if noise_known:
             # A fresh duplicate holds half its parent's mass: it has one refine interval to
             # gather what the data give it before it is judged.

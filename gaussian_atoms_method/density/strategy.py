@@ -97,6 +97,10 @@ class DensityControl(DensitySettings, Growth, Significance, Merging, HardCoreRul
     hard_core_A: float | None = None
     """The material's hard core from its species (Å, :func:`..atoms.hard_core.hard_core_from_species`);
     None: read from the confident atoms (:meth:`hard_core`)."""
+    lightest_mass_ratio: float = 1.0
+    """The least mass an atom of the lightest element given can have against one of the heaviest
+    (:func:`..atoms.species.lightest_mass_ratio`): the training prune's relative rule scales by it,
+    so it never takes a light element's atoms for noise candidates.  1: one element, or none given."""
     state: DensityState = field(default_factory=DensityState)
     """What the rules keep between steps (:class:`.state.DensityState`)."""
 

@@ -44,10 +44,10 @@ from gaussian_atoms_method.engine.kernel_reading import HeldOutKernel
 from gaussian_atoms_method.engine.noise_reading import (
     NoiseReadingBeside,
     judge_after_fit,
-    say_hard_core,
     say_noise_reading,
     say_series,
     say_start,
+    species_rules,
 )
 from gaussian_atoms_method.engine.options import FitOptions
 from gaussian_atoms_method.engine.prepared import NOTHING, Prepared
@@ -176,7 +176,7 @@ class AtomFit(torch.nn.Module):
             **{f.name: getattr(cfg, f.name) for f in fields(DensitySettings)},  # FitOptions is a DensitySettings
         )
         self.density.reset(n)
-        self.density.hard_core_A = say_hard_core(series.species if series is not None else ())
+        species_rules(self.density, series.species if series is not None else ())
         self.convergence = ConvergenceCheck(
             cfg.warmup_length,
             cfg.refine_every,

@@ -180,6 +180,16 @@ def say_series(series) -> None:
     )
 
 
+def species_rules(density, species: tuple[str, ...]) -> None:
+    """What the elements given set in the density control: the hard core (:func:`say_hard_core`)
+    and the least mass a light element's atom can have against a heavy one's
+    (:func:`~gaussian_atoms_method.atoms.species.lightest_mass_ratio`)."""
+    from gaussian_atoms_method.atoms.species import lightest_mass_ratio
+
+    density.hard_core_A = say_hard_core(species)
+    density.lightest_mass_ratio = lightest_mass_ratio(species)
+
+
 def say_hard_core(species: tuple[str, ...]) -> float | None:
     """Say the material's hard core (:mod:`gaussian_atoms_method.atoms.hard_core`) on one line:
     from ``species`` when given (returned, Å), else that it is read from the atoms (None)."""

@@ -65,11 +65,14 @@ def main() -> None:
     if atoms.species is not None and truth.species is not None and args.species and "," in args.species:
         right = atoms.species[pi] == truth.species[ti]
         confidence = atoms.element_confidence[pi]
+        row["found_by_element"] = {
+            str(e): float(np.isin(np.flatnonzero(truth.species == e), ti).mean()) for e in np.unique(truth.species)
+        }
         row["element_right"] = float(right.mean())
         row["element_right_by_element"] = {
             str(e): float(right[truth.species[ti] == e].mean()) for e in np.unique(truth.species[ti])
         }
-        row["element_confidence_mean"] = float(np.nanmean(confidence))
+        row["element_confidence_mean"] = float(np.nanmean(confidence)) if np.isfinite(confidence).any() else None
         row["misnamed_open_in_element"] = float((confidence[~right] < 0.95).mean()) if (~right).any() else None
     print(json.dumps(row))
 
