@@ -174,18 +174,33 @@ def atom_image_sigma_px(projections: np.ndarray) -> float:
 
 
 def implausible_pixel_size(projections: np.ndarray, pixel_size_A: float, where: str, source: str = "") -> None:
-    """Raise :class:`TiltSeriesError` where ``pixel_size_A`` puts the views' atoms at widths no
-    atom's image has (:data:`ATOM_SIGMA_A`), with the factor it looks off by against the width the
+    """Raise :class:`TiltSeriesError` where ``pixel_size_A`` cannot be right: whatever the views
+    hold, where a pixel is wider than an atom's image can be (twice the widest, :data:`ATOM_SIGMA_A`:
+    every atom within one pixel) or the field narrower than the narrowest (four of its sigma: no
+    atom fits); and where the views' structure says it (:func:`atom_image_sigma_px`), where it puts
+    the atoms at widths no atom's image has, with the factor it looks off by against the width the
     measure reads on real and simulated series (0.35 Å)."""
-    sigma_A = atom_image_sigma_px(projections) * pixel_size_A
     low, high = ATOM_SIGMA_A
+    named = f"{where}: pixel_size_A {pixel_size_A:g} Å{f' (from {source})' if source else ''}"
+    field_A = min(np.shape(projections)[1:]) * pixel_size_A
+    if pixel_size_A > 2 * high:
+        raise TiltSeriesError(
+            f"{named} is wider than any atom's image (sigma at most {high:g} Å): every atom would fall within one "
+            f"pixel; atomic tomography samples at 0.2-0.5 Å"
+        )
+    if field_A < 4 * low:
+        raise TiltSeriesError(
+            f"{named} makes the views {field_A:.3g} Å across, narrower than one atom's image ({4 * low:g} Å at the "
+            f"least); atomic tomography samples at 0.2-0.5 Å"
+        )
+    sigma_A = atom_image_sigma_px(projections) * pixel_size_A
     if not np.isfinite(sigma_A) or low <= sigma_A <= high:
         return
     factor = sigma_A / 0.35
     off = f"about {factor:.1f} times too large" if factor > 1 else f"about {1 / factor:.1f} times too small"
     raise TiltSeriesError(
-        f"{where}: pixel_size_A {pixel_size_A:g} Å{f' (from {source})' if source else ''} makes the atoms' images "
-        f"{sigma_A:.2f} Å wide (sigma), where atoms image at {low:g}-{high:g} Å: the pixel size looks {off}"
+        f"{named} makes the atoms' images {sigma_A:.2f} Å wide (sigma), where atoms image at {low:g}-{high:g} Å: "
+        f"the pixel size looks {off}"
     )
 
 

@@ -164,3 +164,28 @@ def test_the_tool_verbs_name_what_they_cannot_use(tmp_path):
         text=True,
     )
     assert none.returncode == 2 and "config.yml: run config not found" in none.stderr
+
+
+@pytest.mark.parametrize("pixel_size_A, words", [(40.0, "wider than any atom's image"), (0.003, "narrower than one")])
+def test_a_pixel_size_that_cannot_be_right_is_refused_on_a_small_stack(tmp_path, pixel_size_A, words):
+    """11 views of 48 x 48 pixels, too few and too small for an atom's width to be read from them:
+    a 40 Å pixel (every atom within one pixel: an atom's image is at most 1 Å wide) and a 0.003 Å
+    one (the views 0.14 Å across, narrower than any atom) are refused before a fit, in one line
+    naming pixel_size_A, through the API, ``gaussian-atoms train`` and ``ns-train``: a non-zero
+    exit, no traceback, no run directory."""
+    import gaussian_atoms_method as ga
+    from gaussian_atoms_method.harness.input_cases import edit_manifest
+
+    data = edit_manifest(valid_series(tmp_path / "series", shape=(48, 48), n_views=11), pixel_size_A=pixel_size_A)
+    projections = np.load(data / "projections.npy")
+    with pytest.raises(ga.InputError, match=words) as info:
+        ga.reconstruct(projections, np.linspace(-60, 60, 11), pixel_size_A, device="cpu", progress=False)
+    assert "pixel_size_A" in str(info.value) and "\n" not in str(info.value)
+    bin_dir = Path(sys.executable).parent
+    for launcher in ([str(bin_dir / "gaussian-atoms"), "train"], [str(bin_dir / "ns-train"), "gaussian-atoms"]):
+        command = launcher + ["--machine.device-type", "cpu", "--vis", "tensorboard", "--output-dir"]
+        command += [str(tmp_path / "runs"), "tilt-series", "--data", str(data)]
+        result = subprocess.run(command, capture_output=True, text=True, timeout=600)
+        assert result.returncode != 0 and "Traceback" not in result.stderr + result.stdout, launcher
+        assert words in result.stderr + result.stdout and "pixel_size_A" in result.stderr + result.stdout
+        assert not (tmp_path / "runs").exists()
