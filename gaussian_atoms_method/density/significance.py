@@ -149,7 +149,7 @@ class Significance:
         noise_known = self.noise_known()
         keep = torch.ones_like(sigmas, dtype=torch.bool)
         if not (final and noise_known):  # the relative rule: without a noise model, or during training
-            fraction = self.prune_mass_fraction * getattr(self, "lightest_mass_ratio", 1.0)
+            fraction = self.prune_mass_fraction * self.lightest_mass_ratio
             keep &= gaussian_mass(sigmas, amplitudes(params)) >= fraction * self.typical_atom_mass(params)
         if noise_known:
             # A fresh duplicate holds half its parent's mass: it has one refine interval to

@@ -9,7 +9,7 @@ blur), so the replica (:mod:`.replica`) draws them here instead:
   Kirkland: a sharp core and long tails), drawn at its exact place in each view's detector frame
   (any orientation: tilts or Euler angles);
 * the contrast is ADF-like: incoherent, linear in the atoms, each atom's integrated intensity
-  ``Z^n`` (:data:`.simulate.ADF_EXPONENT`) (:func:`adf_projections`);
+  ``Z^n`` (:data:`ADF_EXPONENT`) (:func:`adf_projections`);
 * the probe is formed by its optics: voltage, convergence semi-angle, defocus, Cs, a Gaussian
   effective source and an optional halo (:func:`.microscope.aberrated_probe_intensity`);
 * the scan moves each line of a view a little along the fast axis (:func:`scan_jitter`).
@@ -23,6 +23,10 @@ import functools
 
 import numpy as np
 
+ADF_EXPONENT = 1.7
+"""ADF-STEM's intensity per atom grows as ``Z^n`` with ``n`` 1.6-1.9 over the usual detector
+angles (Pennycook's incoherent imaging; Rutherford's ``Z^2`` screened): the middle of it."""
+
 MARGIN_A = 5.0
 """Atoms are drawn whose projected centre lies within this of the detector, on a periodic grid
 padded by as much on each side, so the periodic images of them fall at least this far outside
@@ -32,7 +36,7 @@ ADF_POTENTIAL_POWER = 1.7
 """The power of the projected potential that is an atom's ADF image (:func:`adf_kernel_transform`).
 High-angle scattering comes from near the nucleus, so an ADF image is far more local than the
 potential; a projected potential's core grows about as ``Z`` and ADF intensity as ``Z^1.6-1.9``
-(:data:`.simulate.ADF_EXPONENT`), so the power that carries the one to the other is the middle of it."""
+(:data:`ADF_EXPONENT`), so the power that carries the one to the other is the middle of it."""
 
 
 def _parametrization(name: str):
@@ -45,6 +49,17 @@ def _parametrization(name: str):
     if name == "kirkland":
         return parametrizations.KirklandParametrization()
     raise ValueError(f"parametrization must be 'lobato' or 'kirkland', got {name!r}")
+
+
+def adf_weights(species) -> np.ndarray:
+    """(N,) each atom's integrated ADF intensity, ``Z^``:data:`ADF_EXPONENT`, from its element.
+
+    >>> adf_weights(["C", "Ta"]).round(1).tolist()
+    [21.0, 1471.1]
+    """
+    from ase.data import atomic_numbers
+
+    return np.array([atomic_numbers[s] for s in species], dtype=np.float64) ** ADF_EXPONENT
 
 
 @functools.lru_cache(maxsize=32)

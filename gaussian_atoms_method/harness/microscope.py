@@ -13,6 +13,7 @@ Pure numpy/scipy, used by :func:`~gaussian_atoms_method.harness.simulate.simulat
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -58,22 +59,38 @@ def aberrated_probe_intensity(
     ``halo_hwhm_A`` (the long-range part of the effective source, Dwyer et al.'s measurement;
     incoherent scattering in the specimen adds to it), truncated at the kernel's edge.
     """
-    k = np.fft.fftfreq(size_px, d=pixel_size_A)
-    k2 = k[:, None] ** 2 + k[None, :] ** 2
+    transfer = _probe_transfer(
+        (size_px, size_px), pixel_size_A, semiangle_mrad, defocus_A, cs_A, wavelength_A, source_fwhm_A, halo_fraction,
+        halo_hwhm_A,
+    )  # fmt: skip
+    intensity = np.fft.fftshift(np.clip(np.fft.ifft2(transfer).real, 0.0, None))
+    return intensity / intensity.sum()
+
+
+def _squared_frequencies(shape: tuple[int, int], spacing_A: float) -> np.ndarray:
+    """(rows, cols) squared spatial frequencies (1/Å²) of a periodic grid, numpy's FFT order."""
+    return np.fft.fftfreq(shape[0], d=spacing_A)[:, None] ** 2 + np.fft.fftfreq(shape[1], d=spacing_A)[None, :] ** 2
+
+
+def _probe_transfer(
+    shape, spacing_A, semiangle_mrad, defocus_A, cs_A, wavelength_A, source_fwhm_A, halo_fraction, halo_hwhm_A
+) -> np.ndarray:
+    """The probe intensity's Fourier transform on a periodic grid (numpy's FFT order, 1 at zero
+    frequency): the coherent probe ``|IFFT(A exp(-i chi))|^2`` of unit sum, times a Gaussian
+    source's transform, a share moved into a Lorentzian halo (:func:`aberrated_probe_intensity`)."""
+    k2 = _squared_frequencies(shape, spacing_A)
     aperture = np.sqrt(k2) * wavelength_A <= semiangle_mrad * 1e-3
     chi = np.pi * wavelength_A * defocus_A * k2 + 0.5 * np.pi * cs_A * wavelength_A**3 * k2**2
-    psi = np.fft.ifft2(aperture * np.exp(-1j * chi))
-    intensity = np.abs(psi) ** 2
-    if source_fwhm_A > 0:  # a Gaussian source: the intensity's transform times the source's
-        sigma = source_fwhm_A / (2.0 * np.sqrt(2.0 * np.log(2.0)))
-        intensity = np.fft.ifft2(np.fft.fft2(intensity) * np.exp(-2.0 * np.pi**2 * sigma**2 * k2)).real
-    intensity = np.fft.fftshift(np.clip(intensity, 0.0, None))
-    intensity /= intensity.sum()
+    intensity = np.abs(np.fft.ifft2(aperture * np.exp(-1j * chi))) ** 2
+    transfer = np.fft.fft2(intensity / intensity.sum())
+    if source_fwhm_A > 0:
+        transfer = transfer * gaussian_transfer(source_fwhm_A / (2.0 * np.sqrt(2.0 * np.log(2.0))), shape, spacing_A)
     if halo_fraction > 0:
-        r = (np.arange(size_px) - size_px // 2) * pixel_size_A
-        halo = 1.0 / (1.0 + (r[:, None] ** 2 + r[None, :] ** 2) / halo_hwhm_A**2) ** 1.5  # a 2D Lorentzian
-        intensity = (1.0 - halo_fraction) * intensity + halo_fraction * halo / halo.sum()
-    return intensity
+        rows = np.fft.fftfreq(shape[0], d=1.0 / shape[0]) * spacing_A  # signed distances, FFT order
+        cols = np.fft.fftfreq(shape[1], d=1.0 / shape[1]) * spacing_A
+        halo = 1.0 / (1.0 + (rows[:, None] ** 2 + cols[None, :] ** 2) / halo_hwhm_A**2) ** 1.5  # a 2D Lorentzian
+        transfer = (1.0 - halo_fraction) * transfer + halo_fraction * np.fft.fft2(halo / halo.sum())
+    return transfer
 
 
 @dataclass(frozen=True)
@@ -92,43 +109,33 @@ class ProbeOptics:
     def transfer(self, shape: tuple[int, int], spacing_A: float) -> np.ndarray:
         """The probe intensity's Fourier transform on a periodic grid of ``shape`` and pitch
         ``spacing_A`` (numpy's FFT order, 1 at zero frequency): what multiplies a view's spectrum."""
-        k_rows = np.fft.fftfreq(shape[0], d=spacing_A)
-        k_cols = np.fft.fftfreq(shape[1], d=spacing_A)
-        k2 = k_rows[:, None] ** 2 + k_cols[None, :] ** 2
-        wavelength = electron_wavelength_A(self.voltage_kV)
-        aperture = np.sqrt(k2) * wavelength <= self.semiangle_mrad * 1e-3
-        chi = np.pi * wavelength * self.defocus_A * k2 + 0.5 * np.pi * self.cs_A * wavelength**3 * k2**2
-        intensity = np.abs(np.fft.ifft2(aperture * np.exp(-1j * chi))) ** 2
-        transfer = np.fft.fft2(intensity / intensity.sum())
-        if self.source_fwhm_A > 0:
-            sigma = self.source_fwhm_A / (2.0 * np.sqrt(2.0 * np.log(2.0)))
-            transfer = transfer * np.exp(-2.0 * np.pi**2 * sigma**2 * k2)
-        if self.halo_fraction > 0:
-            rows = np.fft.fftfreq(shape[0], d=1.0 / shape[0]) * spacing_A  # signed distances, FFT order
-            cols = np.fft.fftfreq(shape[1], d=1.0 / shape[1]) * spacing_A
-            halo = 1.0 / (1.0 + (rows[:, None] ** 2 + cols[None, :] ** 2) / self.halo_hwhm_A**2) ** 1.5
-            transfer = (1.0 - self.halo_fraction) * transfer + self.halo_fraction * np.fft.fft2(halo / halo.sum())
-        return transfer
+        return _probe_transfer(shape, spacing_A, *self._optics())
 
     def intensity(self, pixel_size_A: float, size_px: int = 65) -> np.ndarray:
         """(size_px, size_px) unit-sum intensity on a detector of ``pixel_size_A``."""
-        return aberrated_probe_intensity(
-            pixel_size_A,
-            size_px,
-            self.semiangle_mrad,
-            self.defocus_A,
-            self.cs_A,
-            electron_wavelength_A(self.voltage_kV),
-            self.source_fwhm_A,
-            self.halo_fraction,
-            self.halo_hwhm_A,
-        )
+        return aberrated_probe_intensity(pixel_size_A, size_px, *self._optics())
+
+    def _optics(self) -> tuple:
+        """semi-angle, defocus, Cs, wavelength, source, halo and its width, in the order
+        :func:`aberrated_probe_intensity` takes them."""
+        wavelength = electron_wavelength_A(self.voltage_kV)
+        return (self.semiangle_mrad, self.defocus_A, self.cs_A, wavelength, self.source_fwhm_A, self.halo_fraction,
+                self.halo_hwhm_A)  # fmt: skip
 
 
 def gaussian_transfer(sigma_A: float, shape: tuple[int, int], spacing_A: float) -> np.ndarray:
     """A Gaussian probe's transfer (width ``sigma_A``) on a periodic grid (numpy's FFT order)."""
-    k2 = np.fft.fftfreq(shape[0], d=spacing_A)[:, None] ** 2 + np.fft.fftfreq(shape[1], d=spacing_A)[None, :] ** 2
-    return np.exp(-2.0 * np.pi**2 * sigma_A**2 * k2)
+    return np.exp(-2.0 * np.pi**2 * sigma_A**2 * _squared_frequencies(shape, spacing_A))
+
+
+def probe_transfer(probe: str, optics: ProbeOptics, blur_sigma_A: float):
+    """``probe(shape, spacing_A)``, the named probe's transfer: ``"aberrated"`` from ``optics``,
+    ``"gaussian"`` a Gaussian of ``blur_sigma_A``; a ValueError for any other name."""
+    if probe == "aberrated":
+        return optics.transfer
+    if probe == "gaussian":
+        return functools.partial(gaussian_transfer, blur_sigma_A)
+    raise ValueError(f"probe must be 'gaussian' or 'aberrated', got {probe!r}")
 
 
 def convolve_views(projections: np.ndarray, kernel: np.ndarray) -> np.ndarray:

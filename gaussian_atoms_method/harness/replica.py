@@ -31,15 +31,13 @@ aside first (:func:`physical_truth`).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import partial
 
 import numpy as np
 import torch
 from scipy import ndimage
 
 from gaussian_atoms_method.atoms.atom_set import AtomSet
-from gaussian_atoms_method.harness.microscope import ProbeOptics, gaussian_transfer
-from gaussian_atoms_method.harness.simulate import ADF_EXPONENT
+from gaussian_atoms_method.harness.microscope import ProbeOptics
 
 DEFAULT_OPTICS = ProbeOptics(source_fwhm_A=0.7)
 """A 300 kV probe of 20 mrad at 40 Å defocus and 10 µm Cs (rings and tails), spread by an
@@ -171,10 +169,8 @@ def replica_of(
     scan_jitter_px : float
         RMS of each scan line's own shift along the fast axis, pixels (:func:`.adf.scan_jitter`).
     """
-    from ase.data import atomic_numbers
-
-    from gaussian_atoms_method.harness.adf import adf_projections, scan_jitter
-    from gaussian_atoms_method.harness.microscope import convolve_views
+    from gaussian_atoms_method.harness.adf import adf_projections, adf_weights, scan_jitter
+    from gaussian_atoms_method.harness.microscope import convolve_views, probe_transfer
     from gaussian_atoms_method.physics.noise import noise_from_projections
 
     if atoms.species is None or not len(atoms):
@@ -193,9 +189,8 @@ def replica_of(
     if support_A > 0:
         carbon = _support_atoms(series, support_A, float(atoms.positions[:, 2].min()) - 1.0, rng)
         positions, species = np.r_[positions, carbon], np.r_[species, np.full(len(carbon), "C")]
-    weight = np.array([atomic_numbers[s] for s in species], dtype=np.float64) ** ADF_EXPONENT
+    weight = adf_weights(species)
     if potential == "lobato":  # the probe drawn with the atoms: their images are sharper than a pixel
-        transfer = {"aberrated": optics.transfer, "gaussian": partial(gaussian_transfer, blur_sigma_A)}
         clean = adf_projections(
             positions,
             species,
@@ -204,7 +199,7 @@ def replica_of(
             series.image_shape,
             series.pixel_size_A,
             series.centre_px,
-            probe=transfer[probe],
+            probe=probe_transfer(probe, optics, blur_sigma_A),
         )
     else:
         clean = _project(positions, np.full(len(positions), atom_sigma_A), weight, axes, series)

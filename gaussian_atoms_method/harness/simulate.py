@@ -15,7 +15,6 @@ standard deviation, in projected-potential units (V·Å for Lobato).
 
 from __future__ import annotations
 
-import functools
 import re
 from dataclasses import dataclass
 
@@ -26,10 +25,6 @@ from scipy import ndimage
 from gaussian_atoms_method.atoms.atom_set import AtomSet
 from gaussian_atoms_method.physics.geometry import detector_axes_of, pixel_centres
 from gaussian_atoms_method.physics.projector import project_gaussians
-
-ADF_EXPONENT = 1.7
-"""ADF-STEM's intensity per atom grows as ``Z^n`` with ``n`` 1.6-1.9 over the usual detector
-angles (Pennycook's incoherent imaging; Rutherford's ``Z^2`` screened): the middle of it."""
 
 #: Integrated potential of one atom in the Gaussian model, per unit of atomic number
 #: (arbitrary "projected potential" units x Å^2).  With a 0.35 Å atom and 0.5 Å blur one Au
@@ -284,10 +279,8 @@ def simulate_tilt_series(
         clean = project_lobato_potential(atoms, angles_deg, pixel_size_A, detector_pixels, tilt_axis)
         widths = None
     elif potential == "adf":
-        clean, widths = (
-            _adf_views(atoms, angles_deg, pixel_size_A, detector_pixels, tilt_axis, probe, blur_sigma_A, optics),
-            None,
-        )
+        clean = _adf_views(atoms, angles_deg, pixel_size_A, detector_pixels, tilt_axis, probe, blur_sigma_A, optics)
+        widths = None
     else:
         raise ValueError(f"potential must be 'lobato', 'adf' or 'gaussian', got {potential!r}")
     if potential == "adf":
@@ -320,24 +313,17 @@ def simulate_tilt_series(
 def _adf_views(atoms, angles_deg, pixel_size_A, detector_pixels, tilt_axis, probe, blur_sigma_A, optics):
     """ADF views (:func:`.adf.adf_projections`: each atom a power of its Lobato projected potential
     with intensity ``Z^1.7``) through the probe, on a square detector centred on the tilt centre."""
-    from ase.data import atomic_numbers
+    from gaussian_atoms_method.harness.adf import adf_projections, adf_weights
+    from gaussian_atoms_method.harness.microscope import ProbeOptics, probe_transfer
 
-    from gaussian_atoms_method.harness.adf import adf_projections
-    from gaussian_atoms_method.harness.microscope import ProbeOptics, gaussian_transfer
-
-    if probe == "aberrated":
-        transfer = (optics or ProbeOptics()).transfer
-    elif probe == "gaussian":
-        transfer = functools.partial(gaussian_transfer, blur_sigma_A)
-    else:
-        raise ValueError(f"probe must be 'gaussian' or 'aberrated', got {probe!r}")
-    weights = np.array([atomic_numbers[s] for s in atoms.species], dtype=np.float64) ** ADF_EXPONENT
+    transfer = probe_transfer(probe, optics or ProbeOptics(), blur_sigma_A)
     centre = (detector_pixels - 1) / 2.0
     axes = detector_axes_of(angles_deg, tilt_axis)
     shape = (detector_pixels, detector_pixels)
     return adf_projections(
-        atoms.positions, atoms.species, weights, axes, shape, pixel_size_A, (centre, centre), probe=transfer
-    )
+        atoms.positions, atoms.species, adf_weights(atoms.species), axes, shape, pixel_size_A, (centre, centre),
+        probe=transfer,
+    )  # fmt: skip
 
 
 def _crop_to_field(views: np.ndarray, atoms: AtomSet, widths, pixel_size_A: float, field_of_view_A: float):
