@@ -71,7 +71,7 @@ def _columns(local: np.ndarray, positions: np.ndarray, offsets, axis: np.ndarray
 
 
 def depth_rises(
-    local, info, scores, moved, offsets, positions, sigmas, amps, axes, pixel_size_A, hard_core_A, axis
+    local, info, scores, moved, offsets, positions, sigmas, amps, axes, pixel_size_A, hard_core_A, axis, table=None
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Two (B, M): for each atom ``local[:, 0]`` and each of the M ``offsets``, how much the
     least-squares cost rises (pixel sums, in projection units squared) when the atom is moved by
@@ -86,7 +86,8 @@ def depth_rises(
     the cost before the re-fit changes by ``-2 <r, sum_G (g_i' - g_i)> + |sum_G (g_i' - g_i)|^2``;
     every overlap is a pair's information block (a pair moved together keeps its own), and the
     re-fit is one Gauss-Newton step from the moved places with each moved atom's place along the
-    axis held.  The second is that change before the re-fit, exact (no linearisation): where it
+    axis held.  ``table``: a :class:`MovedBlocks` that holds the batch's blocks of moved atoms
+    (default: read here).  The second is that change before the re-fit, exact (no linearisation): where it
     falls the views prefer the moved place even with nothing else re-fitted."""
     b, k = local.shape
     m = len(offsets)
@@ -94,23 +95,12 @@ def depth_rises(
     column = _columns(local, positions, offsets, axis, hard_core_A)
     # each moved atom at its new place against every atom of its set at its old one
     bi, mi, ii = np.nonzero(column)
-    here = positions[local]
-    moved_places = here[bi, ii] + np.asarray(offsets, np.float64)[mi, None] * axis
+    if table is None:
+        table = MovedBlocks(
+            np.r_[local[bi, ii]], np.r_[mi], local[bi], positions, sigmas, amps, axes, pixel_size_A, offsets, axis
+        )
     cross = torch.zeros((b, m, k, k, 5, 5), **on)  # [i moved, j]: rows i's parameters at its new place
-    cross[bi, mi, ii] = torch.as_tensor(
-        pair_information(
-            np.repeat(moved_places, k, axis=0),
-            here[bi].reshape(-1, 3),
-            np.repeat(sigmas[local[bi, ii]], k),
-            sigmas[local[bi]].ravel(),
-            np.repeat(amps[local[bi, ii]], k),
-            amps[local[bi]].ravel(),
-            axes,
-            pixel_size_A,
-            device=info.device,
-        ),
-        **on,
-    ).reshape(-1, k, 5, 5)
+    cross[bi, mi, ii] = torch.as_tensor(table.blocks(local[bi, ii], mi, local[bi]), **on)
     blocks = info.reshape(b, k, 5, k, 5).permute(0, 1, 3, 2, 4)  # [i, j]: rows i's parameters
     g = torch.as_tensor(column, device=info.device)
     local_on = torch.as_tensor(local, device=info.device)
@@ -139,21 +129,100 @@ def depth_rises(
     with_move = with_move.permute(0, 1, 2, 4, 3, 5).reshape(b, m, 5 * k, 5 * k)
     # positions turned to two directions across the axis and the axis; each moved atom's place
     # along the axis held (its row and column cut out: a unit diagonal and a zero pull)
-    basis = np.linalg.qr(np.c_[axis, np.eye(3)])[0][:, [1, 2, 0]].T
-    one = np.eye(5)
-    one[:3, :3] = basis
-    turn = torch.as_tensor(np.kron(np.eye(k), one), **on)
+    basis = torch.as_tensor(np.linalg.qr(np.c_[axis, np.eye(3)])[0][:, [1, 2, 0]].T, **on)
     held = torch.zeros((b, m, k, 5), dtype=torch.bool, device=info.device)
     held[..., 2] = g
     held = held.reshape(b, m, 5 * k)
     unit = torch.diag_embed(held.double())
     cut = held[..., :, None] | held[..., None, :]
 
-    def refit(information, gradient):
-        turned = torch.where(cut, 0.0, turn @ information @ turn.T) + unit
-        rhs = torch.where(held, 0.0, gradient @ turn.T)
-        return (rhs * torch.linalg.solve(turned, rhs[..., None])[..., 0]).sum(-1)
+    def turned(information):  # each atom's position block turned to the basis: (5k, 5k) blockwise
+        blocks = information.reshape(*information.shape[:-2], k, 5, k, 5).clone()
+        blocks[..., :3, :, :] = torch.einsum("ab,...ibjc->...iajc", basis, blocks[..., :3, :, :])
+        blocks[..., :, :, :3] = torch.einsum("...ibjc,dc->...ibjd", blocks[..., :, :, :3], basis)
+        return blocks.reshape(information.shape)
 
-    baseline = refit(info[:, None].expand(b, m, 5 * k, 5 * k), pull_now.reshape(b, 1, 5 * k).expand(b, m, 5 * k))
+    def turned_pull(gradient):
+        pulls = gradient.reshape(*gradient.shape[:-1], k, 5).clone()
+        pulls[..., :3] = pulls[..., :3] @ basis.T
+        return pulls.reshape(gradient.shape)
+
+    def refit(turned_information, turned_gradient):
+        rhs = torch.where(held, 0.0, turned_gradient)
+        return (rhs * torch.linalg.solve(torch.where(cut, 0.0, turned_information) + unit, rhs[..., None])[..., 0]).sum(
+            -1
+        )
+
+    baseline = refit(turned(info)[:, None].expand(b, m, 5 * k, 5 * k), turned_pull(pull_now.reshape(b, 1, 5 * k)))
     frozen = -2 * rd + dd
-    return frozen - refit(with_move, pull) + baseline, frozen
+    return frozen - refit(turned(with_move), turned_pull(pull)) + baseline, frozen
+
+
+class MovedBlocks:
+    """The information blocks of atoms moved along the depth axis against atoms where they are,
+    each read once: ``pair_information`` of atom ``i`` at ``positions[i] + offsets[m] axis`` and
+    atom ``j`` at its place, for every (i, m, j) of ``moved`` (R,), ``offset_index`` (R,) and
+    ``others`` (R, k) (each moved atom against every atom of its set).  One moved atom meets the
+    same atom in the sets of all the atoms of its column: on the Au particle each block is asked for
+    2.5 times on average."""
+
+    def __init__(self, moved, offset_index, others, positions, sigmas, amps, axes, pixel_size_A, offsets, axis):
+        self.n, self.m = len(positions), len(offsets)
+        others = np.asarray(others).reshape(len(moved), -1)
+        keys = np.unique(self._keys(np.asarray(moved)[:, None], np.asarray(offset_index)[:, None], others))
+        i, rest = np.divmod(keys, self.m * self.n)
+        m, j = np.divmod(rest, self.n)
+        self.keys = keys
+        self.table = np.empty((len(keys), 5, 5))
+        shift = np.asarray(offsets, np.float64)[m, None] * np.asarray(axis, np.float64)
+        for start in range(0, len(keys), TABLE_CHUNK):
+            part = slice(start, start + TABLE_CHUNK)
+            ii, jj = i[part], j[part]
+            self.table[part] = pair_information(
+                positions[ii] + shift[part],
+                positions[jj],
+                sigmas[ii],
+                sigmas[jj],
+                amps[ii],
+                amps[jj],
+                axes,
+                pixel_size_A,
+            )
+
+    def _keys(self, moved, offset_index, others):
+        return (moved * self.m + offset_index) * self.n + others
+
+    def blocks(self, moved, offset_index, others) -> np.ndarray:
+        """(R, k, 5, 5) the blocks of ``moved`` (R,) atoms moved by their ``offset_index`` (R,)
+        against ``others`` (R, k) (each asked for when the table was made)."""
+        keys = self._keys(np.asarray(moved)[:, None], np.asarray(offset_index)[:, None], np.asarray(others))
+        return self.table[np.searchsorted(self.keys, keys)]
+
+
+TABLE_CHUNK = 65536
+"""The moved pairs :class:`MovedBlocks` reads at once."""
+
+
+def moved_blocks_of(sets, positions, sigmas, amps, axes, pixel_size_A, offsets, axis, hard_core_A) -> MovedBlocks:
+    """The :class:`MovedBlocks` every set of ``sets`` (each (B, k), the atom first, as
+    :func:`~.information.local_sets` yields them) asks for in :func:`depth_rises`."""
+    moved, offset_index, others = [], [], []
+    for local in sets:
+        bi, mi, ii = np.nonzero(_columns(local, positions, offsets, axis, hard_core_A))
+        moved.append(local[bi, ii])
+        offset_index.append(mi)
+        others.append(local[bi].reshape(len(bi), -1))
+    k = max((o.shape[1] for o in others), default=1)
+    padded = [np.pad(o, ((0, 0), (0, k - o.shape[1])), mode="edge") for o in others]  # repeats ask nothing new
+    return MovedBlocks(
+        np.concatenate(moved),
+        np.concatenate(offset_index),
+        np.concatenate(padded),
+        positions,
+        sigmas,
+        amps,
+        axes,
+        pixel_size_A,
+        offsets,
+        axis,
+    )

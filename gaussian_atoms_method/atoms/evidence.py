@@ -51,10 +51,13 @@ import numpy as np
 import torch
 
 from gaussian_atoms_method.atoms.calibration import Z95, precision_floor_A, wider_than_half_core
-from gaussian_atoms_method.atoms.depth_profile import depth_axis_of, depth_rises
+from gaussian_atoms_method.atoms.depth_profile import depth_axis_of, depth_rises, moved_blocks_of
 from gaussian_atoms_method.atoms.information import (
+    BATCH_ELEMENTS,
+    HOST_BATCH_ELEMENTS,
     amplitude_coupling,
     local_information,
+    local_sets,
     pair_information,
     pairs_among_neighbours,
 )
@@ -235,7 +238,23 @@ def atom_evidence(
         if moved_pulls is None or scores is None
         else torch.as_tensor(np.stack([moved_pulls[o] for o in offsets]), dtype=torch.float64, device=where)
     )
-    for atoms, local, info in local_information(wanted, neighbours, pairs, blocks, diagonal, len(offsets)):
+    budget = HOST_BATCH_ELEMENTS if where.type == "cpu" else BATCH_ELEMENTS
+    table = (
+        None
+        if moved_on is None
+        else moved_blocks_of(
+            (local for _, local in local_sets(wanted, neighbours, n, len(offsets), budget)),
+            positions,
+            sigmas,
+            amps,
+            axes,
+            pixel_size_A,
+            offsets,
+            depth_axis_all,
+            hard_core_A,
+        )
+    )
+    for atoms, local, info in local_information(wanted, neighbours, pairs, blocks, diagonal, len(offsets), budget):
         k, info, local_on = local.shape[1], torch.as_tensor(info, device=where), torch.as_tensor(local, device=where)
         # a parameter the views do not fix (an amplitude of zero, a width at its bound) would make
         # the information singular: a ridge of 1e-9 of the diagonal leaves the rest unchanged
@@ -262,6 +281,7 @@ def atom_evidence(
                 pixel_size_A,
                 hard_core_A,
                 depth_axis_all,
+                table,
             )
             rises[atoms], frozen[atoms] = refitted.cpu().numpy(), held.cpu().numpy()
         # taken out: the atom's amplitude against every parameter of its neighbours; the Schur
