@@ -141,6 +141,7 @@ def atom_evidence(
     chunk_pairs: int = 4096,
     moved_pulls: dict | None = None,
     device=None,
+    progress=None,
 ) -> AtomEvidence:
     """Existence, depth and precision of every atom from the views' information (module docstring).
 
@@ -185,6 +186,8 @@ def atom_evidence(
         Where the information and the local solves run
         (:func:`~gaussian_atoms_method.physics.devices.work_device`: a GPU where there is one, else
         the CPU); the neighbour search and the bookkeeping stay on the host.
+    progress : callable, optional
+        Called with the number of atoms each batch has read (a progress bar's count).
 
     Returns
     -------
@@ -292,6 +295,8 @@ def atom_evidence(
         q_inverse = torch.linalg.solve(info[:, keep][:, :, keep], unit)[:, 0, 0].cpu().numpy()
         q_variance = q_inverse * (noise_std * amplitude_factor) ** 2
         significance[atoms] = np.abs(amps[atoms]) / np.sqrt(np.maximum(q_variance, 1e-300))
+        if progress is not None:
+            progress(len(atoms))
     if scores is None:  # in units of the information's noise variance
         covariances = covariances * variance * position_factor**2
     position_std = np.sqrt(np.clip(np.einsum("nii->ni", covariances), 0, None))

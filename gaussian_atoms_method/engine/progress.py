@@ -1,4 +1,5 @@
-"""The progress bar of a run's training steps (in place of nerfstudio's table of steps)."""
+"""The progress bars of a run: its training steps (in place of nerfstudio's table of steps) and
+the evidence read for its atoms after them."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ class ProgressBar:
     """A progress bar of training steps that ends at the step the run stopped at: the step limit,
     or the step where the atoms converged (then it reads that step as 100%)."""
 
-    def __init__(self, total: int) -> None:
+    def __init__(self, total: int, unit: str = "step", what: str = "gaussian-atoms") -> None:
         from tqdm.auto import tqdm
 
         # In a terminal the bar redraws in place; into a log (no terminal) each drawing is a line
@@ -17,8 +18,8 @@ class ProgressBar:
         live = sys.stderr.isatty()
         self.bar = tqdm(
             total=total,
-            desc="gaussian-atoms",
-            unit="step",
+            desc=what,
+            unit=unit,
             dynamic_ncols=True,
             **({} if live else {"miniters": max(total // 10, 1), "mininterval": 0.0}),
         )
@@ -27,6 +28,10 @@ class ProgressBar:
         """Start over at 0 (a second pass; a bar still at 0 is not drawn again)."""
         if self.bar.n:
             self.bar.reset()
+
+    def add(self, done: int) -> None:
+        """Count ``done`` more."""
+        self.bar.update(done)
 
     def count(self, step: int) -> None:
         """Count through ``step`` (after each step)."""

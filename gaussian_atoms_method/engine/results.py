@@ -30,6 +30,7 @@ from gaussian_atoms_method.atoms.slices import slice_planes
 from gaussian_atoms_method.atoms.structure_evidence import structure_evidence
 from gaussian_atoms_method.atoms.uncertainty import position_std_A, robust_noise_std
 from gaussian_atoms_method.engine.console import CONSOLE
+from gaussian_atoms_method.engine.progress import ProgressBar
 from gaussian_atoms_method.engine.rendering import detector_axes
 from gaussian_atoms_method.engine.residuals import (
     measured_views,
@@ -228,17 +229,8 @@ class Report:
     registration: tuple[np.ndarray, np.ndarray] | None = None
 
 
-EVIDENCE_SCORES = (
-    "proven",
-    "open",
-    "depth_open",
-    "proven_found",
-    "open_share_of_false",
-    "open_share_of_misses",
-    "open_share_of_disagreement",
-    "coverage_95_xyz",
-    "depth_coverage_95",
-)
+EVIDENCE_SCORES = ("proven", "open", "depth_open", "proven_found", "open_share_of_false", "open_share_of_misses")
+EVIDENCE_SCORES += ("open_share_of_disagreement", "coverage_95_xyz", "depth_coverage_95")
 """The keys of :func:`gaussian_atoms_method.atoms.evidence.evidence_scores`: said on a line of
 their own before the scores (``evaluation.json`` holds both)."""
 
@@ -298,7 +290,9 @@ def attach_evidence(model, atoms: AtomSet, noise: float, read, hard_core_A: floa
         pulls,
         in_field,
         moved_pulls=moved,
+        progress=(bar := ProgressBar(len(atoms), unit="atom", what="gaussian-atoms: evidence")).add,
     )
+    bar.close()
     crb = atoms.position_std_A
     floor = model.config.precision_floor_A
     std, half, depth_open = evidence.position_std_A, evidence.depth_halfwidth_A, evidence.depth_open
