@@ -13,19 +13,25 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, Literal, Type
 
-import torch
-from nerfstudio.cameras.cameras import Cameras, CameraType
-from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserConfig, DataparserOutputs
-from nerfstudio.data.datasets.base_dataset import InputDataset
-from nerfstudio.data.scene_box import SceneBox
-from nerfstudio.plugins.registry_dataparser import DataParserSpecification
+from gaussian_atoms_method.launch.ns_train import asks_for_this_method
+from gaussian_atoms_method.launch.quiet_warnings import quiet_third_party_warnings
 
-from gaussian_atoms_method.engine.views import views_from_tilt_series
-from gaussian_atoms_method.physics.units import DATA_RANGE, Normalisation
+if asks_for_this_method(sys.argv):  # ns-train loads this dataparser before it imports its models
+    quiet_third_party_warnings()
 
-from .errors import TiltSeriesError
-from .tilt_series_format import TiltSeries
-from .tilt_series_options import TiltSeriesOptions
+import torch  # noqa: E402
+from nerfstudio.cameras.cameras import Cameras, CameraType  # noqa: E402
+from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserConfig, DataparserOutputs  # noqa: E402
+from nerfstudio.data.datasets.base_dataset import InputDataset  # noqa: E402
+from nerfstudio.data.scene_box import SceneBox  # noqa: E402
+from nerfstudio.plugins.registry_dataparser import DataParserSpecification  # noqa: E402
+
+from gaussian_atoms_method.engine.views import views_from_tilt_series  # noqa: E402
+from gaussian_atoms_method.physics.units import DATA_RANGE, Normalisation  # noqa: E402
+
+from .errors import TiltSeriesError  # noqa: E402
+from .tilt_series_format import TiltSeries  # noqa: E402
+from .tilt_series_options import TiltSeriesOptions  # noqa: E402
 
 
 def cameras_from_tilt_series(series: TiltSeries, norm: Normalisation) -> Cameras:

@@ -91,6 +91,9 @@ the other fit needs (``scripts/studies/two_fits.py``)."""
 def entrypoint(argv: list[str] | None = None) -> None:
     """Run one verb; errors in the user's input are reported in one line, exit status 2."""
     os.environ.setdefault(*IDLE_THREADS)  # this command's own process: before torch is imported
+    from gaussian_atoms_method.launch.quiet_warnings import quiet_third_party_warnings
+
+    quiet_third_party_warnings()
     from dataparsers.tilt_series_format import TiltSeriesError
     from gaussian_atoms_method.atoms.atom_set import AtomFileError
 
