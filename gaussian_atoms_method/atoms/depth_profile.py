@@ -86,21 +86,38 @@ def depth_rises(
     the cost before the re-fit changes by ``-2 <r, sum_G (g_i' - g_i)> + |sum_G (g_i' - g_i)|^2``;
     every overlap is a pair's information block (a pair moved together keeps its own), and the
     re-fit is one Gauss-Newton step from the moved places with each moved atom's place along the
-    axis held.  ``table``: a :class:`MovedBlocks` that holds the batch's blocks of moved atoms
-    (default: read here).  The second is that change before the re-fit, exact (no linearisation): where it
-    falls the views prefer the moved place even with nothing else re-fitted."""
+    axis held.  The second is that change before the re-fit, exact (no linearisation): where it
+    falls the views prefer the moved place even with nothing else re-fitted.
+
+    ``table``: a :class:`MovedBlocks` that holds the batch's blocks of moved atoms (the host's
+    way: each block read once); without it they are read here, on ``info``'s device (a GPU's way:
+    reading a block again costs it less than looking it up on the host)."""
     b, k = local.shape
     m = len(offsets)
     on = dict(dtype=torch.float64, device=info.device)
     column = _columns(local, positions, offsets, axis, hard_core_A)
     # each moved atom at its new place against every atom of its set at its old one
     bi, mi, ii = np.nonzero(column)
-    if table is None:
-        table = MovedBlocks(
-            np.r_[local[bi, ii]], np.r_[mi], local[bi], positions, sigmas, amps, axes, pixel_size_A, offsets, axis
-        )
     cross = torch.zeros((b, m, k, k, 5, 5), **on)  # [i moved, j]: rows i's parameters at its new place
-    cross[bi, mi, ii] = torch.as_tensor(table.blocks(local[bi, ii], mi, local[bi]), **on)
+    if table is not None:
+        cross[bi, mi, ii] = torch.as_tensor(table.blocks(local[bi, ii], mi, local[bi]), **on)
+    else:  # read here, on the information's device
+        moved_places = positions[local[bi, ii]] + np.asarray(offsets, np.float64)[mi, None] * axis
+        here = positions[local]
+        cross[bi, mi, ii] = torch.as_tensor(
+            pair_information(
+                np.repeat(moved_places, k, axis=0),
+                here[bi].reshape(-1, 3),
+                np.repeat(sigmas[local[bi, ii]], k),
+                sigmas[local[bi]].ravel(),
+                np.repeat(amps[local[bi, ii]], k),
+                amps[local[bi]].ravel(),
+                axes,
+                pixel_size_A,
+                device=info.device,
+            ),
+            **on,
+        ).reshape(-1, k, 5, 5)
     blocks = info.reshape(b, k, 5, k, 5).permute(0, 1, 3, 2, 4)  # [i, j]: rows i's parameters
     g = torch.as_tensor(column, device=info.device)
     local_on = torch.as_tensor(local, device=info.device)

@@ -242,9 +242,9 @@ def atom_evidence(
         else torch.as_tensor(np.stack([moved_pulls[o] for o in offsets]), dtype=torch.float64, device=where)
     )
     budget = HOST_BATCH_ELEMENTS if where.type == "cpu" else BATCH_ELEMENTS
-    table = (
+    table = (  # on the host each moved block is read once (depth_rises)
         None
-        if moved_on is None
+        if moved_on is None or where.type != "cpu"
         else moved_blocks_of(
             (local for _, local in local_sets(wanted, neighbours, n, len(offsets), budget)),
             positions,
