@@ -427,6 +427,35 @@ def test_the_views_pulls_in_torch_are_numpys():
     np.testing.assert_allclose(batched, host, rtol=1e-10, atol=1e-10 * np.abs(host).max())
 
 
+def test_the_depth_profile_from_the_hosts_table_of_moved_blocks_is_the_one_read_batch_by_batch(monkeypatch):
+    """The host reads each moved atom's block once (:class:`~gaussian_atoms_method.atoms.depth_profile.MovedBlocks`,
+    shared by the sets of a column's atoms); a GPU reads them again in each batch.  On 150 atoms of
+    an fcc lattice (columns along the beam, so the profile moves several atoms at once) both give
+    the same profile, significance and precision to float64's rounding."""
+    from gaussian_atoms_method.atoms import evidence
+    from gaussian_atoms_method.atoms.depth_profile import depth_profile_pulls
+    from gaussian_atoms_method.atoms.information import view_scores
+
+    rng = np.random.default_rng(5)
+    cells = np.stack(np.meshgrid(*(np.arange(4),) * 3, indexing="ij"), -1).reshape(-1, 3)
+    basis = np.array([[0, 0, 0], [0.5, 0.5, 0], [0.5, 0, 0.5], [0, 0.5, 0.5]])
+    positions = ((cells[:, None] + basis[None]).reshape(-1, 3) * 4.08 - 6.0)[:150]
+    sigmas, amps = rng.uniform(0.5, 0.6, 150), rng.uniform(80, 120, 150)
+    axes = detector_axes_from_tilts(np.arange(-70, 71, 10))
+    residual = rng.normal(0, 5, (len(axes), 90, 90))
+    args = (positions, sigmas, amps, axes, residual, 0.3, (45, 45))
+    pulls, moved = view_scores(*args), depth_profile_pulls(*args, 1.8)
+    read = (positions, sigmas, amps, axes, 0.3, 5.0, 1.8, "l2", 1.0, 1.0, pulls)
+    tabled = evidence.atom_evidence(*read, moved_pulls=moved, device="cpu")
+    monkeypatch.setattr(evidence, "moved_blocks_of", lambda *a, **k: None)
+    batched = evidence.atom_evidence(*read, moved_pulls=moved, device="cpu")
+    assert np.isfinite(tabled.depth_profile).mean() > 0.9
+    scale = np.nanmax(np.abs(batched.depth_profile))
+    np.testing.assert_allclose(tabled.depth_profile, batched.depth_profile, rtol=1e-9, atol=1e-11 * scale)
+    np.testing.assert_allclose(tabled.position_std_A, batched.position_std_A, rtol=1e-12)
+    np.testing.assert_array_equal(tabled.depth_open, batched.depth_open)
+
+
 def test_the_evidence_scores_split_the_atoms_into_open_and_the_rest_alike():
     """Four atoms on true ones (one proven but open in depth, one not proven), two false (one
     open, one proven and closed), one true atom missed with an open atom 1.2 Å away: the atoms

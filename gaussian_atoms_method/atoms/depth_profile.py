@@ -238,15 +238,5 @@ def moved_blocks_of(sets, positions, sigmas, amps, axes, pixel_size_A, offsets, 
         others.append(local[bi].reshape(len(bi), -1))
     k = max((o.shape[1] for o in others), default=1)
     padded = [np.pad(o, ((0, 0), (0, k - o.shape[1])), mode="edge") for o in others]  # repeats ask nothing new
-    return MovedBlocks(
-        np.concatenate(moved),
-        np.concatenate(offset_index),
-        np.concatenate(padded),
-        positions,
-        sigmas,
-        amps,
-        axes,
-        pixel_size_A,
-        offsets,
-        axis,
-    )
+    picked = (np.concatenate(moved), np.concatenate(offset_index), np.concatenate(padded))
+    return MovedBlocks(*picked, positions, sigmas, amps, axes, pixel_size_A, offsets, axis)

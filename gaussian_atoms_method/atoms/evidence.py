@@ -247,14 +247,7 @@ def atom_evidence(
         if moved_on is None or where.type != "cpu"
         else moved_blocks_of(
             (local for _, local in local_sets(wanted, neighbours, n, len(offsets), budget)),
-            positions,
-            sigmas,
-            amps,
-            axes,
-            pixel_size_A,
-            offsets,
-            depth_axis_all,
-            hard_core_A,
+            *(positions, sigmas, amps, axes, pixel_size_A, offsets, depth_axis_all, hard_core_A),
         )
     )
     for atoms, local, info in local_information(wanted, neighbours, pairs, blocks, diagonal, len(offsets), budget):
