@@ -189,3 +189,32 @@ def test_a_pixel_size_that_cannot_be_right_is_refused_on_a_small_stack(tmp_path,
         assert result.returncode != 0 and "Traceback" not in result.stderr + result.stdout, launcher
         assert words in result.stderr + result.stdout and "pixel_size_A" in result.stderr + result.stdout
         assert not (tmp_path / "runs").exists()
+
+
+def test_a_series_that_cannot_fix_a_3d_position_is_refused_before_the_fit(tmp_path):
+    """Two views (two directions: any two atoms of a slice trade places with the other two corners
+    of their parallelogram and project the same; fitted anyway, such a series put 1.19 false atoms
+    per true one) are refused in one line through the API, ``gaussian-atoms train`` and
+    ``ns-train``, with no traceback and no run directory; so are 11 views spanning 3 degrees
+    (atoms 2 Å apart along the beam move by under 0.17 Å between them)."""
+    import gaussian_atoms_method as ga
+
+    data = valid_series(tmp_path / "series", shape=(48, 48), n_views=3)
+    np.save(data / "projections.npy", np.load(data / "projections.npy")[:2])
+    (data / "angles.txt").write_text("-60\n60\n")
+    projections = np.load(data / "projections.npy")
+    with pytest.raises(ga.InputError, match="from 2 directions: at least 3 are needed") as info:
+        ga.reconstruct(projections, np.array([-60.0, 60.0]), 0.3, device="cpu", progress=False)
+    assert "\n" not in str(info.value)
+    narrow = np.random.default_rng(0).uniform(0, 1, (11, 48, 48))
+    with pytest.raises(ga.InputError, match="span only 3 deg"):
+        ga.reconstruct(narrow, np.linspace(-1.5, 1.5, 11), 0.3, device="cpu", progress=False)
+    bin_dir = Path(sys.executable).parent
+    for launcher in ([str(bin_dir / "gaussian-atoms"), "train"], [str(bin_dir / "ns-train"), "gaussian-atoms"]):
+        command = launcher + ["--machine.device-type", "cpu", "--vis", "tensorboard", "--output-dir"]
+        command += [str(tmp_path / "runs"), "tilt-series", "--data", str(data)]
+        result = subprocess.run(command, capture_output=True, text=True, timeout=600)
+        said = result.stderr + result.stdout
+        assert result.returncode != 0 and "Traceback" not in said, launcher
+        assert "at least 3 are needed to fix an atom in 3D" in said, said[-2000:]
+        assert not (tmp_path / "runs").exists()
