@@ -24,7 +24,6 @@ does not import nerfstudio.
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -49,17 +48,6 @@ MANIFEST = "tilt_series.json"
 
 MANIFEST_WORDS = ("pixel", "axis", "origin", "centre", "species", "convention")
 """Words of a refusal that names the manifest (or its option), not the projections' file."""
-
-MIN_DIRECTIONS = 3
-"""The fewest directions (tilt angles modulo 180 deg) a series is fitted from.  Two projections
-cannot fix atoms in 3D: any two atoms of a slice and the other two corners of the parallelogram
-the two directions draw through them project the same (discrete tomography's switching
-component), and a two-view series fitted anyway put 1.19 false atoms per true one."""
-
-MIN_SPAN_DEG = 5.0
-"""Tilt angles spanning less than this tell no depth (two atoms 2 Å apart along the beam move by
-2 Å x sin(5 deg) = 0.17 Å between the extreme views, under any pixel): refused, and where the
-same numbers read as radians span more, said to be radians."""
 
 
 @dataclass
@@ -146,26 +134,7 @@ class TiltSeries:
         views.dark_atoms(proj, where)
         self.projections, self.view_indices = proj.astype(np.float32, copy=False), indices
         self.views_given = int(self.views_given if self.views_given is not None else len(angles))
-        directions = np.unique(np.round(np.mod(angles, 180.0), 6) % 180.0)
-        if len(directions) < MIN_DIRECTIONS:
-            seen = f"{len(angles)} projection{'' if len(angles) == 1 else 's'} from {len(directions)} direction"
-            raise TiltSeriesError(
-                f"{where}: {seen}{'' if len(directions) == 1 else 's'}: at least {MIN_DIRECTIONS} are needed to fix "
-                f"an atom in 3D (from two, any two atoms of a slice can trade places with the other two corners of "
-                f"their parallelogram and project the same)"
-            )
-        span = float(angles.max() - angles.min())
-        if span < MIN_SPAN_DEG and np.max(np.abs(angles)) <= 0.5 * math.pi and math.degrees(span) >= MIN_SPAN_DEG:
-            raise TiltSeriesError(
-                f"{where}: the tilt angles span only {span:.3g} deg ({angles.min():.3g} to {angles.max():.3g}); as "
-                f"radians they would span {math.degrees(span):.0f} deg: give the angles in degrees"
-            )
-        if span < MIN_SPAN_DEG:
-            raise TiltSeriesError(
-                f"{where}: the tilt angles span only {span:.3g} deg ({angles.min():.3g} to {angles.max():.3g}): two "
-                f"atoms 2 Å apart along the beam move by under {2 * math.sin(math.radians(MIN_SPAN_DEG)):.2f} Å "
-                f"between the views, which tells no depth; at least {MIN_SPAN_DEG:g} deg are needed"
-            )
+        views.undecidable_depth(angles, where)
         uniq, counts = np.unique(angles, return_counts=True)
         if np.any(counts > 1):
             raise TiltSeriesError(f"{where}: duplicate tilt angle(s) {uniq[counts > 1].tolist()} deg")

@@ -13,6 +13,8 @@ and ``ga.read_tilt_series``' keyword).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from gaussian_atoms_method.physics.geometry import detector_axes_from_euler, detector_axes_from_tilts
@@ -259,3 +261,41 @@ def views_of(series, indices):
         euler_deg=euler,
         view_indices=series.view_indices[kept],
     )
+
+
+MIN_DIRECTIONS = 3
+"""The fewest directions (tilt angles modulo 180 deg) a series is fitted from.  Two projections
+cannot fix atoms in 3D: any two atoms of a slice and the other two corners of the parallelogram
+the two directions draw through them project the same (discrete tomography's switching
+component), and a two-view series fitted anyway put 1.19 false atoms per true one."""
+
+MIN_SPAN_DEG = 5.0
+"""Tilt angles spanning less than this tell no depth (two atoms 2 Å apart along the beam move by
+2 Å x sin(5 deg) = 0.17 Å between the extreme views, under any pixel): refused, and where the
+same numbers read as radians span more, said to be radians."""
+
+
+def undecidable_depth(angles: np.ndarray, where: str) -> None:
+    """Raise :class:`TiltSeriesError` where the tilts (degrees) cannot fix an atom in 3D: fewer
+    than :data:`MIN_DIRECTIONS` directions, or a span under :data:`MIN_SPAN_DEG` (said to be
+    radians where, read so, they would span more)."""
+    directions = np.unique(np.round(np.mod(angles, 180.0), 6) % 180.0)
+    if len(directions) < MIN_DIRECTIONS:
+        seen = f"{len(angles)} projection{'' if len(angles) == 1 else 's'} from {len(directions)} direction"
+        raise TiltSeriesError(
+            f"{where}: {seen}{'' if len(directions) == 1 else 's'}: at least {MIN_DIRECTIONS} are needed to fix "
+            f"an atom in 3D (from two, any two atoms of a slice can trade places with the other two corners of "
+            f"their parallelogram and project the same)"
+        )
+    span = float(angles.max() - angles.min())
+    if span < MIN_SPAN_DEG and np.max(np.abs(angles)) <= 0.5 * math.pi and math.degrees(span) >= MIN_SPAN_DEG:
+        raise TiltSeriesError(
+            f"{where}: the tilt angles span only {span:.3g} deg ({angles.min():.3g} to {angles.max():.3g}); as "
+            f"radians they would span {math.degrees(span):.0f} deg: give the angles in degrees"
+        )
+    if span < MIN_SPAN_DEG:
+        raise TiltSeriesError(
+            f"{where}: the tilt angles span only {span:.3g} deg ({angles.min():.3g} to {angles.max():.3g}): two "
+            f"atoms 2 Å apart along the beam move by under {2 * math.sin(math.radians(MIN_SPAN_DEG)):.2f} Å "
+            f"between the views, which tells no depth; at least {MIN_SPAN_DEG:g} deg are needed"
+        )
