@@ -254,7 +254,10 @@ def test_bad_input_raises_the_cli_line(tmp_path):
 @pytest.mark.parametrize(
     "call, fragment",
     [
-        (lambda p, a: ga.reconstruct(p[:1], a[:1], 0.25), "projections: 1 projection: a tilt series needs views"),
+        (
+            lambda p, a: ga.reconstruct(p[:1], a[:1], 0.25),
+            "projections: 1 projection from 1 direction: at least 3 are needed",
+        ),
         (lambda p, a: ga.reconstruct(p, a[:3], 0.25), "3 tilt angles for 15 projections"),
         (lambda p, a: ga.reconstruct(p, a), "pixel_size_A: the pixel size is missing"),
         (lambda p, a: ga.reconstruct(p, a, 0.25, merge_treshold_A=0.7), "merge_treshold_A: not a model option"),

@@ -153,11 +153,15 @@ BROKEN: dict[str, tuple[Callable[[Path], Path], str]] = {
     ),
     "single projection": (
         lambda out: valid_then(out, lambda d: (resave(d, lambda p: p[:1]), (d / "angles.txt").write_text("0\n"))),
-        "1 projection: a tilt series needs views",
+        "1 projection from 1 direction: at least 3 are needed",
     ),
     "all at one direction": (
         lambda out: valid_then(out, lambda d: (resave(d, lambda p: p[:2]), (d / "angles.txt").write_text("-90\n90\n"))),
-        "all at -90 deg (mod 180)",
+        "2 projections from 1 direction: at least 3 are needed",
+    ),
+    "two directions": (
+        lambda out: valid_then(out, lambda d: (resave(d, lambda p: p[:2]), (d / "angles.txt").write_text("-60\n60\n"))),
+        "2 projections from 2 directions: at least 3 are needed",
     ),
     "all zero": (lambda out: resave(valid_series(out), lambda p: np.zeros_like(p)), "all zero"),
     "angles in radians": (
