@@ -116,8 +116,8 @@ def test_interior_of_the_detector_footprint():
     from dataparsers.tilt_series_format import TiltSeries
     from gaussian_atoms_method.harness.evaluation import inside_footprint
 
-    views = np.random.default_rng(0).uniform(1, 2, (2, 10, 8))  # any views: the geometry is what counts
-    series = TiltSeries(views, np.array([-30.0, 30.0]), 0.5, origin_A=np.array([10.0, 0.0, 0.0]))
+    views = np.random.default_rng(0).uniform(1, 2, (3, 10, 8))  # any views: the geometry is what counts
+    series = TiltSeries(views, np.array([-30.0, 0.0, 30.0]), 0.5, origin_A=np.array([10.0, 0.0, 0.0]))
     positions = np.array([[10.0, 0.0, 5.0], [12.4, 0.0, 0.0], [12.6, 0.0, 0.0], [10.0, -1.4, 0.0], [10.0, -1.6, 0.0]])
     np.testing.assert_array_equal(inside_footprint(positions, series, 0.0), [True, True, False, True, True])
     np.testing.assert_array_equal(inside_footprint(positions, series, 0.5), [True, False, False, True, False])

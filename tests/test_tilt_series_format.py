@@ -64,7 +64,7 @@ def _edit_manifest(tmp_path, **changes):
         (lambda d: _edit_manifest(d, pixel_size_A=0), "tilt_series.json", "positive"),
         (lambda d: _edit_manifest(d, pixel_size_A=-0.1), "tilt_series.json", "positive"),
         (lambda d: (d / "projections.npy").unlink(), "projections.npy", "not found"),
-        (lambda d: np.savetxt(d / "angles.txt", [0.0, 1.0, 1.0, 2.0, 3.0]), "angles.txt", "duplicate tilt angle"),
+        (lambda d: np.savetxt(d / "angles.txt", [0.0, 10.0, 10.0, 20.0, 30.0]), "angles.txt", "duplicate tilt angle"),
         (lambda d: _edit_manifest(d, tilt_axis="z"), "tilt_series.json", "tilt_axis"),
         (lambda d: _edit_manifest(d, truth="missing.xyz"), "missing.xyz", "not found"),
         (lambda d: _edit_manifest(d, colour="red"), "tilt_series.json", "unknown key"),
