@@ -331,6 +331,22 @@ def atom_evidence(
     )
 
 
+EVIDENCE_SCORES = (
+    "proven",
+    "open",
+    "depth_open",
+    "proven_found",
+    "open_share_of_false",
+    "open_share_of_misses",
+    "open_share_of_disagreement",
+    "coverage_95_xyz",
+    "depth_coverage_95",
+)
+"""The keys of :func:`evidence_scores` a run says on a line of their own before its scores
+(:func:`gaussian_atoms_method.engine.results.write_results`; ``evaluation.json`` holds both);
+``precision_floor_A`` is said with the scores."""
+
+
 def evidence_scores(
     pred,
     truth,

@@ -8,7 +8,8 @@ import sys
 
 class ProgressBar:
     """A progress bar of training steps that ends at the step the run stopped at: the step limit,
-    or the step where the atoms converged (then it reads that step as 100%)."""
+    or the step where the atoms converged (then it reads that step as 100%); with another ``unit``
+    (the evidence's atoms) a count of them, moved by :meth:`add`."""
 
     def __init__(self, total: int, unit: str = "step", what: str = "gaussian-atoms") -> None:
         from tqdm.auto import tqdm

@@ -23,6 +23,7 @@ import torch
 from gaussian_atoms_method.atoms import picture_process
 from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms, write_atoms
 from gaussian_atoms_method.atoms.classification import classify_gaussians, in_support
+from gaussian_atoms_method.atoms.evidence import EVIDENCE_SCORES
 from gaussian_atoms_method.atoms.hard_core import most_apart
 from gaussian_atoms_method.atoms.matching import score_atoms
 from gaussian_atoms_method.atoms.pictures import draw_slices, write_population_png, write_rdf_png
@@ -227,12 +228,6 @@ class Report:
     atoms: AtomSet
     non_atoms: AtomSet
     registration: tuple[np.ndarray, np.ndarray] | None = None
-
-
-EVIDENCE_SCORES = ("proven", "open", "depth_open", "proven_found", "open_share_of_false", "open_share_of_misses")
-EVIDENCE_SCORES += ("open_share_of_disagreement", "coverage_95_xyz", "depth_coverage_95")
-"""The keys of :func:`gaussian_atoms_method.atoms.evidence.evidence_scores`: said on a line of
-their own before the scores (``evaluation.json`` holds both)."""
 
 
 def attach_evidence(model, atoms: AtomSet, noise: float, read, hard_core_A: float, converged: bool) -> None:

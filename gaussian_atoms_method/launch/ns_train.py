@@ -24,9 +24,6 @@ def prepare(argv: list[str]) -> bool:
     if not asks_for_this_method(argv):
         return False
     from gaussian_atoms_method.launch import cuda_context
-    from gaussian_atoms_method.launch.quiet_warnings import quiet_third_party_warnings
-
-    quiet_third_party_warnings()  # those raised before this plugin is loaded have been said
     from gaussian_atoms_method.launch.lean_torch import lean_torch
     from gaussian_atoms_method.launch.start_ahead import begin_for, runs_on_cuda, settle_imports
 
