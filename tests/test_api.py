@@ -1,5 +1,6 @@
 """The Python API: arrays (or a HyperSpy signal) in, atoms out, through the CLI's engine."""
 
+import json
 import subprocess
 import sys
 import textwrap
@@ -161,6 +162,24 @@ def test_a_replica_floor_widens_each_stated_precision(particle, capfd):
     std = atoms.position_std_A
     assert np.all(std >= np.array(floor)) and np.all(std <= np.sqrt(np.array(floor) ** 2 + 0.05**2))
     assert np.all(atoms.depth_halfwidth_A >= 1.96 * 0.3)
+
+
+def test_a_run_scores_itself_only_on_the_truth_inside_the_field_it_reports(particle, tmp_path):
+    """A truth wider than the field (a film's whole model against one sub-area) is scored where
+    the run reports atoms: 20 true atoms 60 Å off the 43-atom particle (beyond the detector's
+    6.5 Å half-width at every tilt) neither lower the TPR nor are matched, and the run says how
+    many it left out."""
+    from dataparsers.tilt_series_format import load_tilt_series, write_tilt_series
+    from gaussian_atoms_method.atoms.atom_set import AtomSet
+
+    truth, angles, projections = particle
+    far = truth.positions[:20] + np.array([60.0, 0.0, 0.0])
+    wide = AtomSet(np.r_[truth.positions, far], species=np.full(len(truth) + 20, "Au"))
+    series = load_tilt_series(write_tilt_series(tmp_path / "series", projections, angles, 0.25, truth=wide))
+    atoms = ga.reconstruct(series, device="cpu", max_num_iterations=400, progress=False, output_dir=tmp_path / "run")
+    scores = json.loads((Path(atoms.info["run_dir"]) / "evaluation.json").read_text())
+    assert scores["n_true"] == len(truth) and scores["n_true_uncounted"] == 20
+    assert scores["tpr"] == 1.0 and scores["fp_per_true_atom"] == 0.0
 
 
 def test_reconstruct_reads_the_kernel_then_holds_it(particle):

@@ -121,3 +121,42 @@ def test_interior_of_the_detector_footprint():
     positions = np.array([[10.0, 0.0, 5.0], [12.4, 0.0, 0.0], [12.6, 0.0, 0.0], [10.0, -1.4, 0.0], [10.0, -1.6, 0.0]])
     np.testing.assert_array_equal(inside_footprint(positions, series, 0.0), [True, True, False, True, True])
     np.testing.assert_array_equal(inside_footprint(positions, series, 0.5), [True, False, False, True, False])
+
+
+def test_a_true_atom_beyond_the_field_is_neither_found_nor_missed_and_its_partner_is_not_false():
+    """A truth wider than the field scored: the atom inside the field counts, the one outside
+    does not, and a predicted atom on the outside one is neither found nor false."""
+    truth = np.array([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0], [30.0, 0.0, 0.0]])
+    pred = np.array([[0.1, 0.0, 0.0], [30.1, 0.0, 0.0], [10.0, 0.0, 0.0]])
+    s = score_atoms(pred, truth, true_counted=np.array([True, True, False]))
+    assert (s["n_true"], s["n_pred"], s["n_matched"], s["n_true_uncounted"]) == (2, 2, 1, 1)
+    assert s["tpr"] == 0.5 and s["fp_per_true_atom"] == 0.5 and s["rmsd_pm"] == pytest.approx(10.0)
+
+
+def test_evaluate_with_data_scores_the_truth_inside_the_footprint(tmp_path):
+    """``evaluate --data`` on a series whose truth reaches past the detector (a film's whole
+    model beside one sub-area) scores the true atoms inside the footprint, and says how many it
+    left out."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from dataparsers.tilt_series_format import write_tilt_series
+    from gaussian_atoms_method.atoms.atom_set import AtomSet, write_atoms
+
+    inside = np.array([[0.0, 0.0, 0.0], [3.0, 0.0, 1.0], [0.0, 3.0, -1.0]])
+    truth = AtomSet(np.r_[inside, inside + [40.0, 0.0, 0.0]], species=np.full(6, "Au"))
+    views = np.random.default_rng(0).random((3, 40, 40)).astype(np.float32)  # only their geometry is read
+    data = write_tilt_series(tmp_path / "s", views, [-30.0, 0.0, 30.0], 0.25, truth=truth)
+    write_atoms(AtomSet(inside + 0.05, species=np.full(3, "Au")), tmp_path / "pred.xyz")
+    run = subprocess.run(
+        [str(Path(sys.executable).parent / "gaussian-atoms"), "evaluate", "--pred", str(tmp_path / "pred.xyz")]
+        + ["--data", str(data)],
+        capture_output=True,
+        text=True,
+    )
+    assert run.returncode == 0, run.stderr
+    scores = json.loads(run.stdout)
+    assert scores["tpr"] == 1.0 and scores["n_true"] == 3 and scores["n_true_uncounted"] == 3
+    assert "(3 beyond the field not scored)" in run.stderr

@@ -113,6 +113,7 @@ def score_atoms(
     mean_shift: bool = False,
     pred_species=None,
     true_species=None,
+    true_counted=None,
 ) -> dict:
     """The paper's scores for a predicted atom set.
 
@@ -125,6 +126,11 @@ def score_atoms(
         Align first by the Miao group's iterated global mean shift (reported as ``shift_A``).
     pred_species, true_species : (P,), (T,) arrays of str, optional
         With both, ``species_accuracy`` is the fraction of matched pairs of equal species.
+    true_counted : (T,) bool array, optional
+        The true atoms the scores count, for a truth wider than the field scored (a film's whole
+        model against one sub-area): every atom is matched, but a true atom outside is neither
+        found nor missed, and a predicted atom on it neither found nor false (``n_true_uncounted``
+        says how many were left out).
 
     Returns
     -------
@@ -135,19 +141,30 @@ def score_atoms(
         ``precision``: fraction of predicted atoms matched;
         ``rmsd_pm``: root-mean-square distance of matched pairs, pm (NaN if none);
         ``radius_A``: the matching radius; and ``shift_A``, ``species_accuracy`` when asked.
+
+    >>> truth = np.array([[0.0, 0, 0], [3.0, 0, 0], [30.0, 0, 0]])
+    >>> s = score_atoms(truth[:2] + 0.1, truth, true_counted=np.array([True, True, False]))
+    >>> s["tpr"], s["fp_per_true_atom"], s["n_true_uncounted"]
+    (1.0, 0.0, 1)
     """
     pred_A = np.asarray(pred_A, dtype=np.float64).reshape(-1, 3)
     true_A = np.asarray(true_A, dtype=np.float64).reshape(-1, 3)
     extra = {}
+    counted = np.ones(len(true_A), bool) if true_counted is None else np.asarray(true_counted, bool)
+    if true_counted is not None:
+        extra["n_true_uncounted"] = int((~counted).sum())
     if mean_shift:
-        shift = global_shift(pred_A, true_A, radius_A)
+        shift = global_shift(pred_A, true_A[counted], radius_A)
         pred_A = pred_A + shift
         extra["shift_A"] = shift.tolist()
     pi, ti = match_atoms(pred_A, true_A, radius_A)
+    on_uncounted = int((~counted[ti]).sum())  # neither found nor false
+    pi, ti = pi[counted[ti]], ti[counted[ti]]
+    true_all, true_A, pred_n = true_A, true_A[counted], len(pred_A) - on_uncounted
     if pred_species is not None and true_species is not None and len(pi):
         extra["species_accuracy"] = float(np.mean(np.asarray(pred_species)[pi] == np.asarray(true_species)[ti]))
-    n_true, n_pred, n_m = len(true_A), len(pred_A), len(pi)
-    err = pred_A[pi] - true_A[ti]
+    n_true, n_pred, n_m = len(true_A), pred_n, len(pi)
+    err = pred_A[pi] - true_all[ti]
     return {
         "n_true": n_true,
         "n_pred": n_pred,

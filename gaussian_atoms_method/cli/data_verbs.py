@@ -297,7 +297,8 @@ class Evaluate:
     """Align first by an iterated global mean shift (the Miao group's scoring)."""
     interior_A: Optional[float] = None
     """Score only the true and predicted atoms at least this far inside the detector's footprint
-    (an object wider than the field of view; needs --data)."""
+    (an object wider than the field of view; needs --data).  Without it, --data scores the true
+    atoms inside the footprint at zero tilt (a film's whole model against one sub-area)."""
     output: Optional[Path] = None
     """Also write the JSON here."""
 
@@ -317,10 +318,13 @@ class Evaluate:
         pred = read_atoms(self.pred)
         volume = voxel = None
         no_ssim = ""
-        origin = (0.0, 0.0, 0.0)
+        origin, counted = (0.0, 0.0, 0.0), None
         if self.data is not None:
             series, truth, volume, voxel = load_reference(self.data)
             origin = series.origin_A
+            if self.interior_A is None and not series.tilt_axis_angle_deg:
+                counted = inside_footprint(truth.positions, series, 0.0)  # as the run scores itself
+                counted = None if counted.all() else counted
             if self.interior_A is not None:
                 pred, truth = (a.subset(inside_footprint(a.positions, series, self.interior_A)) for a in (pred, truth))
                 volume, no_ssim = None, "--interior-A scores part of the volume"  # the volume spans the whole cube
@@ -330,7 +334,9 @@ class Evaluate:
             volume, no_ssim = None, f"{self.pred.name} holds positions without widths and masses (traced atoms)"
         elif self.data is not None and volume is None and not no_ssim:
             no_ssim = f"{self.data} holds no potential volume (simulate --save-volume writes one)"
-        scores = evaluate_atoms(pred, truth, self.radius_A, self.mean_shift, volume, voxel, origin)
+        scores = evaluate_atoms(
+            pred, truth, self.radius_A, self.mean_shift, volume, voxel, origin, true_counted=counted
+        )
         text = json.dumps(scores, indent=2)
         if self.output is not None:
             self.output.write_text(text + "\n")

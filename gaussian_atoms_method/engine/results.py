@@ -179,11 +179,12 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
         f"kept: give output_dir to keep the run)"
     )
     truth = read_atoms(model.truth_path) if model.truth_path is not None else None
-    scores = score_atoms(atoms.positions, truth.positions) if truth is not None else None
+    covered = truth_in_field(model, truth.positions) if truth is not None else None
+    scores = score_atoms(atoms.positions, truth.positions, true_counted=covered) if truth is not None else None
     if scores is not None and atoms.proven is not None and len(atoms):
         from gaussian_atoms_method.atoms.evidence import evidence_scores
 
-        scores |= evidence_scores(atoms, truth)
+        scores |= evidence_scores(atoms, truth, truth_counted=covered)
     if scores is not None:
         scores |= {
             "converged": converged_at is not None,
@@ -218,6 +219,15 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
     plain = {k: v for k, v in scores.items() if k not in evidence}
     CONSOLE.print(f"[bold]gaussian-atoms[/bold]: against {model.truth_path}: {json.dumps(plain)}")
     return scores
+
+
+def truth_in_field(model, truth_A: np.ndarray) -> np.ndarray:
+    """(M,) bool: the true atoms (Å, the truth's frame) inside the field the run reports
+    (:meth:`~gaussian_atoms_method.density.strategy.DensityControl.in_field`): a truth wider
+    than it (a film's whole model against one sub-area) is scored there only, as the run's own
+    atoms are (against the whole 8,284-atom Ta model a sub-area read a TPR of 0.09)."""
+    means = torch.as_tensor(model.normalisation.positions_from_A(truth_A), device=model.means.device)
+    return model.density.in_field(means.to(model.means.dtype)).cpu().numpy()
 
 
 @dataclasses.dataclass(frozen=True)

@@ -22,6 +22,7 @@ def evaluate_atoms(
     voxel_size_A: float | None = None,
     origin_A=(0.0, 0.0, 0.0),
     pred_volume: np.ndarray | None = None,
+    true_counted: np.ndarray | None = None,
 ) -> dict:
     """Scores of predicted atoms (and of a volume) against the truth.
 
@@ -34,6 +35,9 @@ def evaluate_atoms(
         ``(i - (n - 1) / 2) * voxel_size_A + origin_A``.  With it, ``ssim`` is reported: of
         ``pred_volume`` if given (a voxel method's reconstruction on the same grid), else of
         the predicted Gaussians voxelised on that grid.
+    true_counted : (T,) bool array, optional
+        The true atoms scored (:func:`~gaussian_atoms_method.atoms.matching.score_atoms`): those
+        in the field the run saw, of a truth wider than it.
     """
     species_known = pred.species is not None and truth.species is not None and not np.all(pred.species == "X")
     scores = score_atoms(
@@ -43,9 +47,10 @@ def evaluate_atoms(
         mean_shift,
         pred.species if species_known else None,
         truth.species if species_known else None,
+        true_counted,
     )
     if pred.proven is not None and len(pred):
-        scores.update(evidence_scores(pred, truth, radius_A, mean_shift))
+        scores.update(evidence_scores(pred, truth, radius_A, mean_shift, truth_counted=true_counted))
     if reference_volume is not None:
         if pred_volume is None:
             if pred.sigmas is None or pred.amplitudes is None:
@@ -67,7 +72,8 @@ def summary_line(scores: dict, label: str = "") -> str:
         f"TPR {scores['tpr']:.4f}",
         f"FP/atom {scores['fp_per_true_atom']:.4f}",
         f"RMSD {scores['rmsd_pm']:.1f} pm",
-        f"{scores['n_pred']} predicted / {scores['n_true']} true",
+        f"{scores['n_pred']} predicted / {scores['n_true']} true"
+        + (f" ({scores['n_true_uncounted']} beyond the field not scored)" if scores.get("n_true_uncounted") else ""),
     ]
     if "ssim" in scores:
         parts.append(f"SSIM {scores['ssim']:.3f} (range {scores['ssim_data_range']:.3g})")
