@@ -4,6 +4,7 @@
 error of about sqrt(2 / (0.37 * 12,500)) = 2%, the fitted line about 1%; 5% tolerances are
 several standard errors."""
 
+import dataclasses
 from dataclasses import astuple
 
 import numpy as np
@@ -286,3 +287,79 @@ def test_host_mad_leaves_its_input_and_equals_the_plain_formula():
         v32 = as_float32.numpy().astype(np.float64)
         v32 = v32[np.isfinite(v32)]
         assert mad_std(as_float32) == float(MAD_TO_STD * np.median(np.abs(v32 - np.median(v32))))
+
+
+@pytest.fixture(scope="module")
+def shifted_stacks():
+    """A 135-atom Au sphere (Gaussian atoms, 0.61 Å wide, 0.25 Å pixels) with white noise of a
+    known variance, and the same views shifted by random sub-pixel amounts with splines of
+    orders 1, 3 and 5, as a crop or an alignment interpolates them: the noise correlated, its
+    power at the atoms' scale still the white noise's (an interpolation keeps the mean)."""
+    from scipy import ndimage
+
+    from gaussian_atoms_method.harness.simulate import simulate_tilt_series, spherical_particle
+
+    angles = np.arange(-70.0, 71.0, 5.0)
+    sim = simulate_tilt_series(spherical_particle("Au", radius_A=8.0), angles, potential="gaussian", noise_std=0.0)
+    clean = sim.projections.astype(np.float64)
+    rng = np.random.default_rng(1)
+    std = 0.05 * clean.max()
+    white = clean + rng.normal(0.0, std, clean.shape)
+    shifts = rng.uniform(-0.5, 0.5, size=(len(clean), 2))
+    stacks = {order: np.stack([ndimage.shift(v, s, order=order, mode="nearest") for v, s in zip(white, shifts)])
+              for order in (1, 3, 5)}  # fmt: skip
+    return white, stacks, std**2
+
+
+@pytest.mark.parametrize("order", [1, 3, 5])
+def test_the_noise_of_an_interpolated_correlated_stack_is_read_within_20_percent(shifted_stacks, order):
+    """Read from neighbouring pixels the shifted stacks hold 0.22-0.66 of their noise; read from
+    the spectrum beyond the atoms, carried to the atoms' frequencies, within 20% of it (here
+    within 5%), and the reading says it is correlated."""
+    from gaussian_atoms_method.physics.noise import measure_noise, noise_from_projections
+
+    _, stacks, variance = shifted_stacks
+    views = stacks[order]
+    level = np.array([views.mean()])
+    assert noise_from_projections(views).variance(level)[0] < 0.8 * variance
+    noise = measure_noise(views)
+    assert noise.correlation > 1.2
+    assert noise.variance(level)[0] == pytest.approx(variance, rel=0.2)
+
+
+def test_white_noise_reads_uncorrelated_and_its_reading_is_left_as_it_was(shifted_stacks):
+    """The same views before the shift: the band beyond the atoms is flat, so the neighbouring
+    pixels' reading stands, to the bit (every white-noise run reads as before)."""
+    from gaussian_atoms_method.physics.noise import measure_noise, noise_from_projections
+    from gaussian_atoms_method.physics.noise_spectrum import noise_spectrum
+
+    white, _, variance = shifted_stacks
+    spectrum = noise_spectrum(white)
+    assert not spectrum.correlated and spectrum.fall == pytest.approx(1.0, abs=0.05)
+    assert spectrum.level == pytest.approx(variance, rel=0.05)
+    assert measure_noise(white) == noise_from_projections(white)
+
+
+def test_views_blurred_at_every_frequency_the_atoms_leave_read_no_band(shifted_stacks):
+    """A Gaussian blur of 0.7 px (a denoiser's, or the Ta film's views, whose spectrum falls
+    steeply up to Nyquist) leaves no band of noise alone: nothing is read from the spectrum (the
+    run then judges by its residual), rather than a level that would be 80 times too low."""
+    from scipy import ndimage
+
+    from gaussian_atoms_method.physics.noise import measure_noise, noise_from_projections
+    from gaussian_atoms_method.physics.noise_spectrum import noise_spectrum
+
+    blurred = ndimage.gaussian_filter(shifted_stacks[0], (0, 0.7, 0.7))
+    assert noise_spectrum(blurred) is None
+    noise = measure_noise(blurred)
+    assert not noise.correlation_read and noise.correlation == 1.0
+    assert dataclasses.replace(noise, correlation_read=True) == noise_from_projections(blurred)
+
+
+def test_the_spectrum_in_torch_is_numpys(shifted_stacks):
+    import torch
+
+    from gaussian_atoms_method.physics.noise_spectrum import mean_power
+
+    views = shifted_stacks[1][3][:4]
+    np.testing.assert_allclose(mean_power(views, torch.device("cpu")), mean_power(views), rtol=1e-10, atol=1e-9)

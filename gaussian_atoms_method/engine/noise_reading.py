@@ -65,7 +65,7 @@ def noise_reading(projections, loss: str, background: str, noise: NoiseModel | N
         if background == "auto" and not found:
             # Atoms reach the frame: read the floor from the pixels they leave alone.
             surfaces, floor, floor_se, frame_var, smooth_var = clipped_frame(
-                data, float(np.sqrt(noise.variance(np.array([floor]))[0]))
+                data, float(np.sqrt(noise.variance(np.array([floor]))[0] / noise.correlation))
             )
             found, smooth = _floor_shape(noise, floor, frame_var, smooth_var, frame_var / max(floor_se, 1e-300) ** 2)
             found, clipped = found and abs(floor) > FLOOR_Z * floor_se, True
@@ -74,6 +74,16 @@ def noise_reading(projections, loss: str, background: str, noise: NoiseModel | N
         else:
             surfaces = None
     said = f"{noise.kind} (read variance {noise.read_var:.3g}, gain {noise.gain:.3g} per count, normalised units)"
+    if noise.correlation > 1.0:
+        said += (
+            f", correlated: the views' spectrum beyond the atoms says the atoms see {noise.correlation:.3g} times the "
+            f"variance neighbouring pixels show (interpolated or filtered views)"
+        )
+    elif not noise.correlation_read:
+        said += (
+            ", read from neighbouring pixels only: the views' spectrum holds no band beyond the atoms (blurred or "
+            "denoised views, or atoms finer than the pixels), so whether their noise is correlated is not known"
+        )
     shape = (
         "a floor that varies smoothly within each view (its frame's quadratic surface) and a constant"
         if surfaces is not None
@@ -131,7 +141,7 @@ def _floor_shape(
     noise variance at ``floor``, about its views' means or their quadratic surfaces) and whether
     it is smooth rather than flat (the surfaces explain it better than the means by more than
     :data:`FLOOR_Z` standard errors of a variance over ``n_pixels``, ``sqrt(2 / n)`` of it)."""
-    limit = FLAT_FRAME_RATIO * float(noise.variance(np.array([floor]))[0])
+    limit = FLAT_FRAME_RATIO * float(noise.variance(np.array([floor]))[0]) / noise.correlation  # a pixel's own
     varies = frame_var - smooth_var > FLOOR_Z * smooth_var * np.sqrt(2.0 / max(n_pixels, 1.0))
     if varies and smooth_var <= limit:
         return True, True
@@ -241,3 +251,27 @@ def judge_after_fit(model) -> None:
             f"before training; the final merges and prune judge in that"
         )
     model.density.noise = judged
+
+
+def say_residual(
+    measured: NoiseModel | None, scale: float, predicted, noise: float, position_factor: float, amplitude_factor: float
+) -> None:
+    """Say the fit's residual (level ``noise``, input units; its weights at the atoms' scale,
+    :func:`~gaussian_atoms_method.atoms.information.residual_spectrum_factors`) against the noise
+    ``measured`` before the fit (normalised units, data times ``scale``), both over an atom (its
+    matched template; the reading is the atoms' own, :attr:`NoiseModel.correlation`), at the
+    (V, H, W) ``predicted`` levels."""
+    if measured is None:
+        return
+    expected = float(np.mean(measured.scaled(1.0 / scale).variance(np.clip(predicted, 0, None))))
+    over_atom = (noise * amplitude_factor) ** 2
+    structure = (
+        f"{max(0.0, 1.0 - expected / over_atom):.0%} of it is structure no atom explains"
+        if measured.correlation_read
+        else "how much of it is structure is not known (the noise was read from neighbouring pixels only)"
+    )
+    CONSOLE.print(
+        f"gaussian-atoms: residual {noise:.4g} (input units); over an atom {np.sqrt(over_atom / expected):.2f} times "
+        f"the noise the views hold there (read from them before the fit): {structure}; the evidence weighs it "
+        f"{position_factor:.2f} (positions) and {amplitude_factor:.2f} (amplitudes) times white noise of its level"
+    )

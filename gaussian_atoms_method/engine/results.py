@@ -31,6 +31,7 @@ from gaussian_atoms_method.atoms.slices import slice_planes
 from gaussian_atoms_method.atoms.structure_evidence import structure_evidence
 from gaussian_atoms_method.atoms.uncertainty import position_std_A, robust_noise_std
 from gaussian_atoms_method.engine.console import CONSOLE
+from gaussian_atoms_method.engine.noise_reading import say_residual
 from gaussian_atoms_method.engine.progress import ProgressBar
 from gaussian_atoms_method.engine.rendering import detector_axes
 from gaussian_atoms_method.engine.residuals import (
@@ -307,16 +308,7 @@ def attach_evidence(model, atoms: AtomSet, noise: float, read, hard_core_A: floa
     atoms.significance, atoms.proven = evidence.significance, evidence.proven
     atoms.depth_halfwidth_A, atoms.depth_open = half, depth_open
     atoms.info["proof_level"] = evidence.proof_level
-    measured = getattr(model, "measured_noise", None)
-    if measured is not None:
-        expected = float(np.mean(measured.scaled(1.0 / scale).variance(np.clip(predicted, 0, None))))
-        unexplained = max(0.0, 1.0 - expected / noise**2)
-        CONSOLE.print(
-            f"gaussian-atoms: residual {noise:.4g} (input units), {noise / np.sqrt(expected):.2f} times the noise "
-            f"the views hold (read from them before the fit): {unexplained:.0%} of its variance is structure no "
-            f"atom explains; at the atoms' scale it weighs {position_factor:.2f} (positions) and "
-            f"{amplitude_factor:.2f} (amplitudes) times white noise of its level"
-        )
+    say_residual(getattr(model, "measured_noise", None), scale, predicted, noise, position_factor, amplitude_factor)
     atoms.info.update(say_view_shifts(residuals, predicted, axes, model.config.refine_alignment))
     ratio = np.nanmedian(evidence.position_std_A / np.maximum(crb, 1e-12), axis=0)
     CONSOLE.print(
