@@ -68,6 +68,32 @@ def test_a_replica_takes_the_series_geometry_level_and_noise(tmp_path):
     assert ours.gain == pytest.approx(theirs.gain, rel=0.15)
 
 
+def test_a_replica_cropped_by_interpolation_holds_correlated_noise_the_run_reads_within_20_percent(tmp_path):
+    """``simulate --like --crop-order 3``: each noisy view cropped about a random sub-pixel
+    centre with cubic splines, as measured views are (its atoms drawn where the crop brings
+    them back to).  Its noise
+    is correlated: neighbouring pixels read about half the variance drawn, the run's reading
+    (the spectrum beyond the atoms, :mod:`~gaussian_atoms_method.physics.noise_spectrum`) within 20%
+    of it (0.98 here)."""
+    from gaussian_atoms_method.physics.noise import measure_noise
+
+    real_dir = _real_like(tmp_path)
+    result = subprocess.run(
+        [str(Path(sys.executable).parent / "gaussian-atoms"), "simulate", "--like", str(real_dir)]
+        + ["--output", str(tmp_path / "replica"), "--crop-order", "3", "--seed", "1"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    views = load_tilt_series(tmp_path / "replica").projections.astype(np.float64)
+    level = np.array([views.mean()])
+    drawn = noise_from_projections(load_tilt_series(real_dir).projections).variance(level)[0]
+    assert noise_from_projections(views).variance(level)[0] < 0.7 * drawn
+    noise = measure_noise(views)
+    assert noise.correlation > 1.2 and noise.variance(level)[0] == pytest.approx(drawn, rel=0.2)
+
+
 def test_the_replica_names_what_it_cannot_use(tmp_path):
     """A series without a truth file and no atoms given: one line naming the option."""
     series = TiltSeries(np.random.default_rng(1).uniform(1, 2, (5, 20, 20)), np.linspace(-40, 40, 5), 0.3)

@@ -59,6 +59,10 @@ class Simulate:
     """The halo's half width at half maximum, Å."""
     scan_jitter_px: float = 0.0
     """With --like: each scan line (row) of each view shifted along the fast axis by this RMS, pixels."""
+    crop_order: int = 0
+    """With --like: each noisy view cropped about a random sub-pixel centre with splines of this
+    order (3: cubic, as measured views are often cropped and aligned; 0: not), so its noise is
+    correlated as theirs is; the atoms stay registered."""
     floor_fraction: float = 0.0
     """A floor under every view, as a fraction of a column's value (0: none)."""
     floor_variation: float = 0.0
@@ -253,6 +257,7 @@ class Simulate:
                     "probe": self.probe or "aberrated",
                     "optics": dataclasses.asdict(self.optics()),
                     "scan_jitter_px": self.scan_jitter_px,
+                    "crop_order": self.crop_order,
                     "shift_px": self.shift_px,
                     "shifts_from": None if self.shifts_from is None else str(self.shifts_from),
                     "gain_scatter": self.gain_scatter,
@@ -265,6 +270,7 @@ class Simulate:
             potential="gaussian" if self.potential == "gaussian" else "lobato",
             optics=self.optics(),
             scan_jitter_px=self.scan_jitter_px,
+            crop_order=self.crop_order,
             blur_sigma_A=self.blur_sigma_A,
             shift_px=self.shift_px,
             gain_scatter=self.gain_scatter,

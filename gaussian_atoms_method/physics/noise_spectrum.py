@@ -13,7 +13,8 @@ that its edges leave no cross) is read in radial bins.  An atom's image falls of
 frequency (a Gaussian of width ``s`` falls as ``exp(-4 pi^2 s^2 f^2)``, steeper than
 :data:`STEEPEST_NOISE_FALL` for any atom a pixel samples, ``s`` at least 1 px), the noise slowly
 (an interpolation attenuates it towards the Nyquist frequency, never above one): the band from
-the last bin that falls steeper than a Gaussian of half a pixel on holds noise alone.  Its fall
+the last bin that falls steeper than a Gaussian of half a pixel (by three standard errors of the
+bins' means) on holds noise alone.  Its fall
 from start to end says whether the noise is correlated (:data:`CORRELATED_FALL`).  Where it is,
 the band is carried to zero frequency: an interpolation kernel of ``m`` taps along an axis
 passes noise power ``|H(f)|^2``, a polynomial of degree ``m - 1`` in ``sin^2(pi f)``, so the log
@@ -188,13 +189,14 @@ def noise_spectrum(projections, device=None) -> NoiseSpectrum | None:
     if len(f) < 2 * LEVEL_BINS + 3 or np.any(radial <= 0):
         return None
     slopes = np.diff(np.log(radial)) / np.diff(f**2)
-    steep = np.flatnonzero(slopes <= -STEEPEST_NOISE_FALL)
+    # each bin's mean of exponentially distributed powers: a relative error of 1 / sqrt(count)
+    slope_se = np.sqrt(1.0 / counts[:-1] + 1.0 / counts[1:]) / np.diff(f**2)
+    steep = np.flatnonzero(slopes < -STEEPEST_NOISE_FALL - 3.0 * slope_se)  # steeper by 3 standard errors
     first = int(steep[-1]) + 2 if len(steep) else 1  # past the last steep fall and the bin it ends in
     if len(f) - first < 2 * LEVEL_BINS:
         return None
     start, end = slice(first, first + LEVEL_BINS), slice(len(f) - LEVEL_BINS, len(f))
     head, last = (float(np.average(radial[s], weights=counts[s])) for s in (start, end))
-    # each bin's mean of exponentially distributed powers: a relative error of 1 / sqrt(count)
     se = math.hypot(1.0 / math.sqrt(counts[start].sum()), 1.0 / math.sqrt(counts[end].sum()))
     fall = head / last
     correlated = fall > CORRELATED_FALL and math.log(fall) > 4.0 * se
