@@ -130,7 +130,7 @@ def score_atoms(
         The true atoms the scores count, for a truth wider than the field scored (a film's whole
         model against one sub-area): every atom is matched, but a true atom outside is neither
         found nor missed, and a predicted atom on it neither found nor false (``n_true_uncounted``
-        says how many were left out).
+        says how many were left out, where any were).
 
     Returns
     -------
@@ -151,7 +151,7 @@ def score_atoms(
     true_A = np.asarray(true_A, dtype=np.float64).reshape(-1, 3)
     extra = {}
     counted = np.ones(len(true_A), bool) if true_counted is None else np.asarray(true_counted, bool)
-    if true_counted is not None:
+    if not counted.all():
         extra["n_true_uncounted"] = int((~counted).sum())
     if mean_shift:
         shift = global_shift(pred_A, true_A[counted], radius_A)
