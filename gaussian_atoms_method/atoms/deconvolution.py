@@ -214,9 +214,25 @@ def fit_amplitudes_on_device(field, positions_vox: np.ndarray, response: np.ndar
     power = (spectrum * spectrum.conj()).real
     flat, weights = (torch.as_tensor(x, device=dev) for x in _trilinear_corners(positions_vox, field.shape, shape))
     count, size = len(positions_vox), int(np.prod(shape))
+    # Corners that share a voxel are summed in one fixed order, not by index_add_, whose atomic
+    # adds on a GPU sum them in whatever order the threads land.  (On an H200 the start's weights
+    # on Ta sub-area 23 still differ between processes with this: another source remains.)
+    order = torch.argsort(flat, stable=True)
+    voxels, shared = torch.unique_consecutive(flat[order], return_counts=True)
+    starts = torch.cumsum(shared, 0) - shared
+    rounds = [  # round k: every voxel's k-th corner (each voxel once a round)
+        (held, starts[held] + k)
+        for k in range(int(shared.max()) if len(shared) else 0)
+        for held in [torch.nonzero(shared > k).squeeze(1)]
+    ]
 
     def splat(amplitudes):
-        spikes = torch.zeros(size, dtype=torch.float64, device=dev).index_add_(0, flat, amplitudes.repeat(8) * weights)
+        corners = (amplitudes.repeat(8) * weights)[order]
+        sums = torch.zeros(len(voxels), dtype=torch.float64, device=dev)
+        for held, at in rounds:
+            sums[held] += corners[at]
+        spikes = torch.zeros(size, dtype=torch.float64, device=dev)
+        spikes[voxels] = sums
         return torch.fft.rfftn(spikes.reshape(shape).float())
 
     def sample(spectrum_):
