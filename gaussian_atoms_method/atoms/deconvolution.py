@@ -220,11 +220,10 @@ def fit_amplitudes_on_device(field, positions_vox: np.ndarray, response: np.ndar
     order = torch.argsort(flat, stable=True)
     voxels, shared = torch.unique_consecutive(flat[order], return_counts=True)
     starts = torch.cumsum(shared, 0) - shared
-    rounds = [  # round k: every voxel's k-th corner (each voxel once a round)
-        (held, starts[held] + k)
-        for k in range(int(shared.max()) if len(shared) else 0)
-        for held in [torch.nonzero(shared > k).squeeze(1)]
-    ]
+    rounds = []  # round k: every voxel's k-th corner (each voxel once a round)
+    for k in range(int(shared.max()) if len(shared) else 0):
+        held = torch.nonzero(shared > k).squeeze(1)
+        rounds.append((held, starts[held] + k))
 
     def splat(amplitudes):
         corners = (amplitudes.repeat(8) * weights)[order]

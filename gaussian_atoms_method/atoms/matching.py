@@ -158,13 +158,12 @@ def score_atoms(
         pred_A = pred_A + shift
         extra["shift_A"] = shift.tolist()
     pi, ti = match_atoms(pred_A, true_A, radius_A)
-    on_uncounted = int((~counted[ti]).sum())  # neither found nor false
-    pi, ti = pi[counted[ti]], ti[counted[ti]]
-    true_all, true_A, pred_n = true_A, true_A[counted], len(pred_A) - on_uncounted
+    scored = counted[ti]  # a pair on an uncounted true atom: neither found nor false
+    pi, ti = pi[scored], ti[scored]
     if pred_species is not None and true_species is not None and len(pi):
         extra["species_accuracy"] = float(np.mean(np.asarray(pred_species)[pi] == np.asarray(true_species)[ti]))
-    n_true, n_pred, n_m = len(true_A), pred_n, len(pi)
-    err = pred_A[pi] - true_all[ti]
+    n_true, n_pred, n_m = int(counted.sum()), len(pred_A) - int((~scored).sum()), len(pi)
+    err = pred_A[pi] - true_A[ti]
     return {
         "n_true": n_true,
         "n_pred": n_pred,

@@ -330,7 +330,6 @@ class Evaluate:
             origin = series.origin_A
             if self.interior_A is None and not series.tilt_axis_angle_deg:
                 counted = inside_footprint(truth.positions, series, 0.0)  # as the run scores itself
-                counted = None if counted.all() else counted
             if self.interior_A is not None:
                 pred, truth = (a.subset(inside_footprint(a.positions, series, self.interior_A)) for a in (pred, truth))
                 volume, no_ssim = None, "--interior-A scores part of the volume"  # the volume spans the whole cube

@@ -65,7 +65,7 @@ def noise_reading(projections, loss: str, background: str, noise: NoiseModel | N
         if background == "auto" and not found:
             # Atoms reach the frame: read the floor from the pixels they leave alone.
             surfaces, floor, floor_se, frame_var, smooth_var = clipped_frame(
-                data, float(np.sqrt(noise.variance(np.array([floor]))[0] / noise.correlation))
+                data, float(np.sqrt(noise.pixel_variance(np.array([floor]))[0]))
             )
             found, smooth = _floor_shape(noise, floor, frame_var, smooth_var, frame_var / max(floor_se, 1e-300) ** 2)
             found, clipped = found and abs(floor) > FLOOR_Z * floor_se, True
@@ -141,7 +141,7 @@ def _floor_shape(
     noise variance at ``floor``, about its views' means or their quadratic surfaces) and whether
     it is smooth rather than flat (the surfaces explain it better than the means by more than
     :data:`FLOOR_Z` standard errors of a variance over ``n_pixels``, ``sqrt(2 / n)`` of it)."""
-    limit = FLAT_FRAME_RATIO * float(noise.variance(np.array([floor]))[0]) / noise.correlation  # a pixel's own
+    limit = FLAT_FRAME_RATIO * float(noise.pixel_variance(np.array([floor]))[0])
     varies = frame_var - smooth_var > FLOOR_Z * smooth_var * np.sqrt(2.0 / max(n_pixels, 1.0))
     if varies and smooth_var <= limit:
         return True, True

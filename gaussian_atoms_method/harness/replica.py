@@ -231,7 +231,7 @@ def replica_of(
     noise = noise_from_projections(real)
     crop = rng.uniform(-0.5, 0.5, size=(len(clean), 2)) if crop_order else np.zeros((len(clean), 2))
     if crop_order:  # the atoms drawn where the crop's shift will bring them back to
-        clean = np.stack([ndimage.shift(v, -c, order=3, mode="nearest") for v, c in zip(clean, crop)])
+        clean = interpolated_crop(clean, -crop, 3)
     variance = np.clip(noise.variance(clean), 0.0, None)
     noisy = clean + rng.standard_normal(clean.shape) * np.sqrt(variance)
     if crop_order:

@@ -58,7 +58,7 @@ class NoiseModel:
     correlation: float = 1.0
     """The noise the atoms see over what neighbouring pixels show, where the views' noise is
     correlated (interpolated or filtered views, :mod:`.noise_spectrum`); every variance term
-    above is already multiplied by it, so a pixel's own variance is ``variance / correlation``."""
+    above is already multiplied by it (a pixel's own: :meth:`pixel_variance`)."""
     correlation_read: bool = True
     """False where the views' spectrum holds no band beyond the atoms to read the correlation in
     (blurred or denoised views): the noise may be correlated, and is taken as it was read."""
@@ -78,6 +78,10 @@ class NoiseModel:
             self.correlation,
             self.correlation_read,
         )
+
+    def pixel_variance(self, mean):
+        """A pixel's own variance at ``mean`` (:meth:`variance` less the :attr:`correlation`)."""
+        return self.variance(mean) / self.correlation
 
     @property
     def kind(self) -> str:
