@@ -135,6 +135,31 @@ def backprojection_matrix(
     )
 
 
+def backproject_in_order(filtered, angles_deg: np.ndarray, length: int, size: int, rows: slice, out) -> None:
+    """``out = backprojection_matrix(angles_deg, length, size, rows) @ filtered`` ((P, S), in
+    place; ``filtered`` (N * (length + 1), S)), summed angle by angle in one fixed order, so the
+    same input gives the same bits on every run: cuSPARSE's product of the matrix does not (four
+    products on an H200, four results; a GPU run's start differed between processes)."""
+    import torch
+
+    start, stop, _ = rows.indices(size * size)
+    pixels = torch.arange(start, stop, device=filtered.device)
+    radius = size // 2
+    x = (pixels // size - radius).double()
+    y = (pixels % size - radius).double()
+    out.zero_()
+    angles = np.deg2rad(np.asarray(angles_deg, dtype=np.float64))
+    for k, (cos, sin) in enumerate(zip(np.cos(angles), np.sin(angles))):
+        t = y * float(cos) - x * float(sin) + length // 2
+        inside = (t >= 0) & (t <= length - 1)
+        floor = torch.floor(t)
+        i0 = torch.where(inside, floor, float(length)).long()  # misses read the zero sample
+        w = torch.where(inside, t - floor, 0.0).to(out.dtype)[:, None]
+        block = k * (length + 1)
+        out.addcmul_(filtered.index_select(0, block + i0), 1.0 - w)
+        out.addcmul_(filtered.index_select(0, block + torch.clamp(i0 + 1, max=length)), w)
+
+
 def _on_host(device) -> bool:
     """Whether ``device`` (a name or a torch device) is the CPU: the FBP runs in numpy and scipy there."""
     return str(device) == "cpu"
@@ -187,10 +212,11 @@ def filtered_backprojection(
 
     Every slice samples its filtered projections at the same detector positions, so the
     back-projection is one sparse matrix (:func:`backprojection_matrix`, two entries per
-    output pixel and angle) applied to all slices' filtered projections at once: one sparse x
-    dense product instead of scikit-image's per-slice loop of interpolations (the matrix is
-    built in blocks of output rows to bound its memory).  On the CPU it runs in numpy and scipy (the same values as
-    torch's to the bit, without importing torch: a start begun while the launcher imports it).
+    output pixel and angle) applied to all slices' filtered projections at once, instead of
+    scikit-image's per-slice loop of interpolations, in blocks of output rows to bound its
+    memory.  On the CPU it runs in numpy and scipy as a sparse product (without importing torch:
+    a start begun while the launcher imports it); elsewhere as gathers summed angle by angle
+    (:func:`backproject_in_order`: cuSPARSE's product differs between runs).
 
     Parameters
     ----------
@@ -201,8 +227,8 @@ def filtered_backprojection(
     output_size : int, default L
     device : torch device ("cpu", "cuda")
     max_matrix_entries : int
-        Build the matrix in blocks of output pixels with at most this many entries (16 bytes
-        each).
+        Work in blocks of output pixels with at most this many matrix entries (two per pixel
+        and angle).
     dtype : torch or numpy dtype, optional
         Of the product and the result (default float64, ``iradon``'s to rounding).  float32
         for a start that only looks for its maxima: its product and copies take less than half the time.
@@ -240,13 +266,10 @@ def filtered_backprojection(
     filtered = torch.nn.functional.pad(filtered.transpose(1, 2), (0, 0, 0, 1)).reshape(
         n_angles * (length + 1), n_slices
     )
-    if block >= size * size:  # one block: the product is the output, not copied into it
-        out = backprojection_matrix(angles_deg, length, size, None, dtype, device) @ filtered
-    else:
-        out = torch.empty(size * size, n_slices, dtype=dtype, device=device)
-        for start in range(0, size * size, block):
-            rows = slice(start, min(start + block, size * size))
-            out[rows] = backprojection_matrix(angles_deg, length, size, rows, dtype, device) @ filtered
+    out = torch.empty(size * size, n_slices, dtype=dtype, device=device)
+    for start in range(0, size * size, block):
+        rows = slice(start, min(start + block, size * size))
+        backproject_in_order(filtered, angles_deg, length, size, rows, out[rows])
     out = out.T.reshape(n_slices, size, size)
     return out if as_tensor else out.cpu().numpy()
 
