@@ -136,8 +136,10 @@ def test_begun_for_a_command_line_that_names_the_series(monkeypatch):
     command line names no series."""
     begun = []
     monkeypatch.setattr(start_ahead, "begin", lambda **kw: begun.append(kw))
-    assert start_ahead.begin_for(["tilt-series", "--data", "d"]) and begun == [{"data": Path("d")}]
+    assert start_ahead.begin_for(["tilt-series", "--data", "d"]) and begun == [{"data": Path("d"), "on_gpu": True}]
     assert not start_ahead.begin_for(["tilt-series"]) and len(begun) == 1
+    assert start_ahead.begin_for(["--machine.device-type", "cpu", "tilt-series", "--data", "d"])
+    assert begun[-1] == {"data": Path("d"), "on_gpu": False}  # a CPU run's start stays on the host
 
 
 @pytest.mark.parametrize("launcher", [["ns-train", "gaussian-atoms"], ["gaussian-atoms", "train"]])
@@ -231,3 +233,16 @@ def test_the_thread_imports_scipys_packages_before_the_launcher_imports_them(ser
     )
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert result.returncode == 0, result.stderr[-2000:]
+
+
+def test_a_run_asked_for_the_cpu_starts_on_the_host_where_a_gpu_is_seen(series_dir, monkeypatch):
+    """``--machine.device-type cpu`` on a machine with a GPU: the thread's noise, back-projection
+    and candidates stay on the CPU (this torch has no CUDA, so any GPU work would fail and leave
+    no start), and the start is the one computed in line, to the bit."""
+    series, projections, normalisation = _inputs(series_dir)
+    in_line = compute_start(series, projections, normalisation, "auto", 1.5, noise=measure_noise(projections))
+    monkeypatch.setattr(start_ahead, "gpu_possible", lambda: True)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert start_ahead.begin_for(["--machine.device-type", "cpu", "tilt-series", "--data", str(series_dir)])
+    ahead = start_ahead.take(series, projections, normalisation, "auto", 1.5)
+    assert ahead is not None and torch.equal(ahead.means, in_line.means) and torch.equal(ahead.weights, in_line.weights)

@@ -29,6 +29,7 @@ def starting_positions(
     slice_size_px: int | None = None,
     backprojection: Volume | None = None,
     positions_A: np.ndarray | None = None,
+    device: str | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Where training starts: (n, 3) positions in normalised units and, for a back-projection
     start, (n,) weights of mean 1 in proportion to the smoothed back-projection there (else None).
@@ -55,6 +56,9 @@ def starting_positions(
         The candidates' back-projection if already made (:func:`backprojection_candidates`).
     positions_A : (n, 3) array, optional
         Start at these positions (Å), with equal masses, instead.
+    device : str, optional
+        Where the candidates are searched for (None: the GPU where torch sees one and the run is
+        not asked for the CPU, :func:`~gaussian_atoms_method.physics.devices.default_device`).
     """
     if positions_A is not None:
         return torch.as_tensor(np.asarray(positions_A, dtype=np.float64) * length_scale, dtype=torch.float32), None
@@ -67,7 +71,7 @@ def starting_positions(
             series.tilt_axis,
             series.centre_px,
             None,
-            device=default_device(),
+            device=default_device() if device is None else device,
             return_values=True,
             tilt_axis_angle_deg=series.tilt_axis_angle_deg,
             noise=noise,
@@ -130,6 +134,7 @@ def compute_start(
     noise: NoiseModel | None,
     backprojection: Volume | None = None,
     positions_A: np.ndarray | None = None,
+    device: str | None = None,
 ) -> Start:
     """The start for a tilt series (``series``: :class:`~dataparsers.tilt_series_format.TiltSeries`,
     or None) with (V, H, W) ``projections`` in normalised data units: the noise measured once
@@ -142,7 +147,8 @@ def compute_start(
     ``backprojection``: the candidates' back-projection if already made
     (:func:`~gaussian_atoms_method.physics.reconstruction.backprojection_for_peaks`
     of the series, across the tilt axis over the field's ``slice_px``); ``positions_A``: start at
-    these atoms (Å) instead of any candidates."""
+    these atoms (Å) instead of any candidates; ``device``: where the candidates are searched for
+    (None: :func:`~gaussian_atoms_method.physics.devices.default_device`)."""
     ls = normalisation.length_scale
     fov = field_of_view(series, projections, ls, extended_object, EDGE_MARGIN_WIDTHS * max_atom_sigma_A)
     generator = generator if generator is not None else torch.Generator()
@@ -158,5 +164,6 @@ def compute_start(
         fov.slice_px,
         backprojection,
         positions_A,
+        device,
     )
     return Start(noise, fov, means, weights)

@@ -34,6 +34,7 @@ from gaussian_atoms_method.engine.run_files import (
 from gaussian_atoms_method.engine.training import FitLoop, LoopSettings, train
 from gaussian_atoms_method.engine.view_set import ViewSet
 from gaussian_atoms_method.engine.views import views_from_tilt_series
+from gaussian_atoms_method.physics.devices import run_on
 from gaussian_atoms_method.physics.units import normalised_projections
 
 MAX_ITERATIONS = 3000
@@ -114,6 +115,12 @@ def fit_tilt_series(
     ``dataparser_options``) and what the run reported there, in memory (``prepared``: what a
     launcher prepared for the fit, :mod:`.prepared`).  Raises ``FloatingPointError`` naming the step and
     the cause where the loss stops being finite."""
+    with run_on(settings.device):
+        return _fit_tilt_series(series, options, settings, data, dataparser_options, prepared)
+
+
+def _fit_tilt_series(series, options, settings, data, dataparser_options, prepared) -> FitRun:
+    """:func:`fit_tilt_series`, its helpers on the run's device."""
     if options.decide_registration:
         options = dataclasses.replace(
             options, decide_registration=False, **choose_registration(series, options, settings)

@@ -63,7 +63,9 @@ class _Ahead:
 _ahead: _Ahead | None = None
 
 
-def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float | None = None) -> None:
+def begin(
+    data: Path, extended_object: str = "auto", max_atom_sigma_A: float | None = None, on_gpu: bool = True
+) -> None:
     """Read the tilt series in ``data`` (a directory or manifest, the reader's defaults) and
     compute its back-projection start in a thread, for :func:`take`.  Errors are left to the
     run, which reads the series again and reports them in its own way.  Not a daemon: a process
@@ -96,10 +98,10 @@ def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float | N
             series = ahead.series
             ahead.normalisation, scaled = normalised_projections(series)
             # with a GPU, host work beside the import would only slow it
-            known = start_parts(ahead, scaled, HOST) if not gpu_possible() else None
+            known = start_parts(ahead, scaled, HOST) if not (on_gpu and gpu_possible()) else None
             import torch
 
-            device = gpu()  # torch is imported: ask it
+            device = gpu() if on_gpu else None  # torch is imported: ask it (a CPU run: the host's)
             if device is None and known is None:  # a GPU's files but no GPU torch can use: the host's
                 known = start_parts(ahead, scaled, HOST)
             with quick_handover() if device is not None else nullcontext():
@@ -123,6 +125,7 @@ def begin(data: Path, extended_object: str = "auto", max_atom_sigma_A: float | N
                     ahead.extended_object,
                     ahead.max_atom_sigma_A,
                     **(known or {}),
+                    device=str(device) if device is not None else "cpu",
                 )
         except Exception:  # noqa: BLE001 - the run computes its own start and reports the error there
             ahead.start = None
@@ -382,5 +385,5 @@ def begin_for(argv: list[str]) -> bool:
     request = requested_start(argv)
     if request is None:
         return False
-    begin(**request)
+    begin(**request, on_gpu=runs_on_cuda(argv))
     return True

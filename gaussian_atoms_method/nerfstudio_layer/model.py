@@ -24,6 +24,7 @@ from gaussian_atoms_method.launch.start_ahead import prepared
 from gaussian_atoms_method.nerfstudio_layer.options import GaussianAtomsOptions
 from gaussian_atoms_method.nerfstudio_layer.splatfacto_compat import SplatfactoCompat
 from gaussian_atoms_method.nerfstudio_layer.viewer import AtomsInViewer
+from gaussian_atoms_method.physics.devices import run_on
 from gaussian_atoms_method.physics.units import DATA_RANGE
 
 
@@ -64,7 +65,8 @@ class GaussianAtomsModel(AtomFit, SplatfactoCompat):
         # Deliberately not splatfacto's: that builds LPIPS (downloads weights), SH colours,
         # opacities and gsplat's alpha-compositing strategy, none of which apply here.
         self.prepared = prepared()  # the start ns-train began while it loaded (config.py)
-        self.setup(ViewSet.from_metadata(self.kwargs.get("metadata")))  # the views read once
+        with run_on(self.run_device):
+            self.setup(ViewSet.from_metadata(self.kwargs.get("metadata")))  # the views read once
         self.crop_box, self.background_color = None, torch.zeros(3)
         if not hasattr(self, "atoms_in_viewer"):  # the atoms as points in the viewer
             self.atoms_in_viewer = AtomsInViewer(self._viewer_atoms)
@@ -106,12 +108,21 @@ class GaussianAtomsModel(AtomFit, SplatfactoCompat):
                 )
         return cbs
 
+    @property
+    def run_device(self) -> str:
+        """The device nerfstudio's pipeline builds the model for (its helpers keep to the CPU
+        with a CPU run: :func:`~gaussian_atoms_method.physics.devices.run_on`)."""
+        return str(self.kwargs.get("device") or "cuda")
+
     def _results_at(self, span: TrainingSpan, run_dir, step: int) -> None:
-        self.write_results_at(span.last, run_dir, step)
+        with run_on(self.run_device):
+            self.write_results_at(span.last, run_dir, step)
 
     def _stop_trainer(self, trainer, span: TrainingSpan, step: int) -> None:
         progress = getattr(trainer, "progress", None)
-        if self.should_stop(step, span.last, Path(trainer.base_dir), progress):
+        with run_on(self.run_device):
+            stop = self.should_stop(step, span.last, Path(trainer.base_dir), progress)
+        if stop:
             trainer.stop_training = True  # nerfstudio's loop ends before the next step
 
     def _say_viewer(self, trainer, span: TrainingSpan, step: int) -> None:

@@ -2,12 +2,14 @@
 
 A run trains on the GPU where torch sees one, else on the CPU; work done before the model
 exists (the noise reading, the start's back-projection and filters) runs on the GPU where there
-is one, on the device of a tensor it is given, or in numpy on the host (:data:`HOST`, a start
-begun while the launcher still imports torch).  torch is imported only when a device is asked
-for.
+is one and the run was not asked for the CPU (:func:`run_on`), on the device of a tensor it is
+given, or in numpy on the host (:data:`HOST`, a start begun while the launcher still imports
+torch).  torch is imported only when a device is asked for.
 """
 
 from __future__ import annotations
+
+import contextlib
 
 HOST = "host"
 """The device argument that keeps work in numpy on the host, without importing torch."""
@@ -16,11 +18,32 @@ CHOICES = ("auto", "cpu", "cuda")
 """What a user may ask for; ``auto`` is :func:`default_device`."""
 
 
+_host_only = False
+"""Set while a run asked for the CPU (:func:`run_on`): :func:`gpu` then answers None."""
+
+
 def gpu():
-    """The CUDA device if torch sees one, else None."""
+    """The CUDA device if torch sees one and no CPU run is in progress (:func:`run_on`), else None."""
+    if _host_only:
+        return None
     import torch
 
     return torch.device("cuda") if torch.cuda.is_available() else None
+
+
+@contextlib.contextmanager
+def run_on(device: str):
+    """Within: the helpers that choose their own device (:func:`work_device`, :func:`gpu`) keep
+    off the GPU where the run's ``device`` is the CPU, so that a run asked for the CPU computes
+    on the CPU alone, as it does on a machine without a GPU (and repeats to the bit as it does
+    there).  Restores the previous choice on leaving."""
+    global _host_only
+    before = _host_only
+    _host_only = str(device).split(":")[0] == "cpu"
+    try:
+        yield
+    finally:
+        _host_only = before
 
 
 def default_device() -> str:

@@ -1,0 +1,22 @@
+"""Where work runs: a run asked for the CPU keeps the helpers that pick their own device off a
+GPU that torch sees, and leaves the choice as it found it."""
+
+import pytest
+import torch
+
+from gaussian_atoms_method.physics import devices
+
+
+def test_a_cpu_run_keeps_the_helpers_off_a_seen_gpu_and_restores_the_choice(monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert devices.gpu() == torch.device("cuda") and devices.work_device(None) == torch.device("cuda")
+    with devices.run_on("cpu"):
+        assert devices.gpu() is None and devices.work_device(None) is None
+        assert devices.default_device() == "cpu"
+        with devices.run_on("cuda"):  # a nested GPU run (a sweep's) sees the GPU again
+            assert devices.gpu() == torch.device("cuda")
+        assert devices.gpu() is None
+    assert devices.gpu() == torch.device("cuda")
+    with pytest.raises(RuntimeError), devices.run_on("cpu"):
+        raise RuntimeError("a failed run")
+    assert devices.gpu() == torch.device("cuda")  # restored after a failure too
