@@ -20,3 +20,23 @@ def test_a_cpu_run_keeps_the_helpers_off_a_seen_gpu_and_restores_the_choice(monk
     with pytest.raises(RuntimeError), devices.run_on("cpu"):
         raise RuntimeError("a failed run")
     assert devices.gpu() == torch.device("cuda")  # restored after a failure too
+
+
+@pytest.mark.parametrize("setting, expected", [(None, 8), ("2", 2), ("16", 8), ("0", 8), ("many", 8)])
+def test_the_threads_given_are_the_cores_at_most_the_omp_limit_set(monkeypatch, setting, expected):
+    monkeypatch.setattr(devices, "cores_given", lambda: 8)
+    if setting is None:
+        monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    else:
+        monkeypatch.setenv("OMP_NUM_THREADS", setting)
+    assert devices.threads_given() == expected
+
+
+def test_a_film_task_on_a_one_thread_share_takes_one_thread(monkeypatch):
+    from gaussian_atoms_method.film.runner import cores_per_task
+
+    monkeypatch.setattr(devices, "cores_given", lambda: 8)
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert cores_per_task(2) == 1
+    monkeypatch.delenv("OMP_NUM_THREADS")
+    assert cores_per_task(2) == 4

@@ -138,12 +138,13 @@ def cluster_device(device: str, cluster_gpus: float, address: str | None) -> str
 
 
 def cores_per_task(n_tasks: int) -> int:
-    """Cores for one CPU task: this machine's shared among at most ``n_tasks`` tasks, at least 2
-    each (torch's matrix products and the projector's tiles use two threads well; one task a
-    core would leave each at half speed)."""
-    from gaussian_atoms_method.physics.devices import cores_given
+    """Cores for one CPU task: this machine's (at most the ``OMP_NUM_THREADS`` the environment
+    sets, :func:`~gaussian_atoms_method.physics.devices.threads_given`) shared among at most
+    ``n_tasks`` tasks, at least 2 each (torch's matrix products and the projector's tiles use two
+    threads well; one task a core would leave each at half speed)."""
+    from gaussian_atoms_method.physics.devices import threads_given
 
-    cores = cores_given()
+    cores = threads_given()
     if cores < 2:
         return 1
     return max(2, cores // max(1, min(n_tasks, cores // 2)))

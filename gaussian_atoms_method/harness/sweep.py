@@ -142,9 +142,9 @@ class Sweep:
             f"gaussian-atoms sweep: {len(self.settings)} settings, {len(self.settings) - len(todo)} already finished, "
             f"{len(todo)} to run"
         )
-        from gaussian_atoms_method.physics.devices import cores_given
+        from gaussian_atoms_method.physics.devices import threads_given
 
-        threads = max(1, cores_given() // min(self.jobs, max(len(todo), 1)))  # the cores given, shared
+        threads = max(1, threads_given() // min(self.jobs, max(len(todo), 1)))  # the cores given, shared
         calls = [
             (str(self.data), str(run_dir), self._args(settings), self.iterations, self.device, threads)
             for _, settings, run_dir in todo

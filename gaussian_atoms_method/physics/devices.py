@@ -100,3 +100,17 @@ def cores_given() -> int:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # no affinity on this platform
         return os.cpu_count() or 1
+
+
+def threads_given() -> int:
+    """The threads this process's work may spread over: :func:`cores_given`, at most the
+    ``OMP_NUM_THREADS`` the environment sets (a batch scheduler's or a test runner's share:
+    tasks given more threads than that contend with their neighbours for the same cores)."""
+    import os
+
+    cores = cores_given()
+    try:
+        limit = int(os.environ.get("OMP_NUM_THREADS", ""))
+    except ValueError:  # unset or not a count: the cores decide
+        return cores
+    return max(1, min(cores, limit)) if limit > 0 else cores
