@@ -212,8 +212,8 @@ class FitOptions(DensitySettings, UserFirstOptions):
     batch of views costs about one view's kernel launches and the averaged gradient is smoother
     (docs/performance.md: several views per step); on a CPU each view costs its own time.
     ``auto``: on a GPU as many as fit (:func:`gaussian_atoms_method.engine.step_views.auto_views_per_step`: at most 8,
-    within
-    half the free GPU memory by the projector's measured bytes per Gaussian and view), else 1;
+    within half the free GPU memory by the projector's measured bytes per Gaussian and view; never
+    by time, so one input takes one number of views), else 1;
     1 with refine-alignment, refine-tilts or anisotropic Gaussians (per-view parameters), which
     a number above 1 cannot be combined with."""
     cuda_graphs: bool = True
