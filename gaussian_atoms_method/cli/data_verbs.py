@@ -17,8 +17,9 @@ class Simulate:
     output: Path = Path("data/sim")
     """Directory to write (tilt_series.json, projections.npy, angles.txt, atoms_true.xyz)."""
     particle: str = "au"
-    """au, fept, apd, hea, carbon, asi, film (amorphous Pd, 110 x 40 x 20 Å: give --field-of-view-A),
-    sphere (an fcc sphere of --element, --radius-A) or a structure file."""
+    """au, fept, apd, apd-close (amorphous Pd with a measured glass's close pairs), hea, carbon, asi,
+    film (amorphous Pd, 110 x 40 x 20 Å: give --field-of-view-A), sphere (an fcc sphere of --element,
+    --radius-A) or a structure file."""
     scale: Optional[float] = None
     """Linear size factor (atom count ~ scale^3) of the named particles (default 1): the generated ones grow or shrink,
     au and structure files are cut (at most 1)."""
