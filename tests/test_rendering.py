@@ -236,6 +236,23 @@ def test_auto_views_per_step_counts_the_projectors_memory_and_keeps_one_view_off
     assert SV.auto_views_per_step(project_gaussians, 10_000, 47, rows, cols) == 1
 
 
+@pytest.mark.parametrize("free_bytes, n_views, expected", [(1e12, 47, 8), (7e9, 47, 3), (1e12, 5, 5), (1e6, 47, 1)])
+def test_auto_views_per_step_on_a_gpu_is_the_most_its_memory_holds_whatever_the_timing(
+    monkeypatch, free_bytes, n_views, expected
+):
+    """On a GPU auto takes as many views as half the free memory holds (1 GB a view here), up to
+    eight and the series' own: a function of the sizes alone, so one input takes one number
+    (chosen by the projector's timing, one particle took 2 views in one run and 4 in the next)."""
+    from types import SimpleNamespace
+
+    monkeypatch.setattr(torch.cuda, "mem_get_info", lambda device=None: (free_bytes, 2 * free_bytes))
+    monkeypatch.setattr(torch.cuda, "memory_reserved", lambda device=None: 0)
+    monkeypatch.setattr(torch.cuda, "memory_allocated", lambda device=None: 0)
+    monkeypatch.setattr(SV, "projector_bytes_per_view", lambda *args, **kwargs: 1e9)
+    on_gpu = SimpleNamespace(device=torch.device("cuda"))
+    assert SV.auto_views_per_step(None, 50_000, n_views, on_gpu, on_gpu) == expected
+
+
 @pytest.mark.parametrize(
     "options, named",
     [
