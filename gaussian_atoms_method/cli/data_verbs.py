@@ -343,10 +343,9 @@ class Evaluate:
         scores = evaluate_atoms(
             pred, truth, self.radius_A, self.mean_shift, volume, voxel, origin, true_counted=counted
         )
-        text = json.dumps(scores, indent=2)
         if self.output is not None:
-            self.output.write_text(text + "\n")
-        print(text)
+            self.output.write_text(json.dumps(scores, indent=2) + "\n")
+        print(json.dumps(scores))  # one line on the console: the scores for a program, the summary below for you
         print(summary_line(scores, str(self.pred)), file=sys.stderr)
         if no_ssim:
             print(f"no volume SSIM: {no_ssim}", file=sys.stderr)
