@@ -402,12 +402,6 @@ def to_device_without_waiting(tensor: torch.Tensor, device: torch.device) -> tor
     return tensor.pin_memory().to(device, non_blocking=True)
 
 
-def synchronise(device: torch.device) -> None:
-    """Wait for the device's queued work (a no-op off CUDA)."""
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
 class FiniteWatch:
     """Stops training with FloatingPointError naming the step and the cause when the loss or a
     parameter is not finite (parameters are checked too: the tiled projector skips a Gaussian
