@@ -427,12 +427,10 @@ def test_the_views_pulls_in_torch_are_numpys():
     np.testing.assert_allclose(batched, host, rtol=1e-10, atol=1e-10 * np.abs(host).max())
 
 
-def test_the_depth_profile_from_the_hosts_table_of_moved_blocks_is_the_one_read_batch_by_batch(monkeypatch):
-    """The host reads each moved atom's block once (:class:`~gaussian_atoms_method.atoms.depth_profile.MovedBlocks`,
-    shared by the sets of a column's atoms); a GPU reads them again in each batch.  On 150 atoms of
-    an fcc lattice (columns along the beam, so the profile moves several atoms at once) both give
-    the same profile, significance and precision to float64's rounding."""
-    from gaussian_atoms_method.atoms import evidence
+def _fcc_evidence_inputs():
+    """150 atoms of an fcc lattice (columns along the beam, so the depth profile moves several
+    atoms at once), a 15-view series and a noise residual: :func:`atom_evidence`'s arguments and
+    the moved pulls."""
     from gaussian_atoms_method.atoms.depth_profile import depth_profile_pulls
     from gaussian_atoms_method.atoms.information import view_scores
 
@@ -445,7 +443,16 @@ def test_the_depth_profile_from_the_hosts_table_of_moved_blocks_is_the_one_read_
     residual = rng.normal(0, 5, (len(axes), 90, 90))
     args = (positions, sigmas, amps, axes, residual, 0.3, (45, 45))
     pulls, moved = view_scores(*args), depth_profile_pulls(*args, 1.8)
-    read = (positions, sigmas, amps, axes, 0.3, 5.0, 1.8, "l2", 1.0, 1.0, pulls)
+    return (positions, sigmas, amps, axes, 0.3, 5.0, 1.8, "l2", 1.0, 1.0, pulls), moved
+
+
+def test_the_depth_profile_from_the_hosts_table_of_moved_blocks_is_the_one_read_batch_by_batch(monkeypatch):
+    """The host reads each moved atom's block once (:class:`~gaussian_atoms_method.atoms.depth_profile.MovedBlocks`,
+    shared by the sets of a column's atoms); a GPU reads them again in each batch.  On 150 atoms of
+    an fcc lattice both give the same profile, significance and precision to float64's rounding."""
+    from gaussian_atoms_method.atoms import evidence
+
+    read, moved = _fcc_evidence_inputs()
     tabled = evidence.atom_evidence(*read, moved_pulls=moved, device="cpu")
     monkeypatch.setattr(evidence, "moved_blocks_of", lambda *a, **k: None)
     batched = evidence.atom_evidence(*read, moved_pulls=moved, device="cpu")
@@ -454,6 +461,32 @@ def test_the_depth_profile_from_the_hosts_table_of_moved_blocks_is_the_one_read_
     np.testing.assert_allclose(tabled.depth_profile, batched.depth_profile, rtol=1e-9, atol=1e-11 * scale)
     np.testing.assert_allclose(tabled.position_std_A, batched.position_std_A, rtol=1e-12)
     np.testing.assert_array_equal(tabled.depth_open, batched.depth_open)
+
+
+@pytest.mark.parametrize("tabled", [True, False], ids=["host table", "read in each batch"])
+def test_the_depth_profile_through_the_sets_inverse_is_each_system_solved_whole(monkeypatch, tabled):
+    """:func:`~gaussian_atoms_method.atoms.depth_profile.depth_rises` re-fits each moved set
+    through the set's inverse information (the still atoms' rows a Schur complement of the moved
+    ones'); its float64 reference builds and solves every (5k, 5k) system whole
+    (``tests/depth_rises_reference.py``).  On the fcc lattice, where 220 of the 900 moves carry a
+    neighbour along (a column), the two agree to 1e-9 of the profile's scale: the same subtraction of cost rises in
+    another order, and nothing else."""
+    from depth_rises_reference import depth_rises_reference
+
+    from gaussian_atoms_method.atoms import evidence
+
+    read, moved = _fcc_evidence_inputs()
+    if not tabled:
+        monkeypatch.setattr(evidence, "moved_blocks_of", lambda *a, **k: None)
+    fast = evidence.atom_evidence(*read, moved_pulls=moved, device="cpu")
+    monkeypatch.setattr(evidence, "depth_rises", lambda *a: depth_rises_reference(*a[:-1]))
+    whole = evidence.atom_evidence(*read, moved_pulls=moved, device="cpu")
+    columns = np.isfinite(whole.depth_profile).mean()
+    assert columns > 0.9
+    scale = np.nanmax(np.abs(whole.depth_profile))
+    np.testing.assert_allclose(fast.depth_profile, whole.depth_profile, rtol=1e-9, atol=1e-9 * scale)
+    np.testing.assert_array_equal(fast.depth_open, whole.depth_open)
+    np.testing.assert_allclose(fast.depth_halfwidth_A, whole.depth_halfwidth_A, rtol=1e-12)
 
 
 def test_the_evidence_scores_split_the_atoms_into_open_and_the_rest_alike():

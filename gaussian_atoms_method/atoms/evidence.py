@@ -278,6 +278,7 @@ def atom_evidence(
                 hard_core_A,
                 depth_axis_all,
                 table,
+                covariance,
             )
             rises[atoms], frozen[atoms] = refitted.cpu().numpy(), held.cpu().numpy()
         # taken out: the atom's amplitude against every parameter of its neighbours; the Schur

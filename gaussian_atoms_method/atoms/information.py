@@ -16,6 +16,8 @@ import math
 import numpy as np
 import torch
 
+from gaussian_atoms_method.physics.arrays import unique_keys
+
 
 def pair_information(r_i, r_j, sigma_i, sigma_j, q_i, q_j, axes, pixel_size_A: float, device=None) -> np.ndarray:
     """``sum_v integral (dg_i/da)(dg_j/db) du / p^2`` for P pairs of atoms: (P, 5, 5) blocks, rows
@@ -351,8 +353,8 @@ def pairs_among_neighbours(neighbours: np.ndarray, n: int, wanted: np.ndarray | 
         atoms = wanted[degree[wanted] == k]
         sets = cols[first[atoms][:, None] + np.arange(k)]  # (B, k), each row ascending
         a, b = np.triu_indices(int(k), 1)
-        found.append(np.unique(sets[:, a] * n + sets[:, b]))
-    keys = np.unique(np.concatenate(found))
+        found.append(unique_keys(sets[:, a] * n + sets[:, b]))
+    keys = unique_keys(np.concatenate(found))
     own = np.minimum(neighbours[:, 0], neighbours[:, 1]) * n + np.maximum(neighbours[:, 0], neighbours[:, 1])
     keys = keys[~np.isin(keys, own)]
     return np.stack([keys // n, keys % n], axis=1).astype(np.int64)

@@ -28,6 +28,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from gaussian_atoms_method.physics.arrays import unique_keys
+
 SEARCH_WIDTHS = 3.0
 """Pairs farther apart than this many combined widths ``sqrt(s_i^2 + s_j^2)`` are not tested:
 two equal Gaussians 3 combined widths (4.2 widths) apart dip to a fifth of their peak between
@@ -67,7 +69,7 @@ def candidate_pairs(positions: np.ndarray, sigmas: np.ndarray) -> np.ndarray:
     pairs = found[0]
     if len(found) > 1:
         n = len(positions)
-        key = np.unique(np.concatenate([f[:, 0] * n + f[:, 1] for f in found]))  # each pair once
+        key = unique_keys(np.concatenate([f[:, 0] * n + f[:, 1] for f in found]))  # each pair once
         pairs = np.stack([key // n, key % n], axis=1)
     d = np.linalg.norm(positions[pairs[:, 0]] - positions[pairs[:, 1]], axis=1)
     return pairs[d <= SEARCH_WIDTHS * np.hypot(sigmas[pairs[:, 0]], sigmas[pairs[:, 1]])]

@@ -1,0 +1,123 @@
+"""The depth profile as first written: every (atom, offset) system built whole and solved
+whole, (B, M, 5k, 5k).  :func:`gaussian_atoms_method.atoms.depth_profile.depth_rises` solves the
+same systems through the set's inverse information; this is its float64 reference in the tests."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from gaussian_atoms_method.atoms.depth_profile import _columns
+from gaussian_atoms_method.atoms.information import pair_information
+
+
+def depth_rises_reference(
+    local, info, scores, moved, offsets, positions, sigmas, amps, axes, pixel_size_A, hard_core_A, axis, table=None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Two (B, M): for each atom ``local[:, 0]`` and each of the M ``offsets``, how much the
+    least-squares cost rises (pixel sums, in projection units squared) when the atom is moved by
+    it along the depth axis, with it the atoms whose places it would take (:func:`_columns`: a
+    column shifted as one), and every other parameter of the set ``local`` (B, k) is re-fitted
+    (linearised about the moved places; ``info`` (B, 5k, 5k): the local information, pixel sums,
+    the atom first; ``scores`` (N, V, 5) the views' pulls, ``moved`` (M, N, 5) the pulls on the
+    atoms moved by each offset, tensors on ``info``'s device; ``axis``: :func:`depth_axis_of` the
+    views, the direction moved along).
+
+    With ``G`` the moved atoms, ``g_i'`` atom i's image at its new place and ``r`` the residual,
+    the cost before the re-fit changes by ``-2 <r, sum_G (g_i' - g_i)> + |sum_G (g_i' - g_i)|^2``;
+    every overlap is a pair's information block (a pair moved together keeps its own), and the
+    re-fit is one Gauss-Newton step from the moved places with each moved atom's place along the
+    axis held.  The second is that change before the re-fit, exact (no linearisation): where it
+    falls the views prefer the moved place even with nothing else re-fitted.
+
+    ``table``: a :class:`MovedBlocks` that holds the batch's blocks of moved atoms (the host's
+    way: each block read once); without it they are read here, on ``info``'s device (a GPU's way:
+    reading a block again costs it less than looking it up on the host)."""
+    b, k = local.shape
+    m = len(offsets)
+    on = dict(dtype=torch.float64, device=info.device)
+    column = _columns(local, positions, offsets, axis, hard_core_A)
+    # each moved atom at its new place against every atom of its set at its old one
+    bi, mi, ii = np.nonzero(column)
+    cross = torch.zeros((b, m, k, k, 5, 5), **on)  # [i moved, j]: rows i's parameters at its new place
+    if table is not None:
+        cross[bi, mi, ii] = torch.as_tensor(table.blocks(local[bi, ii], mi, local[bi]), **on)
+    else:  # read here, on the information's device
+        moved_places = positions[local[bi, ii]] + np.asarray(offsets, np.float64)[mi, None] * axis
+        here = positions[local]
+        cross[bi, mi, ii] = torch.as_tensor(
+            pair_information(
+                np.repeat(moved_places, k, axis=0),
+                here[bi].reshape(-1, 3),
+                np.repeat(sigmas[local[bi, ii]], k),
+                sigmas[local[bi]].ravel(),
+                np.repeat(amps[local[bi, ii]], k),
+                amps[local[bi]].ravel(),
+                axes,
+                pixel_size_A,
+                device=info.device,
+            ),
+            **on,
+        ).reshape(-1, k, 5, 5)
+    blocks = info.reshape(b, k, 5, k, 5).permute(0, 1, 3, 2, 4)  # [i, j]: rows i's parameters
+    g = torch.as_tensor(column, device=info.device)
+    local_on = torch.as_tensor(local, device=info.device)
+    q = torch.as_tensor(amps, **on)[local_on]  # (B, k)
+    qg = q[:, None] * g  # the moved atoms' masses, zero for the others
+    pull_now = scores[local_on].sum(dim=2)  # (B, k, 5): J^T r at the fit
+    pull_moved = moved[:, local_on].permute(1, 0, 2, 3)  # (B, M, k, 5): at the moved places
+    # -2 <r, dg> + |dg|^2, dg = sum over the moved of (g_i' - g_i)
+    rd = (qg * (pull_moved[..., 4] - pull_now[:, None, :, 4])).sum(-1)
+    c44 = cross[..., 4, 4]
+    dd = torch.einsum("bmi,bmj,bmij->bm", qg, qg, 2 * blocks[:, None, :, :, 4, 4] - c44 - c44.transpose(2, 3))
+    # the pull at the moved places: <r - dg, dg_j/dp>, atom j at its new place or its old one
+    own = blocks[..., :, 4]  # (B, j, i, 5): <dg_j/dp, g_i / q_i>
+    on_moved = torch.einsum("bmi,bmjip->bmjp", qg, own[:, None] - cross[..., :, 4])
+    on_still = torch.einsum("bmi,bmijp->bmjp", qg, cross[..., 4, :]) - torch.einsum("bmi,bjip->bmjp", qg, own)
+    gj = g[..., None]
+    pull = (torch.where(gj, pull_moved, pull_now[:, None]) - torch.where(gj, on_moved, on_still)).reshape(b, m, 5 * k)
+    # the information at the moved places: a pair moved together, or left together, keeps its block
+    gi_, gj_ = g[..., :, None], g[..., None, :]
+    with_move = torch.where(
+        (gi_ == gj_)[..., None, None],
+        blocks[:, None],
+        torch.where((gi_ & ~gj_)[..., None, None], cross, cross.transpose(2, 3).transpose(-1, -2)),
+    )
+    del cross
+    with_move = with_move.permute(0, 1, 2, 4, 3, 5).reshape(b, m, 5 * k, 5 * k)
+    # positions turned to two directions across the axis and the axis; each moved atom's place
+    # along the axis held (its row and column cut out: a unit diagonal and a zero pull)
+    basis = torch.as_tensor(np.linalg.qr(np.c_[axis, np.eye(3)])[0][:, [1, 2, 0]].T, **on)
+    held = torch.zeros((b, m, k, 5), dtype=torch.bool, device=info.device)
+    held[..., 2] = g
+    held = held.reshape(b, m, 5 * k)
+
+    def turned(information):  # each atom's position block turned to the basis: (5k, 5k) blockwise
+        blocks = information.reshape(*information.shape[:-2], k, 5, k, 5).clone()
+        blocks[..., :3, :, :] = torch.einsum("ab,...ibjc->...iajc", basis, blocks[..., :3, :, :])
+        blocks[..., :, :, :3] = torch.einsum("...ibjc,dc->...ibjd", blocks[..., :, :, :3], basis)
+        return blocks.reshape(information.shape)
+
+    def turned_pull(gradient):
+        pulls = gradient.reshape(*gradient.shape[:-1], k, 5).clone()
+        pulls[..., :3] = pulls[..., :3] @ basis.T
+        return pulls.reshape(gradient.shape)
+
+    def refit(turned_information, turned_gradient, held):
+        rhs = torch.where(held, 0.0, turned_gradient)
+        cut = held[..., :, None] | held[..., None, :]
+        system = torch.where(cut, 0.0, turned_information) + torch.diag_embed(held.double())
+        return (rhs * torch.linalg.solve(system, rhs[..., None])[..., 0]).sum(-1)
+
+    # the fit as it is, with the places held that an offset moves: offsets that move the same
+    # atoms hold the same places (on the Au particle 2.9 of 6 differ), each solved once
+    patterns = np.c_[np.repeat(np.arange(b), m), column.reshape(b * m, k)]
+    _, once, again = np.unique(patterns, axis=0, return_index=True, return_inverse=True)
+    atom_of = torch.as_tensor(once // m, device=info.device)
+    baseline = refit(
+        turned(info)[atom_of],
+        turned_pull(pull_now.reshape(b, 5 * k))[atom_of],
+        held.reshape(b * m, 5 * k)[torch.as_tensor(once)],
+    )[torch.as_tensor(again.ravel(), device=info.device)].reshape(b, m)
+    frozen = -2 * rd + dd
+    return frozen - refit(turned(with_move), turned_pull(pull), held) + baseline, frozen
