@@ -397,3 +397,22 @@ def test_the_engines_replayed_steps_train_as_its_eager_steps(tmp_path):
     torch.testing.assert_close(graphed.means, eager.means, rtol=0, atol=1e-4 * pixel)
     for name in ("log_sigmas", "log_amplitudes"):
         torch.testing.assert_close(graphed.gauss_params[name], eager.gauss_params[name], rtol=0, atol=1e-4)
+
+
+@cuda
+def test_the_evidence_on_cuda_equals_the_hosts():
+    """Each atom's evidence on a GPU (the moved blocks read in each batch, the sets solved there)
+    is the host's (the moved blocks read once, :class:`~gaussian_atoms_method.atoms.depth_profile.MovedBlocks`)
+    to float64's rounding: 150 atoms of an fcc lattice, whose depth profile moves columns."""
+    from test_evidence import _fcc_evidence_inputs
+
+    from gaussian_atoms_method.atoms.evidence import atom_evidence
+
+    read, moved = _fcc_evidence_inputs()
+    host = atom_evidence(*read, moved_pulls=moved, device="cpu")
+    gpu = atom_evidence(*read, moved_pulls=moved, device="cuda")
+    scale = np.nanmax(np.abs(host.depth_profile))
+    np.testing.assert_allclose(gpu.depth_profile, host.depth_profile, rtol=1e-9, atol=1e-9 * scale)
+    np.testing.assert_allclose(gpu.position_std_A, host.position_std_A, rtol=1e-9)
+    np.testing.assert_allclose(gpu.significance, host.significance, rtol=1e-9)
+    np.testing.assert_array_equal(gpu.depth_open, host.depth_open)

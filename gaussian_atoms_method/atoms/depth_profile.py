@@ -107,7 +107,7 @@ def depth_rises(
     through the set's inverse information: the atoms left in place through the inverse of their
     own information (the whole inverse with the moved atoms' rows taken out, a Schur complement
     of ``5 |G|`` rows), the moved ones through a system of their own ``5 |G|`` parameters.  On the
-    6,679-atom Au particle (21 neighbours a set) this costs a fifth of solving each (5k, 5k)
+    6,679-atom Au particle (21 neighbours a set) this costs half of solving each (5k, 5k)
     system whole, and agrees with it to 1e-9 of the profile's scale (tests).
 
     ``table``: a :class:`MovedBlocks` that holds the batch's blocks of moved atoms (the host's
