@@ -7,32 +7,16 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from gaussian_atoms_method.atoms.depth_profile import _columns
-from gaussian_atoms_method.atoms.information import pair_information
+from gaussian_atoms_method.atoms.depth_profile import _columns, moved_blocks_here
 
 
 def depth_rises_reference(
     local, info, scores, moved, offsets, positions, sigmas, amps, axes, pixel_size_A, hard_core_A, axis, table=None
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Two (B, M): for each atom ``local[:, 0]`` and each of the M ``offsets``, how much the
-    least-squares cost rises (pixel sums, in projection units squared) when the atom is moved by
-    it along the depth axis, with it the atoms whose places it would take (:func:`_columns`: a
-    column shifted as one), and every other parameter of the set ``local`` (B, k) is re-fitted
-    (linearised about the moved places; ``info`` (B, 5k, 5k): the local information, pixel sums,
-    the atom first; ``scores`` (N, V, 5) the views' pulls, ``moved`` (M, N, 5) the pulls on the
-    atoms moved by each offset, tensors on ``info``'s device; ``axis``: :func:`depth_axis_of` the
-    views, the direction moved along).
-
-    With ``G`` the moved atoms, ``g_i'`` atom i's image at its new place and ``r`` the residual,
-    the cost before the re-fit changes by ``-2 <r, sum_G (g_i' - g_i)> + |sum_G (g_i' - g_i)|^2``;
-    every overlap is a pair's information block (a pair moved together keeps its own), and the
-    re-fit is one Gauss-Newton step from the moved places with each moved atom's place along the
-    axis held.  The second is that change before the re-fit, exact (no linearisation): where it
-    falls the views prefer the moved place even with nothing else re-fitted.
-
-    ``table``: a :class:`MovedBlocks` that holds the batch's blocks of moved atoms (the host's
-    way: each block read once); without it they are read here, on ``info``'s device (a GPU's way:
-    reading a block again costs it less than looking it up on the host)."""
+    """:func:`gaussian_atoms_method.atoms.depth_profile.depth_rises` (its arguments and its two
+    (B, M) rises) with every moved set's (5k, 5k) system built whole, turned whole and solved whole:
+    the moved atoms' blocks against the still ones replaced by the moved blocks, the held places'
+    rows and columns cut out, and the fit as it is solved once per distinct held pattern."""
     b, k = local.shape
     m = len(offsets)
     on = dict(dtype=torch.float64, device=info.device)
@@ -43,22 +27,9 @@ def depth_rises_reference(
     if table is not None:
         cross[bi, mi, ii] = torch.as_tensor(table.blocks(local[bi, ii], mi, local[bi]), **on)
     else:  # read here, on the information's device
-        moved_places = positions[local[bi, ii]] + np.asarray(offsets, np.float64)[mi, None] * axis
-        here = positions[local]
-        cross[bi, mi, ii] = torch.as_tensor(
-            pair_information(
-                np.repeat(moved_places, k, axis=0),
-                here[bi].reshape(-1, 3),
-                np.repeat(sigmas[local[bi, ii]], k),
-                sigmas[local[bi]].ravel(),
-                np.repeat(amps[local[bi, ii]], k),
-                amps[local[bi]].ravel(),
-                axes,
-                pixel_size_A,
-                device=info.device,
-            ),
-            **on,
-        ).reshape(-1, k, 5, 5)
+        cross[bi, mi, ii] = moved_blocks_here(
+            local, bi, mi, ii, positions, sigmas, amps, axes, pixel_size_A, offsets, axis, info.device
+        )
     blocks = info.reshape(b, k, 5, k, 5).permute(0, 1, 3, 2, 4)  # [i, j]: rows i's parameters
     g = torch.as_tensor(column, device=info.device)
     local_on = torch.as_tensor(local, device=info.device)

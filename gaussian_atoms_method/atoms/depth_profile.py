@@ -128,22 +128,9 @@ def depth_rises(
     if table is not None:
         cross[bi, mi, ai] = torch.as_tensor(table.blocks(local[bi, ii], mi, local[bi]), **on)
     elif len(bi):  # read here, on the information's device
-        moved_places = positions[local[bi, ii]] + np.asarray(offsets, np.float64)[mi, None] * axis
-        here = positions[local]
-        cross[bi, mi, ai] = torch.as_tensor(
-            pair_information(
-                np.repeat(moved_places, k, axis=0),
-                here[bi].reshape(-1, 3),
-                np.repeat(sigmas[local[bi, ii]], k),
-                sigmas[local[bi]].ravel(),
-                np.repeat(amps[local[bi, ii]], k),
-                amps[local[bi]].ravel(),
-                axes,
-                pixel_size_A,
-                device=dev,
-            ),
-            **on,
-        ).reshape(-1, k, 5, 5)
+        cross[bi, mi, ai] = moved_blocks_here(
+            local, bi, mi, ii, positions, sigmas, amps, axes, pixel_size_A, offsets, axis, dev
+        )
     gi = torch.as_tensor(order, device=dev)  # (B, M, g) the moved atoms' slots in the set
     valid = torch.as_tensor(valid_np, device=dev)
     is_moved = torch.as_tensor(column, device=dev)  # (B, M, k)
@@ -206,6 +193,27 @@ def depth_rises(
     as_is = (t[:, None] * w).sum(-1) - (t_held * w_held).sum(-1)
     as_is = as_is - (w_held * torch.linalg.solve(corner, w_held[..., None])[..., 0]).sum(-1)
     return frozen - moved_fit + as_is, frozen
+
+
+def moved_blocks_here(local, bi, mi, ii, positions, sigmas, amps, axes, pixel_size_A, offsets, axis, device):
+    """(R, k, 5, 5) float64 on ``device``: atom ``local[bi, ii]`` moved by ``offsets[mi]`` along
+    ``axis`` against every atom of its set ``local[bi]`` (``local`` (B, k); ``bi``, ``mi``, ``ii``
+    (R,)), rows the moved atom's parameters (:func:`pair_information`, read on ``device``: a GPU's
+    way, where reading a block again costs less than looking it up, :class:`MovedBlocks`)."""
+    k = local.shape[1]
+    moved_places = positions[local[bi, ii]] + np.asarray(offsets, np.float64)[mi, None] * axis
+    blocks = pair_information(
+        np.repeat(moved_places, k, axis=0),
+        positions[local[bi]].reshape(-1, 3),
+        np.repeat(sigmas[local[bi, ii]], k),
+        sigmas[local[bi]].ravel(),
+        np.repeat(amps[local[bi, ii]], k),
+        amps[local[bi]].ravel(),
+        axes,
+        pixel_size_A,
+        device=device,
+    )
+    return torch.as_tensor(blocks, dtype=torch.float64, device=device).reshape(-1, k, 5, 5)
 
 
 def _taken_out(inverse, rows, row_valid, rhs):
