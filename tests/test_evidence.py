@@ -376,6 +376,7 @@ def test_a_dense_sets_information_is_positive_and_its_neighbours_only_lower_the_
     diagonal = pair_information(positions, positions, sigmas, sigmas, amps, amps, axes, 0.34)
     sizes = []
     for _, local, info in local_information(np.arange(0, 300, 7), neighbours, pairs, blocks, diagonal, 0):
+        info = info.numpy()
         scale = np.sqrt(np.einsum("bii->bi", info))
         sizes.append(local.shape[1])
         assert np.linalg.eigvalsh(info / scale[:, :, None] / scale[:, None, :]).min() > 0

@@ -48,27 +48,35 @@ def depth_profile_pulls(
     return out
 
 
-def _columns(local: np.ndarray, positions: np.ndarray, offsets, axis: np.ndarray, hard_core_A) -> np.ndarray:
+def _columns(
+    local: np.ndarray, positions: np.ndarray, offsets, axis: np.ndarray, hard_core_A, device=None
+) -> np.ndarray:
     """(B, M, k) bool: the atoms of each set ``local`` (B, k) moved with its atom ``local[:, 0]``
     by each of the M ``offsets`` along ``axis``: the atom, and in turn every atom of the set whose
     place a moved one would come within the hard core of.  Two atoms cannot share a place, but a
-    column can shift along the beam as one: the missing wedge's ambiguity is that of a column (on a
-    replica of a Ta sub-area the misses lay 0.8-1.4 Å along the beam from their atoms, the true
-    place within the hard core of a neighbour that had moved with them)."""
+    column can shift along the beam as one: the missing wedge's ambiguity is that of a column (on
+    a replica of a Ta sub-area the misses lay 0.8-1.4 Å along the beam from their atoms, the true
+    place within the hard core of a neighbour that had moved with them).  Found in torch on
+    ``device`` (default the CPU): on a GPU, numpy on the host had taken 14 of the 50 s a
+    76,000-atom particle's evidence took."""
     b, k = local.shape
-    column = np.zeros((b, len(offsets), k), bool)
-    column[:, :, 0] = True
     if hard_core_A is None or k == 1:
+        column = np.zeros((b, len(offsets), k), bool)
+        column[:, :, 0] = True
         return column
-    here = positions[local]  # (B, k, 3)
-    shifted = here[:, None] + np.asarray(offsets, np.float64)[None, :, None, None] * axis  # (B, M, k, 3)
-    close = np.linalg.norm(shifted[:, :, :, None] - here[:, None, None], axis=-1) < hard_core_A  # (B, M, i, j)
+    on = dict(dtype=torch.float64, device=device or "cpu")
+    here = torch.as_tensor(positions, **on)[torch.as_tensor(local, device=on["device"])]  # (B, k, 3)
+    step = torch.as_tensor(np.asarray(offsets, np.float64)[:, None] * np.asarray(axis, np.float64), **on)  # (M, 3)
+    shifted = here[:, None] + step[None, :, None]  # (B, M, k, 3)
+    close = torch.linalg.vector_norm(shifted[:, :, :, None] - here[:, None, None], dim=-1) < hard_core_A  # (B, M, i, j)
+    column = torch.zeros((b, len(offsets), k), dtype=torch.bool, device=on["device"])
+    column[:, :, 0] = True
     for _ in range(k):
-        grown = column | np.any(close & column[..., :, None], axis=2)
-        if np.array_equal(grown, column):
+        grown = column | torch.any(close & column[..., :, None], dim=2)
+        if torch.equal(grown, column):
             break
         column = grown
-    return column
+    return column.cpu().numpy()
 
 
 def depth_rises(
@@ -117,7 +125,7 @@ def depth_rises(
     m = len(offsets)
     dev = info.device
     on = dict(dtype=torch.float64, device=dev)
-    column = _columns(local, positions, offsets, axis, hard_core_A)  # (B, M, k)
+    column = _columns(local, positions, offsets, axis, hard_core_A, info.device)  # (B, M, k)
     g = int(column.sum(axis=2).max())
     order = np.argsort(~column, axis=2, kind="stable")[..., :g]  # the moved first: the atom, then its column
     valid_np = np.take_along_axis(column, order, axis=2)  # (B, M, g): slots a short column leaves empty are False

@@ -250,8 +250,9 @@ def atom_evidence(
             *(positions, sigmas, amps, axes, pixel_size_A, offsets, depth_axis_all, hard_core_A),
         )
     )
-    for atoms, local, info in local_information(wanted, neighbours, pairs, blocks, diagonal, len(offsets), budget):
-        k, info, local_on = local.shape[1], torch.as_tensor(info, device=where), torch.as_tensor(local, device=where)
+    sets = local_information(wanted, neighbours, pairs, blocks, diagonal, len(offsets), budget, where)
+    for atoms, local, info in sets:
+        k, local_on = local.shape[1], torch.as_tensor(local, device=where)
         # a parameter the views do not fix (an amplitude of zero, a width at its bound) would make
         # the information singular: a ridge of 1e-9 of the diagonal leaves the rest unchanged
         info = info + torch.diag_embed(1e-9 * torch.diagonal(info, dim1=1, dim2=2).clamp_min(1e-300))
