@@ -65,7 +65,7 @@ def _columns(
         column[:, :, 0] = True
         return column
     on = dict(dtype=torch.float64, device=device or "cpu")
-    here = torch.as_tensor(positions, **on)[torch.as_tensor(local, device=on["device"])]  # (B, k, 3)
+    here = torch.as_tensor(positions[local], **on)  # (B, k, 3): the batch's atoms only sent to the device
     step = torch.as_tensor(np.asarray(offsets, np.float64)[:, None] * np.asarray(axis, np.float64), **on)  # (M, 3)
     shifted = here[:, None] + step[None, :, None]  # (B, M, k, 3)
     close = torch.linalg.vector_norm(shifted[:, :, :, None] - here[:, None, None], dim=-1) < hard_core_A  # (B, M, i, j)
@@ -125,7 +125,7 @@ def depth_rises(
     m = len(offsets)
     dev = info.device
     on = dict(dtype=torch.float64, device=dev)
-    column = _columns(local, positions, offsets, axis, hard_core_A, info.device)  # (B, M, k)
+    column = _columns(local, positions, offsets, axis, hard_core_A, dev)  # (B, M, k)
     g = int(column.sum(axis=2).max())
     order = np.argsort(~column, axis=2, kind="stable")[..., :g]  # the moved first: the atom, then its column
     valid_np = np.take_along_axis(column, order, axis=2)  # (B, M, g): slots a short column leaves empty are False
@@ -146,7 +146,7 @@ def depth_rises(
     mm = torch.arange(m, device=dev)[None, :, None]
     blocks = info.reshape(b, k, 5, k, 5).permute(0, 1, 3, 2, 4)  # [i, j]: rows i's parameters
     local_on = torch.as_tensor(local, device=dev)
-    q = torch.as_tensor(amps, **on)[local_on]  # (B, k)
+    q = torch.as_tensor(amps[local], **on)  # (B, k)
     qg = q[bb, gi] * valid  # (B, M, g) the moved atoms' masses, zero in the empty slots
     pull_now = scores[local_on].sum(dim=2)  # (B, k, 5): J^T r at the fit
     pull_now_g = pull_now[bb, gi]  # (B, M, g, 5)
