@@ -99,8 +99,8 @@ class Simulate:
     and the run says how many."""
 
     def optics(self):
-        """The aberrated probe's :class:`~gaussian_atoms_method.harness.microscope.ProbeOptics`."""
-        from gaussian_atoms_method.harness.microscope import ProbeOptics
+        """The aberrated probe's :class:`~gaussian_atoms_method.physics.microscope.ProbeOptics`."""
+        from gaussian_atoms_method.physics.microscope import ProbeOptics
 
         source = self.source_fwhm_A if self.source_fwhm_A is not None else (0.7 if self.like is not None else 0.0)
         optics = (self.voltage_kV, self.semiangle_mrad, self.defocus_A, self.cs_A)

@@ -186,6 +186,13 @@ class FitOptions(DensitySettings, UserFirstOptions):
     (:mod:`gaussian_atoms_method.atoms.calibration`).  Zero: the views' own statement.  (A new tuple
     each time: the compiler makes every ``(0.0, 0.0, 0.0)`` literal of a module one object,
     ``psf_weights``' too, and config.yml would write the two as one YAML anchor.)"""
+    own_floor: bool = True
+    """Read that floor in the run itself where no floor is given: the run's atoms drawn again
+    through ADF physics (abTEM's potentials, a probe with rings and tails) with its registration
+    and noise, refitted from where they stand, their errors beside the precision stated
+    (:mod:`gaussian_atoms_method.engine.own_floor`; it costs about a final refit).  Needs the
+    atoms' elements (``--species``) and abTEM; without them the run says so and states the views'
+    scatter alone."""
     projector: Literal["auto", "tiled", "dense", "gsplat"] = "auto"
     """Projection backend (all exact to float32; their speeds: docs/performance.md): ``dense``,
     the full-image separable matmul (the fastest on a GPU); ``tiled``, each Gaussian only on the

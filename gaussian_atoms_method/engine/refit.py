@@ -13,7 +13,7 @@ from gaussian_atoms_method.engine.rendering import index_on, render_views
 from gaussian_atoms_method.engine.residuals import in_chunks, measured_views, training_views
 
 
-def refit(model, max_passes: int = 10) -> int:
+def refit(model, max_passes: int = 10, measured: torch.Tensor | None = None) -> int:
     """After the final prune and merge: passes over the training views in random order at full
     resolution, as many views per step as training took, with the model's own optimisers (their
     rates where training left them) and no density control, until the atoms settle two passes in
@@ -27,8 +27,11 @@ def refit(model, max_passes: int = 10) -> int:
 
     Why passes: a merged atom sits at its members' mass-weighted mean, where the data put it only
     when the members were fragments of one atom.  Why training's views per step: with one view a
-    step after training on eight, the refit's own jitter would undo the training's precision."""
-    measured_all = measured_views(model)
+    step after training on eight, the refit's own jitter would undo the training's precision.
+
+    ``measured`` (V, H, W), normalised, on the model's device: views to fit instead of the
+    measured ones (the run's own replica, :mod:`.own_floor`)."""
+    measured_all = measured_views(model) if measured is None else measured
     names = [n for n in model.gauss_params.keys() if n in model.optimizers]
     steps, settled, noise = 0, 0, None
     with training_views(model) as cameras:

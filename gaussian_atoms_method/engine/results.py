@@ -32,6 +32,7 @@ from gaussian_atoms_method.atoms.structure_evidence import structure_evidence
 from gaussian_atoms_method.atoms.uncertainty import position_std_A, robust_noise_std
 from gaussian_atoms_method.engine.console import CONSOLE
 from gaussian_atoms_method.engine.noise_reading import say_residual
+from gaussian_atoms_method.engine.own_floor import widen_by_own_floor
 from gaussian_atoms_method.engine.progress import ProgressBar
 from gaussian_atoms_method.engine.rendering import detector_axes
 from gaussian_atoms_method.engine.residuals import (
@@ -151,12 +152,14 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
             )
         if model.config.evidence:
             attach_evidence(model, atoms, noise, read, hard_core_A, converged_at is not None)
-    atoms, non_atoms, population = split_atoms(
+    atoms, non_atoms, population, reported = split_atoms(
         atoms, model.density.in_field(model.means.detach()).cpu().numpy(), model.means.device, hard_core_A
     )
     series = model.view_set.series
     if series is not None and series.species and len(atoms):
         atoms.species, atoms.element_confidence = name_species(atoms.masses, series.species)
+    if model.config.own_floor and not any(model.config.precision_floor_A) and atoms.proven is not None and len(atoms):
+        widen_by_own_floor(model, atoms, reported, hard_core_A, registration)
     # Each picture goes to a child as soon as its arrays are known (drawn there while this process
     # writes the atoms); without children, the atoms are written first and the pictures after them.
     pictures = [] if population is None else [(write_population_png, *population, run_dir / "classes.png")]
@@ -395,7 +398,7 @@ def split_atoms(gaussians: AtomSet, in_field: np.ndarray, device="cpu", hard_cor
     (:func:`gaussian_atoms_method.atoms.hard_core.most_apart`; of a pair, the heavier);
     prints the counts (atoms per class).  Returns the atoms, the non-atoms and the population's
     picture's arguments but its path (:func:`gaussian_atoms_method.atoms.pictures.write_population_png`;
-    None with no Gaussian in the field).  The classes' mixture is fitted on
+    None with no Gaussian in the field) and which Gaussians are the atoms ((N,) bool).  The classes' mixture is fitted on
     ``device`` (the run's)."""
     field = gaussians.subset(in_field)
     classes = classify_gaussians(field.masses, field.sigmas, field.positions, device=device)
@@ -434,7 +437,7 @@ def split_atoms(gaussians: AtomSet, in_field: np.ndarray, device="cpu", hard_cor
         if len(field)
         else None
     )
-    return gaussians.subset(reported), gaussians.subset(~reported), population
+    return gaussians.subset(reported), gaussians.subset(~reported), population, reported
 
 
 def reported_as_atoms(positions_A: np.ndarray, in_field: np.ndarray, support: np.ndarray | None = None) -> np.ndarray:

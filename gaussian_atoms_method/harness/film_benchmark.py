@@ -30,7 +30,7 @@ import numpy as np
 from gaussian_atoms_method.atoms.atom_set import AtomSet
 from gaussian_atoms_method.atoms.matching import global_shift, match_atoms
 from gaussian_atoms_method.atoms.pair_distribution import nearest_neighbour_distances
-from gaussian_atoms_method.harness.microscope import ProbeOptics
+from gaussian_atoms_method.physics.microscope import ProbeOptics
 
 PIXEL_SIZE_A = 0.3216
 """The authors' pixel size, Å (README)."""

@@ -6,7 +6,7 @@ spread over every atom) stays outside that statement, and no fit sees it in its 
 So the run's own atoms are taken as a truth and drawn again through physics the fit does not
 share (:func:`~gaussian_atoms_method.harness.replica.replica_of`: ADF atoms, a probe from its
 optics), in the series' own geometry, level and noise, with a misregistration of the size the run
-read off its views or the shifts it learned (:func:`registration_of`); the replica is fitted as
+read off its views or the shifts it learned (:func:`~gaussian_atoms_method.engine.own_floor.registration_of`); the replica is fitted as
 the run was, and its errors against those atoms beside the precision its fit stated give the
 floor (:func:`~gaussian_atoms_method.atoms.calibration.precision_floor_A`).  Given to the run
 (``--pipeline.model.precision-floor-A``), it is added in quadrature to each atom's statement.
@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gaussian_atoms_method.atoms.atom_set import AtomSet
+from gaussian_atoms_method.engine.own_floor import registration_of
 
 MATCH_RADIUS_A = 0.75
 """The scoring radius of the method's paper: a replica atom farther than this from its truth is
@@ -42,28 +43,6 @@ class InternalFloor:
     rmsd_pm: float
     shifts_rms_px: np.ndarray
     offsets_rms_px: np.ndarray
-
-
-def registration_of(atoms: AtomSet, n_views: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """The misregistration an internal replica of ``atoms`` is given: each view's shift (V, 2)
-    (pixels, rows and columns) and gain (V,).  The shifts and gains the run learned
-    (``info["view_shifts_px"]``, ``info["view_gains"]``: the replica's fit learns them again), else
-    what its views were read to sit off its atoms (``info["view_offsets_px"]``,
-    ``info["view_gain_offsets"]``), else random shifts of the RMS it read
-    (``info["view_shifts_rms_px"]``), else none.
-
-    >>> shifts, gains = registration_of(AtomSet(np.zeros((1, 3)), info={"view_shifts_rms_px": [0.5, 0.0]}), 400)
-    >>> round(float(shifts[:, 0].std()), 1), float(abs(shifts[:, 1]).max()), float(gains.min())
-    (0.5, 0.0, 1.0)
-    """
-    info = atoms.info
-    shifts = info.get("view_shifts_px", info.get("view_offsets_px"))
-    if shifts is None:
-        rms = np.asarray(info.get("view_shifts_rms_px", (0.0, 0.0)), dtype=np.float64)
-        shifts = np.random.default_rng(seed).normal(0.0, 1.0, size=(n_views, 2)) * rms
-    gains = info.get("view_gains", info.get("view_gain_offsets"))
-    gains = np.ones(n_views) if gains is None else np.asarray(gains, dtype=np.float64)
-    return np.asarray(shifts, dtype=np.float64).reshape(n_views, 2), gains.reshape(n_views)
 
 
 def internal_floor(
@@ -114,10 +93,11 @@ def internal_floor(
     origin = np.asarray(series.origin_A, dtype=np.float64)
     truth = AtomSet(atoms.positions - origin, species=np.asarray(elements))
     n_views = len(series.projections)
-    shifts, gains = registration_of(atoms, n_views, seed)
+    shifts, gains = registration_of(atoms.info, n_views, seed)
     made = replica_of(series, truth, seed=seed, shifts_px=shifts, optics=optics or DEFAULT_OPTICS, support_A=support_A)
     projections = (made.projections * gains[:, None, None]).astype(np.float32)
     replica_series = dataclasses.replace(series, projections=projections, truth_path=None)
+    model_options.setdefault("own_floor", False)  # the floor is read here: the refit states the views' scatter
     refit = reconstruct(
         replica_series,
         species=species,

@@ -39,11 +39,8 @@ import torch
 from scipy import ndimage
 
 from gaussian_atoms_method.atoms.atom_set import AtomSet
-from gaussian_atoms_method.harness.microscope import ProbeOptics
+from gaussian_atoms_method.physics.microscope import DEFAULT_OPTICS, ProbeOptics
 
-DEFAULT_OPTICS = ProbeOptics(source_fwhm_A=0.7)
-"""A 300 kV probe of 20 mrad at 40 Å defocus and 10 µm Cs (rings and tails), spread by an
-effective source of 0.7 Å (the middle of an aberration-corrected field-emission STEM's 0.5-1 Å)."""
 
 CARBON_DENSITY_PER_A3 = 0.10
 """Amorphous carbon support films: 1.9-2.2 g/cm³, 0.095-0.11 carbon atoms per Å³."""
@@ -177,8 +174,8 @@ def replica_of(
         shift brings them back to (0: not cropped).  The noise comes out correlated, as the
         interpolated crops of measured views hold it; its variance at each level stays the one drawn.
     """
-    from gaussian_atoms_method.harness.adf import adf_projections, adf_weights, scan_jitter
-    from gaussian_atoms_method.harness.microscope import convolve_views, probe_transfer
+    from gaussian_atoms_method.physics.adf import adf_projections, adf_weights, scan_jitter
+    from gaussian_atoms_method.physics.microscope import convolve_views, probe_transfer
     from gaussian_atoms_method.physics.noise import noise_from_projections
 
     if atoms.species is None or not len(atoms):

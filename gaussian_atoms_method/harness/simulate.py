@@ -286,7 +286,7 @@ def simulate_tilt_series(
     if potential == "adf":
         blurred = clean  # the probe is drawn with the atoms
     elif probe == "aberrated":
-        from gaussian_atoms_method.harness.microscope import ProbeOptics, convolve_views
+        from gaussian_atoms_method.physics.microscope import ProbeOptics, convolve_views
 
         blurred, widths = convolve_views(clean, (optics or ProbeOptics()).intensity(pixel_size_A)), None
     elif probe == "gaussian":
@@ -296,7 +296,7 @@ def simulate_tilt_series(
     if field_of_view_A is not None:
         blurred, atoms, widths = _crop_to_field(blurred, atoms, widths, pixel_size_A, field_of_view_A)
     if floor_fraction:
-        from gaussian_atoms_method.harness.microscope import add_varying_floor
+        from gaussian_atoms_method.physics.microscope import add_varying_floor
 
         blurred = add_varying_floor(blurred, floor_fraction, floor_variation, seed)
     noisy = blur_and_noise(blurred, pixel_size_A, 0.0, noise_std, seed)
@@ -313,8 +313,8 @@ def simulate_tilt_series(
 def _adf_views(atoms, angles_deg, pixel_size_A, detector_pixels, tilt_axis, probe, blur_sigma_A, optics):
     """ADF views (:func:`.adf.adf_projections`: each atom a power of its Lobato projected potential
     with intensity ``Z^1.7``) through the probe, on a square detector centred on the tilt centre."""
-    from gaussian_atoms_method.harness.adf import adf_projections, adf_weights
-    from gaussian_atoms_method.harness.microscope import ProbeOptics, probe_transfer
+    from gaussian_atoms_method.physics.adf import adf_projections, adf_weights
+    from gaussian_atoms_method.physics.microscope import ProbeOptics, probe_transfer
 
     transfer = probe_transfer(probe, optics or ProbeOptics(), blur_sigma_A)
     centre = (detector_pixels - 1) / 2.0

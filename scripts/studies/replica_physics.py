@@ -16,7 +16,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from gaussian_atoms_method.harness.microscope import ProbeOptics
+from gaussian_atoms_method.physics.microscope import ProbeOptics
 
 VARIANTS = {
     "adf-atoms": {"probe": "gaussian", "blur_sigma_A": 0.5},

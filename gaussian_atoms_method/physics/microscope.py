@@ -123,6 +123,11 @@ class ProbeOptics:
                 self.halo_hwhm_A)  # fmt: skip
 
 
+DEFAULT_OPTICS = ProbeOptics(source_fwhm_A=0.7)
+"""A 300 kV probe of 20 mrad at 40 Å defocus and 10 µm Cs (rings and tails), spread by an
+effective source of 0.7 Å (the middle of an aberration-corrected field-emission STEM's 0.5-1 Å)."""
+
+
 def gaussian_transfer(sigma_A: float, shape: tuple[int, int], spacing_A: float) -> np.ndarray:
     """A Gaussian probe's transfer (width ``sigma_A``) on a periodic grid (numpy's FFT order)."""
     return np.exp(-2.0 * np.pi**2 * sigma_A**2 * _squared_frequencies(shape, spacing_A))
