@@ -7,12 +7,12 @@ import pytest
 pytest.importorskip("abtem")
 
 from gaussian_atoms_method.physics.adf import adf_projections, scan_jitter  # noqa: E402
+from gaussian_atoms_method.physics.geometry import detector_axes_of, pixel_centres  # noqa: E402
 from gaussian_atoms_method.physics.microscope import (  # noqa: E402
     ProbeOptics,
     aberrated_probe_intensity,
     electron_wavelength_A,
 )
-from gaussian_atoms_method.physics.geometry import detector_axes_of, pixel_centres  # noqa: E402
 
 PIXEL_A = 0.3
 
@@ -203,6 +203,8 @@ def test_the_deposited_adf_views_equal_the_exact_ones_far_below_any_noise():
     axes = detector_axes_of([-50.0, 3.0, 61.0])
     kwargs = dict(probe=ProbeOptics(source_fwhm_A=0.7).transfer)
     exact = adf_projections(atoms, species, weights, axes, (57, 53), PIXEL_A, (28.3, 26.1), **kwargs)
-    deposit = adf_projections(atoms, species, weights, axes, (57, 53), PIXEL_A, (28.3, 26.1), method="deposit", **kwargs)
+    deposit = adf_projections(
+        atoms, species, weights, axes, (57, 53), PIXEL_A, (28.3, 26.1), method="deposit", **kwargs
+    )
     assert np.abs(deposit - exact).max() < 5e-3 * exact.max()
     assert deposit.sum() == pytest.approx(exact.sum(), rel=1e-5)

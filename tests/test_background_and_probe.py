@@ -4,8 +4,8 @@ harness; the noise the final stage judges in."""
 import numpy as np
 import pytest
 
-from gaussian_atoms_method.physics.microscope import aberrated_probe_intensity, add_varying_floor, convolve_views
 from gaussian_atoms_method.harness.simulate import blur_and_noise, project_gaussian_potential, spherical_particle
+from gaussian_atoms_method.physics.microscope import aberrated_probe_intensity, add_varying_floor, convolve_views
 from gaussian_atoms_method.physics.noise import NoiseModel, atom_scale_excess, noise_from_projections
 
 ANGLES = np.arange(-60.0, 61.0, 10.0)

@@ -95,11 +95,11 @@ def cannot_draw(species) -> str | None:
     """Why the run cannot draw its own replica (None where it can): the atoms' elements
     unknown, or abTEM's potentials missing."""
     if species is None or np.any(np.asarray(species) == "X"):
-        return "the atoms' elements are not known (give --species)"
+        return "give --species"
     try:
         import abtem  # noqa: F401
     except ImportError:
-        return "abTEM's potentials are not installed (pip install 'gaussian-atoms[sim]')"
+        return "pip install 'gaussian-atoms[sim]'"
     return None
 
 
@@ -143,7 +143,9 @@ def draw_replica(model, atoms: AtomSet, reported: np.ndarray, registration, seed
             drawn[v] = ndimage.shift(drawn[v], shifts[v], order=3, mode="nearest")
         drawn[v] *= gains[v]
     clean = rest / scale + drawn  # input units
-    variance = np.clip(noise_from_projections(np.asarray(series.projections, dtype=np.float64)).variance(clean), 0, None)
+    variance = np.clip(
+        noise_from_projections(np.asarray(series.projections, dtype=np.float64)).variance(clean), 0, None
+    )
     noisy = clean + np.random.default_rng(seed).standard_normal(clean.shape) * np.sqrt(variance)
     return torch.as_tensor((noisy * scale).astype(np.float32), device=model.means.device)
 
@@ -195,10 +197,9 @@ def widen_by_own_floor(model, atoms: AtomSet, reported: np.ndarray, hard_core_A:
 
     why = cannot_draw(atoms.species)
     if why is None and not model.optimizers:
-        why = "the run has no optimisers to refit with"
+        why = "no optimisers to refit with"
     if why is not None:
-        CONSOLE.print(f"gaussian-atoms: no floor read on the run's own replica: {why}; the stated precision holds "
-                      "only the scatter the views show")  # fmt: skip
+        CONSOLE.print(f"gaussian-atoms: no precision floor read on the run's own replica ({why})")
         return
     info = dict(atoms.info)
     if registration is not None:

@@ -398,8 +398,8 @@ def split_atoms(gaussians: AtomSet, in_field: np.ndarray, device="cpu", hard_cor
     (:func:`gaussian_atoms_method.atoms.hard_core.most_apart`; of a pair, the heavier);
     prints the counts (atoms per class).  Returns the atoms, the non-atoms and the population's
     picture's arguments but its path (:func:`gaussian_atoms_method.atoms.pictures.write_population_png`;
-    None with no Gaussian in the field) and which Gaussians are the atoms ((N,) bool).  The classes' mixture is fitted on
-    ``device`` (the run's)."""
+    None with no Gaussian in the field) and which Gaussians are the atoms ((N,) bool).  The
+    classes' mixture is fitted on ``device`` (the run's)."""
     field = gaussians.subset(in_field)
     classes = classify_gaussians(field.masses, field.sigmas, field.positions, device=device)
     reported = reported_as_atoms(gaussians.positions, in_field, classes.atoms)

@@ -1,18 +1,20 @@
 """The error a run's stated precision cannot show, read on an internal replica of its own result.
 
-A run states each atom's precision from the scatter its views show.  A bias alike in every view
-(the atom's profile and the probe's rings against the fit's Gaussians, the views' misregistration
-spread over every atom) stays outside that statement, and no fit sees it in its own residual.
-So the run's own atoms are taken as a truth and drawn again through physics the fit does not
-share (:func:`~gaussian_atoms_method.harness.replica.replica_of`: ADF atoms, a probe from its
-optics), in the series' own geometry, level and noise, with a misregistration of the size the run
-read off its views or the shifts it learned (:func:`~gaussian_atoms_method.engine.own_floor.registration_of`); the replica is fitted as
-the run was, and its errors against those atoms beside the precision its fit stated give the
-floor (:func:`~gaussian_atoms_method.atoms.calibration.precision_floor_A`).  Given to the run
-(``--pipeline.model.precision-floor-A``), it is added in quadrature to each atom's statement.
+A run states each atom's precision from the scatter its views show. A bias alike in every view (the
+atom's profile and the probe's rings against the fit's Gaussians, the views' misregistration spread
+over every atom) stays outside that statement, and no fit sees it in its own residual. So the run's
+own atoms are taken as a truth and drawn again through physics the fit does not share
+(:func:`~gaussian_atoms_method.harness.replica.replica_of`: ADF atoms, a probe from its optics), in
+the series' own geometry, level and noise, with a misregistration of the size the run read off its
+views or the shifts it learned (:func:`~gaussian_atoms_method.engine.own_floor.registration_of`);
+the replica is fitted as the run was, and its errors against those atoms beside the precision its
+fit stated give the floor (:func:`~gaussian_atoms_method.atoms.calibration.precision_floor_A`).
+Given to the run (``--pipeline.model.precision-floor-A``), it is added in quadrature to each atom's
+statement.
 
-The replica's probe is an assumption (:data:`.replica.DEFAULT_OPTICS` unless given): the floor
-holds the bias of that physics, not of the microscope's own, which nothing here knows.
+The replica's probe is an assumption
+(:data:`~gaussian_atoms_method.physics.microscope.DEFAULT_OPTICS` unless given): the floor holds the
+bias of that physics, not of the microscope's own, which nothing here knows.
 """
 
 from __future__ import annotations

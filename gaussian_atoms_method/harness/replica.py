@@ -41,7 +41,6 @@ from scipy import ndimage
 from gaussian_atoms_method.atoms.atom_set import AtomSet
 from gaussian_atoms_method.physics.microscope import DEFAULT_OPTICS, ProbeOptics
 
-
 CARBON_DENSITY_PER_A3 = 0.10
 """Amorphous carbon support films: 1.9-2.2 g/cm³, 0.095-0.11 carbon atoms per Å³."""
 
