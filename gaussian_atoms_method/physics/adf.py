@@ -156,13 +156,14 @@ def adf_projections(
     transfers = {}
     for element in sorted(set(species.tolist())):
         k, t = adf_kernel_transform(element, parametrization, k_max=float(k_abs.max()) * 1.001)
-        transfers[element] = (species == element, np.interp(k_abs, k, t) * blur)
+        transfer = np.interp(k_abs, k, t) * blur
+        transfers[element] = (species == element, transfer.astype(np.complex64) if method == "deposit" else transfer)
     out = np.zeros((len(detector_axes), h, w), dtype=np.float64)
     crop = (slice(pad, pad + h), slice(pad, pad + w))
     for v, axes in enumerate(np.asarray(detector_axes, dtype=np.float64)):
         local = positions @ axes[:2].T + origin
         seen = np.all((local >= lo) & (local <= hi), axis=1)
-        spectrum = np.zeros(grid, dtype=np.complex128)
+        spectrum = np.zeros(grid, dtype=np.complex64 if method == "deposit" else np.complex128)
         for mine, transfer in transfers.values():
             chosen = mine & seen
             if not chosen.any():
@@ -173,6 +174,10 @@ def adf_projections(
             rows = np.exp(-2j * np.pi * np.outer(local[chosen, 0], k_rows)) * weights[chosen, None]
             cols = np.exp(-2j * np.pi * np.outer(local[chosen, 1], k_cols))
             spectrum += transfer * (rows.T @ cols)
+        if method == "deposit":  # sampled at the pixels: the spectrum folded onto the detector's grid
+            folded = spectrum.reshape(oversample, grid[0] // oversample, oversample, grid[1] // oversample).sum((0, 2))
+            out[v] = (np.fft.ifft2(folded).real / (oversample**2 * fine**2))[crop]
+            continue
         out[v] = (np.fft.ifft2(spectrum).real[::oversample, ::oversample] / fine**2)[crop]
     return out
 
@@ -201,7 +206,9 @@ def _deposit_spectrum(at_px: np.ndarray, weights: np.ndarray, grid: tuple[int, i
         index = ((base[:, 0] + dr) % grid[0]) * grid[1] + (base[:, 1] + dc) % grid[1]
         flat += np.bincount(index, weights=share, minlength=flat.size)
     sharing = np.outer(np.sinc(np.fft.fftfreq(grid[0])) ** 2, np.sinc(np.fft.fftfreq(grid[1])) ** 2)
-    return np.fft.fft2(flat.reshape(grid)) / sharing
+    from scipy import fft
+
+    return fft.fft2(flat.reshape(grid).astype(np.float32), workers=-1) / sharing.astype(np.float32)
 
 
 def scan_jitter(views: np.ndarray, rms_px: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
