@@ -32,7 +32,9 @@ def main() -> None:
     from gaussian_atoms_method.atoms.matching import global_shift, match_atoms
     from gaussian_atoms_method.harness import film_benchmark as fb
 
-    print("| sub-area | own floor | found | false per atom | RMSD (pm) | hold x/y/z | depth hold | floor (pm) | run (s) |")
+    print(
+        "| sub-area | own floor | found | false per atom | RMSD (pm) | hold x/y/z | depth hold | floor (pm) | run (s) |"
+    )
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for area in args.areas:
         area_dir = fb.prepare_area(args.data, args.output / "data", area, "Ta")
