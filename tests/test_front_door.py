@@ -332,3 +332,17 @@ def test_the_film_benchmark_says_its_specimen_is_a_film_unless_told_otherwise():
     assert extended_object(("--pipeline.model.cluster-merge", "False")) == "on"
     assert extended_object(("--pipeline.model.extended-object", "auto")) == "auto"
     assert extended_object(("--pipeline.model.extended-object=off",)) == "off"
+
+
+def test_a_console_counts_a_progress_bars_redrawings_as_the_one_line_a_terminal_shows():
+    """The console's length is what a terminal shows: a bar redrawn after carriage returns is one
+    line, and a nested bar (drawn on the line below, the cursor moved back up after each
+    drawing) is its last drawing; the FutureWarnings of an import and their source lines are not
+    ours."""
+    from gaussian_atoms_method.harness.input_cases import own_lines
+
+    text = (
+        "gaussian-atoms: start\nx.py:3: FutureWarning: old\n  import y\n"
+        "\rsteps 10%\rsteps 50%\n\revidence 20%\x1b[A\n\revidence 60%\x1b[A\nevidence 100%\n\rsteps 100%\ndone"
+    )
+    assert own_lines(text) == ["gaussian-atoms: start", "steps 50%", "evidence 100%", "steps 100%", "done"]

@@ -196,13 +196,16 @@ ODD: dict[str, Callable[[Path], Path]] = {
 
 def own_lines(text: str) -> list[str]:
     """Lines of a launcher's output as a terminal shows them (a progress bar's redrawings after
-    carriage returns are one line) less the FutureWarnings torch and nerfstudio print on import
+    carriage returns are one line, and a nested bar's drawings before its last, each followed by a
+    cursor-up, are the line below it) less the FutureWarnings torch and nerfstudio print on import
     (each a "...Warning: ..." line and the indented source line under it): what the one-line rule
     for bad input and the console's length are about."""
     lines, skip = [], False
     for physical in text.split("\n"):
         # A progress bar redraws its line after each carriage return: a terminal shows the last drawing.
         line = next((part for part in reversed(physical.split("\r")) if part.strip()), "")
+        if "\x1b[A" in line:  # a nested bar drawn below, the cursor moved back up: redrawn in place
+            continue
         if "Warning: " in line:
             skip = True
             continue
