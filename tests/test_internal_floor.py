@@ -54,7 +54,8 @@ def test_a_run_reads_its_own_floor_and_its_intervals_hold_a_shared_bias():
     floor the intervals hold 0.88 of the 450 errors (the test above); with it at least 0.92 (the
     hold of 450 errors scatters by 1%, binomial, about its 0.95), and each axis at least 0.85:
     along the beam the refit reads less than the fit's own path leaves (the module's text; 0.88
-    here, 150 errors scatter by 1.8%)."""
+    here, 150 errors scatter by 1.8%).  The atoms, their proofs and the statements before the
+    floor are those of the run without it."""
     import gaussian_atoms_method as ga
 
     series, truth = _biased_series()
@@ -63,6 +64,11 @@ def test_a_run_reads_its_own_floor_and_its_intervals_hold_a_shared_bias():
     assert floor.shape == (3,) and np.all(floor > 0.0) and np.all(floor < 0.05)
     holds = _holds(atoms, truth)
     assert holds.mean() >= 0.92 and holds.min() >= 0.85
+    # the floor changes what is stated, nothing else: the same atoms and proofs as a run without it
+    plain = ga.reconstruct(series, species="Ta", device="cpu", progress=False, own_floor=False)
+    np.testing.assert_array_equal(atoms.positions, plain.positions)
+    np.testing.assert_array_equal(atoms.proven, plain.proven)
+    np.testing.assert_allclose(atoms.position_std_A, np.sqrt(plain.position_std_A**2 + floor**2), rtol=1e-12)
 
 
 def test_the_internal_floor_widens_intervals_a_shared_bias_escapes():
