@@ -18,21 +18,23 @@ physics the fit does not share and asks how far its fit moves them:
 * noise of the variance the measured views hold at each level, as the run read it before its fit
   (:func:`~gaussian_atoms_method.physics.noise.noise_from_projections`).
 
-The fit then starts at its own atoms, on the replica's views, and refits them as its final refit
-does (:func:`.refit.refit`: passes until they settle, no density control); the model is put back
-as it was afterwards.  Each atom's move, less the move common to all (the scorers' global
-shift), is an error against a truth the run knows, and beside the precision the run states for
-that atom it gives the floor (:func:`~gaussian_atoms_method.atoms.calibration.precision_floor_A`)
-that the run adds in quadrature to every atom's statement.
+The fit then starts at its own atoms, on the replica's views, with fresh moments, and refits them
+as its final refit does (:func:`.refit.refit`, no density control) until its passes' means no
+longer drift; the model is put back as it was afterwards.  Each atom's move, less the move common
+to all (the scorers' global shift), is an error against a truth the run knows, and beside the
+precision the run states for that atom it gives the floor
+(:func:`~gaussian_atoms_method.atoms.calibration.precision_floor_A`) that the run adds in
+quadrature to every atom's statement.
 
 Why a warm refit, not a fit from the start: the floor is the error of the atoms found, and a
-refit costs a few passes over the views where a fit costs a run.  On a 2,000-atom Ni-Pd-Pt
-particle through ADF physics (this CPU, elements given), the stated 95% intervals held
-0.74 / 0.72 / 0.73 of the errors against the truth (x, y, z); with the floor read here
-(3.0 / 3.1 / 2.9 pm, the run 47 -> 59 s) 0.92 / 0.93 / 0.88, where a whole second fit
-(``gaussian-atoms internal-floor``) read a floor of 3.6 / 3.8 / 5.1 pm.  Along the beam the refit
-reads less: the fit's own path leaves its atoms farther along z than the data's optimum does
-(refitted from the truth, the real views' z errors fell from 8.4 to 5.6 pm RMS).
+refit costs some passes over the views where a fit costs a run.  Why until no drift, over windows
+that double: the atoms walk away from the truth slowly, along the beam most, by less per pass than
+the passes scatter.  Stopped when neighbouring passes agreed (as the final refit stops), the refit
+of a 2,000-atom Ni-Pd-Pt particle through ADF physics had walked 5.5 pm along z of the 7-8 pm it
+walks in five times as many passes, and the stated intervals held 0.92 / 0.93 / 0.88 (x, y, z);
+until no drift (9 passes, 7.6 s) 0.95 / 0.95 / 0.92, against 0.74 / 0.72 / 0.73 without a floor,
+where a whole second fit (``gaussian-atoms internal-floor``) read a floor of 3.6 / 3.8 / 5.1 pm and
+this one reads 4.1 / 4.2 / 4.3 pm.
 
 The replica's probe is an assumption: the floor holds the bias of that physics, not of the
 microscope's own, which nothing here knows.
@@ -53,6 +55,10 @@ from gaussian_atoms_method.engine.console import CONSOLE
 MATCH_RADIUS_A = 0.75
 """The scoring radius of the method's paper: an atom the refit moves farther than this is not
 found again, and its move is not a precision's error."""
+
+MAX_PASSES = 40
+"""The most passes the replica's refit takes (a budget, not a criterion: it stops once its
+passes' means no longer drift; on the 2,000-atom Ni-Pd-Pt particle after 9)."""
 
 DEAD_LOG_AMPLITUDE = -80.0
 """A log-amplitude whose Gaussian renders nothing (``exp(-80)`` ~ 2e-35 of a unit peak)."""
@@ -168,7 +174,7 @@ def read_own_floor(model, atoms: AtomSet, reported: np.ndarray, info: dict, seed
     for o in model.optimizers.values():
         o.state.clear()  # fresh moments: training's early gradients would shrink every step
     try:
-        steps = refit(model, measured=replica)
+        steps = refit(model, max_passes=MAX_PASSES, measured=replica, until_still=True)
         moved = model.atoms().positions[reported] - atoms.positions
     finally:
         with torch.no_grad():

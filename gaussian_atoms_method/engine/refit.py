@@ -13,7 +13,7 @@ from gaussian_atoms_method.engine.rendering import index_on, render_views
 from gaussian_atoms_method.engine.residuals import in_chunks, measured_views, training_views
 
 
-def refit(model, max_passes: int = 10, measured: torch.Tensor | None = None) -> int:
+def refit(model, max_passes: int = 10, measured: torch.Tensor | None = None, until_still: bool = False) -> int:
     """After the final prune and merge: passes over the training views in random order at full
     resolution, as many views per step as training took, with the model's own optimisers (their
     rates where training left them) and no density control, until the atoms settle two passes in
@@ -30,7 +30,9 @@ def refit(model, max_passes: int = 10, measured: torch.Tensor | None = None) -> 
     step after training on eight, the refit's own jitter would undo the training's precision.
 
     ``measured`` (V, H, W), normalised, on the model's device: views to fit instead of the
-    measured ones (the run's own replica, :mod:`.own_floor`)."""
+    measured ones (the run's own replica, :mod:`.own_floor`).  ``until_still``: settled only
+    when the passes' means no longer drift (:func:`.convergence.drifting`), however little each
+    atom moves in a pass: the place the views' optimum holds, not one the refit reached."""
     measured_all = measured_views(model) if measured is None else measured
     names = [n for n in model.gauss_params.keys() if n in model.optimizers]
     steps, settled, noise = 0, 0, None
@@ -55,16 +57,19 @@ def refit(model, max_passes: int = 10, measured: torch.Tensor | None = None) -> 
                 std, noise = result
                 precision_A = np.sqrt((std**2).sum(axis=1))
                 moving = int(np.count_nonzero(moved_A > precision_A))
-                jitter_only = len(passes) >= 3 and not drifting(
-                    *(
-                        m.cpu().double().numpy() / model.normalisation.length_scale
-                        for m in (passes[-2], passes[-1], now)
-                    ),
-                    precision_A,
-                )
-                settled = (
-                    settled + 1 if moving <= model.config.false_discovery_rate * len(moved_A) or jitter_only else 0
-                )
+                n = len(passes)  # the passes so far, now the n-th
+                # a slow drift hides in the scatter between neighbouring passes: over windows that
+                # double (passes n/4, n/2, n) it grows with them while the scatter does not
+                window = (n // 4, n // 2, -1) if until_still else (-3, -2, -1)
+                if until_still and n < 4 or not until_still and n < 3:
+                    jitter_only = False
+                else:
+                    chosen = [(passes + [now])[i] for i in window]
+                    jitter_only = not drifting(
+                        *(m.cpu().double().numpy() / model.normalisation.length_scale for m in chosen), precision_A
+                    )
+                few_moving = moving <= model.config.false_discovery_rate * len(moved_A) and not until_still
+                settled = settled + 1 if few_moving or jitter_only else 0
                 first = first if settled else len(passes)
                 passes.append(now)
                 if settled >= 2:
