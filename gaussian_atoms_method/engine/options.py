@@ -189,8 +189,9 @@ class FitOptions(DensitySettings, UserFirstOptions):
     own_floor: bool = True
     """Read that floor in the run itself where no floor is given: the run's atoms drawn again
     through ADF physics (abTEM's potentials, a probe with rings and tails) with its registration
-    and noise, refitted from where they stand, their errors beside the precision stated
-    (:mod:`gaussian_atoms_method.engine.own_floor`; it costs about a final refit).  Needs the
+    and noise, refitted from where they stand until their passes no longer drift, their errors
+    beside the precision stated (:mod:`gaussian_atoms_method.engine.own_floor`; its cost:
+    docs/performance.md).  Needs the
     atoms' elements (``--species``) and abTEM; without them the run says so and states the views'
     scatter alone."""
     projector: Literal["auto", "tiled", "dense", "gsplat"] = "auto"
