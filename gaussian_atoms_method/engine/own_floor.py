@@ -68,12 +68,11 @@ DEAD_LOG_AMPLITUDE = -80.0
 class OwnFloor:
     """``floor_A`` (3,) the error along x, y, z (Å) the stated precision did not hold on the run's
     own replica; ``coverage_95`` (3,) the share of its errors inside the run's stated 95%
-    intervals; ``found`` the share of the atoms its refit kept within :data:`MATCH_RADIUS_A`;
-    ``rms_A`` (3,) their errors' RMS; ``steps`` the refit's steps."""
+    intervals (over the atoms its refit kept within :data:`MATCH_RADIUS_A`); ``rms_A`` (3,) their
+    errors' RMS; ``steps`` the refit's steps."""
 
     floor_A: np.ndarray
     coverage_95: np.ndarray
-    found: float
     rms_A: np.ndarray
     steps: int
 
@@ -114,11 +113,9 @@ def draw_replica(model, atoms: AtomSet, reported: np.ndarray, registration, seed
     """(V, H, W) the replica's views (module text), normalised as the model's, on its device:
     ``atoms`` the reported atoms (Å, the truth frame, with ``species``), ``reported`` (N,) bool
     over the model's Gaussians, ``registration`` (shifts (V, 2) px, gains (V,))."""
-    from scipy import ndimage
-
     from gaussian_atoms_method.engine.residuals import render_training_views
     from gaussian_atoms_method.physics.adf import adf_projections
-    from gaussian_atoms_method.physics.microscope import DEFAULT_OPTICS
+    from gaussian_atoms_method.physics.microscope import DEFAULT_OPTICS, misregistered
     from gaussian_atoms_method.physics.noise import noise_from_projections
 
     series, scale = model.view_set.series, model.normalisation.data_scale
@@ -144,12 +141,7 @@ def draw_replica(model, atoms: AtomSet, reported: np.ndarray, registration, seed
         probe=DEFAULT_OPTICS.transfer,
         method="deposit",
     )
-    shifts, gains = registration
-    for v in range(len(drawn)):
-        if np.any(shifts[v]):
-            drawn[v] = ndimage.shift(drawn[v], shifts[v], order=3, mode="nearest")
-        drawn[v] *= gains[v]
-    clean = rest + drawn * scale  # normalised units
+    clean = rest + misregistered(drawn, *registration) * scale  # normalised units
     noise = getattr(model, "measured_noise", None)  # read from the views before the fit (normalised)
     if noise is None:
         noise = noise_from_projections(np.asarray(series.projections, dtype=np.float64) * scale)
@@ -189,7 +181,6 @@ def read_own_floor(model, atoms: AtomSet, reported: np.ndarray, info: dict, seed
     return OwnFloor(
         floor_A=precision_floor_A(error, stated),
         coverage_95=(np.abs(error) <= Z95 * stated).mean(axis=0) if found.any() else np.full(3, np.nan),
-        found=float(found.mean()) if len(found) else float("nan"),
         rms_A=np.sqrt((error**2).mean(axis=0)) if found.any() else np.full(3, np.nan),
         steps=steps,
     )

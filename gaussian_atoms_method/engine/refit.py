@@ -57,17 +57,13 @@ def refit(model, max_passes: int = 10, measured: torch.Tensor | None = None, unt
                 std, noise = result
                 precision_A = np.sqrt((std**2).sum(axis=1))
                 moving = int(np.count_nonzero(moved_A > precision_A))
-                n = len(passes)  # the passes so far, now the n-th
+                means, n = passes + [now], len(passes)  # the start, then each pass's mean; now the n-th
                 # a slow drift hides in the scatter between neighbouring passes: over windows that
                 # double (passes n/4, n/2, n) it grows with them while the scatter does not
-                window = (n // 4, n // 2, -1) if until_still else (-3, -2, -1)
-                if until_still and n < 4 or not until_still and n < 3:
-                    jitter_only = False
-                else:
-                    chosen = [(passes + [now])[i] for i in window]
-                    jitter_only = not drifting(
-                        *(m.cpu().double().numpy() / model.normalisation.length_scale for m in chosen), precision_A
-                    )
+                window = (n // 4, n // 2, n) if until_still else (n - 2, n - 1, n)
+                jitter_only = n >= (4 if until_still else 3) and not drifting(
+                    *(means[i].cpu().double().numpy() / model.normalisation.length_scale for i in window), precision_A
+                )
                 few_moving = moving <= model.config.false_discovery_rate * len(moved_A) and not until_still
                 settled = settled + 1 if few_moving or jitter_only else 0
                 first = first if settled else len(passes)

@@ -24,11 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gaussian_atoms_method.atoms.atom_set import AtomSet
-from gaussian_atoms_method.engine.own_floor import registration_of
-
-MATCH_RADIUS_A = 0.75
-"""The scoring radius of the method's paper: a replica atom farther than this from its truth is
-not found, and its error is not a precision's."""
+from gaussian_atoms_method.engine.own_floor import MATCH_RADIUS_A, registration_of
 
 
 @dataclass

@@ -174,7 +174,7 @@ def replica_of(
         interpolated crops of measured views hold it; its variance at each level stays the one drawn.
     """
     from gaussian_atoms_method.physics.adf import adf_projections, adf_weights, scan_jitter
-    from gaussian_atoms_method.physics.microscope import convolve_views, probe_transfer
+    from gaussian_atoms_method.physics.microscope import convolve_views, misregistered, probe_transfer
     from gaussian_atoms_method.physics.noise import noise_from_projections
 
     if atoms.species is None or not len(atoms):
@@ -218,10 +218,7 @@ def replica_of(
     if shifts_px is not None:
         shifts = np.asarray(shifts_px, dtype=np.float64).reshape(len(clean), 2)
     gains = 1.0 + rng.normal(0.0, gain_scatter, size=len(clean)) if gain_scatter > 0 else np.ones(len(clean))
-    for v in range(len(clean)):
-        if np.any(shifts[v]):
-            clean[v] = ndimage.shift(clean[v], shifts[v], order=3, mode="nearest")
-        clean[v] *= gains[v]
+    misregistered(clean, shifts, gains)
     if scan_jitter_px > 0:
         clean = scan_jitter(clean, scan_jitter_px, rng)[0]
     noise = noise_from_projections(real)

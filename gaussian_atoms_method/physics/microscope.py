@@ -143,6 +143,18 @@ def probe_transfer(probe: str, optics: ProbeOptics, blur_sigma_A: float):
     raise ValueError(f"probe must be 'gaussian' or 'aberrated', got {probe!r}")
 
 
+def misregistered(views: np.ndarray, shifts_px: np.ndarray, gains: np.ndarray) -> np.ndarray:
+    """``views`` (V, H, W), in place, each moved by its shift (V, 2) (pixels, rows and columns;
+    cubic splines, edges held) and scaled by its gain (V,): a series' misregistration."""
+    from scipy import ndimage
+
+    for v in range(len(views)):
+        if np.any(shifts_px[v]):
+            views[v] = ndimage.shift(views[v], shifts_px[v], order=3, mode="nearest")
+        views[v] *= gains[v]
+    return views
+
+
 def convolve_views(projections: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     """Each (H, W) view of ``projections`` (N, H, W) convolved with ``kernel`` (centred), same size."""
     from scipy.signal import fftconvolve
