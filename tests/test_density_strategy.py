@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from gaussian_atoms_method.density.parameters import amplitudes, split_worth, widths
+from gaussian_atoms_method.density.parameters import amplitudes, split_width, split_worth, widths
 from gaussian_atoms_method.density.strategy import DensityControl
 from gaussian_atoms_method.physics.projector import gaussian_mass
 
@@ -448,6 +448,35 @@ def test_a_gaussian_with_part_of_a_neighbour_is_split_where_the_single_atoms_sca
         assert split_worth(control.atoms_worth(params)) == pytest.approx(min(1.5, 1.0 + 1.96 * scatter), abs=0.05)
         assert control.split_heavy_gaussians(params, opts) == split
         assert params["means"].shape[0] == 343 + split
+
+
+def test_a_gaussian_wider_than_one_atom_is_split_whatever_its_mass():
+    """Masses spread as three elements' are (0.2-1.45 typical atoms: two light atoms along the beam
+    weigh what one middle atom does), the widths scattered by 2% as a fit leaves them: a Gaussian
+    of a typical mass but 30% wider than the rest lies beyond the width any single atom reaches
+    among 343 (:func:`split_width`) and is split along the beam; no single atom is, the widest
+    and the heaviest of them included."""
+    rng = np.random.default_rng(5)
+    lattice = np.stack(np.meshgrid(*[np.arange(-3, 4)] * 3, indexing="ij"), -1).reshape(-1, 3) * 2.5
+    lattice = lattice + 0.05 * rng.normal(size=lattice.shape)
+    params, opts, control = _setup(lattice * 0.01, sigma_A=0.006, min_sigma_A=0.01)
+    control.length_scale = 0.01
+    _with_noise(control, read_var=1e-9, pixel_size=0.003, n_views=47, view_dirs=_tilt_series_dirs())
+    worth = np.clip(1.0 + 0.5 * rng.standard_normal(len(lattice)), 0.2, 1.45)
+    sigma = 0.006 * (1.0 + 0.02 * rng.standard_normal(len(lattice)))
+    sigma[171] = 0.0078
+    with torch.no_grad():
+        params["log_sigmas"][:, 0] = torch.log(torch.as_tensor(sigma, dtype=params["log_sigmas"].dtype))
+        amplitude = worth * (0.006 / sigma) ** 3  # each Gaussian's mass its worth in typical atoms
+        amplitude[171] = (0.006 / 0.0078) ** 3
+        params["log_amplitudes"][:, 0] += torch.log(torch.as_tensor(amplitude, dtype=params["log_amplitudes"].dtype))
+    assert split_worth(control.atoms_worth(params)) == pytest.approx(1.5)
+    widest_single = float(np.sort(sigma)[-2])
+    assert widest_single < split_width(torch.as_tensor(sigma)) < 0.0078
+    assert control.split_heavy_gaussians(params, opts) == 1
+    assert params["means"].shape[0] == 344
+    offset = (params["means"].detach()[171] - params["means"].detach()[343]).numpy()
+    assert abs(offset[2]) / np.linalg.norm(offset) > math.cos(math.radians(2.0))
 
 
 def test_settling_mid_run_applies_the_final_prune_but_spares_fresh_additions():

@@ -26,11 +26,13 @@ EVIDENCE_FIELDS = {
     "depth_halfwidth_A": np.float64,
     "depth_open": np.int64,
     "element_confidence": np.float64,
+    "width_std_A": np.float64,
+    "width_open": np.int64,
 }
 """The per-atom (N,) columns after the position's precision: the class and each atom's evidence
 (:mod:`gaussian_atoms_method.atoms.evidence`), by name and type."""
 
-CSV_INTEGER_COLUMNS = frozenset({"class", "proven", "depth_open"})
+CSV_INTEGER_COLUMNS = frozenset({"class", "proven", "depth_open", "width_open"})
 """The CSV columns written as whole numbers."""
 
 
@@ -69,6 +71,12 @@ class AtomSet:
         The probability of the element written, by the atom's mass among the elements' mass
         populations (:func:`~gaussian_atoms_method.atoms.species.classify_species`); NaN where the
         masses could not tell the elements apart.
+    width_std_A : (N,) float array, or None
+        The precision of the atom's width, found as its position's is.
+    width_open : (N,) int array, or None
+        1 where the atom is wider than one atom of its element by more than its width's precision
+        allows (:func:`~gaussian_atoms_method.atoms.calibration.wider_than_one_atom`): its image
+        may hold two atoms the fit did not part.
     """
 
     positions: np.ndarray
@@ -83,6 +91,8 @@ class AtomSet:
     depth_halfwidth_A: np.ndarray | None = None
     depth_open: np.ndarray | None = None
     element_confidence: np.ndarray | None = None
+    width_std_A: np.ndarray | None = None
+    width_open: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.positions = np.asarray(self.positions, dtype=np.float64).reshape(-1, 3)
@@ -236,6 +246,8 @@ EXTXYZ_COLUMNS = {
     "depth_halfwidth_A": ("depth_halfwidth_A", "R", 1),
     "depth_open": ("depth_open", "I", 1),
     "element_confidence": ("element_confidence", "R", 1),
+    "width_std_A": ("width_std_A", "R", 1),
+    "width_open": ("width_open", "I", 1),
 }
 """The per-atom columns of this package's extended XYZ after the species, in the order
 :meth:`AtomSet.to_ase` adds them: name -> (:class:`AtomSet` field, ASE's type letter, width)."""

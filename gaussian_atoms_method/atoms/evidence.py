@@ -103,7 +103,8 @@ class AtomEvidence:
     the views fix least; ``depth_open`` (N,) bool, that interval wider than half the hard core, or
     another place along the axis as good or better; ``depth_profile`` (N, M), the cost's rise in noise
     variances with the atom moved by each of ``depth_offsets_A`` (M,) along the depth axis, the
-    rest re-fitted (empty without the moved pulls)."""
+    rest re-fitted (empty without the moved pulls); ``width_std_A`` (N,), the precision of its
+    width, found the same way as its position's."""
 
     significance: np.ndarray
     proven: np.ndarray
@@ -115,6 +116,7 @@ class AtomEvidence:
     hard_core_A: float | None
     depth_offsets_A: np.ndarray = field(default_factory=lambda: np.zeros(0))
     depth_profile: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    width_std_A: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 def _pairs(positions: np.ndarray, radius_A: float) -> np.ndarray:
@@ -231,6 +233,7 @@ def atom_evidence(
     variance = noise_std**2 * (L1_EFFICIENCY_FACTOR if loss == "l1" else 1.0)
     significance = np.full(n, np.nan)
     covariances = np.full((n, 3, 3), np.nan)
+    width_variance = np.full(n, np.nan)
     offsets = sorted(moved_pulls) if moved_pulls else []
     rises = np.full((n, len(offsets)), np.inf)
     frozen = np.full((n, len(offsets)), np.inf)
@@ -257,13 +260,13 @@ def atom_evidence(
         # the information singular: a ridge of 1e-9 of the diagonal leaves the rest unchanged
         info = info + torch.diag_embed(1e-9 * torch.diagonal(info, dim1=1, dim2=2).clamp_min(1e-300))
         covariance = torch.linalg.inv(info)
-        if scores_on is not None:  # the sandwich, from the position's rows: (C P^T)(P C^T)
+        if scores_on is not None:  # the sandwich, from the position's and width's rows: (C P^T)(P C^T)
             pulls = scores_on[local_on].permute(0, 2, 1, 3).reshape(len(atoms), scores.shape[1], 5 * k)  # (B, V, 5k)
-            rows = covariance[:, :3] @ pulls.transpose(1, 2)  # (B, 3, V)
-            spread = rows @ rows.transpose(1, 2) * (pulls.shape[1] / max(pulls.shape[1] - 1, 1))
-            covariances[atoms] = spread.cpu().numpy()
+            rows = covariance[:, :4] @ pulls.transpose(1, 2)  # (B, 4, V)
+            spread = (rows @ rows.transpose(1, 2) * (pulls.shape[1] / max(pulls.shape[1] - 1, 1))).cpu().numpy()
         else:
-            covariances[atoms] = covariance[:, :3, :3].cpu().numpy()
+            spread = covariance[:, :4, :4].cpu().numpy()
+        covariances[atoms], width_variance[atoms] = spread[:, :3, :3], spread[:, 3, 3]
         if moved_on is not None:
             refitted, held = depth_rises(
                 local,
@@ -294,6 +297,7 @@ def atom_evidence(
             progress(len(atoms))
     if scores is None:  # in units of the information's noise variance
         covariances = covariances * variance * position_factor**2
+        width_variance = width_variance * variance * position_factor**2
     position_std = np.sqrt(np.clip(np.einsum("nii->ni", covariances), 0, None))
     values, vectors = np.linalg.eigh(np.nan_to_num(covariances))
     depth_half = np.where(np.isnan(covariances[:, 0, 0]), np.nan, Z95 * np.sqrt(np.clip(values[:, -1], 0, None)))
@@ -330,6 +334,7 @@ def atom_evidence(
         hard_core_A,
         np.asarray(offsets, dtype=np.float64),
         profile,
+        np.sqrt(np.clip(width_variance, 0, None)),
     )
 
 
@@ -347,6 +352,21 @@ EVIDENCE_SCORES = (
 """The keys of :func:`evidence_scores` a run says on a line of their own before its scores
 (:func:`gaussian_atoms_method.engine.results.write_results`; ``evaluation.json`` holds both);
 ``precision_floor_A`` is said with the scores."""
+
+
+def open_atoms(atoms) -> np.ndarray:
+    """(N,) bool: the atoms a run leaves open (an :class:`~.atom_set.AtomSet` with its
+    evidence): not proven, open in depth, wider than one atom, or open in element (its
+    probability under :data:`~.species.ELEMENT_OPEN_BELOW`); the columns it lacks open none."""
+    from gaussian_atoms_method.atoms.species import ELEMENT_OPEN_BELOW
+
+    is_open = (atoms.proven == 0) | (atoms.depth_open == 1)
+    if atoms.width_open is not None:
+        is_open |= atoms.width_open == 1
+    if atoms.element_confidence is not None:
+        with np.errstate(invalid="ignore"):
+            is_open |= atoms.element_confidence < ELEMENT_OPEN_BELOW
+    return is_open
 
 
 def evidence_scores(
@@ -387,7 +407,7 @@ def evidence_scores(
     error = positions[pi] - truth.positions[ti]
     counted = np.ones(len(pred), bool) if pred_counted is None else np.asarray(pred_counted, bool)
     truth_in = np.ones(len(truth), bool) if truth_counted is None else np.asarray(truth_counted, bool)
-    is_open = (pred.proven == 0) | (pred.depth_open == 1)
+    is_open = open_atoms(pred)
     matched = np.zeros(len(pred), dtype=bool)
     matched[pi] = True
     missed = np.ones(len(truth), dtype=bool)

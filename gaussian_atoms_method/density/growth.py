@@ -12,6 +12,7 @@ from gaussian_atoms_method.density.parameters import (
     Optimizers,
     Params,
     amplitudes,
+    split_width,
     split_worth,
     widths,
 )
@@ -119,7 +120,8 @@ class Growth:
         atom_like = self.atom_width(sig) & self.inside(params["means"])
         typical = self.typical_atom_mass(params)
         worth = mass / max(typical, 1e-300)
-        heavy = atom_like & (worth > split_worth(worth[atom_like])) & ~self.fresh(len(mass)).to(mass.device)
+        two = (worth > split_worth(worth[atom_like])) | (sig > split_width(sig[atom_like]))
+        heavy = atom_like & two & ~self.fresh(len(mass)).to(mass.device)
         single = atom_like & ~heavy
         if typical <= 0 or not bool(heavy.any()) or not bool(single.any()):
             return 0

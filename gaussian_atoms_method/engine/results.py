@@ -22,6 +22,7 @@ import torch
 
 from gaussian_atoms_method.atoms import picture_process
 from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms, write_atoms
+from gaussian_atoms_method.atoms.calibration import wider_than_one_atom
 from gaussian_atoms_method.atoms.classification import classify_gaussians, in_support
 from gaussian_atoms_method.atoms.evidence import EVIDENCE_SCORES
 from gaussian_atoms_method.atoms.hard_core import most_apart
@@ -158,6 +159,9 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
     series = model.view_set.series
     if series is not None and series.species and len(atoms):
         atoms.species, atoms.element_confidence = name_species(atoms.masses, series.species)
+    if atoms.width_std_A is not None:  # after the species: each element's width is its own reference
+        level = atoms.info["proof_level"]
+        atoms.width_open = wider_than_one_atom(atoms.sigmas, atoms.width_std_A, level, atoms.species)
     if model.config.own_floor and not any(model.config.precision_floor_A) and atoms.proven is not None and len(atoms):
         widen_by_own_floor(model, atoms, reported, hard_core_A, registration)
     # Each picture goes to a child as soon as its arrays are known (drawn there while this process
@@ -310,7 +314,7 @@ def attach_evidence(model, atoms: AtomSet, noise: float, read, hard_core_A: floa
     atoms.position_std_A = std
     atoms.significance, atoms.proven = evidence.significance, evidence.proven
     atoms.depth_halfwidth_A, atoms.depth_open = half, depth_open
-    atoms.info["proof_level"] = evidence.proof_level
+    atoms.width_std_A, atoms.info["proof_level"] = evidence.width_std_A, evidence.proof_level
     say_residual(getattr(model, "measured_noise", None), scale, predicted, noise, position_factor, amplitude_factor)
     atoms.info.update(say_view_shifts(residuals, predicted, axes, model.config.refine_alignment))
     ratio = np.nanmedian(evidence.position_std_A / np.maximum(crb, 1e-12), axis=0)
@@ -339,11 +343,13 @@ def say_evidence(atoms: AtomSet) -> None:
     if atoms.proven is None or not len(atoms):
         return
     proven, depth_open = int(atoms.proven.sum()), int(atoms.depth_open.sum())
+    wide = int(atoms.width_open.sum()) if atoms.width_open is not None else 0
     CONSOLE.print(
         f"gaussian-atoms: evidence: {proven} atoms proven, {len(atoms) - proven} open (the views lose less than "
         f"{atoms.info['proof_level']:.1f} noise standard deviations without them, their neighbours re-fitted); "
         f"{depth_open} open in depth (95% interval along the beam wider than half the hard core, or another place "
-        f"there as good or better); median "
+        f"there as good or better); {wide} wider than one atom (may hold two: width above its element's median by "
+        f"more than {atoms.info['proof_level']:.1f} times its precision); median "
         f"significance {np.median(atoms.significance):.1f}"
     )
 
