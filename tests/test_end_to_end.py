@@ -84,8 +84,11 @@ def test_simulate_train_evaluate(tmp_path, simulate_sphere):
     assert np.all(atoms.arrays["proven"] == 1) and np.all(atoms.arrays["significance"] > 20)
     assert np.all(atoms.arrays["depth_open"] == 0) and np.all(atoms.arrays["depth_halfwidth_A"] < 0.1)
     header = (run / "atoms.csv").read_text().splitlines()[0].split(",")
-    assert {"significance", "proven", "depth_halfwidth_A", "depth_open"} <= set(header)
-    assert "atoms proven, 0 open" in " ".join(train.stdout.split())
+    assert {"significance", "proven", "depth_halfwidth_A", "depth_open", "width_open", "trusted"} <= set(header)
+    assert "; open: 0 not proven" in " ".join(train.stdout.split())
+    # trusted: what nothing leaves open, one column (one element: no atom open in element)
+    plain = (atoms.arrays["proven"] == 1) & (atoms.arrays["depth_open"] == 0) & (atoms.arrays["width_open"] == 0)
+    assert np.array_equal(atoms.arrays["trusted"] == 1, plain)
     ev = _run(BIN / "gaussian-atoms", "evaluate", "--pred", run / "atoms.xyz", "--truth", data / "atoms_true.xyz")
     assert ev.returncode == 0, ev.stderr
     scores = json.loads(ev.stdout)

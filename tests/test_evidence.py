@@ -536,6 +536,30 @@ def test_an_atom_wider_than_its_elements_width_or_open_in_element_counts_as_open
     assert scores["open_share_of_false"] == 1.0 and scores["proven_found"] == 1.0
 
 
+def test_the_trust_sentence_counts_each_reason_and_trusts_what_none_leaves_open():
+    """Six atoms: one trusted; one not proven and open in depth; one open in depth; one wider than
+    one atom; one open in element; one whose element the masses could not tell (NaN): the
+    sentence trusts 1 of 6 and counts each reason once per atom it opens."""
+    from gaussian_atoms_method.atoms.atom_set import AtomSet
+    from gaussian_atoms_method.atoms.evidence import open_atoms, trust_words
+
+    atoms = AtomSet(
+        np.zeros((6, 3)),
+        species=["Ni", "Pt", "Ni", "Pt", "Ni", "Pt"],
+        info={"proof_level": 3.9},
+        significance=np.full(6, 10.0),
+        proven=[1, 0, 1, 1, 1, 1],
+        depth_open=[0, 1, 1, 0, 0, 0],
+        width_open=[0, 0, 0, 1, 0, 0],
+        element_confidence=[1.0, 1.0, 0.99, 1.0, 0.6, np.nan],
+    )
+    assert open_atoms(atoms).tolist() == [False, True, True, True, True, True]
+    words = trust_words(atoms)
+    assert words.startswith("trust 1 of 6 atoms") and "element sure" in words
+    for said in ("1 not proven", "2 open in depth", "1 wider than one atom", "2 open in element"):
+        assert said in words
+
+
 def test_the_evidence_scores_split_the_atoms_into_open_and_the_rest_alike():
     """Four atoms on true ones (one proven but open in depth, one not proven), two false (one
     open, one proven and closed), one true atom missed with an open atom 1.2 Å away: the atoms

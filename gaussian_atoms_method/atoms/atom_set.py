@@ -28,11 +28,12 @@ EVIDENCE_FIELDS = {
     "element_confidence": np.float64,
     "width_std_A": np.float64,
     "width_open": np.int64,
+    "trusted": np.int64,
 }
 """The per-atom (N,) columns after the position's precision: the class and each atom's evidence
 (:mod:`gaussian_atoms_method.atoms.evidence`), by name and type."""
 
-CSV_INTEGER_COLUMNS = frozenset({"class", "proven", "depth_open", "width_open"})
+CSV_INTEGER_COLUMNS = frozenset({"class", "proven", "depth_open", "width_open", "trusted"})
 """The CSV columns written as whole numbers."""
 
 
@@ -77,6 +78,10 @@ class AtomSet:
         1 where the atom is wider than one atom of its element by more than its width's precision
         allows (:func:`~gaussian_atoms_method.atoms.calibration.wider_than_one_atom`): its image
         may hold two atoms the fit did not part.
+    trusted : (N,) int array, or None
+        1 where nothing the run read leaves the atom open: proven, closed in depth, one atom
+        wide and, with several elements, its element sure
+        (:func:`~gaussian_atoms_method.atoms.evidence.open_atoms`); 0 where something does.
     """
 
     positions: np.ndarray
@@ -93,6 +98,7 @@ class AtomSet:
     element_confidence: np.ndarray | None = None
     width_std_A: np.ndarray | None = None
     width_open: np.ndarray | None = None
+    trusted: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.positions = np.asarray(self.positions, dtype=np.float64).reshape(-1, 3)
@@ -248,6 +254,7 @@ EXTXYZ_COLUMNS = {
     "element_confidence": ("element_confidence", "R", 1),
     "width_std_A": ("width_std_A", "R", 1),
     "width_open": ("width_open", "I", 1),
+    "trusted": ("trusted", "I", 1),
 }
 """The per-atom columns of this package's extended XYZ after the species, in the order
 :meth:`AtomSet.to_ase` adds them: name -> (:class:`AtomSet` field, ASE's type letter, width)."""

@@ -357,16 +357,56 @@ EVIDENCE_SCORES = (
 def open_atoms(atoms) -> np.ndarray:
     """(N,) bool: the atoms a run leaves open (an :class:`~.atom_set.AtomSet` with its
     evidence): not proven, open in depth, wider than one atom, or open in element (its
-    probability under :data:`~.species.ELEMENT_OPEN_BELOW`); the columns it lacks open none."""
+    probability under :data:`~.species.ELEMENT_OPEN_BELOW`, or unknown: NaN where the masses could
+    not tell the elements given apart); the columns it lacks open none."""
     from gaussian_atoms_method.atoms.species import ELEMENT_OPEN_BELOW
 
     is_open = (atoms.proven == 0) | (atoms.depth_open == 1)
     if atoms.width_open is not None:
         is_open |= atoms.width_open == 1
-    if atoms.element_confidence is not None:
+    if atoms.element_confidence is not None:  # NaN: the masses could not tell the elements given apart
         with np.errstate(invalid="ignore"):
-            is_open |= atoms.element_confidence < ELEMENT_OPEN_BELOW
+            is_open |= ~(atoms.element_confidence >= ELEMENT_OPEN_BELOW)
     return is_open
+
+
+def trust_words(atoms) -> str:
+    """The run's one sentence on which of its ``atoms`` (an :class:`~.atom_set.AtomSet` with its
+    evidence and ``info["proof_level"]``) to trust: how many nothing leaves open (``trusted``),
+    and how many each reason leaves open (an atom may be open for several).
+
+    >>> from gaussian_atoms_method.atoms.atom_set import AtomSet
+    >>> atoms = AtomSet(np.zeros((3, 3)), proven=[1, 1, 0], depth_open=[0, 1, 0], info={"proof_level": 3.6},
+    ...                 significance=[9.0, 8.0, 2.0])
+    >>> trust_words(atoms)[:60]
+    'trust 1 of 3 atoms (trusted 1 in atoms.csv: proven, closed i'
+    """
+    from gaussian_atoms_method.atoms.species import ELEMENT_OPEN_BELOW
+
+    level = atoms.info["proof_level"]
+    trusted = int(np.sum(~open_atoms(atoms)))
+    parts = [
+        f"{int(np.sum(atoms.proven == 0))} not proven (the views lose less than {level:.1f} noise standard "
+        "deviations without them, their neighbours re-fitted)",
+        f"{int(np.sum(atoms.depth_open == 1))} open in depth (95% interval along the beam wider than half the hard "
+        "core, or another place there as good or better)",
+    ]
+    if atoms.width_open is not None:
+        parts.append(
+            f"{int(np.sum(atoms.width_open == 1))} wider than one atom (may hold two: width above its element's "
+            f"median by more than {level:.1f} times its precision)"
+        )
+    sure = (
+        ", element sure" if atoms.element_confidence is not None and not np.all(atoms.element_confidence == 1) else ""
+    )
+    if sure:
+        with np.errstate(invalid="ignore"):
+            unsure = int(np.sum(~(atoms.element_confidence >= ELEMENT_OPEN_BELOW)))
+        parts.append(f"{unsure} open in element (probability under {ELEMENT_OPEN_BELOW:g}, or unknown)")
+    return (
+        f"trust {trusted} of {len(atoms)} atoms (trusted 1 in atoms.csv: proven, closed in depth, one atom "
+        f"wide{sure}); open: " + ", ".join(parts) + f"; median significance {np.median(atoms.significance):.1f}"
+    )
 
 
 def evidence_scores(

@@ -338,20 +338,14 @@ def attach_evidence(model, atoms: AtomSet, noise: float, read, hard_core_A: floa
 
 
 def say_evidence(atoms: AtomSet) -> None:
-    """The summary line of the reported ``atoms``' evidence: how many the views prove, leave
-    open, and leave open in depth."""
+    """Mark the reported ``atoms`` to trust (``trusted``: nothing leaves them open) and say so in
+    the summary line (:func:`~gaussian_atoms_method.atoms.evidence.trust_words`)."""
+    from gaussian_atoms_method.atoms.evidence import open_atoms, trust_words
+
     if atoms.proven is None or not len(atoms):
         return
-    proven, depth_open = int(atoms.proven.sum()), int(atoms.depth_open.sum())
-    wide = int(atoms.width_open.sum()) if atoms.width_open is not None else 0
-    CONSOLE.print(
-        f"gaussian-atoms: evidence: {proven} atoms proven, {len(atoms) - proven} open (the views lose less than "
-        f"{atoms.info['proof_level']:.1f} noise standard deviations without them, their neighbours re-fitted); "
-        f"{depth_open} open in depth (95% interval along the beam wider than half the hard core, or another place "
-        f"there as good or better); {wide} wider than one atom (may hold two: width above its element's median by "
-        f"more than {atoms.info['proof_level']:.1f} times its precision); median "
-        f"significance {np.median(atoms.significance):.1f}"
-    )
+    atoms.trusted = ~open_atoms(atoms)
+    CONSOLE.print(f"gaussian-atoms: evidence: {trust_words(atoms)}")
 
 
 def name_species(masses: np.ndarray, elements: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
