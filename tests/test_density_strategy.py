@@ -393,6 +393,21 @@ def test_likelihood_change_matches_the_pixel_chi_square_and_tells_a_split_atom_f
         assert float(params["means"].detach().abs().max()) < 1e-12  # at the pair's centre of mass
 
 
+def _jittered_lattice(rng) -> np.ndarray:
+    """(343, 3) a 7 x 7 x 7 lattice 2.5 Å apart (in Å), each atom moved by 0.05 Å RMS."""
+    lattice = np.stack(np.meshgrid(*[np.arange(-3, 4)] * 3, indexing="ij"), -1).reshape(-1, 3) * 2.5
+    return lattice + 0.05 * rng.normal(size=lattice.shape)
+
+
+def _lattice_control(lattice: np.ndarray):
+    """Params, optimisers and a density control for ``lattice`` (Å) at a length scale of 0.01,
+    each Gaussian 0.6 Å wide, the noise and the limited tilts' beam directions set."""
+    params, opts, control = _setup(lattice * 0.01, sigma_A=0.006, min_sigma_A=0.01)
+    control.length_scale = 0.01
+    _with_noise(control, read_var=1e-9, pixel_size=0.003, n_views=47, view_dirs=_tilt_series_dirs())
+    return params, opts, control
+
+
 def test_a_gaussian_holding_two_atoms_is_split_along_the_missing_wedge():
     """A lattice of 343 atoms 2.5 Å apart in which one Gaussian, 30% wider, holds two atoms'
     mass (two atoms along the beam, as the fit of a thick particle leaves them): it is split
@@ -400,11 +415,8 @@ def test_a_gaussian_holding_two_atoms_is_split_along_the_missing_wedge():
     (read from the atoms: 2.2-2.5 Å) along z, the axis the limited tilts about y see worst;
     no single atom is touched, and only once a run."""
     rng = np.random.default_rng(2)
-    lattice = np.stack(np.meshgrid(*[np.arange(-3, 4)] * 3, indexing="ij"), -1).reshape(-1, 3) * 2.5
-    lattice = lattice + 0.05 * rng.normal(size=lattice.shape)
-    params, opts, control = _setup(lattice * 0.01, sigma_A=0.006, min_sigma_A=0.01)
-    control.length_scale = 0.01
-    _with_noise(control, read_var=1e-9, pixel_size=0.003, n_views=47, view_dirs=_tilt_series_dirs())
+    lattice = _jittered_lattice(rng)
+    params, opts, control = _lattice_control(lattice)
     heavy = 171  # the lattice's centre
     with torch.no_grad():
         params["log_sigmas"][heavy] = math.log(0.0078)
@@ -435,12 +447,9 @@ def test_a_gaussian_with_part_of_a_neighbour_is_split_where_the_single_atoms_sca
     the heaviest of them included, are not.  With the masses spread as wide as two species' the
     ceiling holds: 1.33 is left whole."""
     rng = np.random.default_rng(3)
-    lattice = np.stack(np.meshgrid(*[np.arange(-3, 4)] * 3, indexing="ij"), -1).reshape(-1, 3) * 2.5
-    lattice = lattice + 0.05 * rng.normal(size=lattice.shape)
+    lattice = _jittered_lattice(rng)
     for scatter, split in ((0.1, 1), (0.5, 0)):
-        params, opts, control = _setup(lattice * 0.01, sigma_A=0.006, min_sigma_A=0.01)
-        control.length_scale = 0.01
-        _with_noise(control, read_var=1e-9, pixel_size=0.003, n_views=47, view_dirs=_tilt_series_dirs())
+        params, opts, control = _lattice_control(lattice)
         worth = np.clip(1.0 + scatter * rng.standard_normal(len(lattice)), 0.2, 1.0 + min(1.5 * scatter, 0.45))
         worth[171] = 1.33
         with torch.no_grad():
@@ -457,11 +466,8 @@ def test_a_gaussian_wider_than_one_atom_is_split_whatever_its_mass():
     among 343 (:func:`split_width`) and is split along the beam; no single atom is, the widest
     and the heaviest of them included."""
     rng = np.random.default_rng(5)
-    lattice = np.stack(np.meshgrid(*[np.arange(-3, 4)] * 3, indexing="ij"), -1).reshape(-1, 3) * 2.5
-    lattice = lattice + 0.05 * rng.normal(size=lattice.shape)
-    params, opts, control = _setup(lattice * 0.01, sigma_A=0.006, min_sigma_A=0.01)
-    control.length_scale = 0.01
-    _with_noise(control, read_var=1e-9, pixel_size=0.003, n_views=47, view_dirs=_tilt_series_dirs())
+    lattice = _jittered_lattice(rng)
+    params, opts, control = _lattice_control(lattice)
     worth = np.clip(1.0 + 0.5 * rng.standard_normal(len(lattice)), 0.2, 1.45)
     sigma = 0.006 * (1.0 + 0.02 * rng.standard_normal(len(lattice)))
     sigma[171] = 0.0078
