@@ -354,19 +354,25 @@ EVIDENCE_SCORES = (
 ``precision_floor_A`` is said with the scores."""
 
 
-def open_atoms(atoms) -> np.ndarray:
-    """(N,) bool: the atoms a run leaves open (an :class:`~.atom_set.AtomSet` with its
-    evidence): not proven, open in depth, wider than one atom, or open in element (its
-    probability under :data:`~.species.ELEMENT_OPEN_BELOW`, or unknown: NaN where the masses could
-    not tell the elements given apart); the columns it lacks open none."""
+def element_open(atoms) -> np.ndarray:
+    """(N,) bool: the element written for each of ``atoms`` is open: its probability under
+    :data:`~.species.ELEMENT_OPEN_BELOW`, or unknown (NaN: the masses could not tell the elements
+    given apart); all False without ``element_confidence``."""
     from gaussian_atoms_method.atoms.species import ELEMENT_OPEN_BELOW
 
-    is_open = (atoms.proven == 0) | (atoms.depth_open == 1)
+    if atoms.element_confidence is None:
+        return np.zeros(len(atoms), bool)
+    with np.errstate(invalid="ignore"):
+        return ~(atoms.element_confidence >= ELEMENT_OPEN_BELOW)
+
+
+def open_atoms(atoms) -> np.ndarray:
+    """(N,) bool: the atoms a run leaves open (an :class:`~.atom_set.AtomSet` with its
+    evidence): not proven, open in depth, wider than one atom, or open in element
+    (:func:`element_open`); the columns it lacks open none."""
+    is_open = (atoms.proven == 0) | (atoms.depth_open == 1) | element_open(atoms)
     if atoms.width_open is not None:
         is_open |= atoms.width_open == 1
-    if atoms.element_confidence is not None:  # NaN: the masses could not tell the elements given apart
-        with np.errstate(invalid="ignore"):
-            is_open |= ~(atoms.element_confidence >= ELEMENT_OPEN_BELOW)
     return is_open
 
 
@@ -396,16 +402,16 @@ def trust_words(atoms) -> str:
             f"{int(np.sum(atoms.width_open == 1))} wider than one atom (may hold two: width above its element's "
             f"median by more than {level:.1f} times its precision)"
         )
-    sure = (
-        ", element sure" if atoms.element_confidence is not None and not np.all(atoms.element_confidence == 1) else ""
-    )
-    if sure:
-        with np.errstate(invalid="ignore"):
-            unsure = int(np.sum(~(atoms.element_confidence >= ELEMENT_OPEN_BELOW)))
-        parts.append(f"{unsure} open in element (probability under {ELEMENT_OPEN_BELOW:g}, or unknown)")
+    several = atoms.element_confidence is not None and not np.all(atoms.element_confidence == 1)
+    if several:
+        parts.append(
+            f"{int(element_open(atoms).sum())} open in element (probability under {ELEMENT_OPEN_BELOW:g}, or unknown)"
+        )
     return (
         f"trust {trusted} of {len(atoms)} atoms (trusted 1 in atoms.csv: proven, closed in depth, one atom "
-        f"wide{sure}); open: " + ", ".join(parts) + f"; median significance {np.median(atoms.significance):.1f}"
+        f"wide{', element sure' if several else ''}); open: "
+        + ", ".join(parts)
+        + f"; median significance {np.median(atoms.significance):.1f}"
     )
 
 
@@ -423,11 +429,12 @@ def evidence_scores(
     * ``coverage_95_xyz``: the share of found atoms whose error along x, y, z lies within their
       stated 95% interval (``1.96 position_std_A``; 0.95 if the statement were exact);
       ``depth_coverage_95``: within the depth interval (``depth_halfwidth_A``, along the beam);
-    * ``proven_found``: the share of the atoms not called open (proven and closed in depth) that
-      lie on a true one;
-    * ``open_share_of_false``: the share of false atoms (on no true one) called open (not proven,
-      or open in depth); ``open_share_of_misses``: the share of missed true atoms with an open
-      atom within twice ``radius_A`` (the atom the data placed elsewhere, or could not prove);
+    * ``proven_found``: the share of the atoms not called open (``trusted``) that lie on a true
+      one;
+    * ``open_share_of_false``: the share of false atoms (on no true one) called open
+      (:func:`open_atoms`: not proven, open in depth, wider than one atom or open in element);
+      ``open_share_of_misses``: the share of missed true atoms with an open atom within twice
+      ``radius_A`` (the atom the data placed elsewhere, or could not prove);
       ``open_share_of_disagreement``: both together.  The two sides split the atoms alike: an
       atom proven but open in depth counts as open in both;
     * ``precision_floor_A``: the error along x, y, z the stated precision does not hold
