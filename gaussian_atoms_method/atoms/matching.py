@@ -106,6 +106,23 @@ def global_shift(
     return shift
 
 
+def shifted_errors(
+    pred_A: np.ndarray, true_A: np.ndarray, radius_A: float = 0.75
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The predictions ``pred_A`` (N, 3) moved by :func:`global_shift` onto ``true_A`` (M, 3) and
+    matched within ``radius_A``: the matched indices ``(pi, ti)`` and each pair's (K, 3) error
+    (Å, prediction after the shift less truth), as the replicas' interval scores read them.
+
+    >>> pred, true = np.array([[0.1, 0.0, 0.0], [5.3, 0.0, 0.0]]), np.array([[0.0, 0, 0], [5.0, 0, 0]])
+    >>> pi, ti, error = shifted_errors(pred, true)
+    >>> pi.tolist(), error[:, 0].round(2).tolist()
+    ([0, 1], [-0.1, 0.1])
+    """
+    shift = global_shift(pred_A, true_A, radius_A)
+    pi, ti = match_atoms(pred_A + shift, true_A, radius_A)
+    return pi, ti, pred_A[pi] + shift - true_A[ti]
+
+
 def score_atoms(
     pred_A: np.ndarray,
     true_A: np.ndarray,

@@ -80,7 +80,7 @@ def internal_floor(
 
     from gaussian_atoms_method.api import reconstruct
     from gaussian_atoms_method.atoms.calibration import Z95, precision_floor_A
-    from gaussian_atoms_method.atoms.matching import global_shift, match_atoms
+    from gaussian_atoms_method.atoms.matching import shifted_errors
     from gaussian_atoms_method.harness.replica import DEFAULT_OPTICS, replica_of
 
     elements = atoms.species
@@ -107,9 +107,7 @@ def internal_floor(
     )
     refit_offsets = np.asarray(refit.info.get("view_offsets_px", np.zeros((n_views, 2))), dtype=np.float64)
     pred = refit.positions - origin
-    shift = global_shift(pred, truth.positions, MATCH_RADIUS_A)
-    pi, ti = match_atoms(pred + shift, truth.positions, MATCH_RADIUS_A)
-    error = pred[pi] + shift - truth.positions[ti]
+    pi, ti, error = shifted_errors(pred, truth.positions, MATCH_RADIUS_A)
     stated = refit.position_std_A[pi]
     inside = np.abs(error) <= Z95 * stated
     return InternalFloor(

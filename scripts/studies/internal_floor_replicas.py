@@ -29,20 +29,19 @@ def main() -> None:
     from dataparsers.tilt_series_format import load_tilt_series
     from gaussian_atoms_method.atoms.atom_set import read_atoms
     from gaussian_atoms_method.atoms.calibration import Z95, precision_floor_A
-    from gaussian_atoms_method.atoms.matching import global_shift, match_atoms
+    from gaussian_atoms_method.atoms.matching import shifted_errors
     from gaussian_atoms_method.harness import film_benchmark as fb
     from gaussian_atoms_method.harness.internal_floor import internal_floor
 
     print("| sub-area | found | RMSD (pm) | stated: hold x/y/z | internal floor (pm) | with it | truth's floor (pm) |")
     print("| --- | --- | --- | --- | --- | --- | --- |")
+    replicas = fb.FilmBenchmark(args.data, args.output, replica=True)  # benchmark-film --replica's data
     for area in args.areas:
-        area_dir = fb.prepare_area(args.data, args.output / "data", area, "Ta")
-        series = load_tilt_series(fb.write_replica(area_dir, args.output / "data" / "replica" / f"area{area}", area))
+        series = load_tilt_series(replicas.prepare(area))
         atoms = ga.reconstruct(series, species="Ta", device=args.device, progress=False, extended_object="on")
         truth = read_atoms(series.truth_path).positions
-        shift = global_shift(atoms.positions, truth)
-        pi, ti = match_atoms(atoms.positions + shift, truth, fb.MATCH_RADIUS_A)
-        error, stated = atoms.positions[pi] + shift - truth[ti], atoms.position_std_A[pi]
+        pi, ti, error = shifted_errors(atoms.positions, truth, fb.MATCH_RADIUS_A)
+        stated = atoms.position_std_A[pi]
         floor = internal_floor(
             series, atoms, species="Ta", device=args.device, support_A=args.support_A, extended_object="on"
         )

@@ -29,16 +29,16 @@ def main() -> None:
     from dataparsers.tilt_series_format import load_tilt_series
     from gaussian_atoms_method.atoms.atom_set import read_atoms
     from gaussian_atoms_method.atoms.calibration import Z95
-    from gaussian_atoms_method.atoms.matching import global_shift, match_atoms
+    from gaussian_atoms_method.atoms.matching import shifted_errors
     from gaussian_atoms_method.harness import film_benchmark as fb
 
     print(
         "| sub-area | own floor | found | false per atom | RMSD (pm) | hold x/y/z | depth hold | floor (pm) | run (s) |"
     )
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    replicas = fb.FilmBenchmark(args.data, args.output, replica=True)  # benchmark-film --replica's data
     for area in args.areas:
-        area_dir = fb.prepare_area(args.data, args.output / "data", area, "Ta")
-        series = load_tilt_series(fb.write_replica(area_dir, args.output / "data" / "replica" / f"area{area}", area))
+        series = load_tilt_series(replicas.prepare(area))
         truth = read_atoms(series.truth_path).positions
         for own in (False, True):
             started = time.perf_counter()
@@ -46,9 +46,8 @@ def main() -> None:
                 series, species="Ta", device=args.device, progress=False, extended_object="on", own_floor=own
             )
             took = time.perf_counter() - started
-            shift = global_shift(atoms.positions, truth)
-            pi, ti = match_atoms(atoms.positions + shift, truth, fb.MATCH_RADIUS_A)
-            error, stated = atoms.positions[pi] + shift - truth[ti], atoms.position_std_A[pi]
+            pi, ti, error = shifted_errors(atoms.positions, truth, fb.MATCH_RADIUS_A)
+            stated = atoms.position_std_A[pi]
             held = "/".join(f"{c:.2f}" for c in (np.abs(error) <= Z95 * stated).mean(axis=0))
             depth = (np.abs(error[:, 2]) <= atoms.depth_halfwidth_A[pi]).mean()
             floor = atoms.info.get("precision_floor_A")
