@@ -24,7 +24,7 @@ from gaussian_atoms_method.atoms import picture_process
 from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms, write_atoms
 from gaussian_atoms_method.atoms.calibration import wider_than_one_atom
 from gaussian_atoms_method.atoms.classification import classify_gaussians, in_support
-from gaussian_atoms_method.atoms.evidence import EVIDENCE_SCORES
+from gaussian_atoms_method.atoms.evidence import EVIDENCE_SCORES, open_atoms
 from gaussian_atoms_method.atoms.hard_core import most_apart
 from gaussian_atoms_method.atoms.matching import score_atoms
 from gaussian_atoms_method.atoms.pictures import draw_slices, write_population_png, write_rdf_png
@@ -164,6 +164,8 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
         atoms.width_open = wider_than_one_atom(atoms.sigmas, atoms.width_std_A, level, atoms.species)
     if model.config.own_floor and not any(model.config.precision_floor_A) and atoms.proven is not None and len(atoms):
         widen_by_own_floor(model, atoms, reported, hard_core_A, registration)
+    if atoms.proven is not None:  # after the floor, which may open an atom in depth
+        atoms.trusted = ~open_atoms(atoms)
     # Each picture goes to a child as soon as its arrays are known (drawn there while this process
     # writes the atoms); without children, the atoms are written first and the pictures after them.
     pictures = [] if population is None else [(write_population_png, *population, run_dir / "classes.png")]
@@ -338,13 +340,12 @@ def attach_evidence(model, atoms: AtomSet, noise: float, read, hard_core_A: floa
 
 
 def say_evidence(atoms: AtomSet) -> None:
-    """Mark the reported ``atoms`` to trust (``trusted``: nothing leaves them open) and say so in
-    the summary line (:func:`~gaussian_atoms_method.atoms.evidence.trust_words`)."""
-    from gaussian_atoms_method.atoms.evidence import open_atoms, trust_words
+    """The summary line of the reported ``atoms``' evidence: how many to trust and how many each
+    reason leaves open (:func:`~gaussian_atoms_method.atoms.evidence.trust_words`)."""
+    from gaussian_atoms_method.atoms.evidence import trust_words
 
     if atoms.proven is None or not len(atoms):
         return
-    atoms.trusted = ~open_atoms(atoms)
     CONSOLE.print(f"gaussian-atoms: evidence: {trust_words(atoms)}")
 
 
