@@ -40,3 +40,19 @@ def test_a_film_task_on_a_one_thread_share_takes_one_thread(monkeypatch):
     assert cores_per_task(2) == 1
     monkeypatch.delenv("OMP_NUM_THREADS")
     assert cores_per_task(2) == 4
+
+
+@pytest.mark.parametrize(
+    "given, expected",
+    [
+        ({}, {"GOMP_SPINCOUNT": "5000"}),
+        ({"OMP_WAIT_POLICY": "PASSIVE"}, {"OMP_WAIT_POLICY": "PASSIVE"}),
+        ({"GOMP_SPINCOUNT": "0"}, {"GOMP_SPINCOUNT": "0"}),
+    ],
+)
+def test_the_command_spins_its_idle_workers_briefly_unless_the_environment_says_how(given, expected):
+    from gaussian_atoms_method.cli import IDLE_THREADS, spin_briefly
+
+    environ = dict(given)
+    spin_briefly(environ)
+    assert environ == expected and IDLE_THREADS == ("GOMP_SPINCOUNT", "5000")
