@@ -54,6 +54,7 @@ from gaussian_atoms_method.atoms.calibration import Z95, precision_floor_A, wide
 from gaussian_atoms_method.atoms.depth_profile import depth_axis_of, depth_rises, moved_blocks_of
 from gaussian_atoms_method.atoms.information import (
     BATCH_ELEMENTS,
+    DEVICE_PAIR_VIEWS,
     HOST_BATCH_ELEMENTS,
     amplitude_coupling,
     local_information,
@@ -214,10 +215,13 @@ def atom_evidence(
     diagonal = pair_information(positions, positions, sigmas, sigmas, amps, amps, axes, pixel_size_A, where)
     pairs = _pairs(positions, NEIGHBOUR_SEARCH_A)
     coupled = np.zeros(len(pairs), bool)
+    gpu = None if where.type == "cpu" else where
+    if gpu is not None:  # a GPU's calls: few and large (DEVICE_PAIR_VIEWS)
+        chunk_pairs = max(chunk_pairs, int(DEVICE_PAIR_VIEWS // max(len(axes), 1)))
     for start in range(0, len(pairs), chunk_pairs):
         i, j = pairs[start : start + chunk_pairs].T
         coupled[start : start + chunk_pairs] = (
-            amplitude_coupling(positions[i], positions[j], sigmas[i], sigmas[j], axes) >= COUPLING_FLOOR
+            amplitude_coupling(positions[i], positions[j], sigmas[i], sigmas[j], axes, gpu) >= COUPLING_FLOOR
         )
     neighbours = pairs[coupled]
     wanted = np.flatnonzero(np.ones(n, bool) if targets is None else targets)

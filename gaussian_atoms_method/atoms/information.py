@@ -68,6 +68,12 @@ HOST_PAIR_VIEWS = 65536
 """The (pair, view) products :func:`pair_information` reads at once on the host: each of its
 temporaries then holds 0.5 MB."""
 
+DEVICE_PAIR_VIEWS = 2**23
+"""The (pair, view) products the evidence hands :func:`pair_information` and
+:func:`amplitude_coupling` at once on a GPU: each of their temporaries then holds 64 MB, about
+1 GB in all.  In pieces of 4,096 pairs, the host's, a 54,000-atom particle took 854 calls and
+3.1 s there."""
+
 
 def _pair_blocks(r_i, r_j, sigma_i, sigma_j, q_i, q_j, plane, twice, pixel_size_A: float):
     """:func:`pair_information`'s (P, 5, 5) blocks of tensors on one device; ``plane`` (V, 9):
@@ -117,13 +123,21 @@ def _pair_blocks(r_i, r_j, sigma_i, sigma_j, q_i, q_j, plane, twice, pixel_size_
     return out
 
 
-def amplitude_coupling(r_i, r_j, sigma_i, sigma_j, axes) -> np.ndarray:
+def amplitude_coupling(r_i, r_j, sigma_i, sigma_j, axes, device=None) -> np.ndarray:
     """(P,) how much the views confuse two atoms' amplitudes: ``|F_qiqj| / sqrt(F_qiqi F_qjqj)``
     of :func:`pair_information`'s blocks, without the rest of them (a tenth of their work:
     the pairs an atom's evidence may leave out are found with it).  For two Gaussians the views'
     overlap is ``sum_v exp(-|P_v (r_i - r_j)|^2 / (2 T)) 2 sigma_i sigma_j / (T V)``,
-    ``T = sigma_i^2 + sigma_j^2``: 1 for an atom with itself."""
+    ``T = sigma_i^2 + sigma_j^2``: 1 for an atom with itself.  With numpy, or in torch (float64)
+    on ``device`` where one is given (a GPU's: with numpy on the host it had taken 2.3 of the
+    19 s a 54,000-atom particle's evidence took on an H200)."""
     axes = np.asarray(axes, dtype=np.float64)[:, :2, :]
+    if device is not None:
+        on = lambda a: torch.as_tensor(np.require(a, np.float64, "W"), device=device)  # noqa: E731
+        s_i, s_j, total = on(sigma_i), on(sigma_j), on(sigma_i) ** 2 + on(sigma_j) ** 2
+        d = torch.einsum("vkc,pc->pvk", on(axes), on(r_i) - on(r_j))
+        overlap = torch.exp(-(d * d).sum(dim=2) / (2 * total[:, None])).sum(dim=1)
+        return (overlap * 2 * s_i * s_j / (total * len(axes))).cpu().numpy()
     sigma_i, sigma_j = np.asarray(sigma_i, np.float64), np.asarray(sigma_j, np.float64)
     d = np.einsum("vkc,pc->pvk", axes, np.asarray(r_i, np.float64) - np.asarray(r_j, np.float64))
     total = sigma_i**2 + sigma_j**2
