@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from gaussian_atoms_method.atoms.information import pair_information, view_scores
+from gaussian_atoms_method.atoms.information import pair_blocks, pair_information, view_planes, view_scores
 from gaussian_atoms_method.physics.arrays import unique_keys
 
 
@@ -206,22 +206,30 @@ def depth_rises(
 def moved_blocks_here(local, bi, mi, ii, positions, sigmas, amps, axes, pixel_size_A, offsets, axis, device):
     """(R, k, 5, 5) float64 on ``device``: atom ``local[bi, ii]`` moved by ``offsets[mi]`` along
     ``axis`` against every atom of its set ``local[bi]`` (``local`` (B, k); ``bi``, ``mi``, ``ii``
-    (R,)), rows the moved atom's parameters (:func:`pair_information`, read on ``device``: a GPU's
-    way, where reading a block again costs less than looking it up, :class:`MovedBlocks`)."""
+    (R,)), rows the moved atom's parameters (:func:`~.information.pair_blocks`, gathered and read
+    on ``device``: a GPU's way, where reading a block again costs less than looking it up,
+    :class:`MovedBlocks`; the pairs gathered on its host had taken 3.0 of the 13 s a
+    54,000-atom particle's evidence took on an H200)."""
     k = local.shape[1]
-    moved_places = positions[local[bi, ii]] + np.asarray(offsets, np.float64)[mi, None] * axis
-    blocks = pair_information(
-        np.repeat(moved_places, k, axis=0),
-        positions[local[bi]].reshape(-1, 3),
-        np.repeat(sigmas[local[bi, ii]], k),
-        sigmas[local[bi]].ravel(),
-        np.repeat(amps[local[bi, ii]], k),
-        amps[local[bi]].ravel(),
-        axes,
+    on = dict(dtype=torch.float64, device=device)
+    at = lambda a: torch.as_tensor(np.asarray(a), device=device)  # noqa: E731
+    near = at(local)
+    moved, others = near[at(bi), at(ii)], near[at(bi)].reshape(-1)  # (R,), (R k,)
+    place = torch.as_tensor(np.require(positions, np.float64, "W"), **on)
+    width, mass = (torch.as_tensor(np.require(a, np.float64, "W"), **on) for a in (sigmas, amps))
+    step = torch.as_tensor(np.asarray(offsets, np.float64)[:, None] * np.asarray(axis, np.float64), **on)
+    moved_places = place[moved] + step[at(mi)]
+    blocks = pair_blocks(
+        moved_places.repeat_interleave(k, dim=0),
+        place[others],
+        width[moved].repeat_interleave(k),
+        width[others],
+        mass[moved].repeat_interleave(k),
+        mass[others],
+        *view_planes(axes, device),
         pixel_size_A,
-        device=device,
     )
-    return torch.as_tensor(blocks, dtype=torch.float64, device=device).reshape(-1, k, 5, 5)
+    return blocks.reshape(-1, k, 5, 5)
 
 
 def _taken_out(inverse, rows, row_valid, rhs):
