@@ -361,3 +361,34 @@ def test_the_same_input_gives_the_same_atoms_and_evidence_bit_for_bit_on_a_cpu(p
         np.testing.assert_array_equal(getattr(runs[0], name), getattr(runs[1], name), err_msg=name)
     np.testing.assert_array_equal(runs[0].trusted, runs[1].trusted)
     assert runs[0].info.get("precision_floor_A") == runs[1].info.get("precision_floor_A")
+
+
+def _children() -> set[int]:
+    """The process ids of this process's children, from every thread's (Linux's /proc)."""
+    import os
+
+    tasks = Path(f"/proc/{os.getpid()}/task")
+    return {int(c) for t in tasks.iterdir() for c in (t / "children").read_text().split()}
+
+
+def test_reconstruct_leaves_the_callers_generators_threads_and_children_as_it_found_them(particle):
+    """The fit seeds Python's, NumPy's and torch's global generators as ``ns-train`` does (its
+    atoms are the command's) and puts them back when it ends: the caller's next draws are the
+    ones it would have made without the call.  No thread or child process it started outlives it."""
+    import random
+    import threading
+
+    import torch
+
+    _, angles, projections = particle
+    random.seed(7), np.random.seed(7), torch.manual_seed(7)
+    before = random.getstate(), np.random.get_state(), torch.get_rng_state()
+    expected = random.random(), float(np.random.rand()), float(torch.rand(1))
+    random.setstate(before[0]), np.random.set_state(before[1]), torch.set_rng_state(before[2])
+    threads, children = set(threading.enumerate()), _children()
+    ga.reconstruct(projections, angles, 0.25, device="cpu", max_num_iterations=30, progress=False)
+    assert random.getstate() == before[0] and torch.equal(torch.get_rng_state(), before[2])
+    after = np.random.get_state()
+    assert after[0] == before[1][0] and np.array_equal(after[1], before[1][1]) and after[2:] == before[1][2:]
+    assert (random.random(), float(np.random.rand()), float(torch.rand(1))) == expected
+    assert set(threading.enumerate()) <= threads and _children() <= children

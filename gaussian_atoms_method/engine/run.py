@@ -9,6 +9,7 @@ the fit (:class:`~.fit.AtomFit`) and its loop (:mod:`.training`), writes the run
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import random
 import tempfile
@@ -86,6 +87,24 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
+@contextlib.contextmanager
+def seeded(seed: int):
+    """The global generators seeded for a fit (:func:`seed_everything`: its atoms are the ones
+    ``ns-train`` gives) and put back as they were when it ends, so that a caller's next draws
+    are the ones it would have made without the fit (a GPU's generators where CUDA had started)."""
+    states = random.getstate(), np.random.get_state(), torch.get_rng_state()
+    on_gpu = torch.cuda.get_rng_state_all() if torch.cuda.is_initialized() else None
+    seed_everything(seed)
+    try:
+        yield
+    finally:
+        random.setstate(states[0])
+        np.random.set_state(states[1])
+        torch.set_rng_state(states[2])
+        if on_gpu is not None:
+            torch.cuda.set_rng_state_all(on_gpu)
+
+
 def view_set_of(series) -> tuple[ViewSet, object]:
     """The view set of a :class:`~dataparsers.tilt_series_format.TiltSeries` and its views
     (:class:`~.views.OrthographicViews`), as the tilt-series dataparser hands them to the fit."""
@@ -115,7 +134,7 @@ def fit_tilt_series(
     ``dataparser_options``) and what the run reported there, in memory (``prepared``: what a
     launcher prepared for the fit, :mod:`.prepared`).  Raises ``FloatingPointError`` naming the step and
     the cause where the loss stops being finite."""
-    with run_on(settings.device):
+    with run_on(settings.device), seeded(settings.seed):
         return _fit_tilt_series(series, options, settings, data, dataparser_options, prepared)
 
 
@@ -140,7 +159,7 @@ def _fit_tilt_series(series, options, settings, data, dataparser_options, prepar
         "tensorboard",
     )
     write_config(run_dir, record)
-    seed_everything(settings.seed)
+    seed_everything(settings.seed)  # again: registration's trial fits drew from them
     view_set, views = view_set_of(series)
     fit = AtomFit(options, view_set, prepared).to(settings.device)
     fit.kept = settings.kept
