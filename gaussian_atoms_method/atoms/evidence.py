@@ -227,7 +227,7 @@ def atom_evidence(
     wanted = np.flatnonzero(np.ones(n, bool) if targets is None else targets)
     # every block within each wanted atom's set, its neighbours' with each other too: the set's
     # information is then a principal submatrix of the whole one, positive definite as it is
-    pairs = np.concatenate([neighbours, pairs_among_neighbours(neighbours, n, wanted)])
+    pairs = np.concatenate([neighbours, pairs_among_neighbours(neighbours, n, wanted, gpu)])
     blocks = np.zeros((len(pairs), 5, 5))
     for start in range(0, len(pairs), chunk_pairs):
         i, j = pairs[start : start + chunk_pairs].T
