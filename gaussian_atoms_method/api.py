@@ -1,8 +1,8 @@
-"""The Python API: a tilt series as arrays in, atoms out, through the same engine as the CLI.
+"""The Python API: a tilt series as arrays in, atoms out, through the same engine as the CLI::
 
-    >>> import gaussian_atoms_method as ga
-    >>> atoms = ga.reconstruct(projections, angles_deg, pixel_size_A=0.25)   # (N, H, W) arrays
-    >>> atoms.positions, atoms.sigmas, atoms.position_std_A, atoms.atom_class
+    import gaussian_atoms_method as ga
+    atoms = ga.reconstruct(projections, angles_deg, pixel_size_A=0.25)  # (N, H, W) views, (N,) angles
+    atoms.positions, atoms.sigmas, atoms.position_std_A, atoms.atom_class
 
 :func:`reconstruct` fits the arrays in memory with the engine ``gaussian-atoms train`` runs
 (:mod:`gaussian_atoms_method.engine.run`: the same defaults; model options by their Python
