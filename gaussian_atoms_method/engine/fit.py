@@ -73,6 +73,9 @@ class AtomFit(torch.nn.Module):
     """Seconds the run's snapshots have cost it so far (:meth:`snapshot_after_step`)."""
     kept: bool = True
     """Whether the run's directory outlives the call (not for ``ga.reconstruct`` without ``output_dir``)."""
+    progress: bool = True
+    """Whether the end of the run draws its progress bars (the final refit's, the evidence's), as the steps'
+    (``ga.reconstruct(progress=False)`` draws none)."""
     prepared: Prepared = NOTHING
     """What a launcher prepared for this fit while it started (:mod:`.prepared`)."""
 
@@ -403,7 +406,7 @@ class AtomFit(torch.nn.Module):
             and self.optimizers
             and self.config.final_refit
         ):
-            refit(self)
+            refit(self, progress=self.progress)
         self.atoms_changed()
 
     # ------------------------------------------------------------------ results

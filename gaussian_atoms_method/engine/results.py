@@ -291,6 +291,7 @@ def attach_evidence(model, atoms: AtomSet, noise: float, read, hard_core_A: floa
         if hard_core is not None
         else None
     )
+    bar = ProgressBar(len(atoms), unit="atom", what="gaussian-atoms: evidence") if model.progress else None
     evidence = atom_evidence(
         atoms.positions,
         atoms.sigmas,
@@ -305,9 +306,10 @@ def attach_evidence(model, atoms: AtomSet, noise: float, read, hard_core_A: floa
         pulls,
         in_field,
         moved_pulls=moved,
-        progress=(bar := ProgressBar(len(atoms), unit="atom", what="gaussian-atoms: evidence")).add,
+        progress=None if bar is None else bar.add,
     )
-    bar.close()
+    if bar is not None:
+        bar.close()
     crb = atoms.position_std_A
     floor = model.config.precision_floor_A
     std, half, depth_open = evidence.position_std_A, evidence.depth_halfwidth_A, evidence.depth_open

@@ -163,6 +163,7 @@ def _fit_tilt_series(series, options, settings, data, dataparser_options, prepar
     view_set, views = view_set_of(series)
     fit = AtomFit(options, view_set, prepared).to(settings.device)
     fit.kept = settings.kept
+    fit.progress = settings.progress
     loop = FitLoop(fit, views, view_set.projections, settings.schedule_steps)
     write_transforms(run_dir)
     bar = ProgressBar(settings.max_num_iterations) if settings.progress else None
