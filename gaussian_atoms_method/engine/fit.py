@@ -73,9 +73,7 @@ class AtomFit(torch.nn.Module):
     """Seconds the run's snapshots have cost it so far (:meth:`snapshot_after_step`)."""
     kept: bool = True
     """Whether the run's directory outlives the call (not for ``ga.reconstruct`` without ``output_dir``)."""
-    progress: bool = True
-    """Whether the end of the run draws its progress bars (the final refit's, the evidence's), as the steps'
-    (``ga.reconstruct(progress=False)`` draws none)."""
+    progress: bool = True  # whether the end of the run draws its bars (the final refit's, the evidence's)
     prepared: Prepared = NOTHING
     """What a launcher prepared for this fit while it started (:mod:`.prepared`)."""
 
@@ -394,9 +392,8 @@ class AtomFit(torch.nn.Module):
 
     @torch.no_grad()
     def finalize(self) -> None:
-        """Last merges and prune (one Gaussian per atom; the residual read by
-        :func:`gaussian_atoms_method.engine.residuals.residual_correlations`), then a short refit if they changed
-        anything."""
+        """Last merges and prune (one Gaussian per atom; the residual read by :func:`.residuals.residual_correlations`),
+        then a short refit if they changed anything."""
         self.finite_watch.flush()
         judge_after_fit(self)
         if (
