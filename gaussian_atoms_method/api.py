@@ -181,7 +181,7 @@ def reconstruct(
     output_dir: str | Path | None = None,
     max_num_iterations: int | None = None,
     progress: bool = True,
-    seed: int = 42,
+    seed: int | None = None,
     **model_options,
 ) -> AtomSet:
     """Solve a tilt series for its atoms.
@@ -216,6 +216,9 @@ def reconstruct(
         names); by default both are written to a temporary directory and removed.
     max_num_iterations : int, optional
         As ``--max-num-iterations`` (default 3,000; training stops earlier once converged).
+    seed : int, optional
+        As ``--machine.seed`` (default :data:`~gaussian_atoms_method.engine.run_files.SEED`, the
+        command's and ``ns-train``'s); the caller's own generators are left as they were.
     **model_options
         The ``--pipeline.model.*`` options by their Python names, e.g. ``psf="none"``,
         ``background="smooth"``, ``merge_threshold_A=0.7``.
@@ -237,7 +240,7 @@ def reconstruct(
     """
     from gaussian_atoms_method.engine.errors import OptionError
     from gaussian_atoms_method.engine.run import MAX_ITERATIONS, RunSettings, check_settings, fit_tilt_series
-    from gaussian_atoms_method.engine.run_files import RunPlace
+    from gaussian_atoms_method.engine.run_files import SEED, RunPlace
 
     keep = output_dir is not None
     work = None if keep else Path(tempfile.mkdtemp(prefix="gaussian-atoms-"))
@@ -251,7 +254,7 @@ def reconstruct(
                 _device(device),
                 steps,
                 steps,
-                _whole(seed, "seed"),
+                SEED if seed is None else _whole(seed, "seed"),
                 progress,
                 tensorboard=keep,  # a run not kept keeps no logs or checkpoints
                 checkpoints=keep,

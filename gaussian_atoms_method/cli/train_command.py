@@ -20,6 +20,7 @@ from typing import Literal, Optional
 from dataparsers.tilt_series_options import TiltSeriesOptions
 from gaussian_atoms_method.engine.options import FitOptions
 from gaussian_atoms_method.engine.run import MAX_ITERATIONS
+from gaussian_atoms_method.engine.run_files import SEED
 from gaussian_atoms_method.physics.devices import default_device
 
 SUBCOMMAND = "tilt-series"
@@ -27,7 +28,7 @@ SUBCOMMAND = "tilt-series"
 
 @dataclass
 class MachineOptions:
-    seed: int = 42
+    seed: int = SEED
     """Seed of Python's, NumPy's and torch's generators."""
     device_type: Literal["cpu", "cuda", "mps"] = field(default_factory=default_device)
     """Where to train (default: the GPU where torch sees one)."""

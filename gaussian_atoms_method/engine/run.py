@@ -25,6 +25,7 @@ from gaussian_atoms_method.engine.options import FitOptions
 from gaussian_atoms_method.engine.prepared import NOTHING, Prepared
 from gaussian_atoms_method.engine.progress import ProgressBar
 from gaussian_atoms_method.engine.run_files import (
+    SEED,
     RunPlace,
     RunRecord,
     Scalars,
@@ -52,7 +53,7 @@ class RunSettings:
     device: str = "cpu"
     max_num_iterations: int = MAX_ITERATIONS
     schedule_steps: int = MAX_ITERATIONS
-    seed: int = 42
+    seed: int = SEED
     progress: bool = True
     tensorboard: bool = True
     save_every: int = 1000

@@ -57,6 +57,12 @@ class RunPlace:
         return Path(self.output_dir) / str(self.experiment_name) / METHOD_NAME / str(self.timestamp)
 
 
+SEED = 42
+"""The seed of Python's, NumPy's and torch's generators a run takes unless given one
+(``--machine.seed``, ``ga.reconstruct(seed=...)``): ``ns-train``'s own default, so that the
+command, the API and ``ns-train gaussian-atoms`` give the same atoms."""
+
+
 @dataclass
 class RunRecord:
     """What ``config.yml`` records: enough to build the run's nerfstudio config again."""
@@ -69,7 +75,7 @@ class RunRecord:
     """The fit's options (:class:`~.options.FitOptions`), every one."""
     max_num_iterations: int = 3000
     schedule_steps: int = 3000
-    seed: int = 42
+    seed: int = SEED
     device_type: str = "cpu"
     vis: str = "tensorboard"
 
