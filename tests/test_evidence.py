@@ -344,8 +344,8 @@ def test_a_dense_sets_information_is_positive_and_its_neighbours_only_lower_the_
     to some 60 others) each atom's set is a principal submatrix of the whole information, so
     positive definite; and re-fitting neighbours can only lower the cost of taking an atom out:
     each significance lies at or below the atom's alone (before the blocks between neighbours were
-    kept, 30% of a carbon particle's atoms read 1e151).  The pairs among neighbours found in
-    torch (a GPU's way, here on the CPU) are numpy's."""
+    kept, 30% of a carbon particle's atoms read 1e151).  The pairs among neighbours are those a
+    plain loop over each atom's neighbours finds."""
     from gaussian_atoms_method.atoms.evidence import COUPLING_FLOOR
     from gaussian_atoms_method.atoms.information import amplitude_coupling, local_information, pairs_among_neighbours
     from gaussian_atoms_method.harness.particles import amorphous_packing
@@ -367,7 +367,11 @@ def test_a_dense_sets_information_is_positive_and_its_neighbours_only_lower_the_
     near = amplitude_coupling(positions[i], positions[j], sigmas[i], sigmas[j], axes) >= COUPLING_FLOOR
     neighbours = np.stack([i[near], j[near]], axis=1)
     pairs = np.concatenate([neighbours, pairs_among_neighbours(neighbours, 300)])
-    np.testing.assert_array_equal(pairs_among_neighbours(neighbours, 300, device="cpu"), pairs[len(neighbours) :])
+    near_of = {a: set() for a in range(300)}
+    for i_, j_ in neighbours.tolist():
+        near_of[i_].add(j_), near_of[j_].add(i_)
+    among = {(p, q) for ns in near_of.values() for p in ns for q in ns if p < q} - set(map(tuple, neighbours.tolist()))
+    np.testing.assert_array_equal(pairs[len(neighbours) :], np.array(sorted(among)).reshape(-1, 2))
     blocks = pair_information(
         positions[pairs[:, 0]],
         positions[pairs[:, 1]],

@@ -16,8 +16,6 @@ import math
 import numpy as np
 import torch
 
-from gaussian_atoms_method.physics.arrays import unique_keys
-
 
 def pair_information(r_i, r_j, sigma_i, sigma_j, q_i, q_j, axes, pixel_size_A: float, device=None) -> np.ndarray:
     """``sum_v integral (dg_i/da)(dg_j/db) du / p^2`` for P pairs of atoms: (P, 5, 5) blocks, rows
@@ -362,32 +360,14 @@ def pairs_among_neighbours(neighbours: np.ndarray, n: int, wanted: np.ndarray | 
     other: the blocks an atom's set holds beyond its own.  Without them the set's information is
     no principal submatrix of the whole one and need not be positive definite: on a 1,512-atom
     carbon particle every set's was not (its smallest eigenvalue -0.5 of the diagonal's scale),
-    and an atom's amplitude variance came out negative for 30% of them.  Found with numpy, or in
-    torch on ``device`` where one is given (a GPU's: on its host the search had taken 1.8 of the
-    9 s a 54,000-atom particle's evidence took); the same pairs either way."""
+    and an atom's amplitude variance came out negative for 30% of them.  Found in torch on
+    ``device`` (default the CPU; on a GPU's host the search had taken 1.8 of the 9 s a
+    54,000-atom particle's evidence took); integer keys, so the same pairs on any device."""
     if len(neighbours) == 0:
         return np.zeros((0, 2), dtype=np.int64)
     cols, degree, first = _adjacency(neighbours, n)
     wanted = np.arange(n) if wanted is None else np.asarray(wanted)
-    own = np.minimum(neighbours[:, 0], neighbours[:, 1]) * n + np.maximum(neighbours[:, 0], neighbours[:, 1])
-    if device is not None:
-        return _pairs_among_on(device, cols, degree, first, wanted, own, n)
-    found = [np.zeros(0, dtype=np.int64)]
-    for k in np.unique(degree[wanted]):
-        if k < 2:
-            continue
-        atoms = wanted[degree[wanted] == k]
-        sets = cols[first[atoms][:, None] + np.arange(k)]  # (B, k), each row ascending
-        a, b = np.triu_indices(int(k), 1)
-        found.append(unique_keys(sets[:, a] * n + sets[:, b]))
-    keys = unique_keys(np.concatenate(found))
-    keys = keys[~np.isin(keys, own)]
-    return np.stack([keys // n, keys % n], axis=1).astype(np.int64)
-
-
-def _pairs_among_on(device, cols, degree, first, wanted, own, n: int) -> np.ndarray:
-    """:func:`pairs_among_neighbours`' search in torch on ``device`` (its keys sorted and
-    unique, as numpy's)."""
+    device = device or "cpu"
     at = lambda a: torch.as_tensor(np.asarray(a, np.int64), device=device)  # noqa: E731
     cols_on, found = at(cols), [torch.zeros(0, dtype=torch.int64, device=device)]
     for k in np.unique(degree[wanted]):
@@ -398,6 +378,7 @@ def _pairs_among_on(device, cols, degree, first, wanted, own, n: int) -> np.ndar
         a, b = torch.triu_indices(int(k), int(k), 1, device=device)
         found.append(torch.unique(sets[:, a] * n + sets[:, b]))
     keys = torch.unique(torch.cat(found))
+    own = np.minimum(neighbours[:, 0], neighbours[:, 1]) * n + np.maximum(neighbours[:, 0], neighbours[:, 1])
     keys = keys[~torch.isin(keys, at(own))]
     return torch.stack([keys // n, keys % n], dim=1).cpu().numpy().astype(np.int64)
 
