@@ -215,19 +215,18 @@ def atom_evidence(
     diagonal = pair_information(positions, positions, sigmas, sigmas, amps, amps, axes, pixel_size_A, where)
     pairs = _pairs(positions, NEIGHBOUR_SEARCH_A)
     coupled = np.zeros(len(pairs), bool)
-    gpu = None if where.type == "cpu" else where
-    if gpu is not None:  # a GPU's calls: few and large (DEVICE_PAIR_VIEWS)
+    if where.type != "cpu":  # a GPU's calls: few and large (DEVICE_PAIR_VIEWS)
         chunk_pairs = max(chunk_pairs, int(DEVICE_PAIR_VIEWS // max(len(axes), 1)))
     for start in range(0, len(pairs), chunk_pairs):
         i, j = pairs[start : start + chunk_pairs].T
         coupled[start : start + chunk_pairs] = (
-            amplitude_coupling(positions[i], positions[j], sigmas[i], sigmas[j], axes, gpu) >= COUPLING_FLOOR
+            amplitude_coupling(positions[i], positions[j], sigmas[i], sigmas[j], axes, where) >= COUPLING_FLOOR
         )
     neighbours = pairs[coupled]
     wanted = np.flatnonzero(np.ones(n, bool) if targets is None else targets)
     # every block within each wanted atom's set, its neighbours' with each other too: the set's
     # information is then a principal submatrix of the whole one, positive definite as it is
-    pairs = np.concatenate([neighbours, pairs_among_neighbours(neighbours, n, wanted, gpu)])
+    pairs = np.concatenate([neighbours, pairs_among_neighbours(neighbours, n, wanted, where)])
     blocks = np.zeros((len(pairs), 5, 5))
     for start in range(0, len(pairs), chunk_pairs):
         i, j = pairs[start : start + chunk_pairs].T

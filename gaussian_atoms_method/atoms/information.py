@@ -133,21 +133,16 @@ def amplitude_coupling(r_i, r_j, sigma_i, sigma_j, axes, device=None) -> np.ndar
     of :func:`pair_information`'s blocks, without the rest of them (a tenth of their work:
     the pairs an atom's evidence may leave out are found with it).  For two Gaussians the views'
     overlap is ``sum_v exp(-|P_v (r_i - r_j)|^2 / (2 T)) 2 sigma_i sigma_j / (T V)``,
-    ``T = sigma_i^2 + sigma_j^2``: 1 for an atom with itself.  With numpy, or in torch (float64)
-    on ``device`` where one is given (a GPU's: with numpy on the host it had taken 2.3 of the
-    19 s a 54,000-atom particle's evidence took on an H200)."""
-    axes = np.asarray(axes, dtype=np.float64)[:, :2, :]
-    if device is not None:
-        on = lambda a: torch.as_tensor(np.require(a, np.float64, "W"), device=device)  # noqa: E731
-        s_i, s_j, total = on(sigma_i), on(sigma_j), on(sigma_i) ** 2 + on(sigma_j) ** 2
-        d = torch.einsum("vkc,pc->pvk", on(axes), on(r_i) - on(r_j))
-        overlap = torch.exp(-(d * d).sum(dim=2) / (2 * total[:, None])).sum(dim=1)
-        return (overlap * 2 * s_i * s_j / (total * len(axes))).cpu().numpy()
-    sigma_i, sigma_j = np.asarray(sigma_i, np.float64), np.asarray(sigma_j, np.float64)
-    d = np.einsum("vkc,pc->pvk", axes, np.asarray(r_i, np.float64) - np.asarray(r_j, np.float64))
-    total = sigma_i**2 + sigma_j**2
-    overlap = np.exp(-np.einsum("pvk,pvk->pv", d, d) / (2 * total[:, None])).sum(axis=1)
-    return overlap * 2 * sigma_i * sigma_j / (total * len(axes))
+    ``T = sigma_i^2 + sigma_j^2``: 1 for an atom with itself.  In torch (float64) on ``device``
+    (default the CPU, where it runs four times as fast as numpy's einsums did; on a GPU's host
+    numpy had taken 2.3 of the 19 s a 54,000-atom particle's evidence took)."""
+    on = lambda a: torch.as_tensor(np.require(a, np.float64, "W"), device=device or "cpu")  # noqa: E731
+    axes = on(np.asarray(axes, dtype=np.float64)[:, :2, :])
+    s_i, s_j = on(sigma_i), on(sigma_j)
+    total = s_i**2 + s_j**2
+    d = torch.einsum("vkc,pc->pvk", axes, on(r_i) - on(r_j))
+    overlap = torch.exp(-(d * d).sum(dim=2) / (2 * total[:, None])).sum(dim=1)
+    return (overlap * 2 * s_i * s_j / (total * len(axes))).cpu().numpy()
 
 
 def view_scores(
