@@ -583,6 +583,7 @@ def test_the_evidence_scores_split_the_atoms_into_open_and_the_rest_alike():
     s = evidence_scores(atoms, AtomSet(positions=truth), radius_A=0.75)
     assert (s["proven"], s["open"], s["depth_open"]) == (5, 2, 2)
     assert s["proven_found"] == pytest.approx(2 / 3)
+    assert s["trusted_share_of_truth"] == pytest.approx(2 / 5)  # the true atoms at 0 and 5 Å
     # false: the atoms at 30 (proven, closed), 40 (open) and 21.2 (open in depth, 1.2 Å from its truth)
     assert s["open_share_of_false"] == pytest.approx(2 / 3)
     assert s["open_share_of_misses"] == pytest.approx(1.0)

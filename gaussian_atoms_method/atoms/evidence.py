@@ -346,6 +346,7 @@ EVIDENCE_SCORES = (
     "open",
     "depth_open",
     "proven_found",
+    "trusted_share_of_truth",
     "open_share_of_false",
     "open_share_of_misses",
     "open_share_of_disagreement",
@@ -433,7 +434,8 @@ def evidence_scores(
       stated 95% interval (``1.96 position_std_A``; 0.95 if the statement were exact);
       ``depth_coverage_95``: within the depth interval (``depth_halfwidth_A``, along the beam);
     * ``proven_found``: the share of the atoms not called open (``trusted``) that lie on a true
-      one;
+      one; ``trusted_share_of_truth``: the share of the true atoms a trusted atom lies on (what a
+      user who keeps only the trusted atoms has of the truth);
     * ``open_share_of_false``: the share of false atoms (on no true one) called open
       (:func:`open_atoms`: not proven, open in depth, wider than one atom or open in element);
       ``open_share_of_misses``: the share of missed true atoms with an open atom within twice
@@ -469,6 +471,7 @@ def evidence_scores(
         near_open = np.isfinite(distance)
     false = ~matched & counted
     closed = ~is_open & counted
+    on_trusted = truth_in[ti] & ~is_open[pi]  # the counted true atoms a trusted atom lies on
     scored = truth_in[ti]  # the matched pairs scored: their true atom counted, as the found are
     pi, ti, error = pi[scored], ti[scored], error[scored]
     scores = {
@@ -476,6 +479,7 @@ def evidence_scores(
         "open": int((pred.proven[counted] == 0).sum()),
         "depth_open": int(pred.depth_open[counted].sum()),
         "proven_found": float(matched[closed].mean()) if closed.any() else None,
+        "trusted_share_of_truth": float(on_trusted.sum() / truth_in.sum()) if truth_in.any() else None,
         "open_share_of_false": float(is_open[false].mean()) if false.any() else None,
         "open_share_of_misses": float(near_open.mean()) if missed.any() else None,
         "open_share_of_disagreement": (

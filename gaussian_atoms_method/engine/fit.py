@@ -43,7 +43,7 @@ from gaussian_atoms_method.engine.floors import FloorSolver
 from gaussian_atoms_method.engine.kernel_reading import HeldOutKernel
 from gaussian_atoms_method.engine.noise_reading import (
     NoiseReadingBeside,
-    judge_after_fit,
+    read_after_fit,
     say_noise_reading,
     say_series,
     say_start,
@@ -395,7 +395,7 @@ class AtomFit(torch.nn.Module):
         """Last merges and prune (one Gaussian per atom; the residual read by :func:`.residuals.residual_correlations`),
         then a short refit if they changed anything."""
         self.finite_watch.flush()
-        judge_after_fit(self)
+        read_after_fit(self)
         if (
             self.density.finalize(
                 self.gauss_params, self.optimizers, self._param_lists(), lambda m, s: residual_correlations(self, m, s)

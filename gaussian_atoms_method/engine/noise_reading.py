@@ -9,6 +9,7 @@ The physics is :mod:`gaussian_atoms_method.physics.noise` (the measurement) and
 from __future__ import annotations
 
 import threading
+from dataclasses import replace
 
 import numpy as np
 
@@ -231,19 +232,28 @@ def noise_after_fit(before: NoiseModel, measured, predicted, sigma_px: float) ->
     return inflated(before, factor), factor
 
 
-def judge_after_fit(model) -> None:
-    """Before the final merges and prune: set the model's density control to judge in the noise
-    after the fit (:func:`noise_after_fit`, at the Gaussians' median width), and say so when it
-    is larger than the noise read before training."""
+def read_after_fit(model) -> None:
+    """Before the final merges and prune, from the fit's residual: where the views' spectrum could
+    not say how their noise is correlated, read the noise an atom sees from what neighbouring views
+    do not share (:func:`views_noise_after_fit`; ``model.measured_noise`` then holds it), and set the
+    density control to judge in the noise after the fit (:func:`noise_after_fit`, at the Gaussians'
+    median width), saying so when it is larger than the noise read before training."""
     from gaussian_atoms_method.engine.residuals import measured_views, render_training_views
 
-    if model.density.noise is None or model.num_points == 0 or not model.config.judge_after_fit:
+    judge = model.density.noise is not None and model.config.judge_after_fit
+    before = getattr(model, "measured_noise", None)
+    unread = before is not None and not before.correlation_read
+    if model.num_points == 0 or not (judge or unread):
         return
     measured = measured_views(model)
     if measured is None:
         return
     predicted = render_training_views(model, on_device=True)  # read on the model's device
     sigma_px = float(model.sigmas.median()) / model.density.pixel_size
+    if unread:
+        model.measured_noise = views_noise_after_fit(model, before, measured, predicted, sigma_px)
+    if not judge:
+        return
     judged, factor = noise_after_fit(model.density.noise, measured, predicted, sigma_px)
     if factor > 1.0:
         CONSOLE.print(
@@ -251,6 +261,30 @@ def judge_after_fit(model) -> None:
             f"before training; the final merges and prune judge in that"
         )
     model.density.noise = judged
+
+
+def views_noise_after_fit(model, before: NoiseModel, measured, predicted, sigma_px: float) -> NoiseModel:
+    """``before`` (read from neighbouring pixels) times the noise an atom sees over it, read from
+    what neighbouring views do not share of the (V, H, W) residual ``measured - predicted``
+    (:func:`~gaussian_atoms_method.physics.view_disagreement.view_disagreement`), never scaled
+    down; said on one line.  ``before`` as it was where the views are too few or too small."""
+    from gaussian_atoms_method.engine.rendering import detector_axes
+    from gaussian_atoms_method.physics.view_disagreement import view_disagreement
+
+    residuals = (measured - predicted).detach().cpu().double().numpy()
+    variance = before.variance(np.clip(predicted.detach().cpu().double().numpy(), 0, None))
+    axes = detector_axes(model.view_c2w.detach().cpu().double()).numpy()
+    beams = np.cross(axes[:, 0], axes[:, 1])  # the beam is normal to the detector's rows and columns
+    read = view_disagreement(residuals, variance, sigma_px, beams)
+    if read is None:
+        return before
+    factor = max(read.noise_excess, 1.0)
+    CONSOLE.print(
+        f"gaussian-atoms: the views' noise over an atom, read from what neighbouring views do not share of the "
+        f"fit's residual: {factor:.3g} times the variance neighbouring pixels show (correlated noise: denoised or "
+        f"filtered views); {read.structure_share:.0%} of the residual's variance over an atom is shared by the views"
+    )
+    return replace(inflated(before, factor), correlation=factor, correlation_read=True, correlation_from="views")
 
 
 def say_residual(
@@ -270,8 +304,13 @@ def say_residual(
         if measured.correlation_read
         else "how much of it is structure is not known (the noise was read from neighbouring pixels only)"
     )
+    source = (
+        "read from what neighbouring views do not share"
+        if measured.correlation_from == "views"
+        else "read from them before the fit"
+    )
     CONSOLE.print(
         f"gaussian-atoms: residual {noise:.4g} (input units); over an atom {np.sqrt(over_atom / expected):.2f} times "
-        f"the noise the views hold there (read from them before the fit): {structure}; the evidence weighs it "
+        f"the noise the views hold there ({source}): {structure}; the evidence weighs it "
         f"{position_factor:.2f} (positions) and {amplitude_factor:.2f} (amplitudes) times white noise of its level"
     )

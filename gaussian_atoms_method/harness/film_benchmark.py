@@ -295,9 +295,11 @@ def evidence_words(scores: dict) -> str:
     if "proven" not in scores:
         return ""
     share, found = scores.get("open_share_of_disagreement"), scores.get("proven_found")
+    cover = scores.get("trusted_share_of_truth")
     return (
         f"; {scores['proven']} proven, {scores['open']} open, {scores['depth_open']} open in depth"
         + (f" (the rest {found:.3f} on a model atom)" if found is not None else "")
+        + (f", trusted atoms on {cover:.3f} of the model's" if cover is not None else "")
         + (f", the open ones hold {share:.0%} of the disagreement" if share is not None else "")
         + (
             "; 95% intervals hold x/y/z "
@@ -438,6 +440,7 @@ class FilmBenchmark:
             "open",
             "depth_open",
             "proven_found",
+            "trusted_share_of_truth",
             "open_share_of_disagreement",
             "coverage_95_xyz",
             "depth_coverage_95",

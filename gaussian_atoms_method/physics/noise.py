@@ -62,21 +62,23 @@ class NoiseModel:
     correlation_read: bool = True
     """False where the views' spectrum holds no band beyond the atoms to read the correlation in
     (blurred or denoised views): the noise may be correlated, and is taken as it was read."""
+    correlation_from: str = "spectrum"
+    """Where :attr:`correlation` was read: "spectrum", the views' band beyond the atoms before the
+    fit; "views", what neighbouring views do not share of the fit's residual
+    (:mod:`.view_disagreement`), read after the fit where the spectrum could not."""
 
     def scaled(self, factor: float) -> "NoiseModel":
         """The same noise for the data multiplied by ``factor`` (the misfit, a relative
         variance, is unchanged)."""
         f = float(factor)
-        return NoiseModel(
-            self.read_var * f * f,
-            self.gain * f,
-            self.offset * f,
-            self.read_var_se * f * f,
-            self.gain_se * f,
-            self.misfit,
-            self.least_mean * f if f > 0 else -np.inf,
-            self.correlation,
-            self.correlation_read,
+        return dataclasses.replace(
+            self,
+            read_var=self.read_var * f * f,
+            gain=self.gain * f,
+            offset=self.offset * f,
+            read_var_se=self.read_var_se * f * f,
+            gain_se=self.gain_se * f,
+            least_mean=self.least_mean * f if f > 0 else -np.inf,
         )
 
     def pixel_variance(self, mean):
@@ -182,16 +184,13 @@ def _as_float64(values, device):
 def inflated(noise: NoiseModel, factor: float) -> NoiseModel:
     """``noise`` with every variance term times ``factor`` (standard errors alike)."""
     f = float(factor)
-    return NoiseModel(
-        noise.read_var * f,
-        noise.gain * f,
-        noise.offset,
-        noise.read_var_se * f,
-        noise.gain_se * f,
-        noise.misfit * f,
-        noise.least_mean,
-        noise.correlation,
-        noise.correlation_read,
+    return dataclasses.replace(
+        noise,
+        read_var=noise.read_var * f,
+        gain=noise.gain * f,
+        read_var_se=noise.read_var_se * f,
+        gain_se=noise.gain_se * f,
+        misfit=noise.misfit * f,
     )
 
 
