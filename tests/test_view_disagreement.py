@@ -90,11 +90,12 @@ def test_too_few_views_or_views_too_small_read_nothing():
 
 def test_a_run_on_denoised_views_states_its_residual_against_the_noise_neighbouring_views_do_not_share(capfd):
     """A 43-atom Au sphere in the model's own physics, its views' noise blurred by 1.1 px (as a
-    denoiser leaves it): the spectrum holds no band, neighbouring pixels show a fifteenth of the
-    noise an atom sees.  The fit leaves the noise alone, so against the noise read from the views'
-    disagreement its residual over an atom is about 1 (0.8-1.3: the stated ratio's own scatter and
-    the part of the noise the fit absorbs are each under 10%); against neighbouring pixels it was
-    3.9."""
+    denoiser leaves it): the spectrum holds no band, and the second differences of neighbouring
+    pixels see little of the noise an atom sees.  The fit leaves the noise alone, so against the
+    noise read from the views' disagreement its residual over an atom is about 1 (1.22 here, a
+    quarter of its variance shared by the views: the fit is not the truth; bounded at 1.5 for that
+    and the 15 views' 10° steps, whose pairs scatter by about 10%); stated against neighbouring
+    pixels, as before this reading, it was 58."""
     import re
 
     import gaussian_atoms_method as ga
@@ -110,4 +111,4 @@ def test_a_run_on_denoised_views_states_its_residual_against_the_noise_neighbour
     assert "the spectrum holds no band" in said or "read from neighbouring pixels only" in said
     assert "read from what neighbouring views do not share of the fit's residual" in said
     ratio = float(re.search(r"over an atom ([0-9.]+) times the noise the views hold there \(read from what", said)[1])
-    assert 0.8 < ratio < 1.3
+    assert 0.8 < ratio < 1.5
