@@ -1,6 +1,8 @@
 """A replica of a user's own series (harness/replica.py, ``simulate --like``): its geometry, level
 and noise are the real series', its truth the atoms given."""
 
+import contextlib
+import io
 import subprocess
 import sys
 from pathlib import Path
@@ -92,6 +94,42 @@ def test_a_replica_cropped_by_interpolation_holds_correlated_noise_the_run_reads
     assert noise_from_projections(views).variance(level)[0] < 0.7 * drawn
     noise = measure_noise(views)
     assert noise.correlation > 1.2 and noise.variance(level)[0] == pytest.approx(drawn, rel=0.2)
+
+
+def test_a_replica_drawn_with_the_noise_a_run_read_over_an_atom_is_read_again_within_20_percent(tmp_path):
+    """``simulate --like --noise-over-atom 50 --noise-sigma-A 0.55``: the noise of denoised views
+    (a 0.7 px blur here), its pixels at the real views' variance and an atom seeing 50 times it.  A
+    run on the replica reads it from what neighbouring views do not share within 20% of the noise
+    drawn, at the width the run reads it at (44.9 against 51.1 with this seed: 15 views of
+    48 x 40 px leave the filtered views few independent samples), and says how to draw it again."""
+    import re
+
+    import gaussian_atoms_method as ga
+    from gaussian_atoms_method.physics.correlated_noise import blur_for_factor, factor_of
+
+    real_dir = _real_like(tmp_path)
+    result = subprocess.run(
+        [str(Path(sys.executable).parent / "gaussian-atoms"), "simulate", "--like", str(real_dir)]
+        + ["--output", str(tmp_path / "replica"), "--noise-over-atom", "50", "--noise-sigma-A", "0.55", "--seed", "1"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    replica = load_tilt_series(tmp_path / "replica")
+    level = np.array([replica.projections.mean()])
+    drawn = noise_from_projections(load_tilt_series(real_dir).projections).variance(level)[0]
+    assert noise_from_projections(replica.projections).variance(level)[0] == pytest.approx(drawn, rel=0.2)
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        ga.reconstruct(replica, device="cpu", species="Ta", progress=False)
+    said = re.sub(r"\s+", " ", out.getvalue())  # the console wraps its lines
+    read = re.search(
+        r"residual: ([0-9.e+]+) times the variance neighbouring pixels show \(.*?atoms ([0-9.]+) Å wide", said
+    )
+    truth = factor_of(blur_for_factor(50.0, 0.55 / 0.3), float(read[2]) / 0.3)
+    assert float(read[1]) == pytest.approx(truth, rel=0.2)
+    assert f"--noise-over-atom {read[1]} --noise-sigma-A {read[2]}" in said
 
 
 def test_the_replica_names_what_it_cannot_use(tmp_path):
@@ -186,3 +224,19 @@ def test_a_replicas_truth_holds_no_pair_physics_forbids(tmp_path):
     assert len(close_pairs(truth, bond)) == 2  # kept as given
     truth = read_atoms(load_tilt_series(tmp_path / "r0").truth_path).positions
     assert len(close_pairs(truth, bond)) == 0 and not np.any(np.all(np.isclose(truth, chain[1]), axis=1))
+
+
+def test_a_correlated_noise_without_the_width_it_was_read_at_is_refused_before_any_drawing(tmp_path):
+    """A factor over an atom means nothing without the atom's width: one line naming both options,
+    a non-zero exit, no output directory."""
+    real_dir = _real_like(tmp_path)
+    result = subprocess.run(
+        [str(Path(sys.executable).parent / "gaussian-atoms"), "simulate", "--like", str(real_dir)]
+        + ["--output", str(tmp_path / "r"), "--noise-over-atom", "50"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert result.returncode != 0 and "Traceback" not in result.stderr
+    assert "--noise-over-atom 50" in result.stderr and "--noise-sigma-A" in result.stderr
+    assert not (tmp_path / "r").exists()

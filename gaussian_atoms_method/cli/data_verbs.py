@@ -64,6 +64,12 @@ class Simulate:
     """With --like: each noisy view cropped about a random sub-pixel centre with splines of this
     order (3: cubic, as measured views are often cropped and aligned; 0: not), so its noise is
     correlated as theirs is; the atoms stay registered."""
+    noise_over_atom: float = 1.0
+    """With --like: the views' noise over an atom in units of what neighbouring pixels show, as a
+    run on the real views prints it (read from what neighbouring views do not share); above 1 the
+    replica's noise is drawn correlated with both readings (give --noise-sigma-A too); 1: white."""
+    noise_sigma_A: float = 0.0
+    """With --noise-over-atom: the atoms' width it was read at, Å (the run prints it beside it)."""
     floor_fraction: float = 0.0
     """A floor under every view, as a fraction of a column's value (0: none)."""
     floor_variation: float = 0.0
@@ -211,6 +217,11 @@ class Simulate:
         from gaussian_atoms_method.atoms.atom_set import read_atoms
         from gaussian_atoms_method.harness.replica import physical_truth, write_replica
 
+        if self.noise_over_atom < 1.0 or (self.noise_over_atom > 1.0 and self.noise_sigma_A <= 0):
+            raise ValueError(
+                f"--noise-over-atom {self.noise_over_atom:g}: expected 1 or more and, above 1, with the atoms' width "
+                f"it was read at (--noise-sigma-A, Å > 0; the run prints both)"
+            )
         series = load_tilt_series(self.like)
         if Path(self.particle).is_file():
             atoms, origin = read_atoms(self.particle), np.zeros(3)
@@ -259,6 +270,8 @@ class Simulate:
                     "optics": dataclasses.asdict(self.optics()),
                     "scan_jitter_px": self.scan_jitter_px,
                     "crop_order": self.crop_order,
+                    "noise_over_atom": self.noise_over_atom,
+                    "noise_sigma_A": self.noise_sigma_A,
                     "shift_px": self.shift_px,
                     "shifts_from": None if self.shifts_from is None else str(self.shifts_from),
                     "gain_scatter": self.gain_scatter,
@@ -272,6 +285,8 @@ class Simulate:
             optics=self.optics(),
             scan_jitter_px=self.scan_jitter_px,
             crop_order=self.crop_order,
+            noise_over_atom=self.noise_over_atom,
+            noise_sigma_A=self.noise_sigma_A,
             blur_sigma_A=self.blur_sigma_A,
             shift_px=self.shift_px,
             gain_scatter=self.gain_scatter,

@@ -279,10 +279,13 @@ def views_noise_after_fit(model, before: NoiseModel, measured, predicted, sigma_
     if read is None:
         return before
     factor = max(read.noise_excess, 1.0)
+    sigma_A = sigma_px * model.view_set.series.pixel_size_A
     CONSOLE.print(
         f"gaussian-atoms: the views' noise over an atom, read from what neighbouring views do not share of the "
         f"fit's residual: {factor:.3g} times the variance neighbouring pixels show (correlated noise: denoised or "
-        f"filtered views); {read.structure_share:.0%} of the residual's variance over an atom is shared by the views"
+        f"filtered views; atoms {sigma_A:.3g} Å wide); {read.structure_share:.0%} of the residual's variance over "
+        f"an atom is shared by the views.  A replica with this noise: gaussian-atoms simulate --like DATA "
+        f"--noise-over-atom {factor:.3g} --noise-sigma-A {sigma_A:.3g}"
     )
     return replace(inflated(before, factor), correlation=factor, correlation_read=True, correlation_from="views")
 

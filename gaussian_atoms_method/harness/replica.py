@@ -136,6 +136,8 @@ def replica_of(
     optics: ProbeOptics = DEFAULT_OPTICS,
     scan_jitter_px: float = 0.0,
     crop_order: int = 0,
+    noise_over_atom: float = 1.0,
+    noise_sigma_A: float = 0.0,
 ) -> Replica:
     """A tilt series of ``atoms`` (positions about the tilt centre, Å, with species) in the
     geometry and noise of the real ``series`` (module docstring).
@@ -172,6 +174,15 @@ def replica_of(
         moved by a random sub-pixel shift with splines of this order, its atoms drawn where the
         shift brings them back to (0: not cropped).  The noise comes out correlated, as the
         interpolated crops of measured views hold it; its variance at each level stays the one drawn.
+    noise_over_atom : float
+        The views' noise over an atom of width ``noise_sigma_A`` in units of what their neighbouring
+        pixels show: the factor a run prints where it reads the noise from what neighbouring views do
+        not share (denoised or filtered views).  Above 1 the noise is drawn correlated with both
+        readings (:func:`~gaussian_atoms_method.physics.correlated_noise.correlated_noise`): its
+        pixels' variance the one read from the real views' neighbouring pixels, this factor over an
+        atom.  1: white at the level the real views were read to hold.
+    noise_sigma_A : float
+        The atoms' width that factor was read at, Å (the run prints it with the factor).
     """
     from gaussian_atoms_method.physics.adf import adf_projections, adf_weights, scan_jitter
     from gaussian_atoms_method.physics.microscope import convolve_views, misregistered, probe_transfer
@@ -183,6 +194,11 @@ def replica_of(
         raise ValueError(f"probe must be 'aberrated', 'gaussian' or 'none', got {probe!r}")
     if potential not in ("lobato", "gaussian"):
         raise ValueError(f"potential must be 'lobato' or 'gaussian', got {potential!r}")
+    if noise_over_atom < 1.0 or (noise_over_atom > 1.0 and noise_sigma_A <= 0):
+        raise ValueError(
+            f"noise_over_atom must be at least 1 and, above 1, come with the atoms' width it was read at "
+            f"(noise_sigma_A > 0 Å), got {noise_over_atom:g} and {noise_sigma_A:g} Å"
+        )
     if potential == "lobato" and probe == "none":
         raise ValueError(
             "an ADF atom is sharper than a pixel: only a probe band-limits it (probe 'aberrated' or 'gaussian')"
@@ -225,8 +241,15 @@ def replica_of(
     crop = rng.uniform(-0.5, 0.5, size=(len(clean), 2)) if crop_order else np.zeros((len(clean), 2))
     if crop_order:  # the atoms drawn where the crop's shift will bring them back to
         clean = interpolated_crop(clean, -crop, 3)
-    variance = np.clip(noise.variance(clean), 0.0, None)
-    noisy = clean + rng.standard_normal(clean.shape) * np.sqrt(variance)
+    if noise_over_atom > 1.0:  # correlated as the views' disagreement reads them, at their pixels' variance
+        from gaussian_atoms_method.physics.correlated_noise import correlated_noise
+
+        draw = correlated_noise(clean.shape, noise_over_atom, noise_sigma_A / series.pixel_size_A, rng)
+        variance = np.clip(noise.pixel_variance(clean), 0.0, None)
+    else:
+        draw = rng.standard_normal(clean.shape)
+        variance = np.clip(noise.variance(clean), 0.0, None)
+    noisy = clean + draw * np.sqrt(variance)
     if crop_order:
         noisy = interpolated_crop(noisy, crop, crop_order)
     return Replica(noisy.astype(np.float32), atoms, shifts, gains, scale, noise)
