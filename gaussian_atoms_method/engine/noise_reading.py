@@ -268,14 +268,7 @@ def views_noise_after_fit(model, before: NoiseModel, measured, predicted, sigma_
     what neighbouring views do not share of the (V, H, W) residual ``measured - predicted``
     (:func:`~gaussian_atoms_method.physics.view_disagreement.view_disagreement`), never scaled
     down; said on one line.  ``before`` as it was where the views are too few or too small."""
-    from gaussian_atoms_method.engine.rendering import detector_axes
-    from gaussian_atoms_method.physics.view_disagreement import view_disagreement
-
-    residuals = (measured - predicted).detach().cpu().double().numpy()
-    variance = before.variance(np.clip(predicted.detach().cpu().double().numpy(), 0, None))
-    axes = detector_axes(model.view_c2w.detach().cpu().double()).numpy()
-    beams = np.cross(axes[:, 0], axes[:, 1])  # the beam is normal to the detector's rows and columns
-    read = view_disagreement(residuals, variance, sigma_px, beams)
+    read = disagreement(model, before, measured, predicted, sigma_px)
     if read is None:
         return before
     factor = max(read.noise_excess, 1.0)
@@ -288,6 +281,21 @@ def views_noise_after_fit(model, before: NoiseModel, measured, predicted, sigma_
         f"--noise-over-atom {factor:.3g} --noise-sigma-A {sigma_A:.3g}"
     )
     return replace(inflated(before, factor), correlation=factor, correlation_read=True, correlation_from="views")
+
+
+def disagreement(model, pixels: NoiseModel, measured, predicted, sigma_px: float):
+    """What neighbouring views do not share of the (V, H, W) residual ``measured - predicted`` over
+    an atom of ``sigma_px``, in units of the ``pixels`` noise model's own (its correlation left out;
+    :func:`~gaussian_atoms_method.physics.view_disagreement.view_disagreement`), the beams the
+    model's views'; None where the views are too few or too small."""
+    from gaussian_atoms_method.engine.rendering import detector_axes
+    from gaussian_atoms_method.physics.view_disagreement import view_disagreement
+
+    residuals = (measured - predicted).detach().cpu().double().numpy()
+    variance = pixels.pixel_variance(np.clip(predicted.detach().cpu().double().numpy(), 0, None))
+    axes = detector_axes(model.view_c2w.detach().cpu().double()).numpy()
+    beams = np.cross(axes[:, 0], axes[:, 1])  # the beam is normal to the detector's rows and columns
+    return view_disagreement(residuals, variance, sigma_px, beams)
 
 
 def say_residual(

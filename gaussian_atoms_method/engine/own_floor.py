@@ -16,7 +16,11 @@ physics the fit does not share and asks how far its fit moves them:
 * each view moved and scaled by the registration the run learned, or else by what its views
   were read to sit off its atoms (:func:`registration_of`);
 * noise of the variance the measured views hold at each level, as the run read it before its fit
-  (:func:`~gaussian_atoms_method.physics.noise.noise_from_projections`).
+  (:func:`~gaussian_atoms_method.physics.noise.noise_from_projections`); where it read the noise
+  over an atom from what neighbouring views do not share (denoised or filtered views), correlated
+  as that reading says (:func:`~gaussian_atoms_method.physics.correlated_noise.correlated_noise`:
+  the pixels' variance the one read before the fit, the atoms' that many times it), not white at
+  the atoms' level, which would put that level at every frequency the positions are read at.
 
 The fit then starts at its own atoms, on the replica's views, with fresh moments, and refits them
 as its final refit does (:func:`.refit.refit`, no density control) until its passes' means no
@@ -145,8 +149,16 @@ def draw_replica(model, atoms: AtomSet, reported: np.ndarray, registration, seed
     noise = getattr(model, "measured_noise", None)  # read from the views before the fit (normalised)
     if noise is None:
         noise = noise_from_projections(np.asarray(series.projections, dtype=np.float64) * scale)
-    variance = np.clip(noise.variance(clean), 0.0, None)
-    noisy = clean + np.random.default_rng(seed).standard_normal(clean.shape) * np.sqrt(variance)
+    rng = np.random.default_rng(seed)
+    if noise.correlation_from == "views" and noise.correlation > 1.0:  # as the views' disagreement read it
+        from gaussian_atoms_method.physics.correlated_noise import correlated_noise
+
+        sigma_px = float(model.sigmas.detach().median()) / model.density.pixel_size  # the width it was read at
+        draw = correlated_noise(clean.shape, noise.correlation, sigma_px, rng)
+        variance = np.clip(noise.pixel_variance(clean), 0.0, None)
+    else:
+        draw, variance = rng.standard_normal(clean.shape), np.clip(noise.variance(clean), 0.0, None)
+    noisy = clean + draw * np.sqrt(variance)
     return torch.as_tensor(noisy.astype(np.float32), device=model.means.device)
 
 
