@@ -184,3 +184,40 @@ def test_gaussians_beyond_the_reported_field_neither_churn_nor_widen_the_toleran
     assert check.update(3, both, 0.01, precision, worth)  # and came back: settled twice
     assert not check.update(4, torch.cat([inner[:3], outer]), 0.01, precision, worth[1:])
     assert check.changed == pytest.approx(1.0) and check.tolerated == pytest.approx(0.8)
+
+
+def test_a_gaussian_the_data_would_not_prove_neither_churns_nor_a_proven_one_is_forgiven():
+    """Four atoms and a fragment.  The precision reads an amplitude level of 1 (its third value);
+    the atoms' existence is 20 noise deviations, the fragment's 2, below the proof level of five
+    Gaussians (2.88).  The fragment pruned and born again leaves the set settled; the same
+    Gaussian at 5 deviations is an atom the data would prove, and its going is a change."""
+
+    def precision(noise):
+        return np.full((5, 3), 0.1), 7.0, 1.0
+
+    atoms = torch.arange(4.0)[:, None] * torch.tensor([0.03, 0.0, 0.0])
+    both = torch.cat([atoms, torch.tensor([[0.0, 0.05, 0.0]])])
+    worth = torch.tensor([1.0] * 4 + [0.3])
+    for existence, settles in ((2.0, True), (5.0, False)):
+        z = np.array([20.0] * 4 + [existence])
+        check = ConvergenceCheck(warmup_length=0, refine_every=1, changed_fraction=0.05, match_distance=0.007)
+        assert not check.update(1, both, 0.01, precision, worth, existence=z)
+        check.update(2, atoms, 0.01, precision, worth[:4], existence=z[:4])
+        assert check.update(3, both, 0.01, precision, worth, existence=z) is settles
+        assert check.changed == pytest.approx(0.0 if settles else 0.3)
+
+
+def test_the_existence_significance_is_the_peak_over_its_cramer_rao_deviation():
+    """A Gaussian of width 0.5 Å and peak 1 per Å seen in 40 views of 0.25 Å pixels under white
+    noise of 0.1: the information of its peak summed over the pixels of one view (float64,
+    a 20 Å square) times 40 gives the deviation; an L1 fit's is sqrt(pi / 2) larger."""
+    from gaussian_atoms_method.atoms.uncertainty import existence_significance
+
+    sigma, q, p, s, views = 0.5, 1.0, 0.25, 0.1, 40
+    peak = q * sigma * np.sqrt(2 * np.pi)
+    x = (np.arange(-40, 40) + 0.5) * p
+    image = np.exp(-(x[:, None] ** 2 + x[None, :] ** 2) / (2 * sigma**2))  # the image per unit peak
+    expected = peak * np.sqrt(views * (image**2).sum()) / s
+    l2 = existence_significance(np.array([sigma]), np.array([q]), views, p, s, "l2")[0]
+    l1 = existence_significance(np.array([sigma]), np.array([q]), views, p, s, "l1")[0]
+    assert l2 == pytest.approx(expected, rel=1e-6) and l1 == pytest.approx(l2 / np.sqrt(np.pi / 2))

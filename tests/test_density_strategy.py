@@ -515,5 +515,18 @@ def test_the_worth_a_run_must_settle_is_that_of_the_gaussians_in_the_reported_fi
     control.length_scale, control.field_half_extent = 0.1, (0.2, 0.2, 0.2)
     worth = control.atoms_worth(params)
     assert bool(control.inside(params["means"].detach()).all())
-    torch.testing.assert_close(control.reported_worth(params), worth * torch.tensor([1.0, 1.0, 0.0], dtype=worth.dtype))
+    torch.testing.assert_close(control.counted_worth(params), worth * torch.tensor([1.0, 1.0, 0.0], dtype=worth.dtype))
     assert float(worth[2]) > 0
+
+
+def test_a_gaussian_wider_than_an_atom_is_imaged_counts_no_atom_the_run_must_settle():
+    """Twenty atoms of 0.60-0.62 Å and one Gaussian of 1.2 Å (material no atom explains, widening
+    towards the widest an atom can be): it holds mass, but none the convergence test counts."""
+    means = [[0.02 * i - 0.2, 0.0, 0.0] for i in range(21)]
+    params, _, control = _setup(means, sigma_A=0.06)
+    control.length_scale = 0.1
+    with torch.no_grad():
+        params["log_sigmas"][:20] += torch.linspace(0.0, 0.03, 20)[:, None]
+        params["log_sigmas"][20] = math.log(0.12)
+    counted, worth = control.counted_worth(params), control.atoms_worth(params)
+    assert bool((counted[:20] == worth[:20]).all()) and float(counted[20]) == 0.0 and float(worth[20]) > 0

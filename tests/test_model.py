@@ -390,17 +390,20 @@ def test_the_stop_judges_steps_in_the_residual_that_is_there(tmp_path):
     the noise)."""
     from gaussian_atoms_method.atoms.information import residual_spectrum_factors
     from gaussian_atoms_method.engine.results import residual_noise
+    from gaussian_atoms_method.engine.stopping import atom_scale_noise
 
     _series(tmp_path)
     model, _ = _model(tmp_path, num_random=30, init="random")
     atoms = model.atoms()
     white, level = model.position_std_A(atoms)
-    grain, noise = model.position_std_A(atoms, spectrum=True)
+    noise, amplitude_noise = atom_scale_noise(model, atoms)
+    grain, _ = model.position_std_A(atoms, noise)
     _, residuals, _ = residual_noise(model)
     sigma_px = float(np.median(atoms.sigmas)) / model.view_set.pixel_size_A
-    factor = residual_spectrum_factors(residuals / model.normalisation.data_scale, level, sigma_px)[0]
-    assert factor > 0 and noise == pytest.approx(level * factor, rel=1e-9)
-    np.testing.assert_allclose(grain, white * factor, rtol=1e-6)
+    factors = residual_spectrum_factors(residuals / model.normalisation.data_scale, level, sigma_px)
+    assert min(factors) > 0 and noise == pytest.approx(level * factors[0], rel=1e-9)
+    assert amplitude_noise == pytest.approx(level * factors[1], rel=1e-9)
+    np.testing.assert_allclose(grain, white * factors[0], rtol=1e-6)
 
 
 def test_convergence_stop_needs_settled_atoms(tmp_path):
@@ -413,7 +416,11 @@ def test_convergence_stop_needs_settled_atoms(tmp_path):
     assert not model.converged(100)  # first check: nothing to compare with
     assert not model.converged(200)  # settled once
     assert model.converged(300)  # settled twice
-    std_A, _ = model.position_std_A(model.atoms(), spectrum=True)  # what the check judges by
+    from gaussian_atoms_method.engine.stopping import atom_scale_noise
+
+    std_A, _ = model.position_std_A(
+        model.atoms(), atom_scale_noise(model, model.atoms())[0]
+    )  # what the check judges by
     precision_A = float(np.median(np.sqrt((std_A**2).sum(axis=1))))
     with torch.no_grad():  # every atom moves by three times the precision
         model.gauss_params["means"][:, 0] += 3 * precision_A * model.normalisation.length_scale

@@ -5,8 +5,9 @@ Checked after each refine interval's densify / prune / merge: the Gaussians now 
 those at the last check (mutual nearest neighbours within the merge distance: closer ones would
 be one atom); settled when the mass added or removed holds at most ``changed_fraction`` of the
 atoms' worth (by place: a merge or split within the hard core keeps its place's mass,
-:func:`places_changed`) and the RMS step of the matched positions is below ``fraction`` of the
-atoms' median precision, at two checks in a row.  The precision is the isolated atom's
+:func:`places_changed`; only Gaussians of an atom's width whose existence the data would prove
+count) and the RMS step of the matched positions is below ``fraction`` of the atoms' median
+precision, at two checks in a row.  The precision is the isolated atom's
 Cramér-Rao bound (:mod:`gaussian_atoms_method.atoms.uncertainty`) under the residual that is
 there, its level and its weight at the atoms' scale, as the model's ``precision`` reads it: on
 real views the white bound at the residual's level is too strict, and the run never settles.
@@ -22,7 +23,9 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-Precision = Callable[[float | None], "tuple[np.ndarray, float] | None"]
+from gaussian_atoms_method.atoms.evidence import proof_level
+
+Precision = Callable[[float | None], "tuple[np.ndarray, float] | tuple[np.ndarray, float, float | None] | None"]
 
 
 @dataclass
@@ -67,6 +70,10 @@ class ConvergenceCheck:
     (:func:`drift_per_interval`, NaN before three checks): what :meth:`summary` reports."""
     precision_A: float = math.nan
     drift_A: float = math.nan
+    amplitude_noise: float | None = None
+    """The white level the residual weighs at the atoms' scale for an amplitude, read with
+    ``noise`` (the precision's third value): what a Gaussian's existence is judged against."""
+    previous_existence: np.ndarray | None = None
     noise_read_settled: bool = False
     """Whether ``noise`` was read at a check where the positions had settled.  The first
     check's reading (step 300) still holds the fit's misfit, which loosens the precision; when
@@ -84,6 +91,7 @@ class ConvergenceCheck:
         precision: Precision,
         atoms: torch.Tensor | None = None,
         core: float = math.inf,
+        existence: np.ndarray | None = None,
     ) -> bool:
         """True once the atoms are settled.
 
@@ -106,6 +114,15 @@ class ConvergenceCheck:
             within it keeps the place's mass, so Gaussians within it of one another, now and at
             the last check, are one place (:func:`places_changed`; the match distance where it
             is unknown).
+        existence : (N,) array, optional
+            Each Gaussian's existence significance under white noise of unit standard deviation
+            (:func:`~gaussian_atoms_method.atoms.uncertainty.existence_significance`).  With the
+            precision's amplitude level, a Gaussian whose significance under that level stays
+            below :func:`~gaussian_atoms_method.atoms.evidence.proof_level` of the Gaussians
+            counted is worth nothing at either check: the set that must settle is the one the
+            data would prove (until they prove any, every Gaussian counts).  On a real Ta
+            sub-area (8) most of the set's change after step 2,000 was fragments of a quarter
+            of an atom, 2-4 standard deviations under the residual, pruned one at a time.
         """
         if not self.checks(step):
             return False
@@ -116,6 +133,7 @@ class ConvergenceCheck:
             else atoms.detach().double().cpu().flatten()
         )
         previous_weights, self.previous_weights = self.previous_weights, weights
+        previous_existence, self.previous_existence = self.previous_existence, existence
         older, link = self.older, self.link
         self.older, previous, self.previous, self.scatter_only = self.previous, self.previous, positions, False
         self.link = None
@@ -124,14 +142,6 @@ class ConvergenceCheck:
             return False
         before, now = mutual_nearest(previous.numpy(), positions.numpy(), self.match_distance)
         self.link = (before, now)
-        self.changed = places_changed(
-            previous.numpy(),
-            previous_weights.numpy(),
-            positions.numpy(),
-            weights.numpy(),
-            (before, now),
-            max(self.match_distance, core) if math.isfinite(core) else self.match_distance,
-        )
         # the share is of the Gaussians that count (a worth of zero: beyond the reported field)
         counted = max(int((previous_weights > 0).sum()), int((weights > 0).sum()))
         self.tolerated = self.changed_fraction * counted
@@ -144,7 +154,9 @@ class ConvergenceCheck:
             result = precision(noise)
             if result is None:
                 return None, False
-            std, self.noise = result
+            std, self.noise, *amplitude = result
+            if amplitude and amplitude[0] is not None:
+                self.amplitude_noise = amplitude[0]
             precision_A = np.sqrt((std**2).sum(axis=1))
             self.precision_A = float(np.median(precision_A))
             return precision_A, step_A < self.fraction * self.precision_A
@@ -158,6 +170,19 @@ class ConvergenceCheck:
             self.noise_read_settled = True
         if precision_A is None:
             return False
+        if existence is not None and previous_existence is not None and self.amplitude_noise:
+            level = proof_level(counted) * self.amplitude_noise
+            proven, proven_before = torch.as_tensor(existence >= level), torch.as_tensor(previous_existence >= level)
+            if bool(proven.any() or proven_before.any()):  # until the data prove any, all count
+                weights, previous_weights = weights * proven, previous_weights * proven_before
+        self.changed = places_changed(
+            previous.numpy(),
+            previous_weights.numpy(),
+            positions.numpy(),
+            weights.numpy(),
+            (before, now),
+            max(self.match_distance, core) if math.isfinite(core) else self.match_distance,
+        )
         self.noise_read_settled |= moved_less
         self.positions_settled = self.positions_settled + 1 if moved_less else 0
         if older is not None and link is not None:  # atoms matched over all three checks
@@ -188,10 +213,14 @@ class ConvergenceCheck:
             f"tolerated)"
         )
 
-    def restart(self, positions: torch.Tensor, atoms: torch.Tensor | None = None) -> None:
+    def restart(
+        self, positions: torch.Tensor, atoms: torch.Tensor | None = None, existence: np.ndarray | None = None
+    ) -> None:
         """Compare the next check with ``positions`` (the set was changed on purpose: its
-        removals are not churn), from no settled checks."""
+        removals are not churn), from no settled checks (``atoms`` and ``existence`` as
+        :meth:`update` takes them)."""
         self.previous, self.older, self.link = positions.detach().double().cpu().clone(), None, None
+        self.previous_existence = existence
         self.previous_weights = (
             torch.ones(len(positions), dtype=torch.float64)
             if atoms is None

@@ -55,7 +55,7 @@ from gaussian_atoms_method.engine.refit import refit
 from gaussian_atoms_method.engine.residuals import residual_correlations
 from gaussian_atoms_method.engine.results import model_position_std_A, write_results, write_snapshot
 from gaussian_atoms_method.engine.step_graph import StepGraph
-from gaussian_atoms_method.engine.stopping import at_check, set_position_rate
+from gaussian_atoms_method.engine.stopping import at_check, converged, set_position_rate
 from gaussian_atoms_method.engine.view_set import ViewSet
 from gaussian_atoms_method.physics.data_terms import data_term
 from gaussian_atoms_method.physics.noise import measure_noise
@@ -418,19 +418,14 @@ class AtomFit(torch.nn.Module):
             amplitudes=norm.amplitudes_to_physical(host(amplitudes(p))),
         )
 
-    def position_std_A(self, atoms: AtomSet, noise: float | None = None, spectrum: bool = False):
+    def position_std_A(self, atoms: AtomSet, noise: float | None = None):
         """Each atom's position precision (N, 3) in Å and the pixel noise assumed
         (:func:`gaussian_atoms_method.engine.results.model_position_std_A`)."""
-        return model_position_std_A(self, atoms, noise, spectrum)
+        return model_position_std_A(self, atoms, noise)
 
     def converged(self, step: int) -> bool:
-        """True once the atoms are settled (:mod:`gaussian_atoms_method.engine.convergence`)."""
-        params, check = self.gauss_params, self.convergence
-        precision = lambda noise: self.position_std_A(self.atoms(), noise, spectrum=True)  # noqa: E731
-        return check.checks(step) and check.update(
-            step, self.means, self.normalisation.length_scale, precision, self.density.reported_worth(params),
-            self.density.known_hard_core(),
-        )  # fmt: skip
+        """True once the atoms are settled (:func:`gaussian_atoms_method.engine.stopping.converged`)."""
+        return converged(self, step)
 
     def write_results(self, run_dir: Path) -> dict | None:
         """atoms.xyz, atoms.csv, slices.png and evaluation.json

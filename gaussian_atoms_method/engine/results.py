@@ -60,31 +60,25 @@ def residual_noise(model) -> tuple[float, torch.Tensor, torch.Tensor] | None:
 
 
 @torch.no_grad()
-def model_position_std_A(
-    model, atoms: AtomSet, noise: float | None = None, spectrum: bool = False
-) -> tuple[np.ndarray, float] | None:
+def model_position_std_A(model, atoms: AtomSet, noise: float | None = None) -> tuple[np.ndarray, float] | None:
     """Each atom's position precision (N, 3) in Å and the pixel noise it assumes (input units;
     estimated from the residuals of the training views unless given, :func:`residual_noise`)
     (:mod:`gaussian_atoms_method.atoms.uncertainty`); None without the tilt series (a model
-    built outside the dataparser).  With ``spectrum`` a noise read here is the white level the
-    residual weighs at the atoms' scale for a position
-    (:func:`~gaussian_atoms_method.atoms.information.residual_spectrum_factors`): the residual that
-    is there, its level and its grain, against which the fit's steps are judged."""
+    built outside the dataparser)."""
     series, projections = model.view_set.series, model.view_set.projections
     if series is None or projections is None or len(atoms) == 0:
         return None
     if noise is None:
-        noise, residuals, _ = residual_noise(model)
-        if spectrum:
-            from gaussian_atoms_method.atoms.information import residual_spectrum_factors
-
-            sigma_px = float(np.median(atoms.sigmas)) / series.pixel_size_A
-            noise *= residual_spectrum_factors(residuals / model.normalisation.data_scale, noise, sigma_px)[0]
+        noise = residual_noise(model)[0]
     axes = detector_axes(model.view_c2w.cpu().double()).numpy()  # the training views' detectors
-    # The Poisson term is a (weighted) least-squares fit: the L2 bound, at the pixels' mean noise;
-    # Huber's is within 5% of it (HUBER_EFFICIENCY).
-    loss = "l1" if model.data_term == "l1" else "l2"
-    return position_std_A(atoms.sigmas, atoms.amplitudes, axes, series.pixel_size_A, noise, loss), noise
+    return position_std_A(atoms.sigmas, atoms.amplitudes, axes, series.pixel_size_A, noise, fitted_loss(model)), noise
+
+
+def fitted_loss(model) -> str:
+    """The estimator the positions were fitted with, as the bounds take it: ``"l1"`` for the L1
+    data term, else ``"l2"`` (the Poisson term is a weighted least-squares fit, at the pixels'
+    mean noise; Huber's is within 5% of it, ``HUBER_EFFICIENCY``)."""
+    return "l1" if model.data_term == "l1" else "l2"
 
 
 def write_results(model, run_dir: Path) -> dict | None:

@@ -11,10 +11,69 @@ the positions only scatter, their rate is halved down to the schedule's final ra
 
 from __future__ import annotations
 
+import numpy as np
+import torch
+
+from gaussian_atoms_method.atoms.uncertainty import existence_significance
 from gaussian_atoms_method.engine.console import CONSOLE
 from gaussian_atoms_method.engine.residuals import add_missing_atoms
+from gaussian_atoms_method.engine.results import fitted_loss, model_position_std_A, residual_noise
 
 POSITIONS = "means"
+
+
+def converged(model, step: int) -> bool:
+    """True once the atoms are settled (:mod:`gaussian_atoms_method.engine.convergence`): the
+    positions against their precision under the residual at the atoms' scale, the set by the
+    Gaussians whose existence that residual would prove."""
+    check = model.convergence
+    if not check.checks(step):
+        return False
+    atoms = model.atoms()
+    levels = {}
+
+    def precision(noise):
+        if noise is None:
+            read = atom_scale_noise(model, atoms)
+            if read is None:
+                return None
+            noise, levels["amplitude"] = read
+        result = model_position_std_A(model, atoms, noise)
+        return None if result is None else (*result, levels.get("amplitude"))
+
+    worth, core = model.density.counted_worth(model.gauss_params), model.density.known_hard_core()
+    existence = existence_at_unit_noise(model, atoms)
+    return check.update(step, model.means, model.normalisation.length_scale, precision, worth, core, existence)
+
+
+@torch.no_grad()
+def atom_scale_noise(model, atoms) -> tuple[float, float] | None:
+    """The white levels (input units) the fit's residual weighs at the atoms' scale, for a
+    position and for an amplitude (:func:`residual_noise` times
+    :func:`~gaussian_atoms_method.atoms.information.residual_spectrum_factors` at the atoms'
+    median width): the residual that is there, its level and its grain, against which the fit's
+    steps and the atoms' existence are judged during training; None without the tilt series."""
+    series = model.view_set.series
+    read = residual_noise(model) if series is not None and len(atoms) else None
+    if read is None:
+        return None
+    from gaussian_atoms_method.atoms.information import residual_spectrum_factors
+
+    noise, residuals, _ = read
+    sigma_px = float(np.median(atoms.sigmas)) / series.pixel_size_A
+    position, amplitude = residual_spectrum_factors(residuals / model.normalisation.data_scale, noise, sigma_px)
+    return noise * position, noise * amplitude
+
+
+def existence_at_unit_noise(model, atoms) -> np.ndarray | None:
+    """(N,) each Gaussian's existence significance under white noise of one input unit
+    (:func:`~gaussian_atoms_method.atoms.uncertainty.existence_significance`); None without the
+    tilt series."""
+    series = model.view_set.series
+    if series is None or len(atoms) == 0:
+        return None
+    n_views = model.view_c2w.shape[0]
+    return existence_significance(atoms.sigmas, atoms.amplitudes, n_views, series.pixel_size_A, 1.0, fitted_loss(model))
 
 
 def at_check(model, step: int, last_step: int) -> bool:
@@ -60,7 +119,9 @@ def settle_set(model) -> int:
     likelihood waits for the end: its test holds where the residual is noise, at a converged fit."""
     removed = model.density.settle(model.gauss_params, model.optimizers, model._param_lists())
     model.density.state.settled_since_search = True
-    model.convergence.restart(model.means, model.density.reported_worth(model.gauss_params))
+    model.convergence.restart(
+        model.means, model.density.counted_worth(model.gauss_params), existence_at_unit_noise(model, model.atoms())
+    )
     if removed:
         model.atoms_changed()
     return removed
