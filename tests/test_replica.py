@@ -43,20 +43,25 @@ def _real_like(tmp_path: Path, atoms: AtomSet | None = None) -> Path:
     )
 
 
+def _simulate_like(real_dir: Path, output: Path, *options: str) -> None:
+    """``gaussian-atoms simulate --like REAL_DIR --output OUTPUT OPTIONS``, which must succeed."""
+    result = subprocess.run(
+        [str(Path(sys.executable).parent / "gaussian-atoms"), "simulate", "--like", str(real_dir)]
+        + ["--output", str(output), *options],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+
+
 def test_a_replica_takes_the_series_geometry_level_and_noise(tmp_path):
     """``simulate --like``: the same views (orientations and their convention, detector, pixel,
     tilt centre), the truth the real series' atoms, the mean level the real one's, and the noise
     read from the replica what was read from the real views (the reading's own scatter at these
     sizes is a few percent of the gain)."""
     real_dir = _real_like(tmp_path)
-    result = subprocess.run(
-        [str(Path(sys.executable).parent / "gaussian-atoms"), "simulate", "--like", str(real_dir)]
-        + ["--output", str(tmp_path / "replica"), "--probe", "aberrated", "--shift-px", "0.3", "--support-A", "10"],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert result.returncode == 0, result.stderr[-2000:]
+    _simulate_like(real_dir, tmp_path / "replica", "--probe", "aberrated", "--shift-px", "0.3", "--support-A", "10")
     real, replica = load_tilt_series(real_dir), load_tilt_series(tmp_path / "replica")
     assert replica.projections.shape == real.projections.shape
     assert replica.euler_convention == "zyx" and replica.pixel_size_A == real.pixel_size_A
@@ -108,14 +113,7 @@ def test_a_replica_drawn_with_the_noise_a_run_read_over_an_atom_is_read_again_wi
     from gaussian_atoms_method.physics.correlated_noise import blur_for_factor, factor_of
 
     real_dir = _real_like(tmp_path)
-    result = subprocess.run(
-        [str(Path(sys.executable).parent / "gaussian-atoms"), "simulate", "--like", str(real_dir)]
-        + ["--output", str(tmp_path / "replica"), "--noise-over-atom", "50", "--noise-sigma-A", "0.55", "--seed", "1"],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert result.returncode == 0, result.stderr[-2000:]
+    _simulate_like(real_dir, tmp_path / "replica", "--noise-over-atom", "50", "--noise-sigma-A", "0.55", "--seed", "1")
     replica = load_tilt_series(tmp_path / "replica")
     level = np.array([replica.projections.mean()])
     drawn = noise_from_projections(load_tilt_series(real_dir).projections).variance(level)[0]
