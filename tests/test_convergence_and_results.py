@@ -221,3 +221,35 @@ def test_the_existence_significance_is_the_peak_over_its_cramer_rao_deviation():
     l2 = existence_significance(np.array([sigma]), np.array([q]), views, p, s, "l2")[0]
     l1 = existence_significance(np.array([sigma]), np.array([q]), views, p, s, "l1")[0]
     assert l2 == pytest.approx(expected, rel=1e-6) and l1 == pytest.approx(l2 / np.sqrt(np.pi / 2))
+
+
+def test_the_places_gathered_from_the_unmatched_are_those_of_the_whole_graph():
+    """places_changed reads only the places reached from an unmatched Gaussian; on random sets
+    (moved, pruned, born, some unmoved to the bit) it gives what the components of the whole
+    closeness graph give."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    def whole_graph(previous, previous_worth, now, now_worth, matched, within):
+        unmatched = np.ones(len(previous) + len(now), dtype=bool)
+        unmatched[matched[0]] = False
+        unmatched[len(previous) + matched[1]] = False
+        pairs = cKDTree(previous).sparse_distance_matrix(cKDTree(now), within, output_type="coo_matrix")
+        n = len(previous) + len(now)
+        graph = coo_matrix((np.ones(pairs.nnz), (pairs.row, len(previous) + pairs.col)), shape=(n, n))
+        _, place = connected_components(graph, directed=False)
+        change = np.bincount(place, weights=np.concatenate([-previous_worth, now_worth]))
+        return float(np.abs(change[np.unique(place[unmatched])]).sum())
+
+    rng = np.random.default_rng(3)
+    for trial in range(60):
+        previous = rng.uniform(0.0, 10.0, (int(rng.integers(2, 300)), 3))
+        now = previous + rng.normal(0.0, [0.01, 0.2, 0.6][trial % 3], previous.shape)
+        now[: len(now) // 4] = previous[: len(now) // 4]  # unmoved
+        now = np.concatenate([now[rng.random(len(now)) > 0.1], rng.uniform(0.0, 10.0, (5, 3))])
+        worth = rng.uniform(0.0, 2.0, len(previous)), rng.uniform(0.0, 2.0, len(now))
+        matched = mutual_nearest(previous, now, 0.7)
+        within = [0.7, 1.9][trial % 2]
+        expected = whole_graph(previous, worth[0], now, worth[1], matched, within)
+        assert places_changed(previous, worth[0], now, worth[1], matched, within) == pytest.approx(expected, abs=1e-9)

@@ -282,13 +282,41 @@ def places_changed(
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    pairs = cKDTree(previous).sparse_distance_matrix(cKDTree(now), within, output_type="coo_matrix")
-    n = len(previous) + len(now)
-    graph = coo_matrix((np.ones(pairs.nnz), (pairs.row, len(previous) + pairs.col)), shape=(n, n))
+    # Only the places that hold an unmatched Gaussian count: gather them outward from those
+    # Gaussians (at 54,000 the whole graph's components cost 0.17 s a check on an H200's host).
+    p_at, n_at = _reached_from_unmatched(previous, now, unmatched, within)
+    pairs = cKDTree(previous[p_at]).sparse_distance_matrix(cKDTree(now[n_at]), within, output_type="coo_matrix")
+    n = len(p_at) + len(n_at)
+    graph = coo_matrix((np.ones(pairs.nnz), (pairs.row, len(p_at) + pairs.col)), shape=(n, n))
     _, place = connected_components(graph, directed=False)
-    signed = np.concatenate([-np.asarray(previous_worth, float), np.asarray(now_worth, float)])
+    index = np.concatenate([p_at, len(previous) + n_at])
+    signed = np.concatenate([-np.asarray(previous_worth, float), np.asarray(now_worth, float)])[index]
     change = np.bincount(place, weights=signed)
-    return float(np.abs(change[np.unique(place[unmatched])]).sum())
+    return float(np.abs(change[np.unique(place[unmatched[index]])]).sum())
+
+
+def _reached_from_unmatched(
+    previous: np.ndarray, now: np.ndarray, unmatched: np.ndarray, within: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The indices into (P, 3) ``previous`` and (N, 3) ``now`` of every Gaussian connected to an
+    unmatched one (``unmatched``: (P + N,) bool, previous first) through Gaussians of the other
+    check closer than ``within``, each sorted."""
+    trees = (cKDTree(previous), cKDTree(now))
+    points = (previous, now)
+    seen = [unmatched[: len(previous)].copy(), unmatched[len(previous) :].copy()]
+    frontier = [np.nonzero(seen[0])[0], np.nonzero(seen[1])[0]]
+    while len(frontier[0]) or len(frontier[1]):
+        nxt = []
+        for side in (0, 1):  # the other check's Gaussians near this side's frontier
+            src = frontier[1 - side]
+            near = trees[side].query_ball_point(points[1 - side][src], within) if len(src) else []
+            found = np.unique(np.concatenate([np.asarray(x, dtype=np.int64) for x in near])) if len(near) else []
+            found = np.asarray(found, dtype=np.int64)
+            found = found[~seen[side][found]]
+            seen[side][found] = True
+            nxt.append(found)
+        frontier = nxt
+    return np.nonzero(seen[0])[0], np.nonzero(seen[1])[0]
 
 
 def mutual_nearest(a: np.ndarray, b: np.ndarray, within: float = math.inf) -> tuple[np.ndarray, np.ndarray]:
