@@ -418,9 +418,8 @@ def test_convergence_stop_needs_settled_atoms(tmp_path):
     assert model.converged(300)  # settled twice
     from gaussian_atoms_method.engine.stopping import atom_scale_noise
 
-    std_A, _ = model.position_std_A(
-        model.atoms(), atom_scale_noise(model, model.atoms())[0]
-    )  # what the check judges by
+    atoms = model.atoms()
+    std_A, _ = model.position_std_A(atoms, atom_scale_noise(model, atoms)[0])  # what the check judges by
     precision_A = float(np.median(np.sqrt((std_A**2).sum(axis=1))))
     with torch.no_grad():  # every atom moves by three times the precision
         model.gauss_params["means"][:, 0] += 3 * precision_A * model.normalisation.length_scale

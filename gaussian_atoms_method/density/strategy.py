@@ -299,8 +299,7 @@ class DensityControl(DensitySettings, Growth, Significance, Merging, HardCoreRul
         mass each at the film's surfaces, widened to the widest an atom can be and were pruned,
         one to four each 100 steps until the step limit."""
         sig = widths(params, self.min_log_sigma).detach()
-        atom_like = self.atom_width(sig)
-        one_atom = sig <= split_width(sig[atom_like]) if bool(atom_like.any()) else atom_like
+        one_atom = sig <= split_width(sig[self.atom_width(sig)])
         return self.atoms_worth(params) * self.in_field(params["means"].detach()) * one_atom
 
     def inside(self, means: torch.Tensor) -> torch.Tensor:

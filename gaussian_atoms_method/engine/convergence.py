@@ -310,8 +310,7 @@ def _reached_from_unmatched(
         for side in (0, 1):  # the other check's Gaussians near this side's frontier
             src = frontier[1 - side]
             near = trees[side].query_ball_point(points[1 - side][src], within) if len(src) else []
-            found = np.unique(np.concatenate([np.asarray(x, dtype=np.int64) for x in near])) if len(near) else []
-            found = np.asarray(found, dtype=np.int64)
+            found = np.unique(np.concatenate([np.zeros(0, np.int64), *(np.asarray(x, np.int64) for x in near)]))
             found = found[~seen[side][found]]
             seen[side][found] = True
             nxt.append(found)
