@@ -89,6 +89,10 @@ class TiltSeries:
     view_indices : (N,) int array
         Each view's index in the file it was read from (``drop_views`` leaves some out), of
         ``views_given`` (default N).
+    noise_path : Path or None
+        A replica's own noise: the (``views_given``, H, W) field its views were drawn with, in
+        the projections' units (manifest key ``noise``; :func:`~gaussian_atoms_method.harness.replica.write_replica`
+        writes it), against which a run checks the noise it reads; None for measured views.
     """
 
     projections: np.ndarray
@@ -106,6 +110,7 @@ class TiltSeries:
     pixel_size_source: str = ""
     view_indices: np.ndarray | None = None
     views_given: int | None = None
+    noise_path: Path | None = None
 
     def __post_init__(self) -> None:
         where = str(self.source) if self.source is not None else "tilt series"
@@ -296,6 +301,7 @@ def load_tilt_series(
             "species",
             "euler_convention",
             "drop_views",
+            "noise",
         }
         unknown = set(manifest) - known
         if unknown:
@@ -372,6 +378,9 @@ def load_tilt_series(
     truth_path = root / truth_name if truth_name is not None else None
     if truth_path is not None and not truth_path.is_file():
         raise TiltSeriesError(f"{truth_path}: truth file not found")
+    noise_path = root / manifest["noise"] if "noise" in manifest else None
+    if noise_path is not None and not noise_path.is_file():
+        raise TiltSeriesError(f"{noise_path}: noise file not found (manifest key noise)")
     axis, axis_angle = pick(tilt_axis, "tilt_axis"), pick(tilt_axis_angle_deg, "tilt_axis_angle_deg")
     if axis_angle is None and stack.imod_tilt_axis_angle_deg is not None:
         axis = axis or "x"  # IMOD measures its angle from Y, the rows: our "x"
@@ -392,6 +401,7 @@ def load_tilt_series(
             pixel_size_source=px_source,
             view_indices=kept,
             views_given=given,
+            noise_path=noise_path,
         )
     except TiltSeriesError as exc:
         # Name the file the problem most likely lives in.
@@ -417,8 +427,10 @@ def write_tilt_series(
     tilt_axis_angle_deg: float = 0.0,
     species=(),
     euler_convention: str = "zyz",
+    noise: np.ndarray | None = None,
 ) -> Path:
-    """Write a ``tilt_series.json`` directory; ``truth`` is an AtomSet in its own frame.
+    """Write a ``tilt_series.json`` directory; ``truth`` is an AtomSet in its own frame; ``noise``
+    the (N, H, W) noise drawn into a replica's ``projections`` (``noise.npy``, manifest key ``noise``).
 
     The manifest is written last, so a directory with a manifest is complete.
     """
@@ -457,6 +469,9 @@ def write_tilt_series(
     if truth is not None:
         write_atoms(truth, out / "atoms_true.xyz")
         manifest["truth"] = "atoms_true.xyz"
+    if noise is not None:
+        np.save(out / "noise.npy", np.asarray(noise, dtype=np.float32))
+        manifest["noise"] = "noise.npy"
     if extra:
         manifest.update(extra)
     _write_manifest(out, manifest)

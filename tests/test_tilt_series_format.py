@@ -30,6 +30,17 @@ def test_round_trip_keeps_floats_unquantised(tmp_path):
     assert series.truth_path == tmp_path / "atoms_true.xyz"
 
 
+def test_a_replica_keeps_the_noise_drawn_into_its_views(tmp_path):
+    rng = np.random.default_rng(1)
+    noise = rng.normal(size=(5, 8, 9)).astype(np.float32)
+    write_tilt_series(tmp_path, 10 + noise, np.linspace(-60, 60, 5), 0.25, noise=noise)
+    series = load_tilt_series(tmp_path)
+    assert series.noise_path == tmp_path / "noise.npy"
+    np.testing.assert_array_equal(np.load(series.noise_path), noise)
+    _write(tmp_path / "measured")
+    assert load_tilt_series(tmp_path / "measured").noise_path is None
+
+
 def test_options_override_manifest(tmp_path):
     _write(tmp_path)
     series = load_tilt_series(tmp_path, pixel_size_A=0.5, tilt_axis="x")
@@ -67,6 +78,7 @@ def _edit_manifest(tmp_path, **changes):
         (lambda d: np.savetxt(d / "angles.txt", [0.0, 10.0, 10.0, 20.0, 30.0]), "angles.txt", "duplicate tilt angle"),
         (lambda d: _edit_manifest(d, tilt_axis="z"), "tilt_series.json", "tilt_axis"),
         (lambda d: _edit_manifest(d, truth="missing.xyz"), "missing.xyz", "not found"),
+        (lambda d: _edit_manifest(d, noise="missing.npy"), "missing.npy", "not found"),
         (lambda d: _edit_manifest(d, colour="red"), "tilt_series.json", "unknown key"),
         (lambda d: (d / "tilt_series.json").write_text("{not json"), "tilt_series.json", "not valid JSON"),
     ],

@@ -137,6 +137,7 @@ class AtomFit(torch.nn.Module):
         say_series(series)
         say_start(start, ls, cfg.extended_object, ahead is not None)
         self.measured_noise = start.noise  # the views' own noise before any fit (normalised units)
+        self.noise_check: dict | None = None  # the noise reading against a replica's own noise (noise_reading)
         measured, means, weights, half_extent, self.field_half_extent = (
             start.noise,
             start.means,

@@ -243,7 +243,9 @@ def read_after_fit(model) -> None:
     judge = model.density.noise is not None and model.config.judge_after_fit
     before = getattr(model, "measured_noise", None)
     unread = before is not None and not before.correlation_read
-    if model.num_points == 0 or not (judge or unread):
+    series = model.view_set.series
+    known = before is not None and getattr(series, "noise_path", None) is not None
+    if model.num_points == 0 or not (judge or unread or known):
         return
     measured = measured_views(model)
     if measured is None:
@@ -252,6 +254,8 @@ def read_after_fit(model) -> None:
     sigma_px = float(model.sigmas.median()) / model.density.pixel_size
     if unread:
         model.measured_noise = views_noise_after_fit(model, before, measured, predicted, sigma_px)
+    if known:
+        model.noise_check = check_noise_reading(model, before, predicted, sigma_px)
     if not judge:
         return
     judged, factor = noise_after_fit(model.density.noise, measured, predicted, sigma_px)
@@ -281,6 +285,37 @@ def views_noise_after_fit(model, before: NoiseModel, measured, predicted, sigma_
         f"--noise-over-atom {factor:.3g} --noise-sigma-A {sigma_A:.3g}"
     )
     return replace(inflated(before, factor), correlation=factor, correlation_read=True, correlation_from="views")
+
+
+def check_noise_reading(model, pixels: NoiseModel, predicted, sigma_px: float) -> dict | None:
+    """The run's noise over an atom (``model.measured_noise``'s correlation) against the noise a
+    replica drew into its views (the series' ``noise_path``), both in units of the ``pixels``
+    reading at the (V, H, W) ``predicted`` levels, at atoms of ``sigma_px``; said on one line,
+    returned for ``evaluation.json``.  None (said) where the file does not hold the views."""
+    from gaussian_atoms_method.physics.view_disagreement import known_noise_over_atom
+
+    series = model.view_set.series
+    noise = np.load(series.noise_path, mmap_mode="r")
+    if series.view_indices is not None and len(noise) == (series.views_given or len(noise)):
+        noise = noise[np.asarray(series.view_indices)]
+    if noise.shape != tuple(predicted.shape):
+        CONSOLE.print(
+            f"gaussian-atoms: {series.noise_path}: noise of shape {noise.shape}, not the views' "
+            f"{tuple(predicted.shape)}; the noise reading is not checked"
+        )
+        return None
+    level = np.clip(predicted.detach().cpu().double().numpy(), 0, None)
+    scaled = np.asarray(noise, dtype=np.float64) * model.normalisation.data_scale
+    true = known_noise_over_atom(scaled, pixels.pixel_variance(level), sigma_px)
+    if true is None:
+        return None
+    read = float(model.measured_noise.correlation)
+    CONSOLE.print(
+        f"gaussian-atoms: the noise over an atom read {read:.3g} times what neighbouring pixels show; the noise "
+        f"drawn into these views ({series.noise_path.name}) holds {true:.3g} times it there: read / drawn "
+        f"{read / true:.3f}"
+    )
+    return {"noise_over_atom_read": read, "noise_over_atom_drawn": true}
 
 
 def disagreement(model, pixels: NoiseModel, measured, predicted, sigma_px: float):

@@ -190,6 +190,7 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
 
         scores |= evidence_scores(atoms, truth, truth_counted=covered)
     if scores is not None:
+        scores |= model.noise_check or {}
         scores |= {
             "converged": converged_at is not None,
             "steps": (converged_at if converged_at is not None else model.step) + 1,

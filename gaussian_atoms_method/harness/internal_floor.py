@@ -94,7 +94,7 @@ def internal_floor(
     shifts, gains = registration_of(atoms.info, n_views, seed)
     made = replica_of(series, truth, seed=seed, shifts_px=shifts, optics=optics or DEFAULT_OPTICS, support_A=support_A)
     projections = (made.projections * gains[:, None, None]).astype(np.float32)
-    replica_series = dataclasses.replace(series, projections=projections, truth_path=None)
+    replica_series = dataclasses.replace(series, projections=projections, truth_path=None, noise_path=None)
     model_options.setdefault("own_floor", False)  # the floor is read here: the refit states the views' scatter
     refit = reconstruct(
         replica_series,

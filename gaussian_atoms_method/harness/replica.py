@@ -50,7 +50,8 @@ class Replica:
     """``projections`` (V, H, W) float32 in the real series' geometry; ``truth`` the atoms in its
     frame about the tilt centre; ``shifts_px`` (V, 2) the misregistration applied; ``gains``
     (V,); ``scale`` the intensity per unit of ``Z^1.7``-weighted mass; ``noise`` the real views'
-    noise model it drew from."""
+    noise model it drew from; ``drawn_noise`` (V, H, W) float32 the noise in ``projections`` (what
+    a run's noise reading is checked against)."""
 
     projections: np.ndarray
     truth: AtomSet
@@ -58,6 +59,7 @@ class Replica:
     gains: np.ndarray
     scale: float
     noise: object
+    drawn_noise: np.ndarray | None = None
 
 
 def _support_atoms(series, thickness_A: float, below_A: float, rng) -> np.ndarray:
@@ -249,10 +251,11 @@ def replica_of(
     else:
         draw = rng.standard_normal(clean.shape)
         variance = np.clip(noise.variance(clean), 0.0, None)
-    noisy = clean + draw * np.sqrt(variance)
-    if crop_order:
-        noisy = interpolated_crop(noisy, crop, crop_order)
-    return Replica(noisy.astype(np.float32), atoms, shifts, gains, scale, noise)
+    drawn = draw * np.sqrt(variance)
+    noisy = clean + drawn
+    if crop_order:  # the crop is linear: the noise in the cropped views is the cropped noise
+        noisy, drawn = interpolated_crop(noisy, crop, crop_order), interpolated_crop(drawn, crop, crop_order)
+    return Replica(noisy.astype(np.float32), atoms, shifts, gains, scale, noise, drawn.astype(np.float32))
 
 
 def interpolated_crop(views: np.ndarray, shifts_px: np.ndarray, order: int) -> np.ndarray:
@@ -268,7 +271,8 @@ def write_replica(series, atoms: AtomSet, out_dir, origin_A=(0.0, 0.0, 0.0), ext
     """:func:`replica_of` ``series`` for ``atoms`` (in the series' truth frame, its tilt centre at
     ``origin_A``; ``settings`` as :func:`replica_of` takes them) written as a tilt-series
     directory ``out_dir`` in the series' geometry, with the atoms as its truth; returns the
-    directory and the :class:`Replica`."""
+    directory and the :class:`Replica`.  The noise drawn into the views is written beside them
+    (``noise.npy``), for the run to check the noise it reads against."""
     from dataparsers.tilt_series_format import write_tilt_series
 
     origin = np.asarray(origin_A, dtype=np.float64)
@@ -286,5 +290,6 @@ def write_replica(series, atoms: AtomSet, out_dir, origin_A=(0.0, 0.0, 0.0), ext
         species=series.species,
         euler_convention=series.euler_convention,
         extra=extra,
+        noise=made.drawn_noise,
     )
     return written, made
