@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from gaussian_atoms_method.atoms.atom_set import read_atoms
-from gaussian_atoms_method.film.stitch import Reports, confirm, join_reports
+from gaussian_atoms_method.film.stitch import Reports, confirm, join_reports, pair_agreement
 
 HARD_CORE_A = 2.2
 
@@ -55,6 +55,30 @@ def test_overlapping_reports_of_one_atom_become_one_atom_at_their_mean():
     # no fit made an artefact: the recurrence rates do not separate, the overlap confirms nothing
     # and every joined atom is reported
     assert not film.separated and not film.confirmed.any() and film.reported.all()
+
+
+def test_overlapping_fits_are_judged_on_the_atoms_both_see_each_way():
+    """Three sub-areas 20 Å across every 5 Å over a lattice: neighbours share a common interior,
+    the first and third less.  Fits that report the same atoms agree 1.0 both ways; one fit that
+    misses two atoms of the common interior and invents one there is named: the other sees 2 of
+    its atoms missing, it sees 1 of its own unreported; atoms outside the common interior (where
+    only one fit sees them) count for neither."""
+    rng = np.random.default_rng(1)
+    truth = _lattice(nx=20)
+    a, b, c = _reports(rng, truth, offsets_x=[15.0, 20.0, 25.0])
+    pairs = {(p.a, p.b): p for p in pair_agreement([a, b, c], HARD_CORE_A)}
+    assert set(pairs) == {("s0", "s1"), ("s0", "s2"), ("s1", "s2")}
+    assert all(p.agree_a == 1.0 and p.agree_b == 1.0 for p in pairs.values())
+    common = pairs[("s0", "s1")]
+    lo, hi = np.maximum(a.interior_A[0], b.interior_A[0]) + 1.1, np.minimum(a.interior_A[1], b.interior_A[1]) - 1.1
+    shared = np.flatnonzero(np.all((b.positions[:, :2] > lo) & (b.positions[:, :2] < hi), axis=1))
+    assert common.n_a == common.n_b == len(shared) > 10
+    invented = b.positions[shared[0]] + [1.4, 1.4, 0.0]  # between lattice sites, 1.98 Å from each
+    b = Reports("s1", np.r_[np.delete(b.positions, shared[1:3], axis=0), [invented]], b.interior_A)
+    p = pair_agreement([a, b], HARD_CORE_A)[0]
+    assert p.n_a == len(shared) and p.agree_a == pytest.approx((len(shared) - 2) / len(shared))
+    assert p.n_b == len(shared) - 1 and p.agree_b == pytest.approx((len(shared) - 2) / (len(shared) - 1))
+    assert p.both_ways == min(p.agree_a, p.agree_b)
 
 
 def test_an_artefact_of_one_fit_is_a_non_atom():
@@ -140,8 +164,10 @@ def test_a_film_runs_on_ray_resumes_and_names_a_broken_sub_area(small_film):
     from scipy.spatial import cKDTree
 
     assert len(cKDTree(reported).query_pairs(2.0)) == 0  # none doubled at the seam
-    for name in ("atoms.xyz", "non_atoms.xyz", "atoms.csv", "film.png", "summary.json"):
+    for name in ("atoms.xyz", "non_atoms.xyz", "atoms.csv", "film.png", "summary.json", "overlaps.csv"):
         assert (root / "out" / name).is_file()
+    # the two fits of one physics report each other's atoms where both see them
+    assert summary["overlap_agreement"]["pairs"] == 1 and summary["overlap_agreement"]["median_both_ways"] >= 0.97
     assert set(read_atoms(root / "out" / "atoms.xyz").species) == {"Pd"}  # the film's one element names them
     # each task's cost, recorded by the task and read back with it: a fit takes time, a worker
     # holds at least torch's own import (hundreds of MB), and CPU tasks have no GPU peak

@@ -4,8 +4,9 @@
 Outputs in ``output_dir``: ``film.json`` (the sub-areas), ``runs/<sub-area>/`` (each fit),
 ``atoms.xyz`` (the confirmed atoms, Å in the film's frame), ``non_atoms.xyz`` (the rest),
 ``atoms.csv`` (every joined atom with ``found_in``, ``covered_by`` and whether confirmed),
-``film.png`` (the film seen from above, coloured by ``found_in / covered_by``) and
-``summary.json``.
+``film.png`` (the film seen from above, coloured by ``found_in / covered_by``),
+``overlaps.csv`` (each pair of overlapping sub-areas: the share of the atoms one fit reports in
+their common interior that the other reports too, each way) and ``summary.json``.
 """
 
 from __future__ import annotations
@@ -21,7 +22,14 @@ from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms, write_atom
 from gaussian_atoms_method.atoms.hard_core import hard_core_from_species, parse_species
 from gaussian_atoms_method.engine.console import CONSOLE
 from gaussian_atoms_method.film.runner import check_address, run_subareas
-from gaussian_atoms_method.film.stitch import FilmAtoms, Reports, join_reports
+from gaussian_atoms_method.film.stitch import (
+    FilmAtoms,
+    PairAgreement,
+    Reports,
+    join_reports,
+    pair_agreement,
+    write_overlaps,
+)
 from gaussian_atoms_method.film.subareas import SubArea, write_plan
 
 
@@ -68,7 +76,10 @@ def reconstruct_film(
         for s in subareas
     ]
     film = join_reports(reports, hard_core_A)
-    write_film(film, output_dir, hard_core_A, [s.name for s in subareas], task_summary(records.values()), species)
+    pairs = pair_agreement(reports, hard_core_A)
+    write_film(
+        film, output_dir, hard_core_A, [s.name for s in subareas], task_summary(records.values()), species, pairs
+    )
     return film
 
 
@@ -130,10 +141,12 @@ def write_film(
     names: list[str],
     tasks: dict | None = None,
     species: str = "",
+    pairs: list[PairAgreement] | None = None,
 ) -> None:
     """The film's files (module text) and its summary line; ``tasks``: the sub-areas' costs
     (:func:`task_summary`), in the summary; ``species`` ("Ta"): a film of one element names its
-    atoms by it (of several, the joined atoms keep no mass to tell them apart by: ``X``)."""
+    atoms by it (of several, the joined atoms keep no mass to tell them apart by: ``X``);
+    ``pairs``: the overlapping sub-areas' agreement (:func:`~.stitch.pair_agreement`)."""
     output_dir = Path(output_dir)
     elements = parse_species(species)
     atoms = AtomSet(
@@ -168,6 +181,19 @@ def write_film(
         "median_found_in_of_covered_by": median if film.reported.any() else None,
         "tasks": tasks or {},
     }
+    pairs = pairs or []
+    write_overlaps(pairs, output_dir / "overlaps.csv")
+    judged = [p for p in pairs if np.isfinite(p.both_ways)]
+    least = min(judged, key=lambda p: p.both_ways) if judged else None
+    summary["overlap_agreement"] = (
+        {
+            "pairs": len(judged),
+            "median_both_ways": float(np.median([p.both_ways for p in judged])),
+            "least": [least.a, least.b, least.both_ways],
+        }
+        if least
+        else None
+    )
     (output_dir / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     _draw(film.positions, share, output_dir / "film.png")
     if film.separated:
@@ -182,6 +208,12 @@ def write_film(
             f"share of covering fits that find an atom does not separate real atoms from artefacts "
             f"({film.rate_real:.0%} and {film.rate_artefact:.0%}; median found in {median}: too few fits cover each "
             f"atom, or no artefacts)"
+        )
+    if least is not None:
+        said += (
+            f"; overlapping fits report each other's atoms in their common interior: median "
+            f"{summary['overlap_agreement']['median_both_ways']:.3f} both ways over {len(judged)} pairs, least "
+            f"{least.both_ways:.3f} ({least.a} and {least.b}; overlaps.csv)"
         )
     CONSOLE.print(f"gaussian-atoms film: {said}; {output_dir / 'atoms.xyz'}")
 

@@ -18,10 +18,14 @@ sub-area's offset, the reports of one atom from the sub-areas that see it lie cl
   the two rates do not separate (within :data:`SAME_RATE` of each other: too few fits cover
   each atom, or the film shows no artefacts to tell real atoms by) the overlap confirms
   nothing: every joined atom is reported, none confirmed by it.
+* **Agreement.** Two overlapping fits judge each other without a truth (:func:`pair_agreement`):
+  of the atoms one reports in their common interior, the share the other reports too (the
+  mutual nearest within half the hard core, as joined), each way.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -149,3 +153,72 @@ def confirm(found_in: np.ndarray, covered_by: np.ndarray, iterations: int = 200)
     log_real = np.log(share) + k * np.log(p_real) + (n - k) * np.log1p(-p_real)
     log_art = np.log1p(-share) + k * np.log(p_art) + (n - k) * np.log1p(-p_art)
     return log_real > log_art, p_real, p_art
+
+
+@dataclass(frozen=True)
+class PairAgreement:
+    """Two sub-areas' fits on the atoms they share: ``n_a`` (``n_b``) the atoms ``a`` (``b``)
+    reports in their common interior, ``agree_a`` (``agree_b``) the share of them the other fit
+    reports too (NaN where it reports none there), ``common_A2`` the common interior's area."""
+
+    a: str
+    b: str
+    n_a: int
+    n_b: int
+    agree_a: float
+    agree_b: float
+    common_A2: float
+
+    @property
+    def both_ways(self) -> float:
+        """The lesser of the two shares: what the pair agrees on both ways."""
+        return float(min(self.agree_a, self.agree_b))
+
+
+def pair_agreement(reports: list[Reports], hard_core_A: float) -> list[PairAgreement]:
+    """Every pair of ``reports`` whose interiors overlap, judged on the atoms both could see.
+
+    The common interior is the two interiors' intersection less half the hard core at each edge,
+    so that an atom one fit reports just inside it has its counterpart inside the other's
+    interior; an atom there agrees where the other fit's nearest report lies within half the hard
+    core and it is that report's nearest (two reports of distinct atoms are never both that close
+    to one point, :func:`join_reports`).
+
+    >>> grid = np.stack(np.meshgrid(np.arange(0.0, 30, 3), np.arange(0.0, 12, 3), [0.0], indexing="ij"), -1)
+    >>> atoms = grid.reshape(-1, 3)
+    >>> left = Reports("left", atoms[atoms[:, 0] < 20], np.array([[0.0, 0.0], [20.0, 10.0]]))
+    >>> extra = [[13.5, 4.5, 0.0]]  # an atom only the right fit reports, 2.1 Å from the nearest
+    >>> right = Reports("right", np.r_[atoms[atoms[:, 0] > 8], extra], np.array([[8.0, 0.0], [30.0, 10.0]]))
+    >>> [(p.n_a, p.n_b, round(p.agree_a, 3), round(p.agree_b, 3)) for p in pair_agreement([left, right], 2.2)]
+    [(6, 7, 1.0, 0.857)]
+    """
+    half = hard_core_A / 2
+    out = []
+    for ia, a in enumerate(reports):
+        for b in reports[ia + 1 :]:
+            lo = np.maximum(a.interior_A[0], b.interior_A[0]) + half
+            hi = np.minimum(a.interior_A[1], b.interior_A[1]) - half
+            if np.any(hi <= lo):
+                continue
+            common = Reports("", np.zeros((0, 3)), np.stack([lo, hi]))
+            pa, pb = (r.positions[r.inside(r.positions)] for r in (a, b))
+            shares = []
+            for mine, theirs in ((pa, pb), (pb, pa)):
+                counted = mine[common.inside(mine)]
+                if len(counted) == 0 or len(theirs) == 0:
+                    shares.append((len(counted), math.nan))
+                    continue
+                d, j = cKDTree(theirs).query(counted, distance_upper_bound=half)
+                back = cKDTree(mine).query(theirs[np.minimum(j, len(theirs) - 1)])[1]
+                mutual = np.isfinite(d) & (back == np.flatnonzero(common.inside(mine)))
+                shares.append((len(counted), float(mutual.mean())))
+            (n_a, agree_a), (n_b, agree_b) = shares
+            out.append(PairAgreement(a.name, b.name, n_a, n_b, agree_a, agree_b, float(np.prod(hi - lo))))
+    return out
+
+
+def write_overlaps(pairs: list[PairAgreement], path) -> None:
+    """``pairs`` as a CSV table: a, b, n_a, n_b, agree_a, agree_b, common_A2."""
+    with open(path, "w") as f:
+        f.write("a,b,n_a,n_b,agree_a,agree_b,common_A2\n")
+        f.writelines(f"{p.a},{p.b},{p.n_a},{p.n_b},{p.agree_a:.4f},{p.agree_b:.4f},{p.common_A2:.1f}\n" for p in pairs)

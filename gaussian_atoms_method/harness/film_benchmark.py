@@ -397,7 +397,35 @@ class FilmBenchmark:
                 flush=True,
             )
         self.write(rows)
+        self.overlaps()
         return rows
+
+    def overlaps(self) -> list:
+        """The fitted sub-areas that overlap, judged on each other without a truth
+        (:func:`~gaussian_atoms_method.film.stitch.pair_agreement`, their atoms moved into the
+        film's frame by their crops' centres): printed and written to ``overlaps.csv``."""
+        from gaussian_atoms_method.atoms.atom_set import read_atoms
+        from gaussian_atoms_method.atoms.hard_core import hard_core_from_species
+        from gaussian_atoms_method.film.stitch import Reports, pair_agreement, write_overlaps
+        from gaussian_atoms_method.film.subareas import SubArea
+
+        reports = []
+        for area in self.areas:
+            cen, half = area_geometry(self.data_dir, area)
+            atoms = read_atoms(self.output / "runs" / f"area{area}" / "ours" / "gaussian-atoms" / "run" / "atoms.xyz")
+            offset = (cen - FULL_VOLUME_CENTRE_VOX) * PIXEL_SIZE_A
+            shape = _mat(self.data_dir / f"Projections_area{area}.mat", "Proj_sub").shape[:2]
+            sub = SubArea(f"area{area}", Path(), tuple(offset), shape, (float(half[0]), float(half[1])), PIXEL_SIZE_A)
+            reports.append(Reports(sub.name, atoms.positions + offset, sub.interior_A))
+        pairs = pair_agreement(reports, hard_core_from_species(self.species or "Ta"))
+        write_overlaps(pairs, self.output / "overlaps.csv")
+        for p in pairs:
+            print(
+                f"Ta film {p.a} and {p.b} (common interior {p.common_A2:.0f} Å²): {p.agree_a:.3f} of {p.n_a} atoms of "
+                f"{p.a} there reported by {p.b}, {p.agree_b:.3f} of its {p.n_b} by {p.a}",
+                flush=True,
+            )
+        return pairs
 
     def truth_A(self, area: int, series) -> np.ndarray:
         """What the sub-area's atoms are scored against: the authors' model on the real views, the
