@@ -79,6 +79,10 @@ def test_overlapping_fits_are_judged_on_the_atoms_both_see_each_way():
     assert p.n_a == len(shared) and p.agree_a == pytest.approx((len(shared) - 2) / len(shared))
     assert p.n_b == len(shared) - 1 and p.agree_b == pytest.approx((len(shared) - 2) / (len(shared) - 1))
     assert p.both_ways == min(p.agree_a, p.agree_b)
+    # counted over the atoms a run trusts (not the invented one), matched against all the other's
+    trusted = np.arange(len(b.positions)) < len(b.positions) - 1
+    t = pair_agreement([a, b], HARD_CORE_A, [np.ones(len(a.positions), bool), trusted])[0]
+    assert t.n_b == len(shared) - 2 and t.agree_b == 1.0 and t.agree_a == p.agree_a
 
 
 def test_an_artefact_of_one_fit_is_a_non_atom():

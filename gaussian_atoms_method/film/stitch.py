@@ -175,8 +175,10 @@ class PairAgreement:
         return float(min(self.agree_a, self.agree_b))
 
 
-def pair_agreement(reports: list[Reports], hard_core_A: float) -> list[PairAgreement]:
-    """Every pair of ``reports`` whose interiors overlap, judged on the atoms both could see.
+def pair_agreement(reports: list[Reports], hard_core_A: float, counted: list | None = None) -> list[PairAgreement]:
+    """Every pair of ``reports`` whose interiors overlap, judged on the atoms both could see
+    (``counted``: per report, a (N,) bool mask of the atoms whose share is read, each against all
+    of the other's: the atoms a run trusts, say; default all).
 
     The common interior is the two interiors' intersection less half the hard core at each edge,
     so that an atom one fit reports just inside it has its counterpart inside the other's
@@ -193,25 +195,29 @@ def pair_agreement(reports: list[Reports], hard_core_A: float) -> list[PairAgree
     [(6, 7, 1.0, 0.857)]
     """
     half = hard_core_A / 2
+    masks = counted if counted is not None else [np.ones(len(r.positions), bool) for r in reports]
     out = []
     for ia, a in enumerate(reports):
-        for b in reports[ia + 1 :]:
+        for ib in range(ia + 1, len(reports)):
+            b = reports[ib]
             lo = np.maximum(a.interior_A[0], b.interior_A[0]) + half
             hi = np.minimum(a.interior_A[1], b.interior_A[1]) - half
             if np.any(hi <= lo):
                 continue
             common = Reports("", np.zeros((0, 3)), np.stack([lo, hi]))
-            pa, pb = (r.positions[r.inside(r.positions)] for r in (a, b))
+            inner = [r.inside(r.positions) for r in (a, b)]
+            pa, pb = a.positions[inner[0]], b.positions[inner[1]]
+            ma, mb = np.asarray(masks[ia], bool)[inner[0]], np.asarray(masks[ib], bool)[inner[1]]
             shares = []
-            for mine, theirs in ((pa, pb), (pb, pa)):
-                counted = mine[common.inside(mine)]
-                if len(counted) == 0 or len(theirs) == 0:
-                    shares.append((len(counted), math.nan))
+            for mine, theirs, mask in ((pa, pb, ma), (pb, pa, mb)):
+                which = np.flatnonzero(common.inside(mine) & mask)
+                if len(which) == 0 or len(theirs) == 0:
+                    shares.append((len(which), math.nan))
                     continue
-                d, j = cKDTree(theirs).query(counted, distance_upper_bound=half)
+                d, j = cKDTree(theirs).query(mine[which], distance_upper_bound=half)
                 back = cKDTree(mine).query(theirs[np.minimum(j, len(theirs) - 1)])[1]
-                mutual = np.isfinite(d) & (back == np.flatnonzero(common.inside(mine)))
-                shares.append((len(counted), float(mutual.mean())))
+                mutual = np.isfinite(d) & (back == which)
+                shares.append((len(which), float(mutual.mean())))
             (n_a, agree_a), (n_b, agree_b) = shares
             out.append(PairAgreement(a.name, b.name, n_a, n_b, agree_a, agree_b, float(np.prod(hi - lo))))
     return out

@@ -409,7 +409,7 @@ class FilmBenchmark:
         from gaussian_atoms_method.film.stitch import Reports, pair_agreement, write_overlaps
         from gaussian_atoms_method.film.subareas import SubArea
 
-        reports = []
+        reports, trusted = [], []
         for area in self.areas:
             cen, half = area_geometry(self.data_dir, area)
             atoms = read_atoms(self.output / "runs" / f"area{area}" / "ours" / "gaussian-atoms" / "run" / "atoms.xyz")
@@ -417,12 +417,15 @@ class FilmBenchmark:
             shape = _mat(self.data_dir / f"Projections_area{area}.mat", "Proj_sub").shape[:2]
             sub = SubArea(f"area{area}", Path(), tuple(offset), shape, (float(half[0]), float(half[1])), PIXEL_SIZE_A)
             reports.append(Reports(sub.name, atoms.positions + offset, sub.interior_A))
-        pairs = pair_agreement(reports, hard_core_from_species(self.species or "Ta"))
+            trusted.append(np.ones(len(atoms), bool) if atoms.trusted is None else atoms.trusted.astype(bool))
+        core = hard_core_from_species(self.species or "Ta")
+        pairs = pair_agreement(reports, core)
         write_overlaps(pairs, self.output / "overlaps.csv")
-        for p in pairs:
+        for p, t in zip(pairs, pair_agreement(reports, core, trusted)):
             print(
                 f"Ta film {p.a} and {p.b} (common interior {p.common_A2:.0f} Å²): {p.agree_a:.3f} of {p.n_a} atoms of "
-                f"{p.a} there reported by {p.b}, {p.agree_b:.3f} of its {p.n_b} by {p.a}",
+                f"{p.a} there reported by {p.b}, {p.agree_b:.3f} of its {p.n_b} by {p.a}; of the trusted ones "
+                f"{t.agree_a:.3f} of {t.n_a} and {t.agree_b:.3f} of {t.n_b}",
                 flush=True,
             )
         return pairs
