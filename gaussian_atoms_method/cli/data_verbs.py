@@ -326,6 +326,7 @@ class Evaluate:
 
     def main(self) -> None:
         from gaussian_atoms_method.atoms.atom_set import read_atoms
+        from gaussian_atoms_method.atoms.matching import uncount_straddling
         from gaussian_atoms_method.harness.evaluation import (
             evaluate_atoms,
             inside_footprint,
@@ -346,6 +347,11 @@ class Evaluate:
             origin = series.origin_A
             if self.interior_A is None and not series.tilt_axis_angle_deg:
                 counted = inside_footprint(truth.positions, series, 0.0)  # as the run scores itself
+                beside = self.pred.parent / "non_atoms.xyz"  # a run's: those beyond the field, as it scores itself
+                if beside.is_file():
+                    others = read_atoms(beside).positions
+                    beyond = others[~inside_footprint(others, series, 0.0)]
+                    counted = uncount_straddling(truth.positions, counted, pred.positions, beyond, self.radius_A)
             if self.interior_A is not None:
                 pred, truth = (a.subset(inside_footprint(a.positions, series, self.interior_A)) for a in (pred, truth))
                 volume, no_ssim = None, "--interior-A scores part of the volume"  # the volume spans the whole cube

@@ -26,7 +26,7 @@ from gaussian_atoms_method.atoms.calibration import wider_than_one_atom
 from gaussian_atoms_method.atoms.classification import classify_gaussians, in_support
 from gaussian_atoms_method.atoms.evidence import EVIDENCE_SCORES, open_atoms
 from gaussian_atoms_method.atoms.hard_core import most_apart
-from gaussian_atoms_method.atoms.matching import score_atoms
+from gaussian_atoms_method.atoms.matching import score_atoms, uncount_straddling
 from gaussian_atoms_method.atoms.pictures import draw_slices, write_population_png, write_rdf_png
 from gaussian_atoms_method.atoms.slices import slice_planes
 from gaussian_atoms_method.atoms.structure_evidence import structure_evidence
@@ -147,9 +147,9 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
             )
         if model.config.evidence:
             attach_evidence(model, atoms, noise, read, hard_core_A, converged_at is not None)
-    atoms, non_atoms, population, reported = split_atoms(
-        atoms, model.density.in_field(model.means.detach()).cpu().numpy(), model.means.device, hard_core_A
-    )
+    in_field = model.density.in_field(model.means.detach()).cpu().numpy()
+    beyond_A = atoms.positions[~in_field]  # for the truth's scores: an atom the run placed just beyond the field
+    atoms, non_atoms, population, reported = split_atoms(atoms, in_field, model.means.device, hard_core_A)
     series = model.view_set.series
     if series is not None and series.species and len(atoms):
         atoms.species, atoms.element_confidence = name_species(atoms.masses, series.species)
@@ -184,6 +184,8 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
     )
     truth = read_atoms(model.truth_path) if model.truth_path is not None else None
     covered = truth_in_field(model, truth.positions) if truth is not None else None
+    if truth is not None:
+        covered = uncount_straddling(truth.positions, covered, atoms.positions, beyond_A)
     scores = score_atoms(atoms.positions, truth.positions, true_counted=covered) if truth is not None else None
     if scores is not None and atoms.proven is not None and len(atoms):
         from gaussian_atoms_method.atoms.evidence import evidence_scores
