@@ -140,7 +140,7 @@ def test_each_check_reports_positions_set_and_scatter_apart():
     weighted.update(3, x[:2], 0.01, _precision, worth[:2])  # an atom went
     assert weighted.changed == pytest.approx(1.0) and weighted.churning == 1
     # what a run stopped at its limit says of the last check
-    assert "the set changed by 1 atoms' worth (0 tolerated)" in weighted.summary()
+    assert "the set changed by 1 atoms' worth (0.19 tolerated)" in weighted.summary()
     fresh = ConvergenceCheck(warmup_length=0, refine_every=1)
     assert fresh.summary() == "no two checks of the atoms to compare yet"
 

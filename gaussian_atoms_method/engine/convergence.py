@@ -28,6 +28,16 @@ from gaussian_atoms_method.atoms.evidence import proof_level
 Precision = Callable[[float | None], "tuple[np.ndarray, float] | tuple[np.ndarray, float, float | None] | None"]
 
 
+def _worth(atoms: float) -> str:
+    """Atoms' worth in words: whole atoms from ten up, two figures below (a set that changed by
+    0.3 of an atom against 0.15 tolerated read "0 (0 tolerated)" and did not settle).
+
+    >>> _worth(0.0), _worth(0.304), _worth(2.46), _worth(37.2)
+    ('0', '0.3', '2.5', '37')
+    """
+    return f"{atoms:.0f}" if atoms >= 10 or atoms == 0 else f"{atoms:.2g}"
+
+
 @dataclass
 class ConvergenceCheck:
     """State of the convergence test: the positions at the last two checks, the settled checks
@@ -209,8 +219,8 @@ class ConvergenceCheck:
         drift = f", drifting {self.drift_A:.3f} Å" if math.isfinite(self.drift_A) else ""
         return (
             f"the positions moved {self.step_A:.3f} Å RMS over the last interval{drift}, against a median precision of "
-            f"{self.precision_A:.3f} Å; the set changed by {self.changed:.0f} atoms' worth ({self.tolerated:.0f} "
-            f"tolerated)"
+            f"{self.precision_A:.3f} Å; the set changed by {_worth(self.changed)} atoms' worth "
+            f"({_worth(self.tolerated)} tolerated)"
         )
 
     def restart(
