@@ -183,9 +183,11 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
         f"kept: give output_dir to keep the run)"
     )
     truth = read_atoms(model.truth_path) if model.truth_path is not None else None
-    covered = truth_in_field(model, truth.positions) if truth is not None else None
-    if truth is not None:
-        covered = uncount_straddling(truth.positions, covered, atoms.positions, beyond_A)
+    covered = (
+        uncount_straddling(truth.positions, truth_in_field(model, truth.positions), atoms.positions, beyond_A)
+        if truth is not None
+        else None
+    )
     scores = score_atoms(atoms.positions, truth.positions, true_counted=covered) if truth is not None else None
     if scores is not None and atoms.proven is not None and len(atoms):
         from gaussian_atoms_method.atoms.evidence import evidence_scores

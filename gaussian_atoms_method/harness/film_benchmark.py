@@ -407,16 +407,16 @@ class FilmBenchmark:
         from gaussian_atoms_method.atoms.atom_set import read_atoms
         from gaussian_atoms_method.atoms.hard_core import hard_core_from_species
         from gaussian_atoms_method.film.stitch import Reports, pair_agreement, write_overlaps
-        from gaussian_atoms_method.film.subareas import SubArea
+        from gaussian_atoms_method.film.subareas import published_subareas
 
+        # the sub-areas' frames in the film's, as `film` places them (their directories are written)
+        subareas = published_subareas(
+            self.data_dir, list(self.areas), self.output / "data", PIXEL_SIZE_A, FULL_VOLUME_CENTRE_VOX
+        )
         reports, trusted = [], []
-        for area in self.areas:
-            cen, half = area_geometry(self.data_dir, area)
-            atoms = read_atoms(self.output / "runs" / f"area{area}" / "ours" / "gaussian-atoms" / "run" / "atoms.xyz")
-            offset = (cen - FULL_VOLUME_CENTRE_VOX) * PIXEL_SIZE_A
-            shape = _mat(self.data_dir / f"Projections_area{area}.mat", "Proj_sub").shape[:2]
-            sub = SubArea(f"area{area}", Path(), tuple(offset), shape, (float(half[0]), float(half[1])), PIXEL_SIZE_A)
-            reports.append(Reports(sub.name, atoms.positions + offset, sub.interior_A))
+        for sub in subareas:
+            atoms = read_atoms(self.output / "runs" / sub.name / "ours" / "gaussian-atoms" / "run" / "atoms.xyz")
+            reports.append(Reports(sub.name, atoms.positions + np.asarray(sub.offset_A), sub.interior_A))
             trusted.append(np.ones(len(atoms), bool) if atoms.trusted is None else atoms.trusted.astype(bool))
         core = hard_core_from_species(self.species or "Ta")
         pairs = pair_agreement(reports, core)
