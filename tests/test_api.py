@@ -77,7 +77,8 @@ def test_reconstruct_leaves_torch_and_the_interpreter_as_it_found_them():
     """A notebook that calls the API keeps its own process: after ``ga.reconstruct`` torch's
     functions and optimisers' methods, tyro's ``cli`` and nerfstudio's ``torch_compile`` are
     the objects they were (torch's own caches aside), the interpreter's switch
-    interval and recursion limit, torch's threads, default dtype and TF32 flags are unchanged,
+    interval and recursion limit, torch's threads, default dtype and TF32 flags and numpy's huge-page
+    request (a launcher's own process turns it off) are unchanged,
     and every module it brought into ``sys.modules`` is a module that was imported (no stand-in
     put there).  Run in a fresh interpreter: the launchers, which may shorten their own start,
     are not imported."""
@@ -106,6 +107,7 @@ def test_reconstruct_leaves_torch_and_the_interpreter_as_it_found_them():
                 id(tyro.cli), id(misc.torch_compile), sys.getswitchinterval(),
                 sys.getrecursionlimit(), torch.get_num_threads(), torch.get_default_dtype(),
                 torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32,
+                np._core.multiarray._get_madvise_hugepage(),
             )
 
         before, modules = state(), set(sys.modules)
