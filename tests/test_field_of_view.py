@@ -1,5 +1,6 @@
 """Objects wider than the field of view: the evidence, the slab's reach, and what is reported."""
 
+import json
 import math
 
 import numpy as np
@@ -97,6 +98,16 @@ def test_slab_reports_only_the_gaussians_above_the_detector(tmp_path, monkeypatc
     in_field = ~(np.abs(others.positions) > detector_half_A - 1e-6).any(axis=1)
     if in_field.any():
         assert cKDTree(atoms.positions).query(others.positions[in_field])[0].min() > 0.75
+    # check-precision reads the written run as the run scored itself (the same true atoms counted,
+    # those straddling the field's edge whose partner lies beyond it left out): one answer, also
+    # where 60 steps matched none of them
+    from gaussian_atoms_method.harness.precision_check import precision_of_run
+
+    scored = json.loads((tmp_path / "run" / "evaluation.json").read_text())
+    checked = precision_of_run(model, tmp_path / "run")
+    assert checked["matched"] == scored["n_matched"]
+    stated = scored.get("coverage_95_xyz", [math.nan] * 3)  # none where nothing is matched
+    assert checked["coverage_95"].tolist() == pytest.approx(stated, abs=1e-12, nan_ok=True)
 
 
 def test_particle_inside_the_field_keeps_the_cube(tmp_path):

@@ -183,11 +183,7 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
         f"kept: give output_dir to keep the run)"
     )
     truth = read_atoms(model.truth_path) if model.truth_path is not None else None
-    covered = (
-        uncount_straddling(truth.positions, truth_in_field(model, truth.positions), atoms.positions, beyond_A)
-        if truth is not None
-        else None
-    )
+    covered = counted_truth(model, truth.positions, atoms.positions, beyond_A) if truth is not None else None
     scores = score_atoms(atoms.positions, truth.positions, true_counted=covered) if truth is not None else None
     if scores is not None and atoms.proven is not None and len(atoms):
         from gaussian_atoms_method.atoms.evidence import evidence_scores
@@ -237,6 +233,15 @@ def truth_in_field(model, truth_A: np.ndarray) -> np.ndarray:
     atoms are (against the whole 8,284-atom Ta model a sub-area read a TPR of 0.09)."""
     means = torch.as_tensor(model.normalisation.positions_from_A(truth_A), device=model.means.device)
     return model.density.in_field(means.to(model.means.dtype)).cpu().numpy()
+
+
+def counted_truth(model, truth_A: np.ndarray, reported_A: np.ndarray, beyond_A: np.ndarray) -> np.ndarray:
+    """(M,) bool: the true atoms ``truth_A`` a run's scores count, its own ``evaluation.json`` and
+    ``check-precision`` alike: those inside its field (:func:`truth_in_field`), less those whose
+    one-to-one partner among its ``reported_A`` atoms and the Gaussians it placed beyond the
+    field ``beyond_A`` lies beyond it
+    (:func:`~gaussian_atoms_method.atoms.matching.uncount_straddling`)."""
+    return uncount_straddling(truth_A, truth_in_field(model, truth_A), reported_A, beyond_A)
 
 
 @dataclasses.dataclass(frozen=True)

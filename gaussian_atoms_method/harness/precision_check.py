@@ -2,10 +2,11 @@
 whose data have a truth file.
 
 For every run: the atoms it wrote (``atoms.csv``: each position with the precision the run
-states, its neighbours re-fitted and any floor given) are matched to the true atoms inside the
-field the run reports (0.75 Å, one to one, as the run's own ``evaluation.json`` and ``evaluate``
-match them), and the matched atoms' actual errors read against what was stated.  Reported per
-axis: median stated standard deviation, actual RMS error, their ratio, the share within one
+states, its neighbours re-fitted and any floor given) are matched to the true atoms the run's own
+``evaluation.json`` counts (inside the field it reports, less those whose partner is a Gaussian it
+placed beyond it; 0.75 Å, one to one, as that file and ``evaluate`` match them), and the matched
+atoms' actual errors read against what was stated.  Reported per axis: median stated standard
+deviation, actual RMS error, their ratio, the share within one
 stated standard deviation (0.683 if the statement were exact) and within the stated 95% interval
 (``coverage_95_xyz``, 0.95 if exact: the number ``evaluate`` gives); and, in quartiles of the
 stated precision, the actual RMS error (does the statement rank atoms correctly?).
@@ -23,16 +24,24 @@ import numpy as np
 def check_precision(config: Path) -> dict:
     """One finished run (``config.yml``) whose data have a truth file: its written atoms' stated
     precision against their actual errors, per axis and by quartile (module text)."""
+    from gaussian_atoms_method.nerfstudio_layer.launch import load_model
+
+    return precision_of_run(load_model(config), Path(config).parent)
+
+
+def precision_of_run(model, run_dir: Path) -> dict:
+    """:func:`check_precision` of the run in ``run_dir`` whose ``model`` is loaded."""
     from gaussian_atoms_method.atoms.atom_set import read_atoms
     from gaussian_atoms_method.atoms.evidence import evidence_scores
     from gaussian_atoms_method.atoms.matching import match_atoms
-    from gaussian_atoms_method.engine.results import truth_in_field
-    from gaussian_atoms_method.nerfstudio_layer.launch import load_model
+    from gaussian_atoms_method.engine.results import counted_truth, truth_in_field
 
-    model = load_model(config)
-    atoms = read_atoms(Path(config).parent / "atoms.csv")
+    atoms = read_atoms(Path(run_dir) / "atoms.csv")
     truth = read_atoms(model.truth_path)
-    counted = truth_in_field(model, truth.positions)
+    others = Path(run_dir) / "non_atoms.xyz"
+    others_A = read_atoms(others).positions if others.is_file() else np.zeros((0, 3))
+    beyond_A = others_A[~truth_in_field(model, others_A)] if len(others_A) else others_A
+    counted = counted_truth(model, truth.positions, atoms.positions, beyond_A)  # as the run scored itself
     pred_idx, true_idx = match_atoms(atoms.positions, truth.positions, 0.75)
     keep = counted[true_idx]
     pred_idx, true_idx = pred_idx[keep], true_idx[keep]
@@ -40,19 +49,23 @@ def check_precision(config: Path) -> dict:
     s = atoms.position_std_A[pred_idx]
     total_pred = np.sqrt((s**2).sum(axis=1))
     total_err = np.sqrt((err**2).sum(axis=1))
-    quartile = np.digitize(total_pred, np.quantile(total_pred, [0.25, 0.5, 0.75]))
-    coverage = evidence_scores(atoms, truth, truth_counted=counted)["coverage_95_xyz"]  # evaluate's own reading
+    # no atom matched (a run that found none of the truth): no quartiles to read
+    edges = np.quantile(total_pred, [0.25, 0.5, 0.75]) if len(total_pred) else np.full(3, np.inf)
+    # evaluate's own reading (none where no atom is matched)
+    coverage = evidence_scores(atoms, truth, truth_counted=counted).get("coverage_95_xyz", [np.nan] * 3)
     return {
-        "run": str(config.parent),
+        "run": str(run_dir),
         "data": str(model.truth_path.parent.name),
         "matched": len(pred_idx),
-        "pred_pm": np.median(s, axis=0) * 100,
-        "actual_pm": np.sqrt((err**2).mean(axis=0)) * 100,
-        "within_1": np.mean(np.abs(err) < s, axis=0),
+        "pred_pm": np.median(s, axis=0) * 100 if len(s) else np.full(3, np.nan),
+        "actual_pm": np.sqrt((err**2).mean(axis=0)) * 100 if len(s) else np.full(3, np.nan),
+        "within_1": np.mean(np.abs(err) < s, axis=0) if len(s) else np.full(3, np.nan),
         "coverage_95": np.asarray(coverage, dtype=np.float64),
         "quartiles": [
-            (np.median(total_pred[quartile == q]) * 100, np.sqrt(np.mean(total_err[quartile == q] ** 2)) * 100)
-            for q in range(4)
+            (np.median(total_pred[in_q]) * 100, np.sqrt(np.mean(total_err[in_q] ** 2)) * 100)
+            if in_q.any()
+            else (np.nan, np.nan)
+            for in_q in (np.digitize(total_pred, edges)[None, :] == np.arange(4)[:, None])
         ],
     }
 
