@@ -349,16 +349,22 @@ def test_the_views_held_out_turn_shifts_and_gains_on_for_a_misregistered_series(
 
 
 def test_the_same_input_gives_the_same_atoms_and_evidence_bit_for_bit_on_a_cpu(particle):
-    """Two runs of one series on a CPU: every atom, its evidence and the run's own floor equal to
-    the bit (the start found in a thread, the views' pulls read by two workers, the pictures drawn
-    by child processes, the own replica's refit: none may leave its order in the result).  Real
+    """Two runs of one series on a CPU, the caller's global generators in two states: every atom,
+    its evidence and the run's own floor equal to the bit (the start found in a thread, the views'
+    pulls read by two workers, the pictures drawn by child processes, the own replica's refit: none
+    may leave its order in the result, and no draw is from the caller's generators).  Real
     sub-areas 23 and 25 of the Ta film gave identical atoms in two runs on this CPU and on an H200
     (docs/performance.md)."""
+    import random
+
+    import torch
+
     _, angles, projections = particle
-    runs = [
-        ga.reconstruct(projections, angles, 0.25, species="Au", device="cpu", max_num_iterations=200, progress=False)
-        for _ in range(2)
-    ]
+    runs = []
+    for seed in (0, 1):  # the caller's global generators, in another state each time: the fit draws from its own
+        random.seed(seed), np.random.seed(seed), torch.manual_seed(seed)
+        options = dict(species="Au", device="cpu", max_num_iterations=200, progress=False)
+        runs.append(ga.reconstruct(projections, angles, 0.25, **options))
     assert len(runs[0]) > 0
     for name in ("positions", "sigmas", "amplitudes", "position_std_A", "significance", "depth_halfwidth_A"):
         np.testing.assert_array_equal(getattr(runs[0], name), getattr(runs[1], name), err_msg=name)
@@ -375,9 +381,9 @@ def _children() -> set[int]:
 
 
 def test_reconstruct_leaves_the_callers_generators_threads_and_children_as_it_found_them(particle):
-    """The fit seeds Python's, NumPy's and torch's global generators as ``ns-train`` does (its
-    atoms are the command's) and puts them back when it ends: the caller's next draws are the
-    ones it would have made without the call.  No thread or child process it started outlives it."""
+    """The fit draws from its own generators only, and leaves Python's, NumPy's and torch's
+    global ones as they were: the caller's next draws are the ones it would have made without
+    the call.  No thread or child process it started outlives it."""
     import random
     import threading
 

@@ -357,7 +357,7 @@ def _engine_run(series, out, graphs: bool, steps: int, device: str = "cuda"):
     :func:`_train` sets nerfstudio's up."""
     from gaussian_atoms_method.engine.fit import AtomFit
     from gaussian_atoms_method.engine.options import FitOptions
-    from gaussian_atoms_method.engine.run import seed_everything, view_set_of
+    from gaussian_atoms_method.engine.run import view_set_of
     from gaussian_atoms_method.engine.training import FitLoop, LoopSettings, run_pass
 
     options = FitOptions(
@@ -368,7 +368,6 @@ def _engine_run(series, out, graphs: bool, steps: int, device: str = "cuda"):
         merge_every=20,
         stop_when_converged=False,
     )
-    seed_everything(0)
     view_set, views = view_set_of(series)
     fit = AtomFit(options, view_set).to(device)
     loop = FitLoop(fit, views, view_set.projections, steps)

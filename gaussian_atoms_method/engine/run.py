@@ -1,7 +1,7 @@
 """A tilt series in memory to a finished run directory, without nerfstudio: what
 ``gaussian-atoms train`` and :func:`gaussian_atoms_method.reconstruct` run.
 
-:func:`fit_tilt_series` seeds the generators as ``ns-train`` does, builds the view set once
+:func:`fit_tilt_series` builds the view set once
 (:class:`~.view_set.ViewSet`: the normalised projections, the views' poses, the normalisation),
 the fit (:class:`~.fit.AtomFit`) and its loop (:mod:`.training`), writes the run's
 ``config.yml`` first (:mod:`.run_files`) and trains; the results are written by the fit.
@@ -9,14 +9,11 @@ the fit (:class:`~.fit.AtomFit`) and its loop (:mod:`.training`), writes the run
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import random
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from gaussian_atoms_method.engine.errors import OptionError
@@ -46,8 +43,10 @@ MAX_ITERATIONS = 3000
 @dataclass
 class RunSettings:
     """A run's settings beside the fit's options: where (``place``), on which ``device``, how
-    many steps, the machine ``seed`` (Python's, NumPy's and torch's generators, as ``ns-train``'s
-    ``--machine.seed``), a progress bar, TensorBoard scalars."""
+    many steps, the machine ``seed`` (``ns-train``'s ``--machine.seed``, which seeds the global
+    generators there; recorded in ``config.yml``: the engine draws only from its own generators,
+    seeded by the fit's ``seed``, and leaves the caller's global ones alone), a progress bar,
+    TensorBoard scalars."""
 
     place: RunPlace = field(default_factory=RunPlace)
     device: str = "cpu"
@@ -81,31 +80,6 @@ def check_settings(settings: RunSettings) -> None:
         raise OptionError(f"--max-num-iterations must be a whole number of steps, at least 1, got {steps!r}")
 
 
-def seed_everything(seed: int) -> None:
-    """Python's, NumPy's and torch's global generators, as ``ns-train`` seeds them."""
-    random.seed(seed)
-    np.random.seed(seed)
-    torch.manual_seed(seed)
-
-
-@contextlib.contextmanager
-def seeded(seed: int):
-    """The global generators seeded for a fit (:func:`seed_everything`: its atoms are the ones
-    ``ns-train`` gives) and put back as they were when it ends, so that a caller's next draws
-    are the ones it would have made without the fit (a GPU's generators where CUDA had started)."""
-    states = random.getstate(), np.random.get_state(), torch.get_rng_state()
-    on_gpu = torch.cuda.get_rng_state_all() if torch.cuda.is_initialized() else None
-    seed_everything(seed)
-    try:
-        yield
-    finally:
-        random.setstate(states[0])
-        np.random.set_state(states[1])
-        torch.set_rng_state(states[2])
-        if on_gpu is not None:
-            torch.cuda.set_rng_state_all(on_gpu)
-
-
 def view_set_of(series) -> tuple[ViewSet, object]:
     """The view set of a :class:`~dataparsers.tilt_series_format.TiltSeries` and its views
     (:class:`~.views.OrthographicViews`), as the tilt-series dataparser hands them to the fit."""
@@ -135,7 +109,7 @@ def fit_tilt_series(
     ``dataparser_options``) and what the run reported there, in memory (``prepared``: what a
     launcher prepared for the fit, :mod:`.prepared`).  Raises ``FloatingPointError`` naming the step and
     the cause where the loss stops being finite."""
-    with run_on(settings.device), seeded(settings.seed):
+    with run_on(settings.device):
         return _fit_tilt_series(series, options, settings, data, dataparser_options, prepared)
 
 
@@ -160,7 +134,6 @@ def _fit_tilt_series(series, options, settings, data, dataparser_options, prepar
         "tensorboard",
     )
     write_config(run_dir, record)
-    seed_everything(settings.seed)  # again: registration's trial fits drew from them
     view_set, views = view_set_of(series)
     fit = AtomFit(options, view_set, prepared).to(settings.device)
     fit.kept = settings.kept
