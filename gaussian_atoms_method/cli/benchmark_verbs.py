@@ -11,6 +11,8 @@ from typing import Literal, Optional
 
 import tyro
 
+from gaussian_atoms_method.harness.benchmark_options import AccuracyOptions
+
 
 @dataclass
 class Baseline:
@@ -50,46 +52,26 @@ class Baseline:
 
 
 @dataclass
-class BenchmarkAccuracy:
+class BenchmarkAccuracy(AccuracyOptions):
     """The paper's table: simulate (Lobato), reconstruct, trace, evaluate; CSV, Markdown, PNG."""
 
-    output: Path = Path("outputs/benchmark-accuracy")
-    particles: tuple[str, ...] = ("au",)
-    tilts: tuple[str, ...] = ("full", "limited")
-    noise: tuple[float, ...] = (50.0, 200.0, 500.0)
-    methods: tuple[str, ...] = ("fbp", "sart", "ours")
     quick: bool = False
     """Small particles (scale 0.35, hundreds of atoms) and fewer iterations: minutes on a CPU."""
     scale: Optional[float] = None
     """Particle size relative to the paper's (atom count ~ scale^3); overrides --quick's 0.35.
     Use a separate --output per scale: the data directories are named by particle, tilts and noise."""
-    iterations: int = 3000
-    """Training iterations of our method."""
-    device: Literal["cpu", "cuda"] = "cpu"
-    pixel_size_A: float = 0.25
-    """Detector pixel size of the simulated projections, Å."""
-    noise_kind: Literal["gaussian", "poisson"] = "gaussian"
-    """``gaussian``: --noise is the standard deviation of additive noise; ``poisson``: --noise is
-    the dose as expected counts at the brightest pixel (Poisson counts on a one-count floor)."""
 
     def main(self) -> None:
+        from dataclasses import fields
+
         from gaussian_atoms_method.harness.benchmark import AccuracyBenchmark
 
         scale = self.scale if self.scale is not None else (0.35 if self.quick else 1.0)
         if not scale > 0:
             raise ValueError(f"--scale must be positive, got {self.scale}")
-        bench = AccuracyBenchmark(
-            output=self.output,
-            particles=self.particles,
-            tilts=self.tilts,
-            noise=self.noise,
-            methods=self.methods,
-            scale=scale,
-            iterations=min(self.iterations, 1500) if self.quick else self.iterations,
-            device=self.device,
-            pixel_size_A=self.pixel_size_A,
-            noise_kind=self.noise_kind,
-        )
+        bench = AccuracyBenchmark(**{f.name: getattr(self, f.name) for f in fields(AccuracyOptions)})
+        bench.scale = scale
+        bench.iterations = min(self.iterations, 1500) if self.quick else self.iterations
         bench.run()
         print(f"wrote {self.output / 'results.md'}, results.csv and accuracy_vs_noise.png")
 

@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from gaussian_atoms_method.harness.benchmark_options import AccuracyOptions
+
 FIELDS = [
     "particle",
     "atoms",
@@ -38,25 +40,16 @@ FIELDS = [
 
 
 @dataclass
-class AccuracyBenchmark:
-    output: Path
-    particles: tuple[str, ...] = ("au",)
-    tilts: tuple[str, ...] = ("full", "limited")
-    noise: tuple[float, ...] = (50.0, 200.0, 500.0)
-    methods: tuple[str, ...] = ("fbp", "sart", "ours")
+class AccuracyBenchmark(AccuracyOptions):
+    """The table (:class:`~.benchmark_options.AccuracyOptions`: its cells), with what only the
+    harness sets."""
+
     scale: float = 1.0
-    iterations: int = 3000
+    """Particle size relative to the paper's (atom count ~ scale^3)."""
     sart_iterations: int = 1
     inr_steps: int = 10000
-    pixel_size_A: float = 0.25
     blur_sigma_A: float = 0.5
     seed: int = 0
-    device: str = "cpu"
-    noise_kind: str = "gaussian"
-    """``gaussian``: ``noise`` is the standard deviation of additive noise (projection units);
-    ``poisson``: ``noise`` is the dose as the expected counts at the brightest pixel, the
-    projections drawn as Poisson counts of ``1 + dose x clean / max(clean)`` (a floor of one
-    count, as the peer's aSi-208 data)."""
 
     # ------------------------------------------------------------------ data
     def dataset(self, particle: str, tilts: str, noise: float) -> Path:
