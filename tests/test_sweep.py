@@ -49,7 +49,7 @@ def test_sweep_resumes_and_reports_failures(tmp_path):
         }
 
     data = _data(tmp_path)
-    sweep = Sweep(data, tmp_path / "sweep", ("--x 1 2 bad",), jobs=2, runner=fake_runner)
+    sweep = Sweep(data, tmp_path / "sweep", grid=("--x 1 2 bad",), jobs=2, runner=fake_runner)
     rows = sweep.run()
     assert [r["status"] for r in rows][:2] == ["ok", "ok"] and rows[2]["status"].startswith("failed: ns-train failed")
     assert len(calls) == 3
@@ -58,7 +58,7 @@ def test_sweep_resumes_and_reports_failures(tmp_path):
     assert "| 2 | 1 | 0 | 2 |" in (tmp_path / "sweep" / "sweep.md").read_text()
     # Interrupted and restarted with one more value: only the failed and the new run go again.
     calls.clear()
-    Sweep(data, tmp_path / "sweep", ("--x 1 2 bad 3",), runner=fake_runner).run()
+    Sweep(data, tmp_path / "sweep", grid=("--x 1 2 bad 3",), runner=fake_runner).run()
     assert sorted(a[-1] for a in calls) == ["3", "bad"]
     # Interrupted mid-sweep (Ctrl-C while the third of four runs trains): the runs that
     # finished before are kept and not repeated.
@@ -70,21 +70,21 @@ def test_sweep_resumes_and_reports_failures(tmp_path):
         return fake_runner(data, run_dir, args, iterations, device, threads)
 
     with pytest.raises(KeyboardInterrupt):
-        Sweep(data, tmp_path / "sweep", ("--x 4 5 6 7",), runner=interrupted).run()
+        Sweep(data, tmp_path / "sweep", grid=("--x 4 5 6 7",), runner=interrupted).run()
     calls.clear()
-    Sweep(data, tmp_path / "sweep", ("--x 4 5 6 7",), runner=fake_runner).run()
+    Sweep(data, tmp_path / "sweep", grid=("--x 4 5 6 7",), runner=fake_runner).run()
     assert sorted(a[-1] for a in calls) == ["6", "7"]
     # Different shared settings are a different run, not a finished one.
     calls.clear()
-    Sweep(data, tmp_path / "sweep", ("--x 1",), iterations=10, runner=fake_runner).run()
+    Sweep(data, tmp_path / "sweep", grid=("--x 1",), iterations=10, runner=fake_runner).run()
     assert len(calls) == 1
 
 
 def test_sweep_errors_name_the_option(tmp_path):
     with pytest.raises(SweepError, match="--data"):
-        Sweep(tmp_path / "missing", tmp_path / "out", ("--x 1",))
+        Sweep(tmp_path / "missing", tmp_path / "out", grid=("--x 1",))
     with pytest.raises(SweepError, match="--jobs"):
-        Sweep(_data(tmp_path), tmp_path / "out", ("--x 1",), jobs=0)
+        Sweep(_data(tmp_path), tmp_path / "out", grid=("--x 1",), jobs=0)
 
 
 def test_sweep_on_ray_local_cluster(tmp_path):
@@ -97,7 +97,9 @@ def test_sweep_on_ray_local_cluster(tmp_path):
 
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     try:
-        rows = Sweep(_data(tmp_path), tmp_path / "sweep", ("--x 1 2 3",), backend="ray", runner=remote_runner).run()
+        rows = Sweep(
+            _data(tmp_path), tmp_path / "sweep", grid=("--x 1 2 3",), backend="ray", runner=remote_runner
+        ).run()
     finally:
         ray.shutdown()
     assert [r["n_pred"] for r in rows] == [1, 2, 3]

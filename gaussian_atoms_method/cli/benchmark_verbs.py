@@ -12,6 +12,7 @@ from typing import Literal, Optional
 import tyro
 
 from gaussian_atoms_method.harness.benchmark_options import AccuracyOptions
+from gaussian_atoms_method.harness.sweep import SweepOptions
 
 
 @dataclass
@@ -239,40 +240,22 @@ class Stress:
 
 
 @dataclass
-class Sweep:
+class Sweep(SweepOptions):
     """Run ns-train gaussian-atoms over a grid of tyro overrides and tabulate settings against
     metrics and wall time (sweep.csv, sweep.md).  The grid follows ``--``: each ns-train option
     with its values; every combination is one run.  Finished runs are skipped, so an
     interrupted sweep resumes.  Example: ``gaussian-atoms sweep --data data/sim --jobs 2 --
     --pipeline.model.merge-threshold-A 0.2 0.3 0.5 --pipeline.model.merge-every 50 100``."""
 
-    data: Path
-    """Tilt-series directory (with a truth file the runs are scored)."""
-    output: Path = Path("outputs/sweep")
-    iterations: int = 3000
-    jobs: int = 1
-    """Runs at a time (local backend); the machine's threads are shared between them."""
-    device: Literal["cpu", "cuda"] = "cpu"
-    backend: Literal["local", "ray"] = "local"
-    """local processes, or a Ray cluster (pip install 'gaussian-atoms[ray]')."""
-    ray_address: Optional[str] = None
-    """Address of an existing Ray cluster (default: start a local one)."""
     grid: tyro.conf.Suppress[tuple[str, ...]] = ()
+    """Read from the tokens after ``--`` (:func:`split_grid`), not as an option."""
 
     def main(self) -> None:
+        from dataclasses import fields
+
         from gaussian_atoms_method.harness.sweep import Sweep as SweepRunner
 
-        rows = SweepRunner(
-            self.data,
-            self.output,
-            self.grid,
-            (),
-            self.iterations,
-            self.jobs,
-            self.device,
-            self.backend,
-            self.ray_address,
-        ).run()
+        rows = SweepRunner(**{f.name: getattr(self, f.name) for f in fields(SweepOptions)}).run()
         failed = [r for r in rows if r.get("status") != "ok"]
         if failed:
             print(f"gaussian-atoms sweep: {len(failed)} of {len(rows)} runs failed (see sweep.md)", file=sys.stderr)

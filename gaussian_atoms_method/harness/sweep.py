@@ -24,7 +24,7 @@ import shlex
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Literal, Optional
 
 METRICS = ["tpr", "fp_per_true_atom", "rmsd_pm", "n_pred", "n_true", "seconds"]
 
@@ -88,16 +88,31 @@ def train_and_score(data: str, run_dir: str, args: list[str], iterations: int, d
 
 
 @dataclass
-class Sweep:
+class SweepOptions:
+    """A sweep's options, declared once: the :class:`Sweep` here and the command
+    ``gaussian-atoms sweep`` take them."""
+
     data: Path
-    output: Path
-    grid: tuple[str, ...]
-    base_args: tuple[str, ...] = ()
+    """Tilt-series directory (with a truth file the runs are scored)."""
+    output: Path = Path("outputs/sweep")
     iterations: int = 3000
     jobs: int = 1
-    device: str = "cpu"
-    backend: str = "local"
-    ray_address: str | None = None
+    """Runs at a time (local backend); the machine's threads are shared between them."""
+    device: Literal["cpu", "cuda"] = "cpu"
+    backend: Literal["local", "ray"] = "local"
+    """local processes, or a Ray cluster (pip install 'gaussian-atoms[ray]')."""
+    ray_address: Optional[str] = None
+    """Address of an existing Ray cluster (default: start a local one)."""
+    grid: tuple[str, ...] = ()
+    """Each entry an option and its values, as typed: ``"--pipeline.model.merge-threshold-A 0.2 0.3"``."""
+
+
+@dataclass
+class Sweep(SweepOptions):
+    """The runs of a grid (:class:`SweepOptions`), each with ``base_args`` before its settings,
+    through ``runner`` (a test's stand-in; by default :func:`train_and_score`)."""
+
+    base_args: tuple[str, ...] = ()
     runner: Callable[..., dict] = field(default=train_and_score, repr=False)
 
     def __post_init__(self) -> None:
