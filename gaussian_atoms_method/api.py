@@ -217,8 +217,9 @@ def reconstruct(
     max_num_iterations : int, optional
         As ``--max-num-iterations`` (default 3,000; training stops earlier once converged).
     seed : int, optional
-        As ``--machine.seed`` (default :data:`~gaussian_atoms_method.engine.run_files.SEED`, the
-        command's and ``ns-train``'s); the caller's own generators are left as they were.
+        The fit's own generators' seed, as ``--pipeline.model.seed`` (its random draws: the
+        duplications' directions, the views' order in the final refit; default that option's).
+        The caller's generators are neither seeded nor drawn from.
     **model_options
         The ``--pipeline.model.*`` options by their Python names, e.g. ``psf="none"``,
         ``background="smooth"``, ``merge_threshold_A=0.7``.
@@ -254,14 +255,14 @@ def reconstruct(
                 _device(device),
                 steps,
                 steps,
-                SEED if seed is None else _whole(seed, "seed"),
+                SEED,  # the machine seed config.yml records: the engine draws from none of the global generators
                 progress,
                 tensorboard=keep,  # a run not kept keeps no logs or checkpoints
                 checkpoints=keep,
                 kept=keep,
             )
             check_settings(settings)
-            options = fit_options(model_options)
+            options = fit_options(model_options if seed is None else {**model_options, "seed": _whole(seed, "seed")})
         except (TiltSeriesError, AtomFileError, OptionError) as exc:
             raise _input_error(exc) from None
         # A kept run's config.yml names its data: they are written beside it, where ns-viewer and

@@ -58,9 +58,10 @@ class RunPlace:
 
 
 SEED = 42
-"""The seed of Python's, NumPy's and torch's generators a run takes unless given one
-(``--machine.seed``, ``ga.reconstruct(seed=...)``): ``ns-train``'s own default, so that the
-command, the API and ``ns-train gaussian-atoms`` give the same atoms."""
+"""The machine seed a run records in ``config.yml`` unless given one (``--machine.seed``):
+``ns-train``'s own default, with which it seeds the global generators.  The fit draws from none
+of them (its own generators are seeded by ``--pipeline.model.seed``), so the command, the API and
+``ns-train gaussian-atoms`` give the same atoms."""
 
 
 @dataclass
