@@ -70,10 +70,9 @@ class BenchmarkAccuracy(AccuracyOptions):
         scale = self.scale if self.scale is not None else (0.35 if self.quick else 1.0)
         if not scale > 0:
             raise ValueError(f"--scale must be positive, got {self.scale}")
-        bench = AccuracyBenchmark(**{f.name: getattr(self, f.name) for f in fields(AccuracyOptions)})
-        bench.scale = scale
-        bench.iterations = min(self.iterations, 1500) if self.quick else self.iterations
-        bench.run()
+        options = {f.name: getattr(self, f.name) for f in fields(AccuracyOptions)}
+        options["iterations"] = min(self.iterations, 1500) if self.quick else self.iterations
+        AccuracyBenchmark(**options, scale=scale).run()
         print(f"wrote {self.output / 'results.md'}, results.csv and accuracy_vs_noise.png")
 
 

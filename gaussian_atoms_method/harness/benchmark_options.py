@@ -1,7 +1,7 @@
 """The accuracy table's options, declared once: the harness's
 :class:`~gaussian_atoms_method.harness.benchmark.AccuracyBenchmark` and the command
 ``gaussian-atoms benchmark-accuracy`` both take them (plain dataclass fields: importing this
-imports nothing heavy, so the command line starts as fast without it)."""
+imports nothing heavy, so the command line starts no slower for it)."""
 
 from __future__ import annotations
 
