@@ -85,6 +85,31 @@ def test_overlapping_fits_are_judged_on_the_atoms_both_see_each_way():
     assert t.n_b == len(shared) - 2 and t.agree_b == 1.0 and t.agree_a == p.agree_a
 
 
+def test_overlapping_fits_judge_each_others_positions_against_their_stated_precisions():
+    """Two fits of one lattice, each place scattered by 3 pm per axis: stated as 3 pm, their
+    differences (3 pm times sqrt 2 per axis) lie within the combined 95% interval for 0.95 of the
+    shared atoms (the binomial's 2.6 standard deviations over ~500 pairs: 0.025); stated as half
+    that, for P(|z| < 0.98) = 0.67.  A shift of one crop's whole frame is the pair's offset (the
+    crops' registration), not any atom's scatter; without precisions nothing is judged."""
+    rng = np.random.default_rng(2)
+    truth = _lattice(nx=60, ny=16)
+    a, b = _reports(rng, truth, offsets_x=[70.0, 90.0], width=120.0, jitter_A=0.03)
+    frame = np.array([0.10, -0.05, 0.02])
+    for stated, expected in ((0.03, 0.95), (0.015, 0.67)):
+        sa, sb = (
+            Reports(r.name, r.positions + shift, r.interior_A, np.full((len(r.positions), 3), stated))
+            for r, shift in ((a, 0.0), (b, frame))
+        )
+        p = pair_agreement([sa, sb], HARD_CORE_A)[0]
+        assert p.n_pairs == p.n_a > 400 and p.agree_a == 1.0
+        assert np.allclose(p.offset_A, frame, atol=0.005)  # the mean of n differences: 4.2 pm / sqrt(n)
+        assert np.allclose(p.scatter_pm, 3 * np.sqrt(2), rtol=0.1)
+        assert np.allclose(p.intervals_hold, expected, atol=0.06)
+        assert "within their stated 95% intervals" in p.position_words()
+    plain = pair_agreement([a, b], HARD_CORE_A)[0]
+    assert np.all(np.isnan(plain.intervals_hold)) and plain.position_words() == ""
+
+
 def test_an_artefact_of_one_fit_is_a_non_atom():
     """Real atoms found by 6-7 of 7 covering fits, artefacts each in one fit: the mixture reads
     the two rates and reports the artefacts as non-atoms."""
@@ -172,6 +197,8 @@ def test_a_film_runs_on_ray_resumes_and_names_a_broken_sub_area(small_film):
         assert (root / "out" / name).is_file()
     # the two fits of one physics report each other's atoms where both see them
     assert summary["overlap_agreement"]["pairs"] == 1 and summary["overlap_agreement"]["median_both_ways"] >= 0.97
+    # and place them alike: per axis within the 10 pm each fit's RMSD is held to above
+    assert np.all(np.asarray(summary["overlap_agreement"]["median_scatter_pm"]) < 10.0)
     assert set(read_atoms(root / "out" / "atoms.xyz").species) == {"Pd"}  # the film's one element names them
     # each task's cost, recorded by the task and read back with it: a fit takes time, a worker
     # holds at least torch's own import (hundreds of MB), and CPU tasks have no GPU peak

@@ -6,7 +6,8 @@ Outputs in ``output_dir``: ``film.json`` (the sub-areas), ``runs/<sub-area>/`` (
 ``atoms.csv`` (every joined atom with ``found_in``, ``covered_by`` and whether confirmed),
 ``film.png`` (the film seen from above, coloured by ``found_in / covered_by``),
 ``overlaps.csv`` (each pair of overlapping sub-areas: the share of the atoms one fit reports in
-their common interior that the other reports too, each way) and ``summary.json``.
+their common interior that the other reports too, each way, and how far apart the two place the
+atoms both report against their stated precisions) and ``summary.json``.
 """
 
 from __future__ import annotations
@@ -71,8 +72,9 @@ def reconstruct_film(
         raise FilmError(f"{len(failures)} of {len(subareas)} sub-areas failed ({named}); run again to retry them")
     cores = [r["hard_core_A"] for r in records.values() if r.get("hard_core_A")]
     hard_core_A = hard_core_from_species(species) if species else float(np.median(cores)) if cores else math.nan
+    atoms = {s.name: read_atoms(records[s.name]["atoms"]) for s in subareas}
     reports = [
-        Reports(s.name, read_atoms(records[s.name]["atoms"]).positions + np.asarray(s.offset_A), s.interior_A)
+        Reports(s.name, atoms[s.name].positions + np.asarray(s.offset_A), s.interior_A, atoms[s.name].position_std_A)
         for s in subareas
     ]
     film = join_reports(reports, hard_core_A)
@@ -190,6 +192,7 @@ def write_film(
             "pairs": len(judged),
             "median_both_ways": float(np.median([p.both_ways for p in judged])),
             "least": [least.a, least.b, least.both_ways],
+            **positions_agree(judged),
         }
         if least
         else None
@@ -215,7 +218,28 @@ def write_film(
             f"{summary['overlap_agreement']['median_both_ways']:.3f} both ways over {len(judged)} pairs, least "
             f"{least.both_ways:.3f} ({least.a} and {least.b}; overlaps.csv)"
         )
+        agree = summary["overlap_agreement"]
+        if "median_scatter_pm" in agree:
+            said += (
+                "; the atoms both report lie "
+                + " / ".join(f"{v:.1f}" for v in agree["median_scatter_pm"])
+                + " pm RMS apart (x / y / z, the pairs' median), within their stated 95% intervals for "
+                + " / ".join(f"{v:.2f}" for v in agree["median_intervals_hold"])
+            )
     CONSOLE.print(f"gaussian-atoms film: {said}; {output_dir / 'atoms.xyz'}")
+
+
+def positions_agree(pairs: list[PairAgreement]) -> dict:
+    """The overlapping pairs' positions judged (:class:`~.stitch.PairAgreement`): the median over
+    ``pairs`` of the atoms' RMS difference along x, y, z (pm) and of the share within their stated
+    intervals; empty where no pair states its precision."""
+    stated = [p for p in pairs if np.all(np.isfinite(p.intervals_hold))]
+    if not stated:
+        return {}
+    return {
+        "median_scatter_pm": np.median([p.scatter_pm for p in stated], axis=0).tolist(),
+        "median_intervals_hold": np.median([p.intervals_hold for p in stated], axis=0).tolist(),
+    }
 
 
 def _draw(positions: np.ndarray, share: np.ndarray, path: Path) -> None:

@@ -20,7 +20,9 @@ sub-area's offset, the reports of one atom from the sub-areas that see it lie cl
   nothing: every joined atom is reported, none confirmed by it.
 * **Agreement.** Two overlapping fits judge each other without a truth (:func:`pair_agreement`):
   of the atoms one reports in their common interior, the share the other reports too (the
-  mutual nearest within half the hard core, as joined), each way.
+  mutual nearest within half the hard core, as joined), each way; and where they state their
+  precision, how far apart they place the atoms both report, against what their precisions
+  allow.
 """
 
 from __future__ import annotations
@@ -31,6 +33,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from gaussian_atoms_method.atoms.calibration import Z95
+
 SAME_RATE = 0.1
 """Rates closer than this are one population: with seven fits covering an atom, one more or one
 fewer finding it moves its share by 0.14."""
@@ -39,11 +43,14 @@ fewer finding it moves its share by 0.14."""
 @dataclass
 class Reports:
     """One sub-area's atoms in the film's frame: ``positions`` (N, 3) Å and the sub-area's
-    interior, ``interior_A`` (2, 2): the lower and upper (x, y) corners in the film's frame."""
+    interior, ``interior_A`` (2, 2): the lower and upper (x, y) corners in the film's frame;
+    optionally each atom's stated precision, ``position_std_A`` (N, 3) Å (``atoms.csv``'s
+    ``std_x_A``, ``std_y_A``, ``std_z_A``)."""
 
     name: str
     positions: np.ndarray
     interior_A: np.ndarray
+    position_std_A: np.ndarray | None = None
 
     def inside(self, positions: np.ndarray) -> np.ndarray:
         """(M,) whether each of ``positions`` (M, 3) lies in this sub-area's interior (x, y)."""
@@ -159,7 +166,15 @@ def confirm(found_in: np.ndarray, covered_by: np.ndarray, iterations: int = 200)
 class PairAgreement:
     """Two sub-areas' fits on the atoms they share: ``n_a`` (``n_b``) the atoms ``a`` (``b``)
     reports in their common interior, ``agree_a`` (``agree_b``) the share of them the other fit
-    reports too (NaN where it reports none there), ``common_A2`` the common interior's area."""
+    reports too (NaN where it reports none there), ``common_A2`` the common interior's area.
+
+    Where both state their precision, the atoms of ``a`` there that ``b`` reports too
+    (``n_pairs``) judge it: ``offset_A`` (3,) the mean of ``b``'s place less ``a``'s (the two
+    crops' frames apart: their registration, not any atom's), ``scatter_pm`` (3,) the RMS of the
+    differences about it along x, y, z, and ``intervals_hold`` (3,) the share of the pairs whose
+    difference lies within ``Z95 * sqrt(std_a^2 + std_b^2)`` (0.95 where both statements are
+    exact and their errors independent; the two crops share their views' noise, so an error alike
+    in both stays unseen and a share below 0.95 is the more telling); NaN without precisions."""
 
     a: str
     b: str
@@ -168,11 +183,27 @@ class PairAgreement:
     agree_a: float
     agree_b: float
     common_A2: float
+    n_pairs: int = 0
+    offset_A: tuple = (math.nan,) * 3
+    scatter_pm: tuple = (math.nan,) * 3
+    intervals_hold: tuple = (math.nan,) * 3
 
     @property
     def both_ways(self) -> float:
         """The lesser of the two shares: what the pair agrees on both ways."""
         return float(min(self.agree_a, self.agree_b))
+
+    def position_words(self) -> str:
+        """The positions' agreement in words (empty without precisions)."""
+        if not np.all(np.isfinite(self.intervals_hold)):
+            return ""
+        return (
+            f"; the {self.n_pairs} atoms both report lie {self.scatter_pm[0]:.1f} / {self.scatter_pm[1]:.1f} / "
+            f"{self.scatter_pm[2]:.1f} pm RMS apart (x / y / z, about a mean offset of "
+            + " / ".join(f"{100 * v:.1f}" for v in self.offset_A)
+            + " pm), within their stated 95% intervals for "
+            + " / ".join(f"{v:.2f}" for v in self.intervals_hold)
+        )
 
 
 def pair_agreement(reports: list[Reports], hard_core_A: float, counted: list | None = None) -> list[PairAgreement]:
@@ -208,23 +239,58 @@ def pair_agreement(reports: list[Reports], hard_core_A: float, counted: list | N
             inner = [r.inside(r.positions) for r in (a, b)]
             pa, pb = a.positions[inner[0]], b.positions[inner[1]]
             ma, mb = np.asarray(masks[ia], bool)[inner[0]], np.asarray(masks[ib], bool)[inner[1]]
-            shares = []
+            shares, matched = [], []
             for mine, theirs, mask in ((pa, pb, ma), (pb, pa, mb)):
                 which = np.flatnonzero(common.inside(mine) & mask)
                 if len(which) == 0 or len(theirs) == 0:
                     shares.append((len(which), math.nan))
+                    matched.append((which[:0], which[:0]))
                     continue
                 d, j = cKDTree(theirs).query(mine[which], distance_upper_bound=half)
                 back = cKDTree(mine).query(theirs[np.minimum(j, len(theirs) - 1)])[1]
                 mutual = np.isfinite(d) & (back == which)
                 shares.append((len(which), float(mutual.mean())))
+                matched.append((which[mutual], j[mutual]))
             (n_a, agree_a), (n_b, agree_b) = shares
-            out.append(PairAgreement(a.name, b.name, n_a, n_b, agree_a, agree_b, float(np.prod(hi - lo))))
+            positions = _positions_agree(a, b, inner, *matched[0])
+            out.append(PairAgreement(a.name, b.name, n_a, n_b, agree_a, agree_b, float(np.prod(hi - lo)), *positions))
     return out
 
 
+def _positions_agree(a: Reports, b: Reports, inner: list, ia: np.ndarray, ib: np.ndarray) -> tuple:
+    """:class:`PairAgreement`'s ``n_pairs, offset_A, scatter_pm, intervals_hold`` for the pairs
+    ``ia`` (of ``a``'s interior atoms) and ``ib`` (of ``b``'s)."""
+    nan = (math.nan,) * 3
+    if a.position_std_A is None or b.position_std_A is None or len(ia) == 0:
+        return len(ia), nan, nan, nan
+    difference = b.positions[inner[1]][ib] - a.positions[inner[0]][ia]
+    offset = difference.mean(axis=0)
+    about = difference - offset
+    allowed = Z95 * np.hypot(
+        np.asarray(a.position_std_A, np.float64)[inner[0]][ia], np.asarray(b.position_std_A, np.float64)[inner[1]][ib]
+    )
+    with np.errstate(invalid="ignore"):
+        hold = np.mean(np.abs(about) <= allowed, axis=0)
+    return (
+        len(ia),
+        tuple(offset.tolist()),
+        tuple((100 * np.sqrt(np.mean(about**2, axis=0))).tolist()),
+        tuple(hold.tolist()),
+    )
+
+
 def write_overlaps(pairs: list[PairAgreement], path) -> None:
-    """``pairs`` as a CSV table: a, b, n_a, n_b, agree_a, agree_b, common_A2."""
+    """``pairs`` as a CSV table: a, b, n_a, n_b, agree_a, agree_b, common_A2, and the positions'
+    agreement (:class:`PairAgreement`): n_pairs, offset_{x,y,z}_A, scatter_{x,y,z}_pm,
+    hold_{x,y,z}."""
+    axes = ("x", "y", "z")
+    head = ["a,b,n_a,n_b,agree_a,agree_b,common_A2,n_pairs"]
+    head += [f"{what}_{x}{unit}" for what, unit in (("offset", "_A"), ("scatter", "_pm"), ("hold", "")) for x in axes]
     with open(path, "w") as f:
-        f.write("a,b,n_a,n_b,agree_a,agree_b,common_A2\n")
-        f.writelines(f"{p.a},{p.b},{p.n_a},{p.n_b},{p.agree_a:.4f},{p.agree_b:.4f},{p.common_A2:.1f}\n" for p in pairs)
+        f.write(",".join(head) + "\n")
+        f.writelines(
+            f"{p.a},{p.b},{p.n_a},{p.n_b},{p.agree_a:.4f},{p.agree_b:.4f},{p.common_A2:.1f},{p.n_pairs},"
+            + ",".join(f"{v:.4f}" for v in (*p.offset_A, *p.scatter_pm, *p.intervals_hold))
+            + "\n"
+            for p in pairs
+        )

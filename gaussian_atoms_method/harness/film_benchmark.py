@@ -416,7 +416,9 @@ class FilmBenchmark:
         reports, trusted = [], []
         for sub in subareas:
             atoms = read_atoms(self.output / "runs" / sub.name / "ours" / "gaussian-atoms" / "run" / "atoms.xyz")
-            reports.append(Reports(sub.name, atoms.positions + np.asarray(sub.offset_A), sub.interior_A))
+            reports.append(
+                Reports(sub.name, atoms.positions + np.asarray(sub.offset_A), sub.interior_A, atoms.position_std_A)
+            )
             trusted.append(np.ones(len(atoms), bool) if atoms.trusted is None else atoms.trusted.astype(bool))
         core = hard_core_from_species(self.species or "Ta")
         pairs = pair_agreement(reports, core)
@@ -425,7 +427,7 @@ class FilmBenchmark:
             print(
                 f"Ta film {p.a} and {p.b} (common interior {p.common_A2:.0f} Å²): {p.agree_a:.3f} of {p.n_a} atoms of "
                 f"{p.a} there reported by {p.b}, {p.agree_b:.3f} of its {p.n_b} by {p.a}; of the trusted ones "
-                f"{t.agree_a:.3f} of {t.n_a} and {t.agree_b:.3f} of {t.n_b}",
+                f"{t.agree_a:.3f} of {t.n_a} and {t.agree_b:.3f} of {t.n_b}" + p.position_words(),
                 flush=True,
             )
         return pairs
