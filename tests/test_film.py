@@ -207,6 +207,50 @@ def test_a_film_runs_on_ray_resumes_and_names_a_broken_sub_area(small_film):
     assert tasks["max_worker_rss_GB"] > 0.1 and tasks["max_peak_gpu_GB"] is None
 
 
+def test_the_overlap_keeps_per_view_shifts_where_each_crop_is_misregistered_apart(tmp_path):
+    """The small film's two sub-areas, each view of each crop shifted apart by 0.5 px RMS (as
+    sub-areas registered one by one are): fitted without shifts, the two crops' errors differ and
+    their fits place the atoms they share tens of pm apart; with shifts learned both are put
+    right, so the overlap keeps the fits with shifts, and the joined film is theirs."""
+    import ray
+    from scipy.ndimage import shift
+
+    from dataparsers.tilt_series_format import TiltSeries
+    from gaussian_atoms_method.film.film import reconstruct_film
+    from gaussian_atoms_method.film.subareas import tile_series
+    from gaussian_atoms_method.harness.particles import amorphous_packing
+    from gaussian_atoms_method.harness.simulate import simulate_tilt_series
+
+    rng = np.random.default_rng(0)
+    atoms = amorphous_packing(0, ("Pd",), 2.5, rng, number_density_per_A3=0.04, box_A=(36.0, 14.0, 8.0))
+    angles = np.arange(-60.0, 61.0, 6.0)
+    sim = simulate_tilt_series(atoms, angles, potential="gaussian", noise_std=20.0, seed=0)
+    series = TiltSeries(sim.projections, angles, 0.25, "y")
+    h = series.projections.shape[1]
+    subareas = tile_series(series, (h - 24, 400), (24, 400), tmp_path / "data")
+    for sub in subareas:
+        path = Path(sub.data) / "projections.npy"
+        views = np.load(path)
+        moved = [shift(v, rng.normal(scale=0.5, size=2), order=3, mode="nearest") for v in views]
+        np.save(path, np.asarray(moved, dtype=views.dtype))
+    try:
+        film = reconstruct_film(
+            subareas, tmp_path / "out", species="Pd", max_steps=1500, progress=False, registration_by_overlap=True
+        )
+    finally:
+        ray.shutdown()
+    choice = json.loads((tmp_path / "out" / "registration.json").read_text())
+    assert choice["decided"] and choice["chosen"] == "with_shifts"
+    apart = choice["median_apart_pm"]
+    assert apart["with_shifts"] < apart["without_shifts"]
+    for name in ("without_shifts", "with_shifts"):
+        assert (tmp_path / "out" / "runs" / name / subareas[0].name / "gaussian-atoms" / "run" / "done.json").is_file()
+    # the film joined is the kept set's: its one pair's scatter is the one the choice read
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert np.linalg.norm(summary["overlap_agreement"]["median_scatter_pm"]) == pytest.approx(apart["with_shifts"])
+    assert len(film.positions) > 0
+
+
 @pytest.mark.parametrize(
     "args, named",
     [

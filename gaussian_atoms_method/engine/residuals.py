@@ -181,7 +181,8 @@ def say_view_shifts(residuals, predicted, detector_axes, registered: bool) -> di
     measured minus predicted, and the predicted views; less what a translation of the object
     makes in views of ``detector_axes`` (V, 2, 3)) and, where the two halves of the views agree
     on their shifts by 3 standard errors or more and the run learned no shifts (``registered``),
-    that the views the fit did not see can say whether learning them helps.  A significant shift
+    that overlapping sub-areas can say whether learning them helps (:mod:`..film.registration`;
+    views the fit did not see share its systematic errors).  A significant shift
     may still be harmless; one of a fraction of a pixel can place atoms wrong along the beam,
     confidently (the real views' misregistration in a replica: 0.964 found, 29 pm; with
     per-view shifts 0.996, 3.9 pm).  Returns ``view_shifts_rms_px`` (rows, columns) and
@@ -198,8 +199,8 @@ def say_view_shifts(residuals, predicted, detector_axes, registered: bool) -> di
     )
     if z >= 3.0 and not registered:
         words += (
-            ": a shift the views hold; whether learning it helps is for views the fit did not see to say "
-            "(--pipeline.model.decide-registration True)"
+            ": a shift the views hold; whether learning it helps a lone series cannot say, overlapping sub-areas "
+            "can (gaussian-atoms film --registration-by-overlap; --pipeline.model.refine-alignment True learns it)"
         )
     CONSOLE.print(f"gaussian-atoms: {words}")
     return {

@@ -7,7 +7,8 @@ Outputs in ``output_dir``: ``film.json`` (the sub-areas), ``runs/<sub-area>/`` (
 ``film.png`` (the film seen from above, coloured by ``found_in / covered_by``),
 ``overlaps.csv`` (each pair of overlapping sub-areas: the share of the atoms one fit reports in
 their common interior that the other reports too, each way, and how far apart the two place the
-atoms both report against their stated precisions) and ``summary.json``.
+atoms both report against their stated precisions), ``summary.json`` and, where the overlap
+decides the registration, ``registration.json`` (:mod:`.registration`).
 """
 
 from __future__ import annotations
@@ -22,6 +23,8 @@ import numpy as np
 from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms, write_atoms
 from gaussian_atoms_method.atoms.hard_core import hard_core_from_species, parse_species
 from gaussian_atoms_method.engine.console import CONSOLE
+from gaussian_atoms_method.film.registration import SETS, registration_words
+from gaussian_atoms_method.film.registration import registration_by_overlap as registration_by_overlap_of
 from gaussian_atoms_method.film.runner import check_address, run_subareas
 from gaussian_atoms_method.film.stitch import (
     FilmAtoms,
@@ -47,6 +50,7 @@ def reconstruct_film(
     address: str | None = None,
     progress: bool = True,
     tasks_per_gpu: int = 1,
+    registration_by_overlap: bool = False,
     **model_options,
 ) -> FilmAtoms:
     """Fit ``subareas``, join them and write the film (module text).
@@ -57,15 +61,45 @@ def reconstruct_film(
     ``model_options`` are the fit's options by their Python names.  The arguments are checked
     before anything is written (:func:`check_settings`).  Raises :class:`FilmError` naming
     the sub-areas that failed after a retry; the others' fits stay, and a second call runs only
-    those."""
+    those.
+
+    ``registration_by_overlap``: fit every sub-area twice, without and with per-view shifts
+    (``refine_alignment``; ``runs/without_shifts``, ``runs/with_shifts``), and join the set whose
+    overlapping fits place the atoms they share closer together
+    (:mod:`~.registration`; ``registration.json``): twice the fits' time."""
     species, device = check_settings(device, species, max_steps, address, tasks_per_gpu, model_options)
+    if registration_by_overlap and "refine_alignment" in model_options:
+        raise ValueError("refine_alignment: registration_by_overlap decides it; give one or the other")
     if not subareas:
         raise ValueError("subareas: none given (read them with published_subareas or tile_series)")
     output_dir = Path(output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
     write_plan(subareas, output_dir / "film.json")
+    fitted = (subareas, device, max_steps, address, progress, tasks_per_gpu, species)
+    choice = None
+    if registration_by_overlap:
+        tried = {
+            name: _fit_and_judge(output_dir / "runs" / name, {**model_options, "refine_alignment": shifts}, *fitted)
+            for name, shifts in SETS.items()
+        }
+        choice = registration_by_overlap_of({name: t[3] for name, t in tried.items()})
+        (output_dir / "registration.json").write_text(json.dumps(choice, indent=1) + "\n")
+        CONSOLE.print(f"gaussian-atoms film: {registration_words(choice)}")
+        records, reports, hard_core_A, pairs = tried[choice["chosen"]]
+    else:
+        records, reports, hard_core_A, pairs = _fit_and_judge(output_dir / "runs", model_options, *fitted)
+    film = join_reports(reports, hard_core_A)
+    write_film(
+        film, output_dir, hard_core_A, [s.name for s in subareas], task_summary(records.values()), species, pairs
+    )
+    return film
+
+
+def _fit_and_judge(runs_dir, options, subareas, device, max_steps, address, progress, tasks_per_gpu, species):
+    """Every sub-area fitted under ``runs_dir`` with ``options``: their records, their reports in
+    the film's frame, the hard core they are joined by and their overlapping pairs' agreement."""
     records, failures = run_subareas(
-        subareas, output_dir / "runs", model_options, device, max_steps, address, progress, tasks_per_gpu, species
+        subareas, runs_dir, options, device, max_steps, address, progress, tasks_per_gpu, species
     )
     if failures:
         named = "; ".join(f"{name}: {why}" for name, why in sorted(failures.items()))
@@ -77,12 +111,7 @@ def reconstruct_film(
         Reports(s.name, atoms[s.name].positions + np.asarray(s.offset_A), s.interior_A, atoms[s.name].position_std_A)
         for s in subareas
     ]
-    film = join_reports(reports, hard_core_A)
-    pairs = pair_agreement(reports, hard_core_A)
-    write_film(
-        film, output_dir, hard_core_A, [s.name for s in subareas], task_summary(records.values()), species, pairs
-    )
-    return film
+    return records, reports, hard_core_A, pair_agreement(reports, hard_core_A)
 
 
 ARGUMENT_NAMES = {"device": "device", "max_steps": "max_steps", "tasks_per_gpu": "tasks_per_gpu"}
