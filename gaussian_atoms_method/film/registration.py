@@ -5,7 +5,8 @@ always prefers more freedom, and views it did not see share its systematic error
 film, registration chosen by held-out views moved the atoms 0.05-0.54 Å along the beam and lost
 half of one sub-area's atoms).  Overlapping sub-areas can: they see the same atoms through other
 crops, each registered apart, so the better registration is the one under which their fits place
-the atoms they share closer together (:class:`~.stitch.PairAgreement`'s ``scatter_pm``).
+the atoms they share closer together (:class:`~.stitch.PairAgreement`'s ``scatter_pm``) without
+reporting fewer of each other's atoms.
 """
 
 from __future__ import annotations
@@ -27,26 +28,41 @@ def apart_pm(pairs: list[PairAgreement]) -> float:
     return float(np.median(stated)) if stated else float("nan")
 
 
+def agree_both_ways(pairs: list[PairAgreement]) -> float:
+    """The median over ``pairs`` of the share of atoms both fits report, the lesser way
+    (:attr:`~.stitch.PairAgreement.both_ways`); NaN without a judged pair."""
+    judged = [p.both_ways for p in pairs if np.isfinite(p.both_ways)]
+    return float(np.median(judged)) if judged else float("nan")
+
+
 def registration_by_overlap(tried: dict[str, list[PairAgreement]]) -> dict:
-    """Which of the sub-area sets in ``tried`` (:data:`SETS`' names -> their pairs) to keep: the
-    one whose overlapping fits place their shared atoms closest (:func:`apart_pm`), or
-    ``without_shifts`` where the overlap cannot say (``decided`` False: no pair judged in each).
+    """Which of the two sub-area sets in ``tried`` (:data:`SETS`' names -> their pairs) to keep:
+    ``with_shifts`` where its overlapping fits place their shared atoms closer together
+    (:func:`apart_pm`) and report no fewer of each other's atoms (:func:`agree_both_ways`: the
+    shifts never lower that agreement), else ``without_shifts``; ``decided`` False where the
+    overlap cannot say (no pair judged in each set).
 
     >>> from gaussian_atoms_method.film.stitch import PairAgreement
-    >>> def pair(pm):
-    ...     return PairAgreement("a", "b", 100, 100, 0.97, 0.97, 500.0, 90, (0, 0, 0), (pm, pm, pm), (1, 1, 1))
+    >>> def pair(pm, agree=0.97):
+    ...     return PairAgreement("a", "b", 100, 100, agree, agree, 500.0, 90, (0, 0, 0), (pm, pm, pm), (1, 1, 1))
     >>> registration_by_overlap({"without_shifts": [pair(10.0)], "with_shifts": [pair(6.0)]})["chosen"]
     'with_shifts'
+    >>> registration_by_overlap({"without_shifts": [pair(10.0)], "with_shifts": [pair(6.0, 0.9)]})["chosen"]
+    'without_shifts'
     >>> registration_by_overlap({"without_shifts": [], "with_shifts": []})["decided"]
     False
     """
     apart = {name: apart_pm(pairs) for name, pairs in tried.items()}
-    decided = all(np.isfinite(v) for v in apart.values())
-    chosen = min(apart, key=apart.get) if decided else "without_shifts"
+    agree = {name: agree_both_ways(pairs) for name, pairs in tried.items()}
+    decided = all(np.isfinite(v) for v in (*apart.values(), *agree.values()))
+    shifts = (
+        decided and apart["with_shifts"] < apart["without_shifts"] and agree["with_shifts"] >= agree["without_shifts"]
+    )
     return {
-        "chosen": chosen,
+        "chosen": "with_shifts" if shifts else "without_shifts",
         "decided": decided,
         "median_apart_pm": {name: (v if np.isfinite(v) else None) for name, v in apart.items()},
+        "median_agree_both_ways": {name: (v if np.isfinite(v) else None) for name, v in agree.items()},
         "pairs": {name: len(pairs) for name, pairs in tried.items()},
     }
 
@@ -59,8 +75,10 @@ def registration_words(choice: dict) -> str:
             "per-view shifts: the overlap could not decide (no overlapping sub-areas judged their positions); "
             "kept the fits without them"
         )
+    agree = choice["median_agree_both_ways"]
     return (
         f"per-view shifts decided by the overlap: kept the fits {choice['chosen'].replace('_', ' ')} (overlapping "
         f"fits place the atoms they share {apart['with_shifts']:.1f} pm apart with them, "
-        f"{apart['without_shifts']:.1f} pm without; the median of {choice['pairs']['with_shifts']} pairs, RMS in 3D)"
+        f"{apart['without_shifts']:.1f} pm without, RMS in 3D, and report {agree['with_shifts']:.3f} and "
+        f"{agree['without_shifts']:.3f} of each other's atoms; medians of {choice['pairs']['with_shifts']} pairs)"
     )
