@@ -125,6 +125,9 @@ class BenchmarkFilm:
     fitted on Ray (`gaussian-atoms film`), joined and scored in the strip's interior."""
     tasks_per_gpu: int = 1
     """With --strips on GPUs: sub-areas fitted at once on each GPU."""
+    registration_by_overlap: bool = False
+    """With --strips: each strip's per-view shifts decided by its overlapping sub-areas, every
+    sub-area fitted without and with them (`gaussian-atoms film --registration-by-overlap`)."""
 
     simulated: bool = False
     """Instead: the harness's film (Lobato, wider than each tile) cut into tiles, fitted on Ray,
@@ -147,7 +150,14 @@ class BenchmarkFilm:
                 print(
                     f"Ta film strip {strip}: "
                     + json.dumps(
-                        run_strip(strip, self.data, self.output, self.device, tasks_per_gpu=self.tasks_per_gpu)
+                        run_strip(
+                            strip,
+                            self.data,
+                            self.output,
+                            self.device,
+                            tasks_per_gpu=self.tasks_per_gpu,
+                            registration_by_overlap=self.registration_by_overlap,
+                        )
                     )
                 )
             return

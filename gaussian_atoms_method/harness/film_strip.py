@@ -64,8 +64,11 @@ def run_strip(
     device: str = "cpu",
     address: str | None = None,
     tasks_per_gpu: int = 1,
+    registration_by_overlap: bool = False,
 ) -> dict:
-    """Fit and join a published strip of the Ta film (resumable) and score it."""
+    """Fit and join a published strip of the Ta film (resumable) and score it; with
+    ``registration_by_overlap`` its per-view shifts decided by its overlapping sub-areas
+    (:mod:`gaussian_atoms_method.film.registration`)."""
     from gaussian_atoms_method.film.film import reconstruct_film
     from gaussian_atoms_method.film.subareas import published_subareas
 
@@ -73,7 +76,15 @@ def run_strip(
     subareas = published_subareas(
         data_dir, list(STRIPS[strip]), output / "data", PIXEL_SIZE_A, tuple(FULL_VOLUME_CENTRE_VOX)
     )
-    reconstruct_film(subareas, output, device, "Ta", address=address, tasks_per_gpu=tasks_per_gpu)
+    reconstruct_film(
+        subareas,
+        output,
+        device,
+        "Ta",
+        address=address,
+        tasks_per_gpu=tasks_per_gpu,
+        registration_by_overlap=registration_by_overlap,
+    )
     scores = score_strip(output, data_dir)
     (output / "scores.json").write_text(json.dumps(scores, indent=1) + "\n")
     return scores
