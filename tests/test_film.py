@@ -211,7 +211,8 @@ def test_the_overlap_keeps_per_view_shifts_where_each_crop_is_misregistered_apar
     """The small film's two sub-areas, each view of each crop shifted apart by 0.5 px RMS (as
     sub-areas registered one by one are): fitted without shifts, the two crops' errors differ and
     their fits place the atoms they share tens of pm apart; with shifts learned both are put
-    right, so the overlap keeps the fits with shifts, and the joined film is theirs."""
+    right, so the overlap keeps the fits with registration (shifts and gains), and the joined film
+    is theirs."""
     import ray
     from scipy.ndimage import shift
 
@@ -240,14 +241,16 @@ def test_the_overlap_keeps_per_view_shifts_where_each_crop_is_misregistered_apar
     finally:
         ray.shutdown()
     choice = json.loads((tmp_path / "out" / "registration.json").read_text())
-    assert choice["decided"] and choice["chosen"] == "with_shifts"
+    assert choice["decided"] and choice["chosen"] == "with_registration"
     apart = choice["median_apart_pm"]
-    assert apart["with_shifts"] < apart["without_shifts"]
-    for name in ("without_shifts", "with_shifts"):
+    assert apart["with_registration"] < apart["without_registration"]
+    for name in ("without_registration", "with_registration"):
         assert (tmp_path / "out" / "runs" / name / subareas[0].name / "gaussian-atoms" / "run" / "done.json").is_file()
     # the film joined is the kept set's: its one pair's scatter is the one the choice read
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
-    assert np.linalg.norm(summary["overlap_agreement"]["median_scatter_pm"]) == pytest.approx(apart["with_shifts"])
+    assert np.linalg.norm(summary["overlap_agreement"]["median_scatter_pm"]) == pytest.approx(
+        apart["with_registration"]
+    )
     assert len(film.positions) > 0
 
 

@@ -126,8 +126,8 @@ class BenchmarkFilm:
     tasks_per_gpu: int = 1
     """With --strips on GPUs: sub-areas fitted at once on each GPU."""
     registration_by_overlap: bool = False
-    """With --strips: each strip's per-view shifts decided by its overlapping sub-areas, every
-    sub-area fitted without and with them (`gaussian-atoms film --registration-by-overlap`)."""
+    """With --strips: each strip's per-view shifts and gains decided by its overlapping sub-areas,
+    every sub-area fitted without and with them (`gaussian-atoms film --registration-by-overlap`)."""
 
     simulated: bool = False
     """Instead: the harness's film (Lobato, wider than each tile) cut into tiles, fitted on Ray,

@@ -52,9 +52,9 @@ class Film:
     """Sub-areas fitted at once on each GPU: a sub-area's fit holds a small part of its memory
     and spends most of its time on kernel launches, so several can share one."""
     registration_by_overlap: bool = False
-    """Fit every sub-area twice, without and with per-view shifts, and keep the set whose
-    overlapping fits place the atoms they share closer together (``registration.json``): what a
-    lone series cannot decide, at twice the fits' time."""
+    """Fit every sub-area twice, without and with per-view shifts and gains, and keep the set whose
+    overlapping fits place the atoms they share closer together, agreeing on no fewer atoms
+    (``registration.json``): what a lone series cannot decide, at twice the fits' time."""
 
     def subareas(self):
         """The sub-areas the options name (written as tilt series under ``output/data``)."""

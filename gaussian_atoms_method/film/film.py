@@ -63,13 +63,14 @@ def reconstruct_film(
     the sub-areas that failed after a retry; the others' fits stay, and a second call runs only
     those.
 
-    ``registration_by_overlap``: fit every sub-area twice, without and with per-view shifts
-    (``refine_alignment``; ``runs/without_shifts``, ``runs/with_shifts``), and join the set whose
-    overlapping fits place the atoms they share closer together
-    (:mod:`~.registration`; ``registration.json``): twice the fits' time."""
+    ``registration_by_overlap``: fit every sub-area twice, without and with per-view shifts and
+    gains (``refine_alignment``, ``refine_gain``; ``runs/without_registration``,
+    ``runs/with_registration``), and join the set the overlap prefers (:mod:`~.registration`;
+    ``registration.json``): twice the fits' time."""
     species, device = check_settings(device, species, max_steps, address, tasks_per_gpu, model_options)
-    if registration_by_overlap and "refine_alignment" in model_options:
-        raise ValueError("refine_alignment: registration_by_overlap decides it; give one or the other")
+    given = sorted({"refine_alignment", "refine_gain"} & set(model_options))
+    if registration_by_overlap and given:
+        raise ValueError(f"{given[0]}: registration_by_overlap decides it; give one or the other")
     if not subareas:
         raise ValueError("subareas: none given (read them with published_subareas or tile_series)")
     output_dir = Path(output_dir)
@@ -79,8 +80,8 @@ def reconstruct_film(
     choice = None
     if registration_by_overlap:
         tried = {
-            name: _fit_and_judge(output_dir / "runs" / name, {**model_options, "refine_alignment": shifts}, *fitted)
-            for name, shifts in SETS.items()
+            name: _fit_and_judge(output_dir / "runs" / name, {**model_options, **options}, *fitted)
+            for name, options in SETS.items()
         }
         choice = registration_by_overlap_of({name: t[3] for name, t in tried.items()})
         (output_dir / "registration.json").write_text(json.dumps(choice, indent=1) + "\n")

@@ -67,7 +67,7 @@ def run_strip(
     registration_by_overlap: bool = False,
 ) -> dict:
     """Fit and join a published strip of the Ta film (resumable) and score it; with
-    ``registration_by_overlap`` its per-view shifts decided by its overlapping sub-areas
+    ``registration_by_overlap`` its per-view shifts and gains decided by its overlapping sub-areas
     (:mod:`gaussian_atoms_method.film.registration`)."""
     from gaussian_atoms_method.film.film import reconstruct_film
     from gaussian_atoms_method.film.subareas import published_subareas
