@@ -167,12 +167,16 @@ def test_a_film_runs_on_ray_resumes_and_names_a_broken_sub_area(small_film):
     broken.write_bytes(b"not an array")
     try:
         with pytest.raises(FilmError, match=subareas[1].name):
-            reconstruct_film(subareas, root / "out", species="Pd", max_steps=1500, progress=False)
+            reconstruct_film(
+                subareas, root / "out", species="Pd", max_steps=1500, progress=False, registration_by_overlap=False
+            )
         first = root / "out" / "runs" / subareas[0].name / "gaussian-atoms" / "run" / "done.json"
         assert first.is_file() and not (root / "out" / "atoms.xyz").exists()
         stamp = first.stat().st_mtime_ns
         broken.write_bytes(good)
-        film = reconstruct_film(subareas, root / "out", species="Pd", max_steps=1500, progress=False)
+        film = reconstruct_film(
+            subareas, root / "out", species="Pd", max_steps=1500, progress=False, registration_by_overlap=False
+        )
     finally:
         ray.shutdown()
     assert first.stat().st_mtime_ns == stamp  # read back, not run again
@@ -311,6 +315,7 @@ def test_the_film_thickness_is_read_from_the_series():
         ({"max_steps": 0}, "max_steps"),
         ({"species": "Xx"}, "unknown element 'Xx'"),
         ({}, "subareas: none given"),
+        ({"refine_gain": True}, "refine_gain: registration_by_overlap decides it"),
         ({"address": "127.0.0.1:1"}, "no Ray cluster answers"),
         ({"address": "nowhere"}, "expected HOST:PORT"),
     ],

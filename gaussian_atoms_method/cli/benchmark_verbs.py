@@ -125,9 +125,9 @@ class BenchmarkFilm:
     fitted on Ray (`gaussian-atoms film`), joined and scored in the strip's interior."""
     tasks_per_gpu: int = 1
     """With --strips on GPUs: sub-areas fitted at once on each GPU."""
-    registration_by_overlap: bool = False
-    """With --strips: each strip's per-view shifts and gains decided by its overlapping sub-areas,
-    every sub-area fitted without and with them (`gaussian-atoms film --registration-by-overlap`)."""
+    registration_by_overlap: bool = True
+    """With --strips or --simulated: per-view shifts and gains decided by the overlapping
+    sub-areas, every sub-area fitted without and with them (`gaussian-atoms film`'s default)."""
 
     simulated: bool = False
     """Instead: the harness's film (Lobato, wider than each tile) cut into tiles, fitted on Ray,
@@ -139,7 +139,10 @@ class BenchmarkFilm:
 
             from gaussian_atoms_method.harness.film_strip import simulated_film
 
-            print("simulated film: " + json.dumps(simulated_film(self.output / "simulated", device=self.device)))
+            film = simulated_film(
+                self.output / "simulated", device=self.device, registration_by_overlap=self.registration_by_overlap
+            )
+            print("simulated film: " + json.dumps(film))
             return
         if self.strips:
             import json

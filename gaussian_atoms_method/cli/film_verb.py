@@ -51,10 +51,11 @@ class Film:
     tasks_per_gpu: int = 1
     """Sub-areas fitted at once on each GPU: a sub-area's fit holds a small part of its memory
     and spends most of its time on kernel launches, so several can share one."""
-    registration_by_overlap: bool = False
+    registration_by_overlap: bool = True
     """Fit every sub-area twice, without and with per-view shifts and gains, and keep the set whose
     overlapping fits place the atoms they share closer together, agreeing on no fewer atoms
-    (``registration.json``): what a lone series cannot decide, at twice the fits' time."""
+    (``registration.json``): what a lone series cannot decide, at twice the fits' time
+    (``--no-registration-by-overlap``: one fit each, without)."""
 
     def subareas(self):
         """The sub-areas the options name (written as tilt series under ``output/data``)."""

@@ -50,7 +50,7 @@ def reconstruct_film(
     address: str | None = None,
     progress: bool = True,
     tasks_per_gpu: int = 1,
-    registration_by_overlap: bool = False,
+    registration_by_overlap: bool = True,
     **model_options,
 ) -> FilmAtoms:
     """Fit ``subareas``, join them and write the film (module text).
@@ -63,10 +63,11 @@ def reconstruct_film(
     the sub-areas that failed after a retry; the others' fits stay, and a second call runs only
     those.
 
-    ``registration_by_overlap``: fit every sub-area twice, without and with per-view shifts and
-    gains (``refine_alignment``, ``refine_gain``; ``runs/without_registration``,
+    ``registration_by_overlap`` (default): fit every sub-area twice, without and with per-view
+    shifts and gains (``refine_alignment``, ``refine_gain``; ``runs/without_registration``,
     ``runs/with_registration``), and join the set the overlap prefers (:mod:`~.registration`;
-    ``registration.json``): twice the fits' time."""
+    ``registration.json``): twice the fits' time.  False: one fit each, under ``runs``, with the
+    registration ``model_options`` give."""
     species, device = check_settings(device, species, max_steps, address, tasks_per_gpu, model_options)
     given = sorted({"refine_alignment", "refine_gain"} & set(model_options))
     if registration_by_overlap and given:

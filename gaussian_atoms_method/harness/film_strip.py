@@ -64,7 +64,7 @@ def run_strip(
     device: str = "cpu",
     address: str | None = None,
     tasks_per_gpu: int = 1,
-    registration_by_overlap: bool = False,
+    registration_by_overlap: bool = True,
 ) -> dict:
     """Fit and join a published strip of the Ta film (resumable) and score it; with
     ``registration_by_overlap`` its per-view shifts and gains decided by its overlapping sub-areas
@@ -91,7 +91,12 @@ def run_strip(
 
 
 def simulated_film(
-    output: Path, scale: float = 0.5, noise_std: float = 50.0, device: str = "cpu", address: str | None = None
+    output: Path,
+    scale: float = 0.5,
+    noise_std: float = 50.0,
+    device: str = "cpu",
+    address: str | None = None,
+    registration_by_overlap: bool = True,
 ) -> dict:
     """The harness's film (amorphous Pd, 110 x 50 x 20 Å times ``scale`` across, Lobato potentials,
     limited tilts), measured as one series over its whole width, cut into tiles 40 Å across
@@ -117,7 +122,9 @@ def simulated_film(
     subareas = tile_series(
         series, (round(40 / px), series.projections.shape[2]), (round(15 / px), 10**6), output / "data"
     )
-    film = reconstruct_film(subareas, output, device, "Pd", address=address)
+    film = reconstruct_film(
+        subareas, output, device, "Pd", address=address, registration_by_overlap=registration_by_overlap
+    )
     reported = film.positions[film.reported]
     true = sim.truth.positions
     union = np.zeros(len(true), dtype=bool)
