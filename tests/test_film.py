@@ -52,6 +52,11 @@ def test_overlapping_reports_of_one_atom_become_one_atom_at_their_mean():
     edges = np.concatenate([r.interior_A[:, 0] for r in reports])
     clear = np.min(np.abs(film.positions[:, :1] - edges[None, :]), axis=1) > 0.2
     assert np.all(film.found_in[clear] == film.covered_by[clear])
+    # each atom's reports spread as the fits scatter (3 pm per axis; the median over atoms of a
+    # standard deviation of ~7 reports: within 20%)
+    several = film.found_in[clear] > 2
+    assert np.allclose(np.median(film.spread_A[clear][several], axis=0), 0.03, rtol=0.2)
+    assert np.all(np.isnan(film.spread_A[film.found_in == 1]))
     # no fit made an artefact: the recurrence rates do not separate, the overlap confirms nothing
     # and every joined atom is reported
     assert not film.separated and not film.confirmed.any() and film.reported.all()

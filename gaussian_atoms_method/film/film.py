@@ -3,7 +3,8 @@
 
 Outputs in ``output_dir``: ``film.json`` (the sub-areas), ``runs/<sub-area>/`` (each fit),
 ``atoms.xyz`` (the confirmed atoms, Å in the film's frame), ``non_atoms.xyz`` (the rest),
-``atoms.csv`` (every joined atom with ``found_in``, ``covered_by`` and whether confirmed),
+``atoms.csv`` (every joined atom with ``found_in``, ``covered_by``, whether confirmed and the
+spread of its reports, ``spread_{x,y,z}_A``),
 ``film.png`` (the film seen from above, coloured by ``found_in / covered_by``),
 ``overlaps.csv`` (each pair of overlapping sub-areas: the share of the atoms one fit reports in
 their common interior that the other reports too, each way, and how far apart the two place the
@@ -189,16 +190,17 @@ def write_film(
     rest = AtomSet(positions=film.positions[~film.reported])
     write_atoms(atoms, output_dir / "atoms.xyz")
     write_atoms(rest, output_dir / "non_atoms.xyz")
+    spread = film.spread_A if film.spread_A is not None else np.full((len(film.positions), 3), np.nan)
     table = np.column_stack(
-        [film.positions, film.found_in, film.covered_by, film.confirmed.astype(int), film.reported.astype(int)]
+        [film.positions, film.found_in, film.covered_by, film.confirmed.astype(int), film.reported.astype(int), spread]
     )
     np.savetxt(
         output_dir / "atoms.csv",
         table,
         delimiter=",",
-        header="x_A,y_A,z_A,found_in,covered_by,confirmed,reported",
+        header="x_A,y_A,z_A,found_in,covered_by,confirmed,reported,spread_x_A,spread_y_A,spread_z_A",
         comments="",
-        fmt=["%.4f", "%.4f", "%.4f", "%d", "%d", "%d", "%d"],
+        fmt=["%.4f", "%.4f", "%.4f", "%d", "%d", "%d", "%d", "%.4f", "%.4f", "%.4f"],
     )
     share = film.found_in / np.maximum(film.covered_by, 1)
     median = f"{np.median(film.found_in[film.reported])}/{np.median(film.covered_by[film.reported])}"

@@ -63,7 +63,9 @@ class FilmAtoms:
     """The joined atoms: ``positions`` (M, 3) Å in the film's frame, ``found_in`` and
     ``covered_by`` (M,) counts, ``confirmed`` (M,) bool, the two recurrence rates read
     (``rate_real``, ``rate_artefact``) and whether they separate (else no atom is confirmed by
-    the overlap, and every one is reported)."""
+    the overlap, and every one is reported); ``spread_A`` (M, 3): the standard deviation along
+    x, y, z of the fits' reports of each atom about their mean (NaN where one fit found it),
+    each atom's precision as the overlapping fits show it, without a truth."""
 
     positions: np.ndarray
     found_in: np.ndarray
@@ -71,6 +73,7 @@ class FilmAtoms:
     confirmed: np.ndarray
     rate_real: float
     rate_artefact: float
+    spread_A: np.ndarray | None = None
 
     @property
     def separated(self) -> bool:
@@ -118,12 +121,16 @@ def join_reports(reports: list[Reports], hard_core_A: float) -> FilmAtoms:
     np.add.at(positions, cluster, points)
     counts = np.bincount(cluster, minlength=n)
     positions /= np.maximum(counts, 1)[:, None]
+    squares = np.zeros((n, 3))
+    np.add.at(squares, cluster, (points - positions[cluster]) ** 2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        spread = np.where(counts[:, None] > 1, np.sqrt(squares / (counts[:, None] - 1)), np.nan)
     pairs = np.unique(np.stack([cluster, owner]), axis=1)  # each (atom, sub-area) once
     found_in = np.bincount(pairs[0], minlength=n).astype(np.int64)
     covered_by = np.sum([r.inside(positions) for r in reports], axis=0).astype(np.int64) if reports else found_in
     covered_by = np.maximum(covered_by, found_in)  # a mean may sit just outside an edge it was found inside
     confirmed, rate_real, rate_artefact = confirm(found_in, covered_by)
-    return FilmAtoms(positions, found_in, covered_by, confirmed, rate_real, rate_artefact)
+    return FilmAtoms(positions, found_in, covered_by, confirmed, rate_real, rate_artefact, spread)
 
 
 def _overlap(a: Reports, b: Reports, margin_A: float) -> bool:
