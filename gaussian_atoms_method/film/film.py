@@ -1,7 +1,9 @@
 """A whole film from its sub-areas: fit each (:mod:`.runner`), join them in the film's frame
 (:mod:`.stitch`) and write the film's atoms, its non-atoms, the overlap's evidence and a figure.
 
-Outputs in ``output_dir``: ``film.json`` (the sub-areas), ``runs/<sub-area>/`` (each fit),
+Outputs in ``output_dir``: ``film.json`` (the sub-areas), ``runs/<set>/<sub-area>/`` (each fit;
+``<set>`` ``without_registration`` and ``with_registration`` where the overlap decides the
+registration, none otherwise),
 ``atoms.xyz`` (the confirmed atoms, Å in the film's frame), ``non_atoms.xyz`` (the rest),
 ``atoms.csv`` (every joined atom with ``found_in``, ``covered_by``, whether confirmed and the
 spread of its reports, ``spread_{x,y,z}_A``),
@@ -79,7 +81,6 @@ def reconstruct_film(
     output_dir.mkdir(parents=True, exist_ok=True)
     write_plan(subareas, output_dir / "film.json")
     fitted = (subareas, device, max_steps, address, progress, tasks_per_gpu, species)
-    choice = None
     if registration_by_overlap:
         tried = {
             name: _fit_and_judge(output_dir / "runs" / name, {**model_options, **options}, *fitted)
