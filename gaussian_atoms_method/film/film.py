@@ -68,9 +68,9 @@ def reconstruct_film(
 
     ``registration_by_overlap`` (default): fit every sub-area twice, without and with per-view
     shifts and gains (``refine_alignment``, ``refine_gain``; ``runs/without_registration``,
-    ``runs/with_registration``), and join the set the overlap prefers (:mod:`~.registration`;
-    ``registration.json``): twice the fits' time.  False: one fit each, under ``runs``, with the
-    registration ``model_options`` give."""
+    ``runs/with_registration``), and join for each sub-area the fit its overlapping neighbours
+    prefer (:mod:`~.registration`; ``registration.json``): twice the fits' time.  False: one fit
+    each, under ``runs``, with the registration ``model_options`` give."""
     species, device = check_settings(device, species, max_steps, address, tasks_per_gpu, model_options)
     given = sorted({"refine_alignment", "refine_gain"} & set(model_options))
     if registration_by_overlap and given:
@@ -86,10 +86,14 @@ def reconstruct_film(
             name: _fit_and_judge(output_dir / "runs" / name, {**model_options, **options}, *fitted)
             for name, options in SETS.items()
         }
-        choice = registration_by_overlap_of({name: t[3] for name, t in tried.items()})
+        hard_core_A = tried["without_registration"][2]
+        choice = registration_by_overlap_of({name: t[1] for name, t in tried.items()}, hard_core_A)
         (output_dir / "registration.json").write_text(json.dumps(choice, indent=1) + "\n")
         CONSOLE.print(f"gaussian-atoms film: {registration_words(choice)}")
-        records, reports, hard_core_A, pairs = tried[choice["chosen"]]
+        kept = [choice["chosen"][s.name] for s in subareas]
+        records = {s.name: tried[k][0][s.name] for s, k in zip(subareas, kept)}
+        reports = [tried[k][1][i] for i, k in enumerate(kept)]
+        pairs = pair_agreement(reports, hard_core_A)
     else:
         records, reports, hard_core_A, pairs = _fit_and_judge(output_dir / "runs", model_options, *fitted)
     film = join_reports(reports, hard_core_A)
