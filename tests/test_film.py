@@ -62,6 +62,35 @@ def test_overlapping_reports_of_one_atom_become_one_atom_at_their_mean():
     assert not film.separated and not film.confirmed.any() and film.reported.all()
 
 
+def test_a_joined_atom_is_trusted_where_most_of_the_fits_that_found_it_trust_it():
+    """Seven sub-areas over a lattice; each fit trusts each of its atoms but one in five, drawn
+    apart, and one column of atoms no fit trusts.  trusted_in counts the finders that trust each
+    joined atom (one report per fit), and the film trusts an atom where more than half of its
+    finders do: every atom of the untrusted column is left out, and an atom some fits doubt is
+    trusted exactly where the fits that trust it outnumber those that do not."""
+    rng = np.random.default_rng(5)
+    truth = _lattice()
+    reports = _reports(rng, truth, offsets_x=np.arange(10.0, 70.0, 3.0))
+    doubted_x = 14 * 2.8
+    for r in reports:
+        column = np.abs(r.positions[:, 0] - doubted_x) < 0.5
+        r.trusted = (rng.uniform(size=len(r.positions)) > 0.2) & ~column
+    film = join_reports(reports, HARD_CORE_A)
+    expected = np.zeros(len(film.positions), np.int64)
+    tree_points = [(r, r.inside(r.positions)) for r in reports]
+    for r, inside in tree_points:
+        for p, trusted in zip(r.positions[inside], r.trusted[inside]):
+            expected[np.argmin(np.linalg.norm(film.positions - p, axis=1))] += trusted
+    assert np.array_equal(film.trusted_in, expected)
+    assert np.array_equal(film.trusted, film.reported & (2 * expected > film.found_in))
+    column = np.abs(film.positions[:, 0] - doubted_x) < 0.5
+    assert column.any() and not film.trusted[column].any() and film.trusted[~column].mean() > 0.8
+    # fits that do not say which atoms they trust: the film does not either
+    for r in reports:
+        r.trusted = None
+    assert join_reports(reports, HARD_CORE_A).trusted is None
+
+
 def test_overlapping_fits_are_judged_on_the_atoms_both_see_each_way():
     """Three sub-areas 20 Å across every 5 Å over a lattice: neighbours share a common interior,
     the first and third less.  Fits that report the same atoms agree 1.0 both ways; one fit that
@@ -235,6 +264,10 @@ def test_a_film_runs_on_ray_resumes_and_names_a_broken_sub_area(small_film):
     assert len(cKDTree(reported).query_pairs(2.0)) == 0  # none doubled at the seam
     for name in ("atoms.xyz", "non_atoms.xyz", "atoms.csv", "film.png", "summary.json", "overlaps.csv"):
         assert (root / "out" / name).is_file()
+    # the fits say which atoms they trust, and the film which of its own: a majority of the finders
+    assert film.trusted is not None and summary["trusted"] == int(film.trusted.sum()) > 0.9 * len(reported)
+    table = np.genfromtxt(root / "out" / "atoms.csv", delimiter=",", names=True)
+    assert np.array_equal(table["trusted"] > 0, film.trusted) and np.array_equal(table["trusted_in"], film.trusted_in)
     # the two fits of one physics report each other's atoms where both see them
     assert summary["overlap_agreement"]["pairs"] == 1 and summary["overlap_agreement"]["median_both_ways"] >= 0.97
     # and place them alike: per axis within the 10 pm each fit's RMSD is held to above

@@ -116,7 +116,13 @@ def _fit_and_judge(runs_dir, options, subareas, device, max_steps, address, prog
     hard_core_A = hard_core_from_species(species) if species else float(np.median(cores)) if cores else math.nan
     atoms = {s.name: read_atoms(records[s.name]["atoms"]) for s in subareas}
     reports = [
-        Reports(s.name, atoms[s.name].positions + np.asarray(s.offset_A), s.interior_A, atoms[s.name].position_std_A)
+        Reports(
+            s.name,
+            atoms[s.name].positions + np.asarray(s.offset_A),
+            s.interior_A,
+            atoms[s.name].position_std_A,
+            None if atoms[s.name].trusted is None else np.asarray(atoms[s.name].trusted) > 0,
+        )
         for s in subareas
     ]
     return records, reports, hard_core_A, pair_agreement(reports, hard_core_A)
@@ -196,16 +202,27 @@ def write_film(
     write_atoms(atoms, output_dir / "atoms.xyz")
     write_atoms(rest, output_dir / "non_atoms.xyz")
     spread = film.spread_A if film.spread_A is not None else np.full((len(film.positions), 3), np.nan)
+    unsaid = np.full(len(film.positions), np.nan)  # the fits did not say which atoms they trust
+    trusted_in, trusted = (unsaid, unsaid) if film.trusted is None else (film.trusted_in, film.trusted)
     table = np.column_stack(
-        [film.positions, film.found_in, film.covered_by, film.confirmed.astype(int), film.reported.astype(int), spread]
+        [
+            film.positions,
+            film.found_in,
+            film.covered_by,
+            film.confirmed.astype(int),
+            film.reported.astype(int),
+            spread,
+            trusted_in,
+            trusted,
+        ]
     )
     np.savetxt(
         output_dir / "atoms.csv",
         table,
         delimiter=",",
-        header="x_A,y_A,z_A,found_in,covered_by,confirmed,reported,spread_x_A,spread_y_A,spread_z_A",
+        header="x_A,y_A,z_A,found_in,covered_by,confirmed,reported,spread_x_A,spread_y_A,spread_z_A,trusted_in,trusted",
         comments="",
-        fmt=["%.4f", "%.4f", "%.4f", "%d", "%d", "%d", "%d", "%.4f", "%.4f", "%.4f"],
+        fmt=["%.4f", "%.4f", "%.4f", "%d", "%d", "%d", "%d", "%.4f", "%.4f", "%.4f", "%.0f", "%.0f"],
     )
     share = film.found_in / np.maximum(film.covered_by, 1)
     median = f"{np.median(film.found_in[film.reported])}/{np.median(film.covered_by[film.reported])}"
@@ -215,6 +232,7 @@ def write_film(
         "confirmed_by_overlap": int(film.confirmed.sum()),
         "overlap_separates": bool(film.separated),
         "non_atoms": int((~film.reported).sum()),
+        "trusted": None if film.trusted is None else int(film.trusted.sum()),
         "hard_core_A": hard_core_A,
         "recurrence_real": film.rate_real,
         "recurrence_artefact": film.rate_artefact,
@@ -249,6 +267,11 @@ def write_film(
             f"share of covering fits that find an atom does not separate real atoms from artefacts "
             f"({film.rate_real:.0%} and {film.rate_artefact:.0%}; median found in {median}: too few fits cover each "
             f"atom, or no artefacts)"
+        )
+    if film.trusted is not None:
+        said += (
+            f"; {summary['trusted']} trusted (atoms.csv's trusted: a majority of the fits that found one trust it: "
+            f"proven, closed in depth, one atom wide)"
         )
     if least is not None:
         said += (

@@ -31,7 +31,8 @@ STRIPS = {1: tuple(range(1, 17)), 2: tuple(range(17, 30))}
 
 
 def score_strip(film_dir: Path, data_dir: Path) -> dict:
-    """Found, extra per model atom, RMSD, close pairs and the overlap's reproducibility of the
+    """Found, extra per model atom, RMSD, close pairs, the overlap's reproducibility and (where the
+    film says) its trusted atoms: how many, the share on a model atom and of the model's atoms, of the
     film in ``film_dir`` (its ``atoms.csv`` and ``film.json``) against the authors' model."""
     from gaussian_atoms_method.film.subareas import read_plan
 
@@ -48,6 +49,12 @@ def score_strip(film_dir: Path, data_dir: Path) -> dict:
     lo, hi = np.r_[lo_xy, z.min() - DEPTH_MARGIN_A], np.r_[hi_xy, z.max() + DEPTH_MARGIN_A]
     inside = np.all((model >= lo) & (model <= hi), axis=1)
     scores = score_in_region(pred, model, np.stack([lo, hi]), inside)
+    if table.shape[1] > 11 and np.all(np.isfinite(table[:, 11])):  # the film's trusted atoms
+        trusted = score_in_region(positions[table[:, 11] > 0], model, np.stack([lo, hi]), inside)
+        scores["trusted"] = trusted["n_pred"]
+        unmatched = trusted["extra_per_model_atom"] * trusted["n_model"]
+        scores["trusted_on_model"] = 1.0 - unmatched / max(trusted["n_pred"], 1)
+        scores["trusted_share_of_model"] = trusted["found"]
     share = found_in[reported] / np.maximum(covered_by[reported], 1)
     return scores | {
         "median_found_in": float(np.median(found_in[reported])),
