@@ -278,6 +278,10 @@ def test_a_film_runs_on_ray_resumes_and_names_a_broken_sub_area(small_film):
     tasks = json.loads((root / "out" / "summary.json").read_text())["tasks"]
     assert 0 < tasks["median_fit_s"] <= tasks["max_fit_s"]
     assert tasks["max_worker_rss_GB"] > 0.1 and tasks["max_peak_gpu_GB"] is None
+    # and whether each fit converged before its step limit, as its run reported it
+    records = [json.loads(f.read_text()) for f in (root / "out" / "runs").glob("*/gaussian-atoms/run/done.json")]
+    assert len(records) == 2 and all(isinstance(r["converged"], bool) and 0 < r["steps"] <= 1500 for r in records)
+    assert tasks["convergence_known"] == 2 and tasks["converged"] == sum(r["converged"] for r in records)
 
 
 def test_the_overlap_keeps_per_view_shifts_where_each_crop_is_misregistered_apart(tmp_path):

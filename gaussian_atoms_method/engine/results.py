@@ -165,7 +165,8 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
     pictures = [] if population is None else [(write_population_png, *population, run_dir / "classes.png")]
     _hand_over(pictures, drawers)
     say_evidence(atoms)
-    model.report = Report(atoms, non_atoms, registration)
+    steps = (converged_at if converged_at is not None else model.step) + 1
+    model.report = Report(atoms, non_atoms, registration, steps, converged_at is not None)
     write_atoms(atoms, run_dir / "atoms.xyz")
     write_atoms(atoms, run_dir / "atoms.csv")
     write_atoms(non_atoms, run_dir / "non_atoms.xyz")
@@ -193,7 +194,7 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
         scores |= model.noise_check or {}
         scores |= {
             "converged": converged_at is not None,
-            "steps": (converged_at if converged_at is not None else model.step) + 1,
+            "steps": steps,
         }
         (run_dir / "evaluation.json").write_text(json.dumps(scores, indent=2) + "\n")
     if len(atoms):
@@ -247,11 +248,14 @@ def counted_truth(model, truth_A: np.ndarray, reported_A: np.ndarray, beyond_A: 
 @dataclasses.dataclass(frozen=True)
 class Report:
     """What a run reports as it writes it (:func:`write_results`): ``atoms`` (atoms.xyz), ``non_atoms``
-    (non_atoms.xyz), the views' learned ``registration`` ((V, 2) px shifts, (V,) gains) or None."""
+    (non_atoms.xyz), the views' learned ``registration`` ((V, 2) px shifts, (V,) gains) or None,
+    the ``steps`` it took and whether it ``converged`` before the step limit."""
 
     atoms: AtomSet
     non_atoms: AtomSet
     registration: tuple[np.ndarray, np.ndarray] | None = None
+    steps: int | None = None
+    converged: bool | None = None
 
 
 def attach_evidence(model, atoms: AtomSet, noise: float, read, hard_core_A: float, converged: bool) -> None:

@@ -165,13 +165,17 @@ def _check_count(value, name: str, what: str) -> None:
 def task_summary(records) -> dict:
     """The sub-area tasks' costs (:func:`~.runner.task_costs`) over ``records``: the median and
     largest fit time, the largest GPU peak and worker memory (None where no record has it: fits
-    made before the costs were recorded, or on the CPU for the GPU's)."""
+    made before the costs were recorded, or on the CPU for the GPU's), and how many of the fits
+    that recorded it (``convergence_known``) converged before the step limit."""
 
     def values(key):
         return [r[key] for r in records if r.get(key) is not None]
 
     fit_s, gpu, rss = values("fit_s"), values("peak_gpu_GB"), values("worker_rss_GB")
+    converged = values("converged")
     return {
+        "converged": sum(converged) if converged else None,
+        "convergence_known": len(converged),
         "median_fit_s": float(np.median(fit_s)) if fit_s else None,
         "max_fit_s": max(fit_s) if fit_s else None,
         "max_peak_gpu_GB": max(gpu) if gpu else None,
@@ -267,6 +271,12 @@ def write_film(
             f"share of covering fits that find an atom does not separate real atoms from artefacts "
             f"({film.rate_real:.0%} and {film.rate_artefact:.0%}; median found in {median}: too few fits cover each "
             f"atom, or no artefacts)"
+        )
+    tasks = tasks or {}
+    if tasks.get("convergence_known") and tasks["converged"] < tasks["convergence_known"]:
+        said += (
+            f"; {tasks['convergence_known'] - tasks['converged']} of {tasks['convergence_known']} sub-areas stopped at "
+            f"the step limit before their atoms converged (done.json's converged; give more steps)"
         )
     if film.trusted is not None:
         said += (

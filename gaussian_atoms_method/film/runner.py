@@ -30,8 +30,8 @@ def fit_subarea(
 ) -> dict:
     """Fit one sub-area (``subarea``: :meth:`SubArea.to_json`) unless its ``done.json`` exists,
     with the film's ``species`` (its hard core) where given, else its series' own; return that
-    record: the name, the atoms file, the hard core its run read and what the task cost
-    (:func:`task_costs`)."""
+    record: the name, the atoms file, the hard core its run read, its steps and whether it
+    converged before the step limit, and what the task cost (:func:`task_costs`)."""
     import time
 
     import torch
@@ -54,12 +54,15 @@ def fit_subarea(
     started = time.perf_counter()
     series = load_tilt_series(sub.data, species=species or None)
     settings = RunSettings(place, device, max_steps, progress=False, tensorboard=False, checkpoints=False)
-    run_dir = fit_tilt_series(series, FitOptions(**options), settings, sub.data).run_dir
+    run = fit_tilt_series(series, FitOptions(**options), settings, sub.data)
+    run_dir = run.run_dir
     structure = json.loads((run_dir / "structure.json").read_text())
     record = {
         "name": sub.name,
         "atoms": str(run_dir / "atoms.xyz"),
         "hard_core_A": structure.get("hard_core_A"),
+        "steps": getattr(run.report, "steps", None),
+        "converged": getattr(run.report, "converged", None),
         **task_costs(time.perf_counter() - started, device),
         "settings": asked,
     }
