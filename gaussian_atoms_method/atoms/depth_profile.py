@@ -11,6 +11,7 @@ import torch
 
 from gaussian_atoms_method.atoms.information import pair_blocks, pair_information, view_planes, view_scores
 from gaussian_atoms_method.physics.arrays import unique_keys
+from gaussian_atoms_method.physics.spd import spd_inverse, spd_solve
 
 
 def depth_axis_of(detector_axes: np.ndarray) -> np.ndarray:
@@ -169,7 +170,7 @@ def depth_rises(
     coupling = torch.where(still[..., None, None], cross.permute(0, 1, 3, 5, 2, 4), 0.0).reshape(b, m, 5 * k, 5 * g)
     # the still atoms solved through the inverse information with the moved atoms' rows taken out
     if covariance is None:
-        covariance = torch.linalg.inv(info)
+        covariance = spd_inverse(info)
     cov = 0.5 * (covariance + covariance.transpose(1, 2))
     rhs = torch.cat([pull_rest[..., None], coupling], dim=-1)  # (B, M, 5k, 1 + 5g)
     c = rhs.shape[-1]
@@ -188,7 +189,7 @@ def depth_rises(
     schur = _turned(own - coupling.transpose(2, 3) @ solved[..., 1:], basis)
     u = torch.where(held, 0.0, u)
     system = torch.where(held[..., :, None] | held[..., None, :], 0.0, schur) + torch.diag_embed(held.double())
-    moved_fit = (pull_rest * solved[..., 0]).sum(-1) + (u * torch.linalg.solve(system, u[..., None])[..., 0]).sum(-1)
+    moved_fit = (pull_rest * solved[..., 0]).sum(-1) + (u * spd_solve(system, u[..., None])[..., 0]).sum(-1)
     # the fit as it is with the same places held: the information's inverse, turned, with the
     # held rows taken out (a Schur complement of |G| rows)
     cov_t = _turned(cov, basis)  # (B, 5k, 5k)
@@ -199,7 +200,7 @@ def depth_rises(
     w = (cov_t @ t[..., None])[:, None, :, 0] - (columns @ t_held[..., None])[..., 0]  # C z, z: t held rows cut
     w_held = w[bb, mm, axis_rows] * valid
     as_is = (t[:, None] * w).sum(-1) - (t_held * w_held).sum(-1)
-    as_is = as_is - (w_held * torch.linalg.solve(corner, w_held[..., None])[..., 0]).sum(-1)
+    as_is = as_is - (w_held * spd_solve(corner, w_held[..., None])[..., 0]).sum(-1)
     return frozen - moved_fit + as_is, frozen
 
 
@@ -238,7 +239,7 @@ def _taken_out(inverse, rows, row_valid, rhs):
     the system without them is ``C - C[:, rows] C[rows, rows]^-1 C[rows, :]`` on the rest (rows
     ``row_valid`` False stand for nothing).  ``rhs`` is zero on the rows taken out."""
     columns, corner = _rows_of(inverse, rows, row_valid)
-    return columns @ torch.linalg.solve(corner, columns.transpose(2, 3) @ rhs)
+    return columns @ spd_solve(corner, columns.transpose(2, 3) @ rhs)
 
 
 def _rows_of(inverse, rows, row_valid):

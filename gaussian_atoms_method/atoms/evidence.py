@@ -63,6 +63,7 @@ from gaussian_atoms_method.atoms.information import (
     pairs_among_neighbours,
 )
 from gaussian_atoms_method.physics.devices import work_device
+from gaussian_atoms_method.physics.spd import spd_inverse, spd_solve
 
 COUPLING_FLOOR = 0.02
 """Neighbours are the atoms whose amplitudes' information correlation with the atom,
@@ -262,7 +263,7 @@ def atom_evidence(
         # a parameter the views do not fix (an amplitude of zero, a width at its bound) would make
         # the information singular: a ridge of 1e-9 of the diagonal leaves the rest unchanged
         info = info + torch.diag_embed(1e-9 * torch.diagonal(info, dim1=1, dim2=2).clamp_min(1e-300))
-        covariance = torch.linalg.inv(info)
+        covariance = spd_inverse(info)
         if scores_on is not None:  # the sandwich, from the position's and width's rows: (C P^T)(P C^T)
             pulls = scores_on[local_on].permute(0, 2, 1, 3).reshape(len(atoms), scores.shape[1], 5 * k)  # (B, V, 5k)
             rows = covariance[:, :4] @ pulls.transpose(1, 2)  # (B, 4, V)
@@ -293,7 +294,7 @@ def atom_evidence(
         keep = torch.as_tensor(np.r_[4, np.arange(5, 5 * k)], device=where)
         unit = torch.zeros((len(atoms), len(keep), 1), dtype=torch.float64, device=where)
         unit[:, 0] = 1.0
-        q_inverse = torch.linalg.solve(info[:, keep][:, :, keep], unit)[:, 0, 0].cpu().numpy()
+        q_inverse = spd_solve(info[:, keep][:, :, keep], unit)[:, 0, 0].cpu().numpy()
         q_variance = q_inverse * (noise_std * amplitude_factor) ** 2
         significance[atoms] = np.abs(amps[atoms]) / np.sqrt(np.maximum(q_variance, 1e-300))
         if progress is not None:

@@ -1,0 +1,60 @@
+"""Batched solves of symmetric positive definite systems, by Cholesky.
+
+The evidence's systems (each atom's local information, their Schur complements, a covariance's
+corner) are symmetric positive definite.  torch's batched LU on the CPU (``linalg.inv``,
+``linalg.solve``) factors a batch's matrices on several threads at once, and MKL's LU is not
+safe to call that way once ``torch.set_num_threads`` has been called (pytorch issue 141358: a
+grain size of zero for matrices above 14 x 14).  On this 2-core CPU, after
+``torch.set_num_threads(2)``, batches of 120 matrices 150 x 150 hung within a minute with
+"Intel oneMKL ERROR: Parameter 6 was incorrect on entry to DLASWP"; a film's Ray worker (which
+sets its threads) hung in the evidence of Ta sub-area 4.  Cholesky's batched factorisation loops
+over the batch on one thread (200 such batches, no error), with half LU's work.  A matrix that
+Cholesky cannot factor (not positive definite in floating point) is solved alone by LU: one
+matrix, one thread.
+"""
+
+from __future__ import annotations
+
+import torch
+
+
+def spd_solve(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``a^-1 b`` for symmetric positive definite ``a`` (..., n, n) and ``b`` (..., n, k),
+    batch shapes broadcast as :func:`torch.linalg.solve`'s (module text: why not it).
+
+    >>> a = torch.tensor([[4.0, 2.0], [2.0, 3.0]], dtype=torch.float64)
+    >>> spd_solve(a, torch.tensor([[2.0], [1.0]], dtype=torch.float64)).ravel().tolist()
+    [0.5, 0.0]
+    """
+    shape = torch.broadcast_shapes(a.shape[:-2], b.shape[:-2])
+    a = a.expand(*shape, *a.shape[-2:])
+    b = b.expand(*shape, *b.shape[-2:])
+    factor, info = torch.linalg.cholesky_ex(a)
+    out = torch.cholesky_solve(b, factor)
+    failed = torch.nonzero(info.reshape(-1)).flatten().tolist()
+    if failed:  # not positive definite in floating point: LU, one matrix at a time
+        flat_a, flat_b = a.reshape(-1, *a.shape[-2:]), b.reshape(-1, *b.shape[-2:])
+        flat = out.reshape(-1, *out.shape[-2:]).clone()
+        for i in failed:
+            flat[i] = torch.linalg.solve(flat_a[i], flat_b[i])
+        out = flat.reshape(out.shape)
+    return out
+
+
+def spd_inverse(a: torch.Tensor) -> torch.Tensor:
+    """The inverse of each symmetric positive definite ``a`` (..., n, n) (:func:`spd_solve`).
+
+    >>> a = torch.tensor([[4.0, 2.0], [2.0, 3.0]], dtype=torch.float64)
+    >>> torch.allclose(spd_inverse(a) @ a, torch.eye(2, dtype=torch.float64))
+    True
+    """
+    factor, info = torch.linalg.cholesky_ex(a)
+    out = torch.cholesky_inverse(factor)
+    failed = torch.nonzero(info.reshape(-1)).flatten().tolist()
+    if failed:
+        flat_a = a.reshape(-1, *a.shape[-2:])
+        flat = out.reshape(-1, *out.shape[-2:]).clone()
+        for i in failed:
+            flat[i] = torch.linalg.inv(flat_a[i])
+        out = flat.reshape(out.shape)
+    return out
