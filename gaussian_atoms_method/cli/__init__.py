@@ -102,11 +102,12 @@ def spin_briefly(environ) -> None:
 def entrypoint(argv: list[str] | None = None) -> None:
     """Run one verb; errors in the user's input are reported in one line, exit status 2."""
     spin_briefly(os.environ)  # this command's own process: before torch is imported
-    from gaussian_atoms_method.launch.host_pages import ordinary_pages
+    from gaussian_atoms_method.launch.host_pages import keep_freed_memory, ordinary_pages
     from gaussian_atoms_method.launch.quiet_warnings import quiet_third_party_warnings
 
     quiet_third_party_warnings()
     ordinary_pages()  # this command's own process (launch/host_pages.py)
+    keep_freed_memory()
     from dataparsers.tilt_series_format import TiltSeriesError
     from gaussian_atoms_method.atoms.atom_set import AtomFileError
 

@@ -3,7 +3,7 @@
 ``ns-train`` imports every method it knows before it parses its command line; where the
 command line names this method, :func:`prepare` begins the run's start in a thread
 (:mod:`.start_ahead`; the GPU's context with it, :mod:`.cuda_context`), keeps numpy's arrays on
-ordinary pages (:mod:`.host_pages`), leaves torch's compiler
+ordinary pages and malloc's freed memory for the next array (:mod:`.host_pages`), leaves torch's compiler
 and symbolic shapes unimported (:mod:`.lean_torch`) and has the command line's errors said in
 one line (:func:`one_line_tyro_errors`), as ``gaussian-atoms train`` does in its own process.
 Any other ``ns-train`` (another method, or one that only lists them) is left as it is.
@@ -25,11 +25,12 @@ def prepare(argv: list[str]) -> bool:
     if not asks_for_this_method(argv):
         return False
     from gaussian_atoms_method.launch import cuda_context
-    from gaussian_atoms_method.launch.host_pages import ordinary_pages
+    from gaussian_atoms_method.launch.host_pages import keep_freed_memory, ordinary_pages
     from gaussian_atoms_method.launch.lean_torch import lean_torch
     from gaussian_atoms_method.launch.start_ahead import begin_for, runs_on_cuda, settle_imports
 
     ordinary_pages()
+    keep_freed_memory()
     if runs_on_cuda(argv[2:]):
         cuda_context.begin()  # the GPU's context made while nerfstudio loads
     begin_for(argv[2:])
