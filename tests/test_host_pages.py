@@ -78,7 +78,10 @@ def test_the_launcher_keeps_freed_memory_for_the_next_large_array_unless_the_env
         from gaussian_atoms_method.launch.host_pages import keep_freed_memory
 
         plain = faults_of_ten_64_MB_arrays()
-        kept = keep_freed_memory({"MALLOC_TRIM_THRESHOLD_": "1"}), keep_freed_memory({"GLIBC_TUNABLES": "glibc.malloc.mmap_max=0"})
+        kept = (
+            keep_freed_memory({"MALLOC_TRIM_THRESHOLD_": "1"}),
+            keep_freed_memory({"GLIBC_TUNABLES": "glibc.malloc.mmap_max=0"}),
+        )
         set_here = keep_freed_memory({})
         print(plain, *kept, set_here, faults_of_ten_64_MB_arrays())
         """
