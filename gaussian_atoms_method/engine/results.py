@@ -191,11 +191,7 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
 
         scores |= evidence_scores(atoms, truth, truth_counted=covered)
     if scores is not None:
-        scores |= model.noise_check or {}
-        scores |= {
-            "converged": converged_at is not None,
-            "steps": steps,
-        }
+        scores |= (model.noise_check or {}) | {"converged": converged_at is not None, "steps": steps}
         (run_dir / "evaluation.json").write_text(json.dumps(scores, indent=2) + "\n")
     if len(atoms):
         title = f"{len(atoms)} atoms" + (
