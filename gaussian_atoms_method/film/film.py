@@ -197,6 +197,7 @@ def write_film(
     atoms by it (of several, the joined atoms keep no mass to tell them apart by: ``X``);
     ``pairs``: the overlapping sub-areas' agreement (:func:`~.stitch.pair_agreement`)."""
     output_dir = Path(output_dir)
+    tasks = tasks or {}
     elements = parse_species(species)
     atoms = AtomSet(
         positions=film.positions[film.reported],
@@ -241,7 +242,7 @@ def write_film(
         "recurrence_real": film.rate_real,
         "recurrence_artefact": film.rate_artefact,
         "median_found_in_of_covered_by": median if film.reported.any() else None,
-        "tasks": tasks or {},
+        "tasks": tasks,
     }
     pairs = pairs or []
     write_overlaps(pairs, output_dir / "overlaps.csv")
@@ -272,7 +273,6 @@ def write_film(
             f"({film.rate_real:.0%} and {film.rate_artefact:.0%}; median found in {median}: too few fits cover each "
             f"atom, or no artefacts)"
         )
-    tasks = tasks or {}
     if tasks.get("convergence_known") and tasks["converged"] < tasks["convergence_known"]:
         said += (
             f"; {tasks['convergence_known'] - tasks['converged']} of {tasks['convergence_known']} sub-areas stopped at "

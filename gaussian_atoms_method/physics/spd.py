@@ -30,15 +30,9 @@ def spd_solve(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     a = a.expand(*shape, *a.shape[-2:])
     b = b.expand(*shape, *b.shape[-2:])
     factor, info = torch.linalg.cholesky_ex(a)
-    out = torch.cholesky_solve(b, factor)
-    failed = torch.nonzero(info.reshape(-1)).flatten().tolist()
-    if failed:  # not positive definite in floating point: LU, one matrix at a time
-        flat_a, flat_b = a.reshape(-1, *a.shape[-2:]), b.reshape(-1, *b.shape[-2:])
-        flat = out.reshape(-1, *out.shape[-2:]).clone()
-        for i in failed:
-            flat[i] = torch.linalg.solve(flat_a[i], flat_b[i])
-        out = flat.reshape(out.shape)
-    return out
+    return _by_lu_where_failed(
+        info, torch.cholesky_solve(b, factor), lambda i: torch.linalg.solve(_flat(a)[i], _flat(b)[i])
+    )
 
 
 def spd_inverse(a: torch.Tensor) -> torch.Tensor:
@@ -49,12 +43,23 @@ def spd_inverse(a: torch.Tensor) -> torch.Tensor:
     True
     """
     factor, info = torch.linalg.cholesky_ex(a)
-    out = torch.cholesky_inverse(factor)
+    return _by_lu_where_failed(info, torch.cholesky_inverse(factor), lambda i: torch.linalg.inv(_flat(a)[i]))
+
+
+def _flat(batch: torch.Tensor) -> torch.Tensor:
+    """``batch`` (..., n, k) as (B, n, k): read only where a factorisation failed, so that the
+    usual call copies nothing (a broadcast batch is copied by it)."""
+    return batch.reshape(-1, *batch.shape[-2:])
+
+
+def _by_lu_where_failed(info: torch.Tensor, out: torch.Tensor, lu) -> torch.Tensor:
+    """``out`` (..., n, k) with each matrix Cholesky could not factor (``info`` (...) non-zero:
+    not positive definite in floating point) replaced by ``lu(i)``, its LU solve by its flat
+    index ``i``: one matrix at a time, so no two LU factorisations run at once."""
     failed = torch.nonzero(info.reshape(-1)).flatten().tolist()
-    if failed:
-        flat_a = a.reshape(-1, *a.shape[-2:])
-        flat = out.reshape(-1, *out.shape[-2:]).clone()
-        for i in failed:
-            flat[i] = torch.linalg.inv(flat_a[i])
-        out = flat.reshape(out.shape)
-    return out
+    if not failed:
+        return out
+    flat = _flat(out).clone()
+    for i in failed:
+        flat[i] = lu(i)
+    return flat.reshape(out.shape)
