@@ -331,3 +331,50 @@ def test_the_orthographic_camera_type_is_nerfstudios():
     from nerfstudio.cameras.cameras import CameraType
 
     assert R.ORTHOGRAPHIC_CAMERA == CameraType.ORTHOPHOTO.value
+
+
+def _kernel_model(film: bool, weights=(0.4, 0.0, 0.04), psf="learned"):
+    """What :func:`R.kernel_margin_px` and :func:`R.blur` read of a model: its kernel, its options
+    and whether its volume reaches beyond the field (a film)."""
+    from types import SimpleNamespace
+
+    from gaussian_atoms_method.physics.psf import KERNEL_WIDTHS_A
+
+    return SimpleNamespace(
+        view_params={"psf": torch.tensor(weights, dtype=torch.float64)},
+        psf_widths_host=KERNEL_WIDTHS_A,
+        config=SimpleNamespace(psf=psf, psf_weights=weights),
+        density=SimpleNamespace(field_half_extent=(10.0, 10.0, 5.0) if film else None),
+    )
+
+
+def test_an_atom_just_beyond_the_detector_reaches_into_it_through_the_kernel_on_a_film():
+    from gaussian_atoms_method.physics.projector import project_gaussians
+    from gaussian_atoms_method.physics.psf import widened
+
+    pitch, h, w = 0.25, 40, 32
+    rows = (torch.arange(h, dtype=torch.float64) - h / 2) * pitch
+    cols = (torch.arange(w, dtype=torch.float64) - w / 2) * pitch
+    # one atom 1.5 Å beyond the first column, one inside; the beam along z
+    means = torch.tensor([[0.0, float(cols[0]) - 1.5, 0.0], [1.0, 0.5, 0.3]], dtype=torch.float64)
+    sigmas, amps = torch.full((2,), 0.5, dtype=torch.float64), torch.full((2,), 100.0, dtype=torch.float64)
+    axes = torch.tensor([[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]], dtype=torch.float64)
+
+    def project(r, c):
+        return project_gaussians(means, sigmas, amps, axes, r, c)
+
+    # the reference: a detector 40 pixels wider on each side, blurred, cut back (float64)
+    wide = R.blur(_kernel_model(True), project(widened(rows, 40, pitch), widened(cols, 40, pitch)), pitch)
+    reference = wide[..., 40:-40, 40:-40]
+    film = R.projected_and_blurred(_kernel_model(True), project, rows, cols, pitch)
+    assert R.kernel_margin_px(_kernel_model(True), pitch) == 12  # three of the 1 Å width, in 0.25 Å pixels
+    # a 3 Å margin leaves out only what the atom (1.5 Å out, 0.5 Å wide) projects beyond 3 Å out,
+    # under 1% of its peak, and only its 4 Å share (0.04) carries that into the field
+    edge = reference[..., :, :4]
+    assert float((film - reference).abs().max()) < 1e-3 * float(edge.max())
+    # without the margin (no film) the atom beyond the field is not seen: the edge misses its light
+    alone = R.projected_and_blurred(_kernel_model(False), project, rows, cols, pitch)
+    assert R.kernel_margin_px(_kernel_model(False), pitch) == 0
+    assert float((alone - reference)[..., :, :4].abs().max()) > 0.5 * float(edge.max())  # 0.83
+    # a kernel held at the identity needs no margin, and nothing lies beyond to blur in
+    assert R.kernel_margin_px(_kernel_model(True, (0.0, 0.0, 0.0), psf="fixed"), pitch) == 0

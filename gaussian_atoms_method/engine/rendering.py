@@ -31,7 +31,7 @@ from gaussian_atoms_method.physics.projector import (
     project_gaussians_gsplat,
     project_gaussians_tiled,
 )
-from gaussian_atoms_method.physics.psf import KERNEL_WIDTHS_A, apply_kernel
+from gaussian_atoms_method.physics.psf import KERNEL_MARGIN_WIDTHS, KERNEL_WIDTHS_A, apply_kernel, widened
 
 ORTHOGRAPHIC_CAMERA = 8
 """The camera type of an orthographic view: nerfstudio's ``CameraType.ORTHOPHOTO`` value, the
@@ -197,6 +197,29 @@ def view_parameters(cfg, n_views: int, floor: float | None, surfaces, series, le
     return params, buffers
 
 
+def kernel_margin_px(model, pitch: float | None) -> int:
+    """Pixels (of ``pitch``, normalised lengths) each side of a view is widened by before the
+    kernel (:data:`KERNEL_MARGIN_WIDTHS`): 0 without a kernel, for a kernel held at the
+    identity, and where nothing lies beyond the detector (no film: the volume is the field)."""
+    density = getattr(model, "density", None)
+    if pitch is None or "psf" not in model.view_params or density is None or density.field_half_extent is None:
+        return 0
+    if model.config.psf == "fixed" and not any(model.config.psf_weights):
+        return 0
+    return int(math.ceil(KERNEL_MARGIN_WIDTHS * model.psf_widths_host[0] / abs(pitch) - 1e-9))
+
+
+def projected_and_blurred(model, project, rows: torch.Tensor, cols: torch.Tensor, pitch: float | None) -> torch.Tensor:
+    """(..., H, W) ``project(rows, cols)`` through the model's kernel (:func:`blur`), projected on
+    a detector widened by :func:`kernel_margin_px` where matter lies beyond it, then cut back to
+    ``rows`` x ``cols``."""
+    margin = kernel_margin_px(model, pitch)
+    if margin == 0:
+        return blur(model, project(rows, cols), pitch)
+    images = blur(model, project(widened(rows, margin, pitch), widened(cols, margin, pitch)), pitch)
+    return images[..., margin:-margin, margin:-margin]
+
+
 def blur(model, images: torch.Tensor, spacing: float | None) -> torch.Tensor:
     """(V, H, W) projections through the model's learned point-spread function, if it has one
     (``spacing``: the pixel pitch, normalised lengths; None for a single row; the kernel's
@@ -238,10 +261,16 @@ def one_view(
         gain = view_gain(model.view_params["view_gains"].to(dt), view)
     if model.config.isotropic:
         project = projector_for(model.config.projector, dev)
-        return blur(model, project(means - t, sigmas, amplitudes * gain, axes, rows, cols), pitch)[0]
+        return projected_and_blurred(
+            model, lambda r, c: project(means - t, sigmas, amplitudes * gain, axes, r, c), rows, cols, pitch
+        )[0]
     cov = covariances_from_scales_quats(model._log_scales(), model.gauss_params["quats"])
-    return blur(
-        model, project_anisotropic_gaussians(model.means - t, cov, model.amplitudes * gain, axes, rows, cols), pitch
+    return projected_and_blurred(
+        model,
+        lambda r, c: project_anisotropic_gaussians(model.means - t, cov, model.amplitudes * gain, axes, r, c),
+        rows,
+        cols,
+        pitch,
     )[0]
 
 
@@ -348,12 +377,9 @@ def render_views(
     kernel, with their floors (``floors``)."""
     dev, dt = model.means.device, model.means.dtype
     index = index_on(index, dev)
-    images = blur(
-        model,
-        projector_for(model.config.projector, dev)(
-            model.means, model.sigmas, model.amplitudes, detector_axes(model.view_c2w[index].to(dev, dt)), rows, cols
-        ),
-        pitch,
+    project, axes = projector_for(model.config.projector, dev), detector_axes(model.view_c2w[index].to(dev, dt))
+    images = projected_and_blurred(
+        model, lambda r, c: project(model.means, model.sigmas, model.amplitudes, axes, r, c), rows, cols, pitch
     )
     return (
         add_view_floors(model, images, index, rows, cols)[0] if floors and "background" in model.view_params else images
