@@ -44,6 +44,36 @@ def test_the_information_is_the_pixel_sum_of_the_derivatives():
         np.testing.assert_allclose(ours[0], direct, rtol=1e-9, atol=1e-12 * np.abs(direct).max())
 
 
+def test_a_view_informs_an_atom_by_the_share_of_it_on_the_detector():
+    """A film's atom near the detector's edge is seen in part: the information is the pixel sum
+    over the detector alone.  An atom centred on the edge keeps exactly half of every diagonal
+    entry (its squared derivatives are even about its centre; the cross terms a cut makes are what
+    the share leaves out); one inside keeps all of it, one beyond nothing."""
+    from gaussian_atoms_method.atoms.information import DetectorField
+
+    axes = detector_axes_from_tilts(np.array([0.0]))
+    edge_A = -0.1  # between the pixels at -0.2 and 0 Å: the detector holds the rows below it
+    rows = torch.tensor(GRID[0] < edge_A)
+    field = DetectorField((GRID[0][0] - PIXEL_A / 2, edge_A), (GRID[1][0] - PIXEL_A / 2, GRID[1][-1] + PIXEL_A / 2))
+    inside, centred, beyond = [-3.0, 0.4, 0.0], [edge_A, 0.4, 0.0], [3.0, 0.4, 0.0]
+    for place, kept in ((inside, 1.0), (centred, 0.5), (beyond, 0.0)):
+        params = torch.tensor([[*place, 0.5, 1.3]], dtype=torch.float64)
+        jac = torch.autograd.functional.jacobian(lambda p: _render(p, axes), params, vectorize=True)
+        on_detector = jac[0][rows].reshape(-1, 5)  # (pixels on the detector, 5)
+        direct = (on_detector.T @ on_detector).numpy()
+        p = params.numpy()
+        whole = pair_information(p[:, :3], p[:, :3], p[:, 3], p[:, 3], p[:, 4], p[:, 4], axes, PIXEL_A)[0]
+        ours = pair_information(
+            p[:, :3], p[:, :3], p[:, 3], p[:, 3], p[:, 4], p[:, 4], axes, PIXEL_A, sight=field.sight(axes)
+        )[0]
+        free = [0, 1, 3, 4]  # x, y, width, peak (one view along z: no depth)
+        np.testing.assert_allclose(np.diag(ours)[free], kept * np.diag(whole)[free], rtol=1e-9, atol=1e-12)
+        # the pixel sum over the detector: a pixel edge on the cut, sigma 2.5 px
+        np.testing.assert_allclose(np.diag(ours)[free], np.diag(direct)[free], rtol=1e-6, atol=1e-9 * whole.max())
+    assert field.cuts(axes, np.array([centred]), np.array([0.5]))
+    assert not field.cuts(axes, np.array([inside]), np.array([0.5]))
+
+
 def _refit(params: torch.Tensor, free: torch.Tensor, target: torch.Tensor, axes, steps=60) -> float:
     """The least-squares cost of ``params`` with the entries ``free`` re-fitted to ``target``
     (Gauss-Newton, float64)."""
@@ -489,7 +519,7 @@ def test_the_depth_profile_through_the_sets_inverse_is_each_system_solved_whole(
     if not tabled:
         monkeypatch.setattr(evidence, "moved_blocks_of", lambda *a, **k: None)
     fast = evidence.atom_evidence(*read, moved_pulls=moved, device="cpu")
-    monkeypatch.setattr(evidence, "depth_rises", lambda *a: depth_rises_reference(*a[:-1]))
+    monkeypatch.setattr(evidence, "depth_rises", lambda *a: depth_rises_reference(*a[:-2]))  # no covariance, no sight
     whole = evidence.atom_evidence(*read, moved_pulls=moved, device="cpu")
     columns = np.isfinite(whole.depth_profile).mean()
     assert columns > 0.9

@@ -95,6 +95,7 @@ def depth_rises(
     axis,
     table=None,
     covariance=None,
+    sight=None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Two (B, M): for each atom ``local[:, 0]`` and each of the M ``offsets``, how much the
     least-squares cost rises (pixel sums, in projection units squared) when the atom is moved by
@@ -138,7 +139,7 @@ def depth_rises(
         cross[bi, mi, ai] = torch.as_tensor(table.blocks(local[bi, ii], mi, local[bi]), **on)
     elif len(bi):  # read here, on the information's device
         cross[bi, mi, ai] = moved_blocks_here(
-            local, bi, mi, ii, positions, sigmas, amps, axes, pixel_size_A, offsets, axis, dev
+            local, bi, mi, ii, positions, sigmas, amps, axes, pixel_size_A, offsets, axis, dev, sight
         )
     gi = torch.as_tensor(order, device=dev)  # (B, M, g) the moved atoms' slots in the set
     valid = torch.as_tensor(valid_np, device=dev)
@@ -204,7 +205,9 @@ def depth_rises(
     return frozen - moved_fit + as_is, frozen
 
 
-def moved_blocks_here(local, bi, mi, ii, positions, sigmas, amps, axes, pixel_size_A, offsets, axis, device):
+def moved_blocks_here(
+    local, bi, mi, ii, positions, sigmas, amps, axes, pixel_size_A, offsets, axis, device, sight=None
+):
     """(R, k, 5, 5) float64 on ``device``: atom ``local[bi, ii]`` moved by ``offsets[mi]`` along
     ``axis`` against every atom of its set ``local[bi]`` (``local`` (B, k); ``bi``, ``mi``, ``ii``
     (R,)), rows the moved atom's parameters (:func:`~.information.pair_blocks`, gathered and read
@@ -229,6 +232,7 @@ def moved_blocks_here(local, bi, mi, ii, positions, sigmas, amps, axes, pixel_si
         mass[others],
         *view_planes(axes, device),
         pixel_size_A,
+        sight,
     )
     return blocks.reshape(-1, k, 5, 5)
 
@@ -278,7 +282,9 @@ class MovedBlocks:
     same atom in the sets of all the atoms of its column: on the Au particle each block is asked for
     2.5 times on average."""
 
-    def __init__(self, moved, offset_index, others, positions, sigmas, amps, axes, pixel_size_A, offsets, axis):
+    def __init__(
+        self, moved, offset_index, others, positions, sigmas, amps, axes, pixel_size_A, offsets, axis, sight=None
+    ):
         self.n, self.m = len(positions), len(offsets)
         others = np.asarray(others).reshape(len(moved), -1)
         keys = unique_keys(self._keys(np.asarray(moved)[:, None], np.asarray(offset_index)[:, None], others))
@@ -299,6 +305,7 @@ class MovedBlocks:
                 amps[jj],
                 axes,
                 pixel_size_A,
+                sight=sight,
             )
 
     def _keys(self, moved, offset_index, others):
@@ -315,7 +322,9 @@ TABLE_CHUNK = 65536
 """The moved pairs :class:`MovedBlocks` reads at once."""
 
 
-def moved_blocks_of(sets, positions, sigmas, amps, axes, pixel_size_A, offsets, axis, hard_core_A) -> MovedBlocks:
+def moved_blocks_of(
+    sets, positions, sigmas, amps, axes, pixel_size_A, offsets, axis, hard_core_A, sight=None
+) -> MovedBlocks:
     """The :class:`MovedBlocks` every set of ``sets`` (each (B, k), the atom first, as
     :func:`~.information.local_sets` yields them) asks for in :func:`depth_rises`."""
     moved, offset_index, others = [], [], []
@@ -327,4 +336,4 @@ def moved_blocks_of(sets, positions, sigmas, amps, axes, pixel_size_A, offsets, 
     k = max((o.shape[1] for o in others), default=1)
     padded = [np.pad(o, ((0, 0), (0, k - o.shape[1])), mode="edge") for o in others]  # repeats ask nothing new
     picked = (np.concatenate(moved), np.concatenate(offset_index), np.concatenate(padded))
-    return MovedBlocks(*picked, positions, sigmas, amps, axes, pixel_size_A, offsets, axis)
+    return MovedBlocks(*picked, positions, sigmas, amps, axes, pixel_size_A, offsets, axis, sight)

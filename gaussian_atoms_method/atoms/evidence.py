@@ -40,7 +40,7 @@ On a replica of a Ta film sub-area (misregistration, a carbon support, an aberra
 white-noise intervals held 0.64-0.70 of the actual errors, the sandwich's 0.90-0.93.  What no
 view-by-view spread can see, a bias the same in every view, stays outside both.  All in the
 continuum limit (pixel sums as integrals: exact to far below a percent for a Gaussian wider than
-a pixel) and with the whole detector in each view.
+a pixel); given the detector's extent, each view counts by the share of a pair it holds.
 """
 
 from __future__ import annotations
@@ -146,6 +146,7 @@ def atom_evidence(
     moved_pulls: dict | None = None,
     device=None,
     progress=None,
+    field=None,
 ) -> AtomEvidence:
     """Existence, depth and precision of every atom from the views' information (module docstring).
 
@@ -192,6 +193,9 @@ def atom_evidence(
         the CPU); the neighbour search and the bookkeeping stay on the host.
     progress : callable, optional
         Called with the number of atoms each batch has read (a progress bar's count).
+    field : :class:`~.information.DetectorField`, optional
+        The detector's extent: each view informs a pair by the share of it on the detector (a
+        film's edge atoms leave it in some views).  None: every atom is seen whole in every view.
 
     Returns
     -------
@@ -213,7 +217,8 @@ def atom_evidence(
         )
     where = work_device(None, device) or torch.device("cpu")
     # the information within each atom and between the pairs that may couple
-    diagonal = pair_information(positions, positions, sigmas, sigmas, amps, amps, axes, pixel_size_A, where)
+    sight = None if field is None else field.sight(axes)
+    diagonal = pair_information(positions, positions, sigmas, sigmas, amps, amps, axes, pixel_size_A, where, sight)
     pairs = _pairs(positions, NEIGHBOUR_SEARCH_A)
     coupled = np.zeros(len(pairs), bool)
     if where.type != "cpu":  # a GPU's calls: few and large (DEVICE_PAIR_VIEWS)
@@ -232,7 +237,7 @@ def atom_evidence(
     for start in range(0, len(pairs), chunk_pairs):
         i, j = pairs[start : start + chunk_pairs].T
         blocks[start : start + chunk_pairs] = pair_information(
-            positions[i], positions[j], sigmas[i], sigmas[j], amps[i], amps[j], axes, pixel_size_A, where
+            positions[i], positions[j], sigmas[i], sigmas[j], amps[i], amps[j], axes, pixel_size_A, where, sight
         )
     variance = noise_std**2 * (L1_EFFICIENCY_FACTOR if loss == "l1" else 1.0)
     significance = np.full(n, np.nan)
@@ -254,7 +259,7 @@ def atom_evidence(
         if moved_on is None or where.type != "cpu"
         else moved_blocks_of(
             (local for _, local in local_sets(wanted, neighbours, n, len(offsets), budget)),
-            *(positions, sigmas, amps, axes, pixel_size_A, offsets, depth_axis_all, hard_core_A),
+            *(positions, sigmas, amps, axes, pixel_size_A, offsets, depth_axis_all, hard_core_A, sight),
         )
     )
     sets = local_information(wanted, neighbours, pairs, blocks, diagonal, len(offsets), budget, where)
@@ -273,21 +278,9 @@ def atom_evidence(
         covariances[atoms], width_variance[atoms] = spread[:, :3, :3], spread[:, 3, 3]
         if moved_on is not None:
             refitted, held = depth_rises(
-                local,
-                info,
-                scores_on,
-                moved_on,
-                offsets,
-                positions,
-                sigmas,
-                amps,
-                axes,
-                pixel_size_A,
-                hard_core_A,
-                depth_axis_all,
-                table,
-                covariance,
-            )
+                local, info, scores_on, moved_on, offsets, positions, sigmas, amps, axes, pixel_size_A,
+                hard_core_A, depth_axis_all, table, covariance, sight,
+            )  # fmt: skip
             rises[atoms], frozen[atoms] = refitted.cpu().numpy(), held.cpu().numpy()
         # taken out: the atom's amplitude against every parameter of its neighbours; the Schur
         # complement q^2 / [M^-1]_qq is the cost of taking it out, in noise variances

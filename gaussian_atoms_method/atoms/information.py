@@ -12,12 +12,68 @@ residual's spectrum says how much more than white noise it weighs at an atom's s
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 
-def pair_information(r_i, r_j, sigma_i, sigma_j, q_i, q_j, axes, pixel_size_A: float, device=None) -> np.ndarray:
+@dataclass(frozen=True)
+class DetectorField:
+    """Where each view's detector lies: its rows' and columns' extents about the tilt centre (Å,
+    pixel edges) and the tilt centre in the atoms' frame (Å).  The information sums a view only
+    over the detector: an atom near a film's edge is seen whole in some views, in part or not at
+    all in others, and the whole detector's sum states its precision as if every view held it.
+
+    >>> field = DetectorField.of_views((4, 6), 0.5, (1.5, 2.5), (0.0, 0.0, 0.0))
+    >>> field.rows_A, field.cols_A
+    ((-1.0, 1.0), (-1.5, 1.5))
+    """
+
+    rows_A: tuple[float, float]
+    cols_A: tuple[float, float]
+    centre_A: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    @classmethod
+    def of_views(cls, shape_px, pixel_size_A: float, centre_px, origin_A) -> DetectorField:
+        """The field of views of ``shape_px`` (H, W), their tilt centre at pixel ``centre_px``
+        and at ``origin_A`` in the atoms' frame."""
+        (h, w) = shape_px
+        cy, cx = centre_px if centre_px is not None else ((h - 1) / 2.0, (w - 1) / 2.0)
+        rows = ((-0.5 - cy) * pixel_size_A, (h - 0.5 - cy) * pixel_size_A)
+        cols = ((-0.5 - cx) * pixel_size_A, (w - 0.5 - cx) * pixel_size_A)
+        return cls(rows, cols, tuple(float(c) for c in origin_A))
+
+    def sight(self, axes):
+        """``sight(centres (P, 3), widths (P,)) -> (P, V)``: the share of a 2D Gaussian of each
+        width about each centre's image that falls on the detector in each view of ``axes``
+        (V, 2, 3), on the centres' device: what :func:`pair_blocks` weighs a pair's view by."""
+        host = torch.as_tensor(np.asarray(axes, np.float64)[:, :2, :])
+        bounds = torch.tensor([self.rows_A, self.cols_A], dtype=torch.float64)  # (2, 2)
+        centre = torch.tensor(self.centre_A, dtype=torch.float64)
+
+        def share(centres: torch.Tensor, widths: torch.Tensor) -> torch.Tensor:
+            on = dict(device=centres.device, dtype=centres.dtype)
+            at = torch.einsum("pc,vkc->pvk", centres - centre.to(**on), host.to(**on))  # (P, V, 2)
+            lo, hi = bounds.to(**on).unbind(1)
+            scale = widths.to(**on)[:, None, None]
+            return (torch.special.ndtr((hi - at) / scale) - torch.special.ndtr((lo - at) / scale)).prod(-1)
+
+        return share
+
+    def cuts(self, axes, positions_A, sigmas_A) -> bool:
+        """Whether the detector cuts any atom's image in any view of ``axes`` by more than 1e-6 of
+        it (atoms at ``positions_A`` (N, 3), widths ``sigmas_A`` (N,)): a particle well inside its
+        field needs no :meth:`sight`."""
+        if len(positions_A) == 0:
+            return False
+        centres, widths = (torch.as_tensor(np.asarray(a, np.float64)) for a in (positions_A, sigmas_A))
+        return bool(self.sight(axes)(centres, widths).min() < 1.0 - 1e-6)
+
+
+def pair_information(
+    r_i, r_j, sigma_i, sigma_j, q_i, q_j, axes, pixel_size_A: float, device=None, sight=None
+) -> np.ndarray:
     """``sum_v integral (dg_i/da)(dg_j/db) du / p^2`` for P pairs of atoms: (P, 5, 5) blocks, rows
     the derivatives of atom i by (x, y, z, sigma, q), columns those of atom j.  Divide by the
     pixel noise's variance for the Fisher information.  Read in torch (float64) on ``device``
@@ -32,6 +88,9 @@ def pair_information(r_i, r_j, sigma_i, sigma_j, q_i, q_j, axes, pixel_size_A: f
     axes : (V, 2, 3) array
         Each view's detector rows and columns in the world.
     pixel_size_A : float
+    sight : callable, optional
+        :meth:`DetectorField.sight`: each view weighed by the share of the pair's product that
+        falls on its detector (None: the whole plane, every atom seen whole in every view).
 
     Examples
     --------
@@ -56,7 +115,7 @@ def pair_information(r_i, r_j, sigma_i, sigma_j, q_i, q_j, axes, pixel_size_A: f
     chunk = len(out) if where.type != "cpu" else max(1, HOST_PAIR_VIEWS // max(len(plane), 1))
     for start in range(0, len(out), chunk):
         part = slice(start, start + chunk)
-        out[part] = pair_blocks(*(a[part] for a in pairs), plane, twice, pixel_size_A)
+        out[part] = pair_blocks(*(a[part] for a in pairs), plane, twice, pixel_size_A, sight)
     return out.cpu().numpy()
 
 
@@ -79,7 +138,7 @@ DEVICE_PAIR_VIEWS = 2**23
 3.1 s there."""
 
 
-def pair_blocks(r_i, r_j, sigma_i, sigma_j, q_i, q_j, plane, twice, pixel_size_A: float):
+def pair_blocks(r_i, r_j, sigma_i, sigma_j, q_i, q_j, plane, twice, pixel_size_A: float, sight=None):
     """:func:`pair_information`'s (P, 5, 5) blocks of tensors on one device; ``plane`` (V, 9):
     each view's ``P_v^T P_v``, ``twice`` (V, 81) its outer product with itself
     (:func:`view_planes`).
@@ -87,7 +146,11 @@ def pair_blocks(r_i, r_j, sigma_i, sigma_j, q_i, q_j, plane, twice, pixel_size_A
     With ``d_v = P_v (r_i - r_j)`` the two Gaussians' product sits at ``a_i = -alpha d_v`` from
     ``mu_i`` and ``a_j = beta d_v`` from ``mu_j`` (``alpha``, ``beta`` the widths' shares), so each
     term is a polynomial in ``D_v = |d_v|^2`` times a pair's constants, and ``P_v^T d_v = P_v^T P_v
-    (r_i - r_j)``: the sums over the views are matrix products with the views' ``P_v^T P_v``."""
+    (r_i - r_j)``: the sums over the views are matrix products with the views' ``P_v^T P_v``.
+
+    With ``sight`` (:meth:`DetectorField.sight`) each view's terms are weighed by the share of the
+    product Gaussian (at ``mu_i + a_i``, width ``tau``) on the detector: exact for a pair seen
+    whole or not at all, its moments' change at a cut edge left out."""
     p = len(r_i)
     dr = r_i - r_j  # (P, 3)
     outer = (dr[:, :, None] * dr[:, None, :]).reshape(p, 9)
@@ -98,6 +161,8 @@ def pair_blocks(r_i, r_j, sigma_i, sigma_j, q_i, q_j, plane, twice, pixel_size_A
     alpha, beta = (s2i / total)[:, None], (s2j / total)[:, None]
     peak = q_i * sigma_i * q_j * sigma_j * 2 * math.pi
     c = torch.exp(-big_d / (2 * total[:, None])) * (2 * math.pi * tau2 * peak / pixel_size_A**2)[:, None]  # (P, V)
+    if sight is not None:  # the product sits at beta r_i + alpha r_j
+        c = c * sight((s2j / total)[:, None] * r_i + (s2i / total)[:, None] * r_j, tau2.sqrt())
     t2, si, sj, qi, qj = tau2[:, None], sigma_i[:, None], sigma_j[:, None], q_i[:, None], q_j[:, None]
     ex, ey = 2 * t2 + alpha**2 * big_d, 2 * t2 + beta**2 * big_d  # E|w + a_i|^2, E|w + a_j|^2
     exy = (

@@ -264,7 +264,7 @@ def attach_evidence(model, atoms: AtomSet, noise: float, read, hard_core_A: floa
     from gaussian_atoms_method.atoms.calibration import with_floor
     from gaussian_atoms_method.atoms.depth_profile import depth_profile_pulls
     from gaussian_atoms_method.atoms.evidence import atom_evidence
-    from gaussian_atoms_method.atoms.information import residual_spectrum_factors, view_scores
+    from gaussian_atoms_method.atoms.information import DetectorField, residual_spectrum_factors, view_scores
 
     series = model.view_set.series
     scale = model.normalisation.data_scale
@@ -276,25 +276,12 @@ def attach_evidence(model, atoms: AtomSet, noise: float, read, hard_core_A: floa
     axes = detector_axes(model.view_c2w.cpu().double()).numpy()
     loss = "l1" if model.data_term == "l1" else "l2"
     about_centre = atoms.positions - np.asarray(series.origin_A)
-    pulls = view_scores(
-        about_centre, atoms.sigmas, atoms.amplitudes, axes, residuals, series.pixel_size_A, series.centre_px
-    )
+    pulls_args = (about_centre, atoms.sigmas, atoms.amplitudes, axes, residuals, series.pixel_size_A, series.centre_px)
+    pulls = view_scores(*pulls_args)
+    field = DetectorField.of_views(residuals.shape[-2:], series.pixel_size_A, series.centre_px, series.origin_A)
     in_field = model.density.in_field(model.means.detach()).cpu().numpy()  # those a report may hold
     hard_core = hard_core_A if np.isfinite(hard_core_A) else None
-    moved = (
-        depth_profile_pulls(
-            about_centre,
-            atoms.sigmas,
-            atoms.amplitudes,
-            axes,
-            residuals,
-            series.pixel_size_A,
-            series.centre_px,
-            hard_core,
-        )
-        if hard_core is not None
-        else None
-    )
+    moved = depth_profile_pulls(*pulls_args, hard_core) if hard_core is not None else None
     bar = ProgressBar(len(atoms), unit="atom", what="gaussian-atoms: evidence") if model.progress else None
     evidence = atom_evidence(
         atoms.positions,
@@ -311,6 +298,7 @@ def attach_evidence(model, atoms: AtomSet, noise: float, read, hard_core_A: floa
         in_field,
         moved_pulls=moved,
         progress=None if bar is None else bar.add,
+        field=field if field.cuts(axes, atoms.positions, atoms.sigmas) else None,
     )
     if bar is not None:
         bar.close()
