@@ -17,6 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from gaussian_atoms_method.physics.geometry import pixel_centres
+
 
 @dataclass(frozen=True)
 class DetectorField:
@@ -38,11 +40,11 @@ class DetectorField:
     def of_views(cls, shape_px, pixel_size_A: float, centre_px, origin_A) -> DetectorField:
         """The field of views of ``shape_px`` (H, W), their tilt centre at pixel ``centre_px``
         and at ``origin_A`` in the atoms' frame."""
-        (h, w) = shape_px
-        cy, cx = centre_px if centre_px is not None else ((h - 1) / 2.0, (w - 1) / 2.0)
-        rows = ((-0.5 - cy) * pixel_size_A, (h - 0.5 - cy) * pixel_size_A)
-        cols = ((-0.5 - cx) * pixel_size_A, (w - 0.5 - cx) * pixel_size_A)
-        return cls(rows, cols, tuple(float(c) for c in origin_A))
+        centres = centre_px if centre_px is not None else (None, None)
+        rows, cols = (pixel_centres(n, pixel_size_A, c) for n, c in zip(shape_px, centres))
+        half = pixel_size_A / 2
+        edges = [(float(c[0] - half), float(c[-1] + half)) for c in (rows, cols)]
+        return cls(edges[0], edges[1], tuple(float(c) for c in origin_A))
 
     def sight(self, axes):
         """``sight(centres (P, 3), widths (P,)) -> (P, V)``: the share of a 2D Gaussian of each
@@ -162,7 +164,7 @@ def pair_blocks(r_i, r_j, sigma_i, sigma_j, q_i, q_j, plane, twice, pixel_size_A
     peak = q_i * sigma_i * q_j * sigma_j * 2 * math.pi
     c = torch.exp(-big_d / (2 * total[:, None])) * (2 * math.pi * tau2 * peak / pixel_size_A**2)[:, None]  # (P, V)
     if sight is not None:  # the product sits at beta r_i + alpha r_j
-        c = c * sight((s2j / total)[:, None] * r_i + (s2i / total)[:, None] * r_j, tau2.sqrt())
+        c = c * sight(beta * r_i + alpha * r_j, tau2.sqrt())
     t2, si, sj, qi, qj = tau2[:, None], sigma_i[:, None], sigma_j[:, None], q_i[:, None], q_j[:, None]
     ex, ey = 2 * t2 + alpha**2 * big_d, 2 * t2 + beta**2 * big_d  # E|w + a_i|^2, E|w + a_j|^2
     exy = (
