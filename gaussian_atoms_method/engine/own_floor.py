@@ -7,7 +7,7 @@ own residual.  So, before the atoms are written, the run draws its own atoms aga
 physics the fit does not share and asks how far its fit moves them:
 
 * each reported atom (its element as the run names it, its fitted mass) is drawn as the power of
-  abTEM's Lobato projected potential an ADF view holds, through the probe of
+  Lobato's projected potential an ADF view holds (:mod:`~gaussian_atoms_method.physics.lobato`), through the probe of
   :data:`~gaussian_atoms_method.physics.microscope.DEFAULT_OPTICS` (rings, tails, a source), in
   every view's geometry (:func:`~gaussian_atoms_method.physics.adf.adf_projections`, its
   deposit method);
@@ -102,14 +102,11 @@ def registration_of(info: dict, n_views: int, seed: int = 0) -> tuple[np.ndarray
 
 
 def cannot_draw(species) -> str | None:
-    """Why the run cannot draw its own replica (None where it can): the atoms' elements
-    unknown, or abTEM's potentials missing."""
+    """Why the run cannot draw its own replica (None where it can): the atoms' elements unknown.
+    Lobato's potentials come from their parameters (:mod:`~gaussian_atoms_method.physics.lobato`),
+    so no simulator need be installed."""
     if species is None or np.any(np.asarray(species) == "X"):
         return "give --species"
-    try:
-        import abtem  # noqa: F401
-    except ImportError:
-        return "pip install 'gaussian-atoms[sim]'"
     return None
 
 

@@ -1,11 +1,11 @@
-"""ADF-STEM views through physics the fit does not share: abTEM's projected potentials, a probe
-from its optics, scan jitter.
+"""ADF-STEM views through physics the fit does not share: projected atomic potentials, a probe from
+its optics, scan jitter.
 
 The fit draws every atom as one isotropic Gaussian through a Gaussian-ladder blur.  A replica
 that draws atoms the same way measures almost nothing of the fit's own error (its profile, its
 blur), so the replica (:mod:`.replica`) draws them here instead:
 
-* each atom's image is a power of abTEM's projected potential of its element (Lobato or
+* each atom's image is a power of the projected potential of its element (Lobato or
   Kirkland: a sharp core and long tails), drawn at its exact place in each view's detector frame
   (any orientation: tilts or Euler angles);
 * the contrast is ADF-like: incoherent, linear in the atoms, each atom's integrated intensity
@@ -14,7 +14,8 @@ blur), so the replica (:mod:`.replica`) draws them here instead:
   effective source and an optional halo (:func:`.microscope.aberrated_probe_intensity`);
 * the scan moves each line of a view a little along the fast axis (:func:`scan_jitter`).
 
-abTEM is the optional extra ``gaussian-atoms[sim]``.
+Lobato's potentials are computed here from their parameters (:mod:`.lobato`); Kirkland's come
+through abTEM, the optional extra ``gaussian-atoms[sim]``.
 """
 
 from __future__ import annotations
@@ -22,6 +23,8 @@ from __future__ import annotations
 import functools
 
 import numpy as np
+
+from gaussian_atoms_method.physics.lobato import lobato_projected_potential_VA
 
 ADF_EXPONENT = 1.7
 """ADF-STEM's intensity per atom grows as ``Z^n`` with ``n`` 1.6-1.9 over the usual detector
@@ -39,16 +42,18 @@ potential; a projected potential's core grows about as ``Z`` and ADF intensity a
 (:data:`ADF_EXPONENT`), so the power that carries the one to the other is the middle of it."""
 
 
-def _parametrization(name: str):
+def _projected_potential(element: str, parametrization: str):
+    """``element``'s projected potential as a callable of the radius (Å): Lobato's from its
+    parameters (:mod:`.lobato`, no simulator needed), Kirkland's through abTEM."""
+    if parametrization == "lobato":
+        return functools.partial(lobato_projected_potential_VA, element)
+    if parametrization != "kirkland":
+        raise ValueError(f"parametrization must be 'lobato' or 'kirkland', got {parametrization!r}")
     try:
         from abtem import parametrizations
     except ImportError as exc:  # pragma: no cover - depends on the optional extra
-        raise ImportError("ADF views through abTEM need the extra: pip install 'gaussian-atoms[sim]'") from exc
-    if name == "lobato":
-        return parametrizations.LobatoParametrization()
-    if name == "kirkland":
-        return parametrizations.KirklandParametrization()
-    raise ValueError(f"parametrization must be 'lobato' or 'kirkland', got {name!r}")
+        raise ImportError("Kirkland potentials come through abTEM: pip install 'gaussian-atoms[sim]'") from exc
+    return parametrizations.KirklandParametrization().projected_potential(element)
 
 
 def adf_weights(species) -> np.ndarray:
@@ -66,7 +71,7 @@ def adf_weights(species) -> np.ndarray:
 def adf_kernel_transform(
     element: str, parametrization: str = "lobato", power: float = ADF_POTENTIAL_POWER, k_max: float = 4.0
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The radial Fourier transform of one atom's ADF image, ``P(r)^power`` with ``P`` abTEM's
+    """The radial Fourier transform of one atom's ADF image, ``P(r)^power`` with ``P`` the
     projected potential of ``element``, normalised to unit integral: ``(k, K^(k))`` on 1,201
     spatial frequencies from 0 to ``k_max`` (1/Å), by a Hankel transform over 0-12 Å.
 
@@ -76,7 +81,7 @@ def adf_kernel_transform(
     """
     from scipy.special import j0
 
-    profile = _parametrization(parametrization).projected_potential(element)
+    profile = _projected_potential(element, parametrization)
     r = np.r_[np.geomspace(1e-6, 0.05, 600, endpoint=False), np.linspace(0.05, 12.0, 6000)]
     image = np.asarray(profile(r), dtype=np.float64) ** power
     k = np.linspace(0.0, k_max, 1201)
@@ -98,7 +103,7 @@ def adf_projections(
     method: str = "exact",
 ) -> np.ndarray:
     """(V, H, W) incoherent ADF views of atoms: each atom's image the power
-    :data:`ADF_POTENTIAL_POWER` of its element's projected potential (abTEM's ``parametrization``,
+    :data:`ADF_POTENTIAL_POWER` of its element's projected potential (``parametrization``,
     :func:`adf_kernel_transform`), carrying the integrated intensity ``weights`` (per Å² of the
     detector: the same units as a Gaussian of integrated mass ``weights``).
 
