@@ -49,6 +49,26 @@ def test_the_floor_brings_the_intervals_to_95_percent_on_a_second_replica():
     assert np.array_equal(flag, 2 * half > 0.8)
 
 
+def test_with_the_floor_another_place_opens_where_the_widened_interval_reaches_it():
+    """For a cost quadratic along the beam, the rise at a distance ``d`` is ``(d / sigma)^2`` noise
+    variances; with a floor ``f`` the error's variance is ``sigma^2 + f^2``, so the place lies in
+    the 95% interval exactly where ``d < 1.96 sqrt(sigma^2 + f^2)``, the widened half-width.
+    The flag from the rise alone must agree with that interval for every atom (float64, exact
+    but for atoms on the boundary)."""
+    rng = np.random.default_rng(3)
+    n = 20_000
+    sigma = rng.uniform(0.01, 0.06, n)
+    d = rng.uniform(0.0, 0.5, n)
+    floor = (0.0, 0.0, 0.08)
+    stated = np.zeros((n, 3)) + sigma[:, None]
+    std, half, flag = with_floor(stated, Z95 * sigma, np.zeros(n, bool), floor, None, (d / sigma) ** 2)
+    assert np.array_equal(flag, d < half)
+    assert 0.05 < flag.mean() < 0.95  # both sides are exercised
+    # without the rise, or with none known, nothing but the width opens an atom
+    assert not with_floor(stated, Z95 * sigma, np.zeros(n, bool), floor, None)[2].any()
+    assert not with_floor(stated, Z95 * sigma, np.zeros(n, bool), floor, None, np.full(n, np.nan))[2].any()
+
+
 def test_a_floor_that_cannot_be_a_length_is_named():
     with pytest.raises(OptionError, match="precision-floor-A"):
         FitOptions(precision_floor_A=(0.01, -0.02, 0.0)).check()

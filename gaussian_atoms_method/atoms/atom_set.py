@@ -25,6 +25,7 @@ EVIDENCE_FIELDS = {
     "proven": np.int64,
     "depth_halfwidth_A": np.float64,
     "depth_open": np.int64,
+    "depth_rise": np.float64,
     "element_confidence": np.float64,
     "width_std_A": np.float64,
     "width_open": np.int64,
@@ -67,7 +68,11 @@ class AtomSet:
     depth_halfwidth_A : (N,) float array, or None
         Half-width of the 95% interval along the direction the views fix least (the beam).
     depth_open : (N,) int array, or None
-        1 where that interval is wider than half the hard core.
+        1 where that interval is wider than half the hard core, or another place along the beam
+        fits within it.
+    depth_rise : (N,) float array, or None
+        How much worse the best other place along the beam fits (the atom moved by half a hard
+        core or more, its neighbours re-fitted), in noise variances; NaN where none was tried.
     element_confidence : (N,) float array, or None
         The probability of the element written, by the atom's mass among the elements' mass
         populations (:func:`~gaussian_atoms_method.atoms.species.classify_species`); NaN where the
@@ -95,6 +100,7 @@ class AtomSet:
     proven: np.ndarray | None = None
     depth_halfwidth_A: np.ndarray | None = None
     depth_open: np.ndarray | None = None
+    depth_rise: np.ndarray | None = None
     element_confidence: np.ndarray | None = None
     width_std_A: np.ndarray | None = None
     width_open: np.ndarray | None = None
@@ -251,6 +257,7 @@ EXTXYZ_COLUMNS = {
     "proven": ("proven", "I", 1),
     "depth_halfwidth_A": ("depth_halfwidth_A", "R", 1),
     "depth_open": ("depth_open", "I", 1),
+    "depth_rise": ("depth_rise", "R", 1),
     "element_confidence": ("element_confidence", "R", 1),
     "width_std_A": ("width_std_A", "R", 1),
     "width_open": ("width_open", "I", 1),

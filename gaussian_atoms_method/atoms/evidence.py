@@ -120,6 +120,16 @@ class AtomEvidence:
     depth_profile: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     width_std_A: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
+    @property
+    def depth_rise(self) -> np.ndarray:
+        """(N,) the profile's least rise over the places it tried, in noise variances: how much
+        worse the best other place along the depth axis fits (NaN where no place is known)."""
+        profile = self.depth_profile
+        if profile.size == 0:
+            return np.full(len(self.significance), np.nan)
+        known = np.isfinite(profile)
+        return np.where(known.any(axis=1), np.min(np.where(known, profile, np.inf), axis=1), np.nan)
+
 
 def _pairs(positions: np.ndarray, radius_A: float) -> np.ndarray:
     from scipy.spatial import cKDTree

@@ -216,7 +216,7 @@ def widen_by_own_floor(model, atoms: AtomSet, reported: np.ndarray, hard_core_A:
     floor = read_own_floor(model, atoms, reported, info, seed=model.config.seed)
     hard_core = hard_core_A if np.isfinite(hard_core_A) else None
     atoms.position_std_A, atoms.depth_halfwidth_A, atoms.depth_open = with_floor(
-        atoms.position_std_A, atoms.depth_halfwidth_A, atoms.depth_open, floor.floor_A, hard_core
+        atoms.position_std_A, atoms.depth_halfwidth_A, atoms.depth_open, floor.floor_A, hard_core, atoms.depth_rise
     )
     atoms.info["precision_floor_A"] = floor.floor_A.tolist()
     CONSOLE.print(
