@@ -63,6 +63,35 @@ def test_held_out_views_are_predicted_as_the_run_renders_them(tmp_path):
         assert np.abs(predicted - rendered / norm.data_scale).max() < 1e-4 * np.abs(predicted).max()
 
 
+def test_an_atom_just_beyond_the_field_sends_its_kernel_tails_into_the_predicted_views(tmp_path):
+    """An atom 1 Å beyond the detector's edge, through a kernel with weight at 2 and 4 Å: the
+    views predicted on the detector equal those predicted on one 40 pixels wider each side and cut
+    back (the kernel's reach there is far inside), to 1e-3 of the peak (the kernel's 4 Å tails
+    beyond the 3 Å margin hold about 1e-3 of it); without the margin the edge would miss it."""
+    import copy
+
+    from gaussian_atoms_method.atoms.view_prediction import predicted_views
+
+    series = _series(tmp_path)
+    h, w = series.projections.shape[1:]
+    edge_A = (w - 1 - series.centre_px[1]) * series.pixel_size_A  # the last column, along the tilt axis (y)
+    atoms = AtomSet(
+        positions=np.array([[0.0, edge_A + 1.0, 0.0]]) + np.asarray(series.origin_A),
+        sigmas=np.array([0.5]),
+        amplitudes=np.array([40.0]),
+    )
+    pad = 40
+    wide = copy.copy(series)
+    wide.projections = np.zeros((len(series.angles_deg), h + 2 * pad, w + 2 * pad), np.float32)
+    wide.centre_px = (series.centre_px[0] + pad, series.centre_px[1] + pad)
+    kernel = [0.0, 0.3, 0.3]
+    reference = predicted_views(atoms, wide, kernel)[:, pad : pad + h, pad : pad + w]
+    predicted = predicted_views(atoms, series, kernel)
+    peak = np.abs(reference).max()
+    assert np.abs(reference[:, :, -1]).max(axis=1).min() > 0.5 * peak  # every view's edge sees the atom
+    assert np.abs(predicted - reference).max() < 1e-3 * peak
+
+
 def test_held_out_rms_reads_the_noise_when_the_atoms_and_kernel_are_right(tmp_path):
     """Data = three Gaussians through a kernel with 30% in its tails + a per-view offset + white
     noise of 0.5: scored with the right atoms and kernel, the held-out rms is the noise (to 3%:

@@ -8,6 +8,7 @@ Pure numpy and torch."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -16,13 +17,16 @@ import torch
 from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms
 from gaussian_atoms_method.physics.geometry import pixel_centres
 from gaussian_atoms_method.physics.projector import project_gaussians
-from gaussian_atoms_method.physics.psf import KERNEL_WIDTHS_A, apply_kernel
+from gaussian_atoms_method.physics.psf import KERNEL_MARGIN_WIDTHS, KERNEL_WIDTHS_A, apply_kernel, widened
 
 
 def predicted_views(atoms: AtomSet, series, kernel_weights=None, chunk: int = 4) -> np.ndarray:
     """(V, H, W) projections of ``atoms`` (with ``sigmas`` and ``amplitudes``, Å in the series'
     output frame) in the views of ``series``, through the kernel of ``kernel_weights`` (fractions
-    at :data:`..physics.psf.KERNEL_WIDTHS_A`; None: none), in the series' data units."""
+    at :data:`..physics.psf.KERNEL_WIDTHS_A`; None: none), in the series' data units.  With a
+    kernel, each view is projected on a detector widened by
+    :data:`~..physics.psf.KERNEL_MARGIN_WIDTHS` of its narrowest width, blurred there and cut
+    back, as the fit renders a film (an atom just beyond the field sends its tails into it)."""
     if atoms.sigmas is None or atoms.amplitudes is None:
         raise ValueError("atoms need sigmas and amplitudes (a run's atoms.xyz) to be projected")
     _, h, w = series.projections.shape
@@ -31,6 +35,10 @@ def predicted_views(atoms: AtomSet, series, kernel_weights=None, chunk: int = 4)
     centre = series.centre_px if series.centre_px is not None else ((h - 1) / 2.0, (w - 1) / 2.0)
     rows = torch.as_tensor(pixel_centres(h, series.pixel_size_A, centre[0]))
     cols = torch.as_tensor(pixel_centres(w, series.pixel_size_A, centre[1]))
+    margin = 0
+    if kernel_weights is not None and np.any(np.asarray(kernel_weights) != 0):
+        margin = int(math.ceil(KERNEL_MARGIN_WIDTHS * KERNEL_WIDTHS_A[0] / series.pixel_size_A - 1e-9))
+        rows, cols = widened(rows, margin, series.pixel_size_A), widened(cols, margin, series.pixel_size_A)
     axes = torch.as_tensor(series.detector_axes())
     means = torch.as_tensor(
         np.asarray(atoms.positions, dtype=np.float64) - np.asarray(series.origin_A, dtype=np.float64)
@@ -46,7 +54,8 @@ def predicted_views(atoms: AtomSet, series, kernel_weights=None, chunk: int = 4)
     out = []
     for start in range(0, len(axes), chunk):  # bounded memory: (chunk, H, N) at a time
         images = project_gaussians(means, sigmas, amps, axes[start : start + chunk], rows, cols)
-        out.append(apply_kernel(images, series.pixel_size_A, widths, weights))
+        images = apply_kernel(images, series.pixel_size_A, widths, weights)
+        out.append(images[:, margin : margin + h, margin : margin + w])
     return torch.cat(out).numpy()
 
 
