@@ -577,7 +577,7 @@ def test_the_trust_sentence_counts_each_reason_and_trusts_what_none_leaves_open(
     one atom; one open in element; one whose element the masses could not tell (NaN): the
     sentence trusts 1 of 6 and counts each reason once per atom it opens."""
     from gaussian_atoms_method.atoms.atom_set import AtomSet
-    from gaussian_atoms_method.atoms.evidence import open_atoms, trust_words
+    from gaussian_atoms_method.atoms.trust import open_atoms, trust_words
 
     atoms = AtomSet(
         np.zeros((6, 3)),

@@ -29,12 +29,13 @@ EVIDENCE_FIELDS = {
     "element_confidence": np.float64,
     "width_std_A": np.float64,
     "width_open": np.int64,
+    "mass_open": np.int64,
     "trusted": np.int64,
 }
 """The per-atom (N,) columns after the position's precision: the class and each atom's evidence
 (:mod:`gaussian_atoms_method.atoms.evidence`), by name and type."""
 
-CSV_INTEGER_COLUMNS = frozenset({"class", "proven", "depth_open", "width_open", "trusted"})
+CSV_INTEGER_COLUMNS = frozenset({"class", "proven", "depth_open", "width_open", "mass_open", "trusted"})
 """The CSV columns written as whole numbers."""
 
 
@@ -72,7 +73,8 @@ class AtomSet:
         fits within it.
     depth_rise : (N,) float array, or None
         How much worse the best other place along the beam fits (the atom moved by half a hard
-        core or more, its neighbours re-fitted), in noise variances; NaN where none was tried.
+        core or more, its neighbours re-fitted), in the atom's stated variance along the beam:
+        under 1.96^2 that place lies within its 95% interval; NaN where none was tried.
     element_confidence : (N,) float array, or None
         The probability of the element written, by the atom's mass among the elements' mass
         populations (:func:`~gaussian_atoms_method.atoms.species.classify_species`); NaN where the
@@ -83,10 +85,14 @@ class AtomSet:
         1 where the atom is wider than one atom of its element by more than its width's precision
         allows (:func:`~gaussian_atoms_method.atoms.calibration.wider_than_one_atom`): its image
         may hold two atoms the fit did not part.
+    mass_open : (N,) int array, or None
+        1 where the atom's mass lies beyond its element's population by more than the proof level
+        allows (:func:`~gaussian_atoms_method.atoms.trust.mass_unlike_one_atom`): it may hold two
+        atoms, or part of one.
     trusted : (N,) int array, or None
         1 where nothing the run read leaves the atom open: proven, closed in depth, one atom
         wide and, with several elements, its element sure
-        (:func:`~gaussian_atoms_method.atoms.evidence.open_atoms`); 0 where something does.
+        (:func:`~gaussian_atoms_method.atoms.trust.open_atoms`); 0 where something does.
     """
 
     positions: np.ndarray
@@ -104,6 +110,7 @@ class AtomSet:
     element_confidence: np.ndarray | None = None
     width_std_A: np.ndarray | None = None
     width_open: np.ndarray | None = None
+    mass_open: np.ndarray | None = None
     trusted: np.ndarray | None = None
 
     def __post_init__(self) -> None:
@@ -261,6 +268,7 @@ EXTXYZ_COLUMNS = {
     "element_confidence": ("element_confidence", "R", 1),
     "width_std_A": ("width_std_A", "R", 1),
     "width_open": ("width_open", "I", 1),
+    "mass_open": ("mass_open", "I", 1),
     "trusted": ("trusted", "I", 1),
 }
 """The per-atom columns of this package's extended XYZ after the species, in the order

@@ -86,17 +86,16 @@ def with_floor(
 
 def another_place_within(depth_rise: np.ndarray, stated_halfwidth_A: np.ndarray, halfwidth_A: np.ndarray) -> np.ndarray:
     """(N,) bool: the best other place the depth profile tried (``depth_rise`` (N,), the cost's
-    least rise there in noise variances, :attr:`.evidence.AtomEvidence.depth_rise`) lies within
+    least rise there in the atom's stated variance, :attr:`.evidence.AtomEvidence.depth_rise`) lies within
     the 95% interval once the floor has widened it from ``stated_halfwidth_A`` to ``halfwidth_A``
     (N,).
 
-    Why: the floor says the views' misfit understates each atom's error variance by the ratio
+    Why: the floor says the stated variance understates each atom's error variance by the ratio
     ``(halfwidth / stated)^2`` (a bias alike in every view, which no residual shows).  The
     profile's rise is a misfit of the same views, so it is read in the same widened unit: another
     place is as good as the atom's own where its rise is under ``Z95^2`` times that ratio.  On the
     54,000-atom Pd particle through ADF physics, the false atoms' least rise had a median of 7
-    noise variances and the right atoms' 90, against a threshold of 3.84 without the floor.  NaN
-    (no profile, or one not known) opens nothing.
+    noise variances and the right atoms' 90.  NaN (no profile, or one not known) opens nothing.
 
     >>> another_place_within(np.array([7.0, 90.0, np.nan]), np.full(3, 0.05), np.full(3, 0.12)).tolist()
     [True, False, False]

@@ -24,12 +24,13 @@ from gaussian_atoms_method.atoms import picture_process
 from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms, write_atoms
 from gaussian_atoms_method.atoms.calibration import wider_than_one_atom
 from gaussian_atoms_method.atoms.classification import classify_gaussians, in_support
-from gaussian_atoms_method.atoms.evidence import EVIDENCE_SCORES, open_atoms
+from gaussian_atoms_method.atoms.evidence import EVIDENCE_SCORES
 from gaussian_atoms_method.atoms.hard_core import most_apart
 from gaussian_atoms_method.atoms.matching import score_atoms, uncount_straddling
 from gaussian_atoms_method.atoms.pictures import draw_slices, write_population_png, write_rdf_png
 from gaussian_atoms_method.atoms.slices import slice_planes
 from gaussian_atoms_method.atoms.structure_evidence import structure_evidence
+from gaussian_atoms_method.atoms.trust import mass_unlike_one_atom, open_atoms
 from gaussian_atoms_method.atoms.uncertainty import position_std_A, robust_noise_std
 from gaussian_atoms_method.engine.console import CONSOLE
 from gaussian_atoms_method.engine.noise_reading import say_residual
@@ -156,6 +157,7 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
     if atoms.width_std_A is not None:  # after the species: each element's width is its own reference
         level = atoms.info["proof_level"]
         atoms.width_open = wider_than_one_atom(atoms.sigmas, atoms.width_std_A, level, atoms.species)
+        atoms.mass_open = mass_unlike_one_atom(atoms.masses, level, atoms.species)
     if model.config.own_floor and not any(model.config.precision_floor_A) and atoms.proven is not None and len(atoms):
         widen_by_own_floor(model, atoms, reported, hard_core_A, registration)
     if atoms.proven is not None:  # after the floor, which may open an atom in depth
@@ -335,8 +337,8 @@ def attach_evidence(model, atoms: AtomSet, noise: float, read, hard_core_A: floa
 
 def say_evidence(atoms: AtomSet) -> None:
     """The summary line of the reported ``atoms``' evidence: how many to trust and how many each
-    reason leaves open (:func:`~gaussian_atoms_method.atoms.evidence.trust_words`)."""
-    from gaussian_atoms_method.atoms.evidence import trust_words
+    reason leaves open (:func:`~gaussian_atoms_method.atoms.trust.trust_words`)."""
+    from gaussian_atoms_method.atoms.trust import trust_words
 
     if atoms.proven is None or not len(atoms):
         return
