@@ -292,3 +292,29 @@ def test_typical_mass_is_the_mass_weighted_median():
     assert typical_mass(atoms_and_faint) == 1.0
     assert typical_mass(torch.tensor([1.0, 1.0, 10.0])) == 10.0
     assert typical_mass(torch.zeros(0)) == 0.0
+
+
+def test_the_tiled_projectors_gather_has_the_same_gradient_every_time_on_a_cpu():
+    """Each Gaussian's gradient sums its share of every tile it touches.  Summed from two threads at
+    once (an indexing's ``index_put_`` accumulating) the float32 sum's order, so its rounding,
+    changed from run to run; ``pad_gather`` sums in one order.  A 54,000-atom fit's tile lists
+    hold millions of (Gaussian, tile) slots: 2,000 tiles of 1,000 slots over 4,000 Gaussians here,
+    five backward passes, bit for bit equal."""
+    from gaussian_atoms_method.physics.tiles import pad_gather
+
+    gen = torch.Generator().manual_seed(0)
+    values = torch.randn(2, 2000, generator=gen).requires_grad_()
+    index = torch.randint(0, 4001, (2000, 1000), generator=gen)  # 4,000 Gaussians and the sentinel
+    weights = torch.randn(2000, 1000, generator=gen)
+    grads, threads = [], torch.get_num_threads()
+    torch.set_num_threads(2)  # the suite runs one thread a worker; the race needs two
+    try:
+        for _ in range(5):
+            values.grad = None
+            (pad_gather(values, index) * weights).sum().backward()
+            grads.append(values.grad.clone())
+    finally:
+        torch.set_num_threads(threads)
+    assert all(torch.equal(grads[0], g) for g in grads[1:])
+    expected = torch.cat([values.detach().reshape(-1), torch.zeros(1)])[index]
+    assert torch.equal(pad_gather(values, index).detach(), expected)

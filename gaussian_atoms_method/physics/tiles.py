@@ -111,10 +111,19 @@ def assemble_tiles(
 
 
 def pad_gather(values: torch.Tensor, index: torch.Tensor, pad: float = 0.0) -> torch.Tensor:
-    """``values`` flattened to (V*N, ...) plus one sentinel row of ``pad``, gathered at ``index``."""
+    """``values`` flattened to (V*N, ...) plus one sentinel row of ``pad``, gathered at ``index``.
+
+    On the CPU through ``index_select``, whose gradient sums each Gaussian's tiles in one order
+    (``index_add_``); an indexing's gradient (``index_put_`` accumulating) adds them from both
+    threads at once, in an order that changes from run to run: three CPU runs of one 54,000-atom
+    series wrote 54,009, 54,020 and 54,012 atoms.  On a GPU the indexing stays (its gradient
+    sorts the indices; ``index_add_`` there adds atomically)."""
     flat = values.reshape((-1,) + tuple(values.shape[2:])) if values.dim() > 1 else values
     sentinel = torch.full((1,) + tuple(flat.shape[1:]), pad, dtype=flat.dtype, device=flat.device)
-    return torch.cat([flat, sentinel])[index]
+    padded = torch.cat([flat, sentinel])
+    if padded.device.type != "cpu":
+        return padded[index]
+    return padded.index_select(0, index.reshape(-1)).reshape(tuple(index.shape) + tuple(flat.shape[1:]))
 
 
 def tile_blocks_reference(U, Vc, P, S, row_c, col_c):
