@@ -289,7 +289,8 @@ def atom_evidence(
             pulls = scores_on[local_on].permute(0, 2, 1, 3).reshape(len(atoms), scores.shape[1], 5 * k)  # (B, V, 5k)
             rows = covariance[:, :4] @ pulls.transpose(1, 2)  # (B, 4, V)
             spread = (rows @ rows.transpose(1, 2) * (pulls.shape[1] / max(pulls.shape[1] - 1, 1))).cpu().numpy()
-            fisher[atoms] = covariance[:, :3, :3].cpu().numpy()
+            if moved_on is not None:  # the profile's unit (below)
+                fisher[atoms] = covariance[:, :3, :3].cpu().numpy()
         else:
             spread = covariance[:, :4, :4].cpu().numpy()
         covariances[atoms], width_variance[atoms] = spread[:, :3, :3], spread[:, 3, 3]

@@ -8,7 +8,6 @@ Pure numpy and torch."""
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +16,7 @@ import torch
 from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms
 from gaussian_atoms_method.physics.geometry import pixel_centres
 from gaussian_atoms_method.physics.projector import project_gaussians
-from gaussian_atoms_method.physics.psf import KERNEL_MARGIN_WIDTHS, KERNEL_WIDTHS_A, apply_kernel, widened
+from gaussian_atoms_method.physics.psf import KERNEL_WIDTHS_A, apply_kernel, kernel_margin_of, widened
 
 
 def predicted_views(atoms: AtomSet, series, kernel_weights=None, chunk: int = 4) -> np.ndarray:
@@ -37,7 +36,7 @@ def predicted_views(atoms: AtomSet, series, kernel_weights=None, chunk: int = 4)
     cols = torch.as_tensor(pixel_centres(w, series.pixel_size_A, centre[1]))
     margin = 0
     if kernel_weights is not None and np.any(np.asarray(kernel_weights) != 0):
-        margin = int(math.ceil(KERNEL_MARGIN_WIDTHS * KERNEL_WIDTHS_A[0] / series.pixel_size_A - 1e-9))
+        margin = kernel_margin_of(KERNEL_WIDTHS_A[0], series.pixel_size_A)
         rows, cols = widened(rows, margin, series.pixel_size_A), widened(cols, margin, series.pixel_size_A)
     axes = torch.as_tensor(series.detector_axes())
     means = torch.as_tensor(

@@ -31,7 +31,7 @@ from gaussian_atoms_method.physics.projector import (
     project_gaussians_gsplat,
     project_gaussians_tiled,
 )
-from gaussian_atoms_method.physics.psf import KERNEL_MARGIN_WIDTHS, KERNEL_WIDTHS_A, apply_kernel, widened
+from gaussian_atoms_method.physics.psf import KERNEL_WIDTHS_A, apply_kernel, kernel_margin_of, widened
 
 ORTHOGRAPHIC_CAMERA = 8
 """The camera type of an orthographic view: nerfstudio's ``CameraType.ORTHOPHOTO`` value, the
@@ -199,14 +199,14 @@ def view_parameters(cfg, n_views: int, floor: float | None, surfaces, series, le
 
 def kernel_margin_px(model, pitch: float | None) -> int:
     """Pixels (of ``pitch``, normalised lengths) each side of a view is widened by before the
-    kernel (:data:`KERNEL_MARGIN_WIDTHS`): 0 without a kernel, for a kernel held at the
+    kernel (:func:`~gaussian_atoms_method.physics.psf.kernel_margin_of`): 0 without a kernel, for a kernel held at the
     identity, and where nothing lies beyond the detector (no film: the volume is the field)."""
     density = getattr(model, "density", None)
     if pitch is None or "psf" not in model.view_params or density is None or density.field_half_extent is None:
         return 0
     if model.config.psf == "fixed" and not any(model.config.psf_weights):
         return 0
-    return int(math.ceil(KERNEL_MARGIN_WIDTHS * model.psf_widths_host[0] / abs(pitch) - 1e-9))
+    return kernel_margin_of(model.psf_widths_host[0], pitch)
 
 
 def projected_and_blurred(model, project, rows: torch.Tensor, cols: torch.Tensor, pitch: float | None) -> torch.Tensor:

@@ -307,9 +307,10 @@ def attach_evidence(model, atoms: AtomSet, noise: float, read, hard_core_A: floa
     crb = atoms.position_std_A
     floor = model.config.precision_floor_A
     std, half, depth_open = evidence.position_std_A, evidence.depth_halfwidth_A, evidence.depth_open
+    rise = evidence.depth_rise
     if any(floor):  # a replica's floor: what no view's scatter shows (atoms/calibration.py)
-        std, half, depth_open = with_floor(std, half, depth_open, floor, hard_core, evidence.depth_rise)
-    atoms.position_std_A, atoms.depth_rise = std, evidence.depth_rise
+        std, half, depth_open = with_floor(std, half, depth_open, floor, hard_core, rise)
+    atoms.position_std_A, atoms.depth_rise = std, rise
     atoms.significance, atoms.proven = evidence.significance, evidence.proven
     atoms.depth_halfwidth_A, atoms.depth_open = half, depth_open
     atoms.width_std_A, atoms.info["proof_level"] = evidence.width_std_A, evidence.proof_level

@@ -46,6 +46,16 @@ with 1 Å, 1.0 with 2 Å and 0.9 with 3 Å, and with no margin the fitted kernel
 (0 against 0.015).  Three widths hold a Gaussian's image to 1% of its peak."""
 
 
+def kernel_margin_of(narrowest_width: float, pitch: float) -> int:
+    """Pixels (of ``pitch``, in ``narrowest_width``'s length unit) each side of a view is widened by
+    before the kernel: :data:`KERNEL_MARGIN_WIDTHS` of its narrowest width, rounded up.
+
+    >>> kernel_margin_of(1.0, 0.4)
+    8
+    """
+    return int(math.ceil(KERNEL_MARGIN_WIDTHS * narrowest_width / abs(pitch) - 1e-9))
+
+
 def widened(coordinates: torch.Tensor, margin: int, pitch: float) -> torch.Tensor:
     """(n + 2 margin,) evenly spaced pixel coordinates: ``coordinates`` (n,) with ``margin`` more
     of spacing ``pitch`` before and after.
