@@ -30,7 +30,7 @@ from gaussian_atoms_method.atoms.matching import score_atoms, uncount_straddling
 from gaussian_atoms_method.atoms.pictures import draw_slices, write_population_png, write_rdf_png
 from gaussian_atoms_method.atoms.slices import slice_planes
 from gaussian_atoms_method.atoms.structure_evidence import structure_evidence
-from gaussian_atoms_method.atoms.trust import mass_unlike_one_atom, open_atoms
+from gaussian_atoms_method.atoms.trust import depth_unlike_its_element, mass_unlike_one_atom, open_atoms
 from gaussian_atoms_method.atoms.uncertainty import position_std_A, robust_noise_std
 from gaussian_atoms_method.engine.console import CONSOLE
 from gaussian_atoms_method.engine.noise_reading import say_residual
@@ -158,6 +158,9 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
         level = atoms.info["proof_level"]
         atoms.width_open = wider_than_one_atom(atoms.sigmas, atoms.width_std_A, level, atoms.species)
         atoms.mass_open = mass_unlike_one_atom(atoms.masses, level, atoms.species)
+        atoms.depth_open = np.asarray(atoms.depth_open, bool) | depth_unlike_its_element(
+            atoms.depth_rise, level, atoms.species
+        )
     if model.config.own_floor and not any(model.config.precision_floor_A) and atoms.proven is not None and len(atoms):
         widen_by_own_floor(model, atoms, reported, hard_core_A, registration)
     if atoms.proven is not None:  # after the floor, which may open an atom in depth
