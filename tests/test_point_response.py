@@ -53,7 +53,7 @@ def _clean_by_definition(peaks, values, response, centre, level):
         offsets = peaks[i] - peaks[:i] + centre
         inside = np.all((offsets >= 0) & (offsets < shape), axis=1) & (amounts[:i] != 0)
         value = values[i] - float(np.dot(amounts[:i][inside], response[tuple(offsets[inside].T)]))
-        if value > level:
+        if value > np.broadcast_to(level, (len(peaks),))[i]:
             amounts[i] = value
     index = np.nonzero(amounts)[0]
     return index, amounts[index]
@@ -61,7 +61,8 @@ def _clean_by_definition(peaks, values, response, centre, level):
 
 def test_clean_in_blocks_equals_clean_by_definition():
     """The blocked sparse visit and the per-peak reference accept the same peaks with the same
-    amounts (to float64 rounding) as CLEAN written out pair by pair: more peaks than a block,
+    amounts (to float64 rounding) as CLEAN written out pair by pair, at one level and at each
+    peak's own: more peaks than a block,
     packed so that most lie in one another's box, a response with negative lobes and its peak
     off the box's middle (so some pairs within reach fall outside the box)."""
     rng = np.random.default_rng(5)
@@ -78,6 +79,14 @@ def test_clean_in_blocks_equals_clean_by_definition():
     for accepted, amounts in (
         clean_peaks(peaks, values, response, centre, 2.0),
         clean_peaks_reference(peaks, values, response, centre, 2.0),
+    ):
+        assert accepted.tolist() == expected[0].tolist()
+        np.testing.assert_allclose(amounts, expected[1], rtol=1e-12)
+    levels = rng.choice([2.0, 3.5], len(peaks))  # each peak its own level (the residual search's open places)
+    expected = _clean_by_definition(peaks, values, response, centre, levels)
+    for accepted, amounts in (
+        clean_peaks(peaks, values, response, centre, levels),
+        clean_peaks_reference(peaks, values, response, centre, levels),
     ):
         assert accepted.tolist() == expected[0].tolist()
         np.testing.assert_allclose(amounts, expected[1], rtol=1e-12)

@@ -101,7 +101,7 @@ def clean_peaks(
     values : (M,) array, the volume's values there
     response : 3D array, one atom's response scaled to 1 at voxel ``centre`` (:func:`point_response`)
     centre : (3,) int array
-    level : float, what a remaining value must exceed
+    level : float or (M,) array, what a remaining value must exceed (each peak's own)
     device : torch device, optional
         Off the CPU, the pairs within the response's box are found there
         (:func:`response_pairs_on_device`); the visit stays on the host.  The same result.
@@ -127,6 +127,7 @@ def clean_peaks(
     n = len(peaks)
     W = sparse.csr_matrix((weights, (later, earlier)), shape=(n, n))
     amounts = np.zeros(n)
+    levels = np.broadcast_to(np.asarray(level, dtype=np.float64), (n,)).tolist()
     for start in range(0, n, CLEAN_BLOCK):
         stop = min(start + CLEAN_BLOCK, n)
         rows = W[start:stop]
@@ -138,7 +139,7 @@ def clean_peaks(
             value = remaining[r]
             for t in range(indptr[r], indptr[r + 1]):
                 value -= block[columns[t]] * w[t]
-            if value > level:  # amounts of peaks not accepted stay 0, so they take nothing off
+            if value > levels[start + r]:  # amounts of peaks not accepted stay 0, so they take nothing off
                 block[r] = value
         amounts[start:stop] = block
     index = np.nonzero(amounts)[0]
@@ -208,10 +209,11 @@ def clean_peaks_reference(
     order = np.argsort(later, kind="stable")
     earlier, weights = earlier[order], weights[order]
     bounds = np.searchsorted(later[order], np.arange(len(peaks) + 1))
+    levels = np.broadcast_to(np.asarray(level, dtype=np.float64), (len(peaks),))
     for i in range(len(peaks)):
         lo, hi = bounds[i], bounds[i + 1]
         value = float(values[i]) - (float(np.dot(amounts[earlier[lo:hi]], weights[lo:hi])) if hi > lo else 0.0)
-        if value > level:
+        if value > levels[i]:
             amounts[i] = value
     index = np.nonzero(amounts)[0]
     return index, amounts[index]

@@ -23,6 +23,10 @@ of the residuals gathers those into a peak at the atom.  So, like the start
    level.  Then, at least ``min_distance_A`` apart and from every existing Gaussian
    (1 Å: closer than the shortest bond of any material, C-C 1.42 Å, so a missing neighbour
    of a fitted atom is not shadowed by it).
+5. given the hard core, the places an atom could be (inside the material, at least the hard
+   core from every Gaussian: :mod:`.holes`) are searched again at the level for their own
+   volume, lower than the whole volume's: a light atom whose neighbours took up part of its mass
+   leaves a weaker peak, but only there.  The two searches each hold ``false_alarm_rate``.
 
 Each site's mass follows from its smoothed value ``v``: a Gaussian atom of width ``sigma``
 reconstructed and smoothed by ``s`` peaks at ``M / (2 pi (sigma^2 + s^2))^(3/2)``.  A
@@ -37,6 +41,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gaussian_atoms_method.atoms import maxima, volume_filters
+from gaussian_atoms_method.atoms.holes import open_places, open_voxel_count
 from gaussian_atoms_method.atoms.peaks import random_field_threshold
 from gaussian_atoms_method.atoms.point_response import clean_peaks, point_response
 from gaussian_atoms_method.physics.noise import mad_std
@@ -56,6 +61,7 @@ def unexplained_sites(
     false_alarm_rate: float = 0.05,
     tilt_axis_angle_deg: float = 0.0,
     device: str = "cpu",
+    hard_core_A: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Sites of significant unexplained mass, strongest first.
 
@@ -69,6 +75,9 @@ def unexplained_sites(
         The Gaussians already there, Å about the tilt centre (world x, y, z).
     sigma_A : float
         Width of the atom a site is taken to be, Å (for its mass).
+    hard_core_A : float, optional
+        The material's hard core (Å): where given, the places an atom could be are searched at
+        their own level too (step 5 above).
 
     Returns
     -------
@@ -96,18 +105,29 @@ def unexplained_sites(
     data = volume_filters.gaussian_filter(volume_filters.as_volume(volume.data, device), smoothing_A / volume.spacing_A)
     noise = mad_std(data)
     level = random_field_threshold(data, false_alarm_rate) * noise
+    existing_A = np.asarray(existing_A, dtype=np.float64).reshape(-1, 3)
+    open_level = level
+    if hard_core_A is not None and np.isfinite(hard_core_A) and noise > 0:
+        n_open = open_voxel_count(data.shape, volume.index_to_A, existing_A, hard_core_A)
+        if n_open:
+            open_level = min(level, random_field_threshold(data, false_alarm_rate, n_voxels=n_open) * noise)
     peaks = (
-        maxima.separated_maxima_device(data, volume.spacing_A, min_distance_A, level)
+        maxima.separated_maxima_device(data, volume.spacing_A, min_distance_A, open_level)
         if noise > 0
         else np.zeros((0, 3), dtype=np.int64)
     )
+    values = maxima.values_at(data, peaks) if len(peaks) else np.zeros(0)
+    levels = np.full(len(peaks), level)
+    if open_level < level and len(peaks):
+        levels[open_places(volume.index_to_A(peaks), existing_A, hard_core_A)] = open_level
+        keep = values > levels
+        peaks, values, levels = peaks[keep], values[keep], levels[keep]
     if len(peaks) == 0:
         return np.zeros((0, 3)), np.zeros(0)
-    values = maxima.values_at(data, peaks)
     response, centre = point_response(
         residuals.shape, angles_deg, pixel_size_A, sigma_A, tilt_axis, smoothing_A, tilt_axis_angle_deg, device
     )
-    accepted, values = clean_peaks(peaks, values, response, centre, level, device)
+    accepted, values = clean_peaks(peaks, values, response, centre, levels, device)
     positions_A = volume.index_to_A(peaks[accepted])
     if len(existing_A):
         distance, _ = cKDTree(np.asarray(existing_A, dtype=np.float64)).query(positions_A, workers=-1)

@@ -92,6 +92,7 @@ def add_missing_atoms(model) -> int:
         return 0
     ls = model.normalisation.length_scale
     sigma_A = float(model.sigmas.median()) / ls
+    hard_core = model.density.hard_core(model.gauss_params)  # normalised units; infinite where unknown
     sites_A, masses = unexplained_sites(
         projections.cpu().numpy() - predicted,
         series.angles_deg,
@@ -103,6 +104,7 @@ def add_missing_atoms(model) -> int:
         false_alarm_rate=model.config.false_alarm_rate,
         tilt_axis_angle_deg=series.tilt_axis_angle_deg,
         device=str(model.means.device),
+        hard_core_A=hard_core / ls if np.isfinite(hard_core) else None,
     )
     means = torch.as_tensor(sites_A * ls, dtype=model.means.dtype).reshape(-1, 3)
     # With no site, add() notes that the residuals are clean (no more searches).
