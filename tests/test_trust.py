@@ -5,6 +5,7 @@ thresholds from the proof level."""
 import numpy as np
 
 from gaussian_atoms_method.atoms.atom_set import AtomSet
+from gaussian_atoms_method.atoms.calibration import Z95
 from gaussian_atoms_method.atoms.evidence import proof_level
 from gaussian_atoms_method.atoms.trust import depth_unlike_its_element, mass_unlike_one_atom, open_atoms, trust_words
 
@@ -51,20 +52,23 @@ def test_an_atom_of_a_mass_unlike_one_atom_is_open_and_said():
     assert "1 of a mass unlike one atom of their element" in trust_words(atoms)
 
 
-def test_an_atom_whose_depth_the_views_fix_far_less_than_its_elements_is_open_in_depth():
-    """Pd and Pt atoms whose rise one step along the beam scatters log-normally by 25% about 100
-    and 600 stated variances (the rise goes as the mass squared, so each element is its own
-    population): a Pd atom at 25 (a column that could shift) and a Pt atom at 100 (five spreads
-    below Pt, though Pd's median) are open, at the proof level for 8,002 atoms (4.5; the normal's
-    tail beyond it is 3e-6, so no right atom by chance); a rise above the median, a NaN (no
-    profile) and a Pd atom at 60 (two spreads) are not; a negative rise (the views prefer the
-    other place) is."""
+def test_an_atom_whose_depth_the_views_fix_far_less_than_its_elements_and_not_beyond_doubt_is_open_in_depth():
+    """Pd and Pt atoms whose rise one step along the beam scatters log-normally by 25% about 200
+    and 1,000 stated variances (the rise goes as the mass squared, so each element is its own
+    population), at the proof level for 8,000 atoms (4.5; the normal's tail beyond it is 3e-6,
+    so no right atom by chance).  Open: a Pt atom at 15 (far below Pt, under 4.5^2 = 20; pooled
+    with Pd it looks ordinary) and a negative rise (the views prefer the other place).  A Pd atom
+    at 40 is far below Pd but excluded at the proof level; a floor along the beam that makes the
+    stated variance 0.4 of the widened one reads it as 16, and opens it.  A rise above the median
+    and a NaN (no profile) never open."""
     rng = np.random.default_rng(2)
     species = np.repeat(["Pd", "Pt"], 4000)
-    rise = np.repeat([100.0, 600.0], 4000) * np.exp(rng.normal(0, 0.25, 8000))
-    rise[[10, 4010, 20, 30, 40, 50]] = [25.0, 100.0, 300.0, np.nan, 60.0, -3.0]
-    level = proof_level(len(rise) + 2)
-    unlike = depth_unlike_its_element(rise, level, species)
-    assert np.flatnonzero(unlike).tolist() == [10, 50, 4010]
-    pooled = depth_unlike_its_element(rise, level)
-    assert not pooled[4010]  # pooled with Pd, the Pt atom's rise looks ordinary
+    rise = np.repeat([200.0, 1000.0], 4000) * np.exp(rng.normal(0, 0.25, 8000))
+    rise[[10, 4010, 20, 30, 50]] = [40.0, 15.0, 300.0, np.nan, -3.0]
+    level = proof_level(len(rise))
+    assert np.flatnonzero(depth_unlike_its_element(rise, level, species)).tolist() == [50, 4010]
+    assert not depth_unlike_its_element(rise, level)[4010]  # pooled with Pd, the Pt atom's rise looks ordinary
+    half = np.full(len(rise), 0.1)
+    floor_z = 0.1 * np.sqrt(0.6) / Z95  # (Z95 floor / half)^2 = 0.6 of the widened variance
+    widened = depth_unlike_its_element(rise, level, species, half, floor_z)
+    assert np.flatnonzero(widened).tolist() == [10, 50, 4010]

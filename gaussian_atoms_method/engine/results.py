@@ -158,11 +158,13 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
         level = atoms.info["proof_level"]
         atoms.width_open = wider_than_one_atom(atoms.sigmas, atoms.width_std_A, level, atoms.species)
         atoms.mass_open = mass_unlike_one_atom(atoms.masses, level, atoms.species)
-        atoms.depth_open = np.asarray(atoms.depth_open, bool) | depth_unlike_its_element(
-            atoms.depth_rise, level, atoms.species
-        )
     if model.config.own_floor and not any(model.config.precision_floor_A) and atoms.proven is not None and len(atoms):
         widen_by_own_floor(model, atoms, reported, hard_core_A, registration)
+    if atoms.width_std_A is not None:  # after the floor: the rise is read in its unit
+        floor_z = atoms.info.get("precision_floor_A", model.config.precision_floor_A)[2]
+        atoms.depth_open = np.asarray(atoms.depth_open, bool) | depth_unlike_its_element(
+            atoms.depth_rise, atoms.info["proof_level"], atoms.species, atoms.depth_halfwidth_A, floor_z
+        )
     if atoms.proven is not None:  # after the floor, which may open an atom in depth
         atoms.trusted = ~open_atoms(atoms)
     # Each picture goes to a child as soon as its arrays are known (drawn there while this process
