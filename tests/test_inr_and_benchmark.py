@@ -4,6 +4,7 @@ import csv
 
 import numpy as np
 import pytest
+import torch
 
 from gaussian_atoms_method.atoms.atom_set import AtomSet
 from gaussian_atoms_method.harness.inr import fit_inr
@@ -13,8 +14,11 @@ from gaussian_atoms_method.harness.tracing import trace_atoms
 
 def test_inr_puts_atoms_where_our_convention_says():
     """Two atoms, clean data: after a short fit the traced peaks sit within 0.25 Å of the truth
-    (a sign or axis error would put them Å away)."""
+    (a sign or axis error would put them Å away); the caller's torch generator is left as it was
+    (the layers' initial weights come from the fit's own seed)."""
     atoms = AtomSet(np.array([[1.5, -1.0, 0.8], [-1.2, 0.9, -1.1]]), species=["Au", "Au"])
+    torch.manual_seed(123)
+    callers = torch.random.get_rng_state()
     sim = simulate_tilt_series(atoms, parse_tilts("-90:5:85"), potential="gaussian", detector_pixels=32, noise_std=0.0)
     vol = fit_inr(
         sim.projections,
@@ -28,6 +32,7 @@ def test_inr_puts_atoms_where_our_convention_says():
         density_scale=1.0,
         learning_rate=5e-3,
     )
+    assert torch.equal(torch.random.get_rng_state(), callers)
     idx, _ = trace_atoms(vol.data, vol.spacing_A)
     found = vol.index_to_A(idx)
     assert len(found) == 2

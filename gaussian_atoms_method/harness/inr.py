@@ -80,7 +80,6 @@ def fit_inr(
     Volume with ``data[x, y, z]`` of side ``max(H, W)``, voxel size ``pixel_size_A``, the tilt
     centre at the middle.
     """
-    torch.manual_seed(seed)
     projections = np.asarray(projections, dtype=np.float32)
     n_views, h, w = projections.shape
     norm = Normalisation.for_tilt_series(projections, pixel_size_A)
@@ -93,7 +92,9 @@ def fit_inr(
         detector_axes_from_tilts(angles_deg, tilt_axis, tilt_axis_angle_deg), dtype=torch.float32, device=device
     )
     target = torch.from_numpy(projections * np.float32(norm.data_scale)).to(device)
-    model = CoordinateMLP(frequency_std=frequency_std, hidden=hidden, layers=layers, seed=seed).to(device)
+    with torch.random.fork_rng(devices=[]):  # the layers' initial weights from ``seed``; the caller's generator kept
+        torch.manual_seed(seed)
+        model = CoordinateMLP(frequency_std=frequency_std, hidden=hidden, layers=layers, seed=seed).to(device)
     opt = torch.optim.Adam(model.parameters(), lr=learning_rate)
     sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=0.1 ** (1.0 / max(1, steps)))
     gen = torch.Generator(device="cpu").manual_seed(seed)
