@@ -17,7 +17,7 @@ import numpy as np
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 SAMPLES = 50_000
-"""Voxels drawn to count the open places (:func:`open_voxel_count`): the count's relative error
+"""Voxels drawn to count the open places (:meth:`OpenPlaces.voxel_count`): the count's relative error
 is about ``1 / sqrt(SAMPLES x share)``, 2% where the places hold 6% of the volume, and the level
 moves by a hundredth of a standard deviation for it."""
 
@@ -30,15 +30,26 @@ def inside_hull(points_A: np.ndarray, hull_of_A: np.ndarray) -> np.ndarray:
     >>> inside_hull(np.array([[0.5, 0.5, 0.5], [1.5, 0.5, 0.5]]), cube).tolist()
     [True, False]
     """
-    points = np.asarray(points_A, dtype=np.float64).reshape(-1, 3)
+    return _inside(np.asarray(points_A, dtype=np.float64).reshape(-1, 3), _facets(hull_of_A))
+
+
+def _facets(hull_of_A) -> np.ndarray | None:
+    """(F, 4) the outward facet planes ``n . x + d <= 0`` of the convex hull of ``hull_of_A``
+    (K, 3); None where it is flat or there are fewer than four points."""
     hull_of = np.asarray(hull_of_A, dtype=np.float64).reshape(-1, 3)
-    if len(hull_of) < 4 or len(points) == 0:
-        return np.zeros(len(points), bool)
+    if len(hull_of) < 4:
+        return None
     try:
-        hull = ConvexHull(hull_of)
+        return ConvexHull(hull_of).equations
     except QhullError:
+        return None
+
+
+def _inside(points: np.ndarray, facets: np.ndarray | None) -> np.ndarray:
+    """(M,) bool: each of ``points`` (M, 3) on the inner side of every one of ``facets``."""
+    if facets is None or len(points) == 0:
         return np.zeros(len(points), bool)
-    normals, offsets = hull.equations[:, :3], hull.equations[:, 3]
+    normals, offsets = facets[:, :3], facets[:, 3]
     inside = np.ones(len(points), bool)
     for start in range(0, len(points), 8192):  # (chunk, facets) at a time
         chunk = points[start : start + 8192]
@@ -46,34 +57,38 @@ def inside_hull(points_A: np.ndarray, hull_of_A: np.ndarray) -> np.ndarray:
     return inside
 
 
-def open_places(points_A: np.ndarray, existing_A: np.ndarray, hard_core_A: float) -> np.ndarray:
-    """(M,) bool: an atom could be at each of ``points_A`` (M, 3): inside the convex hull of the
-    Gaussians ``existing_A`` (K, 3) and at least ``hard_core_A`` from every one of them.
+class OpenPlaces:
+    """Whether an atom could be at given points: inside the convex hull of the Gaussians
+    ``existing_A`` (K, 3) and at least ``hard_core_A`` from every one of them.  The k-d tree and
+    the hull are built once; ``tree`` serves the caller's own distances to the Gaussians.
 
     >>> cube = 3.0 * np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float)
-    >>> open_places(np.array([[1.5, 1.5, 1.5], [0.5, 0.5, 0.5], [5.0, 1.5, 1.5]]), cube, 2.0).tolist()
+    >>> OpenPlaces(cube, 2.0)(np.array([[1.5, 1.5, 1.5], [0.5, 0.5, 0.5], [5.0, 1.5, 1.5]])).tolist()
     [True, False, False]
     """
-    points = np.asarray(points_A, dtype=np.float64).reshape(-1, 3)
-    existing = np.asarray(existing_A, dtype=np.float64).reshape(-1, 3)
-    if len(existing) < 4 or len(points) == 0:
-        return np.zeros(len(points), bool)
-    clear = cKDTree(existing).query(points)[0] >= hard_core_A
-    clear[clear] = inside_hull(points[clear], existing)
-    return clear
 
+    def __init__(self, existing_A: np.ndarray, hard_core_A: float):
+        self.existing = np.asarray(existing_A, dtype=np.float64).reshape(-1, 3)
+        self.hard_core_A = hard_core_A
+        self.tree = cKDTree(self.existing)
+        self.facets = _facets(self.existing)
 
-def open_voxel_count(
-    shape, index_to_A, existing_A: np.ndarray, hard_core_A: float, samples: int = SAMPLES, seed: int = 0
-) -> int:
-    """How many voxels of a volume of ``shape`` (``index_to_A``: voxel indices (M, 3) -> Å, the
-    frame of ``existing_A``) are places an atom could be (:func:`open_places`), counted on
-    ``samples`` voxels drawn with ``seed`` (the same volume gives the same count)."""
-    shape = np.asarray(shape, dtype=np.int64)
-    total = int(np.prod(shape))
-    if total == 0 or len(existing_A) < 4:
-        return 0
-    rng = np.random.default_rng(seed)
-    drawn = rng.integers(0, shape, size=(min(samples, total), 3))
-    share = float(np.mean(open_places(index_to_A(drawn), existing_A, hard_core_A)))
-    return int(round(share * total))
+    def __call__(self, points_A: np.ndarray) -> np.ndarray:
+        """(M,) bool for ``points_A`` (M, 3)."""
+        points = np.asarray(points_A, dtype=np.float64).reshape(-1, 3)
+        if self.facets is None or len(points) == 0:
+            return np.zeros(len(points), bool)
+        clear = self.tree.query(points)[0] >= self.hard_core_A
+        clear[clear] = _inside(points[clear], self.facets)
+        return clear
+
+    def voxel_count(self, shape, index_to_A, samples: int = SAMPLES, seed: int = 0) -> int:
+        """How many voxels of a volume of ``shape`` (``index_to_A``: voxel indices (M, 3) -> Å,
+        the frame of ``existing_A``) are open places, counted on ``samples`` voxels drawn with
+        ``seed`` (the same volume gives the same count)."""
+        shape = np.asarray(shape, dtype=np.int64)
+        total = int(np.prod(shape))
+        if total == 0 or self.facets is None:
+            return 0
+        drawn = np.random.default_rng(seed).integers(0, shape, size=(min(samples, total), 3))
+        return int(round(float(np.mean(self(index_to_A(drawn)))) * total))

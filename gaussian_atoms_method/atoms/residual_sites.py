@@ -41,7 +41,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gaussian_atoms_method.atoms import maxima, volume_filters
-from gaussian_atoms_method.atoms.holes import open_places, open_voxel_count
+from gaussian_atoms_method.atoms.holes import OpenPlaces
 from gaussian_atoms_method.atoms.peaks import random_field_threshold
 from gaussian_atoms_method.atoms.point_response import clean_peaks, point_response
 from gaussian_atoms_method.physics.noise import mad_std
@@ -106,9 +106,10 @@ def unexplained_sites(
     noise = mad_std(data)
     level = random_field_threshold(data, false_alarm_rate) * noise
     existing_A = np.asarray(existing_A, dtype=np.float64).reshape(-1, 3)
-    open_level = level
-    if hard_core_A is not None and np.isfinite(hard_core_A) and noise > 0:
-        n_open = open_voxel_count(data.shape, volume.index_to_A, existing_A, hard_core_A)
+    open_level, is_open = level, None
+    if hard_core_A is not None and np.isfinite(hard_core_A) and noise > 0 and len(existing_A):
+        is_open = OpenPlaces(existing_A, hard_core_A)
+        n_open = is_open.voxel_count(data.shape, volume.index_to_A)
         if n_open:
             open_level = min(level, random_field_threshold(data, false_alarm_rate, n_voxels=n_open) * noise)
     peaks = (
@@ -119,7 +120,7 @@ def unexplained_sites(
     values = maxima.values_at(data, peaks) if len(peaks) else np.zeros(0)
     levels = np.full(len(peaks), level)
     if open_level < level and len(peaks):
-        levels[open_places(volume.index_to_A(peaks), existing_A, hard_core_A)] = open_level
+        levels[is_open(volume.index_to_A(peaks))] = open_level
         keep = values > levels
         peaks, values, levels = peaks[keep], values[keep], levels[keep]
     if len(peaks) == 0:
@@ -130,6 +131,7 @@ def unexplained_sites(
     accepted, values = clean_peaks(peaks, values, response, centre, levels, device)
     positions_A = volume.index_to_A(peaks[accepted])
     if len(existing_A):
-        distance, _ = cKDTree(np.asarray(existing_A, dtype=np.float64)).query(positions_A, workers=-1)
+        tree = is_open.tree if is_open is not None else cKDTree(existing_A)
+        distance, _ = tree.query(positions_A, workers=-1)
         positions_A, values = positions_A[distance > min_distance_A], values[distance > min_distance_A]
     return positions_A, values * (2 * math.pi * (sigma_A**2 + smoothing_A**2)) ** 1.5
