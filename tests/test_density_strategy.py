@@ -508,6 +508,31 @@ def test_settling_mid_run_applies_the_final_prune_but_spares_fresh_additions():
     assert control.descendants(700) == 1 and control.descendants(0) == 0
 
 
+def test_a_weak_addition_still_gaining_mass_holds_the_final_rules_back():
+    """A residual search's addition at 2 sigma beside an atom (white noise: one standard
+    deviation for any mass): unsettled at the first check after the search (nothing to compare),
+    settled while it holds its mass, unsettled once it gains 3 standard deviations while under
+    the family-wise level (5.33), settled again when it gains while over it."""
+    params, opts, control = _setup([[0.0, 0.0, 0.0]], sigma_A=0.006)
+    control.length_scale = 0.01
+    _with_noise(control, pixel_size=0.0025)
+    z_unit = float(control.mass_significance(params)[0])
+    with torch.no_grad():
+        params["log_amplitudes"][:] = math.log(110.0 / z_unit)
+    control.state.step = 700
+    control.add(
+        params, opts, torch.tensor([[-0.2, 0.0, 0.0]], dtype=torch.float64), 0.006, _mass(params, control)[:1] * 2 / 110
+    )
+    control.state.searched_at = 700
+    assert float(control.mass_significance(params)[1]) == pytest.approx(2.0, rel=1e-6)
+    assert not control.additions_settled(params)
+    assert control.additions_settled(params)
+    for z, settled in ((5.0, False), (5.0, True), (20.0, True)):
+        with torch.no_grad():
+            params["log_amplitudes"][1] = math.log(z / z_unit)
+        assert control.additions_settled(params) == settled
+
+
 def test_the_worth_a_run_must_settle_is_that_of_the_gaussians_in_the_reported_field():
     """Three equal Gaussians, the third beyond a film's reported field (inside the volume): it
     holds an atom's worth but none the convergence test counts; the others keep theirs."""

@@ -24,9 +24,16 @@ of the residuals gathers those into a peak at the atom.  So, like the start
    (1 Å: closer than the shortest bond of any material, C-C 1.42 Å, so a missing neighbour
    of a fitted atom is not shadowed by it).
 5. given the hard core, the places an atom could be (inside the material, at least the hard
-   core from every Gaussian: :mod:`.holes`) are searched again at the level for their own
-   volume, lower than the whole volume's: a light atom whose neighbours took up part of its mass
-   leaves a weaker peak, but only there.  The two searches each hold ``false_alarm_rate``.
+   core from every Gaussian: :mod:`.holes`) are searched at a level of their own: a light atom
+   whose neighbours took up part of its mass leaves a weaker peak, but only there.  That level
+   is the Benjamini-Hochberg one over the peaks there (:func:`~.peaks.discovery_level`: no more
+   noise peaks expected above it than ``false_alarm_rate`` of the peaks above it), never above
+   the family-wise level for their own volume: where many atoms are missing, a few noise sites
+   among them cost a refit, and the final prune judges every site.  Outside those places the
+   whole volume's family-wise level holds: there the limited tilt range's streaks of strong
+   missing atoms read as peaks (seven on an 11 Å Au sphere missing 40 atoms, at the discovery
+   level, none at the family-wise one).  On a 16,000-atom Ni-Pd-Pt particle through ADF physics
+   the found atoms rose from 0.988 (Ni 0.963) to 0.999 (Ni 0.996), the false ones fell.
 
 Each site's mass follows from its smoothed value ``v``: a Gaussian atom of width ``sigma``
 reconstructed and smoothed by ``s`` peaks at ``M / (2 pi (sigma^2 + s^2))^(3/2)``.  A
@@ -42,7 +49,7 @@ from scipy.spatial import cKDTree
 
 from gaussian_atoms_method.atoms import maxima, volume_filters
 from gaussian_atoms_method.atoms.holes import OpenPlaces
-from gaussian_atoms_method.atoms.peaks import random_field_threshold
+from gaussian_atoms_method.atoms.peaks import discovery_level, level_for, resolution_elements
 from gaussian_atoms_method.atoms.point_response import clean_peaks, point_response
 from gaussian_atoms_method.physics.noise import mad_std
 from gaussian_atoms_method.physics.reconstruction import reconstruct
@@ -104,25 +111,29 @@ def unexplained_sites(
     )
     data = volume_filters.gaussian_filter(volume_filters.as_volume(volume.data, device), smoothing_A / volume.spacing_A)
     noise = mad_std(data)
-    level = random_field_threshold(data, false_alarm_rate) * noise
     existing_A = np.asarray(existing_A, dtype=np.float64).reshape(-1, 3)
-    open_level, is_open = level, None
-    if hard_core_A is not None and np.isfinite(hard_core_A) and noise > 0 and len(existing_A):
+    if not noise > 0:
+        return np.zeros((0, 3)), np.zeros(0)
+    whole = resolution_elements(data)
+    family_wise = level_for(whole, false_alarm_rate)
+    # No more peaks than cells of min_distance_A: the lowest level the discovery rule can reach.
+    cells = max(float(np.prod(data.shape)) * (volume.spacing_A / min_distance_A) ** 3, 1.0)
+    floor = level_for(whole, false_alarm_rate * cells)
+    peaks = maxima.separated_maxima_device(data, volume.spacing_A, min_distance_A, floor * noise)
+    values = maxima.values_at(data, peaks) if len(peaks) else np.zeros(0)
+    levels = np.full(len(peaks), family_wise)
+    is_open = None
+    if hard_core_A is not None and np.isfinite(hard_core_A) and len(existing_A) and len(peaks):
         is_open = OpenPlaces(existing_A, hard_core_A)
         n_open = is_open.voxel_count(data.shape, volume.index_to_A)
-        if n_open:
-            open_level = min(level, random_field_threshold(data, false_alarm_rate, n_voxels=n_open) * noise)
-    peaks = (
-        maxima.separated_maxima_device(data, volume.spacing_A, min_distance_A, open_level)
-        if noise > 0
-        else np.zeros((0, 3), dtype=np.int64)
-    )
-    values = maxima.values_at(data, peaks) if len(peaks) else np.zeros(0)
-    levels = np.full(len(peaks), level)
-    if open_level < level and len(peaks):
-        levels[is_open(volume.index_to_A(peaks))] = open_level
-        keep = values > levels
-        peaks, values, levels = peaks[keep], values[keep], levels[keep]
+        inside = is_open(volume.index_to_A(peaks))
+        if n_open and inside.any():
+            part = max(whole * n_open / float(np.prod(data.shape)), 1.0)
+            level = discovery_level(values[inside] / noise, part, false_alarm_rate, level_for(part, false_alarm_rate))
+            levels[inside] = np.minimum(levels[inside], level)
+    levels *= noise
+    keep = values > levels
+    peaks, values, levels = peaks[keep], values[keep], levels[keep]
     if len(peaks) == 0:
         return np.zeros((0, 3)), np.zeros(0)
     response, centre = point_response(

@@ -88,6 +88,8 @@ def at_check(model, step: int, last_step: int) -> bool:
     if step >= last_step or not (cfg.stop_when_converged or search):
         return False
     settled = model.converged(step)
+    if check.checks(step) and not density.additions_settled(model.gauss_params):
+        settled = False  # a search's additions still gaining their mass: the final rules wait for them
     tolerated = check.changed_fraction * model.num_points
     if search and (settled or last_search):
         if settled and density.state.searched_at and density.descendants(density.state.searched_at) <= tolerated:
