@@ -32,8 +32,10 @@ of the residuals gathers those into a peak at the atom.  So, like the start
    among them cost a refit, and the final prune judges every site.  Outside those places the
    whole volume's family-wise level holds: there the limited tilt range's streaks of strong
    missing atoms read as peaks (seven on an 11 Å Au sphere missing 40 atoms, at the discovery
-   level, none at the family-wise one).  On a 16,000-atom Ni-Pd-Pt particle through ADF physics
-   the found atoms rose from 0.988 (Ni 0.963) to 0.999 (Ni 0.996), the false ones fell.
+   level, none at the family-wise one).  With the wait for weak additions still gaining mass
+   (:meth:`..density.strategy.DensityControl.additions_settled`), on a 16,000-atom Ni-Pd-Pt
+   particle through ADF physics the found atoms rose from 0.988 (Ni 0.963) to 0.999 (Ni 0.996)
+   at the same 0.0076 false atoms per atom.
 
 Each site's mass follows from its smoothed value ``v``: a Gaussian atom of width ``sigma``
 reconstructed and smoothed by ``s`` peaks at ``M / (2 pi (sigma^2 + s^2))^(3/2)``.  A
