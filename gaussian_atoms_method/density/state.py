@@ -30,10 +30,10 @@ class DensityState:
     searched_at: int = 0
     """The step of the last residual search that added Gaussians (0: none yet)."""
     settled_since_search: bool = False
+    """The final rules were applied mid-run since that search (:meth:`.DensityControl.settle`)."""
     addition_masses: tuple | None = None
     """(search step, (K, 3) positions, (K,) masses) of that search's Gaussians at the last check
     (:meth:`.DensityControl.additions_settled`)."""
-    """The final rules were applied mid-run since that search (:meth:`.DensityControl.settle`)."""
     hard_core_read: tuple = (0, math.inf)
     """The last reading from the atoms: (Gaussians then, hard core normalised)."""
     joined_close: int = 0
