@@ -118,19 +118,21 @@ def unexplained_sites(
         return np.zeros((0, 3)), np.zeros(0)
     whole = resolution_elements(data)
     family_wise = level_for(whole, false_alarm_rate)
-    # No more peaks than cells of min_distance_A: the lowest level the discovery rule can reach.
-    cells = max(float(np.prod(data.shape)) * (volume.spacing_A / min_distance_A) ** 3, 1.0)
-    floor = level_for(whole, false_alarm_rate * cells)
-    peaks = maxima.separated_maxima_device(data, volume.spacing_A, min_distance_A, floor * noise)
-    values = maxima.values_at(data, peaks) if len(peaks) else np.zeros(0)
-    levels = np.full(len(peaks), family_wise)
-    is_open = None
-    if hard_core_A is not None and np.isfinite(hard_core_A) and len(existing_A) and len(peaks):
+    search_level, is_open, part = family_wise, None, None
+    if hard_core_A is not None and np.isfinite(hard_core_A) and len(existing_A):
         is_open = OpenPlaces(existing_A, hard_core_A)
         n_open = is_open.voxel_count(data.shape, volume.index_to_A)
-        inside = is_open(volume.index_to_A(peaks))
-        if n_open and inside.any():
+        if n_open:
             part = max(whole * n_open / float(np.prod(data.shape)), 1.0)
+            # No more peaks there than cells of min_distance_A: the lowest level the discovery rule can reach.
+            cells = max(n_open * (volume.spacing_A / min_distance_A) ** 3, 1.0)
+            search_level = min(family_wise, level_for(part, false_alarm_rate * cells))
+    peaks = maxima.separated_maxima_device(data, volume.spacing_A, min_distance_A, search_level * noise)
+    values = maxima.values_at(data, peaks) if len(peaks) else np.zeros(0)
+    levels = np.full(len(peaks), family_wise)
+    if part is not None and len(peaks):
+        inside = is_open(volume.index_to_A(peaks))
+        if inside.any():
             level = discovery_level(values[inside] / noise, part, false_alarm_rate, level_for(part, false_alarm_rate))
             levels[inside] = np.minimum(levels[inside], level)
     levels *= noise
