@@ -27,10 +27,12 @@ class Simulate:
     """Element of the fcc sphere (--particle sphere; default Au)."""
     radius_A: Optional[float] = None
     """Radius of the fcc sphere, Å (--particle sphere; default 10)."""
-    potential: Literal["lobato", "adf", "gaussian"] = "lobato"
+    potential: Literal["lobato", "adf", "phase", "gaussian"] = "lobato"
     """abTEM Lobato projected potential (independent physics); adf: each atom a power of its Lobato
     projected potential with ADF-STEM's Z^1.7 contrast, the probe drawn with it (independent physics
-    too); or the quick Gaussian model (the fit's own: for demos and unit tests, not evidence). With
+    too); phase: ptychographic phase images in rad (each atom its projected potential through the
+    aperture's double overlap and the source, --voltage-kV --semiangle-mrad --source-fwhm-A; the
+    noise of --dose-e-per-A2); or the quick Gaussian model (the fit's own: for demos and unit tests, not evidence). With
     --like, lobato and adf both draw ADF atoms, gaussian a Gaussian of --atom-sigma-A."""
     tilts: str = "limited"
     """Tilt scheme: full (-90:1:90), limited (-70:3:68), sampled, wedge, 'start:step:stop' or a comma list (deg)."""
@@ -76,6 +78,10 @@ class Simulate:
     """How much the floor varies across a view (a random ramp), as a fraction of the floor."""
     noise_std: float = 50.0
     """Standard deviation of the additive Gaussian noise, projection units (V·Å for Lobato)."""
+    dose_e_per_A2: Optional[float] = None
+    """With --potential phase: the electrons per Å² of each view, whose phase noise the views get
+    (1 / sqrt(2 N) rad for N electrons on a pixel, spread over the aperture's band) instead of
+    --noise-std."""
     field_of_view_A: Optional[float] = None
     """Side of the detector, Å, when it sees less than the object (a film): the views are
     projected through all of it and cropped; the truth holds the atoms above the detector.
@@ -168,6 +174,7 @@ class Simulate:
             floor_fraction=self.floor_fraction,
             floor_variation=self.floor_variation,
             field_of_view_A=self.field_of_view_A,
+            dose_e_per_A2=self.dose_e_per_A2,
         )
         truth = sim.truth.shifted(origin)
         write_tilt_series(
@@ -183,7 +190,8 @@ class Simulate:
                     "particle": self.particle,
                     "scale": self.particle_scale,
                     "potential": self.potential,
-                    "noise_std": self.noise_std,
+                    "noise_std": sim.noise_std,
+                    "dose_e_per_A2": self.dose_e_per_A2,
                     "peak_to_noise": sim.peak_to_noise,
                     "blur_sigma_A": self.blur_sigma_A,
                     "probe": self.probe or "gaussian",
@@ -204,7 +212,7 @@ class Simulate:
         print(
             f"wrote {self.output}: {len(truth)} atoms, {n} tilts "
             f"({np.min(sim.angles_deg):g}..{np.max(sim.angles_deg):g} deg), "
-            f"{h}x{w} px at {self.pixel_size_A} Å, {self.potential} potential, noise {self.noise_std:g}, peak-to-noise "
+            f"{h}x{w} px at {self.pixel_size_A} Å, {self.potential} potential, noise {sim.noise_std:g}, peak-to-noise "
             f"{sim.peak_to_noise:.1f}"
         )
 
@@ -217,6 +225,11 @@ class Simulate:
         from gaussian_atoms_method.atoms.atom_set import read_atoms
         from gaussian_atoms_method.harness.replica import physical_truth, write_replica
 
+        if self.potential == "phase" or self.dose_e_per_A2 is not None:
+            raise ValueError(
+                "--like draws ADF views of a real series: --potential phase and --dose-e-per-A2 apply to the named "
+                "particles"
+            )
         if self.noise_over_atom < 1.0 or (self.noise_over_atom > 1.0 and self.noise_sigma_A <= 0):
             raise ValueError(
                 f"--noise-over-atom {self.noise_over_atom:g}: expected 1 or more and, above 1, with the atoms' width "

@@ -1,16 +1,20 @@
 """Simulated tilt series with known atoms.
 
-Two potentials:
+The potentials:
 
 * ``lobato`` (the accuracy harness): abTEM's projected potentials with the Lobato
   parametrisation, computed for the atoms rotated to each tilt.  Independent physics: sharp
   cores and long tails, nothing like our Gaussians, so fitting it is no inverse crime.
   Needs the optional extra ``gaussian-atoms[sim]`` (abTEM).
+* ``adf`` and ``phase``: ADF views (a power of each atom's Lobato projected potential, ``Z^1.7``
+  contrast, the probe from its optics, :mod:`~gaussian_atoms_method.physics.adf`) and
+  ptychographic phase images (the projected potential through the aperture's transfer, rad, the
+  phase noise of a dose, :mod:`~gaussian_atoms_method.physics.phase`), drawn without abTEM.
 * ``gaussian`` (demos and unit tests): every atom an isotropic 3D Gaussian (width
   ``atom_sigma_A``, integrated potential proportional to the atomic number), projected exactly.
 
-Both are then blurred by a Gaussian probe and get additive Gaussian noise of a stated
-standard deviation, in projected-potential units (V·Å for Lobato).
+``lobato`` and ``gaussian`` are then blurred by a probe; all get additive Gaussian noise of a
+stated standard deviation, in projection units (V·Å for Lobato), or a phase image the noise of its dose.
 """
 
 from __future__ import annotations
@@ -224,6 +228,7 @@ def simulate_tilt_series(
     floor_variation: float = 0.0,
     field_of_view_A: float | None = None,
     optics=None,
+    dose_e_per_A2: float | None = None,
 ) -> SimulatedTiltSeries:
     """Project atoms (positions in Å about the tilt centre), blur, add a floor, add noise.
 
@@ -232,10 +237,12 @@ def simulate_tilt_series(
     atoms : AtomSet
         Positions relative to the tilt centre, Å, with species.
     angles_deg : (N,) array
-    potential : {"lobato", "adf", "gaussian"}
+    potential : {"lobato", "adf", "phase", "gaussian"}
         abTEM's Lobato projected potential; ADF views (each atom a power of its Lobato projected
         potential with ADF-STEM's ``Z^1.7`` contrast, :mod:`.adf`, the probe drawn with the atoms:
-        physics the fit does not share); or the quick Gaussian model.
+        physics the fit does not share); ptychographic phase images (rad: each atom its projected
+        potential times the interaction constant, through the aperture's double overlap and the
+        source, :mod:`.phase`; ``probe`` and ``blur_sigma_A`` unused); or the quick Gaussian model.
     pixel_size_A : float
     detector_pixels : int, optional
         Side of the square detector; by default the particle's extent plus ``margin_A``.
@@ -260,6 +267,10 @@ def simulate_tilt_series(
 
     optics : ProbeOptics, optional
         The aberrated probe's optics (default: :class:`.microscope.ProbeOptics`' defaults).
+    dose_e_per_A2 : float, optional
+        ``potential="phase"`` only: the noise is the phase noise of this dose per view
+        (:func:`.phase.phase_noise`) instead of ``noise_std``; ``noise_std`` is then returned as
+        its standard deviation per pixel.
 
     Returns
     -------
@@ -278,12 +289,16 @@ def simulate_tilt_series(
     elif potential == "lobato":
         clean = project_lobato_potential(atoms, angles_deg, pixel_size_A, detector_pixels, tilt_axis)
         widths = None
-    elif potential == "adf":
-        clean = _adf_views(atoms, angles_deg, pixel_size_A, detector_pixels, tilt_axis, probe, blur_sigma_A, optics)
+    elif potential in ("adf", "phase"):
+        clean = _adf_views(
+            atoms, angles_deg, pixel_size_A, detector_pixels, tilt_axis, probe, blur_sigma_A, optics, potential
+        )
         widths = None
     else:
-        raise ValueError(f"potential must be 'lobato', 'adf' or 'gaussian', got {potential!r}")
-    if potential == "adf":
+        raise ValueError(f"potential must be 'lobato', 'adf', 'phase' or 'gaussian', got {potential!r}")
+    if dose_e_per_A2 is not None and potential != "phase":
+        raise ValueError("a dose draws the phase noise of a phase image: give potential='phase', or noise_std")
+    if potential in ("adf", "phase"):
         blurred = clean  # the probe is drawn with the atoms
     elif probe == "aberrated":
         from gaussian_atoms_method.physics.microscope import ProbeOptics, convolve_views
@@ -299,7 +314,16 @@ def simulate_tilt_series(
         from gaussian_atoms_method.physics.microscope import add_varying_floor
 
         blurred = add_varying_floor(blurred, floor_fraction, floor_variation, seed)
-    noisy = blur_and_noise(blurred, pixel_size_A, 0.0, noise_std, seed)
+    if dose_e_per_A2 is not None:
+        from gaussian_atoms_method.physics.microscope import ProbeOptics
+        from gaussian_atoms_method.physics.phase import phase_noise
+
+        drawn = phase_noise(
+            blurred.shape, dose_e_per_A2, pixel_size_A, optics or ProbeOptics(), np.random.default_rng(seed)
+        )
+        noisy, noise_std = blurred + drawn, float(drawn.std())
+    else:
+        noisy = blur_and_noise(blurred, pixel_size_A, 0.0, noise_std, seed)
     return SimulatedTiltSeries(
         projections=noisy.astype(np.float32),
         angles_deg=np.asarray(angles_deg, dtype=np.float64),
@@ -310,19 +334,29 @@ def simulate_tilt_series(
     )
 
 
-def _adf_views(atoms, angles_deg, pixel_size_A, detector_pixels, tilt_axis, probe, blur_sigma_A, optics):
+def _adf_views(atoms, angles_deg, pixel_size_A, detector_pixels, tilt_axis, probe, blur_sigma_A, optics, contrast):
     """ADF views (:func:`.adf.adf_projections`: each atom a power of its Lobato projected potential
-    with intensity ``Z^1.7``) through the probe, on a square detector centred on the tilt centre."""
-    from gaussian_atoms_method.physics.adf import adf_projections, adf_weights
+    with intensity ``Z^1.7``) through the probe, or phase images (``contrast="phase"``: each atom
+    its projected potential, :mod:`.phase`), on a square detector centred on the tilt centre."""
+    from gaussian_atoms_method.physics.adf import ADF_POTENTIAL_POWER, adf_projections, adf_weights
     from gaussian_atoms_method.physics.microscope import ProbeOptics, probe_transfer
+    from gaussian_atoms_method.physics.phase import phase_weights, ptychographic_transfer
 
-    transfer = probe_transfer(probe, optics or ProbeOptics(), blur_sigma_A)
+    optics = optics or ProbeOptics()
+    if contrast == "phase":
+        transfer, weights, power = ptychographic_transfer(optics), phase_weights(atoms.species, optics.voltage_kV), 1.0
+    else:
+        transfer, weights, power = (
+            probe_transfer(probe, optics, blur_sigma_A),
+            adf_weights(atoms.species),
+            ADF_POTENTIAL_POWER,
+        )
     centre = (detector_pixels - 1) / 2.0
     axes = detector_axes_of(angles_deg, tilt_axis)
     shape = (detector_pixels, detector_pixels)
     return adf_projections(
-        atoms.positions, atoms.species, adf_weights(atoms.species), axes, shape, pixel_size_A, (centre, centre),
-        probe=transfer,
+        atoms.positions, atoms.species, weights, axes, shape, pixel_size_A, (centre, centre), probe=transfer,
+        power=power,
     )  # fmt: skip
 
 
@@ -355,7 +389,7 @@ def true_potential_volume(
     """The true potential on a ``voxels``^3 grid about the tilt centre, blurred like the data (float32)."""
     from gaussian_atoms_method.harness.metrics import voxelise_gaussians
 
-    if potential == "lobato":
+    if potential in ("lobato", "phase"):  # a phase image is the potential times a constant
         return lobato_potential_volume(truth, voxel_size_A, voxels, blur_sigma_A)
     # Gaussian model: blurring a Gaussian atom gives a Gaussian of the combined width and mass.
     sigmas, amplitudes = gaussian_potential_parameters(truth.species, atom_sigma_A)

@@ -101,9 +101,10 @@ def adf_projections(
     probe=None,
     oversample: int = 2,
     method: str = "exact",
+    power: float = ADF_POTENTIAL_POWER,
 ) -> np.ndarray:
-    """(V, H, W) incoherent ADF views of atoms: each atom's image the power
-    :data:`ADF_POTENTIAL_POWER` of its element's projected potential (``parametrization``,
+    """(V, H, W) incoherent ADF views of atoms: each atom's image the power ``power``
+    (:data:`ADF_POTENTIAL_POWER`) of its element's projected potential (``parametrization``,
     :func:`adf_kernel_transform`), carrying the integrated intensity ``weights`` (per Å² of the
     detector: the same units as a Gaussian of integrated mass ``weights``).
 
@@ -140,6 +141,9 @@ def adf_projections(
         a grid :data:`DEPOSIT_OVERSAMPLE` times finer than the detector (cloud in cell), that
         sharing's own transfer divided out, ``O(N + G^2 log G)`` (:func:`_deposit_spectrum`);
         ``oversample`` is then not used.
+    power : float
+        The power of the projected potential that is an atom's image (1: the potential itself, as
+        a phase image draws it, :mod:`.phase`).
     """
     if method not in ("exact", "deposit"):
         raise ValueError(f"method must be 'exact' or 'deposit', got {method!r}")
@@ -160,7 +164,7 @@ def adf_projections(
     blur = np.ones(grid) if probe is None else probe(grid, fine)
     transfers = {}
     for element in sorted(set(species.tolist())):
-        k, t = adf_kernel_transform(element, parametrization, k_max=float(k_abs.max()) * 1.001)
+        k, t = adf_kernel_transform(element, parametrization, power, k_max=float(k_abs.max()) * 1.001)
         transfer = np.interp(k_abs, k, t) * blur
         transfers[element] = (species == element, transfer.astype(np.complex64) if method == "deposit" else transfer)
     out = np.zeros((len(detector_axes), h, w), dtype=np.float64)
