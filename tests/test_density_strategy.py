@@ -341,7 +341,9 @@ def test_likelihood_change_matches_the_pixel_chi_square_and_tells_a_split_atom_f
     ``sum w [(r + p - s)^2 - r^2]`` to 1e-6 of the merge's energy (the energy is an integral;
     on pixels 2.4 times finer than the width the pixel sum of a Gaussian matches it to far
     better than that).  Mid-run (``settle`` without the residual, as the run's checks call it)
-    the pair stays two either way: the likelihood test waits for the end."""
+    the pair stays two either way: the likelihood test waits for the end.  Three atoms 4 Å away,
+    each of the truth's atom mass, make the pair hold one typical atom's mass (one atom) or two
+    halves (two atoms at half the mass are still two by the likelihood alone)."""
     from gaussian_atoms_method.physics.projector import project_gaussians
 
     ls = 0.05  # normalised units per Å: the 16 Å field inside the volume
@@ -349,13 +351,17 @@ def test_likelihood_change_matches_the_pixel_chi_square_and_tells_a_split_atom_f
     axes = _series_axes(dirs)
     coords = (torch.arange(64, dtype=torch.float64) - 31.5) * 0.25 * ls
     pair = [[0.0, 0.0, -0.75 * ls], [0.0, 0.0, 0.75 * ls]]
-    params, opts, control = _setup(pair, sigma_A=0.6 * ls, amplitude=1.0 / ls)  # projected peak 1.5
+    others = [[4.0 * ls, 0.0, 0.0], [-4.0 * ls, 0.0, 0.0], [0.0, 4.0 * ls, 0.0]]
+    params, opts, control = _setup(pair + others, sigma_A=0.6 * ls, amplitude=1.0 / ls)  # projected peak 1.5
+    with torch.no_grad():
+        params["log_amplitudes"][2:] += math.log(2.0)  # whole atoms: the pair holds one atom's mass
     control.length_scale = ls
     _with_noise(control, read_var=0.01, pixel_size=0.25 * ls, n_views=len(dirs), view_dirs=dirs)
     sig, amp = widths(params, control.min_log_sigma).detach(), amplitudes(params).detach()
     model = project_gaussians(params["means"].detach(), sig, amp, axes, coords, coords)
     if truth == "one atom":
-        clean = project_gaussians(torch.zeros(1, 3, dtype=torch.float64), sig[:1], 2.0 * amp[:1], axes, coords, coords)
+        atoms = torch.cat([torch.zeros(1, 3, dtype=torch.float64), params["means"].detach()[2:]])
+        clean = project_gaussians(atoms, sig[1:], torch.cat([2.0 * amp[:1], amp[2:]]), axes, coords, coords)
     else:
         clean = model
     data = clean + 0.1 * torch.randn(clean.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
@@ -373,8 +379,9 @@ def test_likelihood_change_matches_the_pixel_chi_square_and_tells_a_split_atom_f
     change = control.likelihood_change(params, np.array([[0, 1]]), correlations)[0]
     # equal masses and widths
     merged = project_gaussians(torch.zeros(1, 3, dtype=torch.float64), sig[:1], 2.0 * amp[:1], axes, coords, coords)
-    pixel = float((weight * ((residual + model - merged) ** 2 - residual**2)).sum())
-    energy = float((weight * (model - merged) ** 2).sum())
+    pair_model = project_gaussians(params["means"].detach()[:2], sig[:2], amp[:2], axes, coords, coords)
+    pixel = float((weight * ((residual + pair_model - merged) ** 2 - residual**2)).sum())
+    energy = float((weight * (pair_model - merged) ** 2).sum())
     assert change == pytest.approx(pixel, abs=1e-6 * energy)
     if truth == "one atom":
         assert change < 0
@@ -382,15 +389,15 @@ def test_likelihood_change_matches_the_pixel_chi_square_and_tells_a_split_atom_f
         from scipy.stats import chi2
 
         assert change > chi2.isf(control.false_alarm_rate / control.cells(), df=5)
-    assert control.settle(params, opts) == 0 and params["means"].shape[0] == 2
+    assert control.settle(params, opts) == 0 and params["means"].shape[0] == 5
     # finalize with the residual: the split atom becomes one Gaussian with the whole mass at the
     # pair's centre; the two atoms stay two.
     total = float(_mass(params, control).sum())
     control.finalize(params, opts, correlations=correlations)
-    assert params["means"].shape[0] == (1 if truth == "one atom" else 2)
+    assert params["means"].shape[0] == (4 if truth == "one atom" else 5)
     assert float(_mass(params, control).sum()) == pytest.approx(total, rel=1e-9)
     if truth == "one atom":
-        assert float(params["means"].detach().abs().max()) < 1e-12  # at the pair's centre of mass
+        assert float(params["means"].detach().norm(dim=1).min()) < 1e-12  # at the pair's centre of mass
 
 
 def _jittered_lattice(rng) -> np.ndarray:

@@ -78,9 +78,10 @@ def _control_over(positions_A: np.ndarray, amplitudes: np.ndarray | None = None)
 
 
 def test_a_too_close_pair_needs_the_prior_odds_to_stay_two(monkeypatch):
-    """Two pairs whose merge costs the same chi-square, just above the usual level: the one
-    closer than the material's shortest distance merges (its level is raised by twice the log
-    prior odds against so close a pair), the one farther apart stays two."""
+    """Two pairs of an atom and a fragment of 0.4 of its mass (a misfit's leftover) whose merge
+    costs the same chi-square, just above the usual level: the one closer than the material's
+    shortest distance merges (its level is raised by twice the log prior odds against so close a
+    pair), the one farther apart stays two."""
     from scipy.stats import chi2
 
     from gaussian_atoms_method.density.strategy import DensityControl
@@ -91,7 +92,7 @@ def test_a_too_close_pair_needs_the_prior_odds_to_stay_two(monkeypatch):
         lattice[0] + [0, 0, 1.2],
         lattice[-1] + [0, 0, 2.4],
     )
-    params, optimizers, control = _control_over(np.concatenate([lattice, [close, far]]))
+    params, optimizers, control = _control_over(np.concatenate([lattice, [close, far]]), np.r_[np.ones(343), 0.4, 0.4])
     n = params["means"].shape[0]
     distance, prior = control.shortest_distance(params)
     assert 2.2 <= distance / 0.01 <= 2.5 and prior(np.array([0.012]))[0] > 5.0  # one pair in 345 atoms is that close
@@ -217,3 +218,29 @@ def test_the_close_packing_has_a_measured_glass_share_of_close_pairs():
     nearest = cKDTree(positions).query(positions, k=2)[0][:, 1]
     assert 0.01 <= (nearest < 2.0).mean() <= 0.03
     assert 0.25 <= (nearest < 2.2).mean() <= 0.35
+
+
+def test_two_atoms_mass_a_bond_apart_stays_two_whatever_the_likelihood(monkeypatch):
+    """Two pairs 1.46 Å apart (a carbon bond) in a lattice of 2.5 Å, both of which the likelihood
+    wants as one (a merge would gain chi-square: through a probe the fit does not share, two
+    bonded atoms can fit that way at a low dose): the pair of two halves (one atom's mass) becomes
+    one; the pair of two whole atoms stays two, as the hard-core join keeps it (a Gaussian of two
+    atoms' mass is one the split proposes again)."""
+    from gaussian_atoms_method.density.strategy import DensityControl
+
+    lattice = _lattice(3)
+    light_at, heavy_at = lattice[0], lattice[-1]
+    pairs = [light_at - [0, 0, 1.46], heavy_at + [0, 0, 1.46]]  # outward from the lattice's corners
+    amplitudes = np.r_[np.ones(len(lattice)), 1.0, 1.0]
+    amplitudes[0] = 0.5
+    amplitudes[-3] = 1.0
+    amplitudes[-2] = 0.5  # the first pair: two halves
+    params, optimizers, control = _control_over(np.concatenate([lattice, pairs]), amplitudes)
+    assert control.shortest_distance(params)[0] / 0.01 > 1.46  # no prior odds against either pair
+    monkeypatch.setattr(DensityControl, "likelihood_change", lambda self, p, pairs, c: np.full(len(pairs), -1.0))
+    removed = control.merge_by_likelihood(params, optimizers, correlations=lambda m, s: None, max_rounds=1)
+    assert removed == 1
+    left = params["means"].detach().numpy() / 0.01
+    assert np.min(np.linalg.norm(left - (light_at - [0, 0, 0.73]), axis=1)) < 1e-9  # the halves' centre
+    assert np.min(np.linalg.norm(left - heavy_at, axis=1)) < 1e-9  # two atoms' mass: two
+    assert np.min(np.linalg.norm(left - (heavy_at + [0, 0, 1.46]), axis=1)) < 1e-9

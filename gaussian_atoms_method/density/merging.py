@@ -160,7 +160,14 @@ class Merging:
         atoms would hold two atoms' mass, and the likelihood's preference is one atom's shape
         that the forward model misses (through an aberrated probe, a pair along the beam around
         one true atom).  Not the material's shortest distance in its place: that merged pairs
-        the split had made of two true atoms just under its onset."""
+        the split had made of two true atoms just under its onset.
+
+        A pair holding more than :data:`..parameters.SPLIT_MASS` typical atoms' mass is two atoms
+        whatever the likelihood says, as :meth:`join_close_pairs` keeps it: an atom shared
+        between two Gaussians leaves them one atom's mass, and a Gaussian of two atoms' mass is
+        one the split proposes again.  Through a probe the fit does not share, two carbon atoms a
+        bond apart fit one Gaussian within the level at a low dose (ptychographic phase images at
+        2,000 e/Å²: 255 of 1,512 atoms merged away, 0.82 found; kept, 0.97)."""
         from scipy.special import chdtri  # chi2.isf(p, df) is chdtri(df, p); scipy.stats' import is 0.3 s
 
         level = chdtri(5, self.false_alarm_rate / self.cells())
@@ -181,6 +188,7 @@ class Merging:
             # one atom's mass in one peak: one atom, whatever its shape's misfit
             worth = self.atoms_worth(params).detach().double().cpu().numpy()[pairs].sum(axis=1)
             margin[(distance < sigmas[pairs].sum(axis=1)) & (worth <= SPLIT_MASS)] = -np.inf
+            margin[worth > SPLIT_MASS] = np.inf  # two atoms' mass: two atoms, as join_close_pairs
             order = np.lexsort((distance, margin))
             return pairs[order[margin[order] < 0]]
 
