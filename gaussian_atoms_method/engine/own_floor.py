@@ -8,7 +8,8 @@ physics the fit does not share and asks how far its fit moves them:
 
 * each reported atom (its element as the run names it, its fitted mass) is drawn as the power of
   Lobato's projected potential an ADF view holds (:mod:`~gaussian_atoms_method.physics.lobato`), through the probe of
-  :data:`~gaussian_atoms_method.physics.microscope.DEFAULT_OPTICS` (rings, tails, a source), in
+  :data:`~gaussian_atoms_method.physics.microscope.DEFAULT_OPTICS` (rings, tails) with the source
+  that makes an atom as wide as the fit renders its own (:func:`replica_probe`), in
   every view's geometry (:func:`~gaussian_atoms_method.physics.adf.adf_projections`, its
   deposit method);
 * the rest of each view (the views' floors, the Gaussians not reported as atoms) as the fit
@@ -73,12 +74,14 @@ class OwnFloor:
     """``floor_A`` (3,) the error along x, y, z (Å) the stated precision did not hold on the run's
     own replica; ``coverage_95`` (3,) the share of its errors inside the run's stated 95%
     intervals (over the atoms its refit kept within :data:`MATCH_RADIUS_A`); ``rms_A`` (3,) their
-    errors' RMS; ``steps`` the refit's steps."""
+    errors' RMS; ``steps`` the refit's steps; ``source_fwhm_A`` the replica probe's source
+    (:func:`replica_probe`)."""
 
     floor_A: np.ndarray
     coverage_95: np.ndarray
     rms_A: np.ndarray
     steps: int
+    source_fwhm_A: float = float("nan")
 
 
 def registration_of(info: dict, n_views: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -110,13 +113,32 @@ def cannot_draw(species) -> str | None:
     return None
 
 
-def draw_replica(model, atoms: AtomSet, reported: np.ndarray, registration, seed: int) -> torch.Tensor:
+def replica_probe(model, atoms: AtomSet):
+    """The replica's probe: :data:`~gaussian_atoms_method.physics.microscope.DEFAULT_OPTICS`'s
+    rings and tails with the source that makes an atom of the most common element as wide as the
+    run renders its atoms of it (their median width through the learned point-spread kernel:
+    :func:`~gaussian_atoms_method.physics.probe_width.rendered_atom_width_A`), both read by the
+    least-squares Gaussian (:func:`~gaussian_atoms_method.physics.probe_width.probe_as_wide_as`)."""
+    from gaussian_atoms_method.physics.microscope import DEFAULT_OPTICS
+    from gaussian_atoms_method.physics.probe_width import probe_as_wide_as, rendered_atom_width_A
+
+    elements, counts = np.unique(np.asarray(atoms.species), return_counts=True)
+    common = elements[np.argmax(counts)]
+    sigma_A = float(np.median(atoms.sigmas[np.asarray(atoms.species) == common]))
+    widths_A, weights = (), ()
+    if "psf" in model.view_params:
+        widths_A = tuple(w / model.normalisation.length_scale for w in model.psf_widths_host)
+        weights = tuple(model.view_params["psf"].detach().double().cpu().tolist())
+    return probe_as_wide_as(str(common), rendered_atom_width_A(sigma_A, widths_A, weights), DEFAULT_OPTICS)
+
+
+def draw_replica(model, atoms: AtomSet, reported: np.ndarray, registration, seed: int, probe) -> torch.Tensor:
     """(V, H, W) the replica's views (module text), normalised as the model's, on its device:
     ``atoms`` the reported atoms (Å, the truth frame, with ``species``), ``reported`` (N,) bool
     over the model's Gaussians, ``registration`` (shifts (V, 2) px, gains (V,))."""
     from gaussian_atoms_method.engine.residuals import render_training_views
     from gaussian_atoms_method.physics.adf import adf_projections
-    from gaussian_atoms_method.physics.microscope import DEFAULT_OPTICS, misregistered
+    from gaussian_atoms_method.physics.microscope import misregistered
     from gaussian_atoms_method.physics.noise import noise_from_projections
 
     series, scale = model.view_set.series, model.normalisation.data_scale
@@ -139,7 +161,7 @@ def draw_replica(model, atoms: AtomSet, reported: np.ndarray, registration, seed
         series.image_shape,
         series.pixel_size_A,
         series.centre_px,
-        probe=DEFAULT_OPTICS.transfer,
+        probe=probe.transfer,
         method="deposit",
     )
     clean = rest + misregistered(drawn, *registration) * scale  # normalised units
@@ -169,7 +191,8 @@ def read_own_floor(model, atoms: AtomSet, reported: np.ndarray, info: dict, seed
 
     n_views = len(model.view_set.series.projections)
     params = {name: p.detach().clone() for name, p in model.gauss_params.items()}
-    replica = draw_replica(model, atoms, reported, registration_of(info, n_views, seed), seed)
+    probe = replica_probe(model, atoms)
+    replica = draw_replica(model, atoms, reported, registration_of(info, n_views, seed), seed, probe)
     states = {name: copy.deepcopy(o.state_dict()) for name, o in model.optimizers.items()}
     generator = model.generator.get_state()
     for o in model.optimizers.values():
@@ -192,6 +215,7 @@ def read_own_floor(model, atoms: AtomSet, reported: np.ndarray, info: dict, seed
         coverage_95=(np.abs(error) <= Z95 * stated).mean(axis=0) if found.any() else np.full(3, np.nan),
         rms_A=np.sqrt((error**2).mean(axis=0)) if found.any() else np.full(3, np.nan),
         steps=steps,
+        source_fwhm_A=probe.source_fwhm_A,
     )
 
 
@@ -220,7 +244,8 @@ def widen_by_own_floor(model, atoms: AtomSet, reported: np.ndarray, hard_core_A:
     )
     atoms.info["precision_floor_A"] = floor.floor_A.tolist()
     CONSOLE.print(
-        "gaussian-atoms: the run's own replica (its atoms drawn again through ADF physics and its noise, "
+        "gaussian-atoms: the run's own replica (its atoms drawn again through ADF physics, a probe with rings "
+        f"and a {floor.source_fwhm_A:.2f} Å source that makes them as wide as the fit's, and its noise, "
         f"refitted in {floor.steps} steps, {time.perf_counter() - started:.1f} s): the stated 95% intervals held "
         + "/".join(f"{c:.2f}" for c in floor.coverage_95)
         + " of its errors (x/y/z, RMS "
