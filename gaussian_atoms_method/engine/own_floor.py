@@ -125,15 +125,13 @@ def replica_probe(model, atoms: AtomSet):
     least-squares Gaussian (:func:`~gaussian_atoms_method.physics.probe_width.probe_as_wide_as`)."""
     from gaussian_atoms_method.physics.microscope import DEFAULT_OPTICS
     from gaussian_atoms_method.physics.probe_width import probe_as_wide_as, rendered_atom_width_A
+    from gaussian_atoms_method.physics.psf import KERNEL_WIDTHS_A
 
     elements, counts = np.unique(np.asarray(atoms.species), return_counts=True)
     common = elements[np.argmax(counts)]
     sigma_A = float(np.median(atoms.sigmas[np.asarray(atoms.species) == common]))
-    widths_A, weights = (), ()
-    if "psf" in model.view_params:
-        widths_A = tuple(w / model.normalisation.length_scale for w in model.psf_widths_host)
-        weights = tuple(model.view_params["psf"].detach().double().cpu().tolist())
-    return probe_as_wide_as(str(common), rendered_atom_width_A(sigma_A, widths_A, weights), DEFAULT_OPTICS)
+    weights = tuple(model.view_params["psf"].detach().double().cpu().tolist()) if "psf" in model.view_params else ()
+    return probe_as_wide_as(str(common), rendered_atom_width_A(sigma_A, KERNEL_WIDTHS_A, weights), DEFAULT_OPTICS)
 
 
 def draw_replica(model, atoms: AtomSet, reported: np.ndarray, registration, seed: int, probe) -> torch.Tensor:
