@@ -175,10 +175,15 @@ def depth_rises(
     cov = 0.5 * (covariance + covariance.transpose(1, 2))
     rhs = torch.cat([pull_rest[..., None], coupling], dim=-1)  # (B, M, 5k, 1 + 5g)
     c = rhs.shape[-1]
-    solved = (cov @ rhs.permute(0, 2, 1, 3).reshape(b, 5 * k, m * c)).reshape(b, 5 * k, m, c).permute(0, 2, 1, 3)
-    rows = (5 * gi[..., None] + torch.arange(5, device=dev)).reshape(b, m, 5 * g)  # the moved atoms' parameters
-    row_valid = valid[..., None].expand(b, m, g, 5).reshape(b, m, 5 * g)
-    solved = solved - _taken_out(cov, rows, row_valid, rhs)
+    # the atom itself moves at every offset: its rows are taken out once for all of them, the rest
+    # of its column (slots 1.. of the moved) offset by offset
+    rest = cov - cov[:, :, :5] @ spd_solve(cov[:, :5, :5], cov[:, :5, :])
+    rest = 0.5 * (rest + rest.transpose(1, 2))
+    solved = (rest @ rhs.permute(0, 2, 1, 3).reshape(b, 5 * k, m * c)).reshape(b, 5 * k, m, c).permute(0, 2, 1, 3)
+    if g > 1:
+        rows = (5 * gi[..., 1:, None] + torch.arange(5, device=dev)).reshape(b, m, 5 * (g - 1))  # their parameters
+        row_valid = valid[..., 1:, None].expand(b, m, g - 1, 5).reshape(b, m, 5 * (g - 1))
+        solved = solved - _taken_out(rest, rows, row_valid, rhs)
     own = blocks_gg.permute(0, 1, 2, 4, 3, 5).reshape(b, m, 5 * g, 5 * g)  # the moved atoms among themselves
     # positions turned to two directions across the axis and the axis; each moved atom's place
     # along the axis held (and every parameter of an empty slot), its row and column cut out
