@@ -28,6 +28,7 @@ EVIDENCE_FIELDS = {
     "depth_rise": np.float64,
     "element_confidence": np.float64,
     "width_std_A": np.float64,
+    "log_mass_std": np.float64,
     "width_open": np.int64,
     "mass_open": np.int64,
     "trusted": np.int64,
@@ -81,6 +82,9 @@ class AtomSet:
         masses could not tell the elements apart.
     width_std_A : (N,) float array, or None
         The precision of the atom's width, found as its position's is.
+    log_mass_std : (N,) float array, or None
+        The precision of the logarithm of the atom's mass (its relative precision), its neighbours
+        re-fitted: what its element's probability weighs its mass with.
     width_open : (N,) int array, or None
         1 where the atom is wider than one atom of its element by more than its width's precision
         allows (:func:`~gaussian_atoms_method.atoms.calibration.wider_than_one_atom`): its image
@@ -109,6 +113,7 @@ class AtomSet:
     depth_rise: np.ndarray | None = None
     element_confidence: np.ndarray | None = None
     width_std_A: np.ndarray | None = None
+    log_mass_std: np.ndarray | None = None
     width_open: np.ndarray | None = None
     mass_open: np.ndarray | None = None
     trusted: np.ndarray | None = None
@@ -267,6 +272,7 @@ EXTXYZ_COLUMNS = {
     "depth_rise": ("depth_rise", "R", 1),
     "element_confidence": ("element_confidence", "R", 1),
     "width_std_A": ("width_std_A", "R", 1),
+    "log_mass_std": ("log_mass_std", "R", 1),
     "width_open": ("width_open", "I", 1),
     "mass_open": ("mass_open", "I", 1),
     "trusted": ("trusted", "I", 1),

@@ -122,6 +122,9 @@ class AtomEvidence:
     depth_profile: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     width_std_A: np.ndarray = field(default_factory=lambda: np.zeros(0))
     depth_scatter: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    log_mass_std: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    """(N,) the standard deviation of the atom's log mass (its relative precision), its
+    neighbours and its own other parameters re-fitted, from the residual its views show."""
 
     @property
     def depth_rise(self) -> np.ndarray:
@@ -259,6 +262,7 @@ def atom_evidence(
     covariances = np.full((n, 3, 3), np.nan)
     fisher = np.full((n, 3, 3), np.nan)  # the noise's own covariance, where the sandwich states another
     width_variance = np.full(n, np.nan)
+    log_mass_variance = np.full(n, np.nan)
     offsets = sorted(moved_pulls) if moved_pulls else []
     rises = np.full((n, len(offsets)), np.inf)
     frozen = np.full((n, len(offsets)), np.inf)
@@ -287,13 +291,14 @@ def atom_evidence(
         covariance = spd_inverse(info)
         if scores_on is not None:  # the sandwich, from the position's and width's rows: (C P^T)(P C^T)
             pulls = scores_on[local_on].permute(0, 2, 1, 3).reshape(len(atoms), scores.shape[1], 5 * k)  # (B, V, 5k)
-            rows = covariance[:, :4] @ pulls.transpose(1, 2)  # (B, 4, V)
+            rows = covariance[:, :5] @ pulls.transpose(1, 2)  # (B, 5, V)
             spread = (rows @ rows.transpose(1, 2) * (pulls.shape[1] / max(pulls.shape[1] - 1, 1))).cpu().numpy()
             if moved_on is not None:  # the profile's unit (below)
                 fisher[atoms] = covariance[:, :3, :3].cpu().numpy()
         else:
-            spread = covariance[:, :4, :4].cpu().numpy()
+            spread = covariance[:, :5, :5].cpu().numpy()
         covariances[atoms], width_variance[atoms] = spread[:, :3, :3], spread[:, 3, 3]
+        log_mass_variance[atoms] = _log_mass_variance(spread[:, 3:, 3:], sigmas[atoms], amps[atoms])
         if moved_on is not None:
             refitted, held = depth_rises(
                 local, info, scores_on, moved_on, offsets, positions, sigmas, amps, axes, pixel_size_A,
@@ -301,11 +306,11 @@ def atom_evidence(
             )  # fmt: skip
             rises[atoms], frozen[atoms] = refitted.cpu().numpy(), held.cpu().numpy()
         # taken out: the atom's amplitude against every parameter of its neighbours; the Schur
-        # complement q^2 / [M^-1]_qq is the cost of taking it out, in noise variances
-        keep = torch.as_tensor(np.r_[4, np.arange(5, 5 * k)], device=where)
-        unit = torch.zeros((len(atoms), len(keep), 1), dtype=torch.float64, device=where)
-        unit[:, 0] = 1.0
-        q_inverse = spd_solve(info[:, keep][:, :, keep], unit)[:, 0, 0].cpu().numpy()
+        # complement q^2 / [M^-1]_qq is the cost of taking it out, in noise variances, with M the
+        # information less the atom's own position and width rows S: [M^-1]_qq = C_qq - C_qS
+        # C_SS^-1 C_Sq from the whole inverse C (a 4 x 4 solve, not a factorisation of M)
+        c_qs = covariance[:, 4, :4, None]
+        q_inverse = (covariance[:, 4, 4] - (c_qs * spd_solve(covariance[:, :4, :4], c_qs)).sum((1, 2))).cpu().numpy()
         q_variance = q_inverse * (noise_std * amplitude_factor) ** 2
         significance[atoms] = np.abs(amps[atoms]) / np.sqrt(np.maximum(q_variance, 1e-300))
         if progress is not None:
@@ -313,6 +318,7 @@ def atom_evidence(
     if scores is None:  # in units of the information's noise variance
         covariances = covariances * variance * position_factor**2
         width_variance = width_variance * variance * position_factor**2
+        log_mass_variance = log_mass_variance * variance * amplitude_factor**2
     position_std = np.sqrt(np.clip(np.einsum("nii->ni", covariances), 0, None))
     values, vectors = np.linalg.eigh(np.nan_to_num(covariances))
     depth_half = np.where(np.isnan(covariances[:, 0, 0]), np.nan, Z95 * np.sqrt(np.clip(values[:, -1], 0, None)))
@@ -363,7 +369,19 @@ def atom_evidence(
         profile,
         np.sqrt(np.clip(width_variance, 0, None)),
         scatter,
+        np.sqrt(np.clip(log_mass_variance, 0, None)),
     )
+
+
+def _log_mass_variance(width_amplitude: np.ndarray, sigmas_A: np.ndarray, amplitudes: np.ndarray) -> np.ndarray:
+    """(B,) the variance of each atom's log mass ``log q + 3 log sigma`` (the mass ``q (2 pi
+    sigma^2)^(3/2)``) from its (B, 2, 2) covariance of (width, amplitude), to first order.
+
+    >>> float(_log_mass_variance(np.array([[[0.0, 0.0], [0.0, 0.04]]]), np.ones(1), np.full(1, 2.0))[0])
+    0.01
+    """
+    g = np.stack([3.0 / np.asarray(sigmas_A, np.float64), 1.0 / np.asarray(amplitudes, np.float64)], axis=1)
+    return np.einsum("bi,bij,bj->b", g, width_amplitude, g)
 
 
 EVIDENCE_SCORES = (

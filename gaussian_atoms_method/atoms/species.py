@@ -140,7 +140,10 @@ def classify_species(masses: np.ndarray, elements: list[str]) -> tuple[np.ndarra
             "test": test,
             "confidence": np.full(len(masses), np.nan),
         }
-    labels = kmeans_1d(logm, len(ordered))
+    # the populations from k-means; each atom the element Bayes' rule makes most probable (the
+    # least error: k-means's nearest centre ignores that one population is wider than another)
+    posterior = element_posteriors(logm, kmeans_1d(logm, len(ordered)))
+    labels = np.argmax(posterior, axis=1)
     species = np.array(ordered)[labels]
     report = {
         "counts": {},
@@ -149,7 +152,7 @@ def classify_species(masses: np.ndarray, elements: list[str]) -> tuple[np.ndarra
         "separated": True,
         "populations": populations,
         "test": test,
-        "confidence": element_posteriors(logm, labels)[np.arange(len(labels)), labels],
+        "confidence": posterior[np.arange(len(labels)), labels],
     }
     for j, el in enumerate(ordered):
         report["counts"][el] = int(np.sum(labels == j))

@@ -319,6 +319,7 @@ def attach_evidence(model, atoms: AtomSet, noise: float, read, hard_core_A: floa
     atoms.significance, atoms.proven = evidence.significance, evidence.proven
     atoms.depth_halfwidth_A, atoms.depth_open = half, depth_open
     atoms.width_std_A, atoms.info["proof_level"] = evidence.width_std_A, evidence.proof_level
+    atoms.log_mass_std = evidence.log_mass_std
     say_residual(getattr(model, "measured_noise", None), scale, predicted, noise, position_factor, amplitude_factor)
     atoms.info.update(say_view_shifts(residuals, predicted, axes, model.config.refine_alignment))
     ratio = np.nanmedian(evidence.position_std_A / np.maximum(crb, 1e-12), axis=0)
