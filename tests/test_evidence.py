@@ -529,40 +529,43 @@ def test_the_depth_profile_through_the_sets_inverse_is_each_system_solved_whole(
     np.testing.assert_allclose(fast.depth_halfwidth_A, whole.depth_halfwidth_A, rtol=1e-12)
 
 
+ONE_ATOM = np.array([[0.2, -0.1, 0.3, 0.5, 1.3]])
+"""x, y, z (Å), sigma (Å), q of one atom alone in five views (-60 to 60 deg)."""
+NOISE = 0.03
+
+
+def _one_atom_covariance() -> np.ndarray:
+    """(5, 5) the inverse of the pixel sum of the products of autograd's derivatives of
+    :data:`ONE_ATOM`'s images by (x, y, z, sigma, q), times the noise variance: its Cramer-Rao
+    bound (float64)."""
+    axes = detector_axes_from_tilts(np.linspace(-60, 60, 5))
+    jac = torch.autograd.functional.jacobian(
+        lambda p: _render(p, axes), torch.tensor(ONE_ATOM), vectorize=True, strategy="forward-mode"
+    )
+    flat = jac.reshape(-1, 5)
+    return NOISE**2 * np.linalg.inv((flat.T @ flat).numpy())
+
+
+def _one_atom_evidence():
+    axes = detector_axes_from_tilts(np.linspace(-60, 60, 5))
+    return atom_evidence(ONE_ATOM[:, :3], ONE_ATOM[:, 3], ONE_ATOM[:, 4], axes, PIXEL_A, NOISE)
+
+
 def test_the_width_precision_is_the_pixel_sums_cramer_rao_bound():
     """One atom alone in five views under white noise of standard deviation s: its width's
     precision is ``s sqrt([F^-1]_sigma,sigma)``, F the pixel sum of the products of autograd's
     derivatives of its images by (x, y, z, sigma, q) (float64; the closed form agrees with the
     pixel sum far below 1e-9 at 2.5 px widths)."""
-    axes = detector_axes_from_tilts(np.linspace(-60, 60, 5))
-    params = torch.tensor([[0.2, -0.1, 0.3, 0.5, 1.3]], dtype=torch.float64)
-    jac = torch.autograd.functional.jacobian(
-        lambda p: _render(p, axes), params, vectorize=True, strategy="forward-mode"
-    )
-    flat = jac.reshape(-1, 5)
-    s = 0.03
-    direct = s * np.sqrt(np.linalg.inv((flat.T @ flat).numpy())[3, 3])
-    p = params.numpy()
-    ours = atom_evidence(p[:, :3], p[:, 3], p[:, 4], axes, PIXEL_A, s).width_std_A
-    assert ours[0] == pytest.approx(direct, rel=1e-6)
+    direct = np.sqrt(_one_atom_covariance()[3, 3])
+    assert _one_atom_evidence().width_std_A[0] == pytest.approx(direct, rel=1e-6)
 
 
 def test_the_mass_precision_is_the_pixel_sums_cramer_rao_bound_of_log_q_sigma_cubed():
-    """One atom alone in five views under white noise: the precision of its log mass
-    ``log q + 3 log sigma`` (the mass ``q (2 pi sigma^2)^(3/2)``) is ``s sqrt(g^T F^-1 g)``, ``g =
-    (0, 0, 0, 3 / sigma, 1 / q)``, F the pixel sum of autograd's derivatives (float64)."""
-    axes = detector_axes_from_tilts(np.linspace(-60, 60, 5))
-    params = torch.tensor([[0.2, -0.1, 0.3, 0.5, 1.3]], dtype=torch.float64)
-    jac = torch.autograd.functional.jacobian(
-        lambda p: _render(p, axes), params, vectorize=True, strategy="forward-mode"
-    )
-    flat = jac.reshape(-1, 5)
-    s = 0.03
-    g = np.array([0.0, 0.0, 0.0, 3.0 / 0.5, 1.0 / 1.3])
-    direct = s * np.sqrt(g @ np.linalg.inv((flat.T @ flat).numpy()) @ g)
-    p = params.numpy()
-    ours = atom_evidence(p[:, :3], p[:, 3], p[:, 4], axes, PIXEL_A, s).log_mass_std
-    assert ours[0] == pytest.approx(direct, rel=1e-6)
+    """The same atom: the precision of its log mass ``log q + 3 log sigma`` (the mass ``q (2 pi
+    sigma^2)^(3/2)``) is ``sqrt(g^T C g)``, ``g = (0, 0, 0, 3 / sigma, 1 / q)``, C the same bound."""
+    g = np.array([0.0, 0.0, 0.0, 3.0 / ONE_ATOM[0, 3], 1.0 / ONE_ATOM[0, 4]])
+    direct = np.sqrt(g @ _one_atom_covariance() @ g)
+    assert _one_atom_evidence().log_mass_std[0] == pytest.approx(direct, rel=1e-6)
 
 
 def test_a_neighbour_whose_image_overlaps_leaves_an_atoms_mass_less_certain():
