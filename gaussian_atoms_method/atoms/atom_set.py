@@ -84,7 +84,7 @@ class AtomSet:
         The precision of the atom's width, found as its position's is.
     log_mass_std : (N,) float array, or None
         The precision of the logarithm of the atom's mass (its relative precision), its neighbours
-        re-fitted: what its element's probability weighs its mass with.
+        re-fitted (:attr:`~gaussian_atoms_method.atoms.evidence.AtomEvidence.log_mass_std`).
     width_open : (N,) int array, or None
         1 where the atom is wider than one atom of its element by more than its width's precision
         allows (:func:`~gaussian_atoms_method.atoms.calibration.wider_than_one_atom`): its image

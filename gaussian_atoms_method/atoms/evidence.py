@@ -289,7 +289,7 @@ def atom_evidence(
         # the information singular: a ridge of 1e-9 of the diagonal leaves the rest unchanged
         info = info + torch.diag_embed(1e-9 * torch.diagonal(info, dim1=1, dim2=2).clamp_min(1e-300))
         covariance = spd_inverse(info)
-        if scores_on is not None:  # the sandwich, from the position's and width's rows: (C P^T)(P C^T)
+        if scores_on is not None:  # the sandwich, from the position's, width's and amplitude's rows: (C P^T)(P C^T)
             pulls = scores_on[local_on].permute(0, 2, 1, 3).reshape(len(atoms), scores.shape[1], 5 * k)  # (B, V, 5k)
             rows = covariance[:, :5] @ pulls.transpose(1, 2)  # (B, 5, V)
             spread = (rows @ rows.transpose(1, 2) * (pulls.shape[1] / max(pulls.shape[1] - 1, 1))).cpu().numpy()
