@@ -67,7 +67,7 @@ def aberrated_probe_intensity(
     return intensity / intensity.sum()
 
 
-def _squared_frequencies(shape: tuple[int, int], spacing_A: float) -> np.ndarray:
+def squared_frequencies(shape: tuple[int, int], spacing_A: float) -> np.ndarray:
     """(rows, cols) squared spatial frequencies (1/Å²) of a periodic grid, numpy's FFT order."""
     return np.fft.fftfreq(shape[0], d=spacing_A)[:, None] ** 2 + np.fft.fftfreq(shape[1], d=spacing_A)[None, :] ** 2
 
@@ -78,7 +78,7 @@ def _probe_transfer(
     """The probe intensity's Fourier transform on a periodic grid (numpy's FFT order, 1 at zero
     frequency): the coherent probe ``|IFFT(A exp(-i chi))|^2`` of unit sum, times a Gaussian
     source's transform, a share moved into a Lorentzian halo (:func:`aberrated_probe_intensity`)."""
-    k2 = _squared_frequencies(shape, spacing_A)
+    k2 = squared_frequencies(shape, spacing_A)
     aperture = np.sqrt(k2) * wavelength_A <= semiangle_mrad * 1e-3
     chi = np.pi * wavelength_A * defocus_A * k2 + 0.5 * np.pi * cs_A * wavelength_A**3 * k2**2
     intensity = np.abs(np.fft.ifft2(aperture * np.exp(-1j * chi))) ** 2
@@ -130,7 +130,7 @@ effective source of 0.7 Å (the middle of an aberration-corrected field-emission
 
 def gaussian_transfer(sigma_A: float, shape: tuple[int, int], spacing_A: float) -> np.ndarray:
     """A Gaussian probe's transfer (width ``sigma_A``) on a periodic grid (numpy's FFT order)."""
-    return np.exp(-2.0 * np.pi**2 * sigma_A**2 * _squared_frequencies(shape, spacing_A))
+    return np.exp(-2.0 * np.pi**2 * sigma_A**2 * squared_frequencies(shape, spacing_A))
 
 
 def probe_transfer(probe: str, optics: ProbeOptics, blur_sigma_A: float):

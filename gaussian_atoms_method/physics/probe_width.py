@@ -24,7 +24,7 @@ import functools
 import numpy as np
 
 from gaussian_atoms_method.physics.adf import ADF_POTENTIAL_POWER, adf_kernel_transform
-from gaussian_atoms_method.physics.microscope import ProbeOptics, _squared_frequencies
+from gaussian_atoms_method.physics.microscope import ProbeOptics, squared_frequencies
 
 GRID_SPACING_A = 0.05
 """The fine grid one atom's image is drawn on, Å: ten times finer than the narrowest atom
@@ -75,7 +75,7 @@ def fitted_atom_width_A(element: str, optics: ProbeOptics, power: float = ADF_PO
     True
     """
     shape = (GRID_SIZE_PX, GRID_SIZE_PX)
-    freq = np.sqrt(_squared_frequencies(shape, GRID_SPACING_A))
+    freq = np.sqrt(squared_frequencies(shape, GRID_SPACING_A))
     k, kernel = adf_kernel_transform(element, power=power)
     atom = np.interp(freq, k, kernel, right=0.0)
     return least_squares_width_A(np.fft.fftshift(np.fft.ifft2(atom * optics.transfer(shape, GRID_SPACING_A)).real))
