@@ -169,3 +169,58 @@ def test_the_discovery_level_holds_its_rate_and_stays_family_wise_on_noise():
         for x, y, z in places:
             mask[max(x - 3, 0) : x + 4, max(y - 3, 0) : y + 4, max(z - 3, 0) : z + 4] = False
         assert int((_maxima_heights(np.where(mask, noise, 0.0)) > level).sum()) <= 6
+
+
+def test_a_second_look_proposes_each_open_place_with_positive_residual_mass():
+    """The faint buried atom of the test above (0.15 of its mass, under ten times the noise): the
+    second look's places (every local maximum of positive mass in the residual's smoothed
+    back-projection at least the hard core from every Gaussian) include one on the atom (within
+    0.75 Å, a voxel maximum of a ridge along the missing wedge), every one of them at least the
+    hard core from every Gaussian and from each other; with the residual's sign turned (a
+    deficit there, no missing mass) none lies on it."""
+    from gaussian_atoms_method.atoms.residual_sites import open_place_peaks
+
+    atoms, missing, others, sim, _ = _missing_one(noise_std=20.0)
+    clean = simulate_gaussian_tilt_series(atoms, sim.angles_deg, noise_std=0.0).projections
+    fitted = simulate_gaussian_tilt_series(others, sim.angles_deg, noise_std=0.0).projections
+    noise = 10 * (sim.projections - clean)
+    for sign in (1.0, -1.0):
+        residuals = noise + sign * 0.15 * (clean - fitted)
+        places = open_place_peaks(residuals, sim.angles_deg, sim.pixel_size_A, others.positions, 2.0)
+        assert len(places) == 0 or cKDTree(others.positions).query(places)[0].min() >= 2.0
+        if len(places) > 1:
+            assert cKDTree(places).query(places, k=2)[0][:, 1].min() >= 2.0
+        on_atom = len(places) and np.linalg.norm(places - atoms.positions[missing], axis=1).min() < 0.75
+        assert bool(on_atom) == (sign > 0)
+
+
+def test_a_place_of_pure_noise_reads_a_standard_normal_significance():
+    """``proposal_significance`` at 64 places beyond every atom's reach (its neighbours none) in a
+    residual of white noise of a known level: the score of an atom's template over its noise's
+    standard deviation is standard normal, so the 64 read a mean within 0.45 and a standard
+    deviation within 0.7-1.35 (four standard errors of each for 64 independent draws; places 3 Å
+    apart, an atom's template overlapping its neighbour's by exp(-9 / (4 x 0.6^2)) < 0.2%)."""
+    from gaussian_atoms_method.atoms.proposal_test import proposal_significance
+    from gaussian_atoms_method.physics.geometry import detector_axes_of
+
+    atoms = spherical_particle("Au", radius_A=4.0)
+    angles = parse_tilts("limited")
+    clean = simulate_gaussian_tilt_series(atoms, angles, noise_std=0.0, margin_A=20.0)
+    noisy = simulate_gaussian_tilt_series(atoms, angles, noise_std=20.0, seed=5, margin_A=20.0)
+    grid = np.array(
+        [
+            [x, y, z]
+            for x in (-13.5, -10.5, 10.5, 13.5)
+            for y in (-10.5, -7.5, -4.5, -1.5, 1.5, 4.5, 7.5, 10.5)
+            for z in (-1.5, 1.5)
+        ]
+    )
+    axes = detector_axes_of(noisy.angles_deg, "y")
+    n = len(atoms.positions)
+    z = proposal_significance(
+        grid, atoms.positions, np.full(n, 0.6), np.ones(n), axes, noisy.projections - clean.projections,
+        noisy.pixel_size_A, [(side - 1) / 2.0 for side in noisy.projections.shape[1:]], 20.0,
+    )  # fmt: skip
+    assert len(z) == 64, z
+    assert abs(float(z.mean())) < 0.45
+    assert 0.7 < float(z.std()) < 1.35

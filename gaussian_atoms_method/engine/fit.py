@@ -29,7 +29,7 @@ from typing import Dict, List
 import torch
 from torch.nn import Parameter
 
-from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms
+from gaussian_atoms_method.atoms.atom_set import AtomSet
 from gaussian_atoms_method.atoms.initialise import compute_start, starting_amplitude
 from gaussian_atoms_method.density.parameters import amplitudes, widths
 from gaussian_atoms_method.density.settings import DensitySettings
@@ -54,6 +54,7 @@ from gaussian_atoms_method.engine.prepared import NOTHING, Prepared
 from gaussian_atoms_method.engine.refit import refit
 from gaussian_atoms_method.engine.residuals import residual_correlations
 from gaussian_atoms_method.engine.results import model_position_std_A, write_results, write_snapshot
+from gaussian_atoms_method.engine.second_look import look_again, start_positions
 from gaussian_atoms_method.engine.step_graph import StepGraph
 from gaussian_atoms_method.engine.stopping import at_check, converged, set_position_rate
 from gaussian_atoms_method.engine.view_set import ViewSet
@@ -99,7 +100,7 @@ class AtomFit(torch.nn.Module):
     # ------------------------------------------------------------------ set-up
     def setup(self, views: ViewSet) -> None:
         """Build the start, the parameters, density control and the noise model from ``views``
-        (again at a restart, :meth:`restart_with_kernel_held`)."""
+        (again at a restart, :meth:`start_again`)."""
         allow_numpy_scalars_in_checkpoints()  # checkpoints are loaded after the fit is built
         cfg = self.config
         cfg.check()
@@ -111,7 +112,7 @@ class AtomFit(torch.nn.Module):
             views.projections,
             (self.normalisation, cfg.extended_object, cfg.max_atom_sigma_A),
         )
-        given = read_atoms(cfg.start_atoms).positions if cfg.start_atoms is not None else None
+        given = start_positions(self)  # a second look's, start_atoms' or None
         # begun while the launcher loaded; the noise is read beside the candidates (either way)
         reading, from_ahead = None, cfg.init == "backprojection" and given is None
         if from_ahead and (early := self.prepared.noise(series)) is not None:
@@ -442,11 +443,13 @@ class AtomFit(torch.nn.Module):
         """At each check: True once the atoms are settled (the results written), else search,
         settle the set or slow the positions (:mod:`.stopping`); after the refine and merge, so
         judged on the atoms as they stand.  ``progress`` (a bar with ``end_at``) ends first."""
-        # psf held-out: the reading ends once the kernel is held (restart_with_kernel_held)
+        # psf held-out: the reading ends once the kernel is held (start_again)
         if self.kernel_reading.first_pass:
             return self.kernel_reading.settled
         if not at_check(self, step, last_step):
             return False
+        if look_again(self, step):  # the pass ends; start_again begins the next
+            return True
         if progress is not None:  # the bar ends here, before the results print
             progress.end_at(step)
         CONSOLE.print(f"gaussian-atoms: converged at step {step}: stopping early ({self.convergence.summary()})")
@@ -472,25 +475,25 @@ class AtomFit(torch.nn.Module):
                 self.snapshots_s,
             )
 
-    def restart_with_kernel_held(self) -> bool:
-        """After the reading pass of ``psf held-out``: hold the kernel read (``psf fixed`` at the
-        reading), start the atoms again from the start on every view and return True (the
-        caller makes fresh optimisers); False when there was no reading pass.
-
-        Why start again: Gaussians formed on half the views without the kernel keep the
-        satellites that explained the probe's tails."""
-        reading = getattr(self, "kernel_reading", None)
-        if reading is None or not reading.first_pass:
+    def start_again(self) -> bool:
+        """After a pass that reports no atoms, set the fit up again and return True (the caller
+        makes fresh optimisers); False when the run is over.  After the reading pass of ``psf
+        held-out`` the kernel read is held (``psf fixed``) and the atoms start again on every view
+        (Gaussians formed on half the views without the kernel keep the satellites that explained
+        the probe's tails); after a second look (:mod:`.second_look`) they start from its places."""
+        reading, device = getattr(self, "kernel_reading", None), self.means.device
+        if reading is not None and reading.first_pass:
+            self.config.psf, self.config.psf_weights = (
+                "fixed",
+                tuple(float(w) for w in self.view_params["psf"].detach().cpu().tolist()),
+            )
+            weights = ", ".join(f"{w:.3f}" for w in self.config.psf_weights)
+            held = f"with the point-spread function held at {weights} (1, 2, 4 Å)"
+            CONSOLE.print(f"gaussian-atoms: the atoms start again on every view {held}")
+        elif getattr(self, "second_look_pending", False):
+            self.second_look_pending = False
+        else:
             return False
-        device = self.means.device
-        self.config.psf, self.config.psf_weights = (
-            "fixed",
-            tuple(float(w) for w in self.view_params["psf"].detach().cpu().tolist()),
-        )
-        CONSOLE.print(
-            f"gaussian-atoms: the atoms start again on every view with the point-spread function held at "
-            f"{', '.join(f'{w:.3f}' for w in self.config.psf_weights)} (1, 2, 4 Å)"
-        )
         self.setup(self.view_set)
         self.to(device)
         return True

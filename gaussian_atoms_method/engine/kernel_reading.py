@@ -10,7 +10,7 @@ the run's data term, least squares for L1; the views' backgrounds are fitted on 
 they are the views' own).  The reading grows as the atoms sharpen (Ta film area 23: no kernel
 at step 300, 14% of the intensity in the tails at 1,400, 31% at 2,400), so it is not judged
 settled early: at ``stop_split_at`` the kernel is held, and the atoms start again from the
-start on every view with the kernel held (:func:`restart_with_kernel_held`; the reading pass's
+start on every view with the kernel held (:meth:`~.fit.AtomFit.start_again`; the reading pass's
 own atoms are not reported).
 
 The reading is the kernel that best predicts the held-out views, so it also hides the half-view

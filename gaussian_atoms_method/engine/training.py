@@ -7,7 +7,8 @@ CUDA graph, :mod:`.step_graph`), then the refine, the merge, the results at the 
 stop, the snapshot and the progress bar; a checkpoint every ``save_every`` steps and at the end.
 The views come in the order of nerfstudio's full-image datamanager: each pass over them a
 shuffle by its own generator (seed 42).  With ``psf held-out`` a reading pass comes first, then
-the run again with the kernel held (:meth:`.fit.AtomFit.restart_with_kernel_held`).
+the run again with the kernel held; after a second look the run again from its places
+(:meth:`.fit.AtomFit.start_again`).
 """
 
 from __future__ import annotations
@@ -137,9 +138,10 @@ def run_pass(loop: FitLoop, run_dir: Path, settings: LoopSettings, progress=None
 
 
 def train(loop: FitLoop, run_dir: Path, settings: LoopSettings, progress=None, scalars: Scalars | None = None) -> None:
-    """The run: :func:`run_pass`, and with ``psf held-out`` the pass with the kernel held."""
+    """The run: :func:`run_pass`, and again while the fit starts again (:meth:`.fit.AtomFit.start_again`:
+    after ``psf held-out``'s reading pass, or a second look)."""
     run_pass(loop, run_dir, settings, progress, scalars)
-    if loop.fit.restart_with_kernel_held():
+    while loop.fit.start_again():
         loop.fresh_optimisers()
         if progress is not None:
             progress.reset()

@@ -132,8 +132,9 @@ class GaussianAtomsTrainerConfig(TrainerConfig):
 class GaussianAtomsTrainer(Trainer):
     """nerfstudio's Trainer; a failure during training ends in one line naming its step and cause;
     on a GPU its steps are replays of a CUDA graph (:mod:`.step_graph`).  With ``psf held-out``
-    it trains twice: a pass that reads the point-spread function, then the run with it held
-    (:func:`gaussian_atoms_method.engine.kernel_reading.restart_with_kernel_held`)."""
+    it trains twice: a pass that reads the point-spread function, then the run with it held; after
+    a second look (:mod:`gaussian_atoms_method.engine.second_look`) the run again from its places
+    (:func:`start_again`)."""
 
     def train_iteration(self, step: int):
         # On a GPU a replay of the step captured as a CUDA graph where the model's step graph serves it (.step_graph).
@@ -143,10 +144,10 @@ class GaussianAtomsTrainer(Trainer):
         return done if done is not None else detached(*super().train_iteration(step))
 
     def train_passes(self) -> None:
-        """nerfstudio's loop; with ``psf held-out`` the reading pass, then the run with the kernel
-        held (:func:`restart_with_kernel_held`).  A failure raises."""
+        """nerfstudio's loop, and again while the fit starts again (:func:`start_again`).  A failure
+        raises."""
         super().train()
-        if restart_with_kernel_held(self):
+        while start_again(self):
             if getattr(self, "progress", None) is not None:  # the restart made the callbacks anew
                 follow(self.progress, self)
             super().train()
@@ -204,14 +205,14 @@ class TrainerSteps:
         return ""
 
 
-def restart_with_kernel_held(trainer) -> bool:
-    """After the reading pass of ``psf held-out``: the fit starts again with the kernel held
-    (:meth:`~gaussian_atoms_method.engine.fit.AtomFit.restart_with_kernel_held`), with fresh
-    optimisers and callbacks; False when the trainer's model had no reading pass.  nerfstudio's
+def start_again(trainer) -> bool:
+    """After a pass that reports no atoms (``psf held-out``'s reading pass, a second look): the
+    fit starts again (:meth:`~gaussian_atoms_method.engine.fit.AtomFit.start_again`), with fresh
+    optimisers and callbacks; False when the run is over.  nerfstudio's
     loop runs again from the step it started at (0, or a checkpoint's: the trainer's start is
     its own, not set here)."""
     model = trainer.pipeline.model
-    if not hasattr(model, "restart_with_kernel_held") or not model.restart_with_kernel_held():
+    if not hasattr(model, "start_again") or not model.start_again():
         return False
     trainer.optimizers = trainer.setup_optimizers()
     trainer.callbacks = trainer.pipeline.get_training_callbacks(

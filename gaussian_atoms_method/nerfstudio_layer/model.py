@@ -130,6 +130,7 @@ class GaussianAtomsModel(AtomFit, SplatfactoCompat):
         viewer keeps serving after training, say where and how to stop it."""
         viewer, config = getattr(trainer, "viewer_state", None), trainer.config.viewer
         over = (step >= span.last or trainer.stop_training) and not self.kernel_reading.first_pass
+        over = over and not getattr(self, "second_look_pending", False)
         if viewer is None or config.quit_on_train_completion or not over:
             return
         where = "; ".join(getattr(viewer, "viewer_info", None) or [str(getattr(viewer, "viewer_url", "its address"))])

@@ -1,0 +1,111 @@
+"""A second look: the fit starts again from its Gaussians and every place an atom could be where
+the residuals hold positive mass, and that fit's atoms are the run's.
+
+A light atom beside its bonded neighbours can be lost for good.  Early in the fit one Gaussian
+settles between two atoms with one atom's mass and its neighbours take up the rest, so the
+residual the missed atom leaves is weak (on carbon phase images at 2,000 e/Å² a median 2.0 noise
+standard deviations in the residuals' back-projection), under any level a search for findings
+must keep (:func:`~gaussian_atoms_method.atoms.residual_sites.unexplained_sites`); and a Gaussian
+added there late, with that peak's small mass, cannot win the mass back from neighbours that
+have settled.  Started again from the schedule's beginning, every Gaussian on an equal footing,
+the fit judges each place itself.  So once the fit has converged, a Gaussian is proposed at every
+open place (inside the material, at least the hard core from every Gaussian) where the residuals'
+smoothed back-projection has a local maximum of positive mass
+(:func:`~gaussian_atoms_method.atoms.residual_sites.open_place_peaks`), and the fit starts again
+from its Gaussians and the proposals, as from ``start_atoms``.  Once a run, only where the hard
+core is known (``--species``, or read from the confident atoms), and only where the residuals
+prove an atom, its neighbours re-fitted (:mod:`~gaussian_atoms_method.atoms.proposal_test`, at
+the evidence's proof level), at more of the places than they prove less than none by more than
+the convergence tolerates as a change of the set (:func:`proven_places`).
+
+Measured on 7,000 carbon atoms in phase images at 2,000 e/Å² (this CPU, ``ga.reconstruct(...,
+species="C")``): found 0.932 -> 0.992, 0.0020 -> 0.0003 false per atom, 22.4 -> 17.0 pm (the
+same fit started again from its own atoms alone: 0.945; from them and the 475 missed true atoms:
+0.990).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from gaussian_atoms_method.atoms.atom_set import read_atoms
+from gaussian_atoms_method.atoms.evidence import proof_level
+from gaussian_atoms_method.atoms.information import residual_spectrum_factors
+from gaussian_atoms_method.atoms.proposal_test import proposal_significance
+from gaussian_atoms_method.atoms.residual_sites import open_place_peaks
+from gaussian_atoms_method.engine.console import CONSOLE
+from gaussian_atoms_method.engine.rendering import detector_axes
+from gaussian_atoms_method.engine.residuals import render_training_views
+from gaussian_atoms_method.physics.noise import mad_std
+
+
+def start_positions(model) -> np.ndarray | None:
+    """(N, 3) Å where the fit's Gaussians start: a second look's (the
+    Gaussians and the proposals), else ``start_atoms``' atoms, else None (the start's own
+    search)."""
+    again = getattr(model, "second_look_start", None)
+    if again is not None:
+        return again
+    path = model.config.start_atoms
+    return read_atoms(path).positions if path is not None else None
+
+
+def look_again(model, step: int) -> bool:
+    """At the fit's first convergence, with ``second_look`` on: the proposals (module docstring);
+    where the data prove more of them than the convergence tolerates as a change of the set,
+    note the start of the fit again (``model.second_look_start``), say so and return True (the
+    pass ends without results; :meth:`~.fit.AtomFit.start_again` starts the next).  False where
+    the run ends here."""
+    if not model.config.second_look or getattr(model, "second_look_start", None) is not None:
+        return False
+    series, projections = model.view_set.series, model.view_set.projections
+    ls = model.normalisation.length_scale
+    hard_core = model.density.hard_core(model.gauss_params) / ls  # Å; infinite where unknown
+    if series is None or projections is None or model.num_points == 0 or not np.isfinite(hard_core):
+        return False
+    with torch.no_grad():
+        predicted = render_training_views(model)
+        residuals = (np.asarray(projections, dtype=np.float64) - predicted) / model.normalisation.data_scale
+        inside = model.density.in_field(model.means.detach()).cpu().numpy()
+        existing = model.means.detach().cpu().double().numpy()[inside] / ls  # Å about the tilt centre
+        atoms = model.atoms()
+    places = open_place_peaks(
+        residuals.astype(np.float32), series.angles_deg, series.pixel_size_A, existing, hard_core, series.tilt_axis,
+        series.centre_px, tilt_axis_angle_deg=series.tilt_axis_angle_deg, device=str(model.means.device),
+    )  # fmt: skip
+    proven, against = proven_places(model, places, atoms, inside, residuals)
+    if proven - against <= model.convergence.changed_fraction * model.num_points:
+        return False
+    model.second_look_start = np.vstack([existing, places])  # the model's frame, as start_atoms are read
+    model.second_look_pending = True
+    CONSOLE.print(
+        f"gaussian-atoms: step {step}: converged; a second look: of the {len(places)} places an atom could be (at "
+        f"least the hard core {hard_core:.2f} Å from every Gaussian) with positive mass there, the residuals prove "
+        f"an atom at {proven} and less than none at {against}, its neighbours re-fitted: the fit starts again from "
+        f"its {len(existing)} Gaussians and those {len(places)} places"
+    )
+    return True
+
+
+def proven_places(model, places: np.ndarray, atoms, inside: np.ndarray, residuals: np.ndarray) -> tuple[int, int]:
+    """At how many of ``places`` (Å about the tilt centre) the ``residuals`` (V, H, W, input
+    units) prove an atom with its neighbours re-fitted, and at how many they ask as strongly for
+    less than none (:func:`~gaussian_atoms_method.atoms.proposal_test.proposal_significance` at
+    or beyond the evidence's proof level either way, for the Gaussians ``atoms`` in the field,
+    ``inside``).  The second count is the null's: where the fit's misfit, not a missing atom,
+    makes a place significant, it does so either way (an 11 Å Au particle found whole: 59 and
+    596 of 1,660 places; carbon missing 475 atoms: 524 and 30 of 779)."""
+    if len(places) == 0:
+        return 0, 0
+    series = model.view_set.series
+    noise = mad_std(residuals)
+    about = atoms.positions[inside] - np.asarray(series.origin_A, dtype=np.float64)
+    sigmas, amps = atoms.sigmas[inside], atoms.amplitudes[inside]
+    _, amplitude_factor = residual_spectrum_factors(residuals, noise, float(np.median(sigmas)) / series.pixel_size_A)
+    axes = detector_axes(model.view_c2w.cpu().double()).numpy()
+    z = proposal_significance(
+        places, about, sigmas, amps, axes, residuals, series.pixel_size_A, series.centre_px, noise, amplitude_factor
+    )
+    level = proof_level(len(about))
+    return int(np.sum(z >= level)), int(np.sum(z <= -level))
