@@ -217,7 +217,7 @@ def test_a_place_of_pure_noise_reads_a_standard_normal_significance():
     )
     axes = detector_axes_of(noisy.angles_deg, "y")
     n = len(atoms.positions)
-    z = proposal_significance(
+    z, _ = proposal_significance(
         grid, atoms.positions, np.full(n, 0.6), np.ones(n), axes, noisy.projections - clean.projections,
         noisy.pixel_size_A, [(side - 1) / 2.0 for side in noisy.projections.shape[1:]], 20.0,
     )  # fmt: skip
