@@ -133,21 +133,25 @@ def test_reconstruct_leaves_torch_and_the_interpreter_as_it_found_them():
     assert run.stdout.strip().split("\n")[-1] == "changed [] stand-ins []", run.stdout[-2000:]
 
 
-def test_a_given_start_keeps_what_the_data_hold_and_drops_the_rest(particle, tmp_path):
+@pytest.mark.parametrize("origin_A", [(0.0, 0.0, 0.0), (3.0, -2.0, 1.0)])
+def test_a_given_start_keeps_what_the_data_hold_and_drops_the_rest(particle, tmp_path, origin_A):
     """``start_atoms``: the true atoms moved 0.3 Å at random, and one more in the vacuum 6 Å
     beyond the particle's surface.  The fit returns every atom to within the precision of the
-    first test and drops the vacuum one (no mass there in any view)."""
+    first test and drops the vacuum one (no mass there in any view).  The start is read in the
+    frame ``atoms.xyz`` is written in, the series' ``origin_A`` at its tilt centre (it had been
+    read about the tilt centre: a start off by the origin)."""
+    from dataparsers.tilt_series_format import TiltSeries
     from gaussian_atoms_method.atoms.atom_set import AtomSet, write_atoms
 
     truth, angles, projections = particle
+    origin = np.asarray(origin_A)
     rng = np.random.default_rng(1)
     moved = truth.positions + rng.normal(scale=0.3 / np.sqrt(3), size=truth.positions.shape)
-    start = np.vstack([moved, [[0.0, 0.0, 11.0]]])
+    start = np.vstack([moved, [[0.0, 0.0, 11.0]]]) + origin
     path = write_atoms(AtomSet(positions=start, species=np.array(["Au"] * len(start))), tmp_path / "start.xyz")
-    atoms = ga.reconstruct(
-        projections, angles, 0.25, device="cpu", max_num_iterations=400, progress=False, start_atoms=path
-    )
-    scores = score_atoms(atoms.positions, truth.positions)
+    series = TiltSeries(projections.astype(np.float32), angles, 0.25, origin_A=origin)
+    atoms = ga.reconstruct(series, device="cpu", max_num_iterations=400, progress=False, start_atoms=path)
+    scores = score_atoms(atoms.positions - origin, truth.positions)
     assert scores["tpr"] == 1.0 and scores["fp_per_true_atom"] == 0.0 and scores["rmsd_pm"] < 5.0
 
 

@@ -41,14 +41,17 @@ from gaussian_atoms_method.physics.noise import mad_std
 
 
 def start_positions(model) -> np.ndarray | None:
-    """(N, 3) Å where the fit's Gaussians start: a second look's (the
-    Gaussians and the proposals), else ``start_atoms``' atoms, else None (the start's own
+    """(N, 3) Å about the tilt centre where the fit's Gaussians start: a second look's (the
+    Gaussians and the proposals), else ``start_atoms``' atoms (read in the frame ``atoms.xyz``
+    is written in: the series' ``origin_A`` at the tilt centre), else None (the start's own
     search)."""
     again = getattr(model, "second_look_start", None)
     if again is not None:
         return again
     path = model.config.start_atoms
-    return read_atoms(path).positions if path is not None else None
+    if path is None:
+        return None
+    return read_atoms(path).positions - np.asarray(model.normalisation.origin_A, dtype=np.float64)
 
 
 def look_again(model, step: int) -> bool:
