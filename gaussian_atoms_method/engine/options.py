@@ -174,12 +174,14 @@ class FitOptions(DensitySettings, UserFirstOptions):
     """After the final prune and merge, when they removed anything, one pass over the views so the
     survivors take up what the removed Gaussians carried (:mod:`gaussian_atoms_method.engine.refit`)."""
     second_look: bool = True
-    """Once the fit has converged, propose a Gaussian at every place an atom could be (at least the
-    hard core from every Gaussian, inside the material) where the residuals hold positive mass,
-    and fit again from the start with them (:mod:`gaussian_atoms_method.engine.second_look`: a light
-    atom whose bonded neighbours took up its mass leaves a residual under any search's level).
-    Only where the hard core is known (``--species``, or read) and such a place exists; up to twice
-    the time there.  7,000 carbon atoms in phase images at 2,000 e/Å²: found 0.932 -> 0.992."""
+    """Once the fit has converged, where the residuals prove more than half an atom (neighbours
+    re-fitted) at significantly more of the places an atom could be (at least the hard core from
+    every Gaussian, inside the material) than they prove less than minus half a one, fit again
+    from the start with a Gaussian added at every such place with positive mass
+    (:mod:`gaussian_atoms_method.engine.second_look`: a light atom whose bonded neighbours took
+    up its mass leaves a residual under any search's level).  Only with a hard core (``--species``,
+    or read); up to twice the time where it runs.  7,000 carbon atoms in phase images at 2,000
+    e/Å²: found 0.931 -> 0.994."""
     evidence: bool = True
     """Each atom with its evidence in atoms.xyz/atoms.csv: its significance, proven or open, its
     depth interval and its precision with its neighbours re-fitted, from the views' own residuals
