@@ -76,27 +76,29 @@ def proposal_significance(
         places[place_of], positions[atom_of], s0 * np.ones(len(place_of)), sig[atom_of], q0 * np.ones(len(place_of)),
         amp[atom_of], detector_axes, pixel_size_A,
     )[:, 4, :]  # fmt: skip
-    pairs = np.unique(np.concatenate([_pairs_within(n) for n in near]), axis=0)
+    n = len(positions)
+    within = np.concatenate([_pairs_within(atoms) for atoms in near])
+    keys = np.unique(within[:, 0] * n + within[:, 1])  # sorted
+    pairs = np.stack([keys // n, keys % n], axis=1)
     blocks = pair_information(
         positions[pairs[:, 0]], positions[pairs[:, 1]], sig[pairs[:, 0]], sig[pairs[:, 1]], amp[pairs[:, 0]],
         amp[pairs[:, 1]], detector_axes, pixel_size_A,
     )  # fmt: skip
-    lookup = {(int(a), int(b)): i for i, (a, b) in enumerate(pairs)}
+    counts = np.array([len(n) for n in near])
+    start = np.r_[0, np.cumsum(counts)]
     shared = np.zeros(m)
-    start = np.r_[0, np.cumsum([len(n) for n in near])]
-    for p, atoms in enumerate(near):
-        k = len(atoms)
-        if k == 0:
-            continue
-        system = np.empty((k, 5, k, 5))
-        for a, i in enumerate(atoms):
-            for b, j in enumerate(atoms):
-                block = blocks[lookup[(min(i, j), max(i, j))]]
-                system[a, :, b, :] = block if i <= j else block.T
-        c = cross[start[p] : start[p + 1]].reshape(-1)
-        system = system.reshape(5 * k, 5 * k)
-        ridge = 1e-9 * np.trace(system) / (5 * k)  # a neighbour's parameters may be all but degenerate
-        shared[p] = c @ np.linalg.solve(system + ridge * np.eye(5 * k), c)
+    for k in np.unique(counts[counts > 0]):  # the places with k neighbours, their systems at once
+        which = np.nonzero(counts == k)[0]
+        atoms = np.stack([np.asarray(near[p], np.int64) for p in which])  # (G, k)
+        i, j = atoms[:, :, None], atoms[:, None, :]
+        lo, hi = np.minimum(i, j), np.maximum(i, j)
+        found = blocks[np.searchsorted(keys, lo * n + hi)]  # (G, k, k, 5, 5), rows: the lower index
+        system = np.where((i <= j)[..., None, None], found, found.swapaxes(-1, -2))
+        system = system.transpose(0, 1, 3, 2, 4).reshape(len(which), 5 * k, 5 * k)
+        c = np.stack([cross[start[p] : start[p + 1]].reshape(-1) for p in which])  # (G, 5k)
+        # a neighbour's parameters may be all but degenerate
+        ridge = 1e-9 * np.trace(system, axis1=1, axis2=2)[:, None, None] / (5 * k) * np.eye(5 * k)
+        shared[which] = np.einsum("gi,gi->g", c, np.linalg.solve(system + ridge, c[..., None])[..., 0])
     efficient = np.maximum(own[:, 4, 4] - shared, 1e-12 * own[:, 4, 4])
     scale = noise_std * amplitude_factor * np.sqrt(efficient)
     return score / scale, q0 * efficient / scale

@@ -85,9 +85,12 @@ def look_again(model, step: int) -> bool:
         residuals.astype(np.float32), series.angles_deg, series.pixel_size_A, existing, hard_core, series.tilt_axis,
         series.centre_px, tilt_axis_angle_deg=series.tilt_axis_angle_deg, device=str(model.means.device),
     )  # fmt: skip
+    tolerated = model.convergence.changed_fraction * model.num_points
+    if len(places) <= tolerated:  # not even every place proven would be more than the set may change
+        return False
     proven, against = proven_places(model, places, atoms, inside, residuals)
     excess = int(proven.sum()) - int(against.sum())
-    if excess <= model.convergence.changed_fraction * model.num_points:
+    if excess <= tolerated:
         return False
     if excess < proof_level(len(existing)) * np.sqrt(proven.sum() + against.sum()):
         return False
