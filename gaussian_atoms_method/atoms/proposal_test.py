@@ -41,7 +41,7 @@ def proposal_significance(
     centre_px,
     noise_std: float,
     amplitude_factor: float = 1.0,
-) -> np.ndarray:
+) -> tuple[np.ndarray, np.ndarray]:
     """Two (M,): ``z`` of an atom of the median width and peak ``q`` at each of ``places_A``
     (M, 3), and the ``z`` a whole such atom missing there would read (``q sqrt(I_eff) / noise``:
     ``z`` over it is the share of an atom's mass the residuals ask for there), with

@@ -80,7 +80,7 @@ def look_again(model, step: int) -> bool:
         residuals = (np.asarray(projections, dtype=np.float64) - predicted) / model.normalisation.data_scale
         inside = model.density.in_field(model.means.detach()).cpu().numpy()
         existing = model.means.detach().cpu().double().numpy()[inside] / ls  # Å about the tilt centre
-        atoms = model.atoms()
+        atoms = model.atoms()  # widths in Å, amplitudes in the input's units
     places = open_place_peaks(
         residuals.astype(np.float32), series.angles_deg, series.pixel_size_A, existing, hard_core, series.tilt_axis,
         series.centre_px, tilt_axis_angle_deg=series.tilt_axis_angle_deg, device=str(model.means.device),
@@ -88,7 +88,7 @@ def look_again(model, step: int) -> bool:
     tolerated = model.convergence.changed_fraction * model.num_points
     if len(places) <= tolerated:  # not even every place proven would be more than the set may change
         return False
-    proven, against = proven_places(model, places, atoms, inside, residuals)
+    proven, against = proven_places(model, places, existing, atoms.sigmas[inside], atoms.amplitudes[inside], residuals)
     excess = int(proven.sum()) - int(against.sum())
     if excess <= tolerated:
         return False
@@ -106,25 +106,25 @@ def look_again(model, step: int) -> bool:
     return True
 
 
-def proven_places(model, places: np.ndarray, atoms, inside: np.ndarray, residuals: np.ndarray) -> tuple:
-    """At how many of ``places`` (Å about the tilt centre) the ``residuals`` (V, H, W, input
-    units) prove more than half an atom with its neighbours re-fitted, and at how many less than
+def proven_places(model, places: np.ndarray, positions_A, sigmas_A, amplitudes, residuals: np.ndarray) -> tuple:
+    """Two (M,) bool: where at ``places`` (Å about the tilt centre) the ``residuals`` (V, H, W,
+    input units) prove more than half an atom with its neighbours re-fitted, and where less than
     minus half a one (:func:`~gaussian_atoms_method.atoms.proposal_test.proposal_significance`,
-    at the evidence's proof level, for the Gaussians ``atoms`` in the field, ``inside``).  The
-    second count is the null's: a fit's misfit, not a missing atom, can ask for either sign.
-    Proven, against: carbon missing 475 atoms 449 and 17 of 779 places (271 proven within 0.75 Å
-    of a missed atom); an 11 Å Au particle found whole 0 and 61 of 1,660; the aSi-208 counts at
-    each dose none either way (without the half atom: 53, 25 and 7 proven)."""
+    at the evidence's proof level, for the Gaussians at ``positions_A``, Å about the tilt centre,
+    with ``sigmas_A`` and ``amplitudes``).  The second is the null's: a fit's misfit, not a
+    missing atom, can ask for either sign.  Proven, against: carbon missing 475 atoms 449 and 17
+    of 779 places (271 proven within 0.75 Å of a missed atom); an 11 Å Au particle found whole 0
+    and 61 of 1,660; the aSi-208 counts at each dose none either way (without the half atom: 53,
+    25 and 7 proven)."""
     if len(places) == 0:
         return np.zeros(0, bool), np.zeros(0, bool)
     series = model.view_set.series
     noise = mad_std(residuals)
-    about = atoms.positions[inside] - np.asarray(series.origin_A, dtype=np.float64)
-    sigmas, amps = atoms.sigmas[inside], atoms.amplitudes[inside]
-    _, amplitude_factor = residual_spectrum_factors(residuals, noise, float(np.median(sigmas)) / series.pixel_size_A)
+    _, amplitude_factor = residual_spectrum_factors(residuals, noise, float(np.median(sigmas_A)) / series.pixel_size_A)
     axes = detector_axes(model.view_c2w.cpu().double()).numpy()
     z, whole = proposal_significance(
-        places, about, sigmas, amps, axes, residuals, series.pixel_size_A, series.centre_px, noise, amplitude_factor
-    )
-    level = proof_level(len(about))
+        places, positions_A, sigmas_A, amplitudes, axes, residuals, series.pixel_size_A, series.centre_px, noise,
+        amplitude_factor,
+    )  # fmt: skip
+    level = proof_level(len(positions_A))
     return z - 0.5 * whole >= level, z + 0.5 * whole <= -level
