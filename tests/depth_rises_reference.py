@@ -8,15 +8,30 @@ import numpy as np
 import torch
 
 from gaussian_atoms_method.atoms.depth_profile import _columns, moved_blocks_here
+from gaussian_atoms_method.atoms.population import with_prior
 
 
 def depth_rises_reference(
-    local, info, scores, moved, offsets, positions, sigmas, amps, axes, pixel_size_A, hard_core_A, axis, table=None
+    local,
+    info,
+    scores,
+    moved,
+    offsets,
+    positions,
+    sigmas,
+    amps,
+    axes,
+    pixel_size_A,
+    hard_core_A,
+    axis,
+    table=None,
+    prior=None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`gaussian_atoms_method.atoms.depth_profile.depth_rises` (its arguments and its two
     (B, M) rises) with every moved set's (5k, 5k) system built whole, turned whole and solved whole:
     the moved atoms' blocks against the still ones replaced by the moved blocks, the held places'
-    rows and columns cut out, and the fit as it is solved once per distinct held pattern."""
+    rows and columns cut out, and the fit as it is solved once per distinct held pattern; a
+    ``prior`` (B, k, 2, 2) added to every atom's width and amplitude rows of both systems."""
     b, k = local.shape
     m = len(offsets)
     on = dict(dtype=torch.float64, device=info.device)
@@ -56,6 +71,11 @@ def depth_rises_reference(
     )
     del cross
     with_move = with_move.permute(0, 1, 2, 4, 3, 5).reshape(b, m, 5 * k, 5 * k)
+    system_now = info
+    if prior is not None:
+        system_now = with_prior(info, prior)
+        with_move = with_prior(with_move.reshape(b * m, 5 * k, 5 * k), prior.repeat_interleave(m, dim=0))
+        with_move = with_move.reshape(b, m, 5 * k, 5 * k)
     # positions turned to two directions across the axis and the axis; each moved atom's place
     # along the axis held (its row and column cut out: a unit diagonal and a zero pull)
     basis = torch.as_tensor(np.linalg.qr(np.c_[axis, np.eye(3)])[0][:, [1, 2, 0]].T, **on)
@@ -86,7 +106,7 @@ def depth_rises_reference(
     _, once, again = np.unique(patterns, axis=0, return_index=True, return_inverse=True)
     atom_of = torch.as_tensor(once // m, device=info.device)
     baseline = refit(
-        turned(info)[atom_of],
+        turned(system_now)[atom_of],
         turned_pull(pull_now.reshape(b, 5 * k))[atom_of],
         held.reshape(b * m, 5 * k)[torch.as_tensor(once)],
     )[torch.as_tensor(again.ravel(), device=info.device)].reshape(b, m)

@@ -503,24 +503,29 @@ def test_the_depth_profile_from_the_hosts_table_of_moved_blocks_is_the_one_read_
     np.testing.assert_array_equal(tabled.depth_open, batched.depth_open)
 
 
+@pytest.mark.parametrize("with_population", [False, True], ids=["free", "population"])
 @pytest.mark.parametrize("tabled", [True, False], ids=["host table", "read in each batch"])
-def test_the_depth_profile_through_the_sets_inverse_is_each_system_solved_whole(monkeypatch, tabled):
+def test_the_depth_profile_through_the_sets_inverse_is_each_system_solved_whole(monkeypatch, tabled, with_population):
     """:func:`~gaussian_atoms_method.atoms.depth_profile.depth_rises` re-fits each moved set
     through the set's inverse information (the still atoms' rows a Schur complement of the moved
     ones'); its float64 reference builds and solves every (5k, 5k) system whole
     (``tests/depth_rises_reference.py``).  On the fcc lattice, where 220 of the 900 moves carry a
     neighbour along (a column), the two agree to 1e-9 of the profile's scale: the same subtraction of cost rises in
-    another order, and nothing else."""
+    another order, and nothing else.  So too with the population's prior on every width and
+    amplitude (atoms/population.py), added to both systems."""
     from depth_rises_reference import depth_rises_reference
 
     from gaussian_atoms_method.atoms import evidence
+    from gaussian_atoms_method.atoms.population import population_precision
 
     read, moved = _fcc_evidence_inputs()
+    population = population_precision(read[1], read[2], np.diag([0.05, 0.1]) ** 2) if with_population else None
     if not tabled:
         monkeypatch.setattr(evidence, "moved_blocks_of", lambda *a, **k: None)
-    fast = evidence.atom_evidence(*read, moved_pulls=moved, device="cpu")
-    monkeypatch.setattr(evidence, "depth_rises", lambda *a: depth_rises_reference(*a[:-2]))  # no covariance, no sight
-    whole = evidence.atom_evidence(*read, moved_pulls=moved, device="cpu")
+    fast = evidence.atom_evidence(*read, moved_pulls=moved, device="cpu", population=population)
+    # the reference: the arguments up to the table, and the prior (no covariance, no sight)
+    monkeypatch.setattr(evidence, "depth_rises", lambda *a: depth_rises_reference(*a[:13], prior=a[15]))
+    whole = evidence.atom_evidence(*read, moved_pulls=moved, device="cpu", population=population)
     columns = np.isfinite(whole.depth_profile).mean()
     assert columns > 0.9
     scale = np.nanmax(np.abs(whole.depth_profile))

@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from gaussian_atoms_method.atoms.information import pair_blocks, pair_information, view_planes, view_scores
+from gaussian_atoms_method.atoms.population import with_prior
 from gaussian_atoms_method.physics.arrays import unique_keys
 from gaussian_atoms_method.physics.spd import spd_inverse, spd_solve
 
@@ -96,6 +97,7 @@ def depth_rises(
     table=None,
     covariance=None,
     sight=None,
+    prior=None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Two (B, M): for each atom ``local[:, 0]`` and each of the M ``offsets``, how much the
     least-squares cost rises (pixel sums, in projection units squared) when the atom is moved by
@@ -104,7 +106,10 @@ def depth_rises(
     (linearised about the moved places; ``info`` (B, 5k, 5k): the local information, pixel sums,
     the atom first; ``scores`` (N, V, 5) the views' pulls, ``moved`` (M, N, 5) the pulls on the
     atoms moved by each offset, tensors on ``info``'s device; ``axis``: :func:`depth_axis_of` the
-    views, the direction moved along; ``covariance``: ``info``'s inverse where the caller has it).
+    views, the direction moved along; ``covariance``: ``info``'s inverse where the caller has it;
+    ``prior`` (B, k, 2, 2): each atom's population precision on its width and amplitude
+    (:func:`~.population.population_precision`, in ``info``'s units), with which the set is
+    re-fitted: then ``covariance`` must be the inverse of ``info`` with it).
 
     With ``G`` the moved atoms, ``g_i'`` atom i's image at its new place and ``r`` the residual,
     the cost before the re-fit changes by ``-2 <r, sum_G (g_i' - g_i)> + |sum_G (g_i' - g_i)|^2``;
@@ -171,7 +176,7 @@ def depth_rises(
     coupling = torch.where(still[..., None, None], cross.permute(0, 1, 3, 5, 2, 4), 0.0).reshape(b, m, 5 * k, 5 * g)
     # the still atoms solved through the inverse information with the moved atoms' rows taken out
     if covariance is None:
-        covariance = spd_inverse(info)
+        covariance = spd_inverse(info if prior is None else with_prior(info, prior))
     cov = 0.5 * (covariance + covariance.transpose(1, 2))
     rhs = torch.cat([pull_rest[..., None], coupling], dim=-1)  # (B, M, 5k, 1 + 5g)
     c = rhs.shape[-1]
@@ -185,6 +190,9 @@ def depth_rises(
         row_valid = valid[..., 1:, None].expand(b, m, g - 1, 5).reshape(b, m, 5 * (g - 1))
         solved = solved - _taken_out(rest, rows, row_valid, rhs)
     own = blocks_gg.permute(0, 1, 2, 4, 3, 5).reshape(b, m, 5 * g, 5 * g)  # the moved atoms among themselves
+    if prior is not None:  # the population's on the moved atoms' widths and amplitudes
+        moved_prior = (prior[bb, gi] * valid[..., None, None]).reshape(b * m, g, 2, 2)
+        own = with_prior(own.reshape(b * m, 5 * g, 5 * g), moved_prior).reshape(b, m, 5 * g, 5 * g)
     # positions turned to two directions across the axis and the axis; each moved atom's place
     # along the axis held (and every parameter of an empty slot), its row and column cut out
     basis = torch.as_tensor(np.linalg.qr(np.c_[axis, np.eye(3)])[0][:, [1, 2, 0]].T, **on)

@@ -62,6 +62,7 @@ from gaussian_atoms_method.atoms.information import (
     pair_information,
     pairs_among_neighbours,
 )
+from gaussian_atoms_method.atoms.population import with_prior
 from gaussian_atoms_method.physics.devices import work_device
 from gaussian_atoms_method.physics.spd import spd_inverse, spd_solve
 
@@ -165,6 +166,7 @@ def atom_evidence(
     device=None,
     progress=None,
     field=None,
+    population=None,
 ) -> AtomEvidence:
     """Existence, depth and precision of every atom from the views' information (module docstring).
 
@@ -214,6 +216,12 @@ def atom_evidence(
     field : :class:`~.information.DetectorField`, optional
         The detector's extent: each view informs a pair by the share of it on the detector (a
         film's edge atoms leave it in some views).  None: every atom is seen whole in every view.
+    population : (N, 2, 2) array, optional
+        Each Gaussian's prior precision on its width and amplitude
+        (:func:`.population.population_precision`): added to the information the precisions and
+        the depth profile are read from, its neighbours' widths and masses re-fitted within their
+        population (not the significance, which asks what the neighbours could take up of an
+        atom's image with every parameter free).
 
     Returns
     -------
@@ -274,6 +282,11 @@ def atom_evidence(
         else torch.as_tensor(np.stack([moved_pulls[o] for o in offsets]), dtype=torch.float64, device=where)
     )
     budget = HOST_BATCH_ELEMENTS if where.type == "cpu" else BATCH_ELEMENTS
+    prior = (  # in the information's unit, a noise variance at the atoms' scale of one
+        None
+        if population is None
+        else torch.as_tensor(np.asarray(population, np.float64) * variance * amplitude_factor**2, device=where)
+    )
     table = (  # on the host each moved block is read once (depth_rises)
         None
         if moved_on is None or where.type != "cpu"
@@ -289,20 +302,22 @@ def atom_evidence(
         # the information singular: a ridge of 1e-9 of the diagonal leaves the rest unchanged
         info = info + torch.diag_embed(1e-9 * torch.diagonal(info, dim1=1, dim2=2).clamp_min(1e-300))
         covariance = spd_inverse(info)
+        prior_here = None if prior is None else prior[local_on]
+        stated = covariance if prior is None else spd_inverse(with_prior(info, prior_here))
         if scores_on is not None:  # the sandwich, from the position's, width's and amplitude's rows: (C P^T)(P C^T)
             pulls = scores_on[local_on].permute(0, 2, 1, 3).reshape(len(atoms), scores.shape[1], 5 * k)  # (B, V, 5k)
-            rows = covariance[:, :5] @ pulls.transpose(1, 2)  # (B, 5, V)
+            rows = stated[:, :5] @ pulls.transpose(1, 2)  # (B, 5, V)
             spread = (rows @ rows.transpose(1, 2) * (pulls.shape[1] / max(pulls.shape[1] - 1, 1))).cpu().numpy()
             if moved_on is not None:  # the profile's unit (below)
-                fisher[atoms] = covariance[:, :3, :3].cpu().numpy()
+                fisher[atoms] = stated[:, :3, :3].cpu().numpy()
         else:
-            spread = covariance[:, :5, :5].cpu().numpy()
+            spread = stated[:, :5, :5].cpu().numpy()
         covariances[atoms], width_variance[atoms] = spread[:, :3, :3], spread[:, 3, 3]
         log_mass_variance[atoms] = _log_mass_variance(spread[:, 3:, 3:], sigmas[atoms], amps[atoms])
         if moved_on is not None:
             refitted, held = depth_rises(
                 local, info, scores_on, moved_on, offsets, positions, sigmas, amps, axes, pixel_size_A,
-                hard_core_A, depth_axis_all, table, covariance, sight,
+                hard_core_A, depth_axis_all, table, stated, sight, prior_here,
             )  # fmt: skip
             rises[atoms], frozen[atoms] = refitted.cpu().numpy(), held.cpu().numpy()
         # taken out: the atom's amplitude against every parameter of its neighbours; the Schur

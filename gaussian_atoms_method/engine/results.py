@@ -272,6 +272,7 @@ def attach_evidence(model, atoms: AtomSet, noise: float, read, hard_core_A: floa
     from gaussian_atoms_method.atoms.depth_profile import depth_profile_pulls
     from gaussian_atoms_method.atoms.evidence import atom_evidence
     from gaussian_atoms_method.atoms.information import DetectorField, residual_spectrum_factors, view_scores
+    from gaussian_atoms_method.atoms.population import reported_population
 
     series = model.view_set.series
     scale = model.normalisation.data_scale
@@ -290,6 +291,7 @@ def attach_evidence(model, atoms: AtomSet, noise: float, read, hard_core_A: floa
     hard_core = hard_core_A if np.isfinite(hard_core_A) else None
     moved = depth_profile_pulls(*pulls_args, hard_core) if hard_core is not None else None
     bar = ProgressBar(len(atoms), unit="atom", what="gaussian-atoms: evidence") if model.progress else None
+    population = reported_population(atoms.sigmas, atoms.amplitudes, in_field)
     evidence = atom_evidence(
         atoms.positions,
         atoms.sigmas,
@@ -306,6 +308,7 @@ def attach_evidence(model, atoms: AtomSet, noise: float, read, hard_core_A: floa
         moved_pulls=moved,
         progress=None if bar is None else bar.add,
         field=field if field.cuts(axes, atoms.positions, atoms.sigmas) else None,
+        population=population,
     )
     if bar is not None:
         bar.close()
