@@ -9,6 +9,8 @@ A directory holds ``tilt_series.json``::
                                          # GENFIRE writes them) or "zyx" (as RESIRE does)
      "pixel_size_A": 0.25,
      "tilt_axis": "y",                   # optional, "y" (default) or "x"
+     "contrast": "adf",                  # optional, what the views show: "adf" (default) or
+                                         # "phase" (ptychographic phase images)
      "truth": "atoms_true.xyz",          # optional, the true atoms
      "origin_A": [35.0, 35.0, 35.0],     # optional, the tilt centre in the truth file's frame
      "centre_px": [63.5, 63.5],          # optional, detector pixel (row, col) of the tilt
@@ -23,7 +25,6 @@ does not import nerfstudio.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -39,14 +40,17 @@ from gaussian_atoms_method.physics.noise import MIN_SIDE_PX
 
 from . import views
 from .errors import TiltSeriesError
+from .manifest import MANIFEST, _write_manifest, read_manifest, update_manifest
 from .readers import read_angles, read_stack
 
 __all__ = ["MANIFEST", "TiltSeries", "TiltSeriesError", "load_tilt_series", "write_tilt_series", "update_manifest"]
 
-MANIFEST = "tilt_series.json"
+
+CONTRASTS = ("adf", "phase")
+"""What a series' views show (:attr:`TiltSeries.contrast`)."""
 
 
-MANIFEST_WORDS = ("pixel", "axis", "origin", "centre", "species", "convention")
+MANIFEST_WORDS = ("pixel", "axis", "origin", "centre", "species", "convention", "contrast")
 """Words of a refusal that names the manifest (or its option), not the projections' file."""
 
 
@@ -93,6 +97,11 @@ class TiltSeries:
         A replica's own noise: the (``views_given``, H, W) field its views were drawn with, in
         the projections' units (manifest key ``noise``; :func:`~gaussian_atoms_method.harness.replica.write_replica`
         writes it), against which a run checks the noise it reads; None for measured views.
+    contrast : {"adf", "phase"}
+        What the views show: incoherent ADF-STEM images, a power of the projected potential
+        through a probe (the default), or ptychographic phase images, the projected potential
+        through the aperture's transfer (:mod:`gaussian_atoms_method.physics.phase`).  The run's own
+        replica draws its atoms so (:mod:`gaussian_atoms_method.engine.own_floor`).
     """
 
     projections: np.ndarray
@@ -111,6 +120,7 @@ class TiltSeries:
     view_indices: np.ndarray | None = None
     views_given: int | None = None
     noise_path: Path | None = None
+    contrast: str = "adf"
 
     def __post_init__(self) -> None:
         where = str(self.source) if self.source is not None else "tilt series"
@@ -170,6 +180,8 @@ class TiltSeries:
             ) from None
         if not np.isfinite(self.tilt_axis_angle_deg):
             raise TiltSeriesError(f"{where}: tilt_axis_angle_deg must be finite, got {self.tilt_axis_angle_deg}")
+        if self.contrast not in CONTRASTS:
+            raise TiltSeriesError(f"{where}: contrast must be one of {list(CONTRASTS)}, got {self.contrast!r}")
         if self.euler_convention not in EULER_CONVENTIONS:
             raise TiltSeriesError(
                 f"{where}: euler_convention must be one of {list(EULER_CONVENTIONS)}, got {self.euler_convention!r}"
@@ -248,6 +260,7 @@ def load_tilt_series(
     species: str | None = None,
     euler_convention: str | None = None,
     drop_views=None,
+    contrast: str | None = None,
 ) -> TiltSeries:
     """Read a tilt series from a directory with ``tilt_series.json`` and/or explicit options.
 
@@ -262,7 +275,8 @@ def load_tilt_series(
     without a tilt-axis angle, the one IMOD writes into an MRC header's labels (with
     ``tilt_axis`` "x", IMOD's reference direction, unless given).  ``species`` ("Ta", "Fe,Pt")
     names the specimen's elements (manifest key ``species``: a string or a list); ``drop_views``
-    the views left out (:func:`dataparsers.views.views_to_drop`: "3,7", "-40deg").
+    the views left out (:func:`dataparsers.views.views_to_drop`: "3,7", "-40deg"); ``contrast``
+    what the views show (:attr:`TiltSeries.contrast`).
     """
 
     data = Path(data)
@@ -274,41 +288,8 @@ def load_tilt_series(
         manifest_path, root = data / MANIFEST, data
     if not root.exists():
         raise TiltSeriesError(f"{root}: data directory not found")
-    manifest: dict = {}
-    if manifest_path.is_file():
-        try:
-            manifest = json.loads(manifest_path.read_text())
-        except json.JSONDecodeError as exc:
-            raise TiltSeriesError(f"{manifest_path}: not valid JSON ({exc})") from exc
-        if not isinstance(manifest, dict):
-            raise TiltSeriesError(f"{manifest_path}: expected a JSON object")
-        known = {
-            "projections",
-            "angles_deg",
-            "pixel_size_A",
-            "tilt_axis",
-            "truth",
-            "origin_A",
-            "centre_px",
-            "volume",
-            "volume_voxel_size_A",
-            "description",
-            "simulation",
-            "dataset",
-            "tilt_index_axis",
-            "angles_variable",
-            "tilt_axis_angle_deg",
-            "species",
-            "euler_convention",
-            "drop_views",
-            "noise",
-        }
-        unknown = set(manifest) - known
-        if unknown:
-            raise TiltSeriesError(
-                f"{manifest_path}: unknown key(s) {sorted(unknown)}; expected some of {sorted(known)}"
-            )
-    elif projections is None:
+    manifest = read_manifest(manifest_path) if manifest_path.is_file() else {}
+    if not manifest_path.is_file() and projections is None:
         raise TiltSeriesError(f"{manifest_path}: not found, and no projections option given")
     where = manifest_path if manifest_path.is_file() else root
 
@@ -402,6 +383,7 @@ def load_tilt_series(
             view_indices=kept,
             views_given=given,
             noise_path=noise_path,
+            contrast=pick(contrast, "contrast") or "adf",
         )
     except TiltSeriesError as exc:
         # Name the file the problem most likely lives in.
@@ -428,6 +410,7 @@ def write_tilt_series(
     species=(),
     euler_convention: str = "zyz",
     noise: np.ndarray | None = None,
+    contrast: str = "adf",
 ) -> Path:
     """Write a ``tilt_series.json`` directory; ``truth`` is an AtomSet in its own frame; ``noise``
     the (N, H, W) noise drawn into a replica's ``projections`` (``noise.npy``, manifest key ``noise``).
@@ -446,6 +429,7 @@ def write_tilt_series(
         tilt_axis_angle_deg=tilt_axis_angle_deg,
         species=species,
         euler_convention=euler_convention,
+        contrast=contrast,
     )
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -462,6 +446,8 @@ def write_tilt_series(
     }
     if series.tilt_axis_angle_deg:
         manifest["tilt_axis_angle_deg"] = series.tilt_axis_angle_deg
+    if series.contrast != "adf":
+        manifest["contrast"] = series.contrast
     if series.species:
         manifest["species"] = ",".join(series.species)
     if series.euler_deg is not None and series.euler_convention != "zyz":
@@ -476,18 +462,3 @@ def write_tilt_series(
         manifest.update(extra)
     _write_manifest(out, manifest)
     return out
-
-
-def _write_manifest(directory: Path, manifest: dict) -> None:
-    """Write tilt_series.json through a temporary file: readers never see half a manifest."""
-    tmp = directory / (MANIFEST + ".tmp")
-    tmp.write_text(json.dumps(manifest, indent=2) + "\n")
-    tmp.replace(directory / MANIFEST)
-
-
-def update_manifest(directory: str | Path, **entries) -> None:
-    """Add or replace entries of an existing tilt_series.json, atomically."""
-    directory = Path(directory)
-    manifest = json.loads((directory / MANIFEST).read_text())
-    manifest.update(entries)
-    _write_manifest(directory, manifest)

@@ -53,6 +53,9 @@ class TiltSeriesOptions:
     drop_views: Optional[str] = None
     """Views to leave out: their indices in the file (3,7) or their tilts (-40deg), e.g. a view
     that holds NaN or a blank frame.  Overrides the manifest."""
+    contrast: Optional[Literal["adf", "phase"]] = None
+    """What the views show: adf (ADF-STEM, the default) or phase (ptychographic phase images);
+    the run's own replica draws its atoms so.  Overrides the manifest."""
 
     def load(self, data: Optional[Path] = None) -> TiltSeries:
         """The tilt series these options name (``data`` overrides the directory); raises
@@ -72,4 +75,5 @@ class TiltSeriesOptions:
             self.species,
             self.euler_convention,
             self.drop_views,
+            self.contrast,
         )

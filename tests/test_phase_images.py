@@ -92,3 +92,29 @@ def test_simulate_draws_phase_images_with_the_noise_of_their_dose():
     assert noisy.noise_std < phase_noise_std_rad(1e4, PIXEL_A)
     with pytest.raises(ValueError, match="phase"):
         simulate_tilt_series(atoms, np.array([0.0]), potential="adf", dose_e_per_A2=1e4)
+
+
+def test_a_phase_series_says_so_and_a_contrast_that_is_neither_is_refused_naming_the_manifest(tmp_path):
+    """`simulate --potential phase` writes ``"contrast": "phase"`` into the manifest and the
+    series reads back as phase images (its own replica is then drawn through the aperture's
+    transfer, engine/own_floor.py); a manifest's unknown contrast is refused in one line naming
+    the manifest; an option overrides the manifest."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from dataparsers.tilt_series_format import TiltSeriesError, load_tilt_series, update_manifest
+
+    data = tmp_path / "phase"
+    simulate = [str(Path(sys.executable).parent / "gaussian-atoms"), "simulate", "--output", str(data)]
+    simulate += ["--particle", "sphere", "--element", "Au", "--radius-A", "4", "--potential", "phase"]
+    simulate += ["--dose-e-per-A2", "1e4", "--tilts=-60:30:60", "--no-save-volume"]
+    made = subprocess.run(simulate, capture_output=True, text=True, timeout=600)
+    assert made.returncode == 0, made.stderr[-2000:]
+    assert json.loads((data / "tilt_series.json").read_text())["contrast"] == "phase"
+    assert load_tilt_series(data).contrast == "phase"
+    assert load_tilt_series(data, contrast="adf").contrast == "adf"
+    update_manifest(data, contrast="bright field")
+    with pytest.raises(TiltSeriesError, match=r"tilt_series.json: contrast must be one of \['adf', 'phase'\]"):
+        load_tilt_series(data)

@@ -3,6 +3,7 @@ reads it, solved back from the width it gives."""
 
 import dataclasses
 
+import numpy as np
 import pytest
 
 from gaussian_atoms_method.physics.microscope import DEFAULT_OPTICS
@@ -26,3 +27,28 @@ def test_an_atom_narrower_than_the_bare_probe_gets_no_source_and_a_wider_source_
     assert probe_as_wide_as("C", 0.5 * bare, DEFAULT_OPTICS).source_fwhm_A == 0.0
     widths = [fitted_atom_width_A("C", dataclasses.replace(DEFAULT_OPTICS, source_fwhm_A=s)) for s in (0, 0.5, 1, 2)]
     assert widths == sorted(widths) and widths[-1] > widths[0] + 0.3
+
+
+@pytest.mark.parametrize("contrast", ["adf", "phase"])
+@pytest.mark.parametrize("source_fwhm_A", [0.5, 1.0])
+def test_the_source_is_read_from_views_against_the_atoms_drawn_with_none(contrast, source_fwhm_A):
+    """40 Pd atoms drawn through Lobato's potentials, the default optics and a source, in ADF or
+    phase contrast, with white noise at a tenth of the views' peak: the cross-spectrum against
+    the same atoms drawn with no source reads the source within 0.05 Å (a tenth of the narrower
+    one; the noise is independent of the atoms and averages out over 13 views' rings)."""
+    from gaussian_atoms_method.physics.adf import adf_projections
+    from gaussian_atoms_method.physics.geometry import detector_axes_of
+    from gaussian_atoms_method.physics.probe_width import contrast_transfer, source_read_from_views
+
+    rng = np.random.default_rng(11)
+    positions = rng.uniform(-6.0, 6.0, (40, 3))
+    axes, shape, pixel = detector_axes_of(np.linspace(-60, 60, 13)), (64, 64), 0.35
+
+    def drawn(fwhm):
+        transfer, power = contrast_transfer(dataclasses.replace(DEFAULT_OPTICS, source_fwhm_A=fwhm), contrast)
+        return adf_projections(positions, ["Pd"] * 40, np.ones(40), axes, shape, pixel, (31.5, 31.5),
+                               probe=transfer, power=power)  # fmt: skip
+
+    views = drawn(source_fwhm_A)
+    measured = views + rng.normal(0.0, 0.1 * views.max(), views.shape)
+    assert source_read_from_views(measured, drawn(0.0), pixel) == pytest.approx(source_fwhm_A, abs=0.05)

@@ -185,6 +185,7 @@ class Simulate:
             truth=truth,
             origin_A=origin,
             tilt_axis=self.tilt_axis,
+            contrast="phase" if self.potential == "phase" else "adf",
             extra={
                 "simulation": {
                     "particle": self.particle,

@@ -33,6 +33,9 @@ GRID_SPACING_A = 0.05
 GRID_SIZE_PX = 256
 """The fine grid's side, pixels: 12.8 Å, beyond the few Å an aberrated probe's tails reach."""
 
+FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))
+"""A Gaussian's full width at half maximum over its standard deviation."""
+
 LARGEST_SOURCE_FWHM_A = 4.0
 """The widest source tried, Å: an atom this blurred is 1.7 Å wide, beyond any atom-like width
 (``max_atom_sigma_A`` 1.5)."""
@@ -63,11 +66,31 @@ def least_squares_width_A(image: np.ndarray) -> float:
     return float(minimize_scalar(unexplained, bounds=(0.05, 3.0), method="bounded", options={"xatol": 1e-5}).x)
 
 
+def contrast_transfer(optics: ProbeOptics, contrast: str = "adf"):
+    """``(transfer(shape, spacing_A), power)`` of the views a series' ``contrast`` names: ADF's
+    probe intensity and :data:`~.adf.ADF_POTENTIAL_POWER`, or a phase image's aperture transfer
+    (:func:`~.phase.ptychographic_transfer`, the source of ``optics``) and the potential itself.
+
+    >>> from gaussian_atoms_method.physics.microscope import DEFAULT_OPTICS
+    >>> transfer, power = contrast_transfer(DEFAULT_OPTICS, "phase")
+    >>> power, float(transfer((64, 64), 0.1)[0, 25])  # nothing beyond twice the aperture
+    (1.0, 0.0)
+    """
+    from gaussian_atoms_method.physics.phase import ptychographic_transfer
+
+    if contrast == "phase":
+        return ptychographic_transfer(optics), 1.0
+    if contrast == "adf":
+        return optics.transfer, ADF_POTENTIAL_POWER
+    raise ValueError(f"contrast must be 'adf' or 'phase', got {contrast!r}")
+
+
 @functools.lru_cache(maxsize=64)
-def fitted_atom_width_A(element: str, optics: ProbeOptics, power: float = ADF_POTENTIAL_POWER) -> float:
-    """The width (Å) of the least-squares 2D Gaussian through one isolated ``element`` atom's ADF
-    image (its projected potential to ``power``, :func:`~.adf.adf_kernel_transform`) through the
-    probe of ``optics``: what a fit of one Gaussian per atom reads on such an atom.
+def fitted_atom_width_A(element: str, optics: ProbeOptics, contrast: str = "adf") -> float:
+    """The width (Å) of the least-squares 2D Gaussian through one isolated ``element`` atom's
+    image in views of ``contrast`` (:func:`contrast_transfer`: its projected potential to the
+    contrast's power, :func:`~.adf.adf_kernel_transform`, through the probe or the aperture of
+    ``optics``): what a fit of one Gaussian per atom reads on such an atom.
 
     >>> from gaussian_atoms_method.physics.microscope import DEFAULT_OPTICS
     >>> narrow = fitted_atom_width_A("Pd", dataclasses.replace(DEFAULT_OPTICS, source_fwhm_A=0.0))
@@ -76,9 +99,10 @@ def fitted_atom_width_A(element: str, optics: ProbeOptics, power: float = ADF_PO
     """
     shape = (GRID_SIZE_PX, GRID_SIZE_PX)
     freq = np.sqrt(squared_frequencies(shape, GRID_SPACING_A))
+    transfer, power = contrast_transfer(optics, contrast)
     k, kernel = adf_kernel_transform(element, power=power)
     atom = np.interp(freq, k, kernel, right=0.0)
-    return least_squares_width_A(np.fft.fftshift(np.fft.ifft2(atom * optics.transfer(shape, GRID_SPACING_A)).real))
+    return least_squares_width_A(np.fft.fftshift(np.fft.ifft2(atom * transfer(shape, GRID_SPACING_A)).real))
 
 
 def rendered_atom_width_A(sigma_A: float, kernel_widths_A=(), kernel_weights=()) -> float:
@@ -102,11 +126,9 @@ def rendered_atom_width_A(sigma_A: float, kernel_widths_A=(), kernel_weights=())
     return least_squares_width_A(image)
 
 
-def probe_as_wide_as(
-    element: str, sigma_A: float, optics: ProbeOptics, power: float = ADF_POTENTIAL_POWER
-) -> ProbeOptics:
+def probe_as_wide_as(element: str, sigma_A: float, optics: ProbeOptics, contrast: str = "adf") -> ProbeOptics:
     """``optics`` with the effective source (FWHM, Å) whose ``element`` atom is ``sigma_A`` wide
-    (:func:`fitted_atom_width_A`), by bisection between no source and
+    in views of ``contrast`` (:func:`fitted_atom_width_A`), by bisection between no source and
     :data:`LARGEST_SOURCE_FWHM_A`; where the probe without a source is already wider, no source
     (the replica's atoms are then wider than the views', and its floor errs high).
 
@@ -114,10 +136,13 @@ def probe_as_wide_as(
     >>> wide = fitted_atom_width_A("Pd", DEFAULT_OPTICS)
     >>> round(probe_as_wide_as("Pd", wide, DEFAULT_OPTICS).source_fwhm_A, 2)
     0.7
+    >>> phase = fitted_atom_width_A("C", DEFAULT_OPTICS, "phase")
+    >>> round(probe_as_wide_as("C", phase, DEFAULT_OPTICS, "phase").source_fwhm_A, 2)
+    0.7
     """
 
     def width(fwhm: float) -> float:
-        return fitted_atom_width_A(element, dataclasses.replace(optics, source_fwhm_A=round(fwhm, 4)), power)
+        return fitted_atom_width_A(element, dataclasses.replace(optics, source_fwhm_A=round(fwhm, 4)), contrast)
 
     low, high = 0.0, LARGEST_SOURCE_FWHM_A
     if not np.isfinite(sigma_A) or width(low) >= sigma_A:
@@ -128,3 +153,47 @@ def probe_as_wide_as(
         middle = 0.5 * (low + high)
         low, high = (middle, high) if width(middle) < sigma_A else (low, middle)
     return dataclasses.replace(optics, source_fwhm_A=round(0.5 * (low + high), 4))
+
+
+STRUCTURE_FREQUENCY_PER_A = 0.25
+"""The lowest spatial frequency the source is read at, 1/Å: structure finer than 4 Å (atoms and
+their spacings), not a view's floor or support, which vary over tens of Å."""
+
+
+def source_read_from_views(measured: np.ndarray, sharp: np.ndarray, pixel_size_A: float) -> float:
+    """The source (FWHM, Å) that turns ``sharp`` (V, H, W), the run's atoms drawn with no source,
+    into the ``measured`` views (V, H, W): the cross-spectrum ``Re <M S*>`` over the views,
+    in rings of frequency from :data:`STRUCTURE_FREQUENCY_PER_A`, is ``g |S|^2 exp(-2 pi^2
+    s^2 k^2)`` (noise is independent of ``S`` and averages out; a source's Gaussian blur
+    multiplies the spectrum), solved for ``s`` by least squares, the gain ``g`` in closed form.
+    What the fitted atoms miss of the truth (their errors blur like a source) is read with it.
+    NaN where the views hold no positive correlation with the atoms.
+
+    >>> rng = np.random.default_rng(0)
+    >>> sharp = rng.normal(size=(4, 64, 64))
+    >>> blur = gaussian_transfer(0.7 / FWHM_PER_SIGMA, (64, 64), 0.2)
+    >>> measured = np.fft.ifft2(np.fft.fft2(sharp) * blur).real + rng.normal(0, 0.5, sharp.shape)
+    >>> round(source_read_from_views(measured, sharp, 0.2), 1)
+    0.7
+    """
+    from scipy.optimize import minimize_scalar
+
+    m = np.fft.fft2(np.asarray(measured, np.float64), axes=(1, 2))
+    s = np.fft.fft2(np.asarray(sharp, np.float64), axes=(1, 2))
+    cross, power = (m * s.conj()).real.sum(0), (np.abs(s) ** 2).sum(0)
+    k2 = squared_frequencies(cross.shape, pixel_size_A)
+    rings = np.floor(np.sqrt(k2) * min(cross.shape) * pixel_size_A).astype(int)  # one frequency step a ring
+    used = np.sqrt(k2) >= STRUCTURE_FREQUENCY_PER_A
+    c, p, k2r = (np.bincount(rings[used], w[used]) for w in (cross, power, k2 * power))
+    held = p > 0
+    c, p, k2r = c[held], p[held], k2r[held] / p[held]
+    if c.sum() <= 0:
+        return float("nan")
+
+    def misfit(sigma: float) -> float:  # the rings' residual with the best gain at sigma
+        model = p * np.exp(-2.0 * np.pi**2 * sigma**2 * k2r)
+        return -(float((c * model).sum()) ** 2) / float((model * model).sum())
+
+    largest = LARGEST_SOURCE_FWHM_A / FWHM_PER_SIGMA
+    sigma = minimize_scalar(misfit, bounds=(0.0, largest), method="bounded", options={"xatol": 1e-4}).x
+    return float(round(sigma * FWHM_PER_SIGMA, 4))
