@@ -29,6 +29,7 @@ def layer_of(module: str) -> str:
     if parts[0] == "dataparsers":
         if len(parts) == 1 or parts[1] in (
             "errors",
+            "manifest",
             "readers",
             "registration_file",
             "rosetta",

@@ -218,10 +218,11 @@ def atom_evidence(
         film's edge atoms leave it in some views).  None: every atom is seen whole in every view.
     population : (N, 2, 2) array, optional
         Each Gaussian's prior precision on its width and amplitude
-        (:func:`.population.population_precision`): added to the information the precisions and
-        the depth profile are read from, its neighbours' widths and masses re-fitted within their
-        population (not the significance, which asks what the neighbours could take up of an
-        atom's image with every parameter free).
+        (:func:`.population.population_precision`): added to the information the positions'
+        precision and the depth profile are read from, the neighbours' widths and masses
+        re-fitted within their population (not the significance, which asks what the neighbours
+        could take up of an atom's image with every parameter free, nor the width's and mass's
+        precision, against which an atom's width and mass are compared with their population's).
 
     Returns
     -------
@@ -306,12 +307,16 @@ def atom_evidence(
         stated = covariance if prior is None else spd_inverse(with_prior(info, prior_here))
         if scores_on is not None:  # the sandwich, from the position's, width's and amplitude's rows: (C P^T)(P C^T)
             pulls = scores_on[local_on].permute(0, 2, 1, 3).reshape(len(atoms), scores.shape[1], 5 * k)  # (B, V, 5k)
-            rows = stated[:, :5] @ pulls.transpose(1, 2)  # (B, 5, V)
+            rows = covariance[:, :5] @ pulls.transpose(1, 2)  # (B, 5, V)
             spread = (rows @ rows.transpose(1, 2) * (pulls.shape[1] / max(pulls.shape[1] - 1, 1))).cpu().numpy()
+            if prior is not None:  # the positions' rows with the population's prior
+                rows = stated[:, :3] @ pulls.transpose(1, 2)
+                spread[:, :3, :3] = (rows @ rows.transpose(1, 2) * (pulls.shape[1] / max(pulls.shape[1] - 1, 1))).cpu()
             if moved_on is not None:  # the profile's unit (below)
                 fisher[atoms] = stated[:, :3, :3].cpu().numpy()
         else:
-            spread = stated[:, :5, :5].cpu().numpy()
+            spread = covariance[:, :5, :5].cpu().numpy().copy()  # not a view of the covariance
+            spread[:, :3, :3] = stated[:, :3, :3].cpu().numpy()
         covariances[atoms], width_variance[atoms] = spread[:, :3, :3], spread[:, 3, 3]
         log_mass_variance[atoms] = _log_mass_variance(spread[:, 3:, 3:], sigmas[atoms], amps[atoms])
         if moved_on is not None:

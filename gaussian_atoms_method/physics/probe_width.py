@@ -171,6 +171,7 @@ def source_read_from_views(measured: np.ndarray, sharp: np.ndarray, pixel_size_A
 
     >>> rng = np.random.default_rng(0)
     >>> sharp = rng.normal(size=(4, 64, 64))
+    >>> from gaussian_atoms_method.physics.microscope import gaussian_transfer
     >>> blur = gaussian_transfer(0.7 / FWHM_PER_SIGMA, (64, 64), 0.2)
     >>> measured = np.fft.ifft2(np.fft.fft2(sharp) * blur).real + rng.normal(0, 0.5, sharp.shape)
     >>> round(source_read_from_views(measured, sharp, 0.2), 1)
