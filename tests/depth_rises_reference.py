@@ -12,21 +12,9 @@ from gaussian_atoms_method.atoms.population import with_prior
 
 
 def depth_rises_reference(
-    local,
-    info,
-    scores,
-    moved,
-    offsets,
-    positions,
-    sigmas,
-    amps,
-    axes,
-    pixel_size_A,
-    hard_core_A,
-    axis,
-    table=None,
+    local, info, scores, moved, offsets, positions, sigmas, amps, axes, pixel_size_A, hard_core_A, axis, table=None,
     prior=None,
-) -> tuple[torch.Tensor, torch.Tensor]:
+) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
     """:func:`gaussian_atoms_method.atoms.depth_profile.depth_rises` (its arguments and its two
     (B, M) rises) with every moved set's (5k, 5k) system built whole, turned whole and solved whole:
     the moved atoms' blocks against the still ones replaced by the moved blocks, the held places'
