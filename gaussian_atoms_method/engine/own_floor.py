@@ -29,7 +29,9 @@ physics the fit does not share and asks how far its fit moves them:
   the atoms' level, which would put that level at every frequency the positions are read at (on
   carbon phase images, whose noise the aperture band-limits, the atoms read 13 times a pixel's
   variance, and the replica's refit erred 8.8 / 8.3 / 10.5 pm through white noise against
-  7.5 / 7.1 / 8.9 correlated).
+  7.5 / 7.1 / 8.9 correlated); for a phase series, with the spectrum the fit's residual shows
+  (:func:`~gaussian_atoms_method.physics.correlated_noise.noise_shaped_like`: the aperture
+  band-limits its noise as its signal).
 
 The fit then starts at its own atoms, on the replica's views, with fresh moments, and refits them
 as its final refit does (:func:`.refit.refit`, no density control) until its passes' means no
@@ -212,7 +214,12 @@ def draw_replica(model, atoms: AtomSet, reported: np.ndarray, registration, seed
     if noise is None:
         noise = noise_from_projections(np.asarray(series.projections, dtype=np.float64) * scale)
     rng = np.random.default_rng(seed)
-    if noise.correlation > 1.0:  # as the spectrum or the views' disagreement read it
+    if series.contrast == "phase":  # band-limited as the signal is: the shape the fit's residual shows
+        from gaussian_atoms_method.physics.correlated_noise import noise_shaped_like
+
+        residual = np.asarray(series.projections, dtype=np.float64) * scale - render_training_views(model)
+        draw, variance = noise_shaped_like(residual, rng), np.clip(noise.pixel_variance(clean), 0.0, None)
+    elif noise.correlation > 1.0:  # as the spectrum or the views' disagreement read it
         from gaussian_atoms_method.physics.correlated_noise import correlated_noise
 
         sigma_px = float(model.sigmas.detach().median()) / model.density.pixel_size  # the width it was read at
