@@ -15,7 +15,8 @@ physics the fit does not share and asks how far its fit moves them:
   (:attr:`~dataparsers.tilt_series_format.TiltSeries.contrast`), as the projected potential
   itself through the aperture's double overlap (:mod:`~gaussian_atoms_method.physics.phase`): on
   7,000 carbon atoms in phase images at 2,000 e/Å² an ADF replica erred 14.2 / 12.7 / 15.9 pm
-  against the fit's own 10.3 / 8.4 / 10.3, a phase replica 9.8 / 8.7 / 10.6;
+  against the fit's own 10.3 / 8.4 / 10.3, a phase replica 9.8 / 8.7 / 10.6 (both through the
+  blur-shaped noise below);
 * the rest of each view (the views' floors, the Gaussians not reported as atoms) as the fit
   renders it, with the atoms' amplitudes set to zero;
 * each view moved and scaled by the registration the run learned, or else by what its views
