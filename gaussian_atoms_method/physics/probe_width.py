@@ -1,19 +1,20 @@
-"""A replica's probe as wide as the views' atoms: the effective source that gives one atom's ADF
-image the width the fit reads on the measured views.
+"""A replica's probe as wide as the views' atoms: the effective source read from the views.
 
 A run's own replica (:mod:`~gaussian_atoms_method.engine.own_floor`) draws its atoms through a
-probe with rings and tails (:data:`~.microscope.DEFAULT_OPTICS`) to learn what a bias alike in
-every view does to its fit.  The probe is an assumption, but its width need not be: the fitted
-atoms show how wide an atom is in these views.  A probe wider than the views' atoms makes bonded
-neighbours overlap far more than they do, and the replica's refit errs by that overlap, not by
-the views' physics.  Measured on carbon ptychographic phase images (1,512 atoms, 10,000 e/Å², atoms
-fitted 0.55 Å wide): with the fixed 0.7 Å source the replica's refit erred 14/13/17 pm (x/y/z),
-five times the fit's own errors, and its floor opened every atom in depth.
+probe with rings and tails (:data:`~.microscope.DEFAULT_OPTICS`; for phase images its aperture's
+transfer, :func:`contrast_transfer`) to learn what a bias alike in every view does to its fit.
+The probe is an assumption, but its spread need not be.  A probe wider than the views' atoms makes
+bonded neighbours overlap far more than they do, and the replica's refit errs by that overlap,
+not by the views' physics (carbon phase images, 1,512 atoms, 10,000 e/Å²: with a fixed 0.7 Å
+source the replica's refit erred 14/13/17 pm, five times the fit's own errors).
 
-So the source size is solved for: the least-squares Gaussian through one isolated atom's image
-(its element's projected potential to :data:`~.adf.ADF_POTENTIAL_POWER`, through the probe) is
-as wide as the run's atoms of that element, in the median.  The probe's aberrations (its rings
-and tails) stay as assumed; only its spread follows the data.  numpy/scipy.
+So the source is read from the views (:func:`source_read_from_views`): the run's atoms drawn with
+no source, against the measured views, in their cross-spectrum, where the noise averages out and
+a source's Gaussian is what remains.  Where the views hold no correlation with the atoms, the
+source whose isolated atom is as wide as the run's atoms (:func:`probe_as_wide_as`; in bonded
+carbon the fitted widths also hold the neighbours' tails, and it read 0.90 Å for a 0.7 Å source
+where the cross-spectrum read 0.63-0.65 Å).  The probe's aberrations (its rings and tails) stay
+as assumed; only its spread follows the data.  numpy/scipy.
 """
 
 from __future__ import annotations
