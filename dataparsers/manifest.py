@@ -51,7 +51,7 @@ def read_manifest(path: Path) -> dict:
     return manifest
 
 
-def _write_manifest(directory: Path, manifest: dict) -> None:
+def write_manifest(directory: Path, manifest: dict) -> None:
     """Write tilt_series.json through a temporary file: readers never see half a manifest."""
     tmp = directory / (MANIFEST + ".tmp")
     tmp.write_text(json.dumps(manifest, indent=2) + "\n")
@@ -63,4 +63,4 @@ def update_manifest(directory: str | Path, **entries) -> None:
     directory = Path(directory)
     manifest = json.loads((directory / MANIFEST).read_text())
     manifest.update(entries)
-    _write_manifest(directory, manifest)
+    write_manifest(directory, manifest)

@@ -40,7 +40,7 @@ from gaussian_atoms_method.physics.noise import MIN_SIDE_PX
 
 from . import views
 from .errors import TiltSeriesError
-from .manifest import MANIFEST, _write_manifest, read_manifest, update_manifest
+from .manifest import MANIFEST, read_manifest, update_manifest, write_manifest
 from .readers import read_angles, read_stack
 
 __all__ = ["MANIFEST", "TiltSeries", "TiltSeriesError", "load_tilt_series", "write_tilt_series", "update_manifest"]
@@ -460,5 +460,5 @@ def write_tilt_series(
         manifest["noise"] = "noise.npy"
     if extra:
         manifest.update(extra)
-    _write_manifest(out, manifest)
+    write_manifest(out, manifest)
     return out

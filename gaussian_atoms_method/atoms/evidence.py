@@ -307,11 +307,12 @@ def atom_evidence(
         stated = covariance if prior is None else spd_inverse(with_prior(info, prior_here))
         if scores_on is not None:  # the sandwich, from the position's, width's and amplitude's rows: (C P^T)(P C^T)
             pulls = scores_on[local_on].permute(0, 2, 1, 3).reshape(len(atoms), scores.shape[1], 5 * k)  # (B, V, 5k)
+            clusters = pulls.shape[1] / max(pulls.shape[1] - 1, 1)  # the views' small-sample factor
             rows = covariance[:, :5] @ pulls.transpose(1, 2)  # (B, 5, V)
-            spread = (rows @ rows.transpose(1, 2) * (pulls.shape[1] / max(pulls.shape[1] - 1, 1))).cpu().numpy()
+            spread = (rows @ rows.transpose(1, 2) * clusters).cpu().numpy()
             if prior is not None:  # the positions' rows with the population's prior
                 rows = stated[:, :3] @ pulls.transpose(1, 2)
-                spread[:, :3, :3] = (rows @ rows.transpose(1, 2) * (pulls.shape[1] / max(pulls.shape[1] - 1, 1))).cpu()
+                spread[:, :3, :3] = (rows @ rows.transpose(1, 2) * clusters).cpu()
             if moved_on is not None:  # the profile's unit (below)
                 fisher[atoms] = stated[:, :3, :3].cpu().numpy()
         else:

@@ -124,6 +124,21 @@ def cannot_draw(species) -> str | None:
     return None
 
 
+def drawn_atoms(series, atoms: AtomSet, optics, views=slice(None)) -> np.ndarray:
+    """(V, H, W) ``atoms`` (Å, the truth frame, with ``species`` and masses) drawn in the
+    ``views`` of ``series`` through ``optics`` as its contrast images them
+    (:func:`~gaussian_atoms_method.physics.probe_width.contrast_transfer`), input units."""
+    from gaussian_atoms_method.physics.adf import adf_projections
+    from gaussian_atoms_method.physics.probe_width import contrast_transfer
+
+    transfer, power = contrast_transfer(optics, series.contrast)
+    about_centre = atoms.positions - np.asarray(series.origin_A, dtype=np.float64)
+    return adf_projections(
+        about_centre, atoms.species, atoms.masses, series.detector_axes()[views], series.image_shape,
+        series.pixel_size_A, series.centre_px, probe=transfer, method="deposit", power=power,
+    )  # fmt: skip
+
+
 SOURCE_VIEWS = 12
 """The most views the source is read on (evenly spread over the series): each holds thousands of
 frequencies in every ring of the cross-spectrum, and the reading costs a drawing of them."""
@@ -143,10 +158,8 @@ def replica_probe(model, atoms: AtomSet, registration):
     (the width rule 0.66).  The width rule stays where the views hold no correlation with the atoms."""
     import dataclasses
 
-    from gaussian_atoms_method.physics.adf import adf_projections
     from gaussian_atoms_method.physics.microscope import DEFAULT_OPTICS, misregistered
     from gaussian_atoms_method.physics.probe_width import (
-        contrast_transfer,
         probe_as_wide_as,
         rendered_atom_width_A,
         source_read_from_views,
@@ -154,14 +167,8 @@ def replica_probe(model, atoms: AtomSet, registration):
     from gaussian_atoms_method.physics.psf import KERNEL_WIDTHS_A
 
     series = model.view_set.series
-    sharp_optics = dataclasses.replace(DEFAULT_OPTICS, source_fwhm_A=0.0)
-    transfer, power = contrast_transfer(sharp_optics, series.contrast)
     views = np.unique(np.linspace(0, len(series.projections) - 1, SOURCE_VIEWS).round().astype(int))
-    about_centre = atoms.positions - np.asarray(series.origin_A, dtype=np.float64)
-    sharp = adf_projections(
-        about_centre, atoms.species, atoms.masses, series.detector_axes()[views], series.image_shape,
-        series.pixel_size_A, series.centre_px, probe=transfer, method="deposit", power=power,
-    )  # fmt: skip
+    sharp = drawn_atoms(series, atoms, dataclasses.replace(DEFAULT_OPTICS, source_fwhm_A=0.0), views)
     sharp = misregistered(sharp, registration[0][views], registration[1][views])
     measured = np.asarray(series.projections, dtype=np.float64)[views]
     fwhm = source_read_from_views(measured, sharp, series.pixel_size_A)
@@ -175,15 +182,17 @@ def replica_probe(model, atoms: AtomSet, registration):
     return probe_as_wide_as(str(common), width, DEFAULT_OPTICS, series.contrast)
 
 
-def draw_replica(model, atoms: AtomSet, reported: np.ndarray, registration, seed: int, probe) -> torch.Tensor:
+def draw_replica(
+    model, atoms: AtomSet, reported: np.ndarray, registration, seed: int, probe, residuals
+) -> torch.Tensor:
     """(V, H, W) the replica's views (module text), normalised as the model's, on its device:
     ``atoms`` the reported atoms (Å, the truth frame, with ``species``), ``reported`` (N,) bool
-    over the model's Gaussians, ``registration`` (shifts (V, 2) px, gains (V,))."""
+    over the model's Gaussians, ``registration`` (shifts (V, 2) px, gains (V,)), ``residuals``
+    (V, H, W) the fit's on its training views (normalised units; a phase series' noise takes
+    their spectrum)."""
     from gaussian_atoms_method.engine.residuals import render_training_views
-    from gaussian_atoms_method.physics.adf import adf_projections
     from gaussian_atoms_method.physics.microscope import misregistered
     from gaussian_atoms_method.physics.noise import noise_from_projections
-    from gaussian_atoms_method.physics.probe_width import contrast_transfer
 
     series, scale = model.view_set.series, model.normalisation.data_scale
     log_amplitudes = model.gauss_params["log_amplitudes"]
@@ -196,21 +205,7 @@ def draw_replica(model, atoms: AtomSet, reported: np.ndarray, registration, seed
     finally:
         with torch.no_grad():
             log_amplitudes.data.copy_(kept)
-    about_centre = atoms.positions - np.asarray(series.origin_A, dtype=np.float64)
-    transfer, power = contrast_transfer(probe, series.contrast)
-    drawn = adf_projections(
-        about_centre,
-        atoms.species,
-        atoms.masses,
-        series.detector_axes(),
-        series.image_shape,
-        series.pixel_size_A,
-        series.centre_px,
-        probe=transfer,
-        method="deposit",
-        power=power,
-    )
-    clean = rest + misregistered(drawn, *registration) * scale  # normalised units
+    clean = rest + misregistered(drawn_atoms(series, atoms, probe), *registration) * scale  # normalised units
     noise = getattr(model, "measured_noise", None)  # read from the views before the fit (normalised)
     if noise is None:
         noise = noise_from_projections(np.asarray(series.projections, dtype=np.float64) * scale)
@@ -218,8 +213,8 @@ def draw_replica(model, atoms: AtomSet, reported: np.ndarray, registration, seed
     if series.contrast == "phase":  # band-limited as the signal is: the shape the fit's residual shows
         from gaussian_atoms_method.physics.correlated_noise import noise_shaped_like
 
-        residual = np.asarray(series.projections, dtype=np.float64) * scale - render_training_views(model)
-        draw, variance = noise_shaped_like(residual, rng), np.clip(noise.pixel_variance(clean), 0.0, None)
+        shaped = noise_shaped_like(torch.as_tensor(residuals).double().cpu().numpy(), rng)
+        draw, variance = shaped, np.clip(noise.pixel_variance(clean), 0.0, None)
     elif noise.correlation > 1.0:  # as the spectrum or the views' disagreement read it
         from gaussian_atoms_method.physics.correlated_noise import correlated_noise
 
@@ -232,11 +227,12 @@ def draw_replica(model, atoms: AtomSet, reported: np.ndarray, registration, seed
     return torch.as_tensor(noisy.astype(np.float32), device=model.means.device)
 
 
-def read_own_floor(model, atoms: AtomSet, reported: np.ndarray, info: dict, seed: int = 0) -> OwnFloor:
+def read_own_floor(model, atoms: AtomSet, reported: np.ndarray, info: dict, residuals, seed: int = 0) -> OwnFloor:
     """The floor of the run's reported ``atoms`` (with their elements and stated
     ``position_std_A``), ``reported`` (N,) bool marking them among the model's Gaussians, read
     on the run's own replica (module text), its views registered as ``info`` says
-    (:func:`registration_of`).  The model is left as it was."""
+    (:func:`registration_of`), ``residuals`` the fit's (:func:`draw_replica`).  The model is left
+    as it was."""
     from gaussian_atoms_method.atoms.calibration import Z95, precision_floor_A
     from gaussian_atoms_method.engine.refit import refit
 
@@ -244,7 +240,7 @@ def read_own_floor(model, atoms: AtomSet, reported: np.ndarray, info: dict, seed
     params = {name: p.detach().clone() for name, p in model.gauss_params.items()}
     registration = registration_of(info, n_views, seed)
     probe = replica_probe(model, atoms, registration)
-    replica = draw_replica(model, atoms, reported, registration, seed, probe)
+    replica = draw_replica(model, atoms, reported, registration, seed, probe, residuals)
     states = {name: copy.deepcopy(o.state_dict()) for name, o in model.optimizers.items()}
     generator = model.generator.get_state()
     for o in model.optimizers.values():
@@ -271,11 +267,14 @@ def read_own_floor(model, atoms: AtomSet, reported: np.ndarray, info: dict, seed
     )
 
 
-def widen_by_own_floor(model, atoms: AtomSet, reported: np.ndarray, hard_core_A: float, registration=None) -> None:
+def widen_by_own_floor(
+    model, atoms: AtomSet, reported: np.ndarray, hard_core_A: float, residuals, registration=None
+) -> None:
     """Read the run's own floor (:func:`read_own_floor`) and widen each of ``atoms``'
     statements by it (``position_std_A``, ``depth_halfwidth_A``, ``depth_open``;
     :func:`~gaussian_atoms_method.atoms.calibration.with_floor`), recorded in
-    ``atoms.info["precision_floor_A"]``; says what it read, or why it read nothing.  ``registration``
+    ``atoms.info["precision_floor_A"]``; says what it read, or why it read nothing.  ``residuals``
+    (V, H, W): the fit's on its training views, as the evidence read them; ``registration``
     (shifts (V, 2) px, gains (V,)): what the run learned, if it did."""
     from gaussian_atoms_method.atoms.calibration import with_floor
 
@@ -289,7 +288,7 @@ def widen_by_own_floor(model, atoms: AtomSet, reported: np.ndarray, hard_core_A:
     if registration is not None:
         info["view_shifts_px"], info["view_gains"] = registration
     started = time.perf_counter()
-    floor = read_own_floor(model, atoms, reported, info, seed=model.config.seed)
+    floor = read_own_floor(model, atoms, reported, info, residuals, seed=model.config.seed)
     hard_core = hard_core_A if np.isfinite(hard_core_A) else None
     atoms.position_std_A, atoms.depth_halfwidth_A, atoms.depth_open = with_floor(
         atoms.position_std_A, atoms.depth_halfwidth_A, atoms.depth_open, floor.floor_A, hard_core, atoms.depth_rise
