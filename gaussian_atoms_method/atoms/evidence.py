@@ -64,7 +64,7 @@ from gaussian_atoms_method.atoms.information import (
 )
 from gaussian_atoms_method.atoms.population import with_prior
 from gaussian_atoms_method.physics.devices import work_device
-from gaussian_atoms_method.physics.spd import spd_inverse, spd_solve
+from gaussian_atoms_method.physics.spd import spd_inverse, spd_inverse_rows, spd_solve
 
 COUPLING_FLOOR = 0.02
 """Neighbours are the atoms whose amplitudes' information correlation with the atom,
@@ -267,14 +267,11 @@ def atom_evidence(
             positions[i], positions[j], sigmas[i], sigmas[j], amps[i], amps[j], axes, pixel_size_A, where, sight
         )
     variance = noise_std**2 * (L1_EFFICIENCY_FACTOR if loss == "l1" else 1.0)
-    significance = np.full(n, np.nan)
+    significance, width_variance, log_mass_variance = (np.full(n, np.nan) for _ in range(3))
     covariances = np.full((n, 3, 3), np.nan)
     fisher = np.full((n, 3, 3), np.nan)  # the noise's own covariance, where the sandwich states another
-    width_variance = np.full(n, np.nan)
-    log_mass_variance = np.full(n, np.nan)
     offsets = sorted(moved_pulls) if moved_pulls else []
-    rises = np.full((n, len(offsets)), np.inf)
-    frozen = np.full((n, len(offsets)), np.inf)
+    rises, frozen = np.full((n, len(offsets)), np.inf), np.full((n, len(offsets)), np.inf)
     depth_axis_all = depth_axis_of(axes) if offsets else None
     scores_on = None if scores is None else torch.as_tensor(np.asarray(scores, np.float64), device=where)
     moved_on = (
@@ -302,13 +299,16 @@ def atom_evidence(
         # a parameter the views do not fix (an amplitude of zero, a width at its bound) would make
         # the information singular: a ridge of 1e-9 of the diagonal leaves the rest unchanged
         info = info + torch.diag_embed(1e-9 * torch.diagonal(info, dim1=1, dim2=2).clamp_min(1e-300))
-        covariance = spd_inverse(info)
         prior_here = None if prior is None else prior[local_on]
-        stated = covariance if prior is None else spd_inverse(with_prior(info, prior_here))
+        # the atom's rows of the inverse (the whole inverse where the depth profile solves through it)
+        with_population = info if prior is None else with_prior(info, prior_here)
+        whole = None if moved_on is None else spd_inverse(with_population)
+        stated = spd_inverse_rows(with_population, 5) if whole is None else whole[:, :5]
+        own = stated if prior is None else spd_inverse_rows(info, 5)
         if scores_on is not None:  # the sandwich, from the position's, width's and amplitude's rows: (C P^T)(P C^T)
             pulls = scores_on[local_on].permute(0, 2, 1, 3).reshape(len(atoms), scores.shape[1], 5 * k)  # (B, V, 5k)
             clusters = pulls.shape[1] / max(pulls.shape[1] - 1, 1)  # the views' small-sample factor
-            rows = covariance[:, :5] @ pulls.transpose(1, 2)  # (B, 5, V)
+            rows = own @ pulls.transpose(1, 2)  # (B, 5, V)
             spread = (rows @ rows.transpose(1, 2) * clusters).cpu().numpy()
             if prior is not None:  # the positions' rows with the population's prior
                 rows = stated[:, :3] @ pulls.transpose(1, 2)
@@ -316,22 +316,21 @@ def atom_evidence(
             if moved_on is not None:  # the profile's unit (below)
                 fisher[atoms] = stated[:, :3, :3].cpu().numpy()
         else:
-            spread = covariance[:, :5, :5].cpu().numpy().copy()  # not a view of the covariance
+            spread = own[:, :, :5].cpu().numpy().copy()  # not a view of the covariance
             spread[:, :3, :3] = stated[:, :3, :3].cpu().numpy()
         covariances[atoms], width_variance[atoms] = spread[:, :3, :3], spread[:, 3, 3]
         log_mass_variance[atoms] = _log_mass_variance(spread[:, 3:, 3:], sigmas[atoms], amps[atoms])
         if moved_on is not None:
             refitted, held = depth_rises(
                 local, info, scores_on, moved_on, offsets, positions, sigmas, amps, axes, pixel_size_A,
-                hard_core_A, depth_axis_all, table, stated, sight, prior_here,
+                hard_core_A, depth_axis_all, table, whole, sight, prior_here,
             )  # fmt: skip
             rises[atoms], frozen[atoms] = refitted.cpu().numpy(), held.cpu().numpy()
-        # taken out: the atom's amplitude against every parameter of its neighbours; the Schur
-        # complement q^2 / [M^-1]_qq is the cost of taking it out, in noise variances, with M the
-        # information less the atom's own position and width rows S: [M^-1]_qq = C_qq - C_qS
-        # C_SS^-1 C_Sq from the whole inverse C (a 4 x 4 solve, not a factorisation of M)
-        c_qs = covariance[:, 4, :4, None]
-        q_inverse = (covariance[:, 4, 4] - (c_qs * spd_solve(covariance[:, :4, :4], c_qs)).sum((1, 2))).cpu().numpy()
+        # taken out: the atom's amplitude against every parameter of its neighbours; the Schur complement
+        # q^2 / [M^-1]_qq is the cost of taking it out, in noise variances, with M the information less the
+        # atom's own position and width rows S: [M^-1]_qq = C_qq - C_qS C_SS^-1 C_Sq from the inverse C's rows
+        c_qs = own[:, 4, :4, None]
+        q_inverse = (own[:, 4, 4] - (c_qs * spd_solve(own[:, :4, :4], c_qs)).sum((1, 2))).cpu().numpy()
         q_variance = q_inverse * (noise_std * amplitude_factor) ** 2
         significance[atoms] = np.abs(amps[atoms]) / np.sqrt(np.maximum(q_variance, 1e-300))
         if progress is not None:

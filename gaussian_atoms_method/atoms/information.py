@@ -147,8 +147,11 @@ def pair_blocks(r_i, r_j, sigma_i, sigma_j, q_i, q_j, plane, twice, pixel_size_A
 
     With ``d_v = P_v (r_i - r_j)`` the two Gaussians' product sits at ``a_i = -alpha d_v`` from
     ``mu_i`` and ``a_j = beta d_v`` from ``mu_j`` (``alpha``, ``beta`` the widths' shares), so each
-    term is a polynomial in ``D_v = |d_v|^2`` times a pair's constants, and ``P_v^T d_v = P_v^T P_v
-    (r_i - r_j)``: the sums over the views are matrix products with the views' ``P_v^T P_v``.
+    term is a polynomial in ``D_v = |d_v|^2`` of degree two at most times the view's overlap
+    ``c_v`` and a pair's constants, and ``P_v^T d_v = P_v^T P_v (r_i - r_j)``: the sums over the
+    views are the moments ``sum_v c_v D_v^n`` and matrix products with the views' ``P_v^T P_v``.
+    Only ``D`` and ``c`` are read per view (on this CPU, 0.6 of the time the terms took read
+    one by one).
 
     With ``sight`` (:meth:`DetectorField.sight`) each view's terms are weighed by the share of the
     product Gaussian (at ``mu_i + a_i``, width ``tau``) on the detector: exact for a pair seen
@@ -160,38 +163,37 @@ def pair_blocks(r_i, r_j, sigma_i, sigma_j, q_i, q_j, plane, twice, pixel_size_A
     s2i, s2j = sigma_i**2, sigma_j**2
     total = s2i + s2j
     tau2 = s2i * s2j / total
-    alpha, beta = (s2i / total)[:, None], (s2j / total)[:, None]
+    alpha, beta = s2i / total, s2j / total
     peak = q_i * sigma_i * q_j * sigma_j * 2 * math.pi
-    c = torch.exp(-big_d / (2 * total[:, None])) * (2 * math.pi * tau2 * peak / pixel_size_A**2)[:, None]  # (P, V)
+    c = torch.exp(big_d * (-0.5 / total)[:, None]) * (2 * math.pi * tau2 * peak / pixel_size_A**2)[:, None]  # (P, V)
     if sight is not None:  # the product sits at beta r_i + alpha r_j
-        c = c * sight(beta * r_i + alpha * r_j, tau2.sqrt())
-    t2, si, sj, qi, qj = tau2[:, None], sigma_i[:, None], sigma_j[:, None], q_i[:, None], q_j[:, None]
-    ex, ey = 2 * t2 + alpha**2 * big_d, 2 * t2 + beta**2 * big_d  # E|w + a_i|^2, E|w + a_j|^2
-    exy = (
-        8 * t2**2 + 2 * t2 * (alpha**2 + beta**2) * big_d - 4 * t2 * alpha * beta * big_d + (alpha * beta * big_d) ** 2
-    )
-    # the vector terms, each a scalar times d_v: d mu_i d sigma_j, d sigma_i d mu_j, d mu_i d q_j, d q_i d mu_j
-    scalars = torch.stack(
-        [
-            (-alpha / sj + (2 * t2 * beta - alpha * ey) / sj**3) / si**2 * c,
-            (beta / si + (beta * ex - 2 * t2 * alpha) / si**3) / sj**2 * c,
-            (-alpha / (si**2 * qj)).expand_as(c) * c,
-            (beta / (sj**2 * qi)).expand_as(c) * c,
-        ],
-        dim=1,
-    )  # (P, 4, V)
+        c = c * sight(beta[:, None] * r_i + alpha[:, None] * r_j, tau2.sqrt())
+    cd = c * big_d
+    m0, m1, m2 = c.sum(1), cd.sum(1), (cd * big_d).sum(1)  # (P,): sum_v c_v D_v^n
+    flat0, flat1 = c @ plane, cd @ plane  # (P, 9): sum_v c_v D_v^n P_v^T P_v
+    si, sj, qi, qj, t2, ab, s3i, s3j = sigma_i, sigma_j, q_i, q_j, tau2, alpha * beta, sigma_i**3, sigma_j**3
     out = torch.empty((p, 5, 5), dtype=torch.float64, device=r_i.device)
     # positions: sum_v c_v P_v^T (tau^2 I - alpha beta d_v d_v^T) P_v / (s_i^2 s_j^2)
-    spread = ((c @ twice).reshape(p, 9, 9) @ outer[:, :, None]).reshape(p, 3, 3)
-    out[:, :3, :3] = ((tau2[:, None] * (c @ plane)).reshape(p, 3, 3) - (alpha * beta)[:, :, None] * spread) / (
-        s2i * s2j
-    )[:, None, None]
-    rows = (scalars @ plane).reshape(p, 4, 3, 3) @ dr[:, None, :, None]  # (P, 4, 3, 1): sum_v t_v P_v^T d_v
+    spread = ((c @ twice).reshape(p, 9, 9) @ outer[:, :, None]).reshape(p, 9)
+    out[:, :3, :3] = ((t2[:, None] * flat0 - ab[:, None] * spread) / (s2i * s2j)[:, None]).reshape(p, 3, 3)
+    # the vector terms, (a + b D_v) c_v d_v: d mu_i d sigma_j, d sigma_i d mu_j, d mu_i d q_j, d q_i d mu_j
+    shared = 2 * t2 * (beta - alpha)
+    a = torch.stack([(shared / s3j - alpha / sj) / s2i, (beta / si + shared / s3i) / s2j, -alpha / (s2i * qj)], 1)
+    a = torch.cat([a, (beta / (s2j * qi))[:, None]], 1)
+    b = torch.stack([-alpha * beta**2 / (s3j * s2i), beta * alpha**2 / (s3i * s2j), 0 * si, 0 * si], 1)
+    sums = a[:, :, None] * flat0[:, None] + b[:, :, None] * flat1[:, None]  # (P, 4, 9)
+    rows = sums.reshape(p, 4, 3, 3) @ dr[:, None, :, None]  # (P, 4, 3, 1): sum_v t_v P_v^T d_v
     out[:, :3, 3], out[:, 3, :3], out[:, :3, 4], out[:, 4, :3] = rows[..., 0].unbind(1)
-    out[:, 3, 3] = (c * (1 / (si * sj) + ey / (si * sj**3) + ex / (si**3 * sj) + exy / (si**3 * sj**3))).sum(1)
-    out[:, 3, 4] = (c * (1 / si + ex / si**3)).sum(1) / q_j
-    out[:, 4, 3] = (c * (1 / sj + ey / sj**3)).sum(1) / q_i
-    out[:, 4, 4] = c.sum(1) / (q_i * q_j)
+    # E|w + a_i|^2 = 2 tau^2 + alpha^2 D, E|w + a_j|^2 = 2 tau^2 + beta^2 D, and the product's
+    # 8 tau^4 + 2 tau^2 (alpha - beta)^2 D + alpha^2 beta^2 D^2
+    out[:, 3, 3] = (
+        (1 / (si * sj) + 2 * t2 / (si * s3j) + 2 * t2 / (s3i * sj) + 8 * t2**2 / (s3i * s3j)) * m0
+        + (beta**2 / (si * s3j) + alpha**2 / (s3i * sj) + 2 * t2 * (alpha - beta) ** 2 / (s3i * s3j)) * m1
+        + ab**2 / (s3i * s3j) * m2
+    )
+    out[:, 3, 4] = ((1 / si + 2 * t2 / s3i) * m0 + alpha**2 / s3i * m1) / qj
+    out[:, 4, 3] = ((1 / sj + 2 * t2 / s3j) * m0 + beta**2 / s3j * m1) / qi
+    out[:, 4, 4] = m0 / (qi * qj)
     return out
 
 

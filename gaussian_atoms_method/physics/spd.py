@@ -47,6 +47,19 @@ def spd_inverse(a: torch.Tensor) -> torch.Tensor:
     return _by_lu_where_failed(info, torch.cholesky_inverse(factor), lambda i: torch.linalg.inv(_flat(a)[i]))
 
 
+def spd_inverse_rows(a: torch.Tensor, rows: int) -> torch.Tensor:
+    """The first ``rows`` rows (..., rows, n) of the inverse of each symmetric positive definite
+    ``a`` (..., n, n): ``rows`` solves against the factor instead of its whole inverse (an atom's
+    own rows of its set's covariance, a twentieth of the work for a set of 21 atoms).
+
+    >>> a = torch.tensor([[4.0, 2.0], [2.0, 3.0]], dtype=torch.float64)
+    >>> torch.allclose(spd_inverse_rows(a, 1), spd_inverse(a)[:1])
+    True
+    """
+    unit = torch.eye(a.shape[-1], rows, dtype=a.dtype, device=a.device).expand(*a.shape[:-2], -1, -1)
+    return spd_solve(a, unit).transpose(-1, -2)
+
+
 def _flat(batch: torch.Tensor) -> torch.Tensor:
     """``batch`` (..., n, k) as (B, n, k): read only where a factorisation failed, so that the
     usual call copies nothing (a broadcast batch is copied by it)."""
