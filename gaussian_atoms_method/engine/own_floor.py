@@ -181,7 +181,8 @@ def replica_probe(model, atoms: AtomSet, registration):
     renders its atoms (:func:`~gaussian_atoms_method.physics.probe_width.probe_as_wide_as`) read
     0.90 Å there (bonded atoms' fitted widths hold their neighbours' tails), and its replica erred
     13.7 / 12.2 / 15.2 pm.  On 2,000 Ni-Pd-Pt atoms through ADF (Cs 10 µm at 40 Å defocus, a 0.7 Å
-    source) it read 20 Å and 1.00-1.07 Å, a transfer within 0.033 of the truth's.  Where the views hold
+    source) it read -60 Å and 1.00 Å (20 Å and 1.07 Å against the true atoms, a transfer within
+    0.033 of the truth's: behind a source of about 1 Å these probes are one).  Where the views hold
     no correlation with the atoms: the source that makes an isolated atom as wide as the fit's."""
     from gaussian_atoms_method.physics.microscope import misregistered
     from gaussian_atoms_method.physics.probe_width import (
