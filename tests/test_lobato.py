@@ -47,16 +47,19 @@ def test_the_profiles_are_abtems_where_abtem_is_installed():
 
 def test_a_run_draws_its_own_replica_without_abtem(monkeypatch):
     """The own floor's replica needs no simulator: with abTEM unimportable, a run with its elements
-    given can still draw (``cannot_draw`` is None) and an ADF kernel is still formed, unit at zero
-    frequency and falling (its float64 transform against the cached one within 1e-6)."""
+    given draws them as named, an atom of no element as the most common element, a run with none
+    named as the stand-in, and an ADF kernel is still formed, unit at zero frequency and falling
+    (its float64 transform against the cached one within 1e-6)."""
     import sys
 
-    from gaussian_atoms_method.engine.own_floor import cannot_draw
+    from gaussian_atoms_method.engine.own_floor import STAND_IN_ELEMENT, drawable_species
     from gaussian_atoms_method.physics.adf import adf_kernel_transform
 
     monkeypatch.setitem(sys.modules, "abtem", None)
-    assert cannot_draw(np.array(["Ta", "Pt"])) is None
-    assert cannot_draw(np.array(["Ta", "X"])) == "give --species"
+    named, words = drawable_species(np.array(["Ta", "Pt"]), 2)
+    assert list(named) == ["Ta", "Pt"] and words == ""
+    assert list(drawable_species(np.array(["Ta", "X", "Pt", "Ta"]), 4)[0]) == ["Ta", "Ta", "Pt", "Ta"]
+    assert set(drawable_species(np.array(["X", "X"]), 2)[0]) == set(drawable_species(None, 2)[0]) == {STAND_IN_ELEMENT}
     k, transfer = adf_kernel_transform.__wrapped__("Pt")
     assert transfer[0] == pytest.approx(1.0) and transfer[-1] < 0.5
     assert np.allclose(transfer, adf_kernel_transform("Pt")[1], atol=1e-6)

@@ -197,12 +197,12 @@ class FitOptions(DensitySettings, UserFirstOptions):
     ``psf_weights``' too, and config.yml would write the two as one YAML anchor.)"""
     own_floor: bool = True
     """Read that floor in the run itself where no floor is given: the run's atoms drawn again
-    through ADF physics (Lobato's potentials, a probe with rings and tails) with its registration
-    and noise, refitted from where they stand until their passes no longer drift, their errors
-    beside the precision stated (:mod:`gaussian_atoms_method.engine.own_floor`; its cost:
-    docs/performance.md).  Needs the
-    atoms' elements (``--species``); without them the run says so and states the views' scatter
-    alone."""
+    through the views' contrast (Lobato's potentials, a probe read from the views) with its
+    registration and noise, refitted from where they stand until their passes no longer drift,
+    their errors beside the precision stated (:mod:`gaussian_atoms_method.engine.own_floor`; its
+    cost: docs/performance.md).  Atoms of no element given are drawn as
+    :data:`~gaussian_atoms_method.engine.own_floor.STAND_IN_ELEMENT`'s.  False: the views' scatter
+    alone is stated."""
     projector: Literal["auto", "tiled", "dense", "gsplat"] = "auto"
     """Projection backend (all exact to float32; their speeds: docs/performance.md): ``dense``,
     the full-image separable matmul (the fastest on a GPU); ``tiled``, each Gaussian only on the
