@@ -259,10 +259,16 @@ def read_after_fit(model) -> None:
     if not judge:
         return
     judged, factor = noise_after_fit(model.density.noise, measured, predicted, sigma_px)
-    if factor > 1.0:
+    if factor > 1.0:  # standard deviations, as say_residual states the residual
+        said = f"{np.sqrt(factor):.3g} times the noise read before training"
+        views = model.measured_noise if unread else None
+        if views is not None and views.correlation_from == "views" and views.correlation > 1.0:
+            said = (
+                f"{np.sqrt(factor / views.correlation):.2f} times the noise the views hold there (read from what "
+                f"neighbouring views do not share; {said}, from neighbouring pixels)"
+            )
         CONSOLE.print(
-            f"gaussian-atoms: over an atom the fit's residuals vary {factor:.3g} times as much as the noise read "
-            f"before training; the final merges and prune judge in that"
+            f"gaussian-atoms: over an atom the fit's residuals are {said}; the final merges and prune judge in that"
         )
     model.density.noise = judged
 
