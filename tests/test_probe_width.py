@@ -73,19 +73,18 @@ def test_an_adf_replicas_probe_is_read_among_its_candidates_with_its_source(trut
     from gaussian_atoms_method.engine.own_floor import PROBE_CANDIDATES
     from gaussian_atoms_method.physics.adf import adf_projections
     from gaussian_atoms_method.physics.geometry import detector_axes_of
-    from gaussian_atoms_method.physics.microscope import squared_frequencies
+    from gaussian_atoms_method.physics.microscope import band_limit
     from gaussian_atoms_method.physics.probe_width import probe_read_from_views
 
     rng = np.random.default_rng(12)
     positions = rng.uniform(-6.0, 6.0, (40, 3))
     axes, shape, pixel = detector_axes_of(np.linspace(-60, 60, 13)), (64, 64), 0.35
-    nyquist = lambda grid, spacing: (squared_frequencies(grid, spacing) <= (0.5 / pixel) ** 2) * 1.0  # noqa: E731
 
     def drawn(probe):
         return adf_projections(positions, ["Pd"] * 40, np.ones(40), axes, shape, pixel, (31.5, 31.5), probe=probe)
 
     views = drawn(truth.transfer)
     measured = views + rng.normal(0.0, 0.1 * views.max(), views.shape)
-    read = probe_read_from_views(measured, drawn(nyquist), pixel, PROBE_CANDIDATES)
+    read = probe_read_from_views(measured, drawn(band_limit(pixel)), pixel, PROBE_CANDIDATES)
     assert np.abs(read.transfer(shape, pixel) - truth.transfer(shape, pixel)).max() < 0.02
     assert read.source_fwhm_A == pytest.approx(truth.source_fwhm_A, abs=0.1)

@@ -23,8 +23,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-MAD_TO_SD = 1.4826
-"""The median absolute deviation of a normal population times this is its standard deviation."""
+from gaussian_atoms_method.physics.noise import MAD_TO_STD
 
 LEAST_SPREAD = 1e-3
 """The least spread of a log width or log amplitude read (0.1%): Gaussians that all hold one
@@ -34,7 +33,7 @@ they are held, the information still finite (numerical, not a physical threshold
 
 def population_spread(sigmas_A: np.ndarray, amplitudes: np.ndarray) -> np.ndarray:
     """(2, 2) the robust covariance of ``(log sigma, log q)`` over the Gaussians given: each
-    scale the median absolute deviation (times :data:`MAD_TO_SD`, at least
+    scale the median absolute deviation (times :data:`MAD_TO_STD`, at least
     :data:`LEAST_SPREAD`), their correlation the
     correlation of the two scaled deviations clipped at 3 (so outliers neither widen nor tilt it).
 
@@ -45,7 +44,7 @@ def population_spread(sigmas_A: np.ndarray, amplitudes: np.ndarray) -> np.ndarra
     """
     logs = np.log(np.vstack([np.asarray(sigmas_A, np.float64).ravel(), np.asarray(amplitudes, np.float64).ravel()]))
     centre = np.median(logs, axis=1, keepdims=True)
-    scale = np.maximum(MAD_TO_SD * np.median(np.abs(logs - centre), axis=1), LEAST_SPREAD)
+    scale = np.maximum(MAD_TO_STD * np.median(np.abs(logs - centre), axis=1), LEAST_SPREAD)
     scaled = np.clip((logs - centre) / scale[:, None], -3.0, 3.0)
     varied = logs.shape[1] > 2 and np.all(scaled.std(axis=1) > 0)
     rho = float(np.clip(np.corrcoef(scaled)[0, 1], -0.99, 0.99)) if varied else 0.0

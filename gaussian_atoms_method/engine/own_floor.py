@@ -138,17 +138,13 @@ def drawable_species(species, n: int) -> tuple[np.ndarray, str]:
     >>> drawable_species(None, 2)[1]
     'drawn as Pd, no element given'
     """
-    if species is None:
+    unnamed = np.ones(n, bool) if species is None else np.asarray(species) == "X"
+    if unnamed.all():
         return np.full(n, STAND_IN_ELEMENT), f"drawn as {STAND_IN_ELEMENT}, no element given"
-    species = np.asarray(species)
-    unnamed = species == "X"
     if not unnamed.any():
-        return species, ""
-    named, counts = np.unique(species[~unnamed], return_counts=True)
-    common = str(named[np.argmax(counts)]) if len(named) else STAND_IN_ELEMENT
-    if not len(named):
-        return np.full(n, common), f"drawn as {common}, no element given"
-    k = int(unnamed.sum())
+        return np.asarray(species), ""
+    named, counts = np.unique(np.asarray(species)[~unnamed], return_counts=True)
+    common, k = str(named[np.argmax(counts)]), int(unnamed.sum())
     return np.where(unnamed, common, species), f"{k} atom{'s' if k != 1 else ''} of no element drawn as {common}"
 
 
@@ -158,15 +154,11 @@ def drawn_atoms(series, atoms: AtomSet, optics, views=slice(None)) -> np.ndarray
     (:func:`~gaussian_atoms_method.physics.probe_width.contrast_transfer`), input units; ``optics``
     None: ADF's contrast through no probe, band-limited at the detector's Nyquist frequency."""
     from gaussian_atoms_method.physics.adf import ADF_POTENTIAL_POWER, adf_projections
-    from gaussian_atoms_method.physics.microscope import squared_frequencies
+    from gaussian_atoms_method.physics.microscope import band_limit
     from gaussian_atoms_method.physics.probe_width import contrast_transfer
 
     if optics is None:
-        nyquist2 = (0.5 / series.pixel_size_A) ** 2
-        transfer, power = (
-            (lambda shape, spacing: (squared_frequencies(shape, spacing) <= nyquist2) * 1.0),
-            ADF_POTENTIAL_POWER,
-        )
+        transfer, power = band_limit(series.pixel_size_A), ADF_POTENTIAL_POWER
     else:
         transfer, power = contrast_transfer(optics, series.contrast)
     about_centre = atoms.positions - np.asarray(series.origin_A, dtype=np.float64)
@@ -223,14 +215,14 @@ def replica_probe(model, atoms: AtomSet, registration):
     series = model.view_set.series
     views = np.unique(np.linspace(0, len(series.projections) - 1, SOURCE_VIEWS).round().astype(int))
     measured = np.asarray(series.projections, dtype=np.float64)[views]
-    if series.contrast == "adf":  # the probe's aberrations read with its source
-        plain = misregistered(drawn_atoms(series, atoms, None, views), registration[0][views], registration[1][views])
-        optics = probe_read_from_views(measured, plain, series.pixel_size_A, PROBE_CANDIDATES)
-    else:  # a phase image's transfer is its aperture's whatever the aberrations: its source only
-        sharp = drawn_atoms(series, atoms, dataclasses.replace(DEFAULT_OPTICS, source_fwhm_A=0.0), views)
-        sharp = misregistered(sharp, registration[0][views], registration[1][views])
-        fwhm = source_read_from_views(measured, sharp, series.pixel_size_A)
-        optics = dataclasses.replace(DEFAULT_OPTICS, source_fwhm_A=fwhm)
+    # ADF: no probe, its aberrations read with its source; a phase image's transfer is its
+    # aperture's whatever the aberrations, drawn with no source, its source alone read
+    bare = None if series.contrast == "adf" else dataclasses.replace(DEFAULT_OPTICS, source_fwhm_A=0.0)
+    drawn = misregistered(drawn_atoms(series, atoms, bare, views), registration[0][views], registration[1][views])
+    if bare is None:
+        optics = probe_read_from_views(measured, drawn, series.pixel_size_A, PROBE_CANDIDATES)
+    else:
+        optics = dataclasses.replace(bare, source_fwhm_A=source_read_from_views(measured, drawn, series.pixel_size_A))
     if np.isfinite(optics.source_fwhm_A):
         return optics
     elements, counts = np.unique(np.asarray(atoms.species), return_counts=True)

@@ -133,6 +133,18 @@ def gaussian_transfer(sigma_A: float, shape: tuple[int, int], spacing_A: float) 
     return np.exp(-2.0 * np.pi**2 * sigma_A**2 * squared_frequencies(shape, spacing_A))
 
 
+def band_limit(pixel_size_A: float):
+    """``transfer(shape, spacing_A)``: no probe, only the band a detector of ``pixel_size_A`` holds
+    (1 up to its Nyquist frequency, 0 beyond): atoms drawn through it are drawn as sharp as the
+    detector can show them, with nothing to alias.
+
+    >>> band_limit(0.5)((8, 8), 0.25)[0].tolist()  # Nyquist 1 / Å; frequencies 0, 0.5, ... on this grid
+    [1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 1.0, 1.0]
+    """
+    nyquist2 = (0.5 / pixel_size_A) ** 2
+    return lambda shape, spacing_A: (squared_frequencies(shape, spacing_A) <= nyquist2) * 1.0
+
+
 def probe_transfer(probe: str, optics: ProbeOptics, blur_sigma_A: float):
     """``probe(shape, spacing_A)``, the named probe's transfer: ``"aberrated"`` from ``optics``,
     ``"gaussian"`` a Gaussian of ``blur_sigma_A``; a ValueError for any other name."""
