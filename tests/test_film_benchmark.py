@@ -140,3 +140,30 @@ def test_a_replicas_truth_is_the_model_less_the_pairs_no_specimen_holds(tmp_path
     assert len(close_pairs(truth, bond)) == 0 and len(truth) == len(model) - 412
     assert cKDTree(model).query(truth)[0].max() < 1e-4  # each truth atom a model atom, where it lies
     np.testing.assert_array_equal(FilmBenchmark(DATA, tmp_path).truth_A(8, None), model)
+
+
+def test_neighbouring_replicas_sit_in_the_films_frame_where_their_truths_coincide(tmp_path):
+    """``benchmark-film --replica`` fits each replica with its strip neighbours' as a film
+    (harness/film_replica.py): placed by their crops' centres, two neighbouring replicas' truths
+    (each the model in its own sub-area's frame) put every atom of their common interior on one
+    place (to float32 rounding of the written files), so the overlap judges their fits on shared
+    atoms.  The neighbours of a strip's end are its own strip's only."""
+    from scipy.spatial import cKDTree
+
+    from dataparsers.tilt_series_format import load_tilt_series
+    from gaussian_atoms_method.atoms.atom_set import read_atoms
+    from gaussian_atoms_method.film.stitch import Reports
+    from gaussian_atoms_method.harness.film_replica import neighbourhood, replica_subareas
+
+    assert neighbourhood([16, 17]) == [15, 16, 17, 18]
+    with pytest.raises(ValueError, match="--areas: no published sub-area 30"):
+        neighbourhood([30])
+    placed = []
+    for sub in replica_subareas(DATA, tmp_path, [22, 23]):
+        series = load_tilt_series(sub.data)
+        truth = read_atoms(series.truth_path).positions - np.asarray(series.origin_A) + np.asarray(sub.offset_A)
+        placed.append(Reports(sub.name, truth, sub.interior_A))
+    a, b = placed
+    shared = a.positions[a.inside(a.positions) & b.inside(a.positions)]
+    assert len(shared) > 300
+    assert cKDTree(b.positions).query(shared)[0].max() < 1e-3

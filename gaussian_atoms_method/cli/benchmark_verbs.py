@@ -119,14 +119,16 @@ class BenchmarkFilm:
     tantalum's shortest bond, 2.11 Å) as a known truth in the sub-area's
     own views' geometry, level and noise, through physics the fit does not share (abTEM's Lobato
     potentials with ADF contrast, carbon atoms of a 3 nm support, a 300 kV probe's rings and tails,
-    a 0.7 Å source and a 6% halo), 0.5 px of per-view misregistration and 6.8% gain scatter."""
+    a 0.7 Å source and a 6% halo), 0.5 px of per-view misregistration and 6.8% gain scatter; each
+    fitted with its strip neighbours' replicas as a film, whose overlap decides the per-view
+    registration (`gaussian-atoms film`'s default; --no-registration-by-overlap: each alone, once)."""
     strips: tuple[int, ...] = ()
     """Instead of single sub-areas: these published strips (1: areas 1-16, 2: areas 17-29), each
     fitted on Ray (`gaussian-atoms film`), joined and scored in the strip's interior."""
     tasks_per_gpu: int = 1
-    """With --strips on GPUs: sub-areas fitted at once on each GPU."""
+    """With --strips or --replica on GPUs: sub-areas fitted at once on each GPU."""
     registration_by_overlap: bool = True
-    """With --strips or --simulated: per-view shifts and gains decided by the overlapping
+    """With --strips, --simulated or --replica: per-view shifts and gains decided by the overlapping
     sub-areas, every sub-area fitted without and with them (`gaussian-atoms film`'s default)."""
 
     simulated: bool = False
@@ -176,6 +178,8 @@ class BenchmarkFilm:
             self.species,
             self.start_from_model,
             self.replica,
+            self.registration_by_overlap,
+            self.tasks_per_gpu,
         ).run()
         print(f"wrote {self.output / 'results.md'} and results.csv")
 

@@ -349,27 +349,41 @@ class FilmBenchmark:
     replica: bool = False
     """Fit each sub-area's replica instead (:func:`write_replica`): the model, less its pairs closer
     than the shortest bond tantalum can form, as a known truth in the sub-area's own geometry,
-    level and noise."""
+    level and noise; with ``registration_by_overlap``, with its strip neighbours' as a film, the
+    per-view registration each keeps decided by the overlap (:mod:`.film_replica`)."""
+    registration_by_overlap: bool = True
+    tasks_per_gpu: int = 1
 
-    def run(self) -> list[dict]:
+    def score(self, area: int, data: Path, atoms) -> dict:
+        """The sub-area's atoms scored in its interior against :meth:`truth_A`, with their evidence."""
         from dataparsers.tilt_series_format import load_tilt_series
         from gaussian_atoms_method.atoms.hard_core import hard_core_from_species
+
+        series = load_tilt_series(data)
+        model = self.truth_A(area, series)
+        box, inside = scored_region(model, series.projections.shape[1:], tuple(series.centre_px))
+        scores = score_in_region(atoms.positions, model, box, inside)
+        if self.species:
+            core = hard_core_from_species(self.species)
+            scores["model_atoms_within_core"] = int(scores["n_model"]) - most_reportable(model, inside, core)
+        evidence = evidence_in_region(atoms, model, box, inside, scores["shift_A"])
+        return scores | evidence | {"n_atoms_reported": len(atoms)}
+
+    def run(self) -> list[dict]:
         from gaussian_atoms_method.harness.benchmark import scored_run
 
-        def score(area, data, atoms):
-            series = load_tilt_series(data)
-            model = self.truth_A(area, series)
-            box, inside = scored_region(model, series.projections.shape[1:], tuple(series.centre_px))
-            scores = score_in_region(atoms.positions, model, box, inside)
-            if self.species:
-                core = hard_core_from_species(self.species)
-                scores["model_atoms_within_core"] = int(scores["n_model"]) - most_reportable(model, inside, core)
-            return (
-                scores
-                | evidence_in_region(atoms, model, box, inside, scores["shift_A"])
-                | {"n_atoms_reported": len(atoms)}
-            )
+        if self.replica and self.registration_by_overlap:
+            if self.flags or self.start_from_model:
+                raise ValueError(
+                    "--train-args and --start-from-model: not with --replica's film (add --no-registration-by-overlap)"
+                )
+            from gaussian_atoms_method.harness.film_replica import replica_film
 
+            rows = replica_film(self, self.tasks_per_gpu)
+            for s in rows:
+                self.say(s, " (kept the per-view shifts and gains)" if s["registered"] else " (kept the fit without)")
+            self.write(rows)
+            return rows
         rows = []
         for area in self.areas:
             run_dir = self.output / "runs" / f"area{area}"
@@ -382,23 +396,26 @@ class FilmBenchmark:
                 run_dir / "film_scores.json",
                 run_dir,
                 lambda area=area: self.prepare(area),
-                lambda data, atoms, area=area: score(area, data, atoms),
+                lambda data, atoms, area=area: self.score(area, data, atoms),
                 self.iterations,
                 self.device,
                 flags,
             )
             rows.append({"area": area, **s})
-            print(
-                f"Ta film area {area}: found {s['found']:.3f} of {s['n_model']} model atoms, extra "
-                f"{s['extra_per_model_atom']:.3f} per model atom, RMSD {s['rmsd_pm']:.1f} pm, {s['share_close']:.1%} "
-                f"of atoms closer than {CLOSE_PAIR_A} Å to another, {s['seconds']:.0f} s"
-                + evidence_words(s)
-                + within_core_words(s, self.species),
-                flush=True,
-            )
+            self.say(rows[-1])
         self.write(rows)
         self.overlaps()
         return rows
+
+    def say(self, s: dict, how: str = "") -> None:
+        print(
+            f"Ta film area {s['area']}{how}: found {s['found']:.3f} of {s['n_model']} model atoms, extra "
+            f"{s['extra_per_model_atom']:.3f} per model atom, RMSD {s['rmsd_pm']:.1f} pm, {s['share_close']:.1%} "
+            f"of atoms closer than {CLOSE_PAIR_A} Å to another, {s['seconds']:.0f} s"
+            + evidence_words(s)
+            + within_core_words(s, self.species),
+            flush=True,
+        )
 
     def overlaps(self) -> list:
         """The fitted sub-areas that overlap, judged on each other without a truth
@@ -458,27 +475,11 @@ class FilmBenchmark:
 
     def write(self, rows: list[dict]) -> None:
         self.output.mkdir(parents=True, exist_ok=True)
-        fields = [
-            "area",
-            "n_model",
-            "n_pred",
-            "n_found",
-            "found",
-            "extra_per_model_atom",
-            "rmsd_pm",
-            "share_close",
-            "model_atoms_within_core",
-            "seconds",
-            "proven",
-            "open",
-            "depth_open",
-            "proven_found",
-            "trusted_share_of_truth",
-            "open_share_of_disagreement",
-            "coverage_95_xyz",
-            "depth_coverage_95",
-            "precision_floor_A",
-        ]
+        fields = (
+            "area n_model n_pred n_found found extra_per_model_atom rmsd_pm share_close model_atoms_within_core "
+            "seconds proven open depth_open proven_found trusted_share_of_truth open_share_of_disagreement "
+            "coverage_95_xyz depth_coverage_95 precision_floor_A registered"
+        ).split()
         with open(self.output / "results.csv", "w", newline="") as f:
             writer = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
             writer.writeheader()
