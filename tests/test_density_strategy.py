@@ -562,3 +562,17 @@ def test_a_gaussian_wider_than_an_atom_is_imaged_counts_no_atom_the_run_must_set
         params["log_sigmas"][20] = math.log(0.12)
     counted, worth = control.counted_worth(params), control.atoms_worth(params)
     assert bool((counted[:20] == worth[:20]).all()) and float(counted[20]) == 0.0 and float(worth[20]) > 0
+
+
+def test_on_a_film_only_a_gaussian_leaving_above_the_detector_is_named_a_possible_lost_atom():
+    """A film's volume reaches beyond the detector across the tilt axis (its field is the
+    detector); nothing beyond the field is reported, so an atom-like Gaussian that leaves the
+    volume there loses no atom and is not named, while one that leaves along the beam above the
+    detector is (the film's depth may be wrong)."""
+    params, opts, control = _setup([[0.0, 0.0, 0.0], [0.3, 0.0, 0.0], [0.0, 0.0, 0.7], [1.7, 0.0, 0.0]], sigma_A=0.06)
+    control.length_scale = 0.1
+    control.half_extent, control.field_half_extent = (1.5, 0.5, 0.5), (0.5, 0.5, 0.5)
+    assert control.prune(params, opts) == 2
+    line = control.report()[0]
+    assert line.startswith("2 Gaussians left the reconstruction volume")
+    assert "1 of them atom-like above the detector" in line

@@ -162,7 +162,7 @@ class Significance:
         keep &= self.atom_width(sigmas)
         inside = self.inside(params["means"])
         self.state.pruned_outside += int((~inside).sum())
-        self.state.pruned_outside_atom_like += int((keep & ~inside).sum())
+        self.state.pruned_outside_atom_like += int((keep & ~inside & self.above_field(params["means"])).sum())
         keep &= inside
         removed = int((~keep).sum())
         if removed:

@@ -306,10 +306,12 @@ class DensityControl(DensitySettings, Growth, Significance, Merging, HardCoreRul
             if self.state.pruned_outside_atom_like:
                 # the volume is the cube above the detector unless the run read a film: a film the
                 # reading missed (a Ta replica whose gains scatter 6.8%: 192 atom-like) is named; not
-                # decided here, particles lose atom-like Gaussians too (aSi-208 at 8e3: 244)
+                # decided here, particles lose atom-like Gaussians too (aSi-208 at 8e3: 244).  On a
+                # film only those above the detector count: beyond it, nothing is reported
                 film = "" if self.field_half_extent is not None else "; if the specimen is a film: extended_object on"
+                where = " above the detector" if self.field_half_extent is not None else ""
                 line += (
-                    f", {self.state.pruned_outside_atom_like} of them atom-like (check centre_px and "
+                    f", {self.state.pruned_outside_atom_like} of them atom-like{where} (check centre_px and "
                     f"pixel_size_A{film}: atoms may lie outside the volume)"
                 )
             lines.append(line)
@@ -320,6 +322,14 @@ class DensityControl(DensitySettings, Growth, Significance, Merging, HardCoreRul
         if self.field_half_extent is None:
             return self.inside(means)
         return (means.abs() <= self._box(self.field_half_extent, means)).all(dim=-1)
+
+    def above_field(self, means: torch.Tensor) -> torch.Tensor:
+        """(N,) bool: within the reported field across the beam (its first two axes), at any
+        depth: a Gaussian there that leaves the volume leaves it along the beam, where the run
+        would have reported it (the volume without a field)."""
+        if self.field_half_extent is None:
+            return torch.ones(means.shape[0], dtype=torch.bool, device=means.device)
+        return (means[:, :2].abs() <= self._box(self.field_half_extent, means)[:2]).all(dim=-1)
 
     def counted_worth(self, params) -> torch.Tensor:
         """(N,) each Gaussian's mass in typical atoms (:meth:`atoms_worth`), zero beyond the
