@@ -168,7 +168,7 @@ class BenchmarkFilm:
             return
         from gaussian_atoms_method.harness.film_benchmark import FilmBenchmark
 
-        FilmBenchmark(
+        bench = FilmBenchmark(
             self.data,
             self.output,
             self.areas,
@@ -178,9 +178,13 @@ class BenchmarkFilm:
             self.species,
             self.start_from_model,
             self.replica,
-            self.registration_by_overlap,
-            self.tasks_per_gpu,
-        ).run()
+        )
+        if self.replica and self.registration_by_overlap:
+            from gaussian_atoms_method.harness.film_replica import replica_film
+
+            replica_film(bench, self.tasks_per_gpu)
+        else:
+            bench.run()
         print(f"wrote {self.output / 'results.md'} and results.csv")
 
 

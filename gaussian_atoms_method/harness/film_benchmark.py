@@ -349,10 +349,8 @@ class FilmBenchmark:
     replica: bool = False
     """Fit each sub-area's replica instead (:func:`write_replica`): the model, less its pairs closer
     than the shortest bond tantalum can form, as a known truth in the sub-area's own geometry,
-    level and noise; with ``registration_by_overlap``, with its strip neighbours' as a film, the
-    per-view registration each keeps decided by the overlap (:mod:`.film_replica`)."""
-    registration_by_overlap: bool = True
-    tasks_per_gpu: int = 1
+    level and noise, alone (:func:`.film_replica.replica_film` fits it with its strip neighbours'
+    as a film)."""
 
     def score(self, area: int, data: Path, atoms) -> dict:
         """The sub-area's atoms scored in its interior against :meth:`truth_A`, with their evidence."""
@@ -372,18 +370,6 @@ class FilmBenchmark:
     def run(self) -> list[dict]:
         from gaussian_atoms_method.harness.benchmark import scored_run
 
-        if self.replica and self.registration_by_overlap:
-            if self.flags or self.start_from_model:
-                raise ValueError(
-                    "--train-args and --start-from-model: not with --replica's film (add --no-registration-by-overlap)"
-                )
-            from gaussian_atoms_method.harness.film_replica import replica_film
-
-            rows = replica_film(self, self.tasks_per_gpu)
-            for s in rows:
-                self.say(s, " (kept the per-view shifts and gains)" if s["registered"] else " (kept the fit without)")
-            self.write(rows)
-            return rows
         rows = []
         for area in self.areas:
             run_dir = self.output / "runs" / f"area{area}"

@@ -73,13 +73,17 @@ def replica_subareas(data_dir: Path, out_dir: Path, areas: list[int], species: s
 def replica_film(benchmark, tasks_per_gpu: int = 1) -> list[dict]:
     """Fit ``benchmark``'s (a :class:`.film_benchmark.FilmBenchmark` with ``replica``) asked
     sub-areas' replicas with their neighbours as one film under ``benchmark.output / "film"``
-    (resumable), the specimen said to be a film; each asked sub-area's row: its kept fit's
-    scores (``benchmark.score``), ``seconds`` (that fit's), ``registered`` (whether it kept
-    the per-view shifts and gains)."""
+    (resumable), the specimen said to be a film; print and write (``results.md``,
+    ``results.csv``) each asked sub-area's row: its kept fit's scores (``benchmark.score``),
+    ``seconds`` (that fit's), ``registered`` (whether it kept the per-view shifts and gains)."""
     from gaussian_atoms_method.atoms.atom_set import read_atoms
     from gaussian_atoms_method.film.film import reconstruct_film
     from gaussian_atoms_method.film.runner import DONE, place_of
 
+    if benchmark.flags or benchmark.start_from_model:
+        raise ValueError(
+            "--train-args and --start-from-model: not with --replica's film (add --no-registration-by-overlap)"
+        )
     output = Path(benchmark.output)
     subareas = replica_subareas(benchmark.data_dir, output, neighbourhood(benchmark.areas), benchmark.species or "Ta")
     film_dir = output / "film"
@@ -105,4 +109,8 @@ def replica_film(benchmark, tasks_per_gpu: int = 1) -> list[dict]:
         rows.append(
             {"area": area, **scores, "seconds": record["fit_s"], "registered": chosen[name] == "with_registration"}
         )
+        benchmark.say(
+            rows[-1], " (kept the per-view shifts and gains)" if rows[-1]["registered"] else " (kept the fit without)"
+        )
+    benchmark.write(rows)
     return rows

@@ -57,7 +57,6 @@ def main() -> None:
             (args.area,),
             device=args.device,
             replica=True,
-            registration_by_overlap=False,
         )
         bench.run()
         print(f"{variant}: {(args.output / variant / 'results.md').read_text().strip().splitlines()[-1]}")
