@@ -6,8 +6,8 @@ the Ta film, registration chosen by held-out views moved the atoms 0.05-0.54 Å 
 lost half of one sub-area's atoms).  Overlapping sub-areas can: they see the same atoms through
 other crops, each registered apart, so the better registration is the one under which their fits
 place the atoms they share closer together (:class:`~.stitch.PairAgreement`'s ``scatter_pm``)
-without reporting fewer of each other's atoms beyond counting: decided sub-area by sub-area, against each one's
-neighbours (:func:`registration_by_overlap`).  On replicas of three Ta sub-areas (independent
+without reporting fewer of each other's atoms beyond counting: decided sub-area by sub-area,
+against each one's neighbours (:func:`registration_by_overlap`).  On replicas of three Ta sub-areas (independent
 physics, 0.5 px and 6.8% of misregistration each) the overlap's pairs came 1.2-1.9 pm apart with
 registration against 6.4-12.0 pm without, as the truth's RMSD went 2.3-3.2 against 10.4-11.6 pm.
 """
@@ -92,9 +92,9 @@ def registration_by_overlap(reports: dict[str, list[Reports]], hard_core_A: floa
     from all, the mix kept whose pairs sit closest.  Registration
     can fail one sub-area and help the next (on the Ta film's second strip it brought 18-24 to
     their neighbours and put 25 ~50 pm off all of its own), so the choice is each sub-area's.
-    The mix is kept only where the film's overlapping pairs, taken whole, agree no less beyond counting and sit
-    closer than with no registration (else none is registered); ``decided`` False where no
-    sub-areas overlap."""
+    The mix is kept only where the film's overlapping pairs, taken whole, agree no less beyond
+    counting and sit closer than with no registration (else none is registered); ``decided``
+    False where no sub-areas overlap."""
     base, other = SETS
     n = len(reports[base])
     table = {}
