@@ -133,19 +133,22 @@ def published_subareas(
                 centre_px=(float(half[0]), float(half[1])),
                 euler_convention=euler_convention,
             )
-        series = load_tilt_series(target)
-        offset = (cen - np.asarray(full_centre_vox)) * pixel_size_A
-        out.append(
-            SubArea(
-                name,
-                target,
-                tuple(float(v) for v in offset),
-                tuple(int(v) for v in series.projections.shape[1:]),
-                tuple(float(v) for v in series.centre_px),
-                pixel_size_A,
-            )
-        )
+        out.append(subarea_at(name, target, (cen - np.asarray(full_centre_vox)) * pixel_size_A))
     return out
+
+
+def subarea_at(name: str, data: Path, offset_A) -> SubArea:
+    """The sub-area ``name`` whose tilt-series directory is ``data`` (its detector shape, tilt
+    centre and pixel size read there), its frame at ``offset_A`` (3,) in the film's."""
+    series = load_tilt_series(data)
+    return SubArea(
+        name,
+        Path(data),
+        tuple(float(v) for v in offset_A),
+        tuple(int(v) for v in series.projections.shape[1:]),
+        tuple(float(v) for v in series.centre_px),
+        float(series.pixel_size_A),
+    )
 
 
 OVERLAP = 7

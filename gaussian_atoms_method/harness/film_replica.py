@@ -47,26 +47,14 @@ def neighbourhood(areas) -> list[int]:
 def replica_subareas(data_dir: Path, out_dir: Path, areas: list[int], species: str = "Ta") -> list:
     """Each of ``areas`` written as its replica (:func:`.film_benchmark.write_replica`, seed the
     sub-area's number), placed in the film's frame as the real sub-area is (its crop's centre)."""
-    from dataparsers.tilt_series_format import load_tilt_series
-    from gaussian_atoms_method.film.subareas import SubArea
+    from gaussian_atoms_method.film.subareas import subarea_at
 
     out = []
     for area in areas:
         real = prepare_area(data_dir, Path(out_dir) / "data", area, species)
         replica = write_replica(real, Path(out_dir) / "data" / "replica" / f"area{area}", seed=area)
-        series = load_tilt_series(replica)
         cen, _ = area_geometry(data_dir, area)
-        offset = (cen - np.asarray(FULL_VOLUME_CENTRE_VOX)) * PIXEL_SIZE_A
-        out.append(
-            SubArea(
-                f"area{area}",
-                replica,
-                tuple(float(v) for v in offset),
-                tuple(int(v) for v in series.projections.shape[1:]),
-                tuple(float(v) for v in series.centre_px),
-                PIXEL_SIZE_A,
-            )
-        )
+        out.append(subarea_at(f"area{area}", replica, (cen - np.asarray(FULL_VOLUME_CENTRE_VOX)) * PIXEL_SIZE_A))
     return out
 
 
