@@ -42,6 +42,24 @@ def test_the_model_scores_itself_perfectly_and_a_shift_is_taken_out():
     assert scores["extra_per_model_atom"] == pytest.approx(0.1, abs=0.02)
 
 
+def test_a_sub_area_past_the_films_edge_scores_nothing_and_says_so(capsys):
+    """Strip 1's sub-area 16 holds no atom of the authors' model in its interior (the film ends
+    there): its score has no model atom, no found fraction and no extra per model atom, and the
+    benchmark's line says nothing was scored instead of failing."""
+    from gaussian_atoms_method.harness.film_benchmark import FilmBenchmark
+
+    _, half = area_geometry(DATA, 16)
+    model = model_in_area_A(DATA, 16)
+    reported = np.array([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0]])
+    scores = score_area(reported, model, (131, 61), tuple(half[:2]))
+    assert scores["n_model"] == 0 and scores["n_pred"] == 0
+    assert np.isnan(scores["found"]) and np.isnan(scores["extra_per_model_atom"])
+    FilmBenchmark(DATA, Path("unused")).say(scores | {"area": 16, "seconds": 40.0, "n_atoms_reported": 2})
+    assert capsys.readouterr().out.strip() == (
+        "Ta film area 16: no atom of the model in its interior, nothing scored (2 atoms reported), 40 s"
+    )
+
+
 def test_a_sub_area_is_written_as_a_tilt_series(tmp_path):
     """Sub-area 8: 46 views of 131 x 61 pixels, the tilt centre at CropHalf, angles -63 to +56."""
     from dataparsers.tilt_series_format import load_tilt_series

@@ -134,7 +134,14 @@ def scored_region(
 ) -> tuple[np.ndarray, np.ndarray]:
     """(2, 3) lower and upper corners (Å) of the scored region: the detector's interior
     (:data:`INTERIOR_PX`) and the depth of the model's atoms inside it plus
-    :data:`DEPTH_MARGIN_A`; and the (M,) mask of the model's atoms inside."""
+    :data:`DEPTH_MARGIN_A`; and the (M,) mask of the model's atoms inside.  Where no model atom
+    lies inside the interior (strip 1's sub-area 16, past the film's edge) the region is empty:
+    nothing is scored there.
+
+    >>> box, inside = scored_region(np.array([[100.0, 0.0, 0.0]]), (131, 61), (65.0, 30.0))
+    >>> bool(inside.any()), bool((box[0] > box[1]).any())
+    (False, True)
+    """
     h, w = shape_px
     lo_xy = (np.array(INTERIOR_PX, dtype=np.float64) - np.asarray(centre_px)) * PIXEL_SIZE_A
     hi_xy = (
@@ -142,8 +149,8 @@ def scored_region(
     ) * PIXEL_SIZE_A
     xy = np.all((model_A[:, :2] >= lo_xy) & (model_A[:, :2] <= hi_xy), axis=1)
     z = model_A[xy, 2]
-    lo = np.r_[lo_xy, z.min() - DEPTH_MARGIN_A]
-    hi = np.r_[hi_xy, z.max() + DEPTH_MARGIN_A]
+    lo = np.r_[lo_xy, z.min() - DEPTH_MARGIN_A if len(z) else np.inf]
+    hi = np.r_[hi_xy, z.max() + DEPTH_MARGIN_A if len(z) else -np.inf]
     return np.stack([lo, hi]), np.all((model_A >= lo) & (model_A <= hi), axis=1)
 
 
@@ -161,7 +168,7 @@ def matched_to_model(pred_A: np.ndarray, model_A: np.ndarray, inside: np.ndarray
     shifted (M, 3) positions, the (3,) shift (Å) and the matched pairs' indices into them and
     into ``model_A``."""
     pred = np.asarray(pred_A, dtype=np.float64).reshape(-1, 3)
-    shift = global_shift(pred, model_A[inside], MATCH_RADIUS_A) if len(pred) else np.zeros(3)
+    shift = global_shift(pred, model_A[inside], MATCH_RADIUS_A) if len(pred) and inside.any() else np.zeros(3)
     pred = pred + shift
     pred_i, model_i = match_atoms(pred, model_A, MATCH_RADIUS_A)
     return pred, shift, pred_i, model_i
@@ -394,6 +401,14 @@ class FilmBenchmark:
         return rows
 
     def say(self, s: dict, how: str = "") -> None:
+        if not s["n_model"]:  # past the film's edge (strip 1's sub-area 16): nothing to score against
+            print(
+                f"Ta film area {s['area']}{how}: no atom of the {'truth' if self.replica else 'model'} in its "
+                f"interior, nothing scored ({s.get('n_atoms_reported', s['n_pred'])} atoms reported), "
+                f"{s['seconds']:.0f} s",
+                flush=True,
+            )
+            return
         print(
             f"Ta film area {s['area']}{how}: found {s['found']:.3f} of {s['n_model']} model atoms, extra "
             f"{s['extra_per_model_atom']:.3f} per model atom, RMSD {s['rmsd_pm']:.1f} pm, {s['share_close']:.1%} "
