@@ -576,27 +576,3 @@ def test_on_a_film_only_a_gaussian_leaving_above_the_detector_is_named_a_possibl
     line = control.report()[0]
     assert line.startswith("2 Gaussians left the reconstruction volume")
     assert "1 of them atom-like above the detector" in line
-
-
-@pytest.mark.parametrize("filled", [False, True])
-def test_an_atom_like_gaussian_that_left_where_the_specimen_does_not_reach_is_not_a_lost_atom(filled):
-    """A particle of 125 atoms 1.5 Å apart spanning +-3 Å in a cube of +-5 Å, its hard core 1 Å:
-    an atom-like Gaussian that left by the z faces left where no material goes on (within 2 Å of
-    those faces lie none of its atoms, where its density would put 83), and the line says so
-    without advice.  With the particle reaching the faces (its planes at z = +-4.5 Å as well: 50
-    atoms in those layers, where the density puts 78) the material may go on beyond them: the
-    line names atoms possibly lost."""
-    planes = np.arange(-4.5 if filled else -3.0, 4.6 if filled else 3.1, 1.5)
-    grid = np.stack(np.meshgrid(*[np.arange(-3.0, 3.1, 1.5)] * 2, planes, indexing="ij"), axis=-1).reshape(-1, 3)
-    params, opts, control = _setup(np.vstack([grid, [[0.0, 0.0, 7.0]]]) / 10, sigma_A=0.06, hard_core_A=1.0)
-    control.length_scale = 0.1
-    assert control.prune(params, opts) == 1
-    line = control.report(params)[0]
-    assert line.startswith("1 Gaussians left the reconstruction volume") and "1 of them atom-like" in line
-    if filled:
-        assert "check centre_px and pixel_size_A" in line
-    else:
-        assert line.endswith(
-            "outside the specimen: within 2.0 Å of the faces they left by lie 0 of its atoms, where its density "
-            "would put 83"
-        )

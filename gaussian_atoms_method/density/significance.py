@@ -162,11 +162,7 @@ class Significance:
         keep &= self.atom_width(sigmas)
         inside = self.inside(params["means"])
         self.state.pruned_outside += int((~inside).sum())
-        leaving = keep & ~inside & self.above_field(params["means"])
-        if bool(leaving.any()):
-            beyond = params["means"][leaving].abs() > self._box(self.half_extent, params["means"])
-            self.state.pruned_outside_atom_like += int(leaving.sum())
-            self.state.left_across = tuple(a + int(b) for a, b in zip(self.state.left_across, beyond.sum(dim=0)))
+        self.state.pruned_outside_atom_like += int((keep & ~inside & self.above_field(params["means"])).sum())
         keep &= inside
         removed = int((~keep).sum())
         if removed:

@@ -48,7 +48,5 @@ class DensityState:
     """Gaussians pruned for leaving the reconstruction volume ..."""
     pruned_outside_atom_like: int = 0
     """... of which heavy and narrow enough to be atoms (real atoms lost if centre_px is off)."""
-    left_across: tuple = (0, 0, 0)
-    """Of those, how many were beyond each pair of the volume's faces (x, y, z): the faces they left by."""
     boxes: dict = field(default_factory=dict, repr=False)
     """The position boxes as tensors, per device and dtype (:meth:`.DensityControl._box`)."""

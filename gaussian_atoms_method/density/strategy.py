@@ -47,7 +47,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-from scipy.special import pdtr
 
 from gaussian_atoms_method.density.growth import Growth
 from gaussian_atoms_method.density.hard_core_rules import HardCoreRules
@@ -64,26 +63,6 @@ from gaussian_atoms_method.density.settings import DensitySettings
 from gaussian_atoms_method.density.significance import Significance
 from gaussian_atoms_method.density.state import DensityState
 from gaussian_atoms_method.physics.projector import gaussian_mass
-
-FACE_LAYER_CORES = 2.0
-"""The layer inside the volume's faces (in hard cores) whose atoms say whether the specimen goes on
-beyond a face: in a solid every atom has a neighbour within its first shell, inside twice the hard
-core (Ta: 2.86 Å against 1.87), so material that goes on beyond a face fills this layer at its
-density."""
-
-FACE_EMPTY_P = 0.05
-"""A face's layer is emptier than the specimen (no material goes on there) when a Poisson count at
-:data:`FACE_DENSITY_SHARE` of the specimen's density would hold as few atoms with at most this
-chance (one-sided 5%).  On a real Ta sub-area (23) 12 atom-like Gaussians left along the beam and
-read as atoms possibly lost; the 3.7 Å layers inside those faces hold 37 of the atom-like
-Gaussians in its field, where their density would put 184 (the authors' model ends 7 Å short of
-them)."""
-
-FACE_DENSITY_SHARE = 0.5
-"""The least share of the specimen's mean density a layer of :data:`FACE_LAYER_CORES` hard cores
-holds where the material goes on: it holds at least one shell of atoms, and a crystal's planes
-or a surface put there as little as half the mean (a layer one and a third plane spacings thick
-holds one plane)."""
 
 
 @dataclass(kw_only=True)
@@ -308,11 +287,9 @@ class DensityControl(DensitySettings, Growth, Significance, Merging, HardCoreRul
         log_amps.clamp_(max=self.max_log_amplitude)
         means.clamp_(min=lower, max=bound)
 
-    def report(self, params: Params | None = None) -> list[str]:
+    def report(self) -> list[str]:
         """What the safeguards did over the run, one sentence each (empty when nothing): the
-        clamps of :meth:`clamp` and the prunes of Gaussians that left the volume.  Atom-like ones
-        that left are named as atoms possibly lost unless ``params`` (the Gaussians at the end)
-        show the layers inside those faces emptier than the specimen (:meth:`atoms_at_faces`)."""
+        clamps of :meth:`clamp` and the prunes of Gaussians that left the volume."""
         lines = []
         if self.state.clamp_counts is not None:
             names = (
@@ -328,46 +305,17 @@ class DensityControl(DensitySettings, Growth, Significance, Merging, HardCoreRul
             line = f"{self.state.pruned_outside} Gaussians left the reconstruction volume and were pruned"
             if self.state.pruned_outside_atom_like:
                 # the volume is the cube above the detector unless the run read a film: a film the
-                # reading missed (a Ta replica whose gains scatter 6.8%: 192 atom-like) is named.
-                # Particles lose atom-like Gaussians too (aSi-208 at 8e3: 244), far from any atom:
-                # the atoms inside the faces say which.  On a film only those above the detector
-                # count: beyond it, nothing is reported
+                # reading missed (a Ta replica whose gains scatter 6.8%: 192 atom-like) is named; not
+                # decided here, particles lose atom-like Gaussians too (aSi-208 at 8e3: 244).  On a
+                # film only those above the detector count: beyond it, nothing is reported
                 film = "" if self.field_half_extent is not None else "; if the specimen is a film: extended_object on"
                 where = " above the detector" if self.field_half_extent is not None else ""
-                line += f", {self.state.pruned_outside_atom_like} of them atom-like{where}"
-                faces = self.atoms_at_faces(params) if params is not None else None
-                if faces is not None and pdtr(faces[0], FACE_DENSITY_SHARE * faces[1]) < FACE_EMPTY_P:
-                    near, expected, layer_A = faces
-                    line += (
-                        f", outside the specimen: within {layer_A:.1f} Å of the faces they left by lie {near} of its "
-                        f"atoms, where its density would put {expected:.0f}"
-                    )
-                else:
-                    line += f" (check centre_px and pixel_size_A{film}: atoms may lie outside the volume)"
+                line += (
+                    f", {self.state.pruned_outside_atom_like} of them atom-like{where} (check centre_px and "
+                    f"pixel_size_A{film}: atoms may lie outside the volume)"
+                )
             lines.append(line)
         return lines
-
-    @torch.no_grad()
-    def atoms_at_faces(self, params: Params) -> tuple[int, float, float] | None:
-        """The atom-like Gaussians in the field within :data:`FACE_LAYER_CORES` hard cores of the
-        volume's faces that atom-like Gaussians left by (:attr:`.state.DensityState.left_across`),
-        how many the specimen's density would put there (their number times the layers' share of
-        their extent along each axis crossed), and the layers' thickness (Å); None without a hard
-        core, a face crossed or two such Gaussians."""
-        means = params["means"].detach()
-        atoms = means[self.in_field(means) & self.atom_width(widths(params, self.min_log_sigma).detach())]
-        crossed = [a for a, n in enumerate(self.state.left_across) if n]
-        layer = FACE_LAYER_CORES * self.hard_core(params)
-        if not crossed or len(atoms) < 2 or not math.isfinite(layer):
-            return None
-        half = self._box(self.half_extent, means)
-        near = torch.zeros(len(atoms), dtype=torch.bool, device=means.device)
-        expected = 0.0
-        for a in crossed:
-            near |= atoms[:, a].abs() > half[a] - layer
-            extent = float(atoms[:, a].max() - atoms[:, a].min())
-            expected += len(atoms) * min(2.0 * layer / max(extent, layer), 1.0)
-        return int(near.sum()), expected, layer / self.length_scale
 
     def in_field(self, means: torch.Tensor) -> torch.Tensor:
         """(N,) bool: inside the reported field (``field_half_extent``; the volume without one)."""

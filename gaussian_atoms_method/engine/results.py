@@ -105,7 +105,7 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
             f"precision; give more steps (--max-num-iterations)"
         )
     model.finalize()
-    for line in model.density.report(model.gauss_params):
+    for line in model.density.report():
         CONSOLE.print(f"gaussian-atoms: {line}")
     if "psf" in model.view_params:
         from gaussian_atoms_method.physics.psf import KERNEL_WIDTHS_A
