@@ -253,3 +253,25 @@ def test_the_places_gathered_from_the_unmatched_are_those_of_the_whole_graph():
         within = [0.7, 1.9][trial % 2]
         expected = whole_graph(previous, worth[0], now, worth[1], matched, within)
         assert places_changed(previous, worth[0], now, worth[1], matched, within) == pytest.approx(expected, abs=1e-9)
+
+
+def test_a_merge_across_the_fields_edge_keeps_its_places_worth():
+    """Four atoms in the field and, 1.9 Å from the last, a Gaussian of 0.7 atoms just beyond the
+    field (worth zero to the count): joined into one of 1.4 inside the field, the place kept its
+    worth, and the set has not changed.  Counted by the field alone the merge would read as 0.7
+    of an atom added, against 0.2 tolerated."""
+
+    def precision(noise):
+        return np.full((5, 3), 0.1), 7.0
+
+    inner = torch.arange(4.0)[:, None] * torch.tensor([0.03, 0.0, 0.0])  # 3 Å apart, 1 Å = 0.01
+    edge = torch.tensor([[0.109, 0.0, 0.0]])  # 1.9 Å beyond the last atom
+    before = torch.cat([inner, edge])
+    after = torch.cat([inner[:3], (inner[3:] + edge) / 2])
+    worth, beyond = torch.tensor([1.0, 1.0, 1.0, 0.7, 0.0]), torch.tensor([0.0, 0.0, 0.0, 0.0, 0.7])
+    merged_worth = torch.tensor([1.0, 1.0, 1.0, 1.4])
+    for carried, changed in ((True, 0.0), (False, 0.7)):
+        check = ConvergenceCheck(warmup_length=0, refine_every=1, changed_fraction=0.05, match_distance=0.007)
+        check.update(1, before, 0.01, precision, worth, 0.0187, beyond=beyond if carried else None)
+        check.update(2, after, 0.01, precision, merged_worth, 0.0187, beyond=torch.zeros(4) if carried else None)
+        assert check.changed == pytest.approx(changed) and check.tolerated == pytest.approx(0.2)

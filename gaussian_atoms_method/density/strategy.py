@@ -341,9 +341,15 @@ class DensityControl(DensitySettings, Growth, Significance, Merging, HardCoreRul
         split will part; on a real Ta sub-area (23, on a GPU) such Gaussians took up 1-7 atoms'
         mass each at the film's surfaces, widened to the widest an atom can be and were pruned,
         one to four each 100 steps until the step limit."""
+        return self.field_worths(params)[0]
+
+    def field_worths(self, params) -> tuple[torch.Tensor, torch.Tensor]:
+        """(N,) :meth:`counted_worth`, and (N,) the worth of each Gaussian of one atom's width
+        beyond the reported field (zero in it): what a merge across the field's edge carries in."""
         sig = widths(params, self.min_log_sigma).detach()
-        one_atom = sig <= split_width(sig[self.atom_width(sig)])
-        return self.atoms_worth(params) * self.in_field(params["means"].detach()) * one_atom
+        one_atom = self.atoms_worth(params) * (sig <= split_width(sig[self.atom_width(sig)]))
+        in_field = self.in_field(params["means"].detach())
+        return one_atom * in_field, one_atom * ~in_field
 
     def inside(self, means: torch.Tensor) -> torch.Tensor:
         """(N,) bool: inside the reconstruction volume (``half_extent``, normalised units)."""

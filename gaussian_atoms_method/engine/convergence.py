@@ -62,6 +62,7 @@ class ConvergenceCheck:
     other's nearest and they are closer than this (the model passes the merge distance)."""
     previous: torch.Tensor | None = None
     previous_weights: torch.Tensor | None = None
+    previous_beyond: torch.Tensor | None = None
     settled_checks: int = 0
     noise: float | None = None
     positions_settled: int = 0
@@ -102,6 +103,7 @@ class ConvergenceCheck:
         atoms: torch.Tensor | None = None,
         core: float = math.inf,
         existence: np.ndarray | None = None,
+        beyond: torch.Tensor | None = None,
     ) -> bool:
         """True once the atoms are settled.
 
@@ -133,6 +135,9 @@ class ConvergenceCheck:
             data would prove (until they prove any, every Gaussian counts).  On a real Ta
             sub-area (8) most of the set's change after step 2,000 was fragments of a quarter
             of an atom, 2-4 standard deviations under the residual, pruned one at a time.
+        beyond : (N,) tensor, optional
+            The worth of each Gaussian beyond the field (zero in it), which ``atoms`` counts as
+            zero: carried into a place that holds a counted Gaussian (:func:`places_changed`).
         """
         if not self.checks(step):
             return False
@@ -143,6 +148,8 @@ class ConvergenceCheck:
             else atoms.detach().double().cpu().flatten()
         )
         previous_weights, self.previous_weights = self.previous_weights, weights
+        now_beyond = None if beyond is None else beyond.detach().double().cpu().flatten().numpy()
+        previous_beyond, self.previous_beyond = self.previous_beyond, now_beyond
         previous_existence, self.previous_existence = self.previous_existence, existence
         older, link = self.older, self.link
         self.older, previous, self.previous, self.scatter_only = self.previous, self.previous, positions, False
@@ -192,6 +199,8 @@ class ConvergenceCheck:
             weights.numpy(),
             (before, now),
             max(self.match_distance, core) if math.isfinite(core) else self.match_distance,
+            previous_beyond,
+            now_beyond,
         )
         self.noise_read_settled |= moved_less
         self.positions_settled = self.positions_settled + 1 if moved_less else 0
@@ -224,13 +233,18 @@ class ConvergenceCheck:
         )
 
     def restart(
-        self, positions: torch.Tensor, atoms: torch.Tensor | None = None, existence: np.ndarray | None = None
+        self,
+        positions: torch.Tensor,
+        atoms: torch.Tensor | None = None,
+        existence: np.ndarray | None = None,
+        beyond: torch.Tensor | None = None,
     ) -> None:
         """Compare the next check with ``positions`` (the set was changed on purpose: its
-        removals are not churn), from no settled checks (``atoms`` and ``existence`` as
-        :meth:`update` takes them)."""
+        removals are not churn), from no settled checks (``atoms``, ``existence`` and ``beyond``
+        as :meth:`update` takes them)."""
         self.previous, self.older, self.link = positions.detach().double().cpu().clone(), None, None
         self.previous_existence = existence
+        self.previous_beyond = None if beyond is None else beyond.detach().double().cpu().flatten().numpy()
         self.previous_weights = (
             torch.ones(len(positions), dtype=torch.float64)
             if atoms is None
@@ -274,6 +288,8 @@ def places_changed(
     now_worth: np.ndarray,
     matched: tuple[np.ndarray, np.ndarray],
     within: float,
+    previous_beyond: np.ndarray | None = None,
+    now_beyond: np.ndarray | None = None,
 ) -> float:
     """The atoms' worth added or removed between two checks: (P, 3) ``previous`` and (N, 3)
     ``now`` positions with their (P,) and (N,) worths, ``matched`` the (previous, now) index
@@ -283,7 +299,22 @@ def places_changed(
     whole; a merge or a split within the hard core keeps its place's worth and counts only what
     the worth changed.  On a real Ta sub-area (23) at steps 2,500-2,900 the unmatched were such
     merges (two Gaussians of 0.7-0.8 atoms each, one of 1.45 between them), 4-9 atoms' worth a
-    check by Gaussian against 1-2 by place."""
+    check by Gaussian against 1-2 by place.
+
+    ``previous_beyond`` and ``now_beyond`` (P,) and (N,): the worth of Gaussians beyond the
+    reported field, which the worths count as zero.  A place that holds a counted Gaussian
+    counts theirs too, so a merge across the field's edge keeps its place's worth; a place of
+    Gaussians beyond the field alone counts nothing.  On a real Ta sub-area (28) most of the
+    change after step 2,500 was such merges: a Gaussian of 0.5-1.2 atoms just beyond the
+    detector's edge and one of 0.7-0.8 inside it, joined into one of 1.2-1.5 inside.
+
+    >>> a, b = np.array([[0.0, 0, 0], [1.9, 0, 0]]), np.array([[0.95, 0, 0]])
+    >>> merged = (np.zeros(0, int), np.zeros(0, int))
+    >>> places_changed(a, np.array([0.7, 0.0]), b, np.array([1.4]), merged, 1.87)  # the edge's parent uncounted
+    0.7
+    >>> places_changed(a, np.array([0.7, 0.0]), b, np.array([1.4]), merged, 1.87, np.array([0.0, 0.7]), np.zeros(1))
+    0.0
+    """
     unmatched = np.ones(len(previous) + len(now), dtype=bool)
     unmatched[matched[0]] = False
     unmatched[len(previous) + matched[1]] = False
@@ -301,7 +332,11 @@ def places_changed(
     _, place = connected_components(graph, directed=False)
     index = np.concatenate([p_at, len(previous) + n_at])
     signed = np.concatenate([-np.asarray(previous_worth, float), np.asarray(now_worth, float)])[index]
-    change = np.bincount(place, weights=signed)
+    change = np.bincount(place, weights=signed, minlength=n)
+    if previous_beyond is not None and now_beyond is not None:
+        carried = np.concatenate([-np.asarray(previous_beyond, float), np.asarray(now_beyond, float)])[index]
+        counted = np.bincount(place, weights=(signed != 0).astype(float), minlength=n) > 0
+        change = change + np.bincount(place, weights=carried, minlength=n) * counted
     return float(np.abs(change[np.unique(place[unmatched[index]])]).sum())
 
 

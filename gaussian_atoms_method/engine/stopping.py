@@ -41,9 +41,9 @@ def converged(model, step: int) -> bool:
         result = model_position_std_A(model, atoms, noise)
         return None if result is None else (*result, levels.get("amplitude"))
 
-    worth, core = model.density.counted_worth(model.gauss_params), model.density.known_hard_core()
+    (worth, beyond), core = model.density.field_worths(model.gauss_params), model.density.known_hard_core()
     existence = existence_at_unit_noise(model, atoms)
-    return check.update(step, model.means, model.normalisation.length_scale, precision, worth, core, existence)
+    return check.update(step, model.means, model.normalisation.length_scale, precision, worth, core, existence, beyond)
 
 
 @torch.no_grad()
@@ -121,9 +121,8 @@ def settle_set(model) -> int:
     likelihood waits for the end: its test holds where the residual is noise, at a converged fit."""
     removed = model.density.settle(model.gauss_params, model.optimizers, model._param_lists())
     model.density.state.settled_since_search = True
-    model.convergence.restart(
-        model.means, model.density.counted_worth(model.gauss_params), existence_at_unit_noise(model, model.atoms())
-    )
+    worth, beyond = model.density.field_worths(model.gauss_params)
+    model.convergence.restart(model.means, worth, existence_at_unit_noise(model, model.atoms()), beyond)
     if removed:
         model.atoms_changed()
     return removed
