@@ -62,7 +62,7 @@ class ConvergenceCheck:
     other's nearest and they are closer than this (the model passes the merge distance)."""
     previous: torch.Tensor | None = None
     previous_weights: torch.Tensor | None = None
-    previous_beyond: torch.Tensor | None = None
+    previous_beyond: np.ndarray | None = None
     settled_checks: int = 0
     noise: float | None = None
     positions_settled: int = 0
