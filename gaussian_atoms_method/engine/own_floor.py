@@ -297,7 +297,9 @@ def read_own_floor(model, atoms: AtomSet, reported: np.ndarray, info: dict, resi
     for o in model.optimizers.values():
         o.state.clear()  # fresh moments: training's early gradients would shrink every step
     try:
-        steps = refit(model, max_passes=MAX_PASSES, measured=replica, until_still=True)
+        steps = refit(
+            model, MAX_PASSES, replica, until_still=True, progress=model.progress, what="gaussian-atoms: own replica"
+        )
         moved = model.atoms().positions[reported] - atoms.positions
     finally:
         with torch.no_grad():
