@@ -23,6 +23,7 @@ def test_ns_train_lists_method_and_dataparser():
     assert top.returncode == 0 and "gaussian-atoms" in top.stdout
     method = _run(BIN / "ns-train", "gaussian-atoms", "--help")
     assert method.returncode == 0 and "tilt-series" in method.stdout
+    assert "Warning" not in method.stderr, method.stderr  # hidden by the start-up hook the install places
 
 
 def test_simulate_train_evaluate(tmp_path, simulate_sphere):

@@ -7,6 +7,12 @@ on, and they came before the run's first line of its own.  :func:`quiet_third_pa
 hides them where those packages raise them: the same warnings raised by a user's own code (or
 by ours) still show, and nothing of theirs is patched.  ``ga.reconstruct`` leaves the caller's
 filters as they are.
+
+``ns-train`` is nerfstudio's launcher, and nerfstudio raises ``torch.jit.script``'s note while
+importing its cameras, before it loads any plugin.  So the install places a start-up hook,
+``gaussian_atoms_quiet.pth`` (``setup.py``), at the root of site-packages, where Python runs it
+as it starts: in a process whose command line is ``ns-train gaussian-atoms ...`` it calls
+:func:`quiet_third_party_warnings`, and any other process it leaves as it was.
 """
 
 from __future__ import annotations
