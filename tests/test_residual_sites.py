@@ -224,3 +224,26 @@ def test_a_place_of_pure_noise_reads_a_standard_normal_significance():
     assert len(z) == 64, z
     assert abs(float(z.mean())) < 0.45
     assert 0.7 < float(z.std()) < 1.35
+
+
+@pytest.mark.parametrize("shape", ["ball", "slab"])
+def test_the_hull_test_through_its_inscribed_and_outer_balls_is_the_test_against_every_facet(shape):
+    """Points nearer the centre than the nearest facet are inside and those beyond the farthest
+    Gaussian outside; only the shell between is tested facet by facet (atoms/holes.py), with the
+    same answer as testing every point so."""
+    from gaussian_atoms_method.atoms.holes import OpenPlaces, _ball_of, _facets, _inside
+
+    rng = np.random.default_rng(3)
+    if shape == "ball":
+        atoms = rng.normal(size=(6000, 3))
+        atoms = 20.0 * atoms[np.linalg.norm(atoms, axis=1) < 1.0][:2000]
+    else:
+        atoms = rng.uniform(-1.0, 1.0, size=(500, 3)) * np.array([30.0, 30.0, 3.0])
+    points = rng.uniform(atoms.min(axis=0) - 3.0, atoms.max(axis=0) + 3.0, size=(50_000, 3))
+    facets = _facets(atoms)
+    every_facet = _inside(points, facets)
+    assert 0.05 < every_facet.mean() < 0.95
+    assert np.array_equal(_inside(points, facets, *_ball_of(atoms)), every_facet)
+    places = OpenPlaces(atoms, 2.0)
+    clear = places.tree.query(points)[0] >= 2.0
+    assert np.array_equal(places(points), clear & every_facet)

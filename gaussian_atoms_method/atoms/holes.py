@@ -30,7 +30,15 @@ def inside_hull(points_A: np.ndarray, hull_of_A: np.ndarray) -> np.ndarray:
     >>> inside_hull(np.array([[0.5, 0.5, 0.5], [1.5, 0.5, 0.5]]), cube).tolist()
     [True, False]
     """
-    return _inside(np.asarray(points_A, dtype=np.float64).reshape(-1, 3), _facets(hull_of_A))
+    hull_of = np.asarray(hull_of_A, dtype=np.float64).reshape(-1, 3)
+    return _inside(np.asarray(points_A, dtype=np.float64).reshape(-1, 3), _facets(hull_of), *_ball_of(hull_of))
+
+
+def _ball_of(hull_of: np.ndarray) -> tuple[np.ndarray, float]:
+    """``(centre (3,), reach)``: the points' mean, which lies inside their hull, and the farthest
+    point's distance from it (the hull lies in that ball)."""
+    centre = hull_of.mean(axis=0) if len(hull_of) else np.zeros(3)
+    return centre, float(np.linalg.norm(hull_of - centre, axis=1).max()) if len(hull_of) else 0.0
 
 
 def _facets(hull_of_A) -> np.ndarray | None:
@@ -45,15 +53,25 @@ def _facets(hull_of_A) -> np.ndarray | None:
         return None
 
 
-def _inside(points: np.ndarray, facets: np.ndarray | None) -> np.ndarray:
-    """(M,) bool: each of ``points`` (M, 3) on the inner side of every one of ``facets``."""
+def _inside(points: np.ndarray, facets: np.ndarray | None, centre=None, reach: float | None = None) -> np.ndarray:
+    """(M,) bool: each of ``points`` (M, 3) on the inner side of every one of ``facets`` (unit
+    normals).  Given a ``centre`` inside them and the ``reach`` of a ball about it that holds
+    the hull, only the points between the ball inscribed in the facets and that ball are tested
+    against every facet: those nearer the centre are inside, those beyond the reach outside (on
+    a 76,000-atom particle the whole test had taken 3.6 s of a GPU run)."""
     if facets is None or len(points) == 0:
         return np.zeros(len(points), bool)
     normals, offsets = facets[:, :3], facets[:, 3]
     inside = np.ones(len(points), bool)
-    for start in range(0, len(points), 8192):  # (chunk, facets) at a time
-        chunk = points[start : start + 8192]
-        inside[start : start + 8192] = np.all(chunk @ normals.T + offsets <= 1e-9, axis=1)
+    tested = np.arange(len(points))
+    if centre is not None:
+        inscribed = float(-(normals @ centre + offsets).max())  # the nearest facet's distance from the centre
+        distance = np.linalg.norm(points - centre, axis=1)
+        inside[distance > reach + 1e-6] = False
+        tested = np.flatnonzero((distance >= inscribed - 1e-6) & (distance <= reach + 1e-6))
+    for start in range(0, len(tested), 8192):  # (chunk, facets) at a time
+        chunk = tested[start : start + 8192]
+        inside[chunk] = np.all(points[chunk] @ normals.T + offsets <= 1e-9, axis=1)
     return inside
 
 
@@ -72,6 +90,7 @@ class OpenPlaces:
         self.hard_core_A = hard_core_A
         self.tree = cKDTree(self.existing)
         self.facets = _facets(self.existing)
+        self.centre, self.reach = _ball_of(self.existing)
 
     def __call__(self, points_A: np.ndarray) -> np.ndarray:
         """(M,) bool for ``points_A`` (M, 3)."""
@@ -79,7 +98,7 @@ class OpenPlaces:
         if self.facets is None or len(points) == 0:
             return np.zeros(len(points), bool)
         clear = self.tree.query(points)[0] >= self.hard_core_A
-        clear[clear] = _inside(points[clear], self.facets)
+        clear[clear] = _inside(points[clear], self.facets, self.centre, self.reach)
         return clear
 
     def voxel_count(self, shape, index_to_A, samples: int = SAMPLES, seed: int = 0) -> int:
