@@ -9,9 +9,10 @@ import sys
 class ProgressBar:
     """A progress bar of training steps that ends at the step the run stopped at: the step limit,
     or the step where the atoms converged (then it reads that step as 100%); with another ``unit``
-    (the evidence's atoms) a count of them, moved by :meth:`add`."""
+    (the evidence's atoms) a count of them, moved by :meth:`add`.  ``in_logs`` False: drawn in a
+    terminal only (a stage of a few seconds, whose line after it says what it took)."""
 
-    def __init__(self, total: int, unit: str = "step", what: str = "gaussian-atoms") -> None:
+    def __init__(self, total: int, unit: str = "step", what: str = "gaussian-atoms", in_logs: bool = True) -> None:
         from tqdm.auto import tqdm
 
         # In a terminal the bar redraws in place; into a log (no terminal) each drawing is a line
@@ -22,6 +23,7 @@ class ProgressBar:
             desc=what,
             unit=unit,
             dynamic_ncols=True,
+            disable=not (live or in_logs),
             **({} if live else {"miniters": max(total // 10, 1), "mininterval": 0.0}),
         )
 

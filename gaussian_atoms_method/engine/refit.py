@@ -21,6 +21,7 @@ def refit(
     until_still: bool = False,
     progress: bool = False,
     what: str = "gaussian-atoms: final refit",
+    in_logs: bool = True,
 ) -> int:
     """After the final prune and merge: passes over the training views in random order at full
     resolution, as many views per step as training took, with the model's own optimisers (their
@@ -42,7 +43,8 @@ def refit(
     when the passes' means no longer drift (:func:`.convergence.drifting`), however little each
     atom moves in a pass: the place the views' optimum holds, not one the refit reached.
     ``progress``: a bar of its steps, ended where the atoms settle (on the CPU the Au noise-200
-    run's refit takes 8 of its 86 s, which had passed without a sign), named ``what``."""
+    run's refit takes 8 of its 86 s, which had passed without a sign), named ``what``; ``in_logs``
+    False: in a terminal only (:class:`~.progress.ProgressBar`)."""
     measured_all = measured_views(model) if measured is None else measured
     names = [n for n in model.gauss_params.keys() if n in model.optimizers]
     steps, settled, noise = 0, 0, None
@@ -57,7 +59,7 @@ def refit(
                 1,
             )
             per_pass = -(-len(cameras) // max(int(model.views_per_step), 1))
-            bar = ProgressBar(max_passes * per_pass, what=what) if progress else None
+            bar = ProgressBar(max_passes * per_pass, what=what, in_logs=in_logs) if progress else None
             for _ in range(max_passes):
                 average = IterateAverage() if model.density.average_iterates else None
                 steps += _refit_pass(model, cameras, measured_all, names, model.views_per_step, average)
