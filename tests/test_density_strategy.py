@@ -150,6 +150,24 @@ def _with_noise(control, read_var=1.0, gain=0.0, pixel_size=0.025, n_views=50, v
     return control
 
 
+def test_a_gaussian_that_left_the_volume_is_named_atom_like_by_the_noise_the_run_ends_in():
+    """Whether a Gaussian that left the volume was an atom is judged at the run's end, at the
+    confident atoms' level under the noise the final prune judges in: two that left proven at
+    three times that level under the noise read before training are noise once the residual over
+    an atom reads ten times its standard deviation (aSi-208 at 8e3 had named 243 on correct
+    geometry)."""
+    params, opts, control = _setup([[0.0, 0.0, 0.0], [0.0, 0.7, 0.0], [0.7, 0.0, 0.0]], sigma_A=0.06)
+    control.length_scale = 0.1
+    _with_noise(control)
+    z_unit = float(control.mass_significance(params)[0])
+    with torch.no_grad():
+        params["log_amplitudes"][:] = math.log(3.0 * control.significance_threshold() / z_unit)
+    assert control.prune(params, opts) == 2
+    assert "2 of them atom-like" in control.report()[0]
+    control.noise = type(control.noise)(100.0, 0.0)  # the residual over an atom, judged after the fit
+    assert control.report() == ["2 Gaussians left the reconstruction volume and were pruned"]
+
+
 def _tilt_series_dirs(step_deg=3.0, max_deg=70.0):
     """Beam directions of a single-axis series about y, -70:3:70 degrees (the limited range)."""
     t = torch.deg2rad(torch.arange(-max_deg, max_deg + 1e-9, step_deg, dtype=torch.float64))

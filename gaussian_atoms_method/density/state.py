@@ -46,7 +46,8 @@ class DensityState:
     the edge of the position box (kept on the parameters' device: no sync per step)."""
     pruned_outside: int = 0
     """Gaussians pruned for leaving the reconstruction volume ..."""
-    pruned_outside_atom_like: int = 0
-    """... of which heavy and narrow enough to be atoms (real atoms lost if centre_px is off)."""
+    leavers: list = field(default_factory=list)
+    """... of which those above the field that training would have kept: (mass, width) CPU
+    tensors, normalised, judged at the run's end (:meth:`.DensityControl.atom_like_leavers`)."""
     boxes: dict = field(default_factory=dict, repr=False)
     """The position boxes as tensors, per device and dtype (:meth:`.DensityControl._box`)."""

@@ -303,7 +303,8 @@ class DensityControl(DensitySettings, Growth, Significance, Merging, HardCoreRul
                 lines.append("clamped (Gaussian-steps): " + ", ".join(held))
         if self.state.pruned_outside:
             line = f"{self.state.pruned_outside} Gaussians left the reconstruction volume and were pruned"
-            if self.state.pruned_outside_atom_like:
+            atom_like = self.atom_like_leavers()
+            if atom_like:
                 # the volume is the cube above the detector unless the run read a film: a film the
                 # reading missed (a Ta replica whose gains scatter 6.8%: 192 atom-like) is named; not
                 # decided here, particles lose atom-like Gaussians too (aSi-208 at 8e3: 244).  On a
@@ -311,7 +312,7 @@ class DensityControl(DensitySettings, Growth, Significance, Merging, HardCoreRul
                 film = "" if self.field_half_extent is not None else "; if the specimen is a film: extended_object on"
                 where = " above the detector" if self.field_half_extent is not None else ""
                 line += (
-                    f", {self.state.pruned_outside_atom_like} of them atom-like{where} (check centre_px and "
+                    f", {atom_like} of them atom-like{where} (check centre_px and "
                     f"pixel_size_A{film}: atoms may lie outside the volume)"
                 )
             lines.append(line)
