@@ -19,6 +19,8 @@ residuals ask for more than half an atom there, nearer one than none.
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -70,42 +72,40 @@ def proposal_significance(
     own = pair_information(places, places, s0 * ones, s0 * ones, q0 * ones, q0 * ones, detector_axes, pixel_size_A)
     near = cKDTree(positions).query_ball_point(places, REACH_WIDTHS * s0)
     # every block the places' systems need, each read once
-    place_of = np.repeat(np.arange(m), [len(n) for n in near])
-    atom_of = np.concatenate([np.asarray(n, np.int64) for n in near]) if len(place_of) else np.zeros(0, np.int64)
+    counts = np.fromiter(map(len, near), np.int64, count=m)
+    place_of = np.repeat(np.arange(m), counts)
+    atom_of = np.fromiter(itertools.chain.from_iterable(near), np.int64, count=int(counts.sum()))
     cross = pair_information(
         places[place_of], positions[atom_of], s0 * np.ones(len(place_of)), sig[atom_of], q0 * np.ones(len(place_of)),
         amp[atom_of], detector_axes, pixel_size_A,
     )[:, 4, :]  # fmt: skip
     n = len(positions)
-    within = np.concatenate([_pairs_within(atoms) for atoms in near])
+    start = np.r_[0, np.cumsum(counts)]
+    groups = {int(k): np.nonzero(counts == k)[0] for k in np.unique(counts[counts > 0])}
+    # each place's neighbours as a row, the places of one count together (G, k): atom_of in place order
+    rows = {k: atom_of[start[which][:, None] + np.arange(k)] for k, which in groups.items()}
+    within = [
+        np.stack([a[:, np.triu_indices(k)[0]].ravel(), a[:, np.triu_indices(k)[1]].ravel()], 1) for k, a in rows.items()
+    ]
+    within = np.concatenate(within) if within else np.zeros((0, 2), np.int64)
     keys = np.unique(within[:, 0] * n + within[:, 1])  # sorted
     pairs = np.stack([keys // n, keys % n], axis=1)
     blocks = pair_information(
         positions[pairs[:, 0]], positions[pairs[:, 1]], sig[pairs[:, 0]], sig[pairs[:, 1]], amp[pairs[:, 0]],
         amp[pairs[:, 1]], detector_axes, pixel_size_A,
     )  # fmt: skip
-    counts = np.array([len(n) for n in near])
-    start = np.r_[0, np.cumsum(counts)]
     shared = np.zeros(m)
-    for k in np.unique(counts[counts > 0]):  # the places with k neighbours, their systems at once
-        which = np.nonzero(counts == k)[0]
-        atoms = np.stack([np.asarray(near[p], np.int64) for p in which])  # (G, k)
+    for k, which in groups.items():  # the places with k neighbours, their systems at once
+        atoms = rows[k]  # (G, k)
         i, j = atoms[:, :, None], atoms[:, None, :]
         lo, hi = np.minimum(i, j), np.maximum(i, j)
         found = blocks[np.searchsorted(keys, lo * n + hi)]  # (G, k, k, 5, 5), rows: the lower index
         system = np.where((i <= j)[..., None, None], found, found.swapaxes(-1, -2))
         system = system.transpose(0, 1, 3, 2, 4).reshape(len(which), 5 * k, 5 * k)
-        c = np.stack([cross[start[p] : start[p + 1]].reshape(-1) for p in which])  # (G, 5k)
+        c = cross[start[which][:, None] + np.arange(k)].reshape(len(which), 5 * k)  # (G, 5k)
         # a neighbour's parameters may be all but degenerate
         ridge = 1e-9 * np.trace(system, axis1=1, axis2=2)[:, None, None] / (5 * k) * np.eye(5 * k)
         shared[which] = np.einsum("gi,gi->g", c, np.linalg.solve(system + ridge, c[..., None])[..., 0])
     efficient = np.maximum(own[:, 4, 4] - shared, 1e-12 * own[:, 4, 4])
     scale = noise_std * amplitude_factor * np.sqrt(efficient)
     return score / scale, q0 * efficient / scale
-
-
-def _pairs_within(atoms) -> np.ndarray:
-    """(P, 2) the pairs ``(i, j)``, ``i <= j``, among the atom indices ``atoms``."""
-    a = np.asarray(atoms, np.int64)
-    i, j = np.triu_indices(len(a))
-    return np.stack([a[i], a[j]], axis=1) if len(a) else np.zeros((0, 2), np.int64)
