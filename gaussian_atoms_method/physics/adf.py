@@ -209,15 +209,31 @@ def _deposit_spectrum(at_px: np.ndarray, weights: np.ndarray, grid: tuple[int, i
     """
     base = np.floor(at_px).astype(np.int64)
     frac = at_px - base
-    flat = np.zeros(grid[0] * grid[1], dtype=np.float64)
-    for dr, dc in ((0, 0), (0, 1), (1, 0), (1, 1)):
-        share = weights * np.where(dr, frac[:, 0], 1 - frac[:, 0]) * np.where(dc, frac[:, 1], 1 - frac[:, 1])
-        index = ((base[:, 0] + dr) % grid[0]) * grid[1] + (base[:, 1] + dc) % grid[1]
-        flat += np.bincount(index, weights=share, minlength=flat.size)
-    sharing = np.outer(np.sinc(np.fft.fftfreq(grid[0])) ** 2, np.sinc(np.fft.fftfreq(grid[1])) ** 2)
+    # the four shares of every point in one count (one grid-sized array, not four: each is a
+    # fresh allocation the system pages in)
+    corners = ((0, 0), (0, 1), (1, 0), (1, 1))
+    share = np.concatenate(
+        [
+            weights * np.where(dr, frac[:, 0], 1 - frac[:, 0]) * np.where(dc, frac[:, 1], 1 - frac[:, 1])
+            for dr, dc in corners
+        ]
+    )
+    index = np.concatenate(
+        [((base[:, 0] + dr) % grid[0]) * grid[1] + (base[:, 1] + dc) % grid[1] for dr, dc in corners]
+    )
+    flat = np.bincount(index, weights=share, minlength=grid[0] * grid[1])
     from scipy import fft
 
-    return fft.fft2(flat.reshape(grid).astype(np.float32), workers=-1) / sharing.astype(np.float32)
+    return fft.fft2(flat.reshape(grid).astype(np.float32), workers=-1) / _sharing_transfer(grid)
+
+
+@functools.lru_cache(maxsize=4)
+def _sharing_transfer(grid: tuple[int, int]) -> np.ndarray:
+    """The bilinear sharing's transfer on ``grid``, ``sinc^2`` along each axis (float32; one per
+    grid, read by every view: read-only)."""
+    sharing = np.outer(np.sinc(np.fft.fftfreq(grid[0])) ** 2, np.sinc(np.fft.fftfreq(grid[1])) ** 2).astype(np.float32)
+    sharing.setflags(write=False)
+    return sharing
 
 
 def scan_jitter(views: np.ndarray, rms_px: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
