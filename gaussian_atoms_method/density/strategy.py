@@ -304,16 +304,23 @@ class DensityControl(DensitySettings, Growth, Significance, Merging, HardCoreRul
         if self.state.pruned_outside:
             line = f"{self.state.pruned_outside} Gaussians left the reconstruction volume and were pruned"
             atom_like = self.atom_like_leavers()
-            if atom_like:
+            if atom_like and self.field_half_extent is None:
                 # the volume is the cube above the detector unless the run read a film: a film the
-                # reading missed (a Ta replica whose gains scatter 6.8%: 192 atom-like) is named; not
-                # decided here, particles lose atom-like Gaussians too (aSi-208 at 8e3: 244).  On a
-                # film only those above the detector count: beyond it, nothing is reported
-                film = "" if self.field_half_extent is not None else "; if the specimen is a film: extended_object on"
-                where = " above the detector" if self.field_half_extent is not None else ""
+                # reading missed (a Ta replica fitted with extended_object off: 115 atom-like) is
+                # named; a particle's geometry may be off
                 line += (
-                    f", {atom_like} of them atom-like{where} (check centre_px and "
-                    f"pixel_size_A{film}: atoms may lie outside the volume)"
+                    f", {atom_like} of them atom-like (check centre_px and pixel_size_A; if the specimen is a film: "
+                    f"extended_object on: atoms may lie outside the volume)"
+                )
+            elif atom_like:
+                # a film: only those above the detector count (beyond it nothing is reported), and
+                # they left through the faces along the beam, the cube's depth whatever the
+                # geometry (the real Ta sub-area 23: 11, where the authors' model ends 7 Å inside)
+                depth_A = self.half_extent[2] / self.length_scale
+                line += (
+                    f", {atom_like} of them atom-like above the detector: mass the views prove lies beyond the "
+                    f"volume's depth along the beam ({depth_A:.0f} Å either side of the tilt axis): a support, a "
+                    f"surface layer, or a film thicker than that"
                 )
             lines.append(line)
         return lines
