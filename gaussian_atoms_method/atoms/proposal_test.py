@@ -84,10 +84,11 @@ def proposal_significance(
     groups = {int(k): np.nonzero(counts == k)[0] for k in np.unique(counts[counts > 0])}
     # each place's neighbours as a row, the places of one count together (G, k): atom_of in place order
     rows = {k: atom_of[start[which][:, None] + np.arange(k)] for k, which in groups.items()}
-    within = [
-        np.stack([a[:, np.triu_indices(k)[0]].ravel(), a[:, np.triu_indices(k)[1]].ravel()], 1) for k, a in rows.items()
-    ]
-    within = np.concatenate(within) if within else np.zeros((0, 2), np.int64)
+    within = [np.zeros((0, 2), np.int64)]
+    for k, a in rows.items():  # each place's pairs (i <= j) among its neighbours
+        i, j = np.triu_indices(k)
+        within.append(np.stack([a[:, i].ravel(), a[:, j].ravel()], 1))
+    within = np.concatenate(within)
     keys = np.unique(within[:, 0] * n + within[:, 1])  # sorted
     pairs = np.stack([keys // n, keys % n], axis=1)
     blocks = pair_information(

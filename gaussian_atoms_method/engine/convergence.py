@@ -28,6 +28,11 @@ from gaussian_atoms_method.atoms.evidence import proof_level
 Precision = Callable[[float | None], "tuple[np.ndarray, float] | tuple[np.ndarray, float, float | None] | None"]
 
 
+def _on_host(values: torch.Tensor | None) -> np.ndarray | None:
+    """(N,) float64 numpy copy of a per-Gaussian tensor (None stays None)."""
+    return None if values is None else values.detach().double().cpu().flatten().numpy()
+
+
 def _worth(atoms: float) -> str:
     """Atoms' worth in words: whole atoms from ten up, two figures below (a set that changed by
     0.3 of an atom against 0.15 tolerated read "0 (0 tolerated)" and did not settle).
@@ -148,7 +153,7 @@ class ConvergenceCheck:
             else atoms.detach().double().cpu().flatten()
         )
         previous_weights, self.previous_weights = self.previous_weights, weights
-        now_beyond = None if beyond is None else beyond.detach().double().cpu().flatten().numpy()
+        now_beyond = _on_host(beyond)
         previous_beyond, self.previous_beyond = self.previous_beyond, now_beyond
         previous_existence, self.previous_existence = self.previous_existence, existence
         older, link = self.older, self.link
@@ -244,7 +249,7 @@ class ConvergenceCheck:
         as :meth:`update` takes them)."""
         self.previous, self.older, self.link = positions.detach().double().cpu().clone(), None, None
         self.previous_existence = existence
-        self.previous_beyond = None if beyond is None else beyond.detach().double().cpu().flatten().numpy()
+        self.previous_beyond = _on_host(beyond)
         self.previous_weights = (
             torch.ones(len(positions), dtype=torch.float64)
             if atoms is None

@@ -298,7 +298,13 @@ def read_own_floor(model, atoms: AtomSet, reported: np.ndarray, info: dict, resi
         o.state.clear()  # fresh moments: training's early gradients would shrink every step
     try:
         steps = refit(  # its bar in a terminal only: in a log, the line after it says what it took
-            model, MAX_PASSES, replica, True, model.progress, "gaussian-atoms: own replica", in_logs=False
+            model,
+            max_passes=MAX_PASSES,
+            measured=replica,
+            until_still=True,
+            progress=model.progress,
+            what="gaussian-atoms: own replica",
+            in_logs=False,
         )
         moved = model.atoms().positions[reported] - atoms.positions
     finally:
