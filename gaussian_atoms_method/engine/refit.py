@@ -10,7 +10,7 @@ import torch
 from gaussian_atoms_method.density.averaging import IterateAverage
 from gaussian_atoms_method.engine.convergence import drifting
 from gaussian_atoms_method.engine.progress import ProgressBar
-from gaussian_atoms_method.engine.rendering import index_on, render_views
+from gaussian_atoms_method.engine.rendering import index_on, render_views, view_floors
 from gaussian_atoms_method.engine.residuals import in_chunks, measured_views, training_views
 
 
@@ -22,6 +22,8 @@ def refit(
     progress: bool = False,
     what: str = "gaussian-atoms: final refit",
     in_logs: bool = True,
+    noise: float | None = None,
+    band: tuple[int, float, float] | None = None,
 ) -> int:
     """After the final prune and merge: passes over the training views in random order at full
     resolution, as many views per step as training took, with the model's own optimisers (their
@@ -44,10 +46,16 @@ def refit(
     atom moves in a pass: the place the views' optimum holds, not one the refit reached.
     ``progress``: a bar of its steps, ended where the atoms settle (on the CPU the Au noise-200
     run's refit takes 8 of its 86 s, which had passed without a sign), named ``what``; ``in_logs``
-    False: in a terminal only (:class:`~.progress.ProgressBar`)."""
+    False: in a terminal only (:class:`~.progress.ProgressBar`); ``noise``: the pixel noise the
+    atoms' precision is judged in (input units; default the residual's at the first pass,
+    :func:`.results.residual_noise`); ``band`` (k, lo, hi): only the detector's rows (k 0) or
+    columns (k 1) whose coordinates (normalised) lie within [lo, hi] are rendered and fitted,
+    where the views are rendered together (elsewhere the whole views): where the model's
+    Gaussians lie whole within it, the rest of each view holds nothing they render
+    (:func:`.own_floor.floor_slab`)."""
     measured_all = measured_views(model) if measured is None else measured
     names = [n for n in model.gauss_params.keys() if n in model.optimizers]
-    steps, settled, noise = 0, 0, None
+    steps, settled = 0, 0
     with training_views(model) as cameras:
         if cameras is None or measured_all is None:
             return 0
@@ -58,11 +66,17 @@ def refit(
                 [model.means.detach().clone()],
                 1,
             )
+            together = in_chunks(model, cameras)  # a step's views in one projector call, where the cameras allow it
+            floors = None  # rendered with the views (None), or held as the views were cut
+            if band is not None and together is not None:
+                together, measured_all, floors = _within(model, band, together, measured_all)
             per_pass = -(-len(cameras) // max(int(model.views_per_step), 1))
             bar = ProgressBar(max_passes * per_pass, what=what, in_logs=in_logs) if progress else None
             for _ in range(max_passes):
                 average = IterateAverage() if model.density.average_iterates else None
-                steps += _refit_pass(model, cameras, measured_all, names, model.views_per_step, average)
+                steps += _refit_pass(
+                    model, cameras, measured_all, names, together, model.views_per_step, average, floors
+                )
                 if bar is not None:
                     bar.count(steps - 1)
                 now = average.mean(model.gauss_params)["means"] if average is not None else model.means.detach().clone()
@@ -96,18 +110,46 @@ def refit(
     return steps
 
 
+def _within(model, band: tuple[int, float, float], together, measured_all: torch.Tensor):
+    """``together`` (:func:`.residuals.in_chunks`) and ``measured_all`` (V, H, W) cut to the
+    detector's rows (``band[0]`` 0) or columns (1) whose coordinates lie within ``band[1:]``,
+    and the views' floors (V, h, w) as cut (None without floors): the refit holds them as
+    they are (the model in eval mode), and a floor surface is read off the whole detector."""
+    k, lo, hi = band
+    rows, cols, pitch, chunks = together
+    inside = torch.nonzero(((rows, cols)[k] >= lo) & ((rows, cols)[k] <= hi)).flatten().tolist()
+    if not inside:
+        return together, measured_all, None
+    window = slice(inside[0], inside[-1] + 1)
+    cut = (slice(None), window) if k == 0 else (slice(None), slice(None), window)
+    floors = None
+    if "background" in model.view_params:
+        with torch.no_grad():
+            powers = model.view_geometry.powers(rows, cols)
+            floors = view_floors(model, list(range(measured_all.shape[0])), powers, model.means.dtype)[cut]
+    rows, cols = (rows[window], cols) if k == 0 else (rows, cols[window])
+    return (rows, cols, pitch, chunks), measured_all[cut], floors
+
+
 def _refit_pass(
-    model, cameras, measured_all: torch.Tensor, names, views_per_step: int = 1, average: IterateAverage | None = None
+    model,
+    cameras,
+    measured_all: torch.Tensor,
+    names,
+    together,
+    views_per_step: int = 1,
+    average: IterateAverage | None = None,
+    floors: torch.Tensor | None = None,
 ) -> int:
     """One pass over the views, ``views_per_step`` per step (the mean of their losses, as
     training's one loss over a step's views), fitted to ``measured_all`` (V, H, W) on the model's
     device (once a refit: a copy of a step's views at each step would wait for the queued step),
-    each iterate added
-    to ``average``; returns the steps taken."""
+    rendered ``together`` (:func:`.residuals.in_chunks`; None: view by view) with their own
+    floors, or with ``floors`` (V, H, W) as given, each iterate added to ``average``; returns the
+    steps taken."""
     # Views in random order, as training draws them: in tilt order neighbouring views pull
     # alike and Adam's momentum carries the atoms along (the aPd noise-200 RMSD rose 1.2 pm).
     order, size = torch.randperm(len(cameras), generator=model.generator), max(int(views_per_step), 1)
-    together = in_chunks(model, cameras)  # a step's views in one projector call, where the cameras allow it
     order_on_device = index_on(order, measured_all.device)  # copied without waiting for the queued steps
     starts = range(0, len(order), size)
     for start in starts:
@@ -116,8 +158,13 @@ def _refit_pass(
             model.optimizers[n].zero_grad()
         if together is not None:  # the data term's mean over all the step's pixels: the mean of its views' (one size)
             index = order_on_device[start : start + size]
+            rendered = (
+                render_views(model, index, *together[:3])
+                if floors is None
+                else render_views(model, index, *together[:3], floors=False) + floors[index]
+            )
             loss = model.get_loss_dict(
-                {"projection": render_views(model, index, *together[:3])[..., None]},
+                {"projection": rendered[..., None]},
                 {"image": measured_all[index][..., None]},
             )["main_loss"]
         else:
