@@ -214,11 +214,12 @@ def drawable_species(species, n: int) -> tuple[np.ndarray, str]:
     return np.where(unnamed, common, species), f"{k} atom{'s' if k != 1 else ''} of no element drawn as {common}"
 
 
-def drawn_atoms(series, atoms: AtomSet, optics, views=slice(None)) -> np.ndarray:
+def drawn_atoms(series, atoms: AtomSet, optics, views=slice(None), window=None) -> np.ndarray:
     """(V, H, W) ``atoms`` (Å, the truth frame, with ``species`` and masses) drawn in the
     ``views`` of ``series`` through ``optics`` as its contrast images them
     (:func:`~gaussian_atoms_method.physics.probe_width.contrast_transfer`), input units; ``optics``
-    None: ADF's contrast through no probe, band-limited at the detector's Nyquist frequency."""
+    None: ADF's contrast through no probe, band-limited at the detector's Nyquist frequency;
+    ``window`` (k, cut): the detector's rows (k 0) or columns (k 1) ``cut`` alone."""
     from gaussian_atoms_method.physics.adf import ADF_POTENTIAL_POWER, adf_projections
     from gaussian_atoms_method.physics.microscope import band_limit
     from gaussian_atoms_method.physics.probe_width import contrast_transfer
@@ -228,9 +229,15 @@ def drawn_atoms(series, atoms: AtomSet, optics, views=slice(None)) -> np.ndarray
     else:
         transfer, power = contrast_transfer(optics, series.contrast)
     about_centre = atoms.positions - np.asarray(series.origin_A, dtype=np.float64)
+    shape, centre = list(series.image_shape), np.array(series.centre_px, dtype=np.float64)
+    if window is not None:  # the same pixels, counted from the window's first
+        shape[window[0]], centre[window[0]] = (
+            len(range(shape[window[0]])[window[1]]),
+            centre[window[0]] - window[1].start,
+        )
     return adf_projections(
-        about_centre, atoms.species, atoms.masses, series.detector_axes()[views], series.image_shape,
-        series.pixel_size_A, series.centre_px, probe=transfer, method="deposit", power=power,
+        about_centre, atoms.species, atoms.masses, series.detector_axes()[views], tuple(shape),
+        series.pixel_size_A, tuple(centre), probe=transfer, method="deposit", power=power,
     )  # fmt: skip
 
 
@@ -300,13 +307,14 @@ def replica_probe(model, atoms: AtomSet, registration):
 
 
 def draw_replica(
-    model, atoms: AtomSet, reported: np.ndarray, registration, seed: int, probe, residuals
+    model, atoms: AtomSet, reported: np.ndarray, registration, seed: int, probe, residuals, window=None
 ) -> torch.Tensor:
     """(V, H, W) the replica's views (module text), normalised as the model's, on its device:
     ``atoms`` the reported atoms (Å, the truth frame, with ``species``), ``reported`` (N,) bool
     over the model's Gaussians, ``registration`` (shifts (V, 2) px, gains (V,)), ``residuals``
     (V, H, W) the fit's on its training views (normalised units; a phase series' noise takes
-    their spectrum)."""
+    their spectrum); ``window`` (k, cut): the detector's rows (k 0) or columns (k 1) ``cut``
+    alone."""
     from gaussian_atoms_method.engine.residuals import render_training_views
     from gaussian_atoms_method.physics.microscope import misregistered
     from gaussian_atoms_method.physics.noise import noise_from_projections
@@ -322,7 +330,8 @@ def draw_replica(
     finally:
         with torch.no_grad():
             log_amplitudes.data.copy_(kept)
-    clean = rest + misregistered(drawn_atoms(series, atoms, probe), *registration) * scale  # normalised units
+    cut = (slice(None),) if window is None else (slice(None),) * (1 + window[0]) + (window[1],)
+    clean = rest[cut] + misregistered(drawn_atoms(series, atoms, probe, window=window), *registration) * scale
     noise = getattr(model, "measured_noise", None)  # read from the views before the fit (normalised)
     if noise is None:
         noise = noise_from_projections(np.asarray(series.projections, dtype=np.float64) * scale)
@@ -330,7 +339,7 @@ def draw_replica(
     if series.contrast == "phase":  # band-limited as the signal is: the shape the fit's residual shows
         from gaussian_atoms_method.physics.correlated_noise import noise_shaped_like
 
-        shaped = noise_shaped_like(torch.as_tensor(residuals).double().cpu().numpy(), rng)
+        shaped = noise_shaped_like(torch.as_tensor(residuals).double().cpu().numpy(), rng)[cut]
         draw, variance = shaped, np.clip(noise.pixel_variance(clean), 0.0, None)
     elif noise.correlation > 1.0:  # as the spectrum or the views' disagreement read it
         from gaussian_atoms_method.physics.correlated_noise import correlated_noise
@@ -355,7 +364,7 @@ def read_own_floor(
     The model is left as it was."""
     from gaussian_atoms_method.atoms.calibration import Z95, precision_floor_A
     from gaussian_atoms_method.atoms.uncertainty import robust_noise_std
-    from gaussian_atoms_method.engine.refit import refit
+    from gaussian_atoms_method.engine.refit import refit, window_of
     from gaussian_atoms_method.engine.rendering import detector_axes
 
     n_views = len(model.view_set.series.projections)
@@ -377,8 +386,8 @@ def read_own_floor(
         with torch.no_grad():
             for p in model.gauss_params.values():  # the slab alone: a tomographic problem of its own
                 p.data = p.data[torch.as_tensor(keep, device=p.device)]
-        replica = draw_replica(model, atoms, reported, registration, seed, probe, residuals)
-        band = None if shared is None or keep.all() else _rows_of(model, *shared)
+        window = None if shared is None or keep.all() else window_of(model, _rows_of(model, *shared))
+        replica = draw_replica(model, atoms, reported, registration, seed, probe, residuals, window)
         steps = refit(  # its bar in a terminal only: in a log, the line after it says what it took
             model,
             max_passes=MAX_PASSES,
@@ -388,7 +397,7 @@ def read_own_floor(
             what="gaussian-atoms: own replica",
             in_logs=False,
             noise=noise,
-            band=band,
+            window=window,
         )
         moved = (model.atoms().positions[reported] - atoms.positions)[read]
     finally:
@@ -419,7 +428,7 @@ beyond): the rows the replica of a slab is fitted on (:func:`_rows_of`)."""
 def _rows_of(model, k: int, axis: np.ndarray) -> tuple[int, float, float]:
     """(k, lo, hi): the detector coordinates (normalised) along its axis ``k``, ``axis`` in
     the world, that the model's Gaussians reach (:data:`SLAB_REACH_WIDTHS`): beyond them a
-    slab's views hold its floors and noise alone (:func:`.refit.refit`'s ``band``)."""
+    slab's views hold its floors and noise alone (:func:`.refit.window_of`)."""
     along = model.means.detach() @ torch.as_tensor(axis, dtype=model.means.dtype, device=model.means.device)
     reach = SLAB_REACH_WIDTHS * model.sigmas.detach().reshape(len(along), -1).max(dim=1).values
     return k, float((along - reach).min()), float((along + reach).max())

@@ -23,7 +23,7 @@ def refit(
     what: str = "gaussian-atoms: final refit",
     in_logs: bool = True,
     noise: float | None = None,
-    band: tuple[int, float, float] | None = None,
+    window: tuple[int, slice] | None = None,
 ) -> int:
     """After the final prune and merge: passes over the training views in random order at full
     resolution, as many views per step as training took, with the model's own optimisers (their
@@ -48,11 +48,11 @@ def refit(
     run's refit takes 8 of its 86 s, which had passed without a sign), named ``what``; ``in_logs``
     False: in a terminal only (:class:`~.progress.ProgressBar`); ``noise``: the pixel noise the
     atoms' precision is judged in (input units; default the residual's at the first pass,
-    :func:`.results.residual_noise`); ``band`` (k, lo, hi): only the detector's rows (k 0) or
-    columns (k 1) whose coordinates (normalised) lie within [lo, hi] are rendered and fitted,
-    where the views are rendered together (elsewhere the whole views): where the model's
-    Gaussians lie whole within it, the rest of each view holds nothing they render
-    (:func:`.own_floor.floor_slab`)."""
+    :func:`.results.residual_noise`); ``window`` (k, cut): only the detector's rows (k 0) or
+    columns (k 1) ``cut`` are rendered and fitted (``measured``, where given, holds them alone),
+    where the views are rendered together (:func:`.residuals.in_chunks`; ``window`` is then
+    :func:`window_of` a band): where the model's Gaussians lie whole within it, the rest of each
+    view holds nothing they render (:func:`.own_floor.floor_slab`)."""
     measured_all = measured_views(model) if measured is None else measured
     names = [n for n in model.gauss_params.keys() if n in model.optimizers]
     steps, settled = 0, 0
@@ -68,8 +68,10 @@ def refit(
             )
             together = in_chunks(model, cameras)  # a step's views in one projector call, where the cameras allow it
             floors = None  # rendered with the views (None), or held as the views were cut
-            if band is not None and together is not None:
-                together, measured_all, floors = _within(model, band, together, measured_all)
+            if window is not None and together is not None:
+                together, floors = _within(model, window, together)
+                if measured is None:
+                    measured_all = measured_all[(slice(None),) * (1 + window[0]) + (window[1],)]
             per_pass = -(-len(cameras) // max(int(model.views_per_step), 1))
             bar = ProgressBar(max_passes * per_pass, what=what, in_logs=in_logs) if progress else None
             for _ in range(max_passes):
@@ -110,25 +112,34 @@ def refit(
     return steps
 
 
-def _within(model, band: tuple[int, float, float], together, measured_all: torch.Tensor):
-    """``together`` (:func:`.residuals.in_chunks`) and ``measured_all`` (V, H, W) cut to the
-    detector's rows (``band[0]`` 0) or columns (1) whose coordinates lie within ``band[1:]``,
-    and the views' floors (V, h, w) as cut (None without floors): the refit holds them as
-    they are (the model in eval mode), and a floor surface is read off the whole detector."""
+def window_of(model, band: tuple[int, float, float]) -> tuple[int, slice] | None:
+    """(k, cut): the detector's rows (``band[0]`` 0) or columns (1) whose coordinates
+    (normalised) lie within ``band[1:]``, where the model renders its views together
+    (:func:`.residuals.in_chunks`), else None."""
     k, lo, hi = band
+    with training_views(model) as cameras:
+        together = None if cameras is None else in_chunks(model, cameras)
+    if together is None:
+        return None
+    inside = torch.nonzero((together[k] >= lo) & (together[k] <= hi)).flatten().tolist()
+    return (k, slice(inside[0], inside[-1] + 1)) if inside else None
+
+
+def _within(model, window: tuple[int, slice], together):
+    """``together`` (:func:`.residuals.in_chunks`) cut to the detector's rows (``window[0]`` 0)
+    or columns (1) ``window[1]``, and the views' floors (V, h, w) as cut (None without floors):
+    the refit holds them as they are (the model in eval mode), and a floor surface is read off
+    the whole detector."""
+    k, cut = window
     rows, cols, pitch, chunks = together
-    inside = torch.nonzero(((rows, cols)[k] >= lo) & ((rows, cols)[k] <= hi)).flatten().tolist()
-    if not inside:
-        return together, measured_all, None
-    window = slice(inside[0], inside[-1] + 1)
-    cut = (slice(None), window) if k == 0 else (slice(None), slice(None), window)
     floors = None
     if "background" in model.view_params:
         with torch.no_grad():
             powers = model.view_geometry.powers(rows, cols)
-            floors = view_floors(model, list(range(measured_all.shape[0])), powers, model.means.dtype)[cut]
-    rows, cols = (rows[window], cols) if k == 0 else (rows, cols[window])
-    return (rows, cols, pitch, chunks), measured_all[cut], floors
+            whole = view_floors(model, list(range(model.view_c2w.shape[0])), powers, model.means.dtype)
+            floors = whole[:, cut] if k == 0 else whole[:, :, cut]
+    rows, cols = (rows[cut], cols) if k == 0 else (rows, cols[cut])
+    return (rows, cols, pitch, chunks), floors
 
 
 def _refit_pass(
