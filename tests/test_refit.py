@@ -3,6 +3,7 @@
 import math
 
 import numpy as np
+import pytest
 import torch
 
 from dataparsers.tilt_series_dataparser import TiltSeriesDataParserConfig
@@ -51,14 +52,16 @@ def test_refit_takes_as_many_views_per_step_as_training(tmp_path):
     assert float(((model.means.detach() - truth).norm(dim=1) / ls).max()) < TOLERANCE_A
 
 
-def _two_atoms_one_off(tmp_path, background: str = "none"):
+def _two_atoms_one_off(tmp_path, background: str = "none", tilt_axis: str = "y"):
     """A model of two atoms 3 Å apart fitted to their noisy projections (noise 20% of the peak)
     in four views, one atom 0.5 Å off; returns it, the true positions and the length scale."""
     angles = np.array([-50.0, -10.0, 25.0, 60.0])
     blank = (
         np.random.default_rng(0).uniform(1, 2, (4, 40, 40)).astype(np.float32)
     )  # replaced below by the two atoms' projections
-    write_tilt_series(tmp_path, blank, angles, 0.3, truth=AtomSet(np.zeros((1, 3)), species=["Au"]))
+    write_tilt_series(
+        tmp_path, blank, angles, 0.3, truth=AtomSet(np.zeros((1, 3)), species=["Au"]), tilt_axis=tilt_axis
+    )
     outputs = TiltSeriesDataParserConfig(data=tmp_path).setup().get_dataparser_outputs("train")
     model = GaussianAtomsModelConfig(num_random=2, init="random", coarse_steps=0, background=background).setup(
         scene_box=outputs.scene_box, num_train_data=4, metadata=outputs.metadata
@@ -115,23 +118,27 @@ def test_refit_steps_render_their_views_together_as_one_by_one(tmp_path):
     torch.testing.assert_close(results[0][1], results[1][1], rtol=0, atol=1e-3)
 
 
-def test_views_cut_to_the_band_their_gaussians_reach_hold_what_the_whole_views_hold_there(tmp_path):
+@pytest.mark.parametrize("tilt_axis", ["y", "x"])
+def test_views_cut_to_the_band_their_gaussians_reach_hold_what_the_whole_views_hold_there(tmp_path, tilt_axis):
     """The run's own replica of a slab is refitted on the band of the detector its Gaussians
     reach (engine/own_floor.py, ``SLAB_REACH_WIDTHS`` widths either side): rendered there, with
     the floors held as the whole views have them and a kernel with tails, the cut views are the
     whole views' band.  Tolerance 1e-3 of the brightest pixel: a Gaussian's image four widths out
     is exp(-8) = 3e-4 of its peak, and float32's sums over a 40 x 40 view err by about 1e-6."""
     from gaussian_atoms_method.engine import refit as R
-    from gaussian_atoms_method.engine.own_floor import _rows_of, tilt_axis
+    from gaussian_atoms_method.engine.own_floor import _rows_of
+    from gaussian_atoms_method.engine.own_floor import tilt_axis as shared_axis
     from gaussian_atoms_method.engine.rendering import detector_axes, render_views
     from gaussian_atoms_method.engine.residuals import in_chunks, training_views
 
-    model, _, ls = _two_atoms_one_off(tmp_path, background="constant")
-    with torch.no_grad():  # both atoms near one row of the tilt axis, a floor and a kernel with tails
-        model.gauss_params["means"].copy_(torch.tensor([[-1.5, 0.5, 2.0], [1.5, 0.0, -1.0]]) * ls)
+    model, _, ls = _two_atoms_one_off(tmp_path, background="constant", tilt_axis=tilt_axis)
+    places = torch.tensor([[-1.5, 0.5, 2.0], [1.5, 0.0, -1.0]])  # both near one place along the tilt axis
+    with torch.no_grad():  # a floor and a kernel with tails
+        model.gauss_params["means"].copy_((places if tilt_axis == "y" else places[:, [1, 0, 2]]) * ls)
         model.view_params["background"].data[:, 0] = torch.linspace(0.5, 1.5, 4)
         model.view_params["psf"].data.copy_(torch.tensor([0.1, 0.05, 0.02]))
-    k, axis = tilt_axis(detector_axes(model.view_c2w.cpu().double()).numpy())
+    k, axis = shared_axis(detector_axes(model.view_c2w.cpu().double()).numpy())
+    assert k == {"y": 1, "x": 0}[tilt_axis]  # the columns' band, then the rows'
     window = R.window_of(model, _rows_of(model, k, axis))
     with torch.no_grad(), training_views(model) as cameras:
         together = in_chunks(model, cameras)
