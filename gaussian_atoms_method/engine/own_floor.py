@@ -231,10 +231,8 @@ def drawn_atoms(series, atoms: AtomSet, optics, views=slice(None), window=None) 
     about_centre = atoms.positions - np.asarray(series.origin_A, dtype=np.float64)
     shape, centre = list(series.image_shape), np.array(series.centre_px, dtype=np.float64)
     if window is not None:  # the same pixels, counted from the window's first
-        shape[window[0]], centre[window[0]] = (
-            len(range(shape[window[0]])[window[1]]),
-            centre[window[0]] - window[1].start,
-        )
+        k, cut = window
+        shape[k], centre[k] = cut.stop - cut.start, centre[k] - cut.start
     return adf_projections(
         about_centre, atoms.species, atoms.masses, series.detector_axes()[views], tuple(shape),
         series.pixel_size_A, tuple(centre), probe=transfer, method="deposit", power=power,
@@ -315,6 +313,7 @@ def draw_replica(
     (V, H, W) the fit's on its training views (normalised units; a phase series' noise takes
     their spectrum); ``window`` (k, cut): the detector's rows (k 0) or columns (k 1) ``cut``
     alone."""
+    from gaussian_atoms_method.engine.refit import in_window
     from gaussian_atoms_method.engine.residuals import render_training_views
     from gaussian_atoms_method.physics.microscope import misregistered
     from gaussian_atoms_method.physics.noise import noise_from_projections
@@ -330,8 +329,8 @@ def draw_replica(
     finally:
         with torch.no_grad():
             log_amplitudes.data.copy_(kept)
-    cut = (slice(None),) if window is None else (slice(None),) * (1 + window[0]) + (window[1],)
-    clean = rest[cut] + misregistered(drawn_atoms(series, atoms, probe, window=window), *registration) * scale
+    drawn = misregistered(drawn_atoms(series, atoms, probe, window=window), *registration)
+    clean = in_window(rest, window) + drawn * scale  # normalised units
     noise = getattr(model, "measured_noise", None)  # read from the views before the fit (normalised)
     if noise is None:
         noise = noise_from_projections(np.asarray(series.projections, dtype=np.float64) * scale)
@@ -339,7 +338,7 @@ def draw_replica(
     if series.contrast == "phase":  # band-limited as the signal is: the shape the fit's residual shows
         from gaussian_atoms_method.physics.correlated_noise import noise_shaped_like
 
-        shaped = noise_shaped_like(torch.as_tensor(residuals).double().cpu().numpy(), rng)[cut]
+        shaped = in_window(noise_shaped_like(torch.as_tensor(residuals).double().cpu().numpy(), rng), window)
         draw, variance = shaped, np.clip(noise.pixel_variance(clean), 0.0, None)
     elif noise.correlation > 1.0:  # as the spectrum or the views' disagreement read it
         from gaussian_atoms_method.physics.correlated_noise import correlated_noise
@@ -354,16 +353,23 @@ def draw_replica(
 
 
 def read_own_floor(
-    model, atoms: AtomSet, reported: np.ndarray, info: dict, residuals, seed: int = 0, floor_atoms: int | None = None
+    model,
+    atoms: AtomSet,
+    reported: np.ndarray,
+    info: dict,
+    residuals,
+    noise: float,
+    seed: int = 0,
+    floor_atoms: int | None = None,
 ) -> OwnFloor:
     """The floor of the run's reported ``atoms`` (with their elements and stated
     ``position_std_A``), ``reported`` (N,) bool marking them among the model's Gaussians, read
     on the run's own replica (module text) of a slab of them (:func:`floor_slab`,
     ``floor_atoms``, default :data:`FLOOR_ATOMS`), its views registered as ``info`` says (:func:`registration_of`),
-    ``residuals`` the fit's (:func:`draw_replica`; their noise the one the refit judges in).
+    ``residuals`` the fit's (:func:`draw_replica`) and ``noise`` their pixel noise (input units,
+    :func:`~.results.residual_noise`), the one the refit judges in.
     The model is left as it was."""
     from gaussian_atoms_method.atoms.calibration import Z95, precision_floor_A
-    from gaussian_atoms_method.atoms.uncertainty import robust_noise_std
     from gaussian_atoms_method.engine.refit import refit, window_of
     from gaussian_atoms_method.engine.rendering import detector_axes
 
@@ -371,7 +377,6 @@ def read_own_floor(
     params = {name: p.detach().clone() for name, p in model.gauss_params.items()}
     registration = registration_of(info, n_views, seed)
     probe = replica_probe(model, atoms, registration)
-    noise = robust_noise_std(residuals) / model.normalisation.data_scale  # the fit's, all its Gaussians drawn
     shared = tilt_axis(detector_axes(model.view_c2w.cpu().double()).numpy())
     keep, read = floor_slab(
         model.atoms().positions, reported, None if shared is None else shared[1], floor_atoms or FLOOR_ATOMS
@@ -435,14 +440,15 @@ def _rows_of(model, k: int, axis: np.ndarray) -> tuple[int, float, float]:
 
 
 def widen_by_own_floor(
-    model, atoms: AtomSet, reported: np.ndarray, hard_core_A: float, residuals, registration=None
+    model, atoms: AtomSet, reported: np.ndarray, hard_core_A: float, residuals, noise: float, registration=None
 ) -> None:
     """Read the run's own floor (:func:`read_own_floor`) and widen each of ``atoms``'
     statements by it (``position_std_A``, ``depth_halfwidth_A``, ``depth_open``;
     :func:`~gaussian_atoms_method.atoms.calibration.with_floor`), recorded in
     ``atoms.info["precision_floor_A"]`` (the atoms it was read on in ``"precision_floor_atoms"``);
     says what it read, or why it read nothing.  ``residuals``
-    (V, H, W): the fit's on its training views, as the evidence read them; ``registration``
+    (V, H, W): the fit's on its training views, as the evidence read them, and ``noise`` their
+    pixel noise (input units); ``registration``
     (shifts (V, 2) px, gains (V,)): what the run learned, if it did."""
     from gaussian_atoms_method.atoms.calibration import with_floor
 
@@ -455,7 +461,7 @@ def widen_by_own_floor(
     started = time.perf_counter()
     drawn = copy.copy(atoms)
     drawn.species, unnamed = drawable_species(atoms.species, len(atoms))
-    floor = read_own_floor(model, drawn, reported, info, residuals, seed=model.config.seed)
+    floor = read_own_floor(model, drawn, reported, info, residuals, noise, seed=model.config.seed)
     hard_core = hard_core_A if np.isfinite(hard_core_A) else None
     atoms.position_std_A, atoms.depth_halfwidth_A, atoms.depth_open = with_floor(
         atoms.position_std_A, atoms.depth_halfwidth_A, atoms.depth_open, floor.floor_A, hard_core, atoms.depth_rise

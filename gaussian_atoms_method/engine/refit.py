@@ -71,7 +71,7 @@ def refit(
             if window is not None and together is not None:
                 together, floors = _within(model, window, together)
                 if measured is None:
-                    measured_all = measured_all[(slice(None),) * (1 + window[0]) + (window[1],)]
+                    measured_all = in_window(measured_all, window)
             per_pass = -(-len(cameras) // max(int(model.views_per_step), 1))
             bar = ProgressBar(max_passes * per_pass, what=what, in_logs=in_logs) if progress else None
             for _ in range(max_passes):
@@ -125,6 +125,19 @@ def window_of(model, band: tuple[int, float, float]) -> tuple[int, slice] | None
     return (k, slice(inside[0], inside[-1] + 1)) if inside else None
 
 
+def in_window(views, window: tuple[int, slice] | None):
+    """``views`` (V, H, W), an array or a tensor, cut to ``window`` (k, cut): the detector's rows
+    (k 0) or columns (k 1) ``cut``; None: as they are.
+
+    >>> in_window(np.zeros((2, 5, 6)), (1, slice(1, 4))).shape
+    (2, 5, 3)
+    """
+    if window is None:
+        return views
+    k, cut = window
+    return views[:, cut] if k == 0 else views[:, :, cut]
+
+
 def _within(model, window: tuple[int, slice], together):
     """``together`` (:func:`.residuals.in_chunks`) cut to the detector's rows (``window[0]`` 0)
     or columns (1) ``window[1]``, and the views' floors (V, h, w) as cut (None without floors):
@@ -136,8 +149,9 @@ def _within(model, window: tuple[int, slice], together):
     if "background" in model.view_params:
         with torch.no_grad():
             powers = model.view_geometry.powers(rows, cols)
-            whole = view_floors(model, list(range(model.view_c2w.shape[0])), powers, model.means.dtype)
-            floors = whole[:, cut] if k == 0 else whole[:, :, cut]
+            floors = in_window(
+                view_floors(model, list(range(model.view_c2w.shape[0])), powers, model.means.dtype), window
+            )
     rows, cols = (rows[cut], cols) if k == 0 else (rows, cols[cut])
     return (rows, cols, pitch, chunks), floors
 

@@ -159,7 +159,7 @@ def _write_results(model, run_dir: Path, drawers) -> dict | None:
         atoms.width_open = wider_than_one_atom(atoms.sigmas, atoms.width_std_A, level, atoms.species)
         atoms.mass_open = mass_unlike_one_atom(atoms.masses, level, atoms.species)
     if model.config.own_floor and not any(model.config.precision_floor_A) and atoms.proven is not None and len(atoms):
-        widen_by_own_floor(model, atoms, reported, hard_core_A, read[1], registration)
+        widen_by_own_floor(model, atoms, reported, hard_core_A, read[1], read[0], registration)
     if atoms.width_std_A is not None:  # after the floor: the rise is read in its unit
         floor_z = atoms.info.get("precision_floor_A", model.config.precision_floor_A)[2]
         atoms.depth_open = np.asarray(atoms.depth_open, bool) | depth_unlike_its_element(
