@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from gaussian_atoms_method.density.parameters import amplitudes, split_width, split_worth, widths
+from gaussian_atoms_method.density.remap import duplicate_remap
 from gaussian_atoms_method.density.strategy import DensityControl
 from gaussian_atoms_method.physics.projector import gaussian_mass
 
@@ -531,6 +532,27 @@ def test_settling_mid_run_applies_the_final_prune_but_spares_fresh_additions():
     assert control.descendants(700) == 1
     assert control.settle(params, opts) == 1 and params["means"].shape[0] == 2
     assert control.descendants(700) == 1 and control.descendants(0) == 0
+
+
+def test_an_addition_merged_into_an_atom_from_before_the_search_is_not_left_of_the_search():
+    """Two additions at step 700: one 0.1 Å from an atom (0.7 Å merge threshold), one 3 Å from
+    both atoms. After the merge the first holds an atom from before the search, so only the
+    second is what the search found; a heavy atom split in two leaves its new half as the
+    search's, and the halves joined again leave none."""
+    params, opts, control = _setup([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0]])
+    control.state.step = 700
+    masses = _mass(params, control)[:2].detach().clone()
+    assert control.add(params, opts, torch.tensor([[0.1, 0.0, 0.0], [1.5, 3.0, 0.0]], dtype=torch.float64), 0.6, masses)
+    assert control.descendants(700) == 2
+    assert control.merge(params, opts) == 1 and params["means"].shape[0] == 3
+    assert control.descendants(700) == 1
+    control.state.step = 900
+    n = params["means"].shape[0]
+    control.remap(params, opts, *duplicate_remap(n, torch.tensor([0])))
+    control.state.born[n:] = control.state.founded[n:] = 900  # as a split marks its new half
+    assert control.descendants(900) == 1 and control.descendants(700) == 1
+    assert control.merge(params, opts) == 1
+    assert control.descendants(900) == 0 and control.descendants(700) == 1
 
 
 def test_a_weak_addition_still_gaining_mass_holds_the_final_rules_back():

@@ -59,6 +59,7 @@ class Growth:
             params["means"].data[n:] -= offset
         self.state.born[idx] = self.state.step
         self.state.born[n:] = self.state.step
+        self.state.founded[n:] = self.state.step
         return len(idx)
 
     @torch.no_grad()
@@ -92,6 +93,7 @@ class Growth:
                 if torch.is_tensor(value) and value.dim() > 0 and value.shape[0] == n + k:
                     value[n:] = 0
         self.state.born[n:] = self.state.step
+        self.state.founded[n:] = self.state.step
         return k
 
     @torch.no_grad()
@@ -144,4 +146,5 @@ class Growth:
         )
         self.state.born[idx] = self.state.step
         self.state.born[n:] = self.state.step
+        self.state.founded[n:] = self.state.step
         return len(idx)

@@ -24,6 +24,10 @@ class DensityState:
     """The iterates of the open refine interval (:mod:`.averaging`)."""
     born: torch.Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.long))
     """(N,) step at which each Gaussian was made (0 for the start); fresh ones are not merged."""
+    founded: torch.Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.long))
+    """(N,) step at which each Gaussian's oldest member was made (a merged Gaussian is as old as
+    its oldest member, a copy as new as its making): what is left of a search's additions is
+    what holds none of the Gaussians before it (:meth:`.DensityControl.descendants`)."""
     step: int = 0
     residual_clean: bool = False
     """A residual check found nothing to add: the later ones are skipped."""

@@ -133,6 +133,8 @@ class DensityControl(DensitySettings, Growth, Significance, Merging, HardCoreRul
         Gaussians (a strategy handed parameters it did not make)."""
         if self.state.born.shape[0] != n:
             self.state.born = torch.zeros(n, dtype=torch.long)
+        if self.state.founded.shape[0] != n:
+            self.state.founded = torch.zeros(n, dtype=torch.long)
         return self.state.born
 
     def remap(
@@ -140,7 +142,8 @@ class DensityControl(DensitySettings, Growth, Significance, Merging, HardCoreRul
     ) -> None:
         """Apply a remap (:mod:`.remap`) to the parameters, the optimisers' state, the
         accumulated gradients (merged Gaussians sum their pulls) and the birth steps (a merged
-        Gaussian is as young as its youngest member)."""
+        Gaussian is as young as its youngest member, and as old as its oldest:
+        :attr:`~.state.DensityState.founded`)."""
         dev, n_in = params["means"].device, params["means"].shape[0]
         apply_remap(params, optimizers, src.to(dev), dst.to(dev), n_out, new_values, param_lists)
         at = self.state.grad_accum.device
@@ -150,6 +153,9 @@ class DensityControl(DensitySettings, Growth, Significance, Merging, HardCoreRul
         src, dst = src.cpu(), dst.cpu()
         self.state.born = torch.zeros(n_out, dtype=torch.long).scatter_reduce_(
             0, dst, self._births(n_in)[src], reduce="amax", include_self=False
+        )
+        self.state.founded = torch.zeros(n_out, dtype=torch.long).scatter_reduce_(
+            0, dst, self.state.founded[src], reduce="amin", include_self=False
         )
 
     # ------------------------------------------------------------------ called by the training loop
@@ -254,9 +260,14 @@ class DensityControl(DensitySettings, Growth, Significance, Merging, HardCoreRul
         return not gaining.any()
 
     def descendants(self, step: int) -> int:
-        """How many Gaussians were made at ``step`` (or merged from one made then): what is left
-        of the Gaussians a residual search added at ``step``."""
-        return int((self.state.born == step).sum()) if step > 0 else 0
+        """How many Gaussians hold only what was made at ``step`` (or made from it since): what is
+        left of the Gaussians a residual search added at ``step``.  An addition merged into a
+        Gaussian from before the search found no atom of its own (:attr:`~.state.DensityState.founded`);
+        counted by the youngest member, every addition that joined an atom survived (Au noise 200:
+        187 of 187 two intervals after a search, against 0 of its own, and a second search ran).
+        """
+        self._births(len(self.state.born))
+        return int((self.state.founded == step).sum()) if step > 0 else 0
 
     # ------------------------------------------------------------------ the rules
     @torch.no_grad()
