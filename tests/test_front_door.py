@@ -129,6 +129,20 @@ def test_a_malformed_command_line_is_one_line_naming_the_option(argv, prog, name
     assert lines[0].startswith(f"{prog}: error: ") and named in lines[0] and f"{prog} --help" in lines[0]
 
 
+def test_train_args_the_strips_fits_would_not_take_are_refused_in_one_line(tmp_path, capsys):
+    """``benchmark-film --strips`` fits through ``reconstruct_film`` with the defaults: options for
+    ``ns-train`` would not reach them, so they are named, before anything is fitted or written."""
+    from gaussian_atoms_method.cli import entrypoint
+
+    out = tmp_path / "bench"
+    argv = ["benchmark-film", "--strips", "1", "--train-args=--pipeline.model.background plane", "--output", str(out)]
+    with pytest.raises(SystemExit) as exit_info:
+        entrypoint(argv)
+    lines = [line for line in capsys.readouterr().err.splitlines() if "Warning" not in line and "warn" not in line]
+    assert exit_info.value.code != 0 and len(lines) == 1 and "--train-args" in lines[0], lines
+    assert not out.exists()
+
+
 def test_help_still_reaches_the_user(capsys):
     from gaussian_atoms_method.cli import entrypoint
 

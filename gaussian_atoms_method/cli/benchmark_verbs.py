@@ -107,7 +107,8 @@ class BenchmarkFilm:
     iterations: int = 3000
     device: Literal["cpu", "cuda"] = "cpu"
     train_args: str = ""
-    """Further ns-train options, given with "=", e.g. --train-args="--pipeline.model.background plane"."""
+    """Further ns-train options for each single sub-area's fit (--areas), given with "=", e.g.
+    --train-args="--pipeline.model.background plane"; refused with --strips and --simulated."""
 
     species: str = "Ta"
     """The film's element, written into each sub-area's manifest (it sets the hard core); "" for none."""
@@ -136,6 +137,11 @@ class BenchmarkFilm:
     joined and scored against its truth, the seams included."""
 
     def main(self) -> None:
+        if (self.strips or self.simulated) and self.train_args:
+            raise ValueError(
+                "--train-args reaches the fits of single sub-areas (--areas) only; --strips and --simulated fit "
+                "with the defaults (--iterations and --species apply to --strips)"
+            )
         if self.simulated:
             import json
 
@@ -162,6 +168,8 @@ class BenchmarkFilm:
                             self.device,
                             tasks_per_gpu=self.tasks_per_gpu,
                             registration_by_overlap=self.registration_by_overlap,
+                            species=self.species or None,
+                            max_steps=self.iterations,
                         )
                     )
                 )

@@ -72,10 +72,13 @@ def run_strip(
     address: str | None = None,
     tasks_per_gpu: int = 1,
     registration_by_overlap: bool = True,
+    species: str | None = "Ta",
+    max_steps: int = 3000,
 ) -> dict:
     """Fit and join a published strip of the Ta film (resumable) and score it; with
     ``registration_by_overlap`` its per-view shifts and gains decided by its overlapping sub-areas
-    (:mod:`gaussian_atoms_method.film.registration`)."""
+    (:mod:`gaussian_atoms_method.film.registration`); ``species`` and ``max_steps`` as
+    :func:`~gaussian_atoms_method.film.film.reconstruct_film` takes them."""
     from gaussian_atoms_method.film.film import reconstruct_film
     from gaussian_atoms_method.film.subareas import published_subareas
 
@@ -87,7 +90,8 @@ def run_strip(
         subareas,
         output,
         device,
-        "Ta",
+        species,
+        max_steps,
         address=address,
         tasks_per_gpu=tasks_per_gpu,
         registration_by_overlap=registration_by_overlap,
