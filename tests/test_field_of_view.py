@@ -84,11 +84,15 @@ def test_slab_reports_only_the_gaussians_above_the_detector(tmp_path, monkeypatc
     targets = [torch.as_tensor(p)[..., None] * model.normalisation.data_scale for p in projections]
     train_views(model, outputs.cameras, targets, steps=60, refine=False)
     # The pictures drawn by child processes, as on a machine with cores to spare (atoms/picture_process.py)
-    monkeypatch.setattr(picture_process, "spare_cores", lambda: True)
+    monkeypatch.setattr(picture_process, "spare_cores", lambda children: True)
+    handed, draw = [], picture_process.PictureProcess.draw
+    monkeypatch.setattr(
+        picture_process.PictureProcess, "draw", lambda self, f, *a: handed.append(f.__name__) or draw(self, f, *a)
+    )
     model.write_results(tmp_path / "run")
-    assert (tmp_path / "run" / "slices.png").stat().st_size > 10_000 and (
-        tmp_path / "run" / "classes.png"
-    ).stat().st_size > 10_000
+    assert sorted(handed) == ["draw_slices", "write_population_png", "write_rdf_png"]  # none left to this process
+    for picture in ("slices.png", "classes.png", "rdf.png"):
+        assert (tmp_path / "run" / picture).stat().st_size > 10_000
     reported = read_atoms(tmp_path / "run" / "atoms.xyz")
     others = read_atoms(tmp_path / "run" / "non_atoms.xyz")
     assert len(reported) > 0 and not beyond(reported.positions).any()

@@ -23,17 +23,16 @@ import subprocess
 import sys
 import threading
 
-SPARE_CORES = 4
-"""The fewest cores the process may use for children to draw its pictures: one for each of the
-two children and two left to the final stage, whose torch work runs on two threads on a CPU
-(on a 2-core machine the children's imports would take the final stage's cores)."""
+STAGE_CORES = 2
+"""The cores left to the final stage beside the children, whose torch work runs on two threads
+on a CPU (on a 2-core machine the children's imports would take the final stage's cores)."""
 
 
-def spare_cores() -> bool:
-    """Whether this process may use at least :data:`SPARE_CORES` cores."""
+def spare_cores(children: int = 2) -> bool:
+    """Whether this process may use a core for each of ``children`` and :data:`STAGE_CORES` more."""
     from gaussian_atoms_method.physics.devices import cores_given
 
-    return cores_given() >= SPARE_CORES
+    return cores_given() >= children + STAGE_CORES
 
 
 class PictureProcess:
@@ -107,7 +106,7 @@ class PictureProcess:
 
 def start(count: int) -> list[PictureProcess] | None:
     """``count`` children where there are cores to spare (:func:`spare_cores`); None otherwise."""
-    if not spare_cores():
+    if not spare_cores(count):
         return None
     try:
         return [PictureProcess() for _ in range(count)]
