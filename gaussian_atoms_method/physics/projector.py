@@ -123,7 +123,7 @@ def project_gaussians_tiled(
     detector_axes: torch.Tensor,
     row_coords: torch.Tensor,
     col_coords: torch.Tensor,
-    tile: int = 32,
+    tile: int = 16,
     cutoff_sigmas: float = 5.5,
     pairing=None,
 ) -> torch.Tensor:
@@ -139,6 +139,13 @@ def project_gaussians_tiled(
     matmul).  The tails cut at ``cutoff_sigmas`` weigh ``exp(-cutoff^2 / 2)`` of a peak (2.7e-7
     at 5.5): below float32 resolution.  Parameters and result as :func:`project_gaussians`; the
     pixel coordinates must be evenly spaced.
+
+    A tile's product costs ``tile^2`` per Gaussian that reaches it, and a Gaussian reaches a tile
+    from ``cutoff_sigmas`` widths beyond its edge: per pixel the cost grows as ``(tile + 2 R)^2``
+    with ``R`` the window's reach, so a smaller tile costs less until the batched products grow
+    too small.  ``tile`` 16 (the forward and backward of one view of 6,679 Gaussians on 271 x 271
+    pixels, this 2-core CPU): 18 / 22 / 33 / 59 ms against 32's 40 / 36 / 45 / 62 ms at widths of
+    1.2 / 1.8 / 2.8 / 4 pixels (8 and 12 were slower at the wider ones).
     """
     n = _check_shapes(means, {"sigmas": (sigmas, ()), "amplitudes": (amplitudes, ())})
     dr, dc = uniform_spacing(row_coords, "row_coords"), uniform_spacing(col_coords, "col_coords")

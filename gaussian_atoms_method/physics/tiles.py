@@ -141,7 +141,7 @@ EXPONENT_FLOOR = -87.0
 """The tiles' exponents are raised to this before the exponential: ``exp(-87)``, 1.6e-38, is
 float32's smallest normal number, and a term that small is nothing beside any peak.  A tile holds
 the Gaussians whose windows reach it, so most of its terms lie far below that (a window's far
-edge is 17 widths from an Au atom's centre, across a 32-pixel tile), and torch's CPU exponential
+edge is 11 widths from an Au atom's centre, across a 16-pixel tile), and torch's CPU exponential
 takes about ten times as long on inputs that underflow."""
 
 
