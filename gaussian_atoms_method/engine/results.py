@@ -82,19 +82,13 @@ def fitted_loss(model) -> str:
     return "l1" if model.data_term == "l1" else "l2"
 
 
-PICTURES = 3
-"""The pictures a run draws: ``classes.png``, ``rdf.png`` and ``slices.png``, a child each where
-there are cores to spare (with two, the third was drawn in the run's own process, matplotlib's
-import included: 1.3 s of a 15 s Au noise-200 run on an H100 machine)."""
-
-
 def write_results(model, run_dir: Path) -> dict | None:
     """After the model's last merge and prune, write ``atoms.xyz``, ``atoms.csv`` (with each
     atom's position precision), ``slices.png`` and, with a truth file, ``evaluation.json``;
     return the scores (None without a truth file).  The pictures are drawn by child processes
     started here, beside the final stage, where there are cores to spare
     (:mod:`~gaussian_atoms_method.atoms.picture_process`)."""
-    drawers = picture_process.start(PICTURES)
+    drawers = picture_process.start(picture_process.RUN_PICTURES)
     try:
         return _write_results(model, run_dir, drawers)
     finally:
