@@ -58,8 +58,7 @@ class Growth:
             params["means"].data[idx.to(dev)] += offset
             params["means"].data[n:] -= offset
         self.state.born[idx] = self.state.step
-        self.state.born[n:] = self.state.step
-        self.state.founded[n:] = self.state.step
+        self._made_now(n)
         return len(idx)
 
     @torch.no_grad()
@@ -92,8 +91,7 @@ class Growth:
             for value in state.values():
                 if torch.is_tensor(value) and value.dim() > 0 and value.shape[0] == n + k:
                     value[n:] = 0
-        self.state.born[n:] = self.state.step
-        self.state.founded[n:] = self.state.step
+        self._made_now(n)
         return k
 
     @torch.no_grad()
@@ -145,6 +143,11 @@ class Growth:
             dev, params["log_amplitudes"].dtype
         )
         self.state.born[idx] = self.state.step
-        self.state.born[n:] = self.state.step
-        self.state.founded[n:] = self.state.step
+        self._made_now(n)
         return len(idx)
+
+    def _made_now(self, first: int) -> None:
+        """The Gaussians from index ``first`` on were made at this step: born now, and founded
+        now (a copy or an addition holds none of the Gaussians before it)."""
+        self.state.born[first:] = self.state.step
+        self.state.founded[first:] = self.state.step

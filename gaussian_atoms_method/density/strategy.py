@@ -266,7 +266,6 @@ class DensityControl(DensitySettings, Growth, Significance, Merging, HardCoreRul
         counted by the youngest member, every addition that joined an atom survived (Au noise 200:
         187 of 187 two intervals after a search, against 0 of its own, and a second search ran).
         """
-        self._births(len(self.state.born))
         return int((self.state.founded == step).sum()) if step > 0 else 0
 
     # ------------------------------------------------------------------ the rules
