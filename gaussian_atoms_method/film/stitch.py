@@ -258,11 +258,10 @@ def pair_agreement(reports: list[Reports], hard_core_A: float, counted: list | N
     for ia, a in enumerate(reports):
         for ib in range(ia + 1, len(reports)):
             b = reports[ib]
-            lo = np.maximum(a.interior_A[0], b.interior_A[0]) + half
-            hi = np.minimum(a.interior_A[1], b.interior_A[1]) - half
-            if np.any(hi <= lo):
+            common = common_interior(a, b, half)
+            if common is None:
                 continue
-            common = Reports("", np.zeros((0, 3)), np.stack([lo, hi]))
+            lo, hi = common.interior_A
             inner = [r.inside(r.positions) for r in (a, b)]
             pa, pb = a.positions[inner[0]], b.positions[inner[1]]
             ma, mb = np.asarray(masks[ia], bool)[inner[0]], np.asarray(masks[ib], bool)[inner[1]]
@@ -282,6 +281,14 @@ def pair_agreement(reports: list[Reports], hard_core_A: float, counted: list | N
             positions = _positions_agree(a, b, inner, *matched[0])
             out.append(PairAgreement(a.name, b.name, n_a, n_b, agree_a, agree_b, float(np.prod(hi - lo)), *positions))
     return out
+
+
+def common_interior(a: Reports, b: Reports, margin_A: float) -> Reports | None:
+    """The two reports' interiors' intersection less ``margin_A`` at each edge, as a
+    :class:`Reports` of no atoms (its :meth:`~Reports.inside` the test); None where it is empty."""
+    lo = np.maximum(a.interior_A[0], b.interior_A[0]) + margin_A
+    hi = np.minimum(a.interior_A[1], b.interior_A[1]) - margin_A
+    return None if np.any(hi <= lo) else Reports("", np.zeros((0, 3)), np.stack([lo, hi]))
 
 
 def _positions_agree(a: Reports, b: Reports, inner: list, ia: np.ndarray, ib: np.ndarray) -> tuple:

@@ -1,6 +1,7 @@
 """Which atoms overlapping sub-areas disagree on: the share of a strip's reports in the common
-interiors that the other fit reports too (within half the hard core, as
-``film/stitch.pair_agreement`` counts it), by the atoms' evidence (trusted, proven, open in
+interiors that the other fit reports too (a report within half the hard core of it; the common
+interior as ``film/stitch.pair_agreement`` takes it, which also asks that report to have it as its
+nearest), by the atoms' evidence (trusted, proven, open in
 depth, significance) and by their depth in the film.
 
     gaussian-atoms benchmark-film --strips 1 --no-registration-by-overlap --output runs/strips
@@ -50,7 +51,7 @@ def common_reports(run: Path, strip: int, film: Path) -> dict[str, np.ndarray]:
     the other fit reports it (``agree``), and the atom's evidence and depth (``z_A``)."""
     from gaussian_atoms_method.atoms.atom_set import read_atoms
     from gaussian_atoms_method.atoms.hard_core import hard_core_from_species
-    from gaussian_atoms_method.film.stitch import Reports
+    from gaussian_atoms_method.film.stitch import Reports, common_interior
     from gaussian_atoms_method.film.subareas import published_subareas
     from gaussian_atoms_method.harness.film_strip import FULL_VOLUME_CENTRE_VOX, PIXEL_SIZE_A, STRIPS
 
@@ -63,11 +64,9 @@ def common_reports(run: Path, strip: int, film: Path) -> dict[str, np.ndarray]:
     out: dict[str, list] = {k: [] for k in ("agree", "trusted", "proven", "depth_open", "significance", "z_A", "std_A")}
     for i, a in enumerate(subareas):
         for b in subareas[i + 1 :]:
-            lo = np.maximum(a.interior_A[0], b.interior_A[0]) + half
-            hi = np.minimum(a.interior_A[1], b.interior_A[1]) - half
-            if np.any(hi <= lo):
+            common = common_interior(reports[a.name], reports[b.name], half)
+            if common is None:
                 continue
-            common = Reports("", np.zeros((0, 3)), np.stack([lo, hi]))
             for mine, theirs in ((a.name, b.name), (b.name, a.name)):
                 here, there = reports[mine], reports[theirs]
                 which = np.flatnonzero(common.inside(here.positions) & here.inside(here.positions))
