@@ -34,7 +34,7 @@ STAGE_CORES = 2
 on a CPU (on a 2-core machine the children's imports would take the final stage's cores)."""
 
 
-def spare_cores(children: int = 2) -> bool:
+def spare_cores(children: int) -> bool:
     """Whether this process may use a core for each of ``children`` and :data:`STAGE_CORES` more."""
     from gaussian_atoms_method.physics.devices import cores_given
 
