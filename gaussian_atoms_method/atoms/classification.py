@@ -195,11 +195,23 @@ def classify_gaussians(
     device : str or torch.device
         Where the mixture is fitted (:func:`gaussian_mixture`).
     """
-    masses, sigmas = np.asarray(masses, dtype=np.float64), np.asarray(sigmas_A, dtype=np.float64)
+    masses = np.asarray(masses, dtype=np.float64)
     positions = np.asarray(positions_A, dtype=np.float64).reshape(-1, 3)
-    n = len(masses)
-    if n == 0:
+    if len(masses) == 0:
         return Classification(np.zeros(0, dtype=np.int64), np.zeros(0, dtype=bool), np.zeros((0, 2)), {})
+    classes, class_means, bic = mixture_classes(masses, sigmas_A, max_classes, device)
+    support = in_support(positions)
+    return Classification(classes, support & population_support(classes, support, masses, positions), class_means, bic)
+
+
+def mixture_classes(
+    masses: np.ndarray, sigmas_A: np.ndarray, max_classes: int = MAX_CLASSES, device: str | torch.device = "cpu"
+) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The classes of N > 0 Gaussians by (log mass, log width) (module docstring): (N,) each one's
+    class (1..k, by increasing mean mass), (k, 2) the classes' means and the information
+    criterion of each number of classes tried."""
+    masses, sigmas = np.asarray(masses, dtype=np.float64), np.asarray(sigmas_A, dtype=np.float64)
+    n = len(masses)
     x = np.stack([np.log(np.maximum(masses, 1e-300)), np.log(np.maximum(sigmas, 1e-300))], axis=1)
     best, bic = None, {}
     for k in range(1, min(max_classes, max(n // 10, 1)) + 1):  # ten Gaussians a class at least
@@ -216,9 +228,7 @@ def classify_gaussians(
     order = np.argsort(means[:, 0])
     rank = np.empty(k, dtype=np.int64)
     rank[order] = np.arange(1, k + 1)
-    classes = rank[np.argmax(log_p, axis=1)]
-    support = in_support(positions)
-    return Classification(classes, support & population_support(classes, support, masses, positions), means[order], bic)
+    return rank[np.argmax(log_p, axis=1)], means[order], bic
 
 
 def population_support(
@@ -226,30 +236,49 @@ def population_support(
 ) -> np.ndarray:
     """(N,) bool: False for every member of a class that lies outside the confident atoms' support
     (module docstring).  The confident atoms: the supported members of the class that holds the
-    most mass among the supported Gaussians.  A member lies outside when no confident atom other
-    than itself is within the far-out fence (:data:`FENCE_IQR`) of the confident atoms'
-    nearest-neighbour distances; a class lies outside when more than half its members do."""
+    most mass among the supported Gaussians (:func:`confident_class`).  A member lies outside when
+    no confident atom other than itself is within the far-out fence (:data:`FENCE_IQR`) of the
+    confident atoms' nearest-neighbour distances (:func:`near_confident`); a class lies outside
+    when more than half its members do."""
     classes, support = np.asarray(classes), np.asarray(support, dtype=bool)
-    positions = np.asarray(positions_A, dtype=np.float64).reshape(-1, 3)
     keep = np.ones(len(classes), dtype=bool)
-    labels = np.unique(classes[support])
-    if len(labels) < 2:
+    confident = confident_class(classes, support, masses)
+    near = None if confident is None else near_confident(classes, support, positions_A, confident)
+    if near is None:
         return keep
-    mass = np.asarray(masses, dtype=np.float64)
-    confident_class = labels[np.argmax([mass[support & (classes == c)].sum() for c in labels])]
-    confident = np.flatnonzero(support & (classes == confident_class))
-    if len(confident) < 4:
-        return keep
-    d = nearest_neighbour_distances(positions[confident])
-    q1, q3 = np.percentile(d, [25, 75])
-    distance, index = cKDTree(positions[confident]).query(positions, k=2, workers=-1)
-    # a confident atom's nearest confident atom is itself: take the second
-    own = confident[index[:, 0]] == np.arange(len(positions))
-    near = np.where(own, distance[:, 1], distance[:, 0]) <= q3 + FENCE_IQR * (q3 - q1)
-    for c in labels:
-        if c != confident_class and np.mean(near[classes == c]) < 0.5:
+    for c in np.unique(classes[support]):
+        if c != confident and np.mean(near[classes == c]) < 0.5:
             keep[classes == c] = False
     return keep
+
+
+def confident_class(classes: np.ndarray, support: np.ndarray, masses: np.ndarray) -> int | None:
+    """The class holding the most mass among the supported Gaussians (:func:`population_support`);
+    None where fewer than two classes have supported members."""
+    classes, support = np.asarray(classes), np.asarray(support, dtype=bool)
+    labels = np.unique(classes[support])
+    if len(labels) < 2:
+        return None
+    mass = np.asarray(masses, dtype=np.float64)
+    return int(labels[np.argmax([mass[support & (classes == c)].sum() for c in labels])])
+
+
+def near_confident(
+    classes: np.ndarray, support: np.ndarray, positions_A: np.ndarray, confident: int
+) -> np.ndarray | None:
+    """(N,) bool: a confident atom (a supported member of class ``confident``) other than itself
+    lies within the far-out fence (:data:`FENCE_IQR`) of the confident atoms' nearest-neighbour
+    distances; None where fewer than four confident atoms say what those distances are."""
+    positions = np.asarray(positions_A, dtype=np.float64).reshape(-1, 3)
+    confident_atoms = np.flatnonzero(np.asarray(support, dtype=bool) & (np.asarray(classes) == confident))
+    if len(confident_atoms) < 4:
+        return None
+    d = nearest_neighbour_distances(positions[confident_atoms])
+    q1, q3 = np.percentile(d, [25, 75])
+    distance, index = cKDTree(positions[confident_atoms]).query(positions, k=2, workers=-1)
+    # a confident atom's nearest confident atom is itself: take the second
+    own = confident_atoms[index[:, 0]] == np.arange(len(positions))
+    return np.where(own, distance[:, 1], distance[:, 0]) <= q3 + FENCE_IQR * (q3 - q1)
 
 
 def in_support(positions_A: np.ndarray) -> np.ndarray:
