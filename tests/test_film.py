@@ -208,6 +208,60 @@ def test_an_artefact_of_one_fit_is_a_non_atom():
     assert real > 0.9 and artefact < 0.25
 
 
+def _fit_on_disk(directory, atoms, non_atoms=None):
+    """A sub-area's fit as a run writes it: ``atoms.xyz`` and, where given, ``non_atoms.xyz``."""
+    from gaussian_atoms_method.atoms.atom_set import write_atoms
+
+    directory.mkdir(parents=True)
+    write_atoms(atoms, directory / "atoms.xyz")
+    if non_atoms is not None:
+        write_atoms(non_atoms, directory / "non_atoms.xyz")
+    return {"atoms": str(directory / "atoms.xyz")}
+
+
+def test_a_class_one_fit_kept_and_its_neighbour_set_apart_is_decided_once_for_the_film(tmp_path):
+    """Two overlapping sub-areas over one film of 320 atoms (log masses 0 +- 0.05, 0.6 Å wide)
+    with 120 light, wide Gaussians (a third of an atom's mass, 0.9 Å) in a layer 8-12 Å above it:
+    one fit reported the layer as atoms, the other set it apart.  The film decides once over
+    both fits' Gaussians: the layer is a class apart in both, so the two agree on every atom of
+    their common interior; a Gaussian within the hard core of a heavier one stays a non-atom,
+    as the run holds it; where a fit wrote no non-atoms the film keeps the fits' own atoms."""
+    from gaussian_atoms_method.atoms.atom_set import AtomSet
+    from gaussian_atoms_method.film.film import film_reports
+    from gaussian_atoms_method.film.subareas import SubArea
+
+    rng = np.random.default_rng(3)
+    grid = np.stack(np.meshgrid(np.arange(-14.0, 14.0, 2.8), np.arange(-11.0, 11.0, 2.8), [0.0, 2.8, 5.6, 8.4]), -1)
+    film = grid.reshape(-1, 3) + rng.normal(0, 0.05, (grid.size // 3, 3))
+    layer = np.c_[rng.uniform(-14, 14, 120), rng.uniform(-11, 11, 120), rng.uniform(16, 20, 120)]
+    twin = film[len(film) // 2] + [0.0, 0.0, 1.0]  # within the hard core of an atom, lighter
+    subareas, records = [], {}
+    for i, (x0, reported) in enumerate(((-3.0, True), (3.0, False))):
+        sub = SubArea(f"s{i}", tmp_path, (x0, 0.0, 0.0), (101, 121), (50.0, 60.0), 0.2, (10, 4))
+        inside = np.abs(np.r_[film, layer, [twin]][:, 0] - x0) <= 10.0
+        positions = np.r_[film, layer, [twin]][inside] - [x0, 0.0, 0.0]
+        n = len(positions)
+        masses = np.exp(np.r_[rng.normal(0, 0.05, len(film)), rng.normal(-1.1, 0.05, len(layer)), [-0.5]])[inside]
+        sigmas = np.r_[np.full(len(film), 0.6), np.full(len(layer), 0.9), [0.6]][inside]
+        is_atom = np.r_[np.ones(len(film), bool), np.full(len(layer), reported), [False]][inside]
+        fit = AtomSet(positions, sigmas, masses / (2 * np.pi * sigmas**2) ** 1.5, position_std_A=np.full((n, 3), 0.02))
+        fit.trusted = np.ones(n, np.int64)
+        records[sub.name] = _fit_on_disk(tmp_path / sub.name, fit.subset(is_atom), fit.subset(~is_atom))
+        subareas.append(sub)
+    reports = film_reports(subareas, records, HARD_CORE_A)
+    for r in reports:
+        assert not (r.positions[:, 2] > 14.0).any()  # the layer: apart in both
+        assert np.min(np.linalg.norm(r.positions - twin, axis=1)) > 0.5  # the twin: within the core
+    pair = pair_agreement(reports, HARD_CORE_A)[0]
+    assert pair.n_a > 50 and pair.agree_a == 1.0 and pair.agree_b == 1.0
+    # without non-atoms on disk: each fit's own atoms (the first keeps its layer)
+    for sub in subareas:
+        (tmp_path / sub.name / "non_atoms.xyz").unlink()
+    own = film_reports(subareas, records, HARD_CORE_A)
+    assert (own[0].positions[:, 2] > 14.0).any() and not (own[1].positions[:, 2] > 14.0).any()
+    assert pair_agreement(own, HARD_CORE_A)[0].agree_a < 1.0  # the first's layer, unseen by the second
+
+
 def test_reports_farther_apart_than_half_the_hard_core_stay_apart():
     """Two fits reporting points 1.5 Å apart (more than half of a 2.2 Å hard core): two atoms,
     each found in one of the two fits that cover it."""

@@ -26,6 +26,7 @@ import numpy as np
 from gaussian_atoms_method.atoms.atom_set import AtomSet, read_atoms, write_atoms
 from gaussian_atoms_method.atoms.hard_core import hard_core_from_species, parse_species
 from gaussian_atoms_method.engine.console import CONSOLE
+from gaussian_atoms_method.film.classes import film_split, read_gaussians
 from gaussian_atoms_method.film.registration import SETS, registration_words
 from gaussian_atoms_method.film.registration import registration_by_overlap as registration_by_overlap_of
 from gaussian_atoms_method.film.runner import check_address, run_subareas
@@ -114,18 +115,31 @@ def _fit_and_judge(runs_dir, options, subareas, device, max_steps, address, prog
         raise FilmError(f"{len(failures)} of {len(subareas)} sub-areas failed ({named}); run again to retry them")
     cores = [r["hard_core_A"] for r in records.values() if r.get("hard_core_A")]
     hard_core_A = hard_core_from_species(species) if species else float(np.median(cores)) if cores else math.nan
-    atoms = {s.name: read_atoms(records[s.name]["atoms"]) for s in subareas}
-    reports = [
-        Reports(
-            s.name,
-            atoms[s.name].positions + np.asarray(s.offset_A),
-            s.interior_A,
-            atoms[s.name].position_std_A,
-            None if atoms[s.name].trusted is None else np.asarray(atoms[s.name].trusted) > 0,
-        )
-        for s in subareas
-    ]
+    reports = film_reports(subareas, records, hard_core_A)
     return records, reports, hard_core_A, pair_agreement(reports, hard_core_A)
+
+
+def film_reports(subareas: list[SubArea], records: dict, hard_core_A: float) -> list[Reports]:
+    """Each sub-area's atoms in the film's frame, split from its non-atoms by one class decision
+    over the film (:mod:`.classes`, said in a line); where a fit wrote no non-atoms, the fits'
+    own splits (their ``atoms``)."""
+    sets = [read_gaussians(records[s.name]["atoms"], s) for s in subareas]
+    if all(g is not None for g in sets):
+        split = film_split(sets, hard_core_A)
+        CONSOLE.print(f"gaussian-atoms film: {split.words(sets)}")
+        chosen = [
+            (g.positions[k], g.position_std_A[k], None if g.trusted is None else g.trusted[k])
+            for g, k in zip(sets, split.kept)
+        ]
+    else:
+        atoms = [read_atoms(records[s.name]["atoms"]) for s in subareas]
+        chosen = [
+            (a.positions, a.position_std_A, None if a.trusted is None else np.asarray(a.trusted) > 0) for a in atoms
+        ]
+    return [
+        Reports(s.name, positions + np.asarray(s.offset_A), s.interior_A, std, trusted)
+        for s, (positions, std, trusted) in zip(subareas, chosen)
+    ]
 
 
 ARGUMENT_NAMES = {"device": "device", "max_steps": "max_steps", "tasks_per_gpu": "tasks_per_gpu"}
