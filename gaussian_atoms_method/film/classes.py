@@ -23,6 +23,7 @@ strips (the sub-areas' own fits as they were) the overlapping fits' median agree
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -68,8 +69,8 @@ def read_gaussians(atoms_path: Path, subarea) -> SubAreaGaussians | None:
     parts = (atoms, rest)
     if any(p.masses is None or p.position_std_A is None for p in parts if len(p)):
         return None
-    lo = -np.asarray(subarea.centre_px, dtype=np.float64) * subarea.pixel_size_A
-    hi = (np.asarray(subarea.shape_px, dtype=np.float64) - 1 - np.asarray(subarea.centre_px)) * subarea.pixel_size_A
+    # the detector in the sub-area's own frame: its interior with no edge, at no offset
+    lo, hi = dataclasses.replace(subarea, offset_A=(0.0, 0.0, 0.0), edge_px=(0, 0)).interior_A
 
     def stacked(get, width: int) -> np.ndarray:
         blocks = [np.asarray(get(p), np.float64).reshape(len(p), width) for p in parts if len(p)]
